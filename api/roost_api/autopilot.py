@@ -1,0 +1,320 @@
+"""The RedundantAutopilot resource: the autopilots of one vehicle and how to fail over.
+
+Spec is written by people (and by the operator for manual requests); status is written
+only by the node agent on the vehicle, because only it sees the MAVLink links. The
+failover decision itself never waits for this object: the agent keeps the last spec on
+disk and decides locally, then reports here.
+
+Thresholds default to the starting points in the MAVLink health reference: message
+silence WARN at 0.2 s and ERROR at 0.5 s (attitude streams at 50 Hz or more), heartbeat
+WARN 1.5 s and ERROR 3 s, hysteresis clear time at least three times the confirm time.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+from enum import StrEnum
+
+from pydantic import Field
+
+from roost_api.meta import CONDITIONS_SCHEMA, DNS_LABEL_PATTERN, ApiModel, Condition, HealthLevel, Stack
+
+MAX_AUTOPILOTS = 8
+CONNECTION_PATTERN = r"^(serial://|udp://|udpin://|udpout://|tcp://|tcpin://)\S+$"
+
+
+class AutopilotConditionType(StrEnum):
+    """Condition types on a RedundantAutopilot; all written by the node agent."""
+
+    READY = "Ready"
+    ACTIVE_HEALTHY = "ActiveHealthy"
+    REDUNDANT = "Redundant"
+    FAILED_OVER = "FailedOver"
+
+
+class FailoverMode(StrEnum):
+    """Who decides a failover."""
+
+    AUTOMATIC = "Automatic"
+    MANUAL = "Manual"
+
+
+class FinalAction(StrEnum):
+    """What the safety routine does after holding."""
+
+    LAND = "Land"
+    RETURN_TO_LAUNCH = "ReturnToLaunch"
+    HOLD = "Hold"
+
+
+class Failback(StrEnum):
+    """Whether control may return to the primary after a failover."""
+
+    NEVER = "Never"
+    MANUAL = "Manual"
+    ON_GROUND = "OnGround"
+
+
+class CommandAction(StrEnum):
+    """Requests the cluster can make of the node agent."""
+
+    SWITCH = "Switch"
+    SAFETY_ROUTINE = "SafetyRoutine"
+    EMERGENCY_STOP = "EmergencyStop"
+    CLEAR_LATCH = "ClearLatch"
+
+
+class AutopilotSpec(ApiModel):
+    """One flight controller of the vehicle."""
+
+    name: str = Field(
+        min_length=1, max_length=63, pattern=DNS_LABEL_PATTERN, description="Unique name."
+    )
+    stack: Stack = Field(description="Flight stack: px4 or ardupilot.")
+    connection: str = Field(
+        max_length=256,
+        pattern=CONNECTION_PATTERN,
+        description="How the agent reaches it, e.g. serial:///dev/ttyUSB0:921600 or "
+        "udp://127.0.0.1:14541 (listen) or udpout://127.0.0.1:14541 (send).",
+    )
+    fcu_url: str | None = Field(
+        default=None,
+        max_length=256,
+        description="URL mavros uses for this autopilot when it is active; defaults to the "
+        "connection. A serial port cannot be opened twice, so on hardware route it through "
+        "a MAVLink router and give the router's UDP endpoint here.",
+    )
+    sysid: int = Field(ge=1, le=255, description="MAVLink system id; unique per vehicle.")
+    component_id: int = Field(
+        default=1, ge=1, le=255, description="MAVLink component id of the autopilot."
+    )
+    bridge_channel: int = Field(
+        ge=0,
+        le=63,
+        description="Bridge input (GPIO line offset) that connects this autopilot to the "
+        "motors.",
+    )
+
+
+class Thresholds(ApiModel):
+    """Health thresholds; see the MAVLink health reference for their origin."""
+
+    message_warn_ms: int = Field(default=200, ge=10, le=60000, description="Any-message age WARN.")
+    message_error_ms: int = Field(
+        default=500, ge=20, le=60000, description="Any-message age ERROR (silent link)."
+    )
+    heartbeat_warn_ms: int = Field(default=1500, ge=100, le=60000, description="Heartbeat WARN.")
+    heartbeat_error_ms: int = Field(
+        default=3000, ge=200, le=60000, description="Heartbeat age ERROR."
+    )
+    confirm_ms: int = Field(
+        default=100,
+        ge=0,
+        le=10000,
+        description="A failing signal must persist this long before it counts (T_on).",
+    )
+    clear_ms: int = Field(
+        default=1000,
+        ge=0,
+        le=60000,
+        description="A cleared signal must stay clear this long to count healthy (T_off).",
+    )
+    sensor_persist_ms: int = Field(
+        default=600,
+        ge=0,
+        le=10000,
+        description="A critical sensor bit must stay unhealthy this long (3 samples at 5 Hz).",
+    )
+    max_tilt_deg: float = Field(
+        default=60.0, gt=0, le=180, description="Attitude beyond this is ERROR."
+    )
+
+
+class SafetyRoutine(ApiModel):
+    """What the new active autopilot does right after a failover."""
+
+    hold_seconds: float = Field(
+        default=3.0, ge=0, le=120, description="Seconds to hold position before the final action."
+    )
+    final_action: FinalAction = Field(
+        default=FinalAction.LAND, description="Land, ReturnToLaunch or Hold after holding."
+    )
+    skip_in_manual_mode: bool = Field(
+        default=True,
+        description="When a pilot flies in a manual mode, switch but leave control to them.",
+    )
+
+
+class FailoverPolicy(ApiModel):
+    """How the agent decides and what it does after deciding."""
+
+    mode: FailoverMode = Field(
+        default=FailoverMode.AUTOMATIC,
+        description="Automatic: the agent switches on its own. Manual: only on request.",
+    )
+    thresholds: Thresholds = Field(default_factory=Thresholds, description="Health thresholds.")
+    safety_routine: SafetyRoutine = Field(
+        default_factory=SafetyRoutine, description="Routine run on the new active autopilot."
+    )
+    failback: Failback = Field(
+        default=Failback.MANUAL,
+        description="Never, Manual (a Switch command), or OnGround (back to the primary once "
+        "landed and healthy). Never automatic in the air.",
+    )
+
+
+class AutopilotCommand(ApiModel):
+    """A request to the node agent; executed at most once, identified by ``id``."""
+
+    id: str = Field(min_length=1, max_length=64, description="Unique id of this request.")
+    action: CommandAction = Field(
+        description="Switch, SafetyRoutine, EmergencyStop (force disarm) or ClearLatch."
+    )
+    target: str | None = Field(
+        default=None, max_length=63, description="Autopilot to switch to (Switch only)."
+    )
+    issued_at: datetime = Field(description="When the request was made.")
+    deadline_seconds: int = Field(
+        default=10,
+        ge=1,
+        le=3600,
+        description="The agent ignores the request when it sees it later than this after "
+        "issuedAt (stale after a partition).",
+    )
+
+
+class RedundantAutopilotSpec(ApiModel):
+    """Desired state of a RedundantAutopilot."""
+
+    vehicle_name: str = Field(
+        min_length=1,
+        max_length=253,
+        description="The Vehicle these autopilots fly. Immutable.",
+        json_schema_extra={
+            "x-kubernetes-validations": [
+                {"rule": "self == oldSelf", "message": "vehicleName is immutable"}
+            ]
+        },
+    )
+    autopilots: list[AutopilotSpec] = Field(
+        min_length=2,
+        max_length=MAX_AUTOPILOTS,
+        description="The vehicle's flight controllers (two or more).",
+    )
+    primary: str = Field(
+        max_length=63, description="Name of the autopilot that flies when all are healthy."
+    )
+    failover_policy: FailoverPolicy = Field(
+        default_factory=FailoverPolicy, description="How and when to fail over."
+    )
+    command: AutopilotCommand | None = Field(
+        default=None, description="Latest request to the agent; see status.lastCommand."
+    )
+
+
+REDUNDANT_AUTOPILOT_RULES = [
+    {
+        "rule": "self.autopilots.all(a, self.autopilots.exists_one(b, b.name == a.name))",
+        "message": "autopilot names must be unique",
+    },
+    {
+        "rule": "self.autopilots.all(a, self.autopilots.exists_one(b, b.sysid == a.sysid))",
+        "message": "autopilot sysids must be unique: two autopilots with one sysid are merged "
+        "on a MAVLink link and commands reach both",
+    },
+    {
+        "rule": "self.autopilots.all(a, self.autopilots.exists_one(b, "
+        "b.bridgeChannel == a.bridgeChannel))",
+        "message": "autopilot bridgeChannels must be unique",
+    },
+    {
+        "rule": "self.autopilots.exists(a, a.name == self.primary)",
+        "message": "primary must be the name of one of the autopilots",
+    },
+    {
+        "rule": "!has(self.command) || self.command.action != 'Switch' || "
+        "(has(self.command.target) && self.autopilots.exists(a, a.name == self.command.target))",
+        "message": "a Switch command needs a target that is one of the autopilots",
+    },
+    {
+        "rule": "self.failoverPolicy.thresholds.messageWarnMs < "
+        "self.failoverPolicy.thresholds.messageErrorMs && "
+        "self.failoverPolicy.thresholds.heartbeatWarnMs < "
+        "self.failoverPolicy.thresholds.heartbeatErrorMs",
+        "message": "warn thresholds must be below error thresholds",
+    },
+]
+
+
+class AutopilotHealth(ApiModel):
+    """One autopilot's health as the agent last judged it."""
+
+    name: str = Field(max_length=63, description="Autopilot name.")
+    level: HealthLevel = Field(description="OK, WARN, ERROR or STALE (no data).")
+    reasons: list[str] = Field(default_factory=list, description="Why it is not OK.")
+    heartbeat_age_ms: int | None = Field(default=None, description="Age of the last heartbeat.")
+    message_age_ms: int | None = Field(default=None, description="Age of the last message.")
+    mode: str | None = Field(default=None, description="Flight mode from the heartbeat.")
+    armed: bool | None = Field(default=None, description="Armed flag from the heartbeat.")
+    landed_state: str | None = Field(
+        default=None, description="OnGround, InAir, Takeoff or Landing (EXTENDED_SYS_STATE)."
+    )
+    system_status: str | None = Field(default=None, description="MAV_STATE from the heartbeat.")
+    unhealthy_sensors: list[str] = Field(
+        default_factory=list, description="Enabled SYS_STATUS sensors reported unhealthy."
+    )
+
+
+class FailoverRecord(ApiModel):
+    """The most recent switch of the active autopilot."""
+
+    time: datetime = Field(description="When the bridge switched.")
+    from_autopilot: str = Field(alias="from", description="Autopilot that was active.")
+    to_autopilot: str = Field(alias="to", description="Autopilot that became active.")
+    reason: str = Field(description="Why, e.g. heartbeat lost on fc1.")
+    latency_ms: float = Field(description="Detection to bridge switched, measured on-vehicle.")
+    trigger: str = Field(description="Automatic, Command or Failback.")
+    safety_routine: str | None = Field(
+        default=None, description="Outcome of the safety routine: Running, Landed, Skipped…"
+    )
+
+
+class CommandResult(ApiModel):
+    """The last command the agent processed."""
+
+    id: str = Field(description="The command's id.")
+    result: str = Field(description="Executed, Rejected or Expired.")
+    message: str = Field(default="", description="Details.")
+    time: datetime = Field(description="When the agent processed it.")
+
+
+class RedundantAutopilotStatus(ApiModel):
+    """Observed state of a RedundantAutopilot, written by the node agent."""
+
+    observed_generation: int | None = Field(
+        default=None, description="metadata.generation the agent last applied."
+    )
+    conditions: list[Condition] = Field(
+        default_factory=list, json_schema_extra=CONDITIONS_SCHEMA, description="Ready, ActiveHealthy, Redundant, FailedOver."
+    )
+    active_autopilot: str | None = Field(
+        default=None, description="Autopilot currently connected to the motors."
+    )
+    autopilots: list[AutopilotHealth] = Field(
+        default_factory=list, description="Health of each autopilot."
+    )
+    last_failover: FailoverRecord | None = Field(
+        default=None, description="The most recent switch."
+    )
+    failover_count: int = Field(default=0, description="Switches since the agent started.")
+    latched: bool = Field(
+        default=False,
+        description="A failover happened this flight; no automatic switch back until cleared.",
+    )
+    last_command: CommandResult | None = Field(
+        default=None, description="The last command the agent processed."
+    )
+    node_name: str | None = Field(default=None, description="Node of the reporting agent.")
+    reported_at: datetime | None = Field(
+        default=None, description="When the agent last reported (refreshed periodically)."
+    )

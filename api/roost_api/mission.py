@@ -1,0 +1,227 @@
+"""The Mission resource: which vehicles fly, and what runs on and off them.
+
+A Mission is what users ``kubectl apply``. It mirrors Starling's deployment pattern: an
+onboard controller on every assigned vehicle, plus an optional offboard (central)
+workload. The operator claims vehicles exclusively, gates on preflight checks, runs the
+workloads with Job completion semantics, and on abort asks every vehicle's agent to run
+its safety routine.
+
+The pod templates are the real Kubernetes ``PodTemplateSpec``: the CRD generator embeds
+its schema, so users get the same validation and ``kubectl explain`` as in a Job.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+from enum import StrEnum
+from typing import Any
+
+from pydantic import Field
+
+from roost_api.meta import CONDITIONS_SCHEMA, DNS_SUBDOMAIN_PATTERN, ApiModel, Condition
+
+# Marker the CRD generator replaces with the Kubernetes PodTemplateSpec schema.
+EMBED_POD_TEMPLATE = {"x-roost-embed": "io.k8s.api.core.v1.PodTemplateSpec"}
+MAX_MISSION_VEHICLES = 1000
+
+
+class MissionPhase(StrEnum):
+    """Lifecycle of a Mission."""
+
+    PENDING = "Pending"
+    PREFLIGHT = "Preflight"
+    RUNNING = "Running"
+    SUCCEEDED = "Succeeded"
+    FAILED = "Failed"
+    ABORTING = "Aborting"
+    ABORTED = "Aborted"
+
+    @property
+    def finished(self) -> bool:
+        """True for phases a Mission never leaves."""
+        return self in (MissionPhase.SUCCEEDED, MissionPhase.FAILED, MissionPhase.ABORTED)
+
+
+class MissionVehiclePhase(StrEnum):
+    """Lifecycle of one vehicle within a Mission."""
+
+    CLAIMED = "Claimed"
+    PREFLIGHT = "Preflight"
+    RUNNING = "Running"
+    SUCCEEDED = "Succeeded"
+    FAILED = "Failed"
+    ABORTING = "Aborting"
+    ABORTED = "Aborted"
+
+
+class MissionConditionType(StrEnum):
+    """Condition types on a Mission; written by the operator."""
+
+    VEHICLES_ASSIGNED = "VehiclesAssigned"
+    PREFLIGHT_PASSED = "PreflightPassed"
+    DEGRADED = "Degraded"
+    COMPLETE = "Complete"
+
+
+class OnFailover(StrEnum):
+    """What a mission does when one of its vehicles fails over mid-flight."""
+
+    CONTINUE = "Continue"
+    ABORT_VEHICLE = "AbortVehicle"
+    ABORT_MISSION = "AbortMission"
+
+
+class AbortAction(StrEnum):
+    """How an abort stops the vehicles."""
+
+    SAFETY_ROUTINE = "SafetyRoutine"
+    EMERGENCY_STOP = "EmergencyStop"
+
+
+class LabelSelectorRequirement(ApiModel):
+    """A label selector requirement, as in metav1.LabelSelectorRequirement."""
+
+    key: str = Field(max_length=317, description="Label key.")
+    operator: str = Field(
+        pattern=r"^(In|NotIn|Exists|DoesNotExist)$",
+        description="In, NotIn, Exists or DoesNotExist.",
+    )
+    values: list[str] = Field(
+        default_factory=list, max_length=64, description="Values for In and NotIn."
+    )
+
+
+class LabelSelector(ApiModel):
+    """A label query over Vehicles, as in metav1.LabelSelector."""
+
+    match_labels: dict[str, str] = Field(
+        default_factory=dict, description="Labels a Vehicle must carry."
+    )
+    match_expressions: list[LabelSelectorRequirement] = Field(
+        default_factory=list, max_length=32, description="Set-based requirements."
+    )
+
+
+class VehicleSelection(ApiModel):
+    """Which vehicles a mission may use and how many it needs."""
+
+    selector: LabelSelector | None = Field(
+        default=None, description="Vehicles whose labels match; combined with names."
+    )
+    names: list[str] = Field(
+        default_factory=list,
+        max_length=MAX_MISSION_VEHICLES,
+        description="Vehicles by name; preferred before selector matches.",
+    )
+    count: int = Field(
+        ge=1, le=MAX_MISSION_VEHICLES, description="How many vehicles the mission needs."
+    )
+
+
+VEHICLE_SELECTION_RULES = [
+    {
+        "rule": "has(self.selector) || size(self.names) > 0",
+        "message": "vehicles needs a selector, names, or both",
+    },
+    {
+        "rule": "!has(self.selector) && size(self.names) > 0 ? self.count <= size(self.names) : true",
+        "message": "count is larger than the number of names and there is no selector",
+    },
+]
+
+
+class Preflight(ApiModel):
+    """Checks every assigned vehicle must pass before anything starts on it."""
+
+    require_agent_connected: bool = Field(
+        default=True, description="The vehicle's node agent reports recently."
+    )
+    require_active_healthy: bool = Field(
+        default=True, description="The active autopilot is OK."
+    )
+    require_redundancy: bool = Field(
+        default=True, description="At least one healthy standby autopilot."
+    )
+
+
+class MissionSpec(ApiModel):
+    """Desired state of a Mission."""
+
+    vehicles: VehicleSelection = Field(
+        description="Which vehicles fly. Immutable.",
+        json_schema_extra={
+            "x-kubernetes-validations": [
+                {"rule": "self == oldSelf", "message": "vehicles is immutable"},
+                *VEHICLE_SELECTION_RULES,
+            ]
+        },
+    )
+    onboard: dict[str, Any] = Field(
+        description="Pod template run once on every assigned vehicle. Immutable.",
+        json_schema_extra=EMBED_POD_TEMPLATE,
+    )
+    offboard: dict[str, Any] | None = Field(
+        default=None,
+        description="Pod template run once off the vehicles (a central monitor). Immutable.",
+        json_schema_extra=EMBED_POD_TEMPLATE,
+    )
+    backoff_limit: int = Field(
+        default=2, ge=0, le=10, description="Retries of a failed onboard pod per vehicle."
+    )
+    preflight: Preflight = Field(default_factory=Preflight, description="Preflight checks.")
+    on_failover: OnFailover = Field(
+        default=OnFailover.ABORT_VEHICLE,
+        description="Continue, AbortVehicle (land it, mission goes on Degraded) or "
+        "AbortMission, when a vehicle fails over mid-mission.",
+    )
+    abort: bool = Field(
+        default=False,
+        description="Set true to abort: every vehicle runs its safety routine. Cannot be undone.",
+    )
+    abort_action: AbortAction = Field(
+        default=AbortAction.SAFETY_ROUTINE,
+        description="SafetyRoutine (hold then land) or EmergencyStop (force disarm).",
+    )
+
+
+MISSION_SPEC_RULES = [
+    {
+        "rule": "!oldSelf.abort || self.abort",
+        "message": "abort cannot be undone; create a new Mission",
+    },
+    {"rule": "self.onboard == oldSelf.onboard", "message": "onboard is immutable"},
+    {
+        "rule": "has(self.offboard) == has(oldSelf.offboard) && "
+        "(!has(self.offboard) || self.offboard == oldSelf.offboard)",
+        "message": "offboard is immutable",
+    },
+]
+
+
+class MissionVehicleStatus(ApiModel):
+    """One assigned vehicle's progress."""
+
+    name: str = Field(max_length=253, pattern=DNS_SUBDOMAIN_PATTERN, description="Vehicle name.")
+    node_name: str | None = Field(default=None, description="Its node.")
+    phase: MissionVehiclePhase = Field(description="Where this vehicle is in the mission.")
+    reason: str | None = Field(default=None, description="CamelCase reason for the phase.")
+    message: str | None = Field(default=None, description="What is happening or missing.")
+    job_name: str | None = Field(default=None, description="Onboard Job on this vehicle.")
+
+
+class MissionStatus(ApiModel):
+    """Observed state of a Mission, written by the operator."""
+
+    observed_generation: int | None = Field(default=None, description="Generation reconciled.")
+    phase: MissionPhase = Field(default=MissionPhase.PENDING, description="Mission phase.")
+    reason: str | None = Field(default=None, description="CamelCase reason for the phase.")
+    message: str | None = Field(default=None, description="Why the mission is in this phase.")
+    assigned_count: int = Field(default=0, description="Vehicles assigned.")
+    vehicles: list[MissionVehicleStatus] = Field(
+        default_factory=list, description="Per-vehicle state."
+    )
+    conditions: list[Condition] = Field(
+        default_factory=list, json_schema_extra=CONDITIONS_SCHEMA, description="VehiclesAssigned, PreflightPassed, Degraded, Complete."
+    )
+    start_time: datetime | None = Field(default=None, description="When workloads started.")
+    completion_time: datetime | None = Field(default=None, description="When it finished.")

@@ -1,0 +1,159 @@
+"""The three Roost kinds and how Kubernetes presents them.
+
+One :class:`ResourceKind` per kind ties the pydantic spec/status models to the names,
+scope, short names, printer columns and whole-spec CEL rules the CRD carries. The CRD
+generator, the operator's watches and the agent's API calls all read these, so a plural
+or a group is spelled in exactly one place.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from roost_api.autopilot import (
+    REDUNDANT_AUTOPILOT_RULES,
+    RedundantAutopilotSpec,
+    RedundantAutopilotStatus,
+)
+from roost_api.meta import CATEGORY, GROUP, VERSION, ApiModel
+from roost_api.mission import MISSION_SPEC_RULES, MissionSpec, MissionStatus
+from roost_api.vehicle import VehicleSpec, VehicleStatus
+
+
+@dataclass(frozen=True)
+class PrinterColumn:
+    """One ``kubectl get`` column."""
+
+    name: str
+    json_path: str
+    type: str = "string"
+    priority: int = 0
+    description: str = ""
+
+    def to_crd(self) -> dict[str, Any]:
+        column: dict[str, Any] = {"name": self.name, "type": self.type, "jsonPath": self.json_path}
+        if self.priority:
+            column["priority"] = self.priority
+        if self.description:
+            column["description"] = self.description
+        return column
+
+
+def _condition(type_: str) -> str:
+    return f'.status.conditions[?(@.type=="{type_}")].status'
+
+
+AGE = PrinterColumn("Age", ".metadata.creationTimestamp", "date")
+
+
+@dataclass(frozen=True)
+class ResourceKind:
+    """A Roost custom resource kind."""
+
+    kind: str
+    plural: str
+    scope: Literal["Cluster", "Namespaced"]
+    short_names: tuple[str, ...]
+    description: str
+    spec_model: type[ApiModel]
+    status_model: type[ApiModel]
+    columns: tuple[PrinterColumn, ...]
+    spec_rules: tuple[dict[str, str], ...] = field(default=())
+
+    @property
+    def singular(self) -> str:
+        return self.kind.lower()
+
+    @property
+    def crd_name(self) -> str:
+        return f"{self.plural}.{GROUP}"
+
+    @property
+    def namespaced(self) -> bool:
+        return self.scope == "Namespaced"
+
+    @property
+    def group(self) -> str:
+        return GROUP
+
+    @property
+    def version(self) -> str:
+        return VERSION
+
+    @property
+    def categories(self) -> tuple[str, ...]:
+        return (CATEGORY,)
+
+
+VEHICLE = ResourceKind(
+    kind="Vehicle",
+    plural="vehicles",
+    scope="Cluster",
+    short_names=("veh",),
+    description="A drone of the fleet: one physical or simulated vehicle whose companion "
+    "computer is a Kubernetes node. Roost labels the node, writes the vehicle's config and "
+    "runs its component workloads (mavros, vicon, hardware, SITL).",
+    spec_model=VehicleSpec,
+    status_model=VehicleStatus,
+    columns=(
+        PrinterColumn("Node", ".spec.nodeName"),
+        PrinterColumn("Sysid", ".spec.sysid", "integer"),
+        PrinterColumn("Sim", ".spec.simulation.stack", description="SITL stack if simulated"),
+        PrinterColumn("Ready", _condition("Ready")),
+        PrinterColumn("Autopilots", _condition("AutopilotsHealthy"), priority=0),
+        PrinterColumn("Active", ".status.activeAutopilot"),
+        PrinterColumn("Mission", ".status.claimedBy.name"),
+        PrinterColumn("Class", ".spec.vehicleClass", priority=1),
+        PrinterColumn("Type", ".spec.vehicleType", priority=1),
+        PrinterColumn("Reason", '.status.conditions[?(@.type=="Ready")].reason', priority=1),
+        AGE,
+    ),
+)
+
+REDUNDANT_AUTOPILOT = ResourceKind(
+    kind="RedundantAutopilot",
+    plural="redundantautopilots",
+    scope="Cluster",
+    short_names=("rap", "autopilots"),
+    description="The redundant autopilots of one vehicle and its failover policy. The node "
+    "agent on the vehicle writes the status: active autopilot, health of each, last "
+    "failover.",
+    spec_model=RedundantAutopilotSpec,
+    status_model=RedundantAutopilotStatus,
+    columns=(
+        PrinterColumn("Vehicle", ".spec.vehicleName"),
+        PrinterColumn("Primary", ".spec.primary"),
+        PrinterColumn("Active", ".status.activeAutopilot"),
+        PrinterColumn("Healthy", _condition("ActiveHealthy")),
+        PrinterColumn("Redundant", _condition("Redundant")),
+        PrinterColumn("Failovers", ".status.failoverCount", "integer"),
+        PrinterColumn("Last-Failover", ".status.lastFailover.time", "date"),
+        PrinterColumn("Reason", ".status.lastFailover.reason", priority=1),
+        PrinterColumn("Latency-ms", ".status.lastFailover.latencyMs", "number", priority=1),
+        AGE,
+    ),
+    spec_rules=tuple(REDUNDANT_AUTOPILOT_RULES),
+)
+
+MISSION = ResourceKind(
+    kind="Mission",
+    plural="missions",
+    scope="Namespaced",
+    short_names=("msn",),
+    description="What to fly: which vehicles, the onboard workload run on each, an optional "
+    "offboard workload, preflight checks, failover policy and abort.",
+    spec_model=MissionSpec,
+    status_model=MissionStatus,
+    columns=(
+        PrinterColumn("Phase", ".status.phase"),
+        PrinterColumn("Assigned", ".status.assignedCount", "integer"),
+        PrinterColumn("Required", ".spec.vehicles.count", "integer"),
+        PrinterColumn("Degraded", _condition("Degraded")),
+        PrinterColumn("Reason", ".status.reason", priority=1),
+        AGE,
+    ),
+    spec_rules=tuple(MISSION_SPEC_RULES),
+)
+
+KINDS: tuple[ResourceKind, ...] = (VEHICLE, REDUNDANT_AUTOPILOT, MISSION)

@@ -1,0 +1,166 @@
+"""The Vehicle resource: one physical or simulated drone bound to one Kubernetes node.
+
+Replaces Starling's host file ``/etc/starling/vehicle.config`` and its hand-set node
+labels with a declared object. The operator derives node labels, the per-vehicle config
+and the component workloads from it; the status says whether all of that is in place.
+"""
+
+from __future__ import annotations
+
+from enum import StrEnum
+
+from pydantic import Field
+
+from roost_api.meta import CONDITIONS_SCHEMA, DNS_SUBDOMAIN_PATTERN, ApiModel, Condition, ObjectReference, Stack
+
+CONFIG_KEY_PATTERN = r"^[A-Z_][A-Z0-9_]*$"
+
+
+class VehicleConditionType(StrEnum):
+    """Condition types on a Vehicle; all written by the operator."""
+
+    READY = "Ready"
+    NODE_BOUND = "NodeBound"
+    COMPONENTS_READY = "ComponentsReady"
+    AUTOPILOTS_HEALTHY = "AutopilotsHealthy"
+    AGENT_CONNECTED = "AgentConnected"
+
+
+class ComponentSpec(ApiModel):
+    """One component workload the operator runs on the vehicle's node."""
+
+    enabled: bool = Field(description="Run this component on the vehicle.")
+    image: str | None = Field(
+        default=None,
+        max_length=512,
+        description="Container image overriding Roost's default for this component.",
+    )
+
+
+class Components(ApiModel):
+    """Which component workloads run on the vehicle, with optional image overrides."""
+
+    mavros: ComponentSpec = Field(
+        default_factory=lambda: ComponentSpec(enabled=True),
+        description="MAVLink-to-ROS bridge, pointed at the active autopilot.",
+    )
+    vicon: ComponentSpec = Field(
+        default_factory=lambda: ComponentSpec(enabled=False),
+        description="Motion-capture bridge publishing the vehicle's pose.",
+    )
+    hardware: ComponentSpec = Field(
+        default_factory=lambda: ComponentSpec(enabled=False),
+        description="Hardware drivers (camera, payload) needing device access on the node.",
+    )
+
+
+class Simulation(ApiModel):
+    """Present when the vehicle is simulated: the operator runs one SITL per autopilot."""
+
+    stack: Stack = Field(description="SITL flight stack to run: px4 or ardupilot.")
+    image: str | None = Field(
+        default=None, max_length=512, description="SITL container image override."
+    )
+    instance: int = Field(
+        default=0,
+        ge=0,
+        le=99,
+        description="SITL instance offset on the node; ports and sysids derive from it.",
+    )
+
+
+class VehicleSpec(ApiModel):
+    """Desired state of a Vehicle."""
+
+    node_name: str = Field(
+        min_length=1,
+        max_length=253,
+        pattern=DNS_SUBDOMAIN_PATTERN,
+        description="Kubernetes node that is this vehicle's companion computer. Changing it "
+        "moves the vehicle's workloads to the new node (hot swap).",
+    )
+    sysid: int = Field(
+        ge=1,
+        le=255,
+        description="MAVLink system id of the vehicle (Starling's VEHICLE_MAVLINK_SYSID). "
+        "Immutable: ground stations and autopilot parameters are keyed on it.",
+        json_schema_extra={
+            "x-kubernetes-validations": [
+                {"rule": "self == oldSelf", "message": "sysid is immutable; create a new Vehicle"}
+            ]
+        },
+    )
+    vehicle_class: str = Field(
+        default="rotary",
+        max_length=63,
+        pattern=r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$",
+        description="Broad class of the airframe, e.g. rotary or fixed-wing "
+        "(label starling.dev/vehicle-class).",
+    )
+    vehicle_type: str = Field(
+        default="quadrotor",
+        max_length=63,
+        pattern=r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$",
+        description="Airframe type, e.g. quadrotor or clover (label starling.dev/vehicle-type).",
+    )
+    simulation: Simulation | None = Field(
+        default=None,
+        description="Set for a simulated vehicle; absent for real hardware.",
+    )
+    components: Components = Field(
+        default_factory=Components,
+        description="Component workloads to run on the vehicle and their images.",
+    )
+    config: dict[str, str] = Field(
+        default_factory=dict,
+        max_length=64,
+        description="Extra KEY=VALUE entries for vehicle.config and the pods' environment. "
+        "Keys are upper-case environment variable names.",
+        json_schema_extra={
+            "x-kubernetes-validations": [
+                {
+                    "rule": "self.all(k, k.matches('" + CONFIG_KEY_PATTERN + "'))",
+                    "message": "config keys must be upper-case environment variable names "
+                    "such as MY_SETTING",
+                },
+                {
+                    "rule": "self.all(k, !k.startsWith('VEHICLE_') && !k.startsWith('ROOST_'))",
+                    "message": "config keys starting with VEHICLE_ or ROOST_ are set by Roost",
+                },
+            ]
+        },
+    )
+    starling_compatibility: bool = Field(
+        default=True,
+        description="Also set Starling's node labels (starling.dev/type=vehicle, "
+        "starling.dev/vehicle-class, starling.dev/vehicle-type) so Starling manifests work.",
+    )
+
+
+class VehicleStatus(ApiModel):
+    """Observed state of a Vehicle, written by the operator."""
+
+    observed_generation: int | None = Field(
+        default=None, description="metadata.generation the operator last reconciled."
+    )
+    conditions: list[Condition] = Field(
+        default_factory=list, json_schema_extra=CONDITIONS_SCHEMA,
+        description="Ready summarises NodeBound, ComponentsReady, AutopilotsHealthy and "
+        "AgentConnected.",
+    )
+    node_name: str | None = Field(
+        default=None, description="Node the vehicle's labels and workloads are bound to."
+    )
+    active_autopilot: str | None = Field(
+        default=None, description="Autopilot currently driving the motors, from the agent."
+    )
+    fcu_url: str | None = Field(
+        default=None, description="FCU URL mavros is pointed at (the active autopilot's)."
+    )
+    claimed_by: ObjectReference | None = Field(
+        default=None, description="Mission this vehicle is flying, if any."
+    )
+    managed_labels: list[str] = Field(
+        default_factory=list, description="Node label keys Roost has set for this vehicle."
+    )
+
