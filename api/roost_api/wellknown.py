@@ -1,0 +1,45 @@
+"""Well-known names Roost puts on Kubernetes objects: labels, annotations, taints, paths.
+
+Everything that two components must spell the same way lives here, so the operator
+that sets a label and the CLI or agent that reads it cannot drift apart.
+"""
+
+from __future__ import annotations
+
+from roost_api.meta import GROUP
+
+PREFIX = f"{GROUP}/"
+
+# Node labels (NFD-style: Roost owns the roost.dev/ prefix on nodes it manages).
+LABEL_VEHICLE = f"{PREFIX}vehicle"
+LABEL_VEHICLE_CLASS = f"{PREFIX}vehicle-class"
+LABEL_VEHICLE_TYPE = f"{PREFIX}vehicle-type"
+LABEL_SIMULATED = f"{PREFIX}simulated"
+LABEL_STACK = f"{PREFIX}sitl-stack"
+
+# Starling compatibility labels, set only when spec.starlingCompatibility is true.
+STARLING_LABEL_TYPE = "starling.dev/type"
+STARLING_LABEL_CLASS = "starling.dev/vehicle-class"
+STARLING_LABEL_VEHICLE_TYPE = "starling.dev/vehicle-type"
+
+# Node annotation listing every label/taint key Roost set; only these are ever removed.
+ANNOTATION_MANAGED_LABELS = f"{PREFIX}managed-labels"
+
+# Taint keeping ordinary workloads off vehicle nodes.
+TAINT_VEHICLE = f"{PREFIX}vehicle"
+
+# Labels on objects Roost creates (ConfigMaps, workloads, Jobs).
+LABEL_MANAGED_BY = "app.kubernetes.io/managed-by"
+MANAGED_BY = "roost"
+LABEL_COMPONENT = f"{PREFIX}component"
+LABEL_MISSION = f"{PREFIX}mission"
+
+# Annotation on pod templates carrying a hash of the vehicle config, so edits roll pods.
+ANNOTATION_CONFIG_HASH = f"{PREFIX}config-hash"
+
+# Where the per-vehicle config is mounted in every Roost-managed pod.
+VEHICLE_CONFIG_FILE = "vehicle.config"
+VEHICLE_CONFIG_MOUNTS = ("/etc/roost", "/etc/starling")
+
+# Finalizer on Vehicles so deletion removes labels and taint from the node first.
+FINALIZER = f"{PREFIX}cleanup"
