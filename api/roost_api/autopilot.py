@@ -17,7 +17,14 @@ from enum import StrEnum
 
 from pydantic import Field
 
-from roost_api.meta import CONDITIONS_SCHEMA, DNS_LABEL_PATTERN, ApiModel, Condition, HealthLevel, Stack
+from roost_api.meta import (
+    CONDITIONS_SCHEMA,
+    DNS_LABEL_PATTERN,
+    ApiModel,
+    Condition,
+    HealthLevel,
+    Stack,
+)
 
 MAX_AUTOPILOTS = 8
 CONNECTION_PATTERN = r"^(serial://|udp://|udpin://|udpout://|tcp://|tcpin://)\S+$"
@@ -91,8 +98,7 @@ class AutopilotSpec(ApiModel):
     bridge_channel: int = Field(
         ge=0,
         le=63,
-        description="Bridge input (GPIO line offset) that connects this autopilot to the "
-        "motors.",
+        description="Bridge input (GPIO line offset) that connects this autopilot to the motors.",
     )
 
 
@@ -295,7 +301,9 @@ class RedundantAutopilotStatus(ApiModel):
         default=None, description="metadata.generation the agent last applied."
     )
     conditions: list[Condition] = Field(
-        default_factory=list, json_schema_extra=CONDITIONS_SCHEMA, description="Ready, ActiveHealthy, Redundant, FailedOver."
+        default_factory=list,
+        json_schema_extra=CONDITIONS_SCHEMA,
+        description="Ready, ActiveHealthy, Redundant, FailedOver.",
     )
     active_autopilot: str | None = Field(
         default=None, description="Autopilot currently connected to the motors."

@@ -101,7 +101,9 @@ def embed_kubernetes(name: str, defs: dict[str, Any], *, top: bool = True) -> di
     return _embed_node(defs[name], defs, keep_description=top)
 
 
-def _embed_node(node: dict[str, Any], defs: dict[str, Any], *, keep_description: bool) -> dict[str, Any]:
+def _embed_node(
+    node: dict[str, Any], defs: dict[str, Any], *, keep_description: bool
+) -> dict[str, Any]:
     if "$ref" in node:
         return embed_kubernetes(node["$ref"].rsplit("/", 1)[-1], defs, top=False)
     if "oneOf" in node:
@@ -134,7 +136,9 @@ def _embed_node(node: dict[str, Any], defs: dict[str, Any], *, keep_description:
     return out
 
 
-def structural(node: dict[str, Any], defs: dict[str, Any], k8s_defs: dict[str, Any]) -> dict[str, Any]:
+def structural(
+    node: dict[str, Any], defs: dict[str, Any], k8s_defs: dict[str, Any]
+) -> dict[str, Any]:
     """Translate one pydantic JSON-schema node into a structural OpenAPI v3 node."""
     node = dict(node)
     if "$ref" in node:

@@ -116,7 +116,7 @@ def now() -> datetime:
 def set_condition(
     conditions: Sequence[Condition],
     *,
-    type: str,  # noqa: A002 - mirrors the field name of metav1.Condition
+    type: str,
     status: ConditionStatus,
     reason: str,
     message: str = "",
@@ -159,12 +159,12 @@ def set_condition(
     return result
 
 
-def find_condition(conditions: Iterable[Condition], type: str) -> Condition | None:  # noqa: A002
+def find_condition(conditions: Iterable[Condition], type: str) -> Condition | None:
     """The condition of this type, or None."""
     return next((c for c in conditions if c.type == type), None)
 
 
-def condition_is_true(conditions: Iterable[Condition], type: str) -> bool:  # noqa: A002
+def condition_is_true(conditions: Iterable[Condition], type: str) -> bool:
     """True only when the condition exists and its status is "True"."""
     cond = find_condition(conditions, type)
     return cond is not None and cond.status == "True"

@@ -124,7 +124,7 @@ VEHICLE_SELECTION_RULES = [
         "message": "vehicles needs a selector, names, or both",
     },
     {
-        "rule": "!has(self.selector) && size(self.names) > 0 ? self.count <= size(self.names) : true",
+        "rule": "has(self.selector) || self.count <= size(self.names)",
         "message": "count is larger than the number of names and there is no selector",
     },
 ]
@@ -136,9 +136,7 @@ class Preflight(ApiModel):
     require_agent_connected: bool = Field(
         default=True, description="The vehicle's node agent reports recently."
     )
-    require_active_healthy: bool = Field(
-        default=True, description="The active autopilot is OK."
-    )
+    require_active_healthy: bool = Field(default=True, description="The active autopilot is OK.")
     require_redundancy: bool = Field(
         default=True, description="At least one healthy standby autopilot."
     )
@@ -221,7 +219,9 @@ class MissionStatus(ApiModel):
         default_factory=list, description="Per-vehicle state."
     )
     conditions: list[Condition] = Field(
-        default_factory=list, json_schema_extra=CONDITIONS_SCHEMA, description="VehiclesAssigned, PreflightPassed, Degraded, Complete."
+        default_factory=list,
+        json_schema_extra=CONDITIONS_SCHEMA,
+        description="VehiclesAssigned, PreflightPassed, Degraded, Complete.",
     )
     start_time: datetime | None = Field(default=None, description="When workloads started.")
     completion_time: datetime | None = Field(default=None, description="When it finished.")

@@ -11,7 +11,14 @@ from enum import StrEnum
 
 from pydantic import Field
 
-from roost_api.meta import CONDITIONS_SCHEMA, DNS_SUBDOMAIN_PATTERN, ApiModel, Condition, ObjectReference, Stack
+from roost_api.meta import (
+    CONDITIONS_SCHEMA,
+    DNS_SUBDOMAIN_PATTERN,
+    ApiModel,
+    Condition,
+    ObjectReference,
+    Stack,
+)
 
 CONFIG_KEY_PATTERN = r"^[A-Z_][A-Z0-9_]*$"
 
@@ -144,7 +151,8 @@ class VehicleStatus(ApiModel):
         default=None, description="metadata.generation the operator last reconciled."
     )
     conditions: list[Condition] = Field(
-        default_factory=list, json_schema_extra=CONDITIONS_SCHEMA,
+        default_factory=list,
+        json_schema_extra=CONDITIONS_SCHEMA,
         description="Ready summarises NodeBound, ComponentsReady, AutopilotsHealthy and "
         "AgentConnected.",
     )
@@ -163,4 +171,3 @@ class VehicleStatus(ApiModel):
     managed_labels: list[str] = Field(
         default_factory=list, description="Node label keys Roost has set for this vehicle."
     )
-

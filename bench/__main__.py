@@ -1,0 +1,35 @@
+"""Run Roost's benchmarks: ``python -m bench [module ...]`` (``make bench`` runs all).
+
+Each module listed in :data:`MODULES` measures one area and returns figures; results
+are merged into ``bench/results.json`` and printed as a table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from bench.core import Figure, write_results
+
+MODULES: tuple[str, ...] = ()
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("modules", nargs="*", help=f"subset of {', '.join(MODULES)}")
+    args = parser.parse_args(argv)
+    figures: list[Figure] = []
+    for name in args.modules or MODULES:
+        module = importlib.import_module(f"bench.{name}")
+        print(f"bench: running {name} ...", file=sys.stderr, flush=True)
+        figures.extend(module.run())
+    write_results(figures)
+    for fig in figures:
+        verdict = {True: "meets", False: "MISSES", None: ""}[fig.meets_target()]
+        print(f"{fig.name:45} {fig.value:12.3f} {fig.unit:6} target {fig.target:10} {verdict}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
