@@ -18,6 +18,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 from pydantic.alias_generators import to_camel
+from pydantic.json_schema import JsonDict
 
 GROUP = "roost.dev"
 VERSION = "v1alpha1"
@@ -72,7 +73,7 @@ class HealthLevel(StrEnum):
 _HEALTH_RANK = {HealthLevel.OK: 0, HealthLevel.WARN: 1, HealthLevel.ERROR: 2, HealthLevel.STALE: 3}
 
 # Conditions are a list map keyed by type, as in every built-in Kubernetes status.
-CONDITIONS_SCHEMA: dict[str, Any] = {
+CONDITIONS_SCHEMA: JsonDict = {
     "x-kubernetes-list-type": "map",
     "x-kubernetes-list-map-keys": ["type"],
 }

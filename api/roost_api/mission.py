@@ -17,11 +17,12 @@ from enum import StrEnum
 from typing import Any
 
 from pydantic import Field
+from pydantic.json_schema import JsonDict
 
 from roost_api.meta import CONDITIONS_SCHEMA, DNS_SUBDOMAIN_PATTERN, ApiModel, Condition
 
 # Marker the CRD generator replaces with the Kubernetes PodTemplateSpec schema.
-EMBED_POD_TEMPLATE = {"x-roost-embed": "io.k8s.api.core.v1.PodTemplateSpec"}
+EMBED_POD_TEMPLATE: JsonDict = {"x-roost-embed": "io.k8s.api.core.v1.PodTemplateSpec"}
 MAX_MISSION_VEHICLES = 1000
 
 
