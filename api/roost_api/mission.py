@@ -17,7 +17,7 @@ from enum import StrEnum
 from typing import Any
 
 from pydantic import Field
-from pydantic.json_schema import JsonDict
+from pydantic.config import JsonDict
 
 from roost_api.meta import CONDITIONS_SCHEMA, DNS_SUBDOMAIN_PATTERN, ApiModel, Condition
 
@@ -119,7 +119,7 @@ class VehicleSelection(ApiModel):
     )
 
 
-VEHICLE_SELECTION_RULES = [
+VEHICLE_SELECTION_RULES: list[JsonDict] = [
     {
         "rule": "has(self.selector) || size(self.names) > 0",
         "message": "vehicles needs a selector, names, or both",
