@@ -34,6 +34,13 @@ MANAGED_BY = "roost"
 LABEL_COMPONENT = f"{PREFIX}component"
 LABEL_MISSION = f"{PREFIX}mission"
 
+# Label the operator keeps on each RedundantAutopilot: the node of its Vehicle
+# (Vehicle.spec.nodeName). An admission policy cannot look up the Vehicle, so the
+# chart's node-restriction policy compares this label with the node name in the agent's
+# service-account token; the agent also lists its RedundantAutopilots by this label.
+# Only the operator writes it; the agent can write status only, never metadata.
+LABEL_NODE = f"{PREFIX}node"
+
 # Annotation on pod templates carrying a hash of the vehicle config, so edits roll pods.
 ANNOTATION_CONFIG_HASH = f"{PREFIX}config-hash"
 
