@@ -1,0 +1,53 @@
+"""Building the requests the cluster makes of a node agent (``RedundantAutopilot.spec.command``).
+
+One place for the shape of a command and of the patch that delivers it, shared by the
+operator (mission abort, failover policy) and the ``roost`` CLI (``roost estop``), so
+both issue commands the agent treats the same way. Pure: no API calls here.
+
+A command is executed at most once, identified by its ``id``; a new request therefore
+always gets a fresh id, even when it repeats the previous action. The agent ignores a
+command it first sees more than ``deadlineSeconds`` after ``issuedAt`` (e.g. after a
+network partition), so an old e-stop never fires when a vehicle reconnects.
+"""
+
+from __future__ import annotations
+
+import secrets
+from datetime import datetime
+from typing import Any
+
+from roost_api.autopilot import AutopilotCommand, CommandAction
+from roost_api.meta import now
+
+DEFAULT_DEADLINE_SECONDS = 10
+
+
+def new_command(
+    action: CommandAction,
+    *,
+    target: str | None = None,
+    deadline_seconds: int = DEFAULT_DEADLINE_SECONDS,
+    issued_at: datetime | None = None,
+) -> AutopilotCommand:
+    """A command with a fresh unique id (action name, time and random suffix).
+
+    ``target`` is required for ``Switch`` and refused for every other action, mirroring
+    the CRD's CEL rule so a bad request fails here rather than at the API server.
+    """
+    action = CommandAction(action)
+    if (action is CommandAction.SWITCH) != (target is not None):
+        raise ValueError("a Switch command needs a target; other commands take none")
+    at = issued_at or now()
+    command_id = f"{action.value.lower()}-{at:%Y%m%d%H%M%S}-{secrets.token_hex(4)}"
+    return AutopilotCommand(
+        id=command_id,
+        action=action,
+        target=target,
+        issued_at=at,
+        deadline_seconds=deadline_seconds,
+    )
+
+
+def command_patch(command: AutopilotCommand) -> dict[str, Any]:
+    """The merge patch that sets ``spec.command`` on a RedundantAutopilot."""
+    return {"spec": {"command": command.to_api()}}
