@@ -7,6 +7,7 @@ and the component workloads from it; the status says whether all of that is in p
 
 from __future__ import annotations
 
+from datetime import datetime
 from enum import StrEnum
 
 from pydantic import Field
@@ -144,6 +145,59 @@ class VehicleSpec(ApiModel):
     )
 
 
+class FailoverAction(ApiModel):
+    """A cluster-side failover action in progress; counted by the fleet-wide cap."""
+
+    kind: str = Field(max_length=63, description="What is being done, e.g. RepointMavros.")
+    autopilot: str = Field(max_length=63, description="Autopilot the action moves to.")
+    started_at: datetime = Field(description="When the operator started the action.")
+
+
+class VehicleFailover(ApiModel):
+    """The operator's side of this vehicle's failovers: what it has seen and done.
+
+    Kept in status (not in operator memory) so a restarted operator neither repeats an
+    action nor forgets a latch. The on-vehicle switch never depends on any of this.
+    """
+
+    observed_failover_count: int = Field(
+        default=0, ge=0, description="RedundantAutopilot status.failoverCount last accounted."
+    )
+    observed_failover_time: datetime | None = Field(
+        default=None, description="RedundantAutopilot status.lastFailover.time last accounted."
+    )
+    recent: list[datetime] = Field(
+        default_factory=list,
+        max_length=64,
+        description="Failovers seen within the latch window, oldest first.",
+    )
+    latched: bool = Field(
+        default=False,
+        description="Too many failovers within the window: cluster-side actions wait for a "
+        "human to clear the latch (annotation roost.dev/clear-failover-latch).",
+    )
+    latched_at: datetime | None = Field(default=None, description="When the latch was set.")
+    cleared_token: str | None = Field(
+        default=None,
+        max_length=253,
+        description="Value of roost.dev/clear-failover-latch last honoured; each new value "
+        "clears one latch.",
+    )
+    action: FailoverAction | None = Field(
+        default=None, description="Cluster-side action in progress, if any."
+    )
+    blocked: str | None = Field(
+        default=None,
+        max_length=63,
+        description="Guard holding back a pending action: Paused, Latched or ConcurrencyLimit.",
+    )
+    failback_command: str | None = Field(
+        default=None,
+        max_length=64,
+        description="Id of the last automatic failback Switch command the operator issued.",
+    )
+
+
 class VehicleStatus(ApiModel):
     """Observed state of a Vehicle, written by the operator."""
 
@@ -164,6 +218,10 @@ class VehicleStatus(ApiModel):
     )
     fcu_url: str | None = Field(
         default=None, description="FCU URL mavros is pointed at (the active autopilot's)."
+    )
+    failover: VehicleFailover | None = Field(
+        default=None,
+        description="Cluster-side failover bookkeeping: actions, guards and latch.",
     )
     claimed_by: ObjectReference | None = Field(
         default=None, description="Mission this vehicle is flying, if any."

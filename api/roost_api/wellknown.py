@@ -41,6 +41,15 @@ LABEL_MISSION = f"{PREFIX}mission"
 # Only the operator writes it; the agent can write status only, never metadata.
 LABEL_NODE = f"{PREFIX}node"
 
+# Fleet guards on the cluster side of failover (re-pointing mavros, mission consequences,
+# automatic failback); they never affect the on-vehicle switch, which is always allowed.
+# "true" on a Vehicle pauses those actions for that vehicle.
+ANNOTATION_PAUSE_FAILOVER_ACTIONS = f"{PREFIX}pause-failover-actions"
+# After repeated failovers the operator latches a vehicle; a human clears the latch by
+# setting this annotation to a new value (any token, e.g. a timestamp). The operator
+# records the token it honoured in status, so one token clears one latch.
+ANNOTATION_CLEAR_FAILOVER_LATCH = f"{PREFIX}clear-failover-latch"
+
 # Annotation on pod templates carrying a hash of the vehicle config, so edits roll pods.
 ANNOTATION_CONFIG_HASH = f"{PREFIX}config-hash"
 
