@@ -1,0 +1,103 @@
+"""Entry point of the Roost operator: kopf settings, handler registration, ``main()``.
+
+Settings are explicit rather than kopf's defaults, following operator practice:
+
+* finalizer and annotation prefixes under ``roost.dev`` (kopf's own markers would leak
+  ``kopf.zalando.org`` into users' objects); progress and the last handled
+  configuration are kept in annotations only, never in ``status`` (the Vehicle status
+  schema would prune them, and status is ours);
+* a named peering (``ROOST_PEERING``, default ``roost``) so two Roost deployments never
+  pause each other, and peering is optional: without the peering CRD the operator runs
+  standalone (the chart runs one replica with ``strategy: Recreate``);
+* posting level WARNING: kopf would otherwise post a Kubernetes Event for every
+  successful handler and timer run, which is an API write per vehicle per resync.
+  Roost posts its own Events on meaningful transitions;
+* watch ``server_timeout`` below the client timeout so a silently stalled watch is
+  reopened (kopf #955, #1276), and request timeouts on every API call.
+
+Importing :mod:`roost_operator.vehicles.handlers` (and the other handler modules)
+registers their handlers with kopf.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from typing import Any
+
+import kopf
+
+from roost_api.wellknown import FINALIZER, PREFIX
+from roost_operator import runtime as runtime_module
+from roost_operator.kube import Kube
+from roost_operator.settings import SETTINGS
+from roost_operator.vehicles import handlers as vehicle_handlers
+
+HANDLER_MODULES = (vehicle_handlers,)
+ANNOTATION_PREFIX = PREFIX.rstrip("/")
+
+WATCH_SERVER_TIMEOUT_S = 290.0
+WATCH_CLIENT_TIMEOUT_S = 300.0
+CONNECT_TIMEOUT_S = 10.0
+REQUEST_TIMEOUT_S = 60.0
+
+
+def configure(settings: kopf.OperatorSettings) -> None:
+    """Apply Roost's kopf settings (see the module docstring for why each)."""
+    settings.persistence.finalizer = FINALIZER
+    settings.persistence.progress_storage = kopf.AnnotationsProgressStorage(
+        prefix=ANNOTATION_PREFIX
+    )
+    settings.persistence.diffbase_storage = kopf.AnnotationsDiffBaseStorage(
+        prefix=ANNOTATION_PREFIX, key="last-handled-configuration"
+    )
+    settings.peering.name = SETTINGS.peering
+    settings.peering.clusterwide = True
+    settings.peering.mandatory = False
+    settings.peering.stealth = True
+    settings.posting.level = logging.WARNING
+    settings.watching.server_timeout = WATCH_SERVER_TIMEOUT_S
+    settings.watching.client_timeout = WATCH_CLIENT_TIMEOUT_S
+    settings.watching.connect_timeout = CONNECT_TIMEOUT_S
+    settings.networking.request_timeout = REQUEST_TIMEOUT_S
+    settings.networking.connect_timeout = CONNECT_TIMEOUT_S
+
+
+@kopf.on.startup()
+def startup(settings: kopf.OperatorSettings, memo: kopf.Memo, **_: Any) -> None:
+    """Configure kopf, connect to the API and make sure the operator's namespace exists."""
+    configure(settings)
+    kube = Kube.from_environment()
+    kube.apply({"apiVersion": "v1", "kind": "Namespace", "metadata": {"name": SETTINGS.namespace}})
+    memo.runtime = runtime_module.Runtime(kube=kube, settings=SETTINGS)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the operator in the foreground until interrupted."""
+    parser = argparse.ArgumentParser(prog="roost-operator", description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--standalone", action="store_true", help="run without peering even if it exists"
+    )
+    parser.add_argument(
+        "--liveness",
+        metavar="URL",
+        default=None,
+        help="serve kopf's health endpoint, e.g. http://0.0.0.0:8080/healthz",
+    )
+    parser.add_argument("--verbose", action="store_true", help="debug logging")
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    kopf.run(
+        clusterwide=True,
+        standalone=args.standalone or None,
+        peering_name=SETTINGS.peering,
+        liveness_endpoint=args.liveness,
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
