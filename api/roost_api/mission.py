@@ -19,6 +19,7 @@ from typing import Any
 from pydantic import Field
 from pydantic.config import JsonDict
 
+from roost_api.autopilot import AutopilotCommand
 from roost_api.meta import CONDITIONS_SCHEMA, DNS_SUBDOMAIN_PATTERN, ApiModel, Condition
 
 # Marker the CRD generator replaces with the Kubernetes PodTemplateSpec schema.
@@ -53,6 +54,15 @@ class MissionVehiclePhase(StrEnum):
     FAILED = "Failed"
     ABORTING = "Aborting"
     ABORTED = "Aborted"
+
+
+class WorkloadPhase(StrEnum):
+    """State of the mission's offboard Job."""
+
+    RUNNING = "Running"
+    SUCCEEDED = "Succeeded"
+    FAILED = "Failed"
+    STOPPED = "Stopped"
 
 
 class MissionConditionType(StrEnum):
@@ -190,6 +200,18 @@ MISSION_SPEC_RULES = [
     },
     {"rule": "self.onboard == oldSelf.onboard", "message": "onboard is immutable"},
     {
+        "rule": "!has(self.onboard.spec) || !has(self.onboard.spec.restartPolicy) || "
+        "self.onboard.spec.restartPolicy != 'Always'",
+        "message": "onboard pods run to completion as a Job: restartPolicy must be Never or "
+        "OnFailure (Never when omitted)",
+    },
+    {
+        "rule": "!has(self.offboard) || !has(self.offboard.spec) || "
+        "!has(self.offboard.spec.restartPolicy) || self.offboard.spec.restartPolicy != 'Always'",
+        "message": "offboard pods run to completion as a Job: restartPolicy must be Never or "
+        "OnFailure (Never when omitted)",
+    },
+    {
         "rule": "has(self.offboard) == has(oldSelf.offboard) && "
         "(!has(self.offboard) || self.offboard == oldSelf.offboard)",
         "message": "offboard is immutable",
@@ -206,6 +228,25 @@ class MissionVehicleStatus(ApiModel):
     reason: str | None = Field(default=None, description="CamelCase reason for the phase.")
     message: str | None = Field(default=None, description="What is happening or missing.")
     job_name: str | None = Field(default=None, description="Onboard Job on this vehicle.")
+    failed_over_at: datetime | None = Field(
+        default=None,
+        description="Time of the last autopilot failover on this vehicle that the mission "
+        "has acted on (per spec.onFailover).",
+    )
+    command: AutopilotCommand | None = Field(
+        default=None,
+        description="The last request this mission wrote to the vehicle's RedundantAutopilot "
+        "(safety routine or emergency stop); its outcome is in that object's "
+        "status.lastCommand.",
+    )
+
+
+class MissionOffboardStatus(ApiModel):
+    """The offboard (central) workload's progress."""
+
+    job_name: str = Field(description="The offboard Job.")
+    phase: WorkloadPhase = Field(description="Running, Succeeded, Failed or Stopped.")
+    message: str | None = Field(default=None, description="What is happening.")
 
 
 class MissionStatus(ApiModel):
@@ -218,6 +259,9 @@ class MissionStatus(ApiModel):
     assigned_count: int = Field(default=0, description="Vehicles assigned.")
     vehicles: list[MissionVehicleStatus] = Field(
         default_factory=list, description="Per-vehicle state."
+    )
+    offboard: MissionOffboardStatus | None = Field(
+        default=None, description="The offboard workload, once started."
     )
     conditions: list[Condition] = Field(
         default_factory=list,
