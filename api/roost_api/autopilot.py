@@ -243,10 +243,13 @@ REDUNDANT_AUTOPILOT_RULES = [
         "message": "a Switch command needs a target that is one of the autopilots",
     },
     {
-        "rule": "self.failoverPolicy.thresholds.messageWarnMs < "
+        # Absent objects are not defaulted by the API server (only their fields are, once
+        # present), so guard with has(): absent thresholds mean the valid defaults.
+        "rule": "!has(self.failoverPolicy) || !has(self.failoverPolicy.thresholds) || "
+        "(self.failoverPolicy.thresholds.messageWarnMs < "
         "self.failoverPolicy.thresholds.messageErrorMs && "
         "self.failoverPolicy.thresholds.heartbeatWarnMs < "
-        "self.failoverPolicy.thresholds.heartbeatErrorMs",
+        "self.failoverPolicy.thresholds.heartbeatErrorMs)",
         "message": "warn thresholds must be below error thresholds",
     },
 ]
