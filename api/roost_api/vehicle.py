@@ -183,6 +183,12 @@ class VehicleFailover(ApiModel):
         description="Value of roost.dev/clear-failover-latch last honoured; each new value "
         "clears one latch.",
     )
+    followed_autopilot: str | None = Field(
+        default=None,
+        max_length=63,
+        description="Autopilot the vehicle's workloads follow (mavros' FCU URL, the config's "
+        "VEHICLE_FCU_URL). Lags activeAutopilot while a guard holds the re-point back.",
+    )
     action: FailoverAction | None = Field(
         default=None, description="Cluster-side action in progress, if any."
     )
