@@ -1,0 +1,191 @@
+"""``roost``: the fleet at a glance, safety requests, and the local sandbox.
+
+Commands are thin: they resolve the cluster, call :mod:`roost_cli.actions` or
+:mod:`roost_cli.view`, and print. Failures the user can fix are
+:class:`~roost_cli.errors.CliError` with a message saying how.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import sys
+from dataclasses import asdict
+from datetime import UTC, datetime
+from enum import StrEnum
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from roost_api.autopilot import CommandAction
+from roost_cli import actions, render, tables, view
+from roost_cli.cluster import Fleet, resolve_kubeconfig
+from roost_cli.errors import CliError
+from roost_cli.sandbox import state as sandbox_state
+
+
+class RoostApp(typer.Typer):
+    """The typer app, printing :class:`CliError` as a one-line message instead of a traceback."""
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        try:
+            return super().__call__(*args, **kwargs)
+        except CliError as error:
+            Console(stderr=True).print(f"[bold red]error:[/] {error}", highlight=False)
+            raise SystemExit(1) from None
+
+
+app = RoostApp(
+    name="roost",
+    help="Roost: a Kubernetes operator for drone fleets with redundant autopilots.",
+    no_args_is_help=True,
+    rich_markup_mode="rich",
+    pretty_exceptions_show_locals=False,
+)
+console = Console()
+
+
+class Output(StrEnum):
+    """How ``status`` and ``missions`` print."""
+
+    TABLE = "table"
+    JSON = "json"
+
+
+class Context:
+    """Options common to every command (set by the callback)."""
+
+    def __init__(self, kubeconfig: Path | None, sandbox_dir: Path) -> None:
+        self.kubeconfig = kubeconfig
+        self.sandbox_dir = sandbox_dir
+
+    def fleet(self) -> Fleet:
+        running = sandbox_state.running(self.sandbox_dir)
+        kubeconfig = Path(running.kubeconfig) if running and running.kubeconfig else None
+        return Fleet(resolve_kubeconfig(self.kubeconfig, os.environ, kubeconfig, Path.home()))
+
+
+@app.callback()
+def main(
+    ctx: typer.Context,
+    kubeconfig: Annotated[
+        Path | None,
+        typer.Option(help="Kubeconfig to use (default: $KUBECONFIG, a running sandbox, ~/.kube)."),
+    ] = None,
+    sandbox_dir: Annotated[
+        Path | None,
+        typer.Option(
+            envvar=sandbox_state.DIR_ENV, help="Sandbox state directory (default ./.sandbox)."
+        ),
+    ] = None,
+) -> None:
+    """Roost: a Kubernetes operator for drone fleets with redundant autopilots."""
+    ctx.obj = Context(kubeconfig, sandbox_state.sandbox_dir(sandbox_dir))
+
+
+def _context(ctx: typer.Context) -> Context:
+    obj = ctx.find_object(Context)
+    assert obj is not None, "the callback always sets the context"
+    return obj
+
+
+def _print_json(rows: object) -> None:
+    sys.stdout.write(json.dumps(rows, indent=2, default=str) + "\n")
+
+
+@app.command()
+def status(
+    ctx: typer.Context,
+    watch: Annotated[bool, typer.Option("--watch", "-w", help="Refresh until Ctrl-C.")] = False,
+    interval: Annotated[float, typer.Option(min=0.2, help="Seconds between refreshes.")] = 1.0,
+    events: Annotated[int, typer.Option(min=0, help="Recent Roost events to show.")] = 0,
+    output: Annotated[Output, typer.Option("--output", "-o")] = Output.TABLE,
+) -> None:
+    """The fleet: each vehicle's node, active autopilot, health, mission and last failover."""
+    fleet = _context(ctx).fleet()
+    if watch:
+        with contextlib.suppress(KeyboardInterrupt):
+            view.live(console, fleet, interval_s=interval, events=events or view.DEFAULT_EVENTS)
+        return
+    snapshot = view.read(fleet, events)
+    if output is Output.JSON:
+        _print_json([asdict(row) | {"health": row.health} for row in snapshot.fleet])
+        return
+    console.print(render.fleet_table(snapshot.fleet, title=view.title_for(fleet)))
+    if snapshot.events:
+        console.print(render.events_table(snapshot.events))
+
+
+@app.command()
+def missions(
+    ctx: typer.Context,
+    namespace: Annotated[
+        str | None, typer.Option("--namespace", "-n", help="Only this namespace.")
+    ] = None,
+    output: Annotated[Output, typer.Option("--output", "-o")] = Output.TABLE,
+) -> None:
+    """Missions: phase, assigned vehicles and their state, why."""
+    rows = tables.mission_rows(_context(ctx).fleet().missions(namespace), datetime.now(UTC))
+    if output is Output.JSON:
+        _print_json([asdict(row) for row in rows])
+        return
+    console.print(render.missions_table(rows))
+
+
+@app.command()
+def abort(
+    ctx: typer.Context,
+    mission: Annotated[str, typer.Argument(help="NAME or NAMESPACE/NAME of the Mission.")],
+    namespace: Annotated[str, typer.Option("--namespace", "-n")] = "default",
+) -> None:
+    """Abort a mission: every assigned vehicle runs its safety routine (hold, then land)."""
+    ns, name = actions.split_mission_ref(mission, namespace)
+    actions.request_abort(_context(ctx).fleet(), ns, name)
+    console.print(
+        f"[bold]mission {ns}/{name}[/]: abort requested. The operator asks every assigned "
+        "vehicle's agent to run its safety routine; follow it with `roost missions`."
+    )
+
+
+@app.command()
+def estop(
+    ctx: typer.Context,
+    vehicle: Annotated[
+        list[str] | None, typer.Option("--vehicle", "-v", help="Vehicle to stop (repeatable).")
+    ] = None,
+    all_vehicles: Annotated[bool, typer.Option("--all", help="Stop every vehicle.")] = False,
+    yes: Annotated[bool, typer.Option("--yes", "-y", help="Do not ask for confirmation.")] = False,
+    wait: Annotated[
+        float, typer.Option(min=0, help="Seconds to wait for the agents' acknowledgement.")
+    ] = actions.ACK_TIMEOUT_S,
+) -> None:
+    """EMERGENCY STOP: force-disarm the active autopilot. Motors stop, even in flight."""
+    fleet = _context(ctx).fleet()
+    targets = actions.select_targets(
+        actions.autopilots_by_vehicle(fleet.autopilots()), vehicle or [], all_vehicles
+    )
+    names = ", ".join(targets)
+    if not yes:
+        if not sys.stdin.isatty():
+            raise CliError(f"refusing to e-stop {names} without confirmation: add --yes")
+        typer.confirm(
+            f"Force-disarm {names}? Motors stop immediately; a flying vehicle falls.", abort=True
+        )
+    sent = actions.send_command(fleet, targets, CommandAction.EMERGENCY_STOP)
+    console.print(f"[bold red]EmergencyStop[/] sent to {names}")
+    if wait <= 0:
+        return
+    table = Table("VEHICLE", "AUTOPILOTS", "COMMAND", "RESULT", "MESSAGE", header_style="bold")
+    acks = actions.await_acknowledgements(fleet, targets, sent, timeout_s=wait)
+    for ack in acks:
+        style = "green" if ack.result == "Executed" else "bold red"
+        table.add_row(
+            ack.vehicle, ack.autopilot, ack.command_id, f"[{style}]{ack.result}[/]", ack.message
+        )
+    console.print(table)
+    if any(ack.result != "Executed" for ack in acks):
+        raise typer.Exit(code=2)
