@@ -14,9 +14,10 @@ from __future__ import annotations
 
 import secrets
 from datetime import datetime
+from enum import StrEnum
 from typing import Any
 
-from roost_api.autopilot import AutopilotCommand, CommandAction
+from roost_api.autopilot import AutopilotCommand, CommandAction, CommandResult
 from roost_api.meta import now
 
 DEFAULT_DEADLINE_SECONDS = 10
@@ -28,17 +29,22 @@ def new_command(
     target: str | None = None,
     deadline_seconds: int = DEFAULT_DEADLINE_SECONDS,
     issued_at: datetime | None = None,
+    command_id: str | None = None,
 ) -> AutopilotCommand:
     """A command with a fresh unique id (action name, time and random suffix).
 
     ``target`` is required for ``Switch`` and refused for every other action, mirroring
     the CRD's CEL rule so a bad request fails here rather than at the API server.
+    A caller that may repeat itself (an operator restarted between writing a command
+    and recording it) passes a ``command_id`` derived from what the request is about,
+    so the repeat carries the same id and the agent does not act twice.
     """
     action = CommandAction(action)
     if (action is CommandAction.SWITCH) != (target is not None):
         raise ValueError("a Switch command needs a target; other commands take none")
     at = issued_at or now()
-    command_id = f"{action.value.lower()}-{at:%Y%m%d%H%M%S}-{secrets.token_hex(4)}"
+    if command_id is None:
+        command_id = f"{action.value.lower()}-{at:%Y%m%d%H%M%S}-{secrets.token_hex(4)}"
     return AutopilotCommand(
         id=command_id,
         action=action,
@@ -51,3 +57,37 @@ def new_command(
 def command_patch(command: AutopilotCommand) -> dict[str, Any]:
     """The merge patch that sets ``spec.command`` on a RedundantAutopilot."""
     return {"spec": {"command": command.to_api()}}
+
+
+class CommandOutcome(StrEnum):
+    """Where a command the cluster wrote stands, as the RedundantAutopilot shows it."""
+
+    PENDING = "Pending"
+    """Still in ``spec.command``; the agent has not processed it yet."""
+    EXECUTED = "Executed"
+    REJECTED = "Rejected"
+    EXPIRED = "Expired"
+    """The agent saw it later than ``deadlineSeconds`` after ``issuedAt`` and ignored it."""
+    SUPERSEDED = "Superseded"
+    """Another request replaced it in ``spec.command`` before the agent processed it."""
+
+
+def command_outcome(
+    command: AutopilotCommand,
+    spec_command: AutopilotCommand | None,
+    last_command: CommandResult | None,
+) -> CommandOutcome:
+    """The outcome of ``command`` given the object's ``spec.command`` and ``status.lastCommand``.
+
+    An agent result other than Executed or Expired counts as Rejected. Expired and
+    Superseded requests never ran: a caller that still wants the effect issues a new
+    command (with a new id).
+    """
+    if last_command is not None and last_command.id == command.id:
+        try:
+            return CommandOutcome(last_command.result)
+        except ValueError:
+            return CommandOutcome.REJECTED
+    if spec_command is not None and spec_command.id == command.id:
+        return CommandOutcome.PENDING
+    return CommandOutcome.SUPERSEDED
