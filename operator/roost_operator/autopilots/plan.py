@@ -1,0 +1,297 @@
+"""The cluster side of one vehicle's failover, decided as a pure function.
+
+:func:`plan` takes everything the operator knows about a vehicle — its Vehicle (spec,
+status, annotations), its RedundantAutopilot (spec, and the status its node agent
+writes), the fleet guards, how many actions run elsewhere, whether mavros has rolled
+out — and returns what the Vehicle's status should become, the Events to record and,
+at most, one command for the agent. The kopf handlers fetch, call this, write, post.
+
+What it decides, in order:
+
+1. ``AgentConnected`` and ``AutopilotsHealthy`` (:mod:`.conditions`).
+2. A human's latch clear, then the agent's new failovers (counted, latch tripped;
+   :mod:`.guards`).
+3. Whether the action in progress (re-pointing mavros) has finished or timed out.
+4. Which autopilot the vehicle's workloads follow: the agent's active autopilot, unless
+   a guard holds the re-point back, in which case they keep following the previous one
+   and ``status.failover.blocked`` says why. The first pointing of a vehicle is set-up,
+   not remediation, and is not guarded.
+5. Automatic failback (``failoverPolicy.failback: OnGround``): once the vehicle is on
+   the ground and disarmed on a standby and the primary is healthy again, one Switch
+   command back to the primary. Its id derives from the failover it undoes, so a
+   restarted operator re-issuing it cannot make the agent act twice.
+
+Everything it returns is a function of its inputs (``now`` included): running it twice
+on the same inputs gives the same result, so the handlers write only on change and an
+operator restart in the middle of a failover repeats nothing.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from datetime import datetime, timedelta
+from typing import Literal
+
+from roost_api.autopilot import (
+    AutopilotCommand,
+    AutopilotHealth,
+    CommandAction,
+    Failback,
+    RedundantAutopilotSpec,
+    RedundantAutopilotStatus,
+)
+from roost_api.meta import HealthLevel
+from roost_api.vehicle import FailoverAction, VehicleFailover, VehicleSpec, VehicleStatus
+from roost_api.wellknown import ANNOTATION_CLEAR_FAILOVER_LATCH
+from roost_operator.autopilots.conditions import (
+    DEFAULT_AGENT_STALE_AFTER,
+    ConditionUpdate,
+    agent_connected,
+    autopilots_healthy,
+)
+from roost_operator.autopilots.guards import (
+    FleetGuards,
+    Verdict,
+    check,
+    clear_latch,
+    observe_failovers,
+)
+from roost_operator.vehicles.desired import autopilots_of
+
+REPOINT_MAVROS = "RepointMavros"
+FAILBACK_DEADLINE_SECONDS = 30
+LANDED_ON_GROUND = "OnGround"
+
+
+@dataclass(frozen=True)
+class PlannedEvent:
+    """An Event to record on the Vehicle once the status write succeeded.
+
+    ``at`` is chosen from the data the Event is about (the failover's time, the action's
+    start) wherever there is one, so posting it again after a restart is recognised as a
+    duplicate rather than recorded twice.
+    """
+
+    type: Literal["Normal", "Warning"]
+    reason: str
+    message: str
+    at: datetime
+
+
+@dataclass(frozen=True)
+class FailoverPlan:
+    """What one vehicle's cluster side of failover should look like now."""
+
+    conditions: tuple[ConditionUpdate, ...]
+    active_autopilot: str | None
+    fcu_url: str | None
+    failover: VehicleFailover
+    events: tuple[PlannedEvent, ...] = ()
+    command: AutopilotCommand | None = None
+    acting: bool = field(default=False)
+    """True while an action is in progress (it counts against the fleet's cap)."""
+
+
+def _health(status: RedundantAutopilotStatus, name: str | None) -> AutopilotHealth | None:
+    return next((h for h in status.autopilots if h.name == name), None)
+
+
+def failback_command(
+    spec: RedundantAutopilotSpec, status: RedundantAutopilotStatus
+) -> AutopilotCommand | None:
+    """The Switch back to the primary that ``failback: OnGround`` asks for now, if any.
+
+    Due when the vehicle flies a standby after a failover, the standby reports it is on
+    the ground and disarmed, and the primary is healthy (OK) again. Never in the air:
+    the agent already refuses automatic switches there, and so does this.
+    """
+    if spec.failover_policy.failback != Failback.ON_GROUND:
+        return None
+    last = status.last_failover
+    active = status.active_autopilot
+    if last is None or active is None or active == spec.primary:
+        return None
+    primary = _health(status, spec.primary)
+    standby = _health(status, active)
+    if primary is None or standby is None or primary.level != HealthLevel.OK:
+        return None
+    if standby.landed_state != LANDED_ON_GROUND or standby.armed is not False:
+        return None
+    return AutopilotCommand(
+        id=f"failback-{last.time:%Y%m%dT%H%M%S%f}",
+        action=CommandAction.SWITCH,
+        target=spec.primary,
+        issued_at=last.time,
+        deadline_seconds=FAILBACK_DEADLINE_SECONDS,
+    )
+
+
+def _stamp(command: AutopilotCommand, now: datetime) -> AutopilotCommand:
+    """The command issued now (its id stays tied to the failover it undoes)."""
+    return command.model_copy(update={"issued_at": now})
+
+
+def plan(
+    *,
+    vehicle_name: str,
+    vehicle_spec: VehicleSpec,
+    vehicle_status: VehicleStatus,
+    annotations: Mapping[str, str],
+    autopilot_spec: RedundantAutopilotSpec,
+    autopilot_status: RedundantAutopilotStatus,
+    guards: FleetGuards,
+    paused_here: bool,
+    actions_elsewhere: int,
+    rollout_done: bool,
+    now: datetime,
+    stale_after: timedelta = DEFAULT_AGENT_STALE_AFTER,
+) -> FailoverPlan:
+    """Decide the cluster side of failover for one vehicle; see the module docstring.
+
+    ``rollout_done`` says whether the vehicle's mavros runs with the FCU URL in
+    ``vehicle_status.fcu_url`` (True when mavros is disabled).
+    """
+    events: list[PlannedEvent] = []
+    connected = agent_connected(
+        autopilot_status, vehicle_node=vehicle_spec.node_name, now=now, stale_after=stale_after
+    )
+    healthy = autopilots_healthy(autopilot_status, connected)
+
+    book = vehicle_status.failover or VehicleFailover()
+    book, cleared = clear_latch(book, annotations)
+    if cleared:
+        events.append(
+            PlannedEvent(
+                "Normal",
+                "FailoverLatchCleared",
+                f"latch cleared by {ANNOTATION_CLEAR_FAILOVER_LATCH}={book.cleared_token}; "
+                "cluster-side failover actions resume",
+                now,
+            )
+        )
+    was_latched = book.latched
+    book, new = observe_failovers(book, autopilot_status, guards=guards, now=now)
+    last = autopilot_status.last_failover
+    if new and last is not None:
+        earlier = f"; {new - 1} earlier switch(es) while reports were missing" if new > 1 else ""
+        events.append(
+            PlannedEvent(
+                "Warning",
+                "FailedOver",
+                f"{last.from_autopilot} -> {last.to_autopilot} ({last.trigger}): {last.reason}; "
+                f"switched on-vehicle in {last.latency_ms:.1f} ms{earlier}",
+                last.time,
+            )
+        )
+    if book.latched and not was_latched:
+        events.append(
+            PlannedEvent(
+                "Warning",
+                "FailoverLatched",
+                f"{len(book.recent)} failovers within {guards.latch_window}; cluster-side "
+                "actions wait for a human: kubectl annotate vehicle "
+                f"{vehicle_name} {ANNOTATION_CLEAR_FAILOVER_LATCH}=<new token> --overwrite",
+                book.latched_at or now,
+            )
+        )
+
+    action = book.action
+    if action is not None and rollout_done:
+        events.append(
+            PlannedEvent(
+                "Normal",
+                "MavrosRepointed",
+                f"mavros follows {action.autopilot}",
+                action.started_at,
+            )
+        )
+        action = None
+    elif action is not None and now - action.started_at > guards.action_timeout:
+        events.append(
+            PlannedEvent(
+                "Warning",
+                "MavrosRepointTimedOut",
+                f"mavros not rolled out on {action.autopilot} after {guards.action_timeout}; "
+                "no longer counted against the fleet's concurrency cap",
+                action.started_at,
+            )
+        )
+        action = None
+
+    by_name = {a.name: a for a in autopilots_of(vehicle_spec, autopilot_spec)}
+    active = autopilot_status.active_autopilot
+    target = by_name.get(active) if active else None
+    followed = book.followed_autopilot or next(
+        (a.name for a in by_name.values() if a.fcu_url == vehicle_status.fcu_url), None
+    )
+    fcu_url = vehicle_status.fcu_url
+    blocked: Verdict | None = None
+    verdict = check(
+        guards,
+        paused_here=paused_here,
+        latched=book.latched,
+        actions_elsewhere=actions_elsewhere,
+    )
+    if target is not None and (followed is None or followed not in by_name):
+        followed, fcu_url = target.name, target.fcu_url
+    elif target is not None and target.name != followed:
+        if verdict is Verdict.ALLOWED:
+            followed, fcu_url = target.name, target.fcu_url
+            action = FailoverAction(kind=REPOINT_MAVROS, autopilot=target.name, started_at=now)
+            events.append(
+                PlannedEvent(
+                    "Normal",
+                    "RepointingMavros",
+                    f"pointing mavros at {target.name} ({target.fcu_url}), was {followed}",
+                    now,
+                )
+            )
+        else:
+            blocked = verdict
+    elif followed in by_name:
+        fcu_url = by_name[followed].fcu_url
+
+    command = None
+    due = failback_command(autopilot_spec, autopilot_status)
+    if due is not None and connected.status == "True" and due.id != book.failback_command:
+        if verdict is Verdict.ALLOWED:
+            command = _stamp(due, now)
+            events.append(
+                PlannedEvent(
+                    "Normal",
+                    "FailbackRequested",
+                    f"{active} is on the ground and {autopilot_spec.primary} healthy: "
+                    f"asking the agent to switch back (command {due.id})",
+                    now,
+                )
+            )
+        else:
+            blocked = blocked or verdict
+
+    if blocked is not None and blocked.value != book.blocked:
+        events.append(
+            PlannedEvent(
+                "Warning",
+                "FailoverActionBlocked",
+                f"cluster-side failover action held back: {blocked.value}",
+                now,
+            )
+        )
+    book = book.model_copy(
+        update={
+            "action": action,
+            "followed_autopilot": followed,
+            "blocked": blocked.value if blocked is not None else None,
+            "failback_command": command.id if command is not None else book.failback_command,
+        }
+    )
+    return FailoverPlan(
+        conditions=(connected, healthy),
+        active_autopilot=active,
+        fcu_url=fcu_url,
+        failover=book,
+        events=tuple(events),
+        command=command,
+        acting=action is not None,
+    )

@@ -1,0 +1,539 @@
+"""Decision tables of the operator's side of failover (roost_operator.autopilots).
+
+Pure functions only: AgentConnected/AutopilotsHealthy from the agent's report, the fleet
+guards (pause, latch, concurrency cap), failover accounting across partitions and
+restarts, and the whole per-vehicle plan (re-point mavros, failback, Events).
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime, timedelta
+from typing import Any
+
+import pytest
+
+from roost_api.autopilot import (
+    AutopilotHealth,
+    CommandAction,
+    FailoverRecord,
+    RedundantAutopilotSpec,
+    RedundantAutopilotStatus,
+)
+from roost_api.meta import Condition, HealthLevel
+from roost_api.vehicle import FailoverAction, VehicleFailover, VehicleSpec, VehicleStatus
+from roost_api.wellknown import ANNOTATION_CLEAR_FAILOVER_LATCH, ANNOTATION_PAUSE_FAILOVER_ACTIONS
+from roost_operator.autopilots.conditions import agent_connected, autopilots_healthy
+from roost_operator.autopilots.guards import (
+    FleetGuards,
+    Verdict,
+    check,
+    clear_latch,
+    load_fleet_guards,
+    new_failovers,
+    observe_failovers,
+    vehicle_paused,
+)
+from roost_operator.autopilots.plan import FailoverPlan, failback_command, plan
+
+NOW = datetime(2026, 5, 1, 12, 0, 0, tzinfo=UTC)
+NODE = "drone-1"
+URL1 = "udp://127.0.0.1:14541"
+URL2 = "udp://127.0.0.1:14542"
+
+
+def cond(type_: str, status: str, reason: str = "R", message: str = "m") -> Condition:
+    return Condition.model_validate(
+        {
+            "type": type_,
+            "status": status,
+            "reason": reason,
+            "message": message,
+            "lastTransitionTime": NOW,
+        }
+    )
+
+
+def ra_spec(**policy: Any) -> RedundantAutopilotSpec:
+    return RedundantAutopilotSpec.model_validate(
+        {
+            "vehicleName": "v1",
+            "primary": "fc1",
+            "autopilots": [
+                {"name": "fc1", "stack": "px4", "connection": URL1, "sysid": 1, "bridgeChannel": 0},
+                {"name": "fc2", "stack": "px4", "connection": URL2, "sysid": 2, "bridgeChannel": 1},
+            ],
+            "failoverPolicy": policy,
+        }
+    )
+
+
+def failover(at: datetime, frm: str = "fc1", to: str = "fc2") -> FailoverRecord:
+    return FailoverRecord.model_validate(
+        {
+            "time": at,
+            "from": frm,
+            "to": to,
+            "reason": f"heartbeat lost on {frm}",
+            "latencyMs": 3.2,
+            "trigger": "Automatic",
+        }
+    )
+
+
+def ra_status(
+    *,
+    active: str = "fc1",
+    reported: datetime | None = NOW,
+    ready: str = "True",
+    active_healthy: str = "True",
+    redundant: str = "True",
+    failed_over: str = "False",
+    count: int = 0,
+    last: FailoverRecord | None = None,
+    healths: list[AutopilotHealth] | None = None,
+) -> RedundantAutopilotStatus:
+    return RedundantAutopilotStatus(
+        active_autopilot=active,
+        reported_at=reported,
+        node_name=NODE,
+        failover_count=count,
+        last_failover=last,
+        autopilots=healths or [],
+        conditions=[
+            cond("Ready", ready, "Ready" if ready == "True" else "NotRedundant", "ready msg"),
+            cond("ActiveHealthy", active_healthy, message="active msg"),
+            cond("Redundant", redundant, message="redundant msg"),
+            cond("FailedOver", failed_over, message="failed over msg"),
+        ],
+    )
+
+
+# -- AgentConnected -------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("reported", "node", "status", "reason"),
+    [
+        (None, NODE, "Unknown", "NeverReported"),
+        (NOW - timedelta(seconds=5), NODE, "True", "Reporting"),
+        (NOW - timedelta(seconds=30), NODE, "True", "Reporting"),
+        (NOW - timedelta(seconds=31), NODE, "Unknown", "ReportsStale"),
+        (NOW + timedelta(seconds=20), NODE, "True", "Reporting"),  # drone clock ahead
+        (NOW, "drone-old", "Unknown", "ReportFromOtherNode"),
+    ],
+)
+def test_agent_connected_is_true_while_reports_are_fresh_and_unknown_never_false(
+    reported: datetime | None, node: str, status: str, reason: str
+) -> None:
+    report = ra_status(reported=reported).model_copy(update={"node_name": node})
+    got = agent_connected(report, vehicle_node=NODE, now=NOW, stale_after=timedelta(seconds=30))
+    assert (got.type, got.status, got.reason) == ("AgentConnected", status, reason)
+
+
+# -- AutopilotsHealthy ----------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("ready", "active", "redundant", "failed_over", "expected"),
+    [
+        ("True", "True", "True", "False", ("True", "Redundant")),
+        ("True", "True", "True", "True", ("True", "Redundant")),  # manual switch, both healthy
+        ("False", "False", "True", "False", ("False", "ActiveUnhealthy")),
+        ("False", "False", "False", "True", ("False", "ActiveUnhealthy")),  # worst first
+        ("False", "True", "False", "True", ("False", "FailedOver")),
+        ("False", "True", "False", "False", ("False", "NotRedundant")),
+        ("Unknown", "Unknown", "True", "False", ("Unknown", "ActiveHealthUnknown")),
+        ("Unknown", "True", "Unknown", "False", ("Unknown", "RedundancyUnknown")),
+    ],
+)
+def test_autopilots_healthy_follows_the_agents_conditions_naming_the_first_problem(
+    ready: str, active: str, redundant: str, failed_over: str, expected: tuple[str, str]
+) -> None:
+    report = ra_status(
+        ready=ready, active_healthy=active, redundant=redundant, failed_over=failed_over
+    )
+    connected = agent_connected(report, vehicle_node=NODE, now=NOW)
+    got = autopilots_healthy(report, connected)
+    assert (got.type, got.status, got.reason) == ("AutopilotsHealthy", *expected)
+
+
+def test_autopilots_healthy_is_unknown_when_the_agent_is_not_connected() -> None:
+    report = ra_status(reported=NOW - timedelta(minutes=5), ready="True")
+    connected = agent_connected(report, vehicle_node=NODE, now=NOW)
+    got = autopilots_healthy(report, connected)
+    assert (got.status, got.reason) == ("Unknown", "AgentNotConnected")
+    assert "last reported 300 s ago" in got.message
+
+
+def test_failed_over_message_says_what_happened_and_what_is_missing() -> None:
+    report = ra_status(ready="False", redundant="False", failed_over="True")
+    got = autopilots_healthy(report, agent_connected(report, vehicle_node=NODE, now=NOW))
+    assert got.message == "failed over msg; redundant msg"
+
+
+def test_autopilots_healthy_without_any_agent_conditions_is_unknown() -> None:
+    report = RedundantAutopilotStatus(reported_at=NOW, node_name=NODE)
+    got = autopilots_healthy(report, agent_connected(report, vehicle_node=NODE, now=NOW))
+    assert (got.status, got.reason) == ("Unknown", "ActiveHealthUnknown")
+
+
+# -- guards ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("fleet_paused", "paused_here", "latched", "elsewhere", "verdict"),
+    [
+        (False, False, False, 0, Verdict.ALLOWED),
+        (False, False, False, 4, Verdict.ALLOWED),
+        (False, False, False, 5, Verdict.CONCURRENCY_LIMIT),
+        (False, False, True, 0, Verdict.LATCHED),
+        (False, True, False, 0, Verdict.PAUSED),
+        (True, False, False, 0, Verdict.PAUSED),
+        (True, False, True, 9, Verdict.PAUSED),  # pause reported first
+        (False, False, True, 9, Verdict.LATCHED),  # then the latch, then the cap
+    ],
+)
+def test_guard_decision_table(
+    fleet_paused: bool, paused_here: bool, latched: bool, elsewhere: int, verdict: Verdict
+) -> None:
+    guards = FleetGuards(max_concurrent_actions=5, paused=fleet_paused)
+    got = check(guards, paused_here=paused_here, latched=latched, actions_elsewhere=elsewhere)
+    assert got is verdict
+
+
+@pytest.mark.parametrize(
+    ("value", "paused"),
+    [("true", True), ("True", True), ("1", True), ("false", False), ("", False)],
+)
+def test_pause_annotation(value: str, paused: bool) -> None:
+    assert vehicle_paused({ANNOTATION_PAUSE_FAILOVER_ACTIONS: value}) is paused
+    assert vehicle_paused({}) is False
+
+
+def test_fleet_guards_come_from_the_environment() -> None:
+    guards = load_fleet_guards(
+        {
+            "ROOST_FAILOVER_MAX_CONCURRENT": "2",
+            "ROOST_FAILOVER_LATCH_AFTER": "4",
+            "ROOST_FAILOVER_LATCH_WINDOW_SECONDS": "60",
+            "ROOST_FAILOVER_ACTION_TIMEOUT_SECONDS": "15",
+            "ROOST_FAILOVER_PAUSED": "yes",
+        }
+    )
+    assert guards == FleetGuards(
+        max_concurrent_actions=2,
+        latch_after=4,
+        latch_window=timedelta(seconds=60),
+        action_timeout=timedelta(seconds=15),
+        paused=True,
+    )
+    assert load_fleet_guards({}) == FleetGuards()
+
+
+# -- failover accounting --------------------------------------------------------------
+
+
+T1 = NOW - timedelta(minutes=3)
+T2 = NOW - timedelta(minutes=2)
+
+
+@pytest.mark.parametrize(
+    ("book", "count", "last", "new"),
+    [
+        (VehicleFailover(), 0, None, 0),
+        (VehicleFailover(), 1, failover(T1), 1),
+        (VehicleFailover(observed_failover_count=1, observed_failover_time=T1), 1, failover(T1), 0),
+        (VehicleFailover(observed_failover_count=1, observed_failover_time=T1), 4, failover(T2), 3),
+        # the agent restarted and counts from zero again: the latest is new if its time is
+        (VehicleFailover(observed_failover_count=5, observed_failover_time=T1), 1, failover(T2), 1),
+        (VehicleFailover(observed_failover_count=5, observed_failover_time=T1), 0, failover(T1), 0),
+    ],
+)
+def test_new_failovers_are_counted_once_even_across_partitions_and_restarts(
+    book: VehicleFailover, count: int, last: FailoverRecord | None, new: int
+) -> None:
+    assert new_failovers(book, ra_status(count=count, last=last)) == new
+
+
+def test_the_nth_failover_within_the_window_latches_and_old_ones_age_out() -> None:
+    guards = FleetGuards(latch_after=3, latch_window=timedelta(minutes=10))
+    book = VehicleFailover(
+        observed_failover_count=2,
+        observed_failover_time=T1,
+        recent=[NOW - timedelta(minutes=11), T1],
+    )
+    # one aged out: two within the window after this failover -> no latch yet
+    book, new = observe_failovers(
+        book, ra_status(count=3, last=failover(T2)), guards=guards, now=NOW
+    )
+    assert new == 1 and not book.latched and book.recent == [T1, T2]
+    book, new = observe_failovers(
+        book, ra_status(count=4, last=failover(NOW)), guards=guards, now=NOW
+    )
+    assert new == 1 and book.latched and book.latched_at == NOW
+    # seeing the same report again changes nothing
+    again, new = observe_failovers(
+        book, ra_status(count=4, last=failover(NOW)), guards=guards, now=NOW
+    )
+    assert new == 0 and again == book
+
+
+def test_switches_piled_up_during_a_partition_can_trip_the_latch_at_once() -> None:
+    guards = FleetGuards(latch_after=3)
+    book, new = observe_failovers(
+        VehicleFailover(), ra_status(count=3, last=failover(T2)), guards=guards, now=NOW
+    )
+    assert new == 3 and book.latched and book.recent == [T2, T2, T2]
+
+
+@pytest.mark.parametrize(
+    ("latched", "token", "recorded", "cleared", "still_latched"),
+    [
+        (True, "t1", None, True, False),
+        (True, "t1", "t1", False, True),  # a token clears one latch only
+        (True, None, None, False, True),
+        (False, "t2", "t1", False, False),  # recorded, so it cannot clear a later latch
+    ],
+)
+def test_a_human_clears_the_latch_with_a_new_token(
+    latched: bool, token: str | None, recorded: str | None, cleared: bool, still_latched: bool
+) -> None:
+    book = VehicleFailover(
+        latched=latched, latched_at=T1 if latched else None, recent=[T1, T2], cleared_token=recorded
+    )
+    annotations = {ANNOTATION_CLEAR_FAILOVER_LATCH: token} if token else {}
+    after, did = clear_latch(book, annotations)
+    assert did is cleared and after.latched is still_latched
+    assert after.cleared_token == (token or recorded)
+    if cleared:
+        assert after.recent == [] and after.latched_at is None
+
+
+# -- the whole plan -------------------------------------------------------------------
+
+
+def vehicle_spec(mavros: bool = True) -> VehicleSpec:
+    return VehicleSpec.model_validate(
+        {"nodeName": NODE, "sysid": 10, "components": {"mavros": {"enabled": mavros}}}
+    )
+
+
+def run(
+    *,
+    status: VehicleStatus,
+    report: RedundantAutopilotStatus,
+    spec: RedundantAutopilotSpec | None = None,
+    guards: FleetGuards | None = None,
+    annotations: dict[str, str] | None = None,
+    elsewhere: int = 0,
+    rollout_done: bool = False,
+    now: datetime = NOW,
+) -> FailoverPlan:
+    return plan(
+        vehicle_name="v1",
+        vehicle_spec=vehicle_spec(),
+        vehicle_status=status,
+        annotations=annotations or {},
+        autopilot_spec=spec or ra_spec(),
+        autopilot_status=report,
+        guards=guards or FleetGuards(),
+        paused_here=vehicle_paused(annotations or {}),
+        actions_elsewhere=elsewhere,
+        rollout_done=rollout_done,
+        now=now,
+    )
+
+
+def pointed_at(name: str, url: str, **book: Any) -> VehicleStatus:
+    return VehicleStatus(
+        active_autopilot=name,
+        fcu_url=url,
+        failover=VehicleFailover(followed_autopilot=name, **book),
+    )
+
+
+def reasons(result: FailoverPlan) -> list[str]:
+    return [e.reason for e in result.events]
+
+
+def test_first_pointing_is_set_up_not_a_guarded_action() -> None:
+    result = run(status=VehicleStatus(), report=ra_status(), guards=FleetGuards(paused=True))
+    assert (result.fcu_url, result.failover.followed_autopilot) == (URL1, "fc1")
+    assert result.failover.action is None and result.failover.blocked is None
+    assert reasons(result) == []
+
+
+def test_an_existing_fcu_url_tells_which_autopilot_is_followed() -> None:
+    result = run(status=VehicleStatus(fcu_url=URL1), report=ra_status(active="fc2"))
+    assert result.failover.followed_autopilot == "fc2"
+    assert result.failover.action is not None and result.failover.action.autopilot == "fc2"
+
+
+def test_a_failover_repoints_mavros_records_the_action_and_degrades_the_vehicle() -> None:
+    report = ra_status(
+        active="fc2",
+        ready="False",
+        redundant="False",
+        failed_over="True",
+        count=1,
+        last=failover(T2),
+    )
+    result = run(status=pointed_at("fc1", URL1), report=report)
+    assert (result.active_autopilot, result.fcu_url) == ("fc2", URL2)
+    assert result.failover.followed_autopilot == "fc2"
+    assert result.failover.action == FailoverAction(
+        kind="RepointMavros", autopilot="fc2", started_at=NOW
+    )
+    assert result.acting
+    assert reasons(result) == ["FailedOver", "RepointingMavros"]
+    assert result.events[0].at == T2  # named after the failover: a re-post is a duplicate
+    assert [(c.type, c.status, c.reason) for c in result.conditions] == [
+        ("AgentConnected", "True", "Reporting"),
+        ("AutopilotsHealthy", "False", "FailedOver"),
+    ]
+
+
+def test_the_plan_is_stable_once_written_so_a_restarted_operator_repeats_nothing() -> None:
+    report = ra_status(active="fc2", count=1, last=failover(T2))
+    first = run(status=pointed_at("fc1", URL1), report=report)
+    written = VehicleStatus(
+        active_autopilot=first.active_autopilot, fcu_url=first.fcu_url, failover=first.failover
+    )
+    later = NOW + timedelta(seconds=1)
+    second = run(status=written, report=report, now=later)
+    assert second.failover == first.failover and second.events == () and second.command is None
+    done = run(status=written, report=report, now=later, rollout_done=True)
+    assert done.failover.action is None and reasons(done) == ["MavrosRepointed"]
+    assert not done.acting
+
+
+def test_an_action_that_never_finishes_stops_counting_after_the_timeout() -> None:
+    action = FailoverAction(kind="RepointMavros", autopilot="fc2", started_at=NOW)
+    status = pointed_at("fc2", URL2, action=action)
+    guards = FleetGuards(action_timeout=timedelta(seconds=60))
+    waiting = run(status=status, report=ra_status(active="fc2"), guards=guards, now=NOW)
+    assert waiting.failover.action == action and waiting.events == ()
+    late = NOW + timedelta(seconds=61)
+    timed_out = run(status=status, report=ra_status(active="fc2"), guards=guards, now=late)
+    assert timed_out.failover.action is None and reasons(timed_out) == ["MavrosRepointTimedOut"]
+
+
+@pytest.mark.parametrize(
+    ("guards", "annotations", "elsewhere", "blocked"),
+    [
+        (FleetGuards(paused=True), {}, 0, "Paused"),
+        (FleetGuards(), {ANNOTATION_PAUSE_FAILOVER_ACTIONS: "true"}, 0, "Paused"),
+        (FleetGuards(max_concurrent_actions=2), {}, 2, "ConcurrencyLimit"),
+    ],
+)
+def test_a_guard_holds_the_repoint_back_but_the_vehicle_still_shows_the_true_active(
+    guards: FleetGuards, annotations: dict[str, str], elsewhere: int, blocked: str
+) -> None:
+    report = ra_status(active="fc2", count=1, last=failover(T2))
+    result = run(
+        status=pointed_at("fc1", URL1),
+        report=report,
+        guards=guards,
+        annotations=annotations,
+        elsewhere=elsewhere,
+    )
+    assert result.active_autopilot == "fc2"  # what drives the motors, from the agent
+    assert (result.fcu_url, result.failover.followed_autopilot) == (URL1, "fc1")
+    assert result.failover.blocked == blocked and result.failover.action is None
+    assert reasons(result) == ["FailedOver", "FailoverActionBlocked"]
+    # the next reconcile does not repeat the Event; lifting the guard re-points
+    held = VehicleStatus(active_autopilot="fc2", fcu_url=URL1, failover=result.failover)
+    again = run(
+        status=held, report=report, guards=guards, annotations=annotations, elsewhere=elsewhere
+    )
+    assert again.events == ()
+    lifted = run(status=held, report=report)
+    assert lifted.fcu_url == URL2 and lifted.failover.blocked is None
+    assert reasons(lifted) == ["RepointingMavros"]
+
+
+def test_the_failover_that_trips_the_latch_is_not_acted_on_until_a_human_clears_it() -> None:
+    guards = FleetGuards(latch_after=3)
+    book = {"observed_failover_count": 2, "observed_failover_time": T1, "recent": [T1, T1]}
+    report = ra_status(active="fc2", count=3, last=failover(T2, frm="fc1", to="fc2"))
+    result = run(status=pointed_at("fc1", URL1, **book), report=report, guards=guards)
+    assert result.failover.latched and result.failover.blocked == "Latched"
+    assert result.fcu_url == URL1
+    assert reasons(result) == ["FailedOver", "FailoverLatched", "FailoverActionBlocked"]
+    latched = VehicleStatus(active_autopilot="fc2", fcu_url=URL1, failover=result.failover)
+    cleared = run(
+        status=latched,
+        report=report,
+        guards=guards,
+        annotations={ANNOTATION_CLEAR_FAILOVER_LATCH: "ok-by-alice"},
+    )
+    assert not cleared.failover.latched and cleared.fcu_url == URL2
+    assert reasons(cleared) == ["FailoverLatchCleared", "RepointingMavros"]
+
+
+def test_a_stale_agent_changes_conditions_but_not_the_followed_autopilot() -> None:
+    report = ra_status(reported=NOW - timedelta(minutes=2))
+    result = run(status=pointed_at("fc1", URL1), report=report)
+    assert [c.status for c in result.conditions] == ["Unknown", "Unknown"]
+    assert result.fcu_url == URL1 and result.events == ()
+
+
+# -- automatic failback ---------------------------------------------------------------
+
+
+def health(name: str, level: HealthLevel, *, landed: str, armed: bool) -> AutopilotHealth:
+    return AutopilotHealth(name=name, level=level, landed_state=landed, armed=armed)
+
+
+def landed_on_standby(
+    primary: HealthLevel = HealthLevel.OK, **standby: Any
+) -> RedundantAutopilotStatus:
+    state = {"landed": "OnGround", "armed": False} | standby
+    return ra_status(
+        active="fc2",
+        count=1,
+        last=failover(T2),
+        healths=[
+            health("fc1", primary, landed="OnGround", armed=False),
+            health("fc2", HealthLevel.OK, **state),
+        ],
+    )
+
+
+@pytest.mark.parametrize(
+    ("failback", "report", "due"),
+    [
+        ("OnGround", landed_on_standby(), True),
+        ("Manual", landed_on_standby(), False),
+        ("Never", landed_on_standby(), False),
+        ("OnGround", landed_on_standby(landed="InAir", armed=True), False),  # never in the air
+        ("OnGround", landed_on_standby(armed=True), False),  # still armed on the ground
+        ("OnGround", landed_on_standby(primary=HealthLevel.WARN), False),
+        ("OnGround", landed_on_standby(primary=HealthLevel.STALE), False),
+        ("OnGround", ra_status(active="fc1", count=1, last=failover(T2)), False),
+    ],
+)
+def test_failback_decision_table(
+    failback: str, report: RedundantAutopilotStatus, due: bool
+) -> None:
+    command = failback_command(ra_spec(failback=failback), report)
+    assert (command is not None) is due
+    if command is not None:
+        assert command.action == CommandAction.SWITCH and command.target == "fc1"
+        assert command.id == f"failback-{T2:%Y%m%dT%H%M%S%f}"
+
+
+def test_failback_is_requested_once_per_failover_and_respects_the_guards() -> None:
+    spec = ra_spec(failback="OnGround")
+    status = pointed_at("fc2", URL2, observed_failover_count=1, observed_failover_time=T2)
+    result = run(status=status, report=landed_on_standby(), spec=spec)
+    assert result.command is not None and result.command.issued_at == NOW
+    assert reasons(result) == ["FailbackRequested"]
+    issued = status.model_copy(update={"failover": result.failover})
+    assert run(status=issued, report=landed_on_standby(), spec=spec).command is None
+    paused = run(
+        status=status, report=landed_on_standby(), spec=spec, guards=FleetGuards(paused=True)
+    )
+    assert paused.command is None and paused.failover.blocked == "Paused"
+    stale = landed_on_standby().model_copy(update={"reported_at": NOW - timedelta(minutes=5)})
+    assert run(status=status, report=stale, spec=spec).command is None
