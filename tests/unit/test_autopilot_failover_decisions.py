@@ -486,16 +486,15 @@ def health(name: str, level: HealthLevel, *, landed: str, armed: bool) -> Autopi
 
 
 def landed_on_standby(
-    primary: HealthLevel = HealthLevel.OK, **standby: Any
+    primary: HealthLevel = HealthLevel.OK, *, landed: str = "OnGround", armed: bool = False
 ) -> RedundantAutopilotStatus:
-    state = {"landed": "OnGround", "armed": False} | standby
     return ra_status(
         active="fc2",
         count=1,
         last=failover(T2),
         healths=[
             health("fc1", primary, landed="OnGround", armed=False),
-            health("fc2", HealthLevel.OK, **state),
+            health("fc2", HealthLevel.OK, landed=landed, armed=armed),
         ],
     )
 
