@@ -1,0 +1,424 @@
+"""Pure desired state of a Vehicle: its autopilots, config, workloads and conditions.
+
+Given the Vehicle (and its RedundantAutopilot, when there is one) these functions
+return plain manifests and condition values; they read nothing and write nothing, so
+every rule here is unit-tested without a cluster and the handlers only fetch, call and
+apply.
+
+Workloads are Deployments with one replica and the ``Recreate`` strategy, not
+DaemonSets. Why: Recreate guarantees the old instance is gone before the new one
+starts, so a MAVLink endpoint, a sysid or a serial device is never held by two
+processes (on a hot swap, a config change or a failover re-point); the Deployment's
+status answers "is this component ready" directly; and a move to another node is an
+explicit, observable rollout (the pod template names the node) rather than a side
+effect of label changes. Pods land on the vehicle's node through
+:func:`~roost_operator.vehicles.placement.place_on_vehicle`.
+
+The FCU URL mavros uses is that of the *active* autopilot: the RedundantAutopilot's
+``status.activeAutopilot`` (written by the node agent), else its ``spec.primary``.
+:func:`active_autopilot` takes both as plain inputs, so a failover is nothing more than
+a different input to the same functions: mavros' config hash changes and it rolls,
+while the SITL pods keep a hash without the failover keys and keep running.
+
+Default images are Starling's (``uobflightlabstarling/…`` on Docker Hub), so a fleet
+moving from Starling keeps the images it knows; every one can be overridden per
+vehicle (``spec.components.<c>.image``, ``spec.simulation.image``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Final
+
+from roost_api.autopilot import RedundantAutopilotSpec
+from roost_api.meta import Condition, ConditionStatus, Stack, set_condition
+from roost_api.vehicle import VehicleConditionType, VehicleSpec
+from roost_api.wellknown import (
+    ANNOTATION_CONFIG_HASH,
+    LABEL_COMPONENT,
+    LABEL_MANAGED_BY,
+    LABEL_VEHICLE,
+    MANAGED_BY,
+    PREFIX,
+)
+from roost_mavlink.sitl import sitl_endpoint
+from roost_operator.kube import Obj
+from roost_operator.vehicles.config import config_hash, mount_vehicle_config
+from roost_operator.vehicles.placement import place_on_vehicle
+
+ANNOTATION_NODE: Final = f"{PREFIX}node"
+
+# Starling's default for a real vehicle without a RedundantAutopilot: the flight
+# controller's USB serial device.
+DEFAULT_FCU_URL: Final = "serial:///dev/px4fmu:115200"
+DEFAULT_SIM_AUTOPILOT: Final = "fc0"
+
+DEFAULT_IMAGES: Final[Mapping[str, str]] = {
+    "mavros": "uobflightlabstarling/starling-mavros:latest",
+    "vicon": "uobflightlabstarling/starling-vicon:latest",
+    "hardware": "uobflightlabstarling/starling-hardware:latest",
+    "sitl-px4": "uobflightlabstarling/starling-sim-px4-sitl:latest",
+    "sitl-ardupilot": "uobflightlabstarling/starling-sim-ardupilot-copter:latest",
+}
+
+COMPONENT_RESOURCES: Final[Mapping[str, Obj]] = {
+    "mavros": {"requests": {"cpu": "100m", "memory": "128Mi"}, "limits": {"memory": "512Mi"}},
+    "vicon": {"requests": {"cpu": "50m", "memory": "64Mi"}, "limits": {"memory": "256Mi"}},
+    "hardware": {"requests": {"cpu": "50m", "memory": "64Mi"}, "limits": {"memory": "256Mi"}},
+    "sitl": {"requests": {"cpu": "500m", "memory": "512Mi"}, "limits": {"memory": "2Gi"}},
+}
+
+
+# -- autopilots -----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Autopilot:
+    """One autopilot of a vehicle as the operator needs it."""
+
+    name: str
+    stack: Stack
+    sysid: int
+    connection: str
+    fcu_url: str
+
+
+def autopilots_of(spec: VehicleSpec, autopilots: RedundantAutopilotSpec | None) -> list[Autopilot]:
+    """The vehicle's autopilots: those of its RedundantAutopilot, else one derived SITL.
+
+    A simulated vehicle without a RedundantAutopilot still flies: one SITL with the
+    vehicle's stack, ports derived from ``spec.simulation.instance``. A real vehicle
+    without one has no autopilot Roost knows of (mavros uses Starling's default URL).
+    """
+    if autopilots is not None:
+        return [
+            Autopilot(
+                name=a.name,
+                stack=Stack(a.stack),
+                sysid=a.sysid,
+                connection=a.connection,
+                fcu_url=a.fcu_url or a.connection,
+            )
+            for a in autopilots.autopilots
+        ]
+    if spec.simulation is None:
+        return []
+    stack = Stack(spec.simulation.stack)
+    endpoint = sitl_endpoint(spec.simulation.instance, 0, stack)
+    return [
+        Autopilot(
+            name=DEFAULT_SIM_AUTOPILOT,
+            stack=stack,
+            sysid=spec.sysid,
+            connection=endpoint.connection,
+            fcu_url=endpoint.connection,
+        )
+    ]
+
+
+def active_autopilot(
+    autopilots: Sequence[Autopilot], *, reported_active: str | None, primary: str | None
+) -> Autopilot | None:
+    """The autopilot mavros follows: the reported active one, else the primary, else first."""
+    by_name = {a.name: a for a in autopilots}
+    for name in (reported_active, primary):
+        if name and name in by_name:
+            return by_name[name]
+    return autopilots[0] if autopilots else None
+
+
+# -- workloads ----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Workload:
+    """One controller-managed component of a vehicle."""
+
+    component: str  # mavros, vicon, hardware, sitl-<autopilot>
+    image: str
+    container: Obj  # container fields besides name/image/env (ports, probes, securityContext)
+    pod: Obj  # pod spec fields besides containers (hostNetwork, volumes)
+    follows_failover: bool  # whether a failover (FCU URL change) restarts it
+
+
+def workload_name(vehicle_name: str, component: str) -> str:
+    """Name of a vehicle's component Deployment."""
+    return f"{vehicle_name}-{component}"
+
+
+def component_workloads(spec: VehicleSpec, autopilots: Sequence[Autopilot]) -> list[Workload]:
+    """Every workload the vehicle should run, in a stable order."""
+    host_network = {"hostNetwork": True, "dnsPolicy": "ClusterFirstWithHostNet"}
+    workloads: list[Workload] = []
+    comps = spec.components
+    if comps.mavros.enabled:
+        workloads.append(
+            Workload(
+                "mavros",
+                comps.mavros.image or DEFAULT_IMAGES["mavros"],
+                {"resources": COMPONENT_RESOURCES["mavros"]},
+                host_network,
+                follows_failover=True,
+            )
+        )
+    if comps.vicon.enabled:
+        workloads.append(
+            Workload(
+                "vicon",
+                comps.vicon.image or DEFAULT_IMAGES["vicon"],
+                {"resources": COMPONENT_RESOURCES["vicon"]},
+                host_network,
+                follows_failover=False,
+            )
+        )
+    if comps.hardware.enabled:
+        # Device access (cameras, payload buses) needs the host's /dev and a privileged
+        # container; this is the only privileged Roost workload and it is off by default.
+        workloads.append(
+            Workload(
+                "hardware",
+                comps.hardware.image or DEFAULT_IMAGES["hardware"],
+                {
+                    "resources": COMPONENT_RESOURCES["hardware"],
+                    "securityContext": {"privileged": True},
+                    "volumeMounts": [{"name": "dev", "mountPath": "/dev"}],
+                },
+                {"volumes": [{"name": "dev", "hostPath": {"path": "/dev"}}]},
+                follows_failover=False,
+            )
+        )
+    if spec.simulation is not None:
+        workloads.extend(
+            sitl_workload(spec, index, autopilot) for index, autopilot in enumerate(autopilots)
+        )
+    return workloads
+
+
+def sitl_workload(spec: VehicleSpec, index: int, autopilot: Autopilot) -> Workload:
+    """The SITL of one autopilot of a simulated vehicle.
+
+    Ports come from :func:`roost_mavlink.sitl.sitl_endpoint` (vehicle instance, autopilot
+    index), so two autopilots on one node never share a port; the sysid is the
+    autopilot's declared one, which the node agent filters on. ArduPilot's SITL serves
+    TCP, which gives it a readiness probe; PX4's SITL speaks UDP only, so it has none.
+    """
+    assert spec.simulation is not None
+    endpoint = sitl_endpoint(spec.simulation.instance, index, autopilot.stack)
+    container: Obj = {
+        "resources": COMPONENT_RESOURCES["sitl"],
+        "env": [
+            {"name": "ROOST_SITL_AUTOPILOT", "value": autopilot.name},
+            {"name": "ROOST_SITL_STACK", "value": str(autopilot.stack)},
+            {"name": "ROOST_SITL_INSTANCE", "value": str(endpoint.instance)},
+            {"name": "ROOST_SITL_SYSID", "value": str(autopilot.sysid)},
+            {"name": "ROOST_SITL_AGENT_PORT", "value": str(endpoint.agent_port)},
+            {"name": "ROOST_SITL_AUTOPILOT_PORT", "value": str(endpoint.autopilot_port)},
+            {"name": "PX4_INSTANCE", "value": str(endpoint.instance)},
+            {"name": "PX4_SYSID", "value": str(autopilot.sysid)},
+        ],
+    }
+    if autopilot.stack is Stack.ARDUPILOT:
+        container["ports"] = [
+            {"name": "mavlink-tcp", "containerPort": endpoint.autopilot_port, "protocol": "TCP"}
+        ]
+        container["readinessProbe"] = {
+            "tcpSocket": {"port": endpoint.autopilot_port},
+            "periodSeconds": 5,
+        }
+    image = spec.simulation.image or DEFAULT_IMAGES[f"sitl-{autopilot.stack}"]
+    return Workload(
+        f"sitl-{autopilot.name}",
+        image,
+        container,
+        {"hostNetwork": True, "dnsPolicy": "ClusterFirstWithHostNet"},
+        follows_failover=False,
+    )
+
+
+def workload_labels(vehicle_name: str, component: str) -> dict[str, str]:
+    """Labels of a component Deployment and its pods (also its immutable selector)."""
+    return {LABEL_MANAGED_BY: MANAGED_BY, LABEL_VEHICLE: vehicle_name, LABEL_COMPONENT: component}
+
+
+def deployment(
+    vehicle_name: str,
+    node_name: str,
+    workload: Workload,
+    config_values: Mapping[str, str],
+    *,
+    namespace: str,
+    owners: Iterable[Obj],
+) -> Obj:
+    """The Deployment running one workload on the vehicle's node."""
+    labels = workload_labels(vehicle_name, workload.component)
+    container: Obj = {
+        "name": workload.component,
+        "image": workload.image,
+        "imagePullPolicy": "IfNotPresent",
+        **workload.container,
+    }
+    pod_spec = place_on_vehicle(
+        mount_vehicle_config(
+            {**workload.pod, "containers": [container]}, vehicle_name, config_values
+        ),
+        vehicle_name,
+    )
+    return {
+        "apiVersion": "apps/v1",
+        "kind": "Deployment",
+        "metadata": {
+            "name": workload_name(vehicle_name, workload.component),
+            "namespace": namespace,
+            "labels": labels,
+            "ownerReferences": list(owners),
+        },
+        "spec": {
+            "replicas": 1,
+            "strategy": {"type": "Recreate"},
+            "revisionHistoryLimit": 2,
+            "selector": {"matchLabels": labels},
+            "template": {
+                "metadata": {
+                    "labels": labels,
+                    "annotations": {
+                        ANNOTATION_CONFIG_HASH: config_hash(
+                            config_values, include_failover_keys=workload.follows_failover
+                        ),
+                        ANNOTATION_NODE: node_name,
+                    },
+                },
+                "spec": place_on_vehicle(pod_spec, vehicle_name),
+            },
+        },
+    }
+
+
+# -- readiness and conditions --------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ComponentState:
+    """Whether one component Deployment is rolled out and available."""
+
+    component: str
+    ready: bool
+    detail: str
+
+
+def deployment_state(component: str, live: Mapping[str, Any] | None) -> ComponentState:
+    """Rollout state of a component Deployment, as ``kubectl rollout status`` judges it."""
+    if live is None:
+        return ComponentState(component, False, "its Deployment does not exist yet")
+    generation = live.get("metadata", {}).get("generation", 0)
+    status = live.get("status") or {}
+    if status.get("observedGeneration", 0) < generation:
+        return ComponentState(component, False, "the Deployment controller has not seen it yet")
+    updated = status.get("updatedReplicas", 0)
+    available = status.get("availableReplicas", 0)
+    total = status.get("replicas", 0)
+    if updated < 1 or available < 1 or total > updated:
+        conditions = {c.get("type"): c for c in status.get("conditions") or []}
+        why = (conditions.get("Available") or conditions.get("Progressing") or {}).get(
+            "message", ""
+        )
+        return ComponentState(
+            component,
+            False,
+            f"{available}/1 pods available, {updated}/1 updated" + (f" ({why})" if why else ""),
+        )
+    return ComponentState(component, True, "")
+
+
+@dataclass(frozen=True)
+class NodeBinding:
+    """Outcome of binding the vehicle to its node, for the NodeBound condition."""
+
+    bound: bool
+    reason: str
+    message: str
+
+
+def components_condition(
+    states: Sequence[ComponentState], *, blocked: str | None = None
+) -> tuple[ConditionStatus, str, str]:
+    """ComponentsReady from the states of all desired components.
+
+    ``blocked`` says why no components run at all (the vehicle has no node to run on).
+    """
+    if blocked is not None:
+        return "False", "WaitingForNode", f"no components run: {blocked}"
+    if not states:
+        return "True", "NoComponents", "no components are enabled"
+    waiting = [s for s in states if not s.ready]
+    if not waiting:
+        names = ", ".join(s.component for s in states)
+        return "True", "AllComponentsReady", f"ready: {names}"
+    message = "; ".join(f"component {s.component} not ready: {s.detail}" for s in waiting)
+    return "False", "ComponentsNotReady", message
+
+
+# The detail conditions Ready summarises, in the order their problems are reported.
+READY_INPUTS: Final = (
+    VehicleConditionType.NODE_BOUND,
+    VehicleConditionType.COMPONENTS_READY,
+    VehicleConditionType.AUTOPILOTS_HEALTHY,
+    VehicleConditionType.AGENT_CONNECTED,
+)
+
+
+def ready_condition(conditions: Sequence[Condition]) -> tuple[ConditionStatus, str, str]:
+    """Ready from the detail conditions present: False on any False, else Unknown on any
+    Unknown, else True. AutopilotsHealthy and AgentConnected count once they exist.
+    """
+    present = {c.type: c for c in conditions}
+    inputs = [present[t] for t in READY_INPUTS if t in present]
+    for wanted in ("False", "Unknown"):
+        failing = [c for c in inputs if c.status == wanted]
+        if failing:
+            first = failing[0]
+            message = "; ".join(f"{c.type}: {c.message}" for c in failing)
+            return wanted, first.reason, message
+    return "True", "VehicleReady", "node bound, components ready"
+
+
+def vehicle_conditions(
+    previous: Sequence[Condition],
+    *,
+    binding: NodeBinding,
+    components: tuple[ConditionStatus, str, str],
+    generation: int | None,
+) -> list[Condition]:
+    """The Vehicle's conditions after this reconcile (others' condition types kept)."""
+    conditions = set_condition(
+        previous,
+        type=VehicleConditionType.NODE_BOUND,
+        status="True" if binding.bound else "False",
+        reason=binding.reason,
+        message=binding.message,
+        observed_generation=generation,
+    )
+    status, reason, message = components
+    conditions = set_condition(
+        conditions,
+        type=VehicleConditionType.COMPONENTS_READY,
+        status=status,
+        reason=reason,
+        message=message,
+        observed_generation=generation,
+    )
+    status, reason, message = ready_condition(conditions)
+    return set_condition(
+        conditions,
+        type=VehicleConditionType.READY,
+        status=status,
+        reason=reason,
+        message=message,
+        observed_generation=generation,
+    )
+
+
+def transitions(before: Sequence[Condition], after: Sequence[Condition]) -> list[Condition]:
+    """Conditions whose status changed (or that are new): what deserves an Event."""
+    old = {c.type: c.status for c in before}
+    return [c for c in after if old.get(c.type) != c.status]
