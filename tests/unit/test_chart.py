@@ -1,0 +1,303 @@
+"""The Helm chart, offline: lint, schema validity, CRD copies, and the privileges it grants.
+
+Everything here runs the real ``helm`` binary (``helm lint`` / ``helm template``) and
+validates what it prints against the Kubernetes 1.35 OpenAPI schemas shipped by
+``kubernetes-validate``; custom resources are validated against the chart's own CRDs.
+tests/e2e/test_chart.py installs the same chart onto a real control plane and proves the
+RBAC and the node-restriction policy there.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+import jsonschema
+import kubernetes_validate
+import pytest
+import yaml
+
+from roost_api.wellknown import LABEL_NODE, LABEL_VEHICLE, TAINT_VEHICLE
+from roost_harness.binaries import REPO_ROOT
+from roost_harness.chart import (
+    CHART_CRDS_DIR,
+    CHART_DIR,
+    HARDWARE_VALUES,
+    KIND_VALUES,
+    ChartError,
+    Manifest,
+    find,
+    helm,
+    render,
+)
+
+KUBERNETES_VERSION = "1.35.0"
+AGENT_USER = "system:serviceaccount:roost-system:roost-agent"
+
+# Value sets every rendering test runs with: the defaults, both shipped values files,
+# and the switches that change which objects exist.
+VALUE_SETS: dict[str, tuple[dict[str, Any], tuple[Path, ...]]] = {
+    "defaults": ({}, ()),
+    "hardware": ({}, (HARDWARE_VALUES,)),
+    "kind": ({}, (KIND_VALUES,)),
+    "device-plugin": (
+        {"agent": {"devices": {"access": "devicePlugin", "resources": {"squat.ai/serial": 2}}}},
+        (),
+    ),
+    "no-node-restriction": ({"agent": {"nodeRestriction": {"enabled": False}}}, ()),
+    "operator-only": ({"agent": {"enabled": False}}, ()),
+}
+
+
+def _render_set(name: str, *, include_crds: bool = False) -> list[Manifest]:
+    values, files = VALUE_SETS[name]
+    return render(values, values_files=files, include_crds=include_crds)
+
+
+def _chart_crd_schemas() -> dict[tuple[str, str], dict[str, Any]]:
+    """(apiVersion, kind) -> openAPIV3Schema of every version of every chart CRD."""
+    schemas = {}
+    for path in CHART_CRDS_DIR.glob("*.yaml"):
+        crd = yaml.safe_load(path.read_text())
+        for version in crd["spec"]["versions"]:
+            key = (f"{crd['spec']['group']}/{version['name']}", crd["spec"]["names"]["kind"])
+            schemas[key] = version["schema"]["openAPIV3Schema"]
+    return schemas
+
+
+def _rules(manifests: list[Manifest], suffix: str) -> list[dict[str, Any]]:
+    rules: list[dict[str, Any]] = find(manifests, "ClusterRole", suffix)["rules"]
+    return rules
+
+
+def _grants(rules: list[dict[str, Any]], group: str, resource: str, verb: str) -> bool:
+    return any(
+        group in rule["apiGroups"] and resource in rule["resources"] and verb in rule["verbs"]
+        for rule in rules
+    )
+
+
+# -- the CRDs Helm installs ------------------------------------------------------------
+
+
+def test_chart_crds_are_byte_identical_copies_of_the_generated_crds() -> None:
+    generated = {p.name: p.read_text() for p in (REPO_ROOT / "crds").glob("roost.dev_*.yaml")}
+    copies = {p.name: p.read_text() for p in CHART_CRDS_DIR.glob("roost.dev_*.yaml")}
+    assert sorted(copies) == sorted(generated), "run `make chart-crds`"
+    stale = [name for name in generated if copies[name] != generated[name]]
+    assert not stale, f"charts/roost/crds out of date, run `make chart-crds`: {stale}"
+
+
+def test_chart_crds_are_valid_customresourcedefinitions() -> None:
+    for path in sorted(CHART_CRDS_DIR.glob("*.yaml")):
+        kubernetes_validate.validate(
+            yaml.safe_load(path.read_text()), KUBERNETES_VERSION, strict=True
+        )
+
+
+# -- lint and schema validity ----------------------------------------------------------
+
+
+@pytest.mark.parametrize("values_file", [None, HARDWARE_VALUES, KIND_VALUES])
+def test_helm_lint_strict_reports_nothing(values_file: Path | None) -> None:
+    args = ["lint", "--strict", str(CHART_DIR)]
+    if values_file:
+        args += ["--values", str(values_file)]
+    result = helm(*args)
+    assert result.returncode == 0, result.stdout + result.stderr
+    findings = re.findall(r"^\[(INFO|WARNING|ERROR)\].*$", result.stdout, re.MULTILINE)
+    assert not findings, result.stdout
+
+
+@pytest.mark.parametrize("value_set", sorted(VALUE_SETS))
+def test_every_rendered_object_is_valid_for_kubernetes_1_35(value_set: str) -> None:
+    custom = _chart_crd_schemas()
+    manifests = _render_set(value_set, include_crds=True)
+    assert manifests
+    for manifest in manifests:
+        key = (manifest["apiVersion"], manifest["kind"])
+        if key in custom:
+            jsonschema.validate(manifest, custom[key])
+        else:
+            kubernetes_validate.validate(manifest, KUBERNETES_VERSION, strict=True)
+
+
+def test_values_schema_rejects_a_misspelt_key() -> None:
+    with pytest.raises(ChartError, match="acess"):
+        render({"agent": {"devices": {"acess": "privileged"}}})
+
+
+def test_every_value_in_values_yaml_is_documented() -> None:
+    """Each settable key has a comment right above it, or sits inside a documented map."""
+    lines = (CHART_DIR / "values.yaml").read_text().splitlines()
+    undocumented = []
+    documented_at: list[int] = []  # indentation of documented ancestors
+    for index, line in enumerate(lines):
+        match = re.match(r"^( *)([A-Za-z][\w.-]*):(.*)$", line)
+        if not match:
+            continue
+        indent, key, rest = len(match.group(1)), match.group(2), match.group(3).strip()
+        documented_at = [level for level in documented_at if level < indent]
+        previous = next((p for p in reversed(lines[:index]) if p.strip()), "")
+        has_comment = previous.strip().startswith("#")
+        is_section = rest == "" and index + 1 < len(lines) and not has_comment
+        if has_comment:
+            documented_at.append(indent)
+        elif not is_section and not documented_at:
+            undocumented.append(key)
+    assert not undocumented, f"values without a comment: {undocumented}"
+
+
+# -- operator --------------------------------------------------------------------------
+
+
+def test_operator_runs_one_replica_replaced_with_recreate_and_a_liveness_probe() -> None:
+    deployment = find(_render_set("defaults"), "Deployment", "-operator")
+    spec = deployment["spec"]
+    assert spec["replicas"] == 1
+    assert spec["strategy"] == {"type": "Recreate"}
+    container = spec["template"]["spec"]["containers"][0]
+    assert "--liveness=http://0.0.0.0:8080/healthz" in container["args"]
+    assert container["livenessProbe"]["httpGet"] == {"path": "/healthz", "port": "health"}
+    assert container["resources"]["limits"]["memory"]
+
+
+def test_operator_peering_is_named_after_the_release() -> None:
+    manifests = render(release="fleet-a")
+    peering = find(manifests, "ClusterKopfPeering")
+    assert peering["metadata"]["name"] == "fleet-a-roost"
+    env = find(manifests, "Deployment", "-operator")["spec"]["template"]["spec"]["containers"][0][
+        "env"
+    ]
+    assert {"name": "ROOST_PEERING", "value": "fleet-a-roost"} in env
+    patch_rule = next(
+        r
+        for r in _rules(manifests, "-operator")
+        if "clusterkopfpeerings" in r["resources"] and "patch" in r["verbs"]
+    )
+    assert patch_rule["resourceNames"] == ["fleet-a-roost"]
+
+
+def test_operator_runs_as_non_root_with_a_read_only_root_and_no_capabilities() -> None:
+    pod = find(_render_set("defaults"), "Deployment", "-operator")["spec"]["template"]["spec"]
+    assert pod["securityContext"]["runAsNonRoot"] is True
+    context = pod["containers"][0]["securityContext"]
+    assert context["readOnlyRootFilesystem"] is True
+    assert context["allowPrivilegeEscalation"] is False
+    assert context["capabilities"] == {"drop": ["ALL"]}
+
+
+def test_operator_stays_off_vehicle_nodes() -> None:
+    pod = find(_render_set("defaults"), "Deployment", "-operator")["spec"]["template"]["spec"]
+    terms = pod["affinity"]["nodeAffinity"]["requiredDuringSchedulingIgnoredDuringExecution"]
+    assert terms["nodeSelectorTerms"][0]["matchExpressions"] == [
+        {"key": LABEL_VEHICLE, "operator": "DoesNotExist"}
+    ]
+
+
+def test_operator_role_grants_no_secrets_no_wildcards_and_no_rbac() -> None:
+    rules = _rules(_render_set("defaults"), "-operator")
+    for rule in rules:
+        assert "*" not in rule["verbs"] and "*" not in rule["resources"], rule
+        assert "secrets" not in rule["resources"], rule
+        assert "rbac.authorization.k8s.io" not in rule["apiGroups"], rule
+    assert not _grants(rules, "", "pods", "create")
+    assert not _grants(rules, "", "nodes", "delete")
+    assert not _grants(rules, "roost.dev", "redundantautopilots/status", "patch")
+
+
+# -- agent -----------------------------------------------------------------------------
+
+
+def _agent_pod(value_set: str) -> dict[str, Any]:
+    pod: dict[str, Any] = find(_render_set(value_set), "DaemonSet", "-agent")["spec"]["template"][
+        "spec"
+    ]
+    return pod
+
+
+def test_agent_runs_only_on_vehicle_nodes_and_tolerates_the_vehicle_taint() -> None:
+    pod = _agent_pod("defaults")
+    terms = pod["affinity"]["nodeAffinity"]["requiredDuringSchedulingIgnoredDuringExecution"]
+    assert terms["nodeSelectorTerms"] == [
+        {"matchExpressions": [{"key": LABEL_VEHICLE, "operator": "Exists"}]}
+    ]
+    assert {"key": TAINT_VEHICLE, "operator": "Exists"} in pod["tolerations"]
+
+
+def test_agent_uses_the_host_network_and_learns_its_node_from_the_downward_api() -> None:
+    pod = _agent_pod("defaults")
+    assert pod["hostNetwork"] is True
+    assert pod["dnsPolicy"] == "ClusterFirstWithHostNet"
+    env = pod["containers"][0]["env"]
+    assert {"name": "NODE_NAME", "valueFrom": {"fieldRef": {"fieldPath": "spec.nodeName"}}} in env
+
+
+def test_agent_without_devices_is_unprivileged_and_mounts_nothing_from_the_host() -> None:
+    pod = _agent_pod("defaults")
+    context = pod["containers"][0]["securityContext"]
+    assert "privileged" not in context
+    assert context["capabilities"] == {"drop": ["ALL"]}
+    assert context["readOnlyRootFilesystem"] is True
+    assert not [v for v in pod["volumes"] if "hostPath" in v]
+
+
+def test_agent_with_hardware_mounts_exactly_the_listed_devices_and_stays_non_root() -> None:
+    pod = _agent_pod("hardware")
+    listed = yaml.safe_load(HARDWARE_VALUES.read_text())["agent"]["devices"]["paths"]
+    host_paths = [v["hostPath"] for v in pod["volumes"] if "hostPath" in v]
+    assert host_paths == [{"path": path, "type": "CharDevice"} for path in listed]
+    container = pod["containers"][0]
+    assert container["securityContext"]["privileged"] is True
+    assert pod["securityContext"]["runAsNonRoot"] is True
+    assert pod["securityContext"]["runAsUser"] != 0
+    assert pod["securityContext"]["supplementalGroups"] == [20]
+    mounted = [m["mountPath"] for m in container["volumeMounts"] if m["name"].startswith("device")]
+    assert mounted == listed
+
+
+def test_agent_with_a_device_plugin_requests_the_devices_and_is_not_privileged() -> None:
+    container = _agent_pod("device-plugin")["containers"][0]
+    assert container["resources"]["requests"]["squat.ai/serial"] == 2
+    assert container["resources"]["limits"]["squat.ai/serial"] == 2
+    assert "privileged" not in container["securityContext"]
+
+
+def test_privileged_agent_without_a_device_list_is_refused() -> None:
+    with pytest.raises(ChartError, match=r"needs agent\.devices\.paths"):
+        render({"agent": {"devices": {"access": "privileged"}}})
+
+
+def test_agent_role_writes_status_and_events_only() -> None:
+    rules = _rules(_render_set("defaults"), "-agent")
+    for resource in ("vehicles", "redundantautopilots"):
+        for verb in ("create", "update", "patch", "delete"):
+            assert not _grants(rules, "roost.dev", resource, verb), (resource, verb)
+        assert _grants(rules, "roost.dev", f"{resource}/status", "patch")
+    assert _grants(rules, "", "events", "create")
+    assert all("*" not in r["verbs"] for r in rules)
+
+
+def test_node_restriction_policy_matches_only_the_agent_and_uses_the_node_label() -> None:
+    manifests = _render_set("defaults")
+    policy = find(manifests, "ValidatingAdmissionPolicy")
+    binding = find(manifests, "ValidatingAdmissionPolicyBinding")
+    assert binding["spec"]["policyName"] == policy["metadata"]["name"]
+    assert binding["spec"]["validationActions"] == ["Deny"]
+    condition = policy["spec"]["matchConditions"][0]["expression"]
+    assert condition == f'request.userInfo.username == "{AGENT_USER}"'
+    expressions = " ".join(v["expression"] for v in policy["spec"]["validations"])
+    assert f"'{LABEL_NODE}'" in expressions
+    assert policy["spec"]["failurePolicy"] == "Fail"
+
+
+def test_node_restriction_can_be_switched_off_for_old_clusters() -> None:
+    kinds = {m["kind"] for m in _render_set("no-node-restriction")}
+    assert "ValidatingAdmissionPolicy" not in kinds
+    assert "DaemonSet" in kinds
+
+
+def test_operator_only_install_creates_no_agent_objects() -> None:
+    names = [m["metadata"]["name"] for m in _render_set("operator-only")]
+    assert not [name for name in names if "-agent" in name]
