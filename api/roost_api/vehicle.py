@@ -197,11 +197,6 @@ class VehicleFailover(ApiModel):
         max_length=63,
         description="Guard holding back a pending action: Paused, Latched or ConcurrencyLimit.",
     )
-    failback_command: str | None = Field(
-        default=None,
-        max_length=64,
-        description="Id of the last automatic failback Switch command the operator issued.",
-    )
 
 
 class VehicleStatus(ApiModel):

@@ -2,7 +2,7 @@
 
 Pure functions only: AgentConnected/AutopilotsHealthy from the agent's report, the fleet
 guards (pause, latch, concurrency cap), failover accounting across partitions and
-restarts, and the whole per-vehicle plan (re-point mavros, failback, Events).
+restarts, and the whole per-vehicle plan (re-point mavros, Events).
 """
 
 from __future__ import annotations
@@ -14,12 +14,11 @@ import pytest
 
 from roost_api.autopilot import (
     AutopilotHealth,
-    CommandAction,
     FailoverRecord,
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
 )
-from roost_api.meta import Condition, HealthLevel
+from roost_api.meta import Condition
 from roost_api.vehicle import FailoverAction, VehicleFailover, VehicleSpec, VehicleStatus
 from roost_api.wellknown import ANNOTATION_CLEAR_FAILOVER_LATCH, ANNOTATION_PAUSE_FAILOVER_ACTIONS
 from roost_operator.autopilots.conditions import agent_connected, autopilots_healthy
@@ -33,7 +32,7 @@ from roost_operator.autopilots.guards import (
     observe_failovers,
     vehicle_paused,
 )
-from roost_operator.autopilots.plan import FailoverPlan, failback_command, plan
+from roost_operator.autopilots.plan import FailoverPlan, plan
 
 NOW = datetime(2026, 5, 1, 12, 0, 0, tzinfo=UTC)
 NODE = "drone-1"
@@ -401,7 +400,7 @@ def test_the_plan_is_stable_once_written_so_a_restarted_operator_repeats_nothing
     )
     later = NOW + timedelta(seconds=1)
     second = run(status=written, report=report, now=later)
-    assert second.failover == first.failover and second.events == () and second.command is None
+    assert second.failover == first.failover and second.events == ()
     done = run(status=written, report=report, now=later, rollout_done=True)
     assert done.failover.action is None and reasons(done) == ["MavrosRepointed"]
     assert not done.acting
@@ -476,63 +475,3 @@ def test_a_stale_agent_changes_conditions_but_not_the_followed_autopilot() -> No
     result = run(status=pointed_at("fc1", URL1), report=report)
     assert [c.status for c in result.conditions] == ["Unknown", "Unknown"]
     assert result.fcu_url == URL1 and result.events == ()
-
-
-# -- automatic failback ---------------------------------------------------------------
-
-
-def health(name: str, level: HealthLevel, *, landed: str, armed: bool) -> AutopilotHealth:
-    return AutopilotHealth(name=name, level=level, landed_state=landed, armed=armed)
-
-
-def landed_on_standby(
-    primary: HealthLevel = HealthLevel.OK, *, landed: str = "OnGround", armed: bool = False
-) -> RedundantAutopilotStatus:
-    return ra_status(
-        active="fc2",
-        count=1,
-        last=failover(T2),
-        healths=[
-            health("fc1", primary, landed="OnGround", armed=False),
-            health("fc2", HealthLevel.OK, landed=landed, armed=armed),
-        ],
-    )
-
-
-@pytest.mark.parametrize(
-    ("failback", "report", "due"),
-    [
-        ("OnGround", landed_on_standby(), True),
-        ("Manual", landed_on_standby(), False),
-        ("Never", landed_on_standby(), False),
-        ("OnGround", landed_on_standby(landed="InAir", armed=True), False),  # never in the air
-        ("OnGround", landed_on_standby(armed=True), False),  # still armed on the ground
-        ("OnGround", landed_on_standby(primary=HealthLevel.WARN), False),
-        ("OnGround", landed_on_standby(primary=HealthLevel.STALE), False),
-        ("OnGround", ra_status(active="fc1", count=1, last=failover(T2)), False),
-    ],
-)
-def test_failback_decision_table(
-    failback: str, report: RedundantAutopilotStatus, due: bool
-) -> None:
-    command = failback_command(ra_spec(failback=failback), report)
-    assert (command is not None) is due
-    if command is not None:
-        assert command.action == CommandAction.SWITCH and command.target == "fc1"
-        assert command.id == f"failback-{T2:%Y%m%dT%H%M%S%f}"
-
-
-def test_failback_is_requested_once_per_failover_and_respects_the_guards() -> None:
-    spec = ra_spec(failback="OnGround")
-    status = pointed_at("fc2", URL2, observed_failover_count=1, observed_failover_time=T2)
-    result = run(status=status, report=landed_on_standby(), spec=spec)
-    assert result.command is not None and result.command.issued_at == NOW
-    assert reasons(result) == ["FailbackRequested"]
-    issued = status.model_copy(update={"failover": result.failover})
-    assert run(status=issued, report=landed_on_standby(), spec=spec).command is None
-    paused = run(
-        status=status, report=landed_on_standby(), spec=spec, guards=FleetGuards(paused=True)
-    )
-    assert paused.command is None and paused.failover.blocked == "Paused"
-    stale = landed_on_standby().model_copy(update={"reported_at": NOW - timedelta(minutes=5)})
-    assert run(status=status, report=stale, spec=spec).command is None

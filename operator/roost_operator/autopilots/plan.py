@@ -3,8 +3,8 @@
 :func:`plan` takes everything the operator knows about a vehicle — its Vehicle (spec,
 status, annotations), its RedundantAutopilot (spec, and the status its node agent
 writes), the fleet guards, how many actions run elsewhere, whether mavros has rolled
-out — and returns what the Vehicle's status should become, the Events to record and,
-at most, one command for the agent. The kopf handlers fetch, call this, write, post.
+out — and returns what the Vehicle's status should become and the Events to record.
+The kopf handlers fetch, call this, write, post.
 
 What it decides, in order:
 
@@ -16,10 +16,11 @@ What it decides, in order:
    a guard holds the re-point back, in which case they keep following the previous one
    and ``status.failover.blocked`` says why. The first pointing of a vehicle is set-up,
    not remediation, and is not guarded.
-5. Automatic failback (``failoverPolicy.failback: OnGround``): once the vehicle is on
-   the ground and disarmed on a standby and the primary is healthy again, one Switch
-   command back to the primary. Its id derives from the failover it undoes, so a
-   restarted operator re-issuing it cannot make the agent act twice.
+
+Automatic failback (``failoverPolicy.failback: OnGround``) is decided on the vehicle by
+the agent's arbiter, like every switch; its cluster side is the re-point back to the
+primary, which goes through the same guards. Mission consequences of a failover are the
+Mission handler's, which asks :func:`roost_operator.autopilots.guards.check` too.
 
 Everything it returns is a function of its inputs (``now`` included): running it twice
 on the same inputs gives the same result, so the handlers write only on change and an
@@ -34,14 +35,9 @@ from datetime import datetime, timedelta
 from typing import Literal
 
 from roost_api.autopilot import (
-    AutopilotCommand,
-    AutopilotHealth,
-    CommandAction,
-    Failback,
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
 )
-from roost_api.meta import HealthLevel
 from roost_api.vehicle import FailoverAction, VehicleFailover, VehicleSpec, VehicleStatus
 from roost_api.wellknown import ANNOTATION_CLEAR_FAILOVER_LATCH
 from roost_operator.autopilots.conditions import (
@@ -60,8 +56,6 @@ from roost_operator.autopilots.guards import (
 from roost_operator.vehicles.desired import autopilots_of
 
 REPOINT_MAVROS = "RepointMavros"
-FAILBACK_DEADLINE_SECONDS = 30
-LANDED_ON_GROUND = "OnGround"
 
 
 @dataclass(frozen=True)
@@ -88,48 +82,8 @@ class FailoverPlan:
     fcu_url: str | None
     failover: VehicleFailover
     events: tuple[PlannedEvent, ...] = ()
-    command: AutopilotCommand | None = None
     acting: bool = field(default=False)
     """True while an action is in progress (it counts against the fleet's cap)."""
-
-
-def _health(status: RedundantAutopilotStatus, name: str | None) -> AutopilotHealth | None:
-    return next((h for h in status.autopilots if h.name == name), None)
-
-
-def failback_command(
-    spec: RedundantAutopilotSpec, status: RedundantAutopilotStatus
-) -> AutopilotCommand | None:
-    """The Switch back to the primary that ``failback: OnGround`` asks for now, if any.
-
-    Due when the vehicle flies a standby after a failover, the standby reports it is on
-    the ground and disarmed, and the primary is healthy (OK) again. Never in the air:
-    the agent already refuses automatic switches there, and so does this.
-    """
-    if spec.failover_policy.failback != Failback.ON_GROUND:
-        return None
-    last = status.last_failover
-    active = status.active_autopilot
-    if last is None or active is None or active == spec.primary:
-        return None
-    primary = _health(status, spec.primary)
-    standby = _health(status, active)
-    if primary is None or standby is None or primary.level != HealthLevel.OK:
-        return None
-    if standby.landed_state != LANDED_ON_GROUND or standby.armed is not False:
-        return None
-    return AutopilotCommand(
-        id=f"failback-{last.time:%Y%m%dT%H%M%S%f}",
-        action=CommandAction.SWITCH,
-        target=spec.primary,
-        issued_at=last.time,
-        deadline_seconds=FAILBACK_DEADLINE_SECONDS,
-    )
-
-
-def _stamp(command: AutopilotCommand, now: datetime) -> AutopilotCommand:
-    """The command issued now (its id stays tied to the failover it undoes)."""
-    return command.model_copy(update={"issued_at": now})
 
 
 def plan(
@@ -252,23 +206,6 @@ def plan(
     elif followed in by_name:
         fcu_url = by_name[followed].fcu_url
 
-    command = None
-    due = failback_command(autopilot_spec, autopilot_status)
-    if due is not None and connected.status == "True" and due.id != book.failback_command:
-        if verdict is Verdict.ALLOWED:
-            command = _stamp(due, now)
-            events.append(
-                PlannedEvent(
-                    "Normal",
-                    "FailbackRequested",
-                    f"{active} is on the ground and {autopilot_spec.primary} healthy: "
-                    f"asking the agent to switch back (command {due.id})",
-                    now,
-                )
-            )
-        else:
-            blocked = blocked or verdict
-
     if blocked is not None and blocked.value != book.blocked:
         events.append(
             PlannedEvent(
@@ -283,7 +220,6 @@ def plan(
             "action": action,
             "followed_autopilot": followed,
             "blocked": blocked.value if blocked is not None else None,
-            "failback_command": command.id if command is not None else book.failback_command,
         }
     )
     return FailoverPlan(
@@ -292,6 +228,5 @@ def plan(
         fcu_url=fcu_url,
         failover=book,
         events=tuple(events),
-        command=command,
         acting=action is not None,
     )
