@@ -1,0 +1,324 @@
+"""Desired workloads and conditions of a Vehicle, computed without a cluster."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Any
+
+import pytest
+
+from roost_api.autopilot import RedundantAutopilotSpec
+from roost_api.meta import Condition, ConditionStatus, Stack, find_condition, set_condition
+from roost_api.vehicle import VehicleSpec
+from roost_api.wellknown import ANNOTATION_CONFIG_HASH, LABEL_VEHICLE, TAINT_VEHICLE
+from roost_operator.vehicles.config import vehicle_config
+from roost_operator.vehicles.desired import (
+    DEFAULT_IMAGES,
+    Autopilot,
+    ComponentState,
+    NodeBinding,
+    active_autopilot,
+    autopilots_of,
+    component_workloads,
+    components_condition,
+    deployment,
+    deployment_state,
+    ready_condition,
+    transitions,
+    vehicle_conditions,
+)
+
+
+def spec(**overrides: object) -> VehicleSpec:
+    return VehicleSpec.model_validate({"nodeName": "node-a", "sysid": 12, **overrides})
+
+
+def redundant(
+    primary: str = "fc1", stacks: tuple[str, str] = ("px4", "px4")
+) -> RedundantAutopilotSpec:
+    return RedundantAutopilotSpec.model_validate(
+        {
+            "vehicleName": "drone1",
+            "primary": primary,
+            "autopilots": [
+                {
+                    "name": "fc1",
+                    "stack": stacks[0],
+                    "connection": "udp://127.0.0.1:14540",
+                    "sysid": 1,
+                    "bridgeChannel": 0,
+                },
+                {
+                    "name": "fc2",
+                    "stack": stacks[1],
+                    "connection": "udp://127.0.0.1:14541",
+                    "fcuUrl": "udp://127.0.0.1:14641@",
+                    "sysid": 2,
+                    "bridgeChannel": 1,
+                },
+            ],
+        }
+    )
+
+
+# -- autopilots ---------------------------------------------------------------------
+
+
+def test_autopilots_come_from_the_redundant_autopilot_with_fcu_url_defaulting_to_connection() -> (
+    None
+):
+    aps = autopilots_of(spec(simulation={"stack": "px4"}), redundant())
+    assert [(a.name, a.sysid, a.fcu_url) for a in aps] == [
+        ("fc1", 1, "udp://127.0.0.1:14540"),
+        ("fc2", 2, "udp://127.0.0.1:14641@"),
+    ]
+
+
+def test_a_simulated_vehicle_without_redundant_autopilot_gets_one_derived_sitl() -> None:
+    (only,) = autopilots_of(spec(simulation={"stack": "ardupilot", "instance": 2}), None)
+    assert only.stack is Stack.ARDUPILOT
+    assert only.sysid == 12
+    assert only.connection == only.fcu_url == "udp://127.0.0.1:14548"
+
+
+def test_a_real_vehicle_without_redundant_autopilot_has_no_known_autopilot() -> None:
+    assert autopilots_of(spec(), None) == []
+    assert active_autopilot([], reported_active=None, primary=None) is None
+
+
+def test_active_autopilot_prefers_the_reported_one_then_the_primary() -> None:
+    aps = autopilots_of(spec(), redundant(primary="fc1"))
+    assert active_autopilot(aps, reported_active="fc2", primary="fc1") == aps[1]
+    assert active_autopilot(aps, reported_active=None, primary="fc1") == aps[0]
+    assert active_autopilot(aps, reported_active="gone", primary="fc2") == aps[1]
+    assert active_autopilot(aps, reported_active=None, primary=None) == aps[0]
+
+
+# -- workloads ----------------------------------------------------------------------
+
+
+def test_default_components_are_mavros_only_and_overrides_pick_images() -> None:
+    assert [w.component for w in component_workloads(spec(), [])] == ["mavros"]
+    s = spec(
+        components={
+            "mavros": {"enabled": False},
+            "vicon": {"enabled": True, "image": "example/vicon:1"},
+            "hardware": {"enabled": True},
+        }
+    )
+    workloads = {w.component: w for w in component_workloads(s, [])}
+    assert set(workloads) == {"vicon", "hardware"}
+    assert workloads["vicon"].image == "example/vicon:1"
+    assert workloads["hardware"].image == DEFAULT_IMAGES["hardware"]
+
+
+def test_one_sitl_per_autopilot_and_no_two_share_a_port_or_sysid() -> None:
+    s = spec(simulation={"stack": "px4", "instance": 1})
+    sitls = [
+        w
+        for w in component_workloads(s, autopilots_of(s, redundant()))
+        if w.component.startswith("sitl-")
+    ]
+    assert [w.component for w in sitls] == ["sitl-fc1", "sitl-fc2"]
+    envs = [{e["name"]: e["value"] for e in w.container["env"]} for w in sitls]
+    ports = [(e["ROOST_SITL_AGENT_PORT"], e["ROOST_SITL_AUTOPILOT_PORT"]) for e in envs]
+    assert len({p for pair in ports for p in pair}) == 4
+    assert [e["ROOST_SITL_SYSID"] for e in envs] == ["1", "2"]
+    assert all(w.image == DEFAULT_IMAGES["sitl-px4"] for w in sitls)
+
+
+def test_two_simulated_vehicles_on_distinct_instances_never_collide() -> None:
+    ports: set[str] = set()
+    for instance in range(3):
+        s = spec(simulation={"stack": "px4", "instance": instance})
+        for w in component_workloads(s, autopilots_of(s, redundant())):
+            env = {e["name"]: e["value"] for e in w.container.get("env", [])}
+            if "ROOST_SITL_AGENT_PORT" in env:
+                new = {env["ROOST_SITL_AGENT_PORT"], env["ROOST_SITL_AUTOPILOT_PORT"]}
+                assert not new & ports
+                ports |= new
+
+
+def test_ardupilot_sitl_gets_a_tcp_readiness_probe_px4_none() -> None:
+    s = spec(simulation={"stack": "px4"})
+    workloads = component_workloads(s, autopilots_of(s, redundant(stacks=("px4", "ardupilot"))))
+    by = {w.component: w for w in workloads}
+    assert "readinessProbe" not in by["sitl-fc1"].container
+    probe = by["sitl-fc2"].container["readinessProbe"]
+    assert probe["tcpSocket"]["port"] == by["sitl-fc2"].container["ports"][0]["containerPort"]
+    assert by["sitl-fc2"].image == DEFAULT_IMAGES["sitl-ardupilot"]
+
+
+def test_simulation_image_override_applies_to_every_sitl() -> None:
+    s = spec(simulation={"stack": "px4", "image": "example/sitl:2"})
+    images = {
+        w.image
+        for w in component_workloads(s, autopilots_of(s, redundant()))
+        if "sitl" in w.component
+    }
+    assert images == {"example/sitl:2"}
+
+
+def config_for(s: VehicleSpec, active: Autopilot | None) -> dict[str, str]:
+    return vehicle_config(
+        name="drone1",
+        spec=s,
+        fcu_url=active.fcu_url if active else "",
+        firmware=active.stack if active else None,
+        active_autopilot=active.name if active else None,
+    )
+
+
+def manifests(reported_active: str | None) -> dict[str, dict[str, Any]]:
+    s = spec(simulation={"stack": "px4"})
+    aps = autopilots_of(s, redundant())
+    values = config_for(s, active_autopilot(aps, reported_active=reported_active, primary="fc1"))
+    return {
+        w.component: deployment(
+            "drone1", "node-a", w, values, namespace="roost-system", owners=[{"uid": "v"}]
+        )
+        for w in component_workloads(s, aps)
+    }
+
+
+def test_deployment_is_one_recreated_replica_pinned_to_the_vehicle() -> None:
+    d = manifests(None)["mavros"]
+    assert d["metadata"]["name"] == "drone1-mavros"
+    assert d["metadata"]["namespace"] == "roost-system"
+    assert d["metadata"]["ownerReferences"] == [{"uid": "v"}]
+    assert d["spec"]["replicas"] == 1
+    assert d["spec"]["strategy"] == {"type": "Recreate"}
+    pod = d["spec"]["template"]["spec"]
+    assert pod["nodeSelector"] == {LABEL_VEHICLE: "drone1"}
+    assert pod["tolerations"][0]["key"] == TAINT_VEHICLE
+    container = pod["containers"][0]
+    assert container["resources"]["requests"]["cpu"] == "100m"
+    env = {e["name"] for e in container["env"]}
+    assert {"VEHICLE_NAME", "VEHICLE_FCU_URL"} <= env
+    selector = d["spec"]["selector"]["matchLabels"]
+    assert selector.items() <= d["spec"]["template"]["metadata"]["labels"].items()
+
+
+def test_a_failover_rolls_mavros_but_not_the_simulated_autopilots() -> None:
+    before, after = manifests(None), manifests("fc2")
+
+    def config_hash_of(d: dict[str, Any]) -> str:
+        return str(d["spec"]["template"]["metadata"]["annotations"][ANNOTATION_CONFIG_HASH])
+
+    assert config_hash_of(before["mavros"]) != config_hash_of(after["mavros"])
+    for sitl in ("sitl-fc1", "sitl-fc2"):
+        assert before[sitl] == after[sitl]
+
+
+def test_a_node_change_rolls_every_workload() -> None:
+    s = spec()
+    (mavros,) = component_workloads(s, [])
+    values = config_for(s, None)
+    a = deployment("drone1", "node-a", mavros, values, namespace="n", owners=[])
+    b = deployment("drone1", "node-b", mavros, values, namespace="n", owners=[])
+    assert a["spec"]["template"] != b["spec"]["template"]
+    assert a["spec"]["selector"] == b["spec"]["selector"]
+
+
+# -- readiness and conditions --------------------------------------------------------
+
+
+def dep(generation: int = 2, **status: int) -> dict[str, Any]:
+    return {"metadata": {"generation": generation}, "status": status}
+
+
+@pytest.mark.parametrize(
+    ("live", "ready"),
+    [
+        (None, False),
+        (dep(observedGeneration=1, updatedReplicas=1, availableReplicas=1, replicas=1), False),
+        (dep(observedGeneration=2, updatedReplicas=1, availableReplicas=0, replicas=1), False),
+        (dep(observedGeneration=2, updatedReplicas=1, availableReplicas=1, replicas=2), False),
+        (dep(observedGeneration=2, updatedReplicas=1, availableReplicas=1, replicas=1), True),
+    ],
+)
+def test_deployment_state_follows_rollout_status(live: dict[str, Any] | None, ready: bool) -> None:
+    state = deployment_state("mavros", live)
+    assert state.ready is ready
+    assert bool(state.detail) is not ready
+
+
+def test_components_condition_names_each_component_that_is_not_ready() -> None:
+    status, reason, message = components_condition(
+        [ComponentState("mavros", True, ""), ComponentState("vicon", False, "0/1 pods available")]
+    )
+    assert (status, reason) == ("False", "ComponentsNotReady")
+    assert message == "component vicon not ready: 0/1 pods available"
+    assert components_condition([])[:2] == ("True", "NoComponents")
+    assert components_condition([], blocked="node taken")[:2] == ("False", "WaitingForNode")
+
+
+AT = datetime(2024, 1, 1, tzinfo=UTC)
+
+
+def cond(type_: str, status: ConditionStatus, reason: str = "R", message: str = "m") -> Condition:
+    return Condition(
+        type=type_,
+        status=status,
+        reason=reason,
+        message=message,
+        last_transition_time=AT,
+    )
+
+
+def test_ready_reports_the_first_false_detail_before_unknowns() -> None:
+    conditions = [
+        cond("NodeBound", "True"),
+        cond("ComponentsReady", "Unknown", "Waiting"),
+        cond("AutopilotsHealthy", "False", "ActiveUnhealthy", "fc1 ERROR"),
+    ]
+    status, reason, message = ready_condition(conditions)
+    assert (status, reason) == ("False", "ActiveUnhealthy")
+    assert "AutopilotsHealthy: fc1 ERROR" in message
+
+
+def test_ready_is_unknown_when_only_unknowns_fail_and_true_when_all_pass() -> None:
+    assert ready_condition([cond("NodeBound", "True"), cond("AgentConnected", "Unknown")])[0] == (
+        "Unknown"
+    )
+    assert ready_condition([cond("NodeBound", "True"), cond("ComponentsReady", "True")]) == (
+        "True",
+        "VehicleReady",
+        "node bound, components ready",
+    )
+
+
+def test_conditions_keep_other_writers_types_and_transition_times() -> None:
+    previous = set_condition(
+        [cond("AutopilotsHealthy", "True")],
+        type="NodeBound",
+        status="True",
+        reason="NodeLabeled",
+        at=AT,
+    )
+    after = vehicle_conditions(
+        previous,
+        binding=NodeBinding(True, "NodeLabeled", "ok"),
+        components=("True", "NoComponents", ""),
+        generation=3,
+    )
+    node_bound = find_condition(after, "NodeBound")
+    assert node_bound is not None
+    assert node_bound.last_transition_time == AT
+    assert node_bound.observed_generation == 3
+    assert find_condition(after, "AutopilotsHealthy") == previous[0]
+    ready = find_condition(after, "Ready")
+    assert ready is not None and ready.status == "True"
+    assert [c.type for c in transitions(previous, after)] == ["ComponentsReady", "Ready"]
+
+
+def test_losing_the_node_makes_ready_false_with_the_node_reason() -> None:
+    after = vehicle_conditions(
+        [],
+        binding=NodeBinding(False, "NodeNotFound", "node node-a does not exist"),
+        components=components_condition([], blocked=None),
+        generation=1,
+    )
+    ready = find_condition(after, "Ready")
+    assert ready is not None
+    assert (ready.status, ready.reason) == ("False", "NodeNotFound")
