@@ -1,0 +1,246 @@
+"""What the agent reports on its RedundantAutopilot, decided as pure functions.
+
+The agent's core knows the active autopilot, each autopilot's health, the last failover,
+the latch and the last command; :func:`report` adds what the cluster reads first — the
+conditions — and stamps the report. Kept pure and separate from the publisher thread so
+the condition rules are unit-tested as a table and the publisher only moves data.
+
+Conditions (all written by the agent; ``lastTransitionTime`` moves only when a status
+changes, via :func:`roost_api.meta.set_condition`):
+
+``ActiveHealthy``
+    True when the active autopilot is OK (reason ``Healthy``) or only WARN (reason
+    ``Degraded``: it flies, with a warning); False on ERROR (``Unhealthy``) or when its
+    link is silent (``NoData``); Unknown while no autopilot is active.
+``Redundant``
+    True when some standby is OK *and* the agent would switch to it: after a failover the
+    agent is latched and never returns automatically to an autopilot it left, so such a
+    standby does not count, however healthy it looks (reason ``Latched``).
+``FailedOver``
+    True when the active autopilot is not the primary; the reason says how it got there
+    (``AutomaticFailover``, ``SwitchedByCommand``, ``NotOnPrimary``).
+``Ready``
+    ``ActiveHealthy`` and ``Redundant`` both True; otherwise the first that is not, with
+    its status (False or Unknown) and reason.
+
+:func:`change_class` tells the publisher whether a new report must go out at once
+(``URGENT``: the active autopilot, a failover, the latch or a command result changed),
+may wait for the coalescing interval (``ROUTINE``: a health level, a mode, armed or
+landed state changed) or carries nothing new (``NONE``: only ages and numbers inside
+reasons moved — those are refreshed by the periodic report, never on their own).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Collection, Sequence
+from datetime import datetime
+from enum import IntEnum
+
+from roost_api.autopilot import (
+    AutopilotConditionType,
+    AutopilotHealth,
+    RedundantAutopilotSpec,
+    RedundantAutopilotStatus,
+)
+from roost_api.meta import Condition, ConditionStatus, HealthLevel, set_condition
+
+_NUMBER = re.compile(r"-?\d+(\.\d+)?")
+
+_TRIGGER_REASON = {
+    "Automatic": "AutomaticFailover",
+    "Command": "SwitchedByCommand",
+}
+
+
+class Change(IntEnum):
+    """How urgently a new report differs from the last one written."""
+
+    NONE = 0
+    ROUTINE = 1
+    URGENT = 2
+
+
+def _describe(health: AutopilotHealth) -> str:
+    reasons = "; ".join(health.reasons)
+    return f"{health.name} {health.level}" + (f" ({reasons})" if reasons else "")
+
+
+def _active_healthy(
+    active: str | None, health: AutopilotHealth | None
+) -> tuple[ConditionStatus, str, str]:
+    if active is None:
+        return "Unknown", "NoActiveAutopilot", "no autopilot is connected to the motors yet"
+    if health is None:
+        return "Unknown", "NoHealth", f"{active} is active but has not been assessed yet"
+    level = HealthLevel(health.level)
+    if level is HealthLevel.OK:
+        return "True", "Healthy", f"{active} active and healthy"
+    if level is HealthLevel.WARN:
+        return "True", "Degraded", f"{_describe(health)} active"
+    if level is HealthLevel.STALE:
+        return "False", "NoData", f"{_describe(health)} active"
+    return "False", "Unhealthy", f"{_describe(health)} active"
+
+
+def _redundant(
+    active: str | None, standbys: Sequence[AutopilotHealth], left_behind: Collection[str]
+) -> tuple[ConditionStatus, str, str]:
+    if active is None:
+        return "Unknown", "NoActiveAutopilot", "no autopilot is connected to the motors yet"
+    if not standbys:
+        return "False", "NoStandby", "no standby autopilot has been assessed"
+    healthy = [h for h in standbys if h.level == HealthLevel.OK]
+    usable = [h for h in healthy if h.name not in left_behind]
+    if usable:
+        names = ", ".join(h.name for h in usable)
+        return "True", "StandbyAvailable", f"healthy standby: {names}"
+    if healthy:
+        names = ", ".join(h.name for h in healthy)
+        return (
+            "False",
+            "Latched",
+            f"standby {names} failed earlier this flight; no automatic switch back to it "
+            "until a ClearLatch or Switch command",
+        )
+    return "False", "NoHealthyStandby", "; ".join(f"standby {_describe(h)}" for h in standbys)
+
+
+def _failed_over(
+    spec: RedundantAutopilotSpec, status: RedundantAutopilotStatus
+) -> tuple[ConditionStatus, str, str]:
+    active = status.active_autopilot
+    if active is None:
+        return "Unknown", "NoActiveAutopilot", "no autopilot is connected to the motors yet"
+    if active == spec.primary:
+        return "False", "OnPrimary", f"primary {active} is active"
+    last = status.last_failover
+    if last is None or last.to_autopilot != active:
+        return "True", "NotOnPrimary", f"{active} active, not the primary"
+    reason = _TRIGGER_REASON.get(last.trigger, "NotOnPrimary")
+    return (
+        "True",
+        reason,
+        f"{last.from_autopilot} -> {active} at {last.time:%H:%M:%S}: {last.reason}",
+    )
+
+
+def _ready(
+    active: tuple[ConditionStatus, str, str], redundant: tuple[ConditionStatus, str, str]
+) -> tuple[ConditionStatus, str, str]:
+    for status, reason, message in (active, redundant):
+        if status != "True":
+            return status, reason, message
+    return "True", "Ready", f"{active[2]}; {redundant[2]}"
+
+
+def conditions(
+    previous: Sequence[Condition],
+    *,
+    spec: RedundantAutopilotSpec,
+    status: RedundantAutopilotStatus,
+    left_behind: Collection[str] = (),
+    generation: int | None,
+    now: datetime,
+) -> list[Condition]:
+    """The four conditions for ``status`` (its own conditions are ignored).
+
+    ``left_behind`` names the autopilots the agent failed over from this flight (never
+    automatic targets while latched); without it, a latched report treats the last
+    failover's source as left behind.
+    """
+    active = status.active_autopilot
+    if not left_behind and status.latched and status.last_failover is not None:
+        left_behind = {status.last_failover.from_autopilot}
+    by_name = {h.name: h for h in status.autopilots}
+    standbys = [h for h in status.autopilots if h.name != active]
+    active_healthy = _active_healthy(active, by_name.get(active) if active else None)
+    redundant = _redundant(active, standbys, left_behind)
+    values = {
+        AutopilotConditionType.ACTIVE_HEALTHY: active_healthy,
+        AutopilotConditionType.REDUNDANT: redundant,
+        AutopilotConditionType.FAILED_OVER: _failed_over(spec, status),
+        AutopilotConditionType.READY: _ready(active_healthy, redundant),
+    }
+    result = list(previous)
+    for kind, (cond_status, reason, message) in values.items():
+        result = set_condition(
+            result,
+            type=kind.value,
+            status=cond_status,
+            reason=reason,
+            message=message,
+            observed_generation=generation,
+            at=now,
+        )
+    return result
+
+
+def report(
+    previous: RedundantAutopilotStatus | None,
+    observed: RedundantAutopilotStatus,
+    *,
+    spec: RedundantAutopilotSpec,
+    left_behind: Collection[str] = (),
+    generation: int | None,
+    node_name: str,
+    now: datetime,
+) -> RedundantAutopilotStatus:
+    """The status to write: ``observed`` (the agent's state) with conditions and stamps.
+
+    ``previous`` is the last status written (or read back), so condition transition
+    times survive across reports and agent restarts.
+    """
+    prior = previous.conditions if previous is not None else []
+    return observed.model_copy(
+        update={
+            "conditions": conditions(
+                prior,
+                spec=spec,
+                status=observed,
+                left_behind=left_behind,
+                generation=generation,
+                now=now,
+            ),
+            "observed_generation": generation,
+            "node_name": node_name,
+            "reported_at": now,
+        }
+    )
+
+
+def _health_key(health: AutopilotHealth) -> tuple[object, ...]:
+    return (
+        health.name,
+        health.level,
+        health.mode,
+        health.armed,
+        health.landed_state,
+        health.system_status,
+        tuple(sorted(health.unhealthy_sensors)),
+        tuple(_NUMBER.sub("#", r) for r in health.reasons),
+    )
+
+
+def change_class(
+    before: RedundantAutopilotStatus | None, after: RedundantAutopilotStatus
+) -> Change:
+    """How urgently ``after`` must be written, given ``before`` was the last written."""
+    if before is None:
+        return Change.URGENT
+    urgent = (
+        before.active_autopilot != after.active_autopilot
+        or before.failover_count != after.failover_count
+        or before.last_failover != after.last_failover
+        or before.latched != after.latched
+        or before.last_command != after.last_command
+    )
+    if urgent:
+        return Change.URGENT
+    if [_health_key(h) for h in before.autopilots] != [_health_key(h) for h in after.autopilots]:
+        return Change.ROUTINE
+    if [(c.type, c.status, c.reason) for c in before.conditions] != [
+        (c.type, c.status, c.reason) for c in after.conditions
+    ] or before.observed_generation != after.observed_generation:
+        return Change.ROUTINE
+    return Change.NONE
