@@ -1,0 +1,13 @@
+"""Roost node agent: watches a vehicle's autopilots and keeps a healthy one on the motors.
+
+Modules, from the wire up: :mod:`~roost_agent.links` (one MAVLink connection and reader
+per autopilot), :mod:`~roost_agent.health` (messages -> OK/WARN/ERROR/STALE),
+:mod:`~roost_agent.arbiter` (pure failover state machine), :mod:`~roost_agent.bridge`
+(GPIO or simulated switch), :mod:`~roost_agent.safety` (hold, then land),
+:mod:`~roost_agent.state` (durable state) and :mod:`~roost_agent.agent` (the wiring).
+Never imports kopf: the agent must run on a vehicle that cannot reach the cluster.
+"""
+
+from roost_agent.agent import Agent, AgentEvent, EventKind, FailoverEvent, restore_state
+
+__all__ = ["Agent", "AgentEvent", "EventKind", "FailoverEvent", "restore_state"]

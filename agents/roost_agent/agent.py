@@ -1,0 +1,863 @@
+"""The node agent: links, health, arbiter, bridge and safety routine wired together.
+
+Threads and why:
+
+- one reader per autopilot link (:mod:`roost_agent.links`) feeds its health tracker and
+  wakes the decision loop when something the arbiter acts on changed;
+- the decision loop ticks every ``tick_s`` (and at once when woken), assesses every
+  autopilot, steps the pure arbiter and executes its actions. The switch path is local
+  and immediate: assessment, arbiter and the bridge write, with no logging, no network
+  and no disk in between. Everything slower happens after the bridge switched;
+- a worker runs the safety routine, landing orders and the emergency stop one at a time
+  (a newer job supersedes an older one, nothing supersedes an emergency stop), so the
+  decision loop never waits for an autopilot to answer;
+- a heartbeat thread sends the agent's 1 Hz heartbeat on every link;
+- a notifier delivers :class:`AgentEvent` objects to subscribers (the standalone JSON
+  printer now, the Kubernetes publisher later) so a slow subscriber cannot stall a switch.
+
+Every switch records its reason and the measured latency from detection (the start of
+the decision tick that saw the confirmed failure) to the bridge write returning, plus
+onset-to-switch when the health findings know the onset. Durable state goes to disk
+(:mod:`roost_agent.state`) right after the switch, so a restarted agent keeps the
+autopilot it chose and its latch.
+
+For the publisher (issue 9) the public surface is: :meth:`Agent.status` (a complete
+``RedundantAutopilotStatus``), :meth:`Agent.subscribe` (events: failovers, health changes,
+safety-routine progress, command results), :meth:`Agent.submit` (execute an
+``AutopilotCommand`` at most once per id, also across restarts) and
+:meth:`Agent.apply_spec` (a new spec from the cluster).
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections import OrderedDict, deque
+from collections.abc import Callable, Mapping
+from concurrent.futures import Future
+from dataclasses import dataclass, field, replace
+from datetime import UTC, datetime
+from enum import StrEnum
+from typing import Any
+
+from roost_agent.arbiter import (
+    Action,
+    ArbiterState,
+    AutopilotView,
+    CommandDone,
+    CommandResultKind,
+    Decision,
+    ForceDisarm,
+    LandInPlace,
+    NoHealthyStandby,
+    Policy,
+    RunSafetyRoutine,
+    SafetyPlan,
+    SwitchBridge,
+    Trigger,
+    handle_command,
+    step,
+)
+from roost_agent.bridge import Bridge, BridgeError
+from roost_agent.health import Assessment, HealthTracker
+from roost_agent.links import AutopilotLink
+from roost_agent.safety import DEFAULT_TIMING, Phase, SafetyRunner, Timing
+from roost_agent.state import MAX_REMEMBERED_COMMANDS, PersistedState, StateFile
+from roost_api.autopilot import (
+    AutopilotCommand,
+    AutopilotConditionType,
+    AutopilotHealth,
+    AutopilotSpec,
+    CommandResult,
+    FailoverRecord,
+    RedundantAutopilotSpec,
+    RedundantAutopilotStatus,
+)
+from roost_api.meta import Condition, HealthLevel, set_condition
+
+log = logging.getLogger(__name__)
+
+DEFAULT_TICK_S = 0.01
+HEARTBEAT_PERIOD_S = 1.0
+FAILOVER_HISTORY = 100
+
+
+def _utc_now() -> datetime:
+    return datetime.now(UTC)
+
+
+class EventKind(StrEnum):
+    """What an :class:`AgentEvent` is about."""
+
+    STARTED = "Started"
+    FAILOVER = "Failover"
+    HEALTH = "HealthChanged"
+    SAFETY = "SafetyRoutine"
+    COMMAND = "Command"
+    LAND_ORDERED = "LandOrdered"
+    NO_HEALTHY_STANDBY = "NoHealthyStandby"
+    EMERGENCY_STOP = "EmergencyStop"
+    SPEC = "Spec"
+    BRIDGE_ERROR = "BridgeError"
+
+
+@dataclass(frozen=True)
+class FailoverEvent:
+    """One bridge switch with its timing (monotonic seconds)."""
+
+    record: FailoverRecord
+    detected_at: float
+    switched_at: float
+    onset_at: float | None
+
+    @property
+    def latency_ms(self) -> float:
+        """Detection to bridge switched."""
+        return (self.switched_at - self.detected_at) * 1000
+
+    @property
+    def onset_to_switch_ms(self) -> float | None:
+        """Start of the failure (as the findings know it) to bridge switched."""
+        return None if self.onset_at is None else (self.switched_at - self.onset_at) * 1000
+
+
+@dataclass(frozen=True)
+class AgentEvent:
+    """Something a publisher reports; ``reason``/``message``/``warning`` map onto a
+    Kubernetes Event, the optional payloads onto status fields."""
+
+    kind: EventKind
+    reason: str
+    message: str
+    warning: bool
+    time: datetime
+    autopilot: str | None = None
+    failover: FailoverEvent | None = None
+    health: AutopilotHealth | None = None
+    command: CommandResult | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        """A JSON-ready dict (the standalone agent prints these, one per line)."""
+        doc: dict[str, Any] = {
+            "event": self.kind.value,
+            "reason": self.reason,
+            "message": self.message,
+            "warning": self.warning,
+            "time": self.time.isoformat(),
+        }
+        if self.autopilot is not None:
+            doc["autopilot"] = self.autopilot
+        if self.failover is not None:
+            doc["failover"] = self.failover.record.to_api()
+            doc["latencyMs"] = self.failover.latency_ms
+            doc["onsetToSwitchMs"] = self.failover.onset_to_switch_ms
+        if self.health is not None:
+            doc["health"] = self.health.to_api()
+        if self.command is not None:
+            doc["command"] = self.command.to_api()
+        return doc
+
+
+Listener = Callable[[AgentEvent], None]
+
+
+@dataclass(frozen=True)
+class _Running:
+    """The configuration the decision loop works with; swapped as one object."""
+
+    spec: RedundantAutopilotSpec
+    generation: int | None
+    policy: Policy
+    links: Mapping[str, AutopilotLink]
+    channels: Mapping[str, int]
+
+
+@dataclass
+class _Job:
+    """One unit of work for the safety worker."""
+
+    title: str
+    run: Callable[[threading.Event], None]
+    emergency: bool = False
+    cancel: threading.Event = field(default_factory=threading.Event)
+
+
+class _SafetyWorker:
+    """Runs one job at a time. A new job cancels the running one and replaces a pending
+    one, except that nothing but another emergency stop cancels or replaces an emergency
+    stop."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._pending: _Job | None = None
+        self._current: _Job | None = None
+        self._stopping = False
+        self._thread = threading.Thread(target=self._run, name="safety-worker", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def submit(self, job: _Job) -> None:
+        with self._cond:
+            current, pending = self._current, self._pending
+            if current is not None and (job.emergency or not current.emergency):
+                current.cancel.set()
+            if pending is not None and pending.emergency and not job.emergency:
+                log.warning("dropping %s: an emergency stop is pending", job.title)
+                return
+            self._pending = job
+            self._cond.notify()
+
+    def stop(self) -> None:
+        with self._cond:
+            self._stopping = True
+            if self._current is not None:
+                self._current.cancel.set()
+            self._cond.notify()
+        if self._thread.is_alive():
+            self._thread.join(timeout=5)
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while self._pending is None and not self._stopping:
+                    self._cond.wait()
+                if self._stopping:
+                    return
+                job, self._pending = self._pending, None
+                assert job is not None
+                self._current = job
+            try:
+                job.run(job.cancel)
+            except Exception:
+                log.exception("%s failed", job.title)
+            finally:
+                with self._cond:
+                    self._current = None
+
+
+def restore_state(spec: RedundantAutopilotSpec, saved: PersistedState | None) -> ArbiterState:
+    """The arbiter state to start from: the saved one when it fits the spec, else primary.
+
+    Only durable facts are restored (active, latch, failed-from, count); timers and the
+    flight state are rebuilt from live telemetry, so nothing is decided on stale data.
+    """
+    names = {a.name for a in spec.autopilots}
+    if saved is None or saved.active not in names:
+        return ArbiterState(active=spec.primary)
+    return ArbiterState(
+        active=saved.active,
+        latched=saved.latched,
+        failed_from=frozenset(saved.failed_from) & names,
+        failover_count=saved.failover_count,
+    )
+
+
+def _view(a: Assessment) -> AutopilotView:
+    return AutopilotView(
+        name=a.name,
+        level=a.level,
+        failing=a.failing,
+        reason=a.failure_reason,
+        armed=a.armed,
+        in_air=a.in_air,
+        pilot_in_control=a.pilot_in_control,
+        onset=a.onset,
+    )
+
+
+class Agent:
+    """Watches the autopilots of one vehicle and keeps a healthy one on the motors."""
+
+    def __init__(
+        self,
+        spec: RedundantAutopilotSpec,
+        bridge: Bridge,
+        *,
+        state_file: StateFile | None = None,
+        generation: int | None = None,
+        node_name: str | None = None,
+        tick_s: float = DEFAULT_TICK_S,
+        clock: Callable[[], float] = time.monotonic,
+        wall_clock: Callable[[], datetime] = _utc_now,
+        timing: Timing = DEFAULT_TIMING,
+    ) -> None:
+        self._bridge = bridge
+        self._state_file = state_file
+        self._node_name = node_name
+        self._tick_s = tick_s
+        self._clock = clock
+        self._wall_clock = wall_clock
+        self._timing = timing
+        saved = state_file.load() if state_file is not None else None
+        self._state = restore_state(spec, saved)
+        self._restored = saved is not None and saved.active == self._state.active
+        self._lock = threading.RLock()
+        self._persist_lock = threading.Lock()
+        self._processed: OrderedDict[str, CommandResult] = OrderedDict(
+            (c.id, c) for c in (saved.commands if saved else [])
+        )
+        self._pending: dict[str, Future[CommandResult]] = {}
+        self._inbox: deque[AutopilotCommand] = deque()
+        self._last_failover: FailoverRecord | None = saved.last_failover if saved else None
+        self._last_command: CommandResult | None = (
+            next(reversed(self._processed.values())) if self._processed else None
+        )
+        self._failovers: deque[FailoverEvent] = deque(maxlen=FAILOVER_HISTORY)
+        self._assessments: dict[str, Assessment] = {}
+        self._signatures: dict[str, tuple[HealthLevel, frozenset[str]]] = {}
+        self._conditions: list[Condition] = []
+        self._listeners: list[Listener] = []
+        self._events: queue.SimpleQueue[AgentEvent | None] = queue.SimpleQueue()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._worker = _SafetyWorker()
+        self._threads: list[threading.Thread] = []
+        self._cfg = _Running(
+            spec=spec,
+            generation=generation,
+            policy=Policy.from_spec(spec),
+            links={a.name: self._new_link(a, spec) for a in spec.autopilots},
+            channels={a.name: a.bridge_channel for a in spec.autopilots},
+        )
+        self._spec_lock = threading.Lock()
+
+    # -- lifecycle ---------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Assert the bridge, open the links and start deciding."""
+        cfg = self._cfg
+        channel = cfg.channels[self._state.active]
+        if self._bridge.selected != channel:
+            self._bridge.select(channel)
+        for link in cfg.links.values():
+            link.start()
+        self._worker.start()
+        for target, name in (
+            (self._decide_forever, "decision-loop"),
+            (self._heartbeat_forever, "agent-heartbeat"),
+            (self._notify_forever, "event-notifier"),
+        ):
+            thread = threading.Thread(target=target, name=name, daemon=True)
+            thread.start()
+            self._threads.append(thread)
+        how = "restored from the state file" if self._restored else "primary"
+        latch = ", latched" if self._state.latched else ""
+        self._emit(
+            EventKind.STARTED,
+            "AgentStarted",
+            f"active autopilot {self._state.active} ({how}{latch}) on bridge channel {channel}",
+        )
+        self._persist()
+        if cfg.spec.command is not None:
+            self.submit(cfg.spec.command)
+
+    def stop(self) -> None:
+        """Stop every thread and link; the bridge keeps its selection."""
+        self._stop.set()
+        self._wake.set()
+        self._worker.stop()
+        self._events.put(None)
+        for thread in self._threads:
+            thread.join(timeout=5)
+        for link in self._cfg.links.values():
+            link.stop()
+
+    def __enter__(self) -> Agent:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # -- public surface ------------------------------------------------------------------
+
+    @property
+    def active(self) -> str:
+        """The autopilot on the motors."""
+        return self._state.active
+
+    @property
+    def latched(self) -> bool:
+        """Whether a failover latched the agent."""
+        return self._state.latched
+
+    @property
+    def links(self) -> Mapping[str, AutopilotLink]:
+        """The links by autopilot name (counters, trackers)."""
+        return self._cfg.links
+
+    def failovers(self) -> list[FailoverEvent]:
+        """Switches since start, oldest first (the last ``FAILOVER_HISTORY``)."""
+        with self._lock:
+            return list(self._failovers)
+
+    def assessments(self) -> dict[str, Assessment]:
+        """The latest health assessment of every autopilot."""
+        with self._lock:
+            return dict(self._assessments)
+
+    def subscribe(self, listener: Listener) -> Callable[[], None]:
+        """Call ``listener`` with every event (on the notifier thread); returns unsubscribe."""
+        with self._lock:
+            self._listeners.append(listener)
+
+        def unsubscribe() -> None:
+            with self._lock:
+                if listener in self._listeners:
+                    self._listeners.remove(listener)
+
+        return unsubscribe
+
+    def submit(self, command: AutopilotCommand) -> Future[CommandResult]:
+        """Execute ``command`` at most once per id; the future resolves to its result.
+
+        A command whose id was already executed (also before a restart: ids are kept on
+        disk) resolves to the stored result without running again.
+        """
+        with self._lock:
+            done = self._processed.get(command.id)
+            if done is not None:
+                future: Future[CommandResult] = Future()
+                future.set_result(done)
+                return future
+            pending = self._pending.get(command.id)
+            if pending is not None:
+                return pending
+            future = Future()
+            self._pending[command.id] = future
+            self._inbox.append(command)
+        self._wake.set()
+        return future
+
+    def apply_spec(self, spec: RedundantAutopilotSpec, generation: int | None = None) -> str | None:
+        """Adopt a new spec (policy, thresholds, primary, command, connection details).
+
+        Returns None when applied, else why it was refused: the set of autopilots and
+        their bridge channels cannot change while running (the bridge hardware is
+        claimed per channel; restart the agent), and connection details only change on
+        the ground (a reopened link starts without data). A command in the spec is
+        submitted either way.
+        """
+        refusal = self._apply_spec(spec, generation)
+        if refusal is not None:
+            self._emit(EventKind.SPEC, "SpecRejected", refusal, warning=True)
+        else:
+            self._emit(EventKind.SPEC, "SpecApplied", f"generation {generation}")
+        if spec.command is not None:
+            self.submit(spec.command)
+        return refusal
+
+    def status(self) -> RedundantAutopilotStatus:
+        """The complete status the agent reports for its RedundantAutopilot."""
+        with self._lock:
+            cfg = self._cfg
+            state = self._state
+            assessments = dict(self._assessments)
+            healths = [
+                assessments[a.name].to_api() for a in cfg.spec.autopilots if a.name in assessments
+            ]
+            self._conditions = self._compute_conditions(cfg, state, assessments)
+            return RedundantAutopilotStatus(
+                observed_generation=cfg.generation,
+                conditions=list(self._conditions),
+                active_autopilot=state.active,
+                autopilots=healths,
+                last_failover=self._last_failover,
+                failover_count=state.failover_count,
+                latched=state.latched,
+                last_command=self._last_command,
+                node_name=self._node_name,
+                reported_at=self._wall_clock().replace(microsecond=0),
+            )
+
+    # -- decision loop -------------------------------------------------------------------
+
+    def _decide_forever(self) -> None:
+        while not self._stop.is_set():
+            self._wake.wait(self._tick_s)
+            self._wake.clear()
+            if self._stop.is_set():
+                return
+            try:
+                self.tick()
+            except Exception:  # the loop must outlive any bug in one tick
+                log.exception("decision tick failed")
+
+    def tick(self) -> None:
+        """One decision: assess, step the arbiter, switch first, then everything else."""
+        cfg = self._cfg
+        now = self._clock()
+        assessments = {name: link.tracker.assess(now) for name, link in cfg.links.items()}
+        views = {name: _view(a) for name, a in assessments.items()}
+        self._execute(cfg, step(self._state, views, cfg.policy, now))
+        with self._lock:
+            commands = list(self._inbox)
+            self._inbox.clear()
+            self._assessments = assessments
+        for command in commands:
+            decision = handle_command(
+                self._state,
+                views,
+                cfg.policy,
+                command,
+                now=self._clock(),
+                wall_now=self._wall_clock(),
+            )
+            self._execute(cfg, decision)
+        self._note_health_changes(assessments)
+
+    def _execute(self, cfg: _Running, decision: Decision) -> None:
+        before = self._state
+        self._state = decision.state
+        for action in decision.actions:
+            self._perform(cfg, before, action)
+        after = self._state
+        durable = (after.active, after.latched, after.failed_from, after.failover_count)
+        if durable != (before.active, before.latched, before.failed_from, before.failover_count):
+            self._persist()
+
+    def _perform(self, cfg: _Running, before: ArbiterState, action: Action) -> None:
+        if isinstance(action, SwitchBridge):
+            self._switch(cfg, before, action)
+        elif isinstance(action, RunSafetyRoutine):
+            self._start_routine(cfg, action.autopilot)
+        elif isinstance(action, LandInPlace):
+            self._start_landing(cfg, action)
+        elif isinstance(action, NoHealthyStandby):
+            self._emit(
+                EventKind.NO_HEALTHY_STANDBY,
+                "NoHealthyStandby",
+                f"{action.reason}; pilot flies manually, no landing ordered",
+                warning=True,
+                autopilot=action.autopilot,
+            )
+        elif isinstance(action, ForceDisarm):
+            self._emergency_stop(cfg, action)
+        else:
+            self._command_done(action)
+
+    def _switch(self, cfg: _Running, before: ArbiterState, action: SwitchBridge) -> None:
+        try:
+            self._bridge.select(cfg.channels[action.to_autopilot])
+        except BridgeError as exc:
+            # The motors stay where they were: undo the decision, the next tick retries.
+            self._state = replace(
+                self._state,
+                active=before.active,
+                latched=before.latched,
+                failed_from=before.failed_from,
+                failover_count=before.failover_count,
+            )
+            self._emit(
+                EventKind.BRIDGE_ERROR,
+                "BridgeSwitchFailed",
+                f"could not switch to {action.to_autopilot}: {exc}",
+                warning=True,
+                autopilot=action.to_autopilot,
+            )
+            return
+        switched_at = self._clock()
+        record = FailoverRecord(
+            time=self._wall_clock().replace(microsecond=0),
+            from_autopilot=action.from_autopilot,
+            to_autopilot=action.to_autopilot,
+            reason=action.reason,
+            latency_ms=round((switched_at - action.detected_at) * 1000, 3),
+            trigger=action.trigger.value,
+            safety_routine=None if action.safety == SafetyPlan.NONE else action.safety.value,
+        )
+        if action.safety == SafetyPlan.RUN:
+            self._start_routine(cfg, action.to_autopilot)
+        event = FailoverEvent(record, action.detected_at, switched_at, action.onset)
+        with self._lock:
+            self._last_failover = record
+            self._failovers.append(event)
+        onset = event.onset_to_switch_ms
+        timing = f"switched {event.latency_ms:.3f} ms after detection" + (
+            f", {onset:.0f} ms after onset" if onset is not None else ""
+        )
+        reasons = {
+            Trigger.AUTOMATIC: "FailedOver",
+            Trigger.COMMAND: "SwitchedByCommand",
+            Trigger.FAILBACK: "FailedBack",
+        }
+        self._emit(
+            EventKind.FAILOVER,
+            reasons[action.trigger],
+            f"{action.from_autopilot} -> {action.to_autopilot}: {action.reason} ({timing})",
+            warning=action.trigger == Trigger.AUTOMATIC,
+            autopilot=action.to_autopilot,
+            failover=event,
+        )
+
+    def _command_done(self, done: CommandDone) -> None:
+        result = CommandResult(
+            id=done.command_id,
+            result=done.result.value,
+            message=done.message,
+            time=self._wall_clock().replace(microsecond=0),
+        )
+        with self._lock:
+            self._processed[done.command_id] = result
+            while len(self._processed) > MAX_REMEMBERED_COMMANDS:
+                self._processed.popitem(last=False)
+            self._last_command = result
+            future = self._pending.pop(done.command_id, None)
+        self._persist()
+        if future is not None:
+            future.set_result(result)
+        self._emit(
+            EventKind.COMMAND,
+            f"Command{done.result.value}",
+            f"{done.command_id}: {done.message}",
+            warning=done.result != CommandResultKind.EXECUTED,
+            command=result,
+        )
+
+    # -- safety jobs ---------------------------------------------------------------------
+
+    def _reporter(self, autopilot: str) -> Callable[[Phase, str], None]:
+        def report(phase: Phase, message: str) -> None:
+            with self._lock:
+                record = self._last_failover
+                if record is not None and record.to_autopilot == autopilot:
+                    self._last_failover = record.model_copy(update={"safety_routine": phase.value})
+            self._persist()
+            self._emit(
+                EventKind.SAFETY,
+                f"SafetyRoutine{phase.value}",
+                message,
+                warning=phase in (Phase.FAILED, Phase.HOLD_REFUSED),
+                autopilot=autopilot,
+            )
+
+        return report
+
+    def _runner(self, link: AutopilotLink, cancel: threading.Event) -> SafetyRunner:
+        return SafetyRunner(link, cancel, self._reporter(link.name), self._timing, self._clock)
+
+    def _start_routine(self, cfg: _Running, autopilot: str) -> None:
+        link = cfg.links[autopilot]
+        routine = cfg.spec.failover_policy.safety_routine
+
+        def run(cancel: threading.Event) -> None:
+            self._runner(link, cancel).run(routine)
+
+        self._worker.submit(_Job(f"safety routine on {autopilot}", run))
+
+    def _start_landing(self, cfg: _Running, action: LandInPlace) -> None:
+        self._emit(
+            EventKind.LAND_ORDERED,
+            "LandOrdered",
+            f"{action.autopilot}: {action.reason}",
+            warning=True,
+            autopilot=action.autopilot,
+        )
+        link = cfg.links[action.autopilot]
+
+        def run(cancel: threading.Event) -> None:
+            self._runner(link, cancel).land_now()
+
+        self._worker.submit(_Job(f"landing {action.autopilot}", run))
+
+    def _emergency_stop(self, cfg: _Running, action: ForceDisarm) -> None:
+        self._emit(EventKind.EMERGENCY_STOP, "EmergencyStop", action.reason, warning=True)
+        active = self._state.active
+        order = sorted(action.autopilots, key=lambda n: n != active)
+        links = [cfg.links[n] for n in order]
+
+        def run(cancel: threading.Event) -> None:
+            threads = [
+                threading.Thread(target=self._runner(link, cancel).force_disarm, daemon=True)
+                for link in links
+            ]
+            for thread in threads:
+                thread.start()
+            for thread in threads:
+                thread.join()
+
+        self._worker.submit(_Job("emergency stop", run, emergency=True))
+
+    # -- health events, conditions -----------------------------------------------------
+
+    def _note_health_changes(self, assessments: Mapping[str, Assessment]) -> None:
+        for name, a in assessments.items():
+            signature = a.signature
+            previous = self._signatures.get(name)
+            if signature == previous:
+                continue
+            self._signatures[name] = signature
+            was = previous[0].value if previous else "unknown"
+            why = "; ".join(a.reasons) or "healthy"
+            self._emit(
+                EventKind.HEALTH,
+                "AutopilotHealthChanged",
+                f"{name}: {was} -> {a.level.value}: {why}",
+                warning=a.level.rank >= HealthLevel.ERROR.rank,
+                autopilot=name,
+                health=a.to_api(),
+            )
+
+    def _compute_conditions(
+        self, cfg: _Running, state: ArbiterState, assessments: Mapping[str, Assessment]
+    ) -> list[Condition]:
+        gen = cfg.generation
+        conds = self._conditions
+        active = assessments.get(state.active)
+        active_ok = active is not None and active.level.rank <= HealthLevel.WARN.rank
+        conds = set_condition(
+            conds,
+            type=AutopilotConditionType.ACTIVE_HEALTHY,
+            status="True" if active_ok else "False",
+            reason=("ActiveOK" if active and active.level == HealthLevel.OK else "ActiveDegraded")
+            if active_ok
+            else "ActiveFailing",
+            message=f"{state.active}: "
+            + ("; ".join(active.reasons) if active and active.reasons else "healthy"),
+            observed_generation=gen,
+        )
+        standbys = [
+            n
+            for n, a in assessments.items()
+            if n != state.active and n not in state.failed_from and a.level == HealthLevel.OK
+        ]
+        conds = set_condition(
+            conds,
+            type=AutopilotConditionType.REDUNDANT,
+            status="True" if standbys else "False",
+            reason="StandbyHealthy" if standbys else "NoHealthyStandby",
+            message=", ".join(standbys) or "no standby autopilot is OK",
+            observed_generation=gen,
+        )
+        record = self._last_failover
+        conds = set_condition(
+            conds,
+            type=AutopilotConditionType.FAILED_OVER,
+            status="True" if state.latched else "False",
+            reason="FailedOver" if state.latched else "NotFailedOver",
+            message=f"{record.from_autopilot} -> {record.to_autopilot}: {record.reason}"
+            if state.latched and record
+            else "",
+            observed_generation=gen,
+        )
+        ready = active_ok and bool(standbys)
+        return set_condition(
+            conds,
+            type=AutopilotConditionType.READY,
+            status="True" if ready else "False",
+            reason="Ready" if ready else ("NotRedundant" if active_ok else "ActiveFailing"),
+            message="active healthy and a standby ready" if ready else "",
+            observed_generation=gen,
+        )
+
+    # -- spec changes --------------------------------------------------------------------
+
+    def _new_link(self, spec_ap: AutopilotSpec, spec: RedundantAutopilotSpec) -> AutopilotLink:
+        tracker = HealthTracker(spec_ap.name, spec_ap.stack, spec.failover_policy.thresholds)
+        return AutopilotLink(spec_ap, tracker, on_change=self._wake.set, clock=self._clock)
+
+    def _apply_spec(self, spec: RedundantAutopilotSpec, generation: int | None) -> str | None:
+        with self._spec_lock:
+            cfg = self._cfg
+            old = {a.name: a for a in cfg.spec.autopilots}
+            new = {a.name: a for a in spec.autopilots}
+            channels = {a.name: a.bridge_channel for a in spec.autopilots}
+            if set(old) != set(new) or channels != dict(cfg.channels):
+                return "the autopilots or their bridge channels changed; restart the agent"
+            changed = [n for n in new if new[n] != old[n]]
+            in_flight = self._state.in_flight is True or any(
+                a.in_air is True for a in self.assessments().values()
+            )
+            if changed and in_flight:
+                return f"connection details of {', '.join(changed)} change only on the ground"
+            links = dict(cfg.links)
+            retired = [links[n] for n in changed]
+            for name in changed:
+                links[name] = self._new_link(new[name], spec)
+                links[name].start()
+            for link in links.values():
+                link.tracker.set_thresholds(spec.failover_policy.thresholds)
+            self._cfg = _Running(
+                spec=spec,
+                generation=generation,
+                policy=Policy.from_spec(spec),
+                links=links,
+                channels=channels,
+            )
+        for link in retired:
+            link.stop()
+        self._persist()
+        return None
+
+    # -- persistence, heartbeats, events -------------------------------------------------
+
+    def _persist(self) -> None:
+        if self._state_file is None:
+            return
+        with self._lock:
+            cfg, state = self._cfg, self._state
+            snapshot = PersistedState(
+                spec=cfg.spec,
+                generation=cfg.generation,
+                active=state.active,
+                latched=state.latched,
+                failed_from=sorted(state.failed_from),
+                failover_count=state.failover_count,
+                last_failover=self._last_failover,
+                commands=list(self._processed.values()),
+                saved_at=self._wall_clock(),
+            )
+        with self._persist_lock:
+            try:
+                self._state_file.save(snapshot)
+            except OSError:
+                log.exception("cannot write the state file %s", self._state_file.path)
+
+    def _heartbeat_forever(self) -> None:
+        while not self._stop.is_set():
+            for link in self._cfg.links.values():
+                link.send_heartbeat()
+            self._stop.wait(HEARTBEAT_PERIOD_S)
+
+    def _emit(
+        self,
+        kind: EventKind,
+        reason: str,
+        message: str,
+        *,
+        warning: bool = False,
+        autopilot: str | None = None,
+        failover: FailoverEvent | None = None,
+        health: AutopilotHealth | None = None,
+        command: CommandResult | None = None,
+    ) -> None:
+        self._events.put(
+            AgentEvent(
+                kind,
+                reason,
+                message,
+                warning,
+                self._wall_clock(),
+                autopilot,
+                failover,
+                health,
+                command,
+            )
+        )
+
+    def _notify_forever(self) -> None:
+        while True:
+            event = self._events.get()
+            if event is None:
+                return
+            (log.warning if event.warning else log.info)("%s: %s", event.reason, event.message)
+            with self._lock:
+                listeners = list(self._listeners)
+            for listener in listeners:
+                try:
+                    listener(event)
+                except Exception:
+                    log.exception("event listener failed")

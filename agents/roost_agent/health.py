@@ -1,0 +1,609 @@
+"""Turn one autopilot's MAVLink messages into a health judgement (OK/WARN/ERROR/STALE).
+
+Why a tracker plus a pure assessment: the link's reader thread feeds every message into
+:meth:`HealthTracker.observe` (cheap, a few attribute writes under a lock), and the
+decision loop calls :meth:`HealthTracker.assess` with the current time. Time is always a
+parameter (a monotonic clock reading in seconds), never read inside, so every threshold
+is unit-testable without sleeping and the same code serves the live agent and replays.
+
+The rules follow the health table in ``shared/reference/mavlink-health.md``:
+
+- liveness: age of any message (only where the link streams fast enough for that to mean
+  something, see :data:`FAST_STREAM_FACTOR`) and age of the heartbeat;
+- frozen telemetry: messages keep coming but ``time_boot_ms`` stops advancing;
+- reboot: ``time_boot_ms`` going backwards, or MAV_STATE BOOT after the autopilot was up;
+- MAV_STATE: EMERGENCY / POWEROFF / FLIGHT_TERMINATION are errors, BOOT-like states in the
+  air are errors, CRITICAL is a warning unless another finding corroborates it;
+- SYS_STATUS sensor bits, classified by :func:`roost_mavlink.classify_sensors` (gyro,
+  accel, AHRS are failover-critical once they persist; navigation sensors only warn);
+- estimator flags (PX4 ESTIMATOR_STATUS, ArduPilot EKF_STATUS_REPORT): attitude lost or
+  accelerometer error persisting is an error, position lost a warning;
+- disarmed while in the air; attitude beyond the tilt envelope.
+
+Only findings marked ``triggers_failover`` can make the arbiter switch; warnings never
+do. The arbiter adds the hysteresis (confirm/clear times); here a finding is reported as
+soon as its own definition holds.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass, field
+from typing import Any
+
+from roost_api.autopilot import AutopilotHealth, Thresholds
+from roost_api.meta import HealthLevel, Stack
+from roost_mavlink import (
+    MAV_MODE_FLAG_SAFETY_ARMED,
+    LandedState,
+    MavState,
+    classify_sensors,
+    is_manual_mode,
+    landed_state_name,
+    mav_state_name,
+    mode_name,
+    stack_from_heartbeat,
+)
+from roost_mavlink.status import MAV_AUTOPILOT_INVALID, is_airborne, sensor_name
+
+# The any-message age only means "silent" on a link that normally streams several
+# messages inside the warn window; on a heartbeat-only link it would fire every second.
+# The check applies while the smoothed gap between messages is at most warn/FACTOR.
+FAST_STREAM_FACTOR = 4.0
+GAP_SMOOTHING = 0.05  # weight of the newest inter-message gap in the running average
+
+# time_boot_ms may step back a little when UDP reorders packets (jitter); a reboot
+# restarts it near zero. Only a step back larger than this counts as a reboot.
+REBOOT_BACKSTEP_MS = 1000
+# A reboot stays an error this long: an autopilot that restarted mid-flight is not a
+# failover target again until it has proven itself for a while.
+REBOOT_REMEMBERED_S = 10.0
+
+TILT_WARN_DEG = 35.0
+TILT_PERSIST_S = 0.3
+
+# Estimator status flags shared by PX4 ESTIMATOR_STATUS and ArduPilot EKF_STATUS_REPORT
+# (common.xml ESTIMATOR_STATUS_FLAGS / ardupilotmega.xml EKF_STATUS_FLAGS).
+ESTIMATOR_ATTITUDE = 0x1
+ESTIMATOR_POS_HORIZ_ABS = 0x10
+ESTIMATOR_ACCEL_ERROR = 0x800  # ESTIMATOR_STATUS only
+EKF_UNINITIALIZED = 0x400  # EKF_STATUS_REPORT only
+
+_FATAL_STATES = {MavState.EMERGENCY, MavState.POWEROFF, MavState.FLIGHT_TERMINATION}
+_NOT_FLYING_STATES = {MavState.UNINIT, MavState.BOOT, MavState.CALIBRATING}
+_UP_STATES = {MavState.STANDBY, MavState.ACTIVE, MavState.CRITICAL}
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One reason an autopilot is not OK."""
+
+    level: HealthLevel
+    code: str  # stable identifier (e.g. "silent", "sensor:gyro"); reason has the numbers
+    reason: str
+    triggers_failover: bool = False
+    onset: float | None = None  # monotonic time the condition began, when known
+
+
+@dataclass(frozen=True)
+class Assessment:
+    """One autopilot's health at one instant: what the arbiter and the status read."""
+
+    name: str
+    stack: Stack
+    at: float
+    level: HealthLevel
+    findings: tuple[Finding, ...]
+    message_age_s: float | None
+    heartbeat_age_s: float | None
+    custom_mode: int | None
+    armed: bool | None
+    landed_state: int | None
+    system_status: int | None
+    unhealthy_sensors: tuple[str, ...]
+
+    @property
+    def failing(self) -> bool:
+        """At least one finding that justifies a failover."""
+        return any(f.triggers_failover for f in self.findings)
+
+    @property
+    def signature(self) -> tuple[HealthLevel, frozenset[str]]:
+        """Level and finding codes: changes only when the judgement does, not its numbers."""
+        return self.level, frozenset(f.code for f in self.findings)
+
+    @property
+    def reasons(self) -> tuple[str, ...]:
+        """Human-readable reasons, worst first."""
+        return tuple(f.reason for f in self.findings)
+
+    @property
+    def failure_reason(self) -> str:
+        """The failover-triggering reasons joined, or the plain reasons when none trigger."""
+        triggering = [f.reason for f in self.findings if f.triggers_failover]
+        return "; ".join(triggering or list(self.reasons)) or "healthy"
+
+    @property
+    def onset(self) -> float | None:
+        """Earliest known start of a failover-triggering condition."""
+        onsets = [f.onset for f in self.findings if f.triggers_failover and f.onset is not None]
+        return min(onsets) if onsets else None
+
+    @property
+    def in_air(self) -> bool | None:
+        """From EXTENDED_SYS_STATE: True in air/takeoff/landing, None when unknown."""
+        if self.landed_state is None or self.landed_state == LandedState.UNDEFINED:
+            return None
+        return is_airborne(self.landed_state)
+
+    @property
+    def mode(self) -> str | None:
+        """Flight mode name decoded with the configured stack's encoding."""
+        return None if self.custom_mode is None else mode_name(self.stack, self.custom_mode)
+
+    @property
+    def pilot_in_control(self) -> bool:
+        """True when the autopilot flies a pilot-steered mode (MANUAL, POSCTL, ALT_HOLD...)."""
+        mode = self.mode
+        return mode is not None and is_manual_mode(self.stack, mode)
+
+    def to_api(self) -> AutopilotHealth:
+        """The status entry the publisher writes (roost_api.autopilot.AutopilotHealth)."""
+        return AutopilotHealth(
+            name=self.name,
+            level=self.level,
+            reasons=list(self.reasons),
+            heartbeat_age_ms=_ms(self.heartbeat_age_s),
+            message_age_ms=_ms(self.message_age_s),
+            mode=self.mode,
+            armed=self.armed,
+            landed_state=None
+            if self.landed_state is None
+            else landed_state_name(self.landed_state),
+            system_status=None
+            if self.system_status is None
+            else mav_state_name(self.system_status),
+            unhealthy_sensors=list(self.unhealthy_sensors),
+        )
+
+
+def _ms(seconds: float | None) -> int | None:
+    return None if seconds is None else round(seconds * 1000)
+
+
+def tilt_degrees(roll: float, pitch: float) -> float:
+    """Angle between the body z axis and the vertical, from roll and pitch in radians."""
+    cos_tilt = math.cos(roll) * math.cos(pitch)
+    return math.degrees(math.acos(max(-1.0, min(1.0, cos_tilt))))
+
+
+@dataclass
+class _Observed:
+    """Everything the tracker remembers; mutated only under the tracker's lock."""
+
+    first_at: float | None = None
+    last_at: float | None = None
+    mean_gap_s: float | None = None
+    heartbeat_at: float | None = None
+    heartbeat_autopilot: int | None = None
+    base_mode: int | None = None
+    custom_mode: int | None = None
+    system_status: int | None = None
+    system_status_since: float | None = None
+    was_up: bool = False
+    landed_state: int | None = None
+    sensors_enabled: int | None = None
+    sensors_health: int | None = None
+    critical_since: dict[int, float] = field(default_factory=dict)
+    boot_ms_max: int | None = None
+    boot_advanced_at: float | None = None
+    reboot_at: float | None = None
+    reboot_reason: str = ""
+    tilt_deg: float | None = None
+    tilt_over_since: float | None = None
+    estimator_flags: int | None = None
+    estimator_kind: str = ""
+    estimator_bad_since: float | None = None
+    disarmed_in_air_at: float | None = None
+
+
+class HealthTracker:
+    """Accumulates one autopilot's messages; :meth:`assess` judges them at a given time.
+
+    ``observe`` is called by exactly one reader thread; ``assess`` by the decision loop.
+    A lock makes every assessment see one consistent set of observations.
+    """
+
+    def __init__(self, name: str, stack: Stack, thresholds: Thresholds) -> None:
+        self.name = name
+        self.stack = Stack(stack)
+        self.thresholds = thresholds
+        self._lock = threading.Lock()
+        self._o = _Observed()
+
+    def set_thresholds(self, thresholds: Thresholds) -> None:
+        """Apply new thresholds (a spec change); observations are kept."""
+        self.thresholds = thresholds
+
+    # -- observing -------------------------------------------------------------------
+
+    def observe(self, msg: Any, now: float) -> bool:
+        """Record one message from this autopilot received at ``now``.
+
+        Returns True when a fact the arbiter acts on changed (MAV_STATE, arming, landed
+        state, sensor health, a reboot), so the caller can wake the decision loop at once
+        instead of waiting for its next tick.
+        """
+        kind = msg.get_type()
+        with self._lock:
+            o = self._o
+            if o.last_at is not None:
+                gap = now - o.last_at
+                o.mean_gap_s = (
+                    gap
+                    if o.mean_gap_s is None
+                    else o.mean_gap_s + GAP_SMOOTHING * (gap - o.mean_gap_s)
+                )
+            else:
+                o.first_at = now
+            o.last_at = now
+            changed = False
+            boot_ms = getattr(msg, "time_boot_ms", None)
+            if isinstance(boot_ms, int):
+                changed = self._observe_boot_time(boot_ms, now)
+            if kind == "HEARTBEAT":
+                changed = self._observe_heartbeat(msg, now) or changed
+            elif kind == "SYS_STATUS":
+                changed = self._observe_sys_status(msg, now) or changed
+            elif kind == "EXTENDED_SYS_STATE":
+                changed = self._observe_landed_state(int(msg.landed_state), now) or changed
+            elif kind == "ATTITUDE":
+                self._observe_attitude(float(msg.roll), float(msg.pitch), now)
+            elif kind in ("ESTIMATOR_STATUS", "EKF_STATUS_REPORT"):
+                self._observe_estimator(kind, int(msg.flags), now)
+            return changed
+
+    def _observe_boot_time(self, boot_ms: int, now: float) -> bool:
+        o = self._o
+        if o.boot_ms_max is None or boot_ms > o.boot_ms_max:
+            o.boot_ms_max = boot_ms
+            o.boot_advanced_at = now
+            return False
+        if boot_ms < o.boot_ms_max - REBOOT_BACKSTEP_MS:
+            self._note_reboot(
+                now, f"rebooted: time_boot_ms went back from {o.boot_ms_max} to {boot_ms}"
+            )
+            o.boot_ms_max = boot_ms
+            o.boot_advanced_at = now
+            return True
+        return False
+
+    def _note_reboot(self, now: float, reason: str) -> None:
+        o = self._o
+        o.reboot_at = now
+        o.reboot_reason = reason
+        o.was_up = False
+        o.sensors_enabled = o.sensors_health = None  # re-judged from the next SYS_STATUS
+        o.critical_since.clear()
+        o.disarmed_in_air_at = None
+
+    def _observe_heartbeat(self, msg: Any, now: float) -> bool:
+        o = self._o
+        if int(msg.autopilot) == MAV_AUTOPILOT_INVALID:
+            return False  # a non-autopilot component sharing the id: not this autopilot
+        previous = (o.base_mode, o.custom_mode, o.system_status)
+        was_armed = o.base_mode is not None and bool(o.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
+        o.heartbeat_at = now
+        o.heartbeat_autopilot = int(msg.autopilot)
+        o.base_mode = int(msg.base_mode)
+        o.custom_mode = int(msg.custom_mode)
+        status = int(msg.system_status)
+        if status != o.system_status:
+            o.system_status_since = now
+        o.system_status = status
+        if status == MavState.BOOT and o.was_up:
+            self._note_reboot(now, "rebooted: MAV_STATE BOOT after it was up")
+        elif status in _UP_STATES:
+            o.was_up = True
+        armed = bool(o.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
+        if was_armed and not armed and o.landed_state is not None and is_airborne(o.landed_state):
+            o.disarmed_in_air_at = now
+        elif armed:
+            o.disarmed_in_air_at = None
+        return (o.base_mode, o.custom_mode, o.system_status) != previous
+
+    def _observe_sys_status(self, msg: Any, now: float) -> bool:
+        o = self._o
+        enabled = int(msg.onboard_control_sensors_enabled)
+        health = int(msg.onboard_control_sensors_health)
+        changed = (enabled, health) != (o.sensors_enabled, o.sensors_health)
+        o.sensors_enabled, o.sensors_health = enabled, health
+        if changed:
+            critical = {int(b) for b in classify_sensors(enabled, health).critical}
+            o.critical_since = {b: o.critical_since.get(b, now) for b in critical}
+        return changed
+
+    def _observe_landed_state(self, landed: int, now: float) -> bool:
+        o = self._o
+        changed = landed != o.landed_state
+        o.landed_state = landed
+        if landed == LandedState.ON_GROUND:
+            o.disarmed_in_air_at = None
+        return changed
+
+    def _observe_attitude(self, roll: float, pitch: float, now: float) -> None:
+        o = self._o
+        o.tilt_deg = tilt_degrees(roll, pitch)
+        if o.tilt_deg > self.thresholds.max_tilt_deg:
+            if o.tilt_over_since is None:
+                o.tilt_over_since = now
+        else:
+            o.tilt_over_since = None
+
+    def _observe_estimator(self, kind: str, flags: int, now: float) -> None:
+        o = self._o
+        o.estimator_flags, o.estimator_kind = flags, kind
+        if _estimator_attitude_bad(kind, flags):
+            if o.estimator_bad_since is None:
+                o.estimator_bad_since = now
+        else:
+            o.estimator_bad_since = None
+
+    # -- judging ---------------------------------------------------------------------
+
+    def assess(self, now: float) -> Assessment:
+        """Judge the observations as of ``now`` (pure with respect to the tracker)."""
+        with self._lock:
+            o = self._o
+            findings = _findings(o, self.stack, self.thresholds, now)
+            unhealthy: tuple[str, ...] = ()
+            if o.sensors_enabled is not None and o.sensors_health is not None:
+                report = classify_sensors(o.sensors_enabled, o.sensors_health)
+                unhealthy = tuple(sensor_name(b) for b in report.unhealthy)
+            level = max((f.level for f in findings), key=lambda lv: lv.rank, default=HealthLevel.OK)
+            return Assessment(
+                name=self.name,
+                stack=self.stack,
+                at=now,
+                level=level,
+                findings=tuple(sorted(findings, key=lambda f: -f.level.rank)),
+                message_age_s=None if o.last_at is None else now - o.last_at,
+                heartbeat_age_s=None if o.heartbeat_at is None else now - o.heartbeat_at,
+                custom_mode=o.custom_mode,
+                armed=None
+                if o.base_mode is None
+                else bool(o.base_mode & MAV_MODE_FLAG_SAFETY_ARMED),
+                landed_state=o.landed_state,
+                system_status=o.system_status,
+                unhealthy_sensors=unhealthy,
+            )
+
+    def heartbeat(self) -> tuple[int, int, float] | None:
+        """(custom_mode, base_mode, received_at) of the last heartbeat, for confirmations."""
+        with self._lock:
+            o = self._o
+            if o.heartbeat_at is None or o.custom_mode is None or o.base_mode is None:
+                return None
+            return o.custom_mode, o.base_mode, o.heartbeat_at
+
+    def landed_state(self) -> int | None:
+        """Last EXTENDED_SYS_STATE landed_state."""
+        with self._lock:
+            return self._o.landed_state
+
+
+def _estimator_attitude_bad(kind: str, flags: int) -> bool:
+    if not flags & ESTIMATOR_ATTITUDE:
+        return True
+    if kind == "ESTIMATOR_STATUS":
+        return bool(flags & ESTIMATOR_ACCEL_ERROR)
+    return bool(flags & EKF_UNINITIALIZED)
+
+
+def _findings(o: _Observed, stack: Stack, th: Thresholds, now: float) -> list[Finding]:
+    """Every finding for the observations ``o`` at time ``now`` (see module docstring)."""
+    if o.last_at is None:
+        return [Finding(HealthLevel.STALE, "no-data", "no MAVLink message received yet", True)]
+    found: list[Finding] = []
+    found += _liveness(o, th, now)
+    found += _reboot(o, now)
+    found += _sensors(o, th, now)
+    found += _estimator(o, th, now)
+    found += _flight(o, th, now)
+    found += _mav_state(o, found)
+    if o.heartbeat_autopilot is not None:
+        reported = stack_from_heartbeat(o.heartbeat_autopilot)
+        if reported is not None and reported != stack:
+            found.append(
+                Finding(
+                    HealthLevel.WARN,
+                    "stack-mismatch",
+                    f"heartbeat says {reported.value} but {stack.value} is configured: "
+                    "mode commands would use the wrong encoding",
+                )
+            )
+    return found
+
+
+def _liveness(o: _Observed, th: Thresholds, now: float) -> list[Finding]:
+    assert o.last_at is not None and o.first_at is not None
+    found: list[Finding] = []
+    silent_s = now - o.last_at
+    if silent_s * 1000 >= th.heartbeat_error_ms:
+        found.append(
+            Finding(
+                HealthLevel.STALE,
+                "link-lost",
+                f"link lost: no message for {silent_s:.1f} s",
+                True,
+                o.last_at,
+            )
+        )
+    elif _fast_stream(o, th):
+        if silent_s * 1000 >= th.message_error_ms:
+            found.append(
+                Finding(
+                    HealthLevel.ERROR,
+                    "silent",
+                    f"silent for {silent_s * 1000:.0f} ms",
+                    True,
+                    o.last_at,
+                )
+            )
+        elif silent_s * 1000 >= th.message_warn_ms:
+            found.append(
+                Finding(HealthLevel.WARN, "late", f"no message for {silent_s * 1000:.0f} ms")
+            )
+    since_beat = o.heartbeat_at if o.heartbeat_at is not None else o.first_at
+    beat_age_ms = (now - since_beat) * 1000
+    label = "no heartbeat" if o.heartbeat_at is None else "heartbeat"
+    if beat_age_ms >= th.heartbeat_error_ms:
+        found.append(
+            Finding(
+                HealthLevel.ERROR,
+                "heartbeat-lost",
+                f"{label} lost for {beat_age_ms:.0f} ms",
+                True,
+                since_beat,
+            )
+        )
+    elif o.heartbeat_at is not None and beat_age_ms >= th.heartbeat_warn_ms:
+        found.append(
+            Finding(HealthLevel.WARN, "heartbeat-late", f"heartbeat late: {beat_age_ms:.0f} ms")
+        )
+    if o.boot_advanced_at is not None and silent_s * 1000 < th.message_error_ms:
+        stuck_ms = (now - o.boot_advanced_at) * 1000
+        limit_ms = th.message_error_ms if _fast_stream(o, th) else th.heartbeat_error_ms
+        if stuck_ms >= limit_ms:
+            found.append(
+                Finding(
+                    HealthLevel.ERROR,
+                    "frozen",
+                    f"telemetry frozen: time_boot_ms stuck at {o.boot_ms_max} "
+                    f"for {stuck_ms:.0f} ms",
+                    True,
+                    o.boot_advanced_at,
+                )
+            )
+    return found
+
+
+def _fast_stream(o: _Observed, th: Thresholds) -> bool:
+    return (
+        o.mean_gap_s is not None and o.mean_gap_s * 1000 * FAST_STREAM_FACTOR <= th.message_warn_ms
+    )
+
+
+def _reboot(o: _Observed, now: float) -> list[Finding]:
+    if o.reboot_at is not None and now - o.reboot_at < REBOOT_REMEMBERED_S:
+        return [Finding(HealthLevel.ERROR, "reboot", o.reboot_reason, True, o.reboot_at)]
+    return []
+
+
+def _sensors(o: _Observed, th: Thresholds, now: float) -> list[Finding]:
+    if o.sensors_enabled is None or o.sensors_health is None:
+        return []
+    found: list[Finding] = []
+    report = classify_sensors(o.sensors_enabled, o.sensors_health)
+    for bit in report.critical:
+        since = o.critical_since.get(int(bit), now)
+        lasted_ms = (now - since) * 1000
+        if lasted_ms >= th.sensor_persist_ms:
+            found.append(
+                Finding(
+                    HealthLevel.ERROR,
+                    f"sensor:{sensor_name(bit)}",
+                    f"{sensor_name(bit)} unhealthy for {lasted_ms:.0f} ms",
+                    True,
+                    since,
+                )
+            )
+        else:
+            found.append(
+                Finding(
+                    HealthLevel.WARN, f"sensor:{sensor_name(bit)}", f"{sensor_name(bit)} unhealthy"
+                )
+            )
+    for bit in report.warn:
+        found.append(
+            Finding(HealthLevel.WARN, f"sensor:{sensor_name(bit)}", f"{sensor_name(bit)} unhealthy")
+        )
+    return found
+
+
+def _estimator(o: _Observed, th: Thresholds, now: float) -> list[Finding]:
+    if o.estimator_flags is None:
+        return []
+    found: list[Finding] = []
+    if o.estimator_bad_since is not None:
+        lasted_ms = (now - o.estimator_bad_since) * 1000
+        bad = Finding(
+            HealthLevel.ERROR if lasted_ms >= th.sensor_persist_ms else HealthLevel.WARN,
+            "estimator",
+            f"estimator attitude lost or accelerometer error ({o.estimator_kind} "
+            f"flags {o.estimator_flags:#x})",
+            lasted_ms >= th.sensor_persist_ms,
+            o.estimator_bad_since,
+        )
+        found.append(bad)
+    if not o.estimator_flags & ESTIMATOR_POS_HORIZ_ABS:
+        found.append(
+            Finding(HealthLevel.WARN, "position", "no absolute horizontal position estimate")
+        )
+    return found
+
+
+def _flight(o: _Observed, th: Thresholds, now: float) -> list[Finding]:
+    found: list[Finding] = []
+    if o.disarmed_in_air_at is not None:
+        found.append(
+            Finding(
+                HealthLevel.ERROR,
+                "disarmed-in-air",
+                "disarmed while in the air",
+                True,
+                o.disarmed_in_air_at,
+            )
+        )
+    if o.tilt_deg is not None:
+        if o.tilt_over_since is not None and now - o.tilt_over_since >= TILT_PERSIST_S:
+            found.append(
+                Finding(
+                    HealthLevel.ERROR,
+                    "tilt",
+                    f"attitude {o.tilt_deg:.0f} deg beyond the {th.max_tilt_deg:.0f} deg envelope",
+                    True,
+                    o.tilt_over_since,
+                )
+            )
+        elif o.tilt_deg > min(TILT_WARN_DEG, th.max_tilt_deg):
+            found.append(Finding(HealthLevel.WARN, "tilt", f"attitude {o.tilt_deg:.0f} deg"))
+    return found
+
+
+def _mav_state(o: _Observed, others: list[Finding]) -> list[Finding]:
+    if o.system_status is None:
+        return []
+    status = o.system_status
+    name = mav_state_name(status)
+    onset = o.system_status_since
+    if status in _FATAL_STATES:
+        return [Finding(HealthLevel.ERROR, "mav-state", f"MAV_STATE {name}", True, onset)]
+    airborne = o.landed_state is not None and is_airborne(o.landed_state)
+    if status in _NOT_FLYING_STATES and airborne:
+        return [
+            Finding(
+                HealthLevel.ERROR, "mav-state", f"MAV_STATE {name} while in the air", True, onset
+            )
+        ]
+    if status == MavState.CRITICAL:
+        corroborated = any(f.level.rank >= HealthLevel.WARN.rank for f in others)
+        if corroborated:
+            return [
+                Finding(
+                    HealthLevel.ERROR, "mav-state", "MAV_STATE CRITICAL, corroborated", True, onset
+                )
+            ]
+        return [Finding(HealthLevel.WARN, "mav-state", "MAV_STATE CRITICAL (failsafe active)")]
+    return []

@@ -1,0 +1,186 @@
+"""``roost-agent``: run the node agent standalone from a config file or flags.
+
+The agent needs no Kubernetes: give it a RedundantAutopilot (the whole object or just its
+spec, YAML or JSON) or describe the autopilots with ``--autopilot`` flags. It keeps its
+last spec and decision state in ``--state-dir``; started with neither config nor flags it
+flies on with the spec saved there (an agent restarted while the cluster is unreachable).
+
+Output: one JSON object per line on stdout, ``{"event": ...}`` for every event and
+``{"status": ...}`` every ``--status-interval`` seconds. Logs go to stderr (so does
+anything pymavlink prints). SIGHUP re-reads the config file (thresholds, policy,
+primary, and a ``command`` executed once per id); SIGTERM/SIGINT stop the agent.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import socket
+import sys
+import threading
+from pathlib import Path
+from typing import Any, TextIO
+
+import yaml
+from pydantic import ValidationError
+
+from roost_agent.agent import Agent, restore_state
+from roost_agent.bridge import Bridge, GpioBridge, SimulatedBridge
+from roost_agent.state import STATE_FILE_NAME, StateFile
+from roost_api.autopilot import AutopilotSpec, RedundantAutopilotSpec
+
+log = logging.getLogger("roost_agent")
+
+DEFAULT_STATE_DIR = "/var/lib/roost-agent"
+
+
+def load_spec(path: Path) -> tuple[RedundantAutopilotSpec, int | None]:
+    """Read a RedundantAutopilot (or its bare spec) from YAML/JSON; returns (spec, generation)."""
+    doc = yaml.safe_load(path.read_text())
+    if not isinstance(doc, dict):
+        raise ValueError(f"{path}: expected a mapping")
+    generation = None
+    if "spec" in doc:
+        metadata = doc.get("metadata") or {}
+        generation = metadata.get("generation")
+        doc = doc["spec"]
+    return RedundantAutopilotSpec.model_validate(doc), generation
+
+
+def parse_autopilot(text: str) -> AutopilotSpec:
+    """``name=fc1,stack=px4,connection=udp://127.0.0.1:14541,sysid=1,channel=0[,component=1]``."""
+    fields: dict[str, Any] = {}
+    for part in text.split(","):
+        key, sep, value = part.partition("=")
+        if not sep:
+            raise argparse.ArgumentTypeError(f"expected key=value in {part!r}")
+        fields[key.strip()] = value.strip()
+    renames = {"channel": "bridge_channel", "component": "component_id"}
+    fields = {renames.get(k, k): v for k, v in fields.items()}
+    try:
+        return AutopilotSpec.model_validate(fields)
+    except ValidationError as exc:
+        raise argparse.ArgumentTypeError(f"bad --autopilot {text!r}: {exc}") from exc
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="roost-agent",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--config", type=Path, help="RedundantAutopilot or its spec (YAML/JSON)")
+    parser.add_argument(
+        "--autopilot",
+        action="append",
+        type=parse_autopilot,
+        default=[],
+        metavar="name=..,stack=..,connection=..,sysid=..,channel=..",
+        help="an autopilot (repeat; instead of --config)",
+    )
+    parser.add_argument("--primary", help="primary autopilot with --autopilot (default: first)")
+    parser.add_argument("--vehicle", default=socket.gethostname(), help="vehicle name (flags)")
+    parser.add_argument(
+        "--state-dir",
+        type=Path,
+        default=Path(os.environ.get("ROOST_AGENT_STATE_DIR", DEFAULT_STATE_DIR)),
+        help="where the last spec and decision state are kept",
+    )
+    parser.add_argument("--bridge", choices=("simulated", "gpio"), default="simulated")
+    parser.add_argument("--gpio-chip", default="/dev/gpiochip0", help="GPIO character device")
+    parser.add_argument("--gpio-active-low", action="store_true", help="invert the GPIO lines")
+    parser.add_argument(
+        "--status-interval", type=float, default=1.0, help="seconds between status lines (0: off)"
+    )
+    parser.add_argument("--node-name", default=os.environ.get("NODE_NAME", socket.gethostname()))
+    parser.add_argument("--log-level", default="INFO")
+    return parser
+
+
+def resolve_spec(
+    args: argparse.Namespace, state: StateFile
+) -> tuple[RedundantAutopilotSpec, int | None]:
+    """The spec to fly with: --config, else --autopilot flags, else the saved one."""
+    if args.config is not None:
+        return load_spec(args.config)
+    if args.autopilot:
+        primary = args.primary or args.autopilot[0].name
+        return RedundantAutopilotSpec(
+            vehicle_name=args.vehicle, autopilots=args.autopilot, primary=primary
+        ), None
+    saved = state.load()
+    if saved is None:
+        raise SystemExit(f"no --config, no --autopilot and no saved spec in {state.path}")
+    log.warning("no config given: flying on with the spec saved in %s", state.path)
+    return saved.spec, saved.generation
+
+
+def make_bridge(args: argparse.Namespace, spec: RedundantAutopilotSpec, initial: int) -> Bridge:
+    """The bridge driver chosen on the command line, already showing ``initial``."""
+    channels = [a.bridge_channel for a in spec.autopilots]
+    if args.bridge == "gpio":
+        return GpioBridge(args.gpio_chip, channels, initial, active_low=args.gpio_active_low)
+    return SimulatedBridge(channels, initial=initial)
+
+
+class JsonLines:
+    """Writes one JSON document per line, from any thread."""
+
+    def __init__(self, out: TextIO) -> None:
+        self._out = out
+        self._lock = threading.Lock()
+
+    def write(self, doc: dict[str, Any]) -> None:
+        line = json.dumps(doc, default=str)
+        with self._lock:
+            self._out.write(line + "\n")
+            self._out.flush()
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=args.log_level.upper(),
+        stream=sys.stderr,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    # JSON goes to the real stdout; stray prints (pymavlink has some) go to stderr.
+    out = JsonLines(os.fdopen(os.dup(sys.stdout.fileno()), "w", buffering=1))
+    sys.stdout = sys.stderr
+    state = StateFile(args.state_dir / STATE_FILE_NAME)
+    spec, generation = resolve_spec(args, state)
+    restored = restore_state(spec, state.load())
+    channel = next(a.bridge_channel for a in spec.autopilots if a.name == restored.active)
+    bridge = make_bridge(args, spec, channel)
+    agent = Agent(spec, bridge, state_file=state, generation=generation, node_name=args.node_name)
+    agent.subscribe(lambda event: out.write(event.to_json()))
+    stop = threading.Event()
+
+    def reload(*_: object) -> None:
+        if args.config is None:
+            return
+        try:
+            new_spec, new_generation = load_spec(args.config)
+        except (OSError, ValueError, ValidationError) as exc:
+            log.error("cannot reload %s: %s", args.config, exc)
+            return
+        agent.apply_spec(new_spec, new_generation)
+
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGHUP, lambda *_: threading.Thread(target=reload, daemon=True).start())
+    agent.start()
+    try:
+        while not stop.wait(args.status_interval or None):
+            out.write({"status": agent.status().to_api()})
+    finally:
+        agent.stop()
+        bridge.close()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
