@@ -22,10 +22,10 @@ onset-to-switch when the health findings know the onset. Durable state goes to d
 autopilot it chose and its latch.
 
 For the publisher (issue 9) the public surface is: :meth:`Agent.status` (a complete
-``RedundantAutopilotStatus``), :meth:`Agent.subscribe` (events: failovers, health changes,
-safety-routine progress, command results), :meth:`Agent.submit` (execute an
-``AutopilotCommand`` at most once per id, also across restarts) and
-:meth:`Agent.apply_spec` (a new spec from the cluster).
+``RedundantAutopilotStatus``, conditions from :mod:`roost_agent.report`),
+:meth:`Agent.subscribe` (events: failovers, health changes, safety-routine progress,
+command results), :meth:`Agent.submit` (execute an ``AutopilotCommand`` at most once per
+id, also across restarts) and :meth:`Agent.apply_spec` (a new spec from the cluster).
 """
 
 from __future__ import annotations
@@ -63,11 +63,11 @@ from roost_agent.arbiter import (
 from roost_agent.bridge import Bridge, BridgeError
 from roost_agent.health import Assessment, HealthTracker
 from roost_agent.links import AutopilotLink
+from roost_agent.report import report
 from roost_agent.safety import DEFAULT_TIMING, Phase, SafetyRunner, Timing
 from roost_agent.state import MAX_REMEMBERED_COMMANDS, PersistedState, StateFile
 from roost_api.autopilot import (
     AutopilotCommand,
-    AutopilotConditionType,
     AutopilotHealth,
     AutopilotSpec,
     CommandResult,
@@ -75,7 +75,7 @@ from roost_api.autopilot import (
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
 )
-from roost_api.meta import Condition, HealthLevel, set_condition
+from roost_api.meta import HealthLevel
 
 log = logging.getLogger(__name__)
 
@@ -278,7 +278,7 @@ class Agent:
         *,
         state_file: StateFile | None = None,
         generation: int | None = None,
-        node_name: str | None = None,
+        node_name: str = "",
         tick_s: float = DEFAULT_TICK_S,
         clock: Callable[[], float] = time.monotonic,
         wall_clock: Callable[[], datetime] = _utc_now,
@@ -308,7 +308,7 @@ class Agent:
         self._failovers: deque[FailoverEvent] = deque(maxlen=FAILOVER_HISTORY)
         self._assessments: dict[str, Assessment] = {}
         self._signatures: dict[str, tuple[HealthLevel, frozenset[str]]] = {}
-        self._conditions: list[Condition] = []
+        self._last_status: RedundantAutopilotStatus | None = None
         self._listeners: list[Listener] = []
         self._events: queue.SimpleQueue[AgentEvent | None] = queue.SimpleQueue()
         self._wake = threading.Event()
@@ -451,27 +451,37 @@ class Agent:
         return refusal
 
     def status(self) -> RedundantAutopilotStatus:
-        """The complete status the agent reports for its RedundantAutopilot."""
+        """The complete status the agent reports for its RedundantAutopilot.
+
+        Conditions come from :func:`roost_agent.report.report`; their transition times
+        carry over from the previous call.
+        """
         with self._lock:
             cfg = self._cfg
             state = self._state
-            assessments = dict(self._assessments)
             healths = [
-                assessments[a.name].to_api() for a in cfg.spec.autopilots if a.name in assessments
+                self._assessments[a.name].to_api()
+                for a in cfg.spec.autopilots
+                if a.name in self._assessments
             ]
-            self._conditions = self._compute_conditions(cfg, state, assessments)
-            return RedundantAutopilotStatus(
-                observed_generation=cfg.generation,
-                conditions=list(self._conditions),
+            observed = RedundantAutopilotStatus(
                 active_autopilot=state.active,
                 autopilots=healths,
                 last_failover=self._last_failover,
                 failover_count=state.failover_count,
                 latched=state.latched,
                 last_command=self._last_command,
-                node_name=self._node_name,
-                reported_at=self._wall_clock().replace(microsecond=0),
             )
+            self._last_status = report(
+                self._last_status,
+                observed,
+                spec=cfg.spec,
+                left_behind=state.failed_from,
+                generation=cfg.generation,
+                node_name=self._node_name,
+                now=self._wall_clock().replace(microsecond=0),
+            )
+            return self._last_status
 
     # -- decision loop -------------------------------------------------------------------
 
@@ -700,58 +710,6 @@ class Agent:
                 autopilot=name,
                 health=a.to_api(),
             )
-
-    def _compute_conditions(
-        self, cfg: _Running, state: ArbiterState, assessments: Mapping[str, Assessment]
-    ) -> list[Condition]:
-        gen = cfg.generation
-        conds = self._conditions
-        active = assessments.get(state.active)
-        active_ok = active is not None and active.level.rank <= HealthLevel.WARN.rank
-        conds = set_condition(
-            conds,
-            type=AutopilotConditionType.ACTIVE_HEALTHY,
-            status="True" if active_ok else "False",
-            reason=("ActiveOK" if active and active.level == HealthLevel.OK else "ActiveDegraded")
-            if active_ok
-            else "ActiveFailing",
-            message=f"{state.active}: "
-            + ("; ".join(active.reasons) if active and active.reasons else "healthy"),
-            observed_generation=gen,
-        )
-        standbys = [
-            n
-            for n, a in assessments.items()
-            if n != state.active and n not in state.failed_from and a.level == HealthLevel.OK
-        ]
-        conds = set_condition(
-            conds,
-            type=AutopilotConditionType.REDUNDANT,
-            status="True" if standbys else "False",
-            reason="StandbyHealthy" if standbys else "NoHealthyStandby",
-            message=", ".join(standbys) or "no standby autopilot is OK",
-            observed_generation=gen,
-        )
-        record = self._last_failover
-        conds = set_condition(
-            conds,
-            type=AutopilotConditionType.FAILED_OVER,
-            status="True" if state.latched else "False",
-            reason="FailedOver" if state.latched else "NotFailedOver",
-            message=f"{record.from_autopilot} -> {record.to_autopilot}: {record.reason}"
-            if state.latched and record
-            else "",
-            observed_generation=gen,
-        )
-        ready = active_ok and bool(standbys)
-        return set_condition(
-            conds,
-            type=AutopilotConditionType.READY,
-            status="True" if ready else "False",
-            reason="Ready" if ready else ("NotRedundant" if active_ok else "ActiveFailing"),
-            message="active healthy and a standby ready" if ready else "",
-            observed_generation=gen,
-        )
 
     # -- spec changes --------------------------------------------------------------------
 
