@@ -143,8 +143,8 @@ class SensorSeverity(StrEnum):
 # From the reference table: gyro/accel/AHRS trigger failover; a second IMU failing alone,
 # navigation sensors and control-loop flags only warn; prearm, RC, logging, geofence are
 # ignored (ArduPilot clears PREARM_CHECK on the ground, PX4 SITL without RC clears RC).
-_CRITICAL = SensorBit.GYRO | SensorBit.ACCEL | SensorBit.AHRS
-_IGNORED = (
+CRITICAL_SENSORS = SensorBit.GYRO | SensorBit.ACCEL | SensorBit.AHRS
+IGNORED_SENSORS = (
     SensorBit.RC_RECEIVER
     | SensorBit.PREARM_CHECK
     | SensorBit.LOGGING
@@ -155,9 +155,9 @@ _IGNORED = (
 
 def sensor_severity(bit: SensorBit) -> SensorSeverity:
     """Severity of one unhealthy sensor bit."""
-    if bit & _CRITICAL:
+    if bit & CRITICAL_SENSORS:
         return SensorSeverity.CRITICAL
-    if bit & _IGNORED:
+    if bit & IGNORED_SENSORS:
         return SensorSeverity.IGNORE
     return SensorSeverity.WARN
 

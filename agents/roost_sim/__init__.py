@@ -20,14 +20,42 @@ API in short (see :mod:`roost_sim.autopilot`, :mod:`roost_sim.vehicle`)::
 
     from roost_sim import SimulatedAutopilot, start_vehicle_sims, FaultKind
     with SimulatedAutopilot.udp("px4", sysid=1, target_port=port) as sim:
-        sim.inject(FaultKind.SENSOR, "gyro")
+        sim.fly(altitude_m=5)                  # arm + take off through the normal rules
+        sim.inject(FaultKind.SENSOR, "gyro")   # or "silence", "freeze", "state", ...
+        sim.clear()                            # every fault
         sim.snapshot().armed, sim.commands, sim.mode_history
+        sim.wait_until(lambda s: s.landed_state == "OnGround", timeout=10)
 
-    sims = start_vehicle_sims(["px4", "ardupilot"])  # free ports, sysids 1..N
+    sims = start_vehicle_sims(["px4", "ardupilot"])  # names fc1.., sysids 1..N, free ports
     [s.connection for s in sims]                      # "udp://127.0.0.1:<agent port>"
+    autopilot_specs(sims)                             # AutopilotSpec list for the agent
+    stop_sims(sims)
 
 A running ``roost-sim run`` process is reached through a unix socket per autopilot in a
 state directory (:mod:`roost_sim.control`): ``roost-sim fault fc1 silence``.
 """
 
 from __future__ import annotations
+
+from roost_sim.autopilot import CommandRecord, SimSnapshot, SimulatedAutopilot, message_id
+from roost_sim.faults import FaultKind
+from roost_sim.link import Impairment, PtyLink, UdpLink
+from roost_sim.model import ModeChange, SimConfig
+from roost_sim.vehicle import autopilot_specs, free_udp_port, start_vehicle_sims, stop_sims
+
+__all__ = [
+    "CommandRecord",
+    "FaultKind",
+    "Impairment",
+    "ModeChange",
+    "PtyLink",
+    "SimConfig",
+    "SimSnapshot",
+    "SimulatedAutopilot",
+    "UdpLink",
+    "autopilot_specs",
+    "free_udp_port",
+    "message_id",
+    "start_vehicle_sims",
+    "stop_sims",
+]

@@ -1,0 +1,276 @@
+"""Byte transports of the simulated autopilot, with injectable link impairments.
+
+A link carries whole MAVLink frames out and raw chunks in. Impairments act where a real
+radio or cable would: loss drops outgoing frames and incoming chunks with the given
+probability; jitter delays each outgoing frame by a uniform 0..J ms while keeping their
+order (a serial line never reorders, and PX4's UDP sender on one host does not either);
+garbage is written between frames as if the line picked up noise.
+
+Two transports:
+
+- :class:`UdpLink`: one socket bound on 127.0.0.1 (port 0 = free port). Frames go to the
+  configured target and to every address that has sent a datagram here, so a listening
+  agent (``udpin``) and a client that talks first (``udpout``, MAVSDK) are both served.
+- :class:`PtyLink`: the master side of a pseudo-terminal in raw mode; the slave path is
+  what a serial client opens. Writes never block: with nobody reading, bytes beyond the
+  kernel buffer are dropped, like a UART transmitting into an unplugged cable.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import random
+import select
+import socket
+import threading
+import time
+import tty
+from abc import ABC, abstractmethod
+from collections import deque
+from dataclasses import dataclass
+
+Address = tuple[str, int]
+_MAX_PEERS = 8
+_PTY_BACKLOG_BYTES = 65536
+
+
+@dataclass
+class Impairment:
+    """Current link impairments (all zero means a perfect link)."""
+
+    loss_percent: float = 0.0
+    jitter_ms: float = 0.0
+
+
+class Link(ABC):
+    """A bidirectional byte link with impairments; thread-safe sending."""
+
+    def __init__(self, *, seed: int | None = None) -> None:
+        self.impairment = Impairment()
+        self._random = random.Random(seed)
+        self._send_lock = threading.Lock()
+        self._queue: deque[tuple[float, bytes]] = deque()
+        self._queue_ready = threading.Condition()
+        self._last_due = 0.0
+        self._closed = threading.Event()
+        self._delayer: threading.Thread | None = None
+
+    # ---- implemented by transports ---------------------------------------------------
+
+    @abstractmethod
+    def _open(self) -> None: ...
+
+    @abstractmethod
+    def _close(self) -> None: ...
+
+    @abstractmethod
+    def _write(self, data: bytes) -> None:
+        """Deliver bytes now (one datagram per call on UDP)."""
+
+    @abstractmethod
+    def _read(self, timeout: float) -> bytes:
+        """Bytes that arrived within ``timeout`` seconds, b"" when none."""
+
+    @property
+    @abstractmethod
+    def connection(self) -> str:
+        """The ``AutopilotSpec.connection`` URL an agent uses to reach this link."""
+
+    # ---- shared behaviour ------------------------------------------------------------
+
+    def open(self) -> None:
+        """Open the transport and start the jitter delay line."""
+        self._closed.clear()
+        self._open()
+        self._delayer = threading.Thread(
+            target=self._run_delayer, name="sim-link-delay", daemon=True
+        )
+        self._delayer.start()
+
+    def close(self) -> None:
+        """Stop sending and release the transport."""
+        self._closed.set()
+        with self._queue_ready:
+            self._queue.clear()
+            self._queue_ready.notify_all()
+        if self._delayer is not None:
+            self._delayer.join(timeout=2)
+        self._close()
+
+    def send(self, frame: bytes) -> None:
+        """Send one frame, subject to loss and jitter."""
+        if self._closed.is_set() or self._lost():
+            return
+        jitter = self.impairment.jitter_ms
+        with self._queue_ready:
+            if jitter <= 0 and not self._queue:
+                self._deliver(frame)
+                return
+            due = time.monotonic() + self._random.uniform(0.0, max(jitter, 0.0)) / 1000.0
+            self._last_due = max(due, self._last_due)
+            self._queue.append((self._last_due, frame))
+            self._queue_ready.notify()
+
+    def receive(self, timeout: float) -> bytes:
+        """Incoming bytes (b"" on timeout or when the chunk was lost)."""
+        data = self._read(timeout)
+        if data and self._lost():
+            return b""
+        return data
+
+    def _lost(self) -> bool:
+        loss = self.impairment.loss_percent
+        return loss > 0 and self._random.random() * 100.0 < loss
+
+    def _deliver(self, data: bytes) -> None:
+        # Nobody listening (ICMP unreachable) or the peer went away: a real autopilot
+        # keeps streaming regardless.
+        with self._send_lock, contextlib.suppress(OSError):
+            self._write(data)
+
+    def _run_delayer(self) -> None:
+        while not self._closed.is_set():
+            with self._queue_ready:
+                while not self._queue and not self._closed.is_set():
+                    self._queue_ready.wait(0.5)
+                if self._closed.is_set():
+                    return
+                due, frame = self._queue[0]
+                wait = due - time.monotonic()
+                if wait > 0:
+                    self._queue_ready.wait(wait)
+                    continue
+                self._queue.popleft()
+                self._deliver(frame)
+
+    def write_noise(self, data: bytes) -> None:
+        """Put raw bytes on the line immediately (garbage injection)."""
+        if not self._closed.is_set():
+            self._deliver(data)
+
+
+class UdpLink(Link):
+    """MAVLink over UDP on the loopback interface."""
+
+    def __init__(
+        self,
+        target: Address | None = None,
+        *,
+        bind: Address = ("127.0.0.1", 0),
+        seed: int | None = None,
+    ) -> None:
+        super().__init__(seed=seed)
+        self.target = target
+        self._bind = bind
+        self._sock: socket.socket | None = None
+        self._peers: list[Address] = [target] if target else []
+
+    @property
+    def local_address(self) -> Address:
+        """Where this sim listens (valid after open)."""
+        if self._sock is None:
+            raise RuntimeError("link not open")
+        host, port = self._sock.getsockname()[:2]
+        return str(host), int(port)
+
+    @property
+    def connection(self) -> str:
+        if self.target is not None:
+            return f"udp://{self.target[0]}:{self.target[1]}"
+        host, port = self.local_address
+        return f"udpout://{host}:{port}"
+
+    @property
+    def peers(self) -> list[Address]:
+        """Addresses frames are sent to."""
+        return list(self._peers)
+
+    def _open(self) -> None:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.bind(self._bind)
+        self._sock = sock
+
+    def _close(self) -> None:
+        if self._sock is not None:
+            self._sock.close()
+
+    def _write(self, data: bytes) -> None:
+        sock = self._sock
+        if sock is None:
+            return
+        for peer in self._peers:
+            with contextlib.suppress(OSError):
+                sock.sendto(data, peer)
+
+    def _read(self, timeout: float) -> bytes:
+        sock = self._sock
+        if sock is None:
+            return b""
+        try:
+            ready, _, _ = select.select([sock], [], [], timeout)
+            if not ready:
+                return b""
+            data, addr = sock.recvfrom(65535)
+        except (OSError, ValueError):
+            return b""
+        peer = (str(addr[0]), int(addr[1]))
+        if peer not in self._peers and len(self._peers) < _MAX_PEERS:
+            self._peers.append(peer)
+        return data
+
+
+class PtyLink(Link):
+    """MAVLink over a pseudo-terminal; clients open :attr:`device`."""
+
+    def __init__(self, *, baud: int = 57600, seed: int | None = None) -> None:
+        super().__init__(seed=seed)
+        self.baud = baud
+        self._master = -1
+        self._slave = -1
+        self._device = ""
+        self._backlog = b""
+
+    @property
+    def device(self) -> str:
+        """Path of the slave side, e.g. /dev/pts/7 (valid after open)."""
+        return self._device
+
+    @property
+    def connection(self) -> str:
+        return f"serial://{self._device}:{self.baud}"
+
+    def _open(self) -> None:
+        self._master, self._slave = os.openpty()
+        # Raw mode: no echo of our own frames back to us, no newline translation.
+        tty.setraw(self._slave)
+        os.set_blocking(self._master, False)
+        self._device = os.ttyname(self._slave)
+
+    def _close(self) -> None:
+        for fd in (self._master, self._slave):
+            if fd >= 0:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        self._master = self._slave = -1
+
+    def _write(self, data: bytes) -> None:
+        if self._master < 0:
+            return
+        self._backlog = (self._backlog + data)[-_PTY_BACKLOG_BYTES:]
+        try:
+            written = os.write(self._master, self._backlog)
+        except BlockingIOError:
+            written = 0
+        self._backlog = self._backlog[written:]
+
+    def _read(self, timeout: float) -> bytes:
+        if self._master < 0:
+            return b""
+        try:
+            ready, _, _ = select.select([self._master], [], [], timeout)
+            if not ready:
+                return b""
+            return os.read(self._master, 4096)
+        except (BlockingIOError, OSError, ValueError):
+            return b""

@@ -1,0 +1,183 @@
+"""``roost-sim``: run simulated autopilots and inject faults into running ones.
+
+    roost-sim run --stack px4 --sysid 1 --udp-out 127.0.0.1:14540 [--name fc1]
+    roost-sim run --stack ardupilot --sysid 2 --pty
+    roost-sim run --vehicle px4,ardupilot          # free ports, names fc1, fc2
+    roost-sim run --config sims.yaml               # autopilots: [{name, stack, sysid,
+                                                   #   udp_out, udp_bind, pty}, ...]
+    roost-sim fault fc1 sensor --value gyro
+    roost-sim clear fc1 [sensor]
+    roost-sim status fc1
+    roost-sim list
+
+``run`` prints one JSON line per autopilot (name, stack, sysid, connection, device,
+control socket) and runs until SIGINT or SIGTERM. The other commands talk to the
+autopilot's control socket (:mod:`roost_sim.control`) and print its state as JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from roost_api.meta import Stack
+from roost_sim.autopilot import SimulatedAutopilot
+from roost_sim.control import ControlServer, request, socket_path, state_dir
+from roost_sim.faults import FaultKind
+from roost_sim.vehicle import start_vehicle_sims, stop_sims
+
+
+def _address(text: str) -> tuple[str, int]:
+    host, _, port = text.rpartition(":")
+    if not port.isdigit():
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT, got {text!r}")
+    return host or "127.0.0.1", int(port)
+
+
+def _sim_from_entry(entry: dict[str, Any]) -> SimulatedAutopilot:
+    stack = Stack(entry.get("stack", "px4"))
+    sysid = int(entry.get("sysid", 1))
+    name = entry.get("name")
+    if entry.get("pty"):
+        return SimulatedAutopilot.pty(stack, sysid, name=name)
+    out = _address(entry["udp_out"]) if entry.get("udp_out") else None
+    host, port = _address(entry["udp_bind"]) if entry.get("udp_bind") else ("127.0.0.1", 0)
+    return SimulatedAutopilot.udp(
+        stack, sysid, target_port=out[1] if out else None, host=out[0] if out else host,
+        bind_port=port, name=name,
+    )  # fmt: skip
+
+
+def _build_sims(args: argparse.Namespace) -> list[SimulatedAutopilot]:
+    if args.vehicle:
+        return start_vehicle_sims(args.vehicle.split(","), transport="pty" if args.pty else "udp")
+    if args.config:
+        entries = yaml.safe_load(Path(args.config).read_text()).get("autopilots", [])
+    else:
+        entries = [
+            {
+                "stack": args.stack,
+                "sysid": args.sysid,
+                "name": args.name,
+                "udp_out": args.udp_out,
+                "udp_bind": args.udp_bind,
+                "pty": args.pty,
+            }
+        ]
+    sims = [_sim_from_entry(entry) for entry in entries]
+    names = [s.name for s in sims]
+    if len(set(names)) != len(names) or len({s.sysid for s in sims}) != len(sims):
+        raise SystemExit(f"autopilot names and sysids must be unique: {names}")
+    started: list[SimulatedAutopilot] = []
+    try:
+        for sim in sims:
+            started.append(sim.start())
+    except BaseException:
+        stop_sims(started)
+        raise
+    return started
+
+
+def _run(args: argparse.Namespace) -> int:
+    directory = Path(args.state_dir) if args.state_dir else state_dir()
+    directory.mkdir(mode=0o700, parents=True, exist_ok=True)
+    sims = _build_sims(args)
+    servers: list[ControlServer] = []
+    done = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: done.set())
+    try:
+        for sim in sims:
+            server = ControlServer(sim, socket_path(sim.name, directory)).start()
+            servers.append(server)
+            line = {
+                "name": sim.name,
+                "stack": sim.stack.value,
+                "sysid": sim.sysid,
+                "connection": sim.connection,
+                "device": sim.device,
+                "control": str(server.path),
+            }
+            print(json.dumps(line), flush=True)
+        done.wait()
+    finally:
+        for server in servers:
+            server.stop()
+        stop_sims(sims)
+    return 0
+
+
+def _control(args: argparse.Namespace, message: dict[str, Any]) -> int:
+    directory = Path(args.state_dir) if args.state_dir else state_dir()
+    path = socket_path(args.target, directory)
+    try:
+        answer = request(path, message)
+    except OSError as exc:
+        print(f"roost-sim: cannot reach {args.target} at {path}: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(answer, indent=2))
+    return 0 if answer.get("ok") else 1
+
+
+def _list(args: argparse.Namespace) -> int:
+    directory = Path(args.state_dir) if args.state_dir else state_dir()
+    for path in sorted(directory.glob("*.sock")):
+        print(path.stem)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``roost-sim``."""
+    parser = argparse.ArgumentParser(prog="roost-sim", description=__doc__.split("\n")[0])
+    parser.add_argument("--state-dir", help="directory of control sockets")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    run = sub.add_parser("run", help="run simulated autopilots until interrupted")
+    run.add_argument("--stack", choices=[s.value for s in Stack], default="px4")
+    run.add_argument("--sysid", type=int, default=1)
+    run.add_argument("--name", help="autopilot name (default <stack>-<sysid>)")
+    run.add_argument("--udp-out", help="HOST:PORT the agent listens on (sim streams there)")
+    run.add_argument("--udp-bind", help="HOST:PORT the sim binds (default 127.0.0.1:0)")
+    run.add_argument("--pty", action="store_true", help="use a pseudo-terminal instead of UDP")
+    run.add_argument("--vehicle", help="comma-separated stacks: one vehicle on free ports")
+    run.add_argument("--config", help="YAML file with an 'autopilots' list")
+    run.set_defaults(func=_run)
+
+    fault = sub.add_parser("fault", help="inject a fault into a running autopilot")
+    fault.add_argument("target", help="autopilot name")
+    fault.add_argument("kind", choices=[k.value for k in FaultKind])
+    fault.add_argument("--value", help="fault parameter (see roost_sim.faults)")
+    fault.set_defaults(
+        func=lambda a: _control(a, {"op": "fault", "kind": a.kind, "value": a.value})
+    )
+
+    clear = sub.add_parser("clear", help="clear one fault kind or all faults")
+    clear.add_argument("target", help="autopilot name")
+    clear.add_argument("kind", nargs="?", choices=[k.value for k in FaultKind])
+    clear.set_defaults(func=lambda a: _control(a, {"op": "clear", "kind": a.kind}))
+
+    status = sub.add_parser("status", help="print an autopilot's state")
+    status.add_argument("target", help="autopilot name")
+    status.set_defaults(func=lambda a: _control(a, {"op": "status"}))
+
+    listing = sub.add_parser("list", help="list autopilots with a control socket")
+    listing.set_defaults(func=_list)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``roost-sim`` console script."""
+    args = build_parser().parse_args(argv)
+    result: int = args.func(args)
+    return result
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,83 @@
+"""Start the simulated autopilots of one vehicle on free ports, for tests and benchmarks.
+
+Each autopilot gets a unique sysid (two with one sysid behind one socket get merged by
+pymavlink) and its own agent port, picked by binding port 0. The agent listens on that
+port later, so another process could take it in between; on a test machine that window
+is a few milliseconds and the kernel hands out ephemeral ports round-robin.
+"""
+
+from __future__ import annotations
+
+import socket
+from collections.abc import Sequence
+
+from roost_api.autopilot import AutopilotSpec
+from roost_api.meta import Stack
+from roost_sim.autopilot import SimulatedAutopilot
+from roost_sim.model import SimConfig
+
+
+def free_udp_port(host: str = "127.0.0.1") -> int:
+    """A UDP port on ``host`` that was free a moment ago."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind((host, 0))
+        return int(sock.getsockname()[1])
+
+
+def start_vehicle_sims(
+    stacks: Sequence[Stack | str],
+    *,
+    sysids: Sequence[int] | None = None,
+    transport: str = "udp",
+    config: SimConfig | None = None,
+    name_prefix: str = "fc",
+) -> list[SimulatedAutopilot]:
+    """Start one sim per stack: names fc1..fcN, sysids 1..N unless given.
+
+    ``transport`` is ``udp`` (each sim streams to its own free agent port; its
+    ``connection`` is ``udp://127.0.0.1:PORT``) or ``pty`` (``serial:///dev/pts/N:57600``).
+    Each sim gets its own copy of ``config``. Stop them with :func:`stop_sims`.
+    """
+    ids = list(sysids) if sysids is not None else list(range(1, len(stacks) + 1))
+    if len(ids) != len(stacks) or len(set(ids)) != len(ids):
+        raise ValueError(f"need {len(stacks)} unique sysids, got {ids}")
+    if transport not in ("udp", "pty"):
+        raise ValueError(f"transport must be udp or pty, not {transport!r}")
+    sims: list[SimulatedAutopilot] = []
+    try:
+        for index, (stack, sysid) in enumerate(zip(stacks, ids, strict=True)):
+            name = f"{name_prefix}{index + 1}"
+            own_config = SimConfig(**vars(config)) if config else None
+            sim = (
+                SimulatedAutopilot.udp(
+                    stack, sysid, target_port=free_udp_port(), name=name, config=own_config
+                )
+                if transport == "udp"
+                else SimulatedAutopilot.pty(stack, sysid, name=name, config=own_config)
+            )
+            sims.append(sim.start())
+    except BaseException:
+        stop_sims(sims)
+        raise
+    return sims
+
+
+def stop_sims(sims: Sequence[SimulatedAutopilot]) -> None:
+    """Stop every sim (each stop is idempotent)."""
+    for sim in sims:
+        sim.stop()
+
+
+def autopilot_specs(sims: Sequence[SimulatedAutopilot]) -> list[AutopilotSpec]:
+    """``AutopilotSpec`` entries for running sims: bridge channel = position in the list."""
+    return [
+        AutopilotSpec(
+            name=sim.name,
+            stack=sim.stack,
+            connection=sim.connection,
+            sysid=sim.sysid,
+            component_id=sim.component_id,
+            bridge_channel=channel,
+        )
+        for channel, sim in enumerate(sims)
+    ]
