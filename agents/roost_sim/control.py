@@ -10,6 +10,8 @@ Protocol: the client sends one JSON object on one line and reads one line back.
 - ``{"op": "fault", "kind": "sensor", "value": "gyro"}``
 - ``{"op": "clear", "kind": null}`` (null = every fault)
 - ``{"op": "status"}``
+- ``{"op": "fly", "value": 10}`` (arm and take off to ``value`` metres, default the
+  configured takeoff altitude: what a mission's controller would do; the sandbox uses it)
 
 Every answer is ``{"ok": true, "state": <SimSnapshot>}`` or ``{"ok": false, "error": ...}``.
 """
@@ -51,6 +53,9 @@ def handle_request(sim: SimulatedAutopilot, request: dict[str, Any]) -> dict[str
         elif op == "clear":
             kind = request.get("kind")
             sim.clear(FaultKind(kind) if kind else None)
+        elif op == "fly":
+            value = request.get("value")
+            sim.fly(float(value) if value is not None else None)
         elif op != "status":
             raise ValueError(f"unknown op {op!r}")
     except (KeyError, ValueError) as exc:

@@ -7,6 +7,7 @@
                                                    #   udp_out, udp_bind, pty}, ...]
     roost-sim fault fc1 sensor --value gyro
     roost-sim clear fc1 [sensor]
+    roost-sim fly fc1 [--altitude 10]
     roost-sim status fc1
     roost-sim list
 
@@ -162,6 +163,11 @@ def build_parser() -> argparse.ArgumentParser:
     clear.add_argument("target", help="autopilot name")
     clear.add_argument("kind", nargs="?", choices=[k.value for k in FaultKind])
     clear.set_defaults(func=lambda a: _control(a, {"op": "clear", "kind": a.kind}))
+
+    fly = sub.add_parser("fly", help="arm a running autopilot and take off")
+    fly.add_argument("target", help="autopilot name")
+    fly.add_argument("--altitude", type=float, help="metres (default: takeoff altitude)")
+    fly.set_defaults(func=lambda a: _control(a, {"op": "fly", "value": a.altitude}))
 
     status = sub.add_parser("status", help="print an autopilot's state")
     status.add_argument("target", help="autopilot name")
