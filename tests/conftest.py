@@ -1,0 +1,53 @@
+"""Shared pytest fixtures for Roost's tests. Keep each fixture small; logic lives in packages."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+from kubernetes.client.exceptions import ApiException
+
+from roost_harness.cluster import Cluster
+from roost_harness.controlplane import ControlPlane
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Every test that uses the control plane is marked ``cluster`` (run/skip as a group)."""
+    for item in items:
+        if "cluster" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.cluster)
+
+
+@pytest.fixture(scope="session")
+def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
+    """A real control plane (etcd, API server, controller manager, scheduler, kwok) for the
+    whole session; builds the binaries first if they are missing. Component logs are in the
+    session's temp dir under ``control-plane*/logs``. See tests/harness/README.md."""
+    with ControlPlane(tmp_path_factory.mktemp("control-plane")) as plane:
+        yield Cluster.of(plane)
+
+
+@pytest.fixture(scope="session")
+def roost_crds(cluster: Cluster) -> Cluster:
+    """The session cluster with Roost's CRDs (crds/) applied and Established."""
+    cluster.install_crds()
+    return cluster
+
+
+@pytest.fixture
+def fake_nodes(cluster: Cluster) -> Iterator[Callable[..., dict[str, Any]]]:
+    """``fake_nodes(name, **kwargs)`` adds a Ready kwok node (``Cluster.add_node`` kwargs);
+    the nodes a test added are deleted when it ends. Use test-unique names and labels: the
+    cluster is shared by the whole session."""
+    added: list[str] = []
+
+    def add(name: str, **kwargs: Any) -> dict[str, Any]:
+        added.append(name)
+        return cluster.add_node(name, **kwargs)
+
+    yield add
+    for name in added:
+        with contextlib.suppress(ApiException):
+            cluster.delete_node(name)
