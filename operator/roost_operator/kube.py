@@ -124,7 +124,11 @@ class ApiError(Exception):
     def __init__(self, status: int, method: str, path: str, body: str) -> None:
         self.status = status
         self.body = body
-        super().__init__(f"{method} {path}: HTTP {status}: {body[:500]}")
+        try:
+            self.message = str(json.loads(body).get("message") or body[:500])
+        except (ValueError, AttributeError):
+            self.message = body[:500]
+        super().__init__(f"{method} {path}: HTTP {status}: {self.message}")
 
 
 class ConflictError(ApiError):

@@ -36,7 +36,7 @@ from roost_operator.vehicles import handlers as vehicle_handlers
 HANDLER_MODULES = (vehicle_handlers,)
 ANNOTATION_PREFIX = PREFIX.rstrip("/")
 
-WATCH_SERVER_TIMEOUT_S = 290.0
+WATCH_SERVER_TIMEOUT_S = 290  # seconds; the API server wants an integer
 WATCH_CLIENT_TIMEOUT_S = 300.0
 CONNECT_TIMEOUT_S = 10.0
 REQUEST_TIMEOUT_S = 60.0

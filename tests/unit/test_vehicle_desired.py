@@ -309,7 +309,12 @@ def test_conditions_keep_other_writers_types_and_transition_times() -> None:
     assert find_condition(after, "AutopilotsHealthy") == previous[0]
     ready = find_condition(after, "Ready")
     assert ready is not None and ready.status == "True"
-    assert [c.type for c in transitions(previous, after)] == ["ComponentsReady", "Ready"]
+    assert [c.type for c in transitions(previous, after, ["Ready", "NodeBound"])] == ["Ready"]
+    all_types = ["Ready", "NodeBound", "ComponentsReady", "AutopilotsHealthy"]
+    assert [c.type for c in transitions(previous, after, all_types)] == [
+        "ComponentsReady",
+        "Ready",
+    ]
 
 
 def test_losing_the_node_makes_ready_false_with_the_node_reason() -> None:

@@ -418,7 +418,15 @@ def vehicle_conditions(
     )
 
 
-def transitions(before: Sequence[Condition], after: Sequence[Condition]) -> list[Condition]:
-    """Conditions whose status changed (or that are new): what deserves an Event."""
+# Condition types whose transitions are recorded as Events. ComponentsReady is not:
+# its problems reach Ready's message, and a rollout would otherwise post an Event per step.
+EVENT_CONDITIONS: Final = (VehicleConditionType.READY, VehicleConditionType.NODE_BOUND)
+
+
+def transitions(
+    before: Sequence[Condition], after: Sequence[Condition], types: Iterable[str]
+) -> list[Condition]:
+    """Conditions of ``types`` whose status changed (or that are new): worth an Event."""
+    wanted = set(types)
     old = {c.type: c.status for c in before}
-    return [c for c in after if old.get(c.type) != c.status]
+    return [c for c in after if c.type in wanted and old.get(c.type) != c.status]

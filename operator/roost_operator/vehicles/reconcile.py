@@ -40,6 +40,7 @@ from roost_operator.kube import (
     NODES,
     REDUNDANT_AUTOPILOTS,
     VEHICLES,
+    ApiError,
     ConflictError,
     Kube,
     Obj,
@@ -48,6 +49,8 @@ from roost_operator.kube import (
 from roost_operator.vehicles.config import vehicle_config, vehicle_config_map
 from roost_operator.vehicles.desired import (
     DEFAULT_FCU_URL,
+    EVENT_CONDITIONS,
+    ComponentState,
     NodeBinding,
     active_autopilot,
     autopilots_of,
@@ -230,23 +233,34 @@ def _reconcile_once(kube: Kube, namespace: str, name: str, peers: Peers) -> None
     runs_workloads = binding.bound or binding.reason in ("NodeNotFound", "NodeNotReady")
     wanted = component_workloads(spec, autopilots) if runs_workloads else []
     live: dict[str, Obj] = {}
+    failures: dict[str, ApiError] = {}
     for workload in wanted:
         manifest = deployment(
             name, spec.node_name, workload, values, namespace=namespace, owners=owners
         )
-        live[workload.component], _ = kube.apply(manifest)
+        try:
+            live[workload.component], _ = kube.apply(manifest)
+        except ConflictError:
+            raise
+        except ApiError as err:
+            failures[workload.component] = err
     owned = {LABEL_MANAGED_BY: MANAGED_BY, LABEL_VEHICLE: name}
     stale = [
         d
         for d in kube.list_objects(DEPLOYMENTS, namespace=namespace, labels=owned)
-        if d["metadata"].get("labels", {}).get(LABEL_COMPONENT) not in live
+        if d["metadata"].get("labels", {}).get(LABEL_COMPONENT) not in {w.component for w in wanted}
     ]
     kube.delete_all(DEPLOYMENTS, stale)
 
-    components = components_condition(
-        [deployment_state(w.component, live.get(w.component)) for w in wanted],
-        blocked=None if runs_workloads else binding.message,
-    )
+    states = [
+        ComponentState(
+            w.component, False, f"applying its Deployment failed: {failures[w.component]}"
+        )
+        if w.component in failures
+        else deployment_state(w.component, live.get(w.component))
+        for w in wanted
+    ]
+    components = components_condition(states, blocked=None if runs_workloads else binding.message)
     conditions = vehicle_conditions(
         status.conditions,
         binding=binding,
@@ -264,6 +278,8 @@ def _reconcile_once(kube: Kube, namespace: str, name: str, peers: Peers) -> None
         }
     )
     _write_status(kube, vehicle, status, new_status)
+    if failures:  # reported in the status; raising makes kopf retry
+        raise next(iter(failures.values()))
 
 
 def _status_patch(old: VehicleStatus, new: VehicleStatus) -> dict[str, Any] | None:
@@ -288,7 +304,7 @@ def _write_status(
         subresource="status",
     )
     at = now().isoformat().replace("+00:00", "Z")
-    for cond in transitions(old.conditions, new.conditions):
+    for cond in transitions(old.conditions, new.conditions, EVENT_CONDITIONS):
         kube.post_event(
             vehicle,
             reason=cond.reason,
