@@ -1,0 +1,896 @@
+"""The Mission state machine: everything observed in, everything to do out. Pure.
+
+:func:`plan_mission` reads an :class:`Observation` (the Mission, all Vehicles, the
+RedundantAutopilots, the mission's Jobs, the vehicles' config, the clock) and returns a
+:class:`Plan`. It is level-based: the same observation always gives the same plan, and
+a plan applied twice does no harm (Jobs and commands have deterministic names and ids),
+so the handler may run it on every event, on a timer and after a restart.
+
+Phases::
+
+    Pending ──claims──▶ Preflight ──all checks pass──▶ Running ──▶ Succeeded | Failed
+       │                   │                              │
+       └──── abort ────────┴─▶ Aborted                    └─ abort / AbortMission ─▶
+                                                             Aborting ──landed──▶ Aborted
+
+* **Pending**: not enough free Ready vehicles. Claims are all-or-nothing (see
+  :mod:`.selection`); the message counts what is missing and why.
+* **Preflight**: vehicles held, some check failing; per-vehicle reasons in status.
+* **Running**: ``status.startTime`` is written *before* any Job is created, so a restart
+  in between finds "started" and creates only what is missing. A mission also counts as
+  started when any of its Jobs exists.
+* Per vehicle, a new autopilot failover (``RedundantAutopilot`` ``lastFailover`` or the
+  ``FailedOver`` transition, at or after the start, newer than the last one handled)
+  applies ``spec.onFailover``: ``Continue`` (mission Degraded), ``AbortVehicle`` (that
+  vehicle's Job stops, its agent runs the safety routine, mission Degraded and goes on)
+  or ``AbortMission``.
+* **Succeeded** when every onboard Job completed (vehicles aborted after a failover
+  excepted, as long as one completed); **Failed** when one fails beyond its
+  ``backoffLimit`` or the offboard Job fails — then, as in a JobSet, the remaining Jobs
+  are stopped.
+* **Aborting**: every assigned vehicle not yet stopped gets a command on its
+  RedundantAutopilot — the safety routine, or an emergency stop (force disarm) when
+  ``spec.abort`` asks for ``abortAction: EmergencyStop``; aborts caused by a failover
+  policy always use the safety routine. All Jobs are stopped and none is created again.
+  A vehicle counts as stopped when its agent reports, *after* the command was issued,
+  that the active autopilot is on the ground or disarmed (disarmed for an e-stop), so a
+  report from before take-off can never end an abort. **Aborted** once all are stopped.
+  An abort before anything started ends at once: nothing flew for this mission.
+* Commands are re-issued (next attempt, new id) only when the agent reports one Expired
+  or another request replaced it unprocessed; otherwise a command is written once.
+* Finished missions release every vehicle they still hold.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from datetime import datetime
+from typing import Literal
+
+from roost_api.autopilot import (
+    AutopilotCommand,
+    AutopilotConditionType,
+    AutopilotHealth,
+    CommandAction,
+    RedundantAutopilotStatus,
+)
+from roost_api.commands import CommandOutcome, command_outcome, new_command
+from roost_api.meta import ConditionStatus, find_condition, set_condition
+from roost_api.mission import (
+    AbortAction,
+    MissionConditionType,
+    MissionOffboardStatus,
+    MissionPhase,
+    MissionSpec,
+    MissionStatus,
+    MissionVehiclePhase,
+    MissionVehicleStatus,
+    OnFailover,
+    WorkloadPhase,
+)
+from roost_mavlink.status import LandedState, landed_state_name
+from roost_operator.kube import Obj
+from roost_operator.missions.observed import (
+    AutopilotView,
+    JobPhase,
+    JobView,
+    MissionRef,
+    VehicleView,
+)
+from roost_operator.missions.preflight import PreflightFailure, preflight_failures
+from roost_operator.missions.selection import availability, held_by, shortage_message
+from roost_operator.missions.workloads import (
+    config_map_copy,
+    offboard_job,
+    offboard_job_name,
+    onboard_job,
+    onboard_job_name,
+)
+
+ABORT_COMMAND_DEADLINE_SECONDS = 30
+"""How long an agent may take to see an abort command before it counts as stale."""
+
+ABORT_POLL_SECONDS = 2.0
+"""Re-check period while vehicles land (agent reports wake the mission sooner)."""
+
+ON_GROUND = landed_state_name(LandedState.ON_GROUND)
+
+Severity = Literal["Normal", "Warning"]
+
+_VEHICLE_DONE = (MissionVehiclePhase.SUCCEEDED, MissionVehiclePhase.ABORTED)
+_WARNING_VEHICLE_PHASES = (
+    MissionVehiclePhase.PREFLIGHT,
+    MissionVehiclePhase.FAILED,
+    MissionVehiclePhase.ABORTING,
+    MissionVehiclePhase.ABORTED,
+)
+_WARNING_PHASES = (MissionPhase.FAILED, MissionPhase.ABORTING, MissionPhase.ABORTED)
+_WARNING_REASONS = ("InsufficientVehicles", "PreflightFailed")
+
+
+@dataclass(frozen=True)
+class Observation:
+    """Everything one mission decision reads."""
+
+    mission: MissionRef
+    generation: int
+    spec: MissionSpec
+    status: MissionStatus
+    vehicles: Mapping[str, VehicleView]
+    autopilots: Mapping[str, AutopilotView]
+    """RedundantAutopilots by the vehicle they fly (``spec.vehicleName``)."""
+    jobs: Mapping[str, JobView]
+    """This mission's Jobs by name."""
+    config_values: Mapping[str, Mapping[str, str]]
+    """Each vehicle's authoritative config entries, by vehicle name."""
+    live_missions: frozenset[str]
+    """``namespace/name`` of every existing Mission (listed after the Vehicles)."""
+    now: datetime
+
+
+@dataclass(frozen=True)
+class MissionEvent:
+    """An Event to record on the Mission (and on the vehicle it names, if any)."""
+
+    type: Severity
+    reason: str
+    message: str
+    vehicle: str | None = None
+
+
+@dataclass
+class Plan:
+    """What to do now; the handler carries it out in the order of the fields."""
+
+    status: MissionStatus
+    claims: list[str] = field(default_factory=list)
+    """Vehicles to claim, all or none; the plan is recomputed after claiming."""
+    config_maps: list[Obj] = field(default_factory=list)
+    jobs_to_create: list[Obj] = field(default_factory=list)
+    commands: dict[str, AutopilotCommand] = field(default_factory=dict)
+    """New commands to write, by vehicle name."""
+    jobs_to_delete: list[str] = field(default_factory=list)
+    releases: list[str] = field(default_factory=list)
+    events: list[MissionEvent] = field(default_factory=list)
+    requeue_after: float | None = None
+    """Reconcile again after this many seconds even without an event."""
+
+
+# -- entry point -----------------------------------------------------------------------
+
+
+def plan_mission(obs: Observation) -> Plan:
+    """Decide what the mission should do now; see the module docstring."""
+    plan = Plan(status=obs.status.model_copy(deep=True))
+    phase = MissionPhase(obs.status.phase)
+    if phase.finished:
+        _wind_down(obs, plan)
+    elif not _started(obs):
+        if obs.spec.abort:
+            _abort_before_start(obs, plan)
+        else:
+            _assign(obs, plan)
+    elif obs.spec.abort or phase is MissionPhase.ABORTING:
+        _abort(obs, plan)
+    else:
+        _run(obs, plan)
+    plan.status.observed_generation = obs.generation
+    plan.events = [*transition_events(obs.status, plan.status), *plan.events]
+    return plan
+
+
+def fail_mission(obs: Observation, reason: str, message: str) -> Plan:
+    """The plan that ends the mission as Failed (e.g. the API server rejected a Job)."""
+    plan = Plan(status=obs.status.model_copy(deep=True))
+    _finish(obs, plan, MissionPhase.FAILED, reason, message)
+    plan.status.observed_generation = obs.generation
+    plan.events = transition_events(obs.status, plan.status)
+    return plan
+
+
+def plan_deletion(obs: Observation) -> Plan:
+    """The Mission is being deleted: abort what still flies for it, release its vehicles.
+
+    Its Jobs go with it (owner references). A mission deleted while it runs would
+    otherwise leave its vehicles in the air without their controllers, so each vehicle
+    not yet stopped gets the abort command (the safety routine, or the e-stop a
+    requested abort asked for); the deletion does not wait for the landing — it
+    cannot be held up by a vehicle that never reports again.
+    """
+    plan = Plan(status=obs.status.model_copy(deep=True))
+    if _started(obs) and not MissionPhase(obs.status.phase).finished:
+        action = abort_action(obs.spec)
+        for vehicle in plan.status.vehicles:
+            if vehicle.phase != MissionVehiclePhase.ABORTED:
+                _abort_vehicle(obs, plan, vehicle, action)
+        if plan.commands:
+            plan.events.append(
+                MissionEvent(
+                    "Warning",
+                    "DeletedWhileRunning",
+                    f"deleted while running: {action} requested on "
+                    f"{', '.join(sorted(plan.commands))}",
+                )
+            )
+    plan.releases.extend(held_by(obs.mission, obs.vehicles))
+    return plan
+
+
+def _started(obs: Observation) -> bool:
+    return obs.status.start_time is not None or bool(obs.jobs)
+
+
+# -- conditions --------------------------------------------------------------------------
+
+
+def _condition(
+    obs: Observation,
+    status: MissionStatus,
+    type_: MissionConditionType,
+    value: ConditionStatus,
+    *,
+    reason: str,
+    message: str = "",
+) -> None:
+    status.conditions = set_condition(
+        status.conditions,
+        type=type_,
+        status=value,
+        reason=reason,
+        message=message,
+        observed_generation=obs.generation,
+        at=obs.now.replace(microsecond=0),
+    )
+
+
+def _set_phase(status: MissionStatus, phase: MissionPhase, reason: str, message: str) -> None:
+    status.phase = phase
+    status.reason = reason
+    status.message = message
+
+
+# -- Pending and Preflight ------------------------------------------------------------
+
+
+def _assign(obs: Observation, plan: Plan) -> None:
+    status = plan.status
+    required = obs.spec.vehicles.count
+    held = held_by(obs.mission, obs.vehicles)
+    previous = [v.name for v in obs.status.vehicles if v.name in held]
+    order = [*previous, *(n for n in held if n not in previous)]
+    if len(order) > required:
+        plan.releases.extend(order[required:])
+        order = order[:required]
+    if len(order) < required:
+        available = availability(obs.spec.vehicles, obs.vehicles, obs.mission, obs.live_missions)
+        need = required - len(order)
+        if len(available.free) >= need:
+            plan.claims = available.free[:need]
+            _set_phase(
+                status,
+                MissionPhase.PENDING,
+                "Claiming",
+                f"claiming {need} vehicle{'s' if need != 1 else ''}",
+            )
+            plan.requeue_after = 0.0
+            return
+        message = shortage_message(required=required, held=len(order), available=available)
+        plan.releases.extend(order)
+        _set_phase(status, MissionPhase.PENDING, "InsufficientVehicles", message)
+        status.vehicles = []
+        status.assigned_count = 0
+        _condition(
+            obs,
+            status,
+            MissionConditionType.VEHICLES_ASSIGNED,
+            "False",
+            reason="InsufficientVehicles",
+            message=message,
+        )
+        _condition(obs, status, MissionConditionType.COMPLETE, "False", reason="NotStarted")
+        return
+    _preflight(obs, plan, order)
+
+
+def _config_failure(obs: Observation, name: str) -> list[PreflightFailure]:
+    if name in obs.config_values:
+        return []
+    return [
+        PreflightFailure(
+            "VehicleConfigMissing", "the vehicle's config ConfigMap has not been written yet"
+        )
+    ]
+
+
+def _preflight(obs: Observation, plan: Plan, assigned: list[str]) -> None:
+    status = plan.status
+    status.assigned_count = len(assigned)
+    names = ", ".join(assigned)
+    _condition(
+        obs,
+        status,
+        MissionConditionType.VEHICLES_ASSIGNED,
+        "True",
+        reason="Assigned",
+        message=f"{len(assigned)}/{obs.spec.vehicles.count}: {names}",
+    )
+    results = {
+        name: [
+            *preflight_failures(
+                obs.vehicles.get(name), obs.autopilots.get(name), obs.spec.preflight
+            ),
+            *_config_failure(obs, name),
+        ]
+        for name in assigned
+    }
+    vehicles = []
+    for name in assigned:
+        vehicle = obs.vehicles.get(name)
+        failures = results[name]
+        vehicles.append(
+            MissionVehicleStatus(
+                name=name,
+                node_name=vehicle.node_name if vehicle else None,
+                phase=MissionVehiclePhase.PREFLIGHT if failures else MissionVehiclePhase.CLAIMED,
+                reason=failures[0].reason if failures else "PreflightPassed",
+                message="; ".join(f.message for f in failures) or "all preflight checks pass",
+                job_name=onboard_job_name(obs.mission.name, name),
+            )
+        )
+    status.vehicles = vehicles
+    failing = [v for v in vehicles if v.phase == MissionVehiclePhase.PREFLIGHT]
+    if failing:
+        summary = "; ".join(f"{v.name}: {v.message}" for v in failing[:5])
+        more = f"; and {len(failing) - 5} more" if len(failing) > 5 else ""
+        message = f"{len(failing)} of {len(vehicles)} vehicles fail preflight — {summary}{more}"
+        _set_phase(status, MissionPhase.PREFLIGHT, "PreflightFailed", message)
+        _condition(
+            obs,
+            status,
+            MissionConditionType.PREFLIGHT_PASSED,
+            "False",
+            reason="PreflightFailed",
+            message=message,
+        )
+        _condition(obs, status, MissionConditionType.COMPLETE, "False", reason="NotStarted")
+        return
+    _start(obs, plan, assigned)
+
+
+def _start(obs: Observation, plan: Plan, assigned: list[str]) -> None:
+    status = plan.status
+    status.start_time = obs.now
+    for vehicle in status.vehicles:
+        vehicle.phase = MissionVehiclePhase.RUNNING
+        vehicle.reason = "JobCreated"
+        vehicle.message = f"onboard Job {vehicle.job_name} created"
+        plan.config_maps.append(
+            config_map_copy(obs.mission, vehicle.name, obs.config_values[vehicle.name])
+        )
+        plan.jobs_to_create.append(_onboard(obs, vehicle.name, assigned))
+    if obs.spec.offboard is not None:
+        name = offboard_job_name(obs.mission.name)
+        status.offboard = MissionOffboardStatus(
+            job_name=name, phase=WorkloadPhase.RUNNING, message="offboard Job created"
+        )
+        plan.jobs_to_create.append(
+            offboard_job(mission=obs.mission, spec=obs.spec, assigned=assigned)
+        )
+    count = len(assigned)
+    _set_phase(
+        status,
+        MissionPhase.RUNNING,
+        "Started",
+        f"preflight passed; onboard workloads started on {count} "
+        f"vehicle{'s' if count != 1 else ''}",
+    )
+    _condition(obs, status, MissionConditionType.PREFLIGHT_PASSED, "True", reason="AllChecksPassed")
+    _condition(obs, status, MissionConditionType.DEGRADED, "False", reason="NoFailover")
+    _condition(obs, status, MissionConditionType.COMPLETE, "False", reason="Running")
+
+
+def _onboard(obs: Observation, vehicle_name: str, assigned: Sequence[str]) -> Obj:
+    return onboard_job(
+        mission=obs.mission,
+        spec=obs.spec,
+        vehicle_name=vehicle_name,
+        assigned=assigned,
+        config_values=obs.config_values[vehicle_name],
+    )
+
+
+# -- Running -----------------------------------------------------------------------------
+
+
+def failover_time(status: RedundantAutopilotStatus) -> datetime | None:
+    """When the agent last switched autopilots: ``lastFailover`` or the FailedOver edge."""
+    times = [status.last_failover.time] if status.last_failover else []
+    failed_over = find_condition(status.conditions, AutopilotConditionType.FAILED_OVER)
+    if failed_over is not None and failed_over.status == "True":
+        times.append(failed_over.last_transition_time)
+    return max(times, default=None)
+
+
+def _failover_text(status: RedundantAutopilotStatus) -> str:
+    last = status.last_failover
+    if last is None:
+        return "autopilot failed over"
+    return (
+        f"autopilot failed over from {last.from_autopilot} to {last.to_autopilot} ({last.reason})"
+    )
+
+
+def _assigned(obs: Observation) -> list[str]:
+    return [v.name for v in obs.status.vehicles]
+
+
+def _run(obs: Observation, plan: Plan) -> None:
+    status = plan.status
+    start = status.start_time or min(
+        (j.created for j in obs.jobs.values() if j.created), default=obs.now
+    )
+    status.start_time = start
+    assigned = _assigned(obs)
+    abort_mission_because: str | None = None
+    updated: list[MissionVehicleStatus] = []
+    for previous in status.vehicles:
+        vehicle = previous.model_copy(deep=True)
+        job_name = vehicle.job_name or onboard_job_name(obs.mission.name, vehicle.name)
+        vehicle.job_name = job_name
+        job = obs.jobs.get(job_name)
+        autopilots = obs.autopilots.get(vehicle.name)
+        phase = MissionVehiclePhase(vehicle.phase)
+        if phase in (MissionVehiclePhase.ABORTING, MissionVehiclePhase.ABORTED):
+            _stop_job(plan, job)
+            if phase is MissionVehiclePhase.ABORTING:
+                _abort_vehicle(obs, plan, vehicle, CommandAction.SAFETY_ROUTINE)
+            updated.append(vehicle)
+            continue
+        if phase in (MissionVehiclePhase.SUCCEEDED, MissionVehiclePhase.FAILED):
+            updated.append(vehicle)
+            continue
+        failed_over = _new_failover(vehicle, autopilots, start)
+        if failed_over is not None and autopilots is not None:
+            vehicle.failed_over_at = failed_over
+            what = _failover_text(autopilots.status)
+            policy = OnFailover(obs.spec.on_failover)
+            plan.events.append(
+                MissionEvent(
+                    "Warning",
+                    "VehicleFailedOver",
+                    f"{vehicle.name}: {what}; onFailover={policy}",
+                    vehicle=vehicle.name,
+                )
+            )
+            if policy is OnFailover.ABORT_VEHICLE:
+                vehicle.phase = MissionVehiclePhase.ABORTING
+                vehicle.reason = "FailedOver"
+                vehicle.message = f"{what}; landing it (onFailover=AbortVehicle)"
+                _stop_job(plan, job)
+                _abort_vehicle(obs, plan, vehicle, CommandAction.SAFETY_ROUTINE)
+                updated.append(vehicle)
+                continue
+            if policy is OnFailover.ABORT_MISSION:
+                abort_mission_because = f"{vehicle.name}: {what} (onFailover=AbortMission)"
+        _follow_job(obs, plan, vehicle, job, assigned)
+        updated.append(vehicle)
+    status.vehicles = updated
+    _follow_offboard(obs, plan, assigned)
+    _degraded(obs, status)
+    if abort_mission_because is not None:
+        _set_phase(status, MissionPhase.ABORTING, "VehicleFailedOver", abort_mission_because)
+        _abort(obs, plan)
+        return
+    _aggregate(obs, plan)
+
+
+def _new_failover(
+    vehicle: MissionVehicleStatus, autopilots: AutopilotView | None, start: datetime
+) -> datetime | None:
+    if autopilots is None:
+        return None
+    when = failover_time(autopilots.status)
+    if when is None or when < start:
+        return None
+    if vehicle.failed_over_at is not None and when <= vehicle.failed_over_at:
+        return None
+    return when
+
+
+def _stop_job(plan: Plan, job: JobView | None) -> None:
+    if job is not None and job.phase is JobPhase.ACTIVE and not job.deleting:
+        plan.jobs_to_delete.append(job.name)
+
+
+def _follow_job(
+    obs: Observation,
+    plan: Plan,
+    vehicle: MissionVehicleStatus,
+    job: JobView | None,
+    assigned: Sequence[str],
+) -> None:
+    """Per-vehicle phase from its onboard Job; (re)create the Job when it is missing."""
+    if job is None:
+        if vehicle.name not in obs.vehicles:
+            vehicle.phase = MissionVehiclePhase.FAILED
+            vehicle.reason = "VehicleMissing"
+            vehicle.message = "the Vehicle was deleted before its onboard Job could run"
+            return
+        if vehicle.name not in obs.config_values:
+            vehicle.phase = MissionVehiclePhase.FAILED
+            vehicle.reason = "VehicleConfigMissing"
+            vehicle.message = "the vehicle's config ConfigMap is gone; cannot start its Job"
+            return
+        plan.config_maps.append(
+            config_map_copy(obs.mission, vehicle.name, obs.config_values[vehicle.name])
+        )
+        plan.jobs_to_create.append(_onboard(obs, vehicle.name, assigned))
+        vehicle.phase = MissionVehiclePhase.RUNNING
+        vehicle.reason = "JobCreated"
+        vehicle.message = f"onboard Job {vehicle.job_name} created"
+        return
+    if vehicle.name in obs.config_values:
+        plan.config_maps.append(
+            config_map_copy(obs.mission, vehicle.name, obs.config_values[vehicle.name])
+        )
+    attempts = obs.spec.backoff_limit + 1
+    if job.phase is JobPhase.SUCCEEDED:
+        vehicle.phase = MissionVehiclePhase.SUCCEEDED
+        vehicle.reason = "Completed"
+        vehicle.message = f"onboard Job {job.name} completed"
+    elif job.phase is JobPhase.FAILED:
+        vehicle.phase = MissionVehiclePhase.FAILED
+        vehicle.reason = "JobFailed"
+        vehicle.message = (
+            f"onboard Job {job.name} failed after {job.failed} of {attempts} attempts: "
+            f"{job.message or 'no message'}"
+        )
+    else:
+        vehicle.phase = MissionVehiclePhase.RUNNING
+        vehicle.reason = "PodRunning" if job.ready else "PodStarting"
+        vehicle.message = (
+            f"onboard Job {job.name}: {job.active} active, {job.ready} ready, "
+            f"{job.failed} failed of {attempts} attempts"
+        )
+
+
+def _follow_offboard(obs: Observation, plan: Plan, assigned: Sequence[str]) -> None:
+    if obs.spec.offboard is None:
+        return
+    status = plan.status
+    name = offboard_job_name(obs.mission.name)
+    job = obs.jobs.get(name)
+    previous = status.offboard
+    if job is None:
+        if previous is not None and previous.phase != WorkloadPhase.RUNNING:
+            return
+        plan.jobs_to_create.append(
+            offboard_job(mission=obs.mission, spec=obs.spec, assigned=assigned)
+        )
+        status.offboard = MissionOffboardStatus(
+            job_name=name, phase=WorkloadPhase.RUNNING, message="offboard Job created"
+        )
+        return
+    phase = {
+        JobPhase.ACTIVE: WorkloadPhase.RUNNING,
+        JobPhase.SUCCEEDED: WorkloadPhase.SUCCEEDED,
+        JobPhase.FAILED: WorkloadPhase.FAILED,
+    }[job.phase]
+    message = {
+        JobPhase.ACTIVE: f"{job.active} active, {job.ready} ready",
+        JobPhase.SUCCEEDED: "completed",
+        JobPhase.FAILED: f"failed: {job.message or 'no message'}",
+    }[job.phase]
+    status.offboard = MissionOffboardStatus(job_name=name, phase=phase, message=message)
+
+
+def _degraded(obs: Observation, status: MissionStatus) -> None:
+    failed_over = [v for v in status.vehicles if v.failed_over_at is not None]
+    if not failed_over:
+        return
+    names = ", ".join(v.name for v in failed_over)
+    policy = OnFailover(obs.spec.on_failover)
+    message = f"autopilot failover on {names} (onFailover={policy})"
+    _condition(
+        obs,
+        status,
+        MissionConditionType.DEGRADED,
+        "True",
+        reason="VehicleFailedOver",
+        message=message,
+    )
+
+
+def _aggregate(obs: Observation, plan: Plan) -> None:
+    status = plan.status
+    vehicles = status.vehicles
+    failed = [v for v in vehicles if v.phase == MissionVehiclePhase.FAILED]
+    offboard_failed = status.offboard is not None and status.offboard.phase == WorkloadPhase.FAILED
+    if failed:
+        first = failed[0]
+        _finish(
+            obs,
+            plan,
+            MissionPhase.FAILED,
+            "VehicleWorkloadFailed",
+            f"{first.name}: {first.message}",
+        )
+        return
+    if offboard_failed and status.offboard is not None:
+        _finish(
+            obs,
+            plan,
+            MissionPhase.FAILED,
+            "OffboardWorkloadFailed",
+            f"offboard Job {status.offboard.job_name} {status.offboard.message}",
+        )
+        return
+    succeeded = [v for v in vehicles if v.phase == MissionVehiclePhase.SUCCEEDED]
+    aborted = [v for v in vehicles if v.phase == MissionVehiclePhase.ABORTED]
+    if vehicles and all(MissionVehiclePhase(v.phase) in _VEHICLE_DONE for v in vehicles):
+        if succeeded:
+            extra = f"; {len(aborted)} aborted after a failover" if aborted else ""
+            _finish(
+                obs,
+                plan,
+                MissionPhase.SUCCEEDED,
+                "Completed",
+                f"{len(succeeded)} onboard workload{'s' if len(succeeded) != 1 else ''} "
+                f"completed{extra}",
+            )
+        else:
+            _finish(
+                obs,
+                plan,
+                MissionPhase.FAILED,
+                "AllVehiclesAborted",
+                "every vehicle was aborted after an autopilot failover",
+            )
+        return
+    running = len(vehicles) - len(succeeded) - len(aborted)
+    message = f"{len(succeeded)}/{len(vehicles)} onboard workloads completed, {running} running"
+    if aborted:
+        message += f", {len(aborted)} aborted"
+    _set_phase(status, MissionPhase.RUNNING, "Started", message)
+
+
+def _finish(obs: Observation, plan: Plan, phase: MissionPhase, reason: str, message: str) -> None:
+    status = plan.status
+    _set_phase(status, phase, reason, message)
+    status.completion_time = obs.now
+    for job in obs.jobs.values():
+        _stop_job(plan, job)
+    for vehicle in status.vehicles:
+        if vehicle.phase in (MissionVehiclePhase.RUNNING, MissionVehiclePhase.CLAIMED):
+            vehicle.phase = MissionVehiclePhase.FAILED
+            vehicle.reason = "MissionEnded"
+            vehicle.message = f"workload stopped: the mission {phase.value.lower()} ({reason})"
+    if status.offboard is not None and status.offboard.phase == WorkloadPhase.RUNNING:
+        status.offboard.phase = WorkloadPhase.STOPPED
+        status.offboard.message = f"stopped: the mission {phase.value.lower()}"
+    complete: ConditionStatus = "True" if phase is MissionPhase.SUCCEEDED else "False"
+    _condition(obs, status, MissionConditionType.COMPLETE, complete, reason=reason, message=message)
+    plan.releases.extend(held_by(obs.mission, obs.vehicles))
+
+
+def _wind_down(obs: Observation, plan: Plan) -> None:
+    """A finished mission: stop anything still active and give back its vehicles."""
+    for job in obs.jobs.values():
+        _stop_job(plan, job)
+    plan.releases.extend(held_by(obs.mission, obs.vehicles))
+
+
+# -- Abort -------------------------------------------------------------------------------
+
+
+def _abort_before_start(obs: Observation, plan: Plan) -> None:
+    status = plan.status
+    _set_phase(
+        status,
+        MissionPhase.ABORTED,
+        "AbortedBeforeStart",
+        "aborted before any workload started; no vehicle was commanded",
+    )
+    status.completion_time = obs.now
+    for vehicle in status.vehicles:
+        vehicle.phase = MissionVehiclePhase.ABORTED
+        vehicle.reason = "AbortedBeforeStart"
+        vehicle.message = "nothing was started on this vehicle"
+    _condition(obs, status, MissionConditionType.COMPLETE, "False", reason="AbortedBeforeStart")
+    plan.releases.extend(held_by(obs.mission, obs.vehicles))
+
+
+def abort_action(spec: MissionSpec) -> CommandAction:
+    """The command an abort sends: the spec's for a requested abort, else the safety routine."""
+    if spec.abort and AbortAction(spec.abort_action) is AbortAction.EMERGENCY_STOP:
+        return CommandAction.EMERGENCY_STOP
+    return CommandAction.SAFETY_ROUTINE
+
+
+def _abort(obs: Observation, plan: Plan) -> None:
+    status = plan.status
+    action = abort_action(obs.spec)
+    if obs.spec.abort:
+        status.reason = "AbortRequested"
+    for job in obs.jobs.values():
+        _stop_job(plan, job)
+    if status.offboard is not None and status.offboard.phase == WorkloadPhase.RUNNING:
+        status.offboard.phase = WorkloadPhase.STOPPED
+        status.offboard.message = "stopped by the abort"
+    for vehicle in status.vehicles:
+        if vehicle.phase != MissionVehiclePhase.ABORTED:
+            _abort_vehicle(obs, plan, vehicle, action)
+    waiting = [v for v in status.vehicles if v.phase != MissionVehiclePhase.ABORTED]
+    if waiting:
+        listed = "; ".join(f"{v.name}: {v.message}" for v in waiting[:5])
+        more = f"; and {len(waiting) - 5} more" if len(waiting) > 5 else ""
+        _set_phase(
+            status,
+            MissionPhase.ABORTING,
+            status.reason or "AbortRequested",
+            f"{_abort_cause(obs, status, action)} — waiting for {len(waiting)} vehicle"
+            f"{'s' if len(waiting) != 1 else ''}: {listed}{more}",
+        )
+        plan.requeue_after = ABORT_POLL_SECONDS
+        return
+    count = len(status.vehicles)
+    _set_phase(
+        status,
+        MissionPhase.ABORTED,
+        status.reason or "AbortRequested",
+        f"{_abort_cause(obs, status, action)} — {count} vehicle{'s' if count != 1 else ''} stopped",
+    )
+    status.completion_time = obs.now
+    _condition(
+        obs,
+        status,
+        MissionConditionType.COMPLETE,
+        "False",
+        reason="Aborted",
+        message=status.message or "",
+    )
+    plan.releases.extend(held_by(obs.mission, obs.vehicles))
+
+
+def _abort_cause(obs: Observation, status: MissionStatus, action: CommandAction) -> str:
+    if status.reason == "AbortRequested":
+        return f"abort requested ({action})"
+    names = ", ".join(v.name for v in status.vehicles if v.failed_over_at is not None)
+    return f"autopilot failover on {names or 'a vehicle'} (onFailover=AbortMission; {action})"
+
+
+def abort_command_id(
+    mission: MissionRef, vehicle_name: str, action: CommandAction, attempt: int
+) -> str:
+    """Deterministic id of a mission's abort command, unique per mission, vehicle, action."""
+    digest = hashlib.sha256(f"{mission.uid}/{vehicle_name}".encode()).hexdigest()[:12]
+    return f"mission-{digest}-{CommandAction(action).value.lower()}-{attempt}"
+
+
+def _attempt_of(
+    command: AutopilotCommand | None, mission: MissionRef, vehicle_name: str, action: CommandAction
+) -> int:
+    if command is None:
+        return 0
+    prefix = abort_command_id(mission, vehicle_name, action, 0)[:-1]
+    tail = command.id.removeprefix(prefix)
+    return int(tail) if tail != command.id and tail.isdigit() else 0
+
+
+def _active_health(status: RedundantAutopilotStatus) -> list[AutopilotHealth]:
+    active = [h for h in status.autopilots if h.name == status.active_autopilot]
+    return active or list(status.autopilots)
+
+
+def stopped(action: CommandAction, status: RedundantAutopilotStatus) -> bool:
+    """Whether the vehicle has done what ``action`` asks, by its active autopilot's report.
+
+    The safety routine ends on the ground (or disarmed); an emergency stop ends disarmed.
+    Without an active autopilot in the report, every reported autopilot must agree.
+    """
+    health = _active_health(status)
+    if not health:
+        return False
+    if CommandAction(action) is CommandAction.EMERGENCY_STOP:
+        return all(h.armed is False for h in health)
+    return all(h.landed_state == ON_GROUND or h.armed is False for h in health)
+
+
+def _reported_since(status: RedundantAutopilotStatus, command: AutopilotCommand) -> bool:
+    if status.last_command is not None and status.last_command.id == command.id:
+        return True
+    return status.reported_at is not None and status.reported_at >= command.issued_at
+
+
+def _flight_text(status: RedundantAutopilotStatus) -> str:
+    health = _active_health(status)
+    if not health:
+        return "no autopilot report"
+    h = health[0]
+    armed = {True: "armed", False: "disarmed", None: "armed state unknown"}[h.armed]
+    return f"{h.name} {h.landed_state or 'landed state unknown'}, {armed}"
+
+
+def _abort_vehicle(
+    obs: Observation, plan: Plan, vehicle: MissionVehicleStatus, action: CommandAction
+) -> None:
+    """Ask one vehicle's agent to stop it, and mark it Aborted once it reports stopped."""
+    autopilots = obs.autopilots.get(vehicle.name)
+    if autopilots is None:
+        vehicle.phase = MissionVehiclePhase.ABORTED
+        vehicle.reason = "NoRedundantAutopilot"
+        vehicle.message = (
+            f"no RedundantAutopilot: cannot request {action}; its workload was stopped"
+        )
+        return
+    command = vehicle.command
+    outcome = (
+        command_outcome(command, autopilots.spec.command, autopilots.status.last_command)
+        if command is not None and command.action == action
+        else None
+    )
+    if outcome is None or outcome in (CommandOutcome.EXPIRED, CommandOutcome.SUPERSEDED):
+        attempt = _attempt_of(command if outcome else None, obs.mission, vehicle.name, action) + 1
+        command_id = abort_command_id(obs.mission, vehicle.name, action, attempt)
+        existing = autopilots.spec.command
+        if existing is not None and existing.id == command_id:
+            command = existing
+        else:
+            command = new_command(
+                action,
+                command_id=command_id,
+                issued_at=obs.now,
+                deadline_seconds=ABORT_COMMAND_DEADLINE_SECONDS,
+            )
+            plan.commands[vehicle.name] = command
+        vehicle.command = command
+        outcome = command_outcome(command, command, autopilots.status.last_command)
+    assert command is not None
+    status = autopilots.status
+    if _reported_since(status, command) and stopped(action, status):
+        vehicle.phase = MissionVehiclePhase.ABORTED
+        vehicle.reason = "Disarmed" if action is CommandAction.EMERGENCY_STOP else "Landed"
+        vehicle.message = f"{action} done: {_flight_text(status)}"
+        return
+    vehicle.phase = MissionVehiclePhase.ABORTING
+    vehicle.reason = f"{action}{outcome}"
+    detail = ""
+    if outcome is CommandOutcome.REJECTED and status.last_command is not None:
+        detail = f" ({status.last_command.message})"
+    vehicle.message = f"{action} {str(outcome).lower()}{detail}; {_flight_text(status)}"
+
+
+# -- Events -----------------------------------------------------------------------------
+
+
+def transition_events(old: MissionStatus, new: MissionStatus) -> list[MissionEvent]:
+    """Events for what changed: the mission's phase/reason, each vehicle's phase/reason.
+
+    Progress inside Running (a pod becoming ready) is status, not an Event.
+    """
+    events: list[MissionEvent] = []
+    if (old.phase, old.reason) != (new.phase, new.reason) and new.reason:
+        warning = MissionPhase(new.phase) in _WARNING_PHASES or new.reason in _WARNING_REASONS
+        severity: Severity = "Warning" if warning else "Normal"
+        events.append(MissionEvent(severity, new.reason, new.message or str(new.phase)))
+    before = {v.name: (v.phase, v.reason) for v in old.vehicles}
+    for vehicle in new.vehicles:
+        phase = MissionVehiclePhase(vehicle.phase)
+        prior = before.get(vehicle.name)
+        quiet = phase is MissionVehiclePhase.RUNNING or (
+            prior is not None and prior[1] == vehicle.reason
+        )
+        if prior is not None and prior[0] == phase and quiet:
+            continue
+        severity = "Warning" if phase in _WARNING_VEHICLE_PHASES else "Normal"
+        events.append(
+            MissionEvent(
+                severity,
+                vehicle.reason or phase.value,
+                f"{vehicle.name}: {vehicle.message or phase.value}",
+                vehicle=vehicle.name,
+            )
+        )
+    return events

@@ -1,0 +1,86 @@
+"""Preflight: the checks every assigned vehicle passes before anything starts on it.
+
+Each check reads one writer's verdict rather than re-deriving it: ``Ready`` and
+``AgentConnected`` are the vehicle operator's conditions on the Vehicle, ``ActiveHealthy``
+and ``Redundant`` are the node agent's on the RedundantAutopilot. A condition that is
+absent counts as failing: before the agent has ever reported, nobody knows the vehicle
+is fit to fly. Which checks apply is the mission's ``spec.preflight``; Ready always does.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from roost_api.autopilot import AutopilotConditionType
+from roost_api.meta import Condition, find_condition
+from roost_api.mission import Preflight
+from roost_api.vehicle import VehicleConditionType
+from roost_operator.missions.observed import AutopilotView, VehicleView
+from roost_operator.missions.selection import is_ready, not_ready_reason
+
+
+@dataclass(frozen=True)
+class PreflightFailure:
+    """One failed check: a CamelCase reason and a sentence for people."""
+
+    reason: str
+    message: str
+
+
+def _condition_text(condition: Condition | None, missing: str) -> str:
+    if condition is None:
+        return missing
+    detail = f": {condition.message}" if condition.message else ""
+    return f"{condition.status} ({condition.reason}{detail})"
+
+
+def preflight_failures(
+    vehicle: VehicleView | None, autopilots: AutopilotView | None, checks: Preflight
+) -> list[PreflightFailure]:
+    """Every check ``vehicle`` fails, in a fixed order; empty when it may start."""
+    if vehicle is None:
+        return [PreflightFailure("VehicleMissing", "the Vehicle no longer exists")]
+    failures: list[PreflightFailure] = []
+    if vehicle.deleting or not is_ready(vehicle):
+        failures.append(
+            PreflightFailure("VehicleNotReady", f"Vehicle not Ready: {not_ready_reason(vehicle)}")
+        )
+    if checks.require_agent_connected:
+        agent = find_condition(vehicle.status.conditions, VehicleConditionType.AGENT_CONNECTED)
+        if agent is None or agent.status != "True":
+            failures.append(
+                PreflightFailure(
+                    "AgentNotConnected",
+                    "node agent not connected: "
+                    + _condition_text(agent, "no AgentConnected condition yet"),
+                )
+            )
+    autopilot_checks = [
+        (
+            checks.require_active_healthy,
+            AutopilotConditionType.ACTIVE_HEALTHY,
+            "ActiveAutopilotUnhealthy",
+            "active autopilot not healthy",
+        ),
+        (
+            checks.require_redundancy,
+            AutopilotConditionType.REDUNDANT,
+            "NotRedundant",
+            "no healthy standby autopilot",
+        ),
+    ]
+    for required, condition_type, reason, summary in autopilot_checks:
+        if not required:
+            continue
+        if autopilots is None:
+            failures.append(
+                PreflightFailure(reason, f"{summary}: no RedundantAutopilot for this vehicle")
+            )
+            continue
+        condition = find_condition(autopilots.status.conditions, condition_type)
+        if condition is None or condition.status != "True":
+            missing = f"no {condition_type} condition from the agent yet"
+            failures.append(
+                PreflightFailure(reason, f"{summary}: {_condition_text(condition, missing)}")
+            )
+    return failures

@@ -1,0 +1,132 @@
+"""Which vehicles a mission may fly, which of them are free, and what to claim.
+
+Claims are all-or-nothing: a mission claims vehicles only when enough free ones are in
+view, and gives back a partial set rather than hold it while it waits. Holding partial
+sets deadlocks two missions that each need most of the fleet; giving them back costs a
+retry at worst. Candidates are ordered deterministically (named vehicles in the order
+given, then selector matches by name) so two competing missions collide on the same
+first vehicle, and the loser of that collision gives up early.
+
+Exclusivity itself is not decided here: the write of ``status.claimedBy`` carries the
+Vehicle's resourceVersion, so of two missions claiming one vehicle exactly one write
+succeeds (see :mod:`roost_operator.missions.cluster`).
+
+A claim naming a Mission that no longer exists (its finalizer was removed by hand) is an
+orphan and counts as free; the observer lists Missions *after* Vehicles, so a claim by a
+Mission created in between is never mistaken for one.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+from roost_api.meta import condition_is_true, find_condition
+from roost_api.mission import LabelSelector, VehicleSelection
+from roost_api.vehicle import VehicleConditionType
+from roost_operator.missions.observed import MissionRef, VehicleView, reference_key
+
+
+def matches_selector(labels: Mapping[str, str], selector: LabelSelector) -> bool:
+    """metav1.LabelSelector semantics: every matchLabel and every expression holds."""
+    if any(labels.get(key) != value for key, value in selector.match_labels.items()):
+        return False
+    for requirement in selector.match_expressions:
+        present = requirement.key in labels
+        value = labels.get(requirement.key)
+        holds = {
+            "In": present and value in requirement.values,
+            "NotIn": not present or value not in requirement.values,
+            "Exists": present,
+            "DoesNotExist": not present,
+        }[requirement.operator]
+        if not holds:
+            return False
+    return True
+
+
+def candidates(selection: VehicleSelection, vehicles: Mapping[str, VehicleView]) -> list[str]:
+    """Vehicles the mission may use, in preference order (names first, then matches)."""
+    ordered = [name for name in dict.fromkeys(selection.names) if name in vehicles]
+    if selection.selector is not None:
+        named = set(ordered)
+        ordered += sorted(
+            name
+            for name, vehicle in vehicles.items()
+            if name not in named and matches_selector(vehicle.labels, selection.selector)
+        )
+    return ordered
+
+
+def is_ready(vehicle: VehicleView) -> bool:
+    """The Vehicle's Ready condition is True (the vehicle operator's summary)."""
+    return condition_is_true(vehicle.status.conditions, VehicleConditionType.READY)
+
+
+def not_ready_reason(vehicle: VehicleView) -> str:
+    """Why a vehicle is not Ready, from its Ready condition."""
+    if vehicle.deleting:
+        return "being deleted"
+    ready = find_condition(vehicle.status.conditions, VehicleConditionType.READY)
+    if ready is None:
+        return "no Ready condition yet"
+    return f"{ready.reason}: {ready.message}" if ready.message else ready.reason
+
+
+@dataclass(frozen=True)
+class Availability:
+    """The mission's candidates other than those it already holds, sorted by state."""
+
+    free: list[str] = field(default_factory=list)
+    claimed_elsewhere: dict[str, str] = field(default_factory=dict)
+    not_ready: dict[str, str] = field(default_factory=dict)
+    unknown_names: list[str] = field(default_factory=list)
+
+
+def availability(
+    selection: VehicleSelection,
+    vehicles: Mapping[str, VehicleView],
+    mission: MissionRef,
+    live_missions: frozenset[str],
+) -> Availability:
+    """Sort the candidates not held by ``mission`` into free, claimed and not ready."""
+    result = Availability(unknown_names=[n for n in selection.names if n not in vehicles])
+    for name in candidates(selection, vehicles):
+        vehicle = vehicles[name]
+        claim = vehicle.status.claimed_by
+        if mission.owns(claim):
+            continue
+        if claim is not None and reference_key(claim) in live_missions:
+            result.claimed_elsewhere[name] = reference_key(claim)
+        elif vehicle.deleting or not is_ready(vehicle):
+            result.not_ready[name] = not_ready_reason(vehicle)
+        else:
+            result.free.append(name)
+    return result
+
+
+def held_by(mission: MissionRef, vehicles: Mapping[str, VehicleView]) -> list[str]:
+    """Vehicles whose claimedBy is ``mission``, by name."""
+    return sorted(name for name, v in vehicles.items() if mission.owns(v.status.claimed_by))
+
+
+def shortage_message(*, required: int, held: int, available: Availability) -> str:
+    """Why a mission cannot be assigned yet, naming how many vehicles are missing."""
+    missing = required - held - len(available.free)
+    parts = [
+        f"needs {required} vehicle{'s' if required != 1 else ''}, "
+        f"{len(available.free) + held} available: {missing} missing"
+    ]
+    if available.claimed_elsewhere:
+        by_mission = sorted(set(available.claimed_elsewhere.values()))
+        parts.append(
+            f"{len(available.claimed_elsewhere)} claimed by other missions "
+            f"({', '.join(by_mission[:5])}{', …' if len(by_mission) > 5 else ''})"
+        )
+    if available.not_ready:
+        listed = [f"{n} ({why})" for n, why in sorted(available.not_ready.items())[:5]]
+        more = ", …" if len(available.not_ready) > 5 else ""
+        parts.append(f"{len(available.not_ready)} not Ready: {', '.join(listed)}{more}")
+    if available.unknown_names:
+        parts.append(f"no such vehicle: {', '.join(available.unknown_names[:5])}")
+    return "; ".join(parts)
