@@ -1,9 +1,16 @@
-"""``roost-agent``: run the node agent standalone from a config file or flags.
+"""``roost-agent``: run the node agent, in a cluster or standalone from a config file or flags.
 
-The agent needs no Kubernetes: give it a RedundantAutopilot (the whole object or just its
-spec, YAML or JSON) or describe the autopilots with ``--autopilot`` flags. It keeps its
-last spec and decision state in ``--state-dir``; started with neither config nor flags it
-flies on with the spec saved there (an agent restarted while the cluster is unreachable).
+In a cluster (``--cluster``; by default when there is neither ``--config`` nor
+``--autopilot``, ``NODE_NAME`` is set and a service account or ``$KUBECONFIG`` is at
+hand) the agent finds the Vehicle on its node and its RedundantAutopilot, flies with that
+spec and reports status and Events to it (:mod:`roost_agent.publisher`); with the API
+unreachable at start it flies on with the spec saved in ``--state-dir``.
+
+Standalone the agent needs no Kubernetes: give it a RedundantAutopilot (the whole object
+or just its spec, YAML or JSON) or describe the autopilots with ``--autopilot`` flags. It
+keeps its last spec and decision state in ``--state-dir``; started with neither config
+nor flags it flies on with the spec saved there (an agent restarted while the cluster is
+unreachable).
 
 Output: one JSON object per line on stdout, ``{"event": ...}`` for every event and
 ``{"status": ...}`` every ``--status-interval`` seconds. Logs go to stderr (so does
@@ -29,6 +36,8 @@ from pydantic import ValidationError
 
 from roost_agent.agent import Agent, restore_state
 from roost_agent.bridge import Bridge, GpioBridge, SimulatedBridge
+from roost_agent.kube import AgentKube
+from roost_agent.publisher import Publisher, PublisherSettings, startup_spec
 from roost_agent.state import STATE_FILE_NAME, StateFile
 from roost_api.autopilot import AutopilotSpec, RedundantAutopilotSpec
 
@@ -96,8 +105,42 @@ def build_parser() -> argparse.ArgumentParser:
         "--status-interval", type=float, default=1.0, help="seconds between status lines (0: off)"
     )
     parser.add_argument("--node-name", default=os.environ.get("NODE_NAME", socket.gethostname()))
+    parser.add_argument(
+        "--cluster",
+        choices=("auto", "on", "off"),
+        default=os.environ.get("ROOST_AGENT_CLUSTER", "auto"),
+        help="take the spec from Kubernetes and report there (auto: when neither --config "
+        "nor --autopilot is given, NODE_NAME is set and a service account or $KUBECONFIG "
+        "is available)",
+    )
+    parser.add_argument("--kubeconfig", type=Path, help="kubeconfig (default: in-cluster)")
+    parser.add_argument(
+        "--report-interval",
+        type=float,
+        default=PublisherSettings.refresh_s,
+        help="seconds between status reports when nothing changes (cluster)",
+    )
+    parser.add_argument(
+        "--api-retry-max",
+        type=float,
+        default=PublisherSettings.retry_max_s,
+        help="longest wait between API retries while the API is unreachable (cluster)",
+    )
     parser.add_argument("--log-level", default="INFO")
     return parser
+
+
+def cluster_client(args: argparse.Namespace) -> AgentKube | None:
+    """The API client when the agent works with a cluster (see ``--cluster``), else None."""
+    if args.cluster == "off":
+        return None
+    if args.cluster == "auto":
+        standalone = args.config is not None or bool(args.autopilot)
+        placed = "NODE_NAME" in os.environ  # the downward API names our node
+        reachable = args.kubeconfig or os.environ.get("KUBERNETES_SERVICE_HOST")
+        if standalone or not placed or not (reachable or os.environ.get("KUBECONFIG")):
+            return None
+    return AgentKube.from_environment(args.kubeconfig)
 
 
 def resolve_spec(
@@ -151,7 +194,12 @@ def main(argv: list[str] | None = None) -> int:
     out = JsonLines(os.fdopen(os.dup(sys.stdout.fileno()), "w", buffering=1))
     sys.stdout = sys.stderr
     state = StateFile(args.state_dir / STATE_FILE_NAME)
-    spec, generation = resolve_spec(args, state)
+    kube = cluster_client(args)
+    if kube is None:
+        spec, generation = resolve_spec(args, state)
+        target = None
+    else:
+        spec, generation, target = startup_spec(kube, args.node_name, state)
     restored = restore_state(spec, state.load())
     channel = next(a.bridge_channel for a in spec.autopilots if a.name == restored.active)
     bridge = make_bridge(args, spec, channel)
@@ -173,10 +221,19 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGHUP, lambda *_: threading.Thread(target=reload, daemon=True).start())
     agent.start()
+    publisher = None
+    if kube is not None:
+        settings = PublisherSettings(refresh_s=args.report_interval, retry_max_s=args.api_retry_max)
+        publisher = Publisher(
+            agent, kube, node_name=args.node_name, target=target, settings=settings
+        )
+        publisher.start()
     try:
         while not stop.wait(args.status_interval or None):
             out.write({"status": agent.status().to_api()})
     finally:
+        if publisher is not None:
+            publisher.stop()
         agent.stop()
         bridge.close()
     return 0
