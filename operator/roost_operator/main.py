@@ -29,7 +29,7 @@ import kopf
 
 from roost_api.wellknown import FINALIZER, PREFIX
 from roost_operator import runtime as runtime_module
-from roost_operator.kube import Kube
+from roost_operator.kube import NAMESPACES, Kube
 from roost_operator.missions import handlers as mission_handlers
 from roost_operator.settings import SETTINGS
 from roost_operator.vehicles import handlers as vehicle_handlers
@@ -69,7 +69,13 @@ def startup(settings: kopf.OperatorSettings, memo: kopf.Memo, **_: Any) -> None:
     """Configure kopf, connect to the API and make sure the operator's namespace exists."""
     configure(settings)
     kube = Kube.from_environment()
-    kube.apply({"apiVersion": "v1", "kind": "Namespace", "metadata": {"name": SETTINGS.namespace}})
+    # Only when missing: under the chart the namespace exists and the operator may only
+    # read it (a right to patch it would let the operator relax its own Pod Security
+    # labels). The sandbox, with admin rights, gets it created.
+    if kube.get(NAMESPACES, SETTINGS.namespace) is None:
+        kube.apply(
+            {"apiVersion": "v1", "kind": "Namespace", "metadata": {"name": SETTINGS.namespace}}
+        )
     memo.runtime = runtime_module.Runtime(kube=kube, settings=SETTINGS)
 
 
