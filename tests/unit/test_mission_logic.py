@@ -1,0 +1,817 @@
+"""Mission decisions without a cluster: selection and claims, preflight, workloads, the
+phase state machine, abort commands and failover policy.
+
+Every input is an API model built here exactly as the API server would return it; the
+functions under test are pure, so these tests need no mocks.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from dataclasses import replace
+from datetime import UTC, datetime, timedelta
+from typing import Any
+
+import pytest
+
+from roost_api.autopilot import (
+    AutopilotCommand,
+    CommandAction,
+    CommandResult,
+    RedundantAutopilotSpec,
+    RedundantAutopilotStatus,
+)
+from roost_api.meta import Condition, ObjectReference, condition_is_true, find_condition
+from roost_api.mission import (
+    LabelSelector,
+    MissionPhase,
+    MissionSpec,
+    MissionStatus,
+    MissionVehiclePhase,
+    Preflight,
+    VehicleSelection,
+)
+from roost_api.vehicle import VehicleSpec, VehicleStatus
+from roost_api.wellknown import LABEL_VEHICLE, TAINT_VEHICLE
+from roost_operator.missions.machine import (
+    ABORT_COMMAND_DEADLINE_SECONDS,
+    Observation,
+    Plan,
+    abort_command_id,
+    plan_deletion,
+    plan_mission,
+    stopped,
+    transition_events,
+)
+from roost_operator.missions.observed import (
+    AutopilotView,
+    JobPhase,
+    JobView,
+    MissionRef,
+    VehicleView,
+)
+from roost_operator.missions.preflight import preflight_failures
+from roost_operator.missions.selection import (
+    availability,
+    candidates,
+    matches_selector,
+    shortage_message,
+)
+from roost_operator.missions.wakeups import Wakeups, sleep_until_woken
+from roost_operator.missions.workloads import (
+    ENV_MISSION_VEHICLE_INDEX,
+    ENV_MISSION_VEHICLES,
+    bounded_name,
+    offboard_job_name,
+    onboard_job_name,
+)
+
+T0 = datetime(2026, 3, 1, 12, 0, tzinfo=UTC)
+ME = MissionRef(namespace="default", name="survey", uid="uid-survey")
+OTHER = ObjectReference(namespace="default", name="rival")
+
+
+# -- builders ------------------------------------------------------------------------------
+
+
+def cond(type_: str, status: str = "True", reason: str = "Because", at: datetime = T0) -> Condition:
+    return Condition.model_validate(
+        {"type": type_, "status": status, "reason": reason, "lastTransitionTime": at}
+    )
+
+
+def vehicle(
+    name: str,
+    *,
+    ready: bool = True,
+    agent: bool | None = True,
+    claimed_by: ObjectReference | None = None,
+    labels: dict[str, str] | None = None,
+    deleting: bool = False,
+) -> VehicleView:
+    conditions = [
+        cond("Ready", "True" if ready else "False", "VehicleReady" if ready else "NodeNotReady")
+    ]
+    if agent is not None:
+        conditions.append(cond("AgentConnected", "True" if agent else "False", "Reporting"))
+    return VehicleView(
+        name=name,
+        labels=labels if labels is not None else {"fleet": "a"},
+        spec=VehicleSpec.model_validate({"nodeName": f"node-{name}", "sysid": 10}),
+        status=VehicleStatus(conditions=conditions, claimed_by=claimed_by),
+        resource_version="1",
+        uid=f"uid-{name}",
+        deleting=deleting,
+    )
+
+
+def autopilots(
+    vehicle_name: str,
+    *,
+    healthy: bool = True,
+    redundant: bool = True,
+    failover_at: datetime | None = None,
+    landed: str = "InAir",
+    armed: bool = True,
+    reported_at: datetime | None = None,
+    command: AutopilotCommand | None = None,
+    last_command: CommandResult | None = None,
+) -> AutopilotView:
+    status: dict[str, Any] = {
+        "conditions": [
+            cond("ActiveHealthy", "True" if healthy else "False", "HeartbeatLost").to_api(),
+            cond("Redundant", "True" if redundant else "False", "StandbyStale").to_api(),
+        ],
+        "activeAutopilot": "fc2" if failover_at else "fc1",
+        "autopilots": [
+            {"name": "fc1", "level": "OK", "landedState": landed, "armed": armed},
+            {"name": "fc2", "level": "OK", "landedState": landed, "armed": armed},
+        ],
+        "reportedAt": reported_at,
+    }
+    if failover_at is not None:
+        status["lastFailover"] = {
+            "time": failover_at,
+            "from": "fc1",
+            "to": "fc2",
+            "reason": "heartbeat lost on fc1",
+            "latencyMs": 20.0,
+            "trigger": "Automatic",
+        }
+        status["conditions"].append(cond("FailedOver", "True", "Switched", failover_at).to_api())
+    if last_command is not None:
+        status["lastCommand"] = last_command.to_api()
+    spec: dict[str, Any] = {
+        "vehicleName": vehicle_name,
+        "primary": "fc1",
+        "autopilots": [
+            {
+                "name": "fc1",
+                "stack": "px4",
+                "connection": "udp://127.0.0.1:14540",
+                "sysid": 1,
+                "bridgeChannel": 0,
+            },
+            {
+                "name": "fc2",
+                "stack": "px4",
+                "connection": "udp://127.0.0.1:14541",
+                "sysid": 2,
+                "bridgeChannel": 1,
+            },
+        ],
+    }
+    if command is not None:
+        spec["command"] = command.to_api()
+    return AutopilotView(
+        name=f"{vehicle_name}-autopilots",
+        spec=RedundantAutopilotSpec.model_validate(spec),
+        status=RedundantAutopilotStatus.model_validate(status),
+    )
+
+
+POD_TEMPLATE = {
+    "metadata": {"labels": {"app": "controller"}},
+    "spec": {
+        "containers": [
+            {"name": "c", "image": "controller:1", "env": [{"name": "MINE", "value": "1"}]}
+        ]
+    },
+}
+
+
+def mission_spec(**overrides: Any) -> MissionSpec:
+    body: dict[str, Any] = {
+        "vehicles": {"selector": {"matchLabels": {"fleet": "a"}}, "count": 2},
+        "onboard": POD_TEMPLATE,
+    }
+    body.update(overrides)
+    return MissionSpec.model_validate(body)
+
+
+def config(name: str) -> dict[str, str]:
+    return {"VEHICLE_NAME": name, "VEHICLE_MAVLINK_SYSID": "10"}
+
+
+def observe(
+    vehicles: list[VehicleView],
+    *,
+    spec: MissionSpec | None = None,
+    status: MissionStatus | None = None,
+    aps: list[AutopilotView] | None = None,
+    jobs: list[JobView] | None = None,
+    live: set[str] | None = None,
+    now: datetime = T0,
+) -> Observation:
+    by_name = {v.name: v for v in vehicles}
+    return Observation(
+        mission=ME,
+        generation=1,
+        spec=spec or mission_spec(),
+        status=status or MissionStatus(),
+        vehicles=by_name,
+        autopilots={
+            a.vehicle_name: a
+            for a in (aps if aps is not None else [autopilots(v.name) for v in vehicles])
+        },
+        jobs={j.name: j for j in jobs or []},
+        config_values={name: config(name) for name in by_name},
+        live_missions=frozenset(live if live is not None else {ME.key, "default/rival"}),
+        now=now,
+    )
+
+
+def claimed(*names: str, **kwargs: Any) -> list[VehicleView]:
+    return [vehicle(n, claimed_by=ME.reference, **kwargs) for n in names]
+
+
+def job(vehicle_name: str, phase: JobPhase = JobPhase.ACTIVE, **kwargs: Any) -> JobView:
+    return JobView(name=onboard_job_name(ME.name, vehicle_name), phase=phase, created=T0, **kwargs)
+
+
+def started(
+    names: list[str], *, spec: MissionSpec | None = None
+) -> tuple[MissionStatus, list[VehicleView]]:
+    """The status after the mission started on ``names`` (all preflight checks passed)."""
+    plan = plan_mission(
+        observe(
+            claimed(*names),
+            spec=spec or mission_spec(vehicles={"names": names, "count": len(names)}),
+        )
+    )
+    assert plan.status.phase == MissionPhase.RUNNING
+    return plan.status, claimed(*names)
+
+
+def vehicle_status(plan: Plan, name: str) -> Any:
+    return next(v for v in plan.status.vehicles if v.name == name)
+
+
+# -- selection -----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("selector", "labels", "matches"),
+    [
+        ({"matchLabels": {"fleet": "a"}}, {"fleet": "a", "x": "y"}, True),
+        ({"matchLabels": {"fleet": "a"}}, {"fleet": "b"}, False),
+        (
+            {"matchExpressions": [{"key": "k", "operator": "In", "values": ["1", "2"]}]},
+            {"k": "2"},
+            True,
+        ),
+        ({"matchExpressions": [{"key": "k", "operator": "In", "values": ["1"]}]}, {}, False),
+        ({"matchExpressions": [{"key": "k", "operator": "NotIn", "values": ["1"]}]}, {}, True),
+        (
+            {"matchExpressions": [{"key": "k", "operator": "NotIn", "values": ["1"]}]},
+            {"k": "1"},
+            False,
+        ),
+        ({"matchExpressions": [{"key": "k", "operator": "Exists"}]}, {"k": ""}, True),
+        ({"matchExpressions": [{"key": "k", "operator": "DoesNotExist"}]}, {"k": ""}, False),
+        ({}, {"anything": "x"}, True),
+    ],
+)
+def test_label_selectors_follow_kubernetes_semantics(
+    selector: dict[str, Any], labels: dict[str, str], matches: bool
+) -> None:
+    assert matches_selector(labels, LabelSelector.model_validate(selector)) is matches
+
+
+def test_named_vehicles_come_first_in_their_order_then_selector_matches_by_name() -> None:
+    fleet = {v.name: v for v in [vehicle("c"), vehicle("a"), vehicle("b"), vehicle("z", labels={})]}
+    selection = VehicleSelection.model_validate(
+        {"names": ["z", "b", "ghost"], "selector": {"matchLabels": {"fleet": "a"}}, "count": 2}
+    )
+    assert candidates(selection, fleet) == ["z", "b", "a", "c"]
+
+
+def test_availability_sorts_candidates_into_free_claimed_and_not_ready() -> None:
+    fleet = {
+        v.name: v
+        for v in [
+            vehicle("a"),
+            vehicle("b", claimed_by=OTHER),
+            vehicle("c", ready=False),
+            vehicle("d", claimed_by=ObjectReference(namespace="gone", name="deleted")),
+            vehicle("e", claimed_by=ME.reference),
+            vehicle("f", deleting=True),
+        ]
+    }
+    selection = VehicleSelection.model_validate(
+        {"names": ["ghost"], "selector": {"matchLabels": {"fleet": "a"}}, "count": 5}
+    )
+    result = availability(selection, fleet, ME, frozenset({ME.key, "default/rival"}))
+    assert result.free == ["a", "d"], "an orphaned claim (mission gone) counts as free"
+    assert result.claimed_elsewhere == {"b": "default/rival"}
+    assert set(result.not_ready) == {"c", "f"}
+    assert result.unknown_names == ["ghost"]
+    message = shortage_message(required=5, held=1, available=result)
+    assert message.startswith("needs 5 vehicles, 3 available: 2 missing")
+    assert "claimed by other missions (default/rival)" in message
+    assert "ghost" in message
+
+
+# -- claims and Pending --------------------------------------------------------------------
+
+
+def test_a_mission_claims_exactly_the_count_in_preference_order() -> None:
+    plan = plan_mission(observe([vehicle("c"), vehicle("a"), vehicle("b")]))
+    assert plan.claims == ["a", "b"]
+    assert plan.jobs_to_create == []
+
+
+def test_too_few_free_vehicles_keeps_the_mission_pending_and_gives_back_partial_claims() -> None:
+    vehicles = [*claimed("a"), vehicle("b", claimed_by=OTHER), vehicle("c", ready=False)]
+    plan = plan_mission(observe(vehicles, spec=mission_spec(vehicles={"selector": {}, "count": 3})))
+    assert plan.status.phase == MissionPhase.PENDING
+    assert plan.status.reason == "InsufficientVehicles"
+    assert "2 missing" in (plan.status.message or "")
+    assert plan.claims == []
+    assert plan.releases == ["a"], "holding a partial set could deadlock two missions"
+    assigned = find_condition(plan.status.conditions, "VehiclesAssigned")
+    assert assigned is not None and assigned.status == "False"
+    assert [e.reason for e in plan.events] == ["InsufficientVehicles"]
+    assert plan.events[0].type == "Warning"
+
+
+def test_once_vehicles_are_held_the_mission_stops_claiming() -> None:
+    plan = plan_mission(observe([*claimed("a", "b"), vehicle("c")]))
+    assert plan.claims == []
+    assert plan.status.phase == MissionPhase.RUNNING
+
+
+# -- preflight -----------------------------------------------------------------------------
+
+
+def test_preflight_checks_each_writer_and_counts_an_absent_condition_as_failing() -> None:
+    checks = Preflight()
+    v = vehicle("a", agent=None)
+    reasons = [f.reason for f in preflight_failures(v, autopilots("a"), checks)]
+    assert reasons == ["AgentNotConnected"]
+    assert preflight_failures(v, autopilots("a"), Preflight(require_agent_connected=False)) == []
+    unhealthy = autopilots("a", healthy=False, redundant=False)
+    reasons = [f.reason for f in preflight_failures(vehicle("a"), unhealthy, checks)]
+    assert reasons == ["ActiveAutopilotUnhealthy", "NotRedundant"]
+    relaxed = Preflight(require_redundancy=False)
+    assert [f.reason for f in preflight_failures(vehicle("a"), unhealthy, relaxed)] == [
+        "ActiveAutopilotUnhealthy"
+    ]
+    no_autopilots = [f.reason for f in preflight_failures(vehicle("a", ready=False), None, checks)]
+    assert no_autopilots == ["VehicleNotReady", "ActiveAutopilotUnhealthy", "NotRedundant"]
+    nothing_required = Preflight(
+        require_agent_connected=False, require_active_healthy=False, require_redundancy=False
+    )
+    assert preflight_failures(vehicle("a", agent=None), None, nothing_required) == []
+    assert [f.reason for f in preflight_failures(None, None, checks)] == ["VehicleMissing"]
+
+
+def test_a_failing_check_keeps_the_mission_in_preflight_with_per_vehicle_reasons() -> None:
+    obs = observe(claimed("a", "b"), aps=[autopilots("a"), autopilots("b", healthy=False)])
+    plan = plan_mission(obs)
+    assert plan.status.phase == MissionPhase.PREFLIGHT
+    assert plan.jobs_to_create == [] and plan.status.start_time is None
+    b = vehicle_status(plan, "b")
+    assert b.phase == MissionVehiclePhase.PREFLIGHT
+    assert b.reason == "ActiveAutopilotUnhealthy"
+    assert vehicle_status(plan, "a").phase == MissionVehiclePhase.CLAIMED
+    assert "1 of 2 vehicles fail preflight — b: active autopilot not healthy" in (
+        plan.status.message or ""
+    )
+    passed = find_condition(plan.status.conditions, "PreflightPassed")
+    assert passed is not None and passed.status == "False"
+
+
+def test_a_vehicle_without_its_config_yet_fails_preflight() -> None:
+    obs = replace(observe(claimed("a", "b")), config_values={"a": config("a")})
+    plan = plan_mission(obs)
+    assert vehicle_status(plan, "b").reason == "VehicleConfigMissing"
+    assert plan.status.phase == MissionPhase.PREFLIGHT
+
+
+# -- start and workloads -------------------------------------------------------------------
+
+
+def test_passing_preflight_records_the_start_then_creates_one_job_per_vehicle() -> None:
+    spec = mission_spec(offboard={"spec": {"containers": [{"name": "m", "image": "monitor"}]}})
+    plan = plan_mission(observe(claimed("a", "b"), spec=spec))
+    assert plan.status.phase == MissionPhase.RUNNING
+    assert plan.status.start_time == T0
+    names = [j["metadata"]["name"] for j in plan.jobs_to_create]
+    assert names == [
+        onboard_job_name("survey", "a"),
+        onboard_job_name("survey", "b"),
+        "survey-offboard",
+    ]
+    assert [cm["metadata"]["namespace"] for cm in plan.config_maps] == ["default", "default"]
+    assert condition_is_true(plan.status.conditions, "PreflightPassed")
+    assert [v.phase for v in plan.status.vehicles] == ["Running", "Running"]
+
+
+def test_an_onboard_job_is_pinned_tolerated_configured_and_knows_its_peers() -> None:
+    plan = plan_mission(observe(claimed("a", "b"), spec=mission_spec(backoffLimit=4)))
+    manifest = plan.jobs_to_create[1]
+    assert manifest["spec"]["backoffLimit"] == 4
+    assert manifest["metadata"]["ownerReferences"][0]["uid"] == ME.uid
+    pod = manifest["spec"]["template"]["spec"]
+    assert pod["restartPolicy"] == "Never"
+    assert pod["nodeSelector"] == {LABEL_VEHICLE: "b"}
+    assert any(t["key"] == TAINT_VEHICLE and t["value"] == "b" for t in pod["tolerations"])
+    container = pod["containers"][0]
+    mounts = {m["mountPath"] for m in container["volumeMounts"]}
+    assert mounts == {"/etc/roost", "/etc/starling"}
+    env = {e["name"]: e.get("value", e.get("valueFrom")) for e in container["env"]}
+    assert env[ENV_MISSION_VEHICLES] == "a,b"
+    assert env[ENV_MISSION_VEHICLE_INDEX] == "1"
+    assert env["MINE"] == "1"
+    assert env["VEHICLE_NAME"] == {
+        "configMapKeyRef": {"name": "roost-vehicle-b", "key": "VEHICLE_NAME"}
+    }
+    assert manifest["spec"]["template"]["metadata"]["labels"]["app"] == "controller"
+
+
+def test_the_offboard_job_is_kept_off_vehicle_nodes() -> None:
+    spec = mission_spec(offboard={"spec": {"containers": [{"name": "m", "image": "monitor"}]}})
+    offboard = plan_mission(observe(claimed("a", "b"), spec=spec)).jobs_to_create[-1]
+    pod = offboard["spec"]["template"]["spec"]
+    terms = pod["affinity"]["nodeAffinity"]["requiredDuringSchedulingIgnoredDuringExecution"][
+        "nodeSelectorTerms"
+    ]
+    assert terms == [{"matchExpressions": [{"key": LABEL_VEHICLE, "operator": "DoesNotExist"}]}]
+    assert "tolerations" not in pod and "nodeSelector" not in pod
+    assert {"name": ENV_MISSION_VEHICLES, "value": "a,b"} in pod["containers"][0]["env"]
+
+
+def test_long_names_are_bounded_and_stay_distinct() -> None:
+    first = onboard_job_name("m" * 40, "vehicle-" + "x" * 30 + "-1")
+    second = onboard_job_name("m" * 40, "vehicle-" + "x" * 30 + "-2")
+    assert len(first) <= 63 and len(second) <= 63 and first != second
+    assert bounded_name("short", "name") == "short-name"
+    assert offboard_job_name("m") == "m-offboard"
+
+
+# -- running, completion, failure ----------------------------------------------------------
+
+
+def test_a_restart_after_start_recreates_only_missing_jobs() -> None:
+    status, vehicles = started(["a", "b"])
+    plan = plan_mission(observe(vehicles, status=status, jobs=[job("a")]))
+    assert [j["metadata"]["name"] for j in plan.jobs_to_create] == [onboard_job_name("survey", "b")]
+    assert plan.status.phase == MissionPhase.RUNNING
+
+
+def test_jobs_existing_without_a_recorded_start_count_as_started() -> None:
+    plan = plan_mission(observe(claimed("a", "b"), jobs=[job("a"), job("b")]))
+    assert plan.claims == [] and plan.jobs_to_create == []
+    assert plan.status.phase != MissionPhase.PREFLIGHT
+
+
+def test_all_onboard_jobs_complete_means_succeeded_and_vehicles_released() -> None:
+    status, vehicles = started(["a", "b"])
+    plan = plan_mission(
+        observe(
+            vehicles,
+            status=status,
+            jobs=[job("a", JobPhase.SUCCEEDED), job("b", JobPhase.SUCCEEDED)],
+        )
+    )
+    assert plan.status.phase == MissionPhase.SUCCEEDED
+    assert plan.status.completion_time == T0
+    assert sorted(plan.releases) == ["a", "b"]
+    assert condition_is_true(plan.status.conditions, "Complete")
+
+
+def test_progress_is_status_not_events() -> None:
+    status, vehicles = started(["a", "b"])
+    plan = plan_mission(
+        observe(vehicles, status=status, jobs=[job("a", ready=1, active=1), job("b", active=1)])
+    )
+    assert plan.status.phase == MissionPhase.RUNNING
+    assert vehicle_status(plan, "a").reason == "PodRunning"
+    assert plan.events == []
+    assert "0/2 onboard workloads completed, 2 running" in (plan.status.message or "")
+
+
+def test_one_job_failing_beyond_retries_fails_the_mission_and_stops_the_rest() -> None:
+    status, vehicles = started(["a", "b"])
+    failed = job(
+        "b", JobPhase.FAILED, failed=3, message="Job has reached the specified backoff limit"
+    )
+    plan = plan_mission(observe(vehicles, status=status, jobs=[job("a", active=1), failed]))
+    assert plan.status.phase == MissionPhase.FAILED
+    assert plan.status.reason == "VehicleWorkloadFailed"
+    assert "backoff limit" in (plan.status.message or "")
+    assert plan.jobs_to_delete == [onboard_job_name("survey", "a")]
+    assert sorted(plan.releases) == ["a", "b"]
+
+
+def test_a_finished_mission_only_winds_down() -> None:
+    status, vehicles = started(["a", "b"])
+    done = plan_mission(
+        observe(
+            vehicles,
+            status=status,
+            jobs=[job("a", JobPhase.SUCCEEDED), job("b", JobPhase.SUCCEEDED)],
+        )
+    ).status
+    again = plan_mission(observe([*claimed("a"), vehicle("b")], status=done))
+    assert again.status == done.model_copy(update={"observed_generation": 1})
+    assert again.releases == ["a"] and again.events == [] and again.jobs_to_create == []
+
+
+# -- abort ---------------------------------------------------------------------------------
+
+
+def test_abort_before_start_ends_at_once_without_commanding_anything() -> None:
+    obs = observe(claimed("a"), spec=mission_spec(abort=True))
+    plan = plan_mission(obs)
+    assert plan.status.phase == MissionPhase.ABORTED
+    assert plan.commands == {} and plan.jobs_to_create == []
+    assert plan.releases == ["a"]
+
+
+def test_abort_stops_jobs_and_asks_every_vehicle_for_the_safety_routine() -> None:
+    status, vehicles = started(["a", "b"])
+    spec = mission_spec(vehicles={"names": ["a", "b"], "count": 2}, abort=True)
+    plan = plan_mission(observe(vehicles, spec=spec, status=status, jobs=[job("a"), job("b")]))
+    assert plan.status.phase == MissionPhase.ABORTING
+    assert sorted(plan.jobs_to_delete) == sorted(onboard_job_name("survey", n) for n in "ab")
+    assert plan.jobs_to_create == []
+    assert {n: c.action for n, c in plan.commands.items()} == {
+        "a": CommandAction.SAFETY_ROUTINE,
+        "b": CommandAction.SAFETY_ROUTINE,
+    }
+    command = plan.commands["a"]
+    assert command.id == abort_command_id(ME, "a", CommandAction.SAFETY_ROUTINE, 1)
+    assert command.deadline_seconds == ABORT_COMMAND_DEADLINE_SECONDS
+    assert plan.releases == [], "vehicles stay claimed until they have landed"
+    assert plan.requeue_after is not None
+
+
+def test_a_written_command_is_not_written_again_and_nothing_restarts() -> None:
+    status, vehicles = started(["a"])
+    spec = mission_spec(vehicles={"names": ["a"], "count": 1}, abort=True)
+    first = plan_mission(observe(vehicles, spec=spec, status=status))
+    command = first.commands["a"]
+    later = T0 + timedelta(seconds=3)
+    aps = [autopilots("a", command=command)]
+    second = plan_mission(observe(vehicles, spec=spec, status=first.status, aps=aps, now=later))
+    assert second.commands == {} and second.jobs_to_create == []
+    assert vehicle_status(second, "a").reason == "SafetyRoutinePending"
+
+
+def test_a_restarted_operator_adopts_its_command_instead_of_issuing_another() -> None:
+    status, vehicles = started(["a"])
+    spec = mission_spec(vehicles={"names": ["a"], "count": 1}, abort=True)
+    written = plan_mission(observe(vehicles, spec=spec, status=status)).commands["a"]
+    aps = [autopilots("a", command=written)]
+    plan = plan_mission(observe(vehicles, spec=spec, status=status, aps=aps))
+    assert plan.commands == {}
+    assert vehicle_status(plan, "a").command == written
+
+
+def test_only_a_report_after_the_command_can_end_the_abort() -> None:
+    status, vehicles = started(["a"])
+    spec = mission_spec(vehicles={"names": ["a"], "count": 1}, abort=True)
+    first = plan_mission(observe(vehicles, spec=spec, status=status))
+    command = first.commands["a"]
+    stale = autopilots(
+        "a", landed="OnGround", armed=False, command=command, reported_at=T0 - timedelta(seconds=5)
+    )
+    waiting = plan_mission(observe(vehicles, spec=spec, status=first.status, aps=[stale]))
+    assert waiting.status.phase == MissionPhase.ABORTING, (
+        "a report from before the abort proves nothing"
+    )
+    landed = autopilots(
+        "a", landed="OnGround", armed=True, command=command, reported_at=T0 + timedelta(seconds=4)
+    )
+    done = plan_mission(observe(vehicles, spec=spec, status=first.status, aps=[landed]))
+    assert done.status.phase == MissionPhase.ABORTED
+    assert vehicle_status(done, "a").reason == "Landed"
+    assert done.releases == ["a"]
+    assert not condition_is_true(done.status.conditions, "Complete")
+
+
+def test_emergency_stop_force_disarms_and_ends_only_when_disarmed() -> None:
+    status, vehicles = started(["a"])
+    spec = mission_spec(
+        vehicles={"names": ["a"], "count": 1}, abort=True, abortAction="EmergencyStop"
+    )
+    first = plan_mission(observe(vehicles, spec=spec, status=status))
+    command = first.commands["a"]
+    assert command.action == CommandAction.EMERGENCY_STOP
+    on_ground_armed = autopilots(
+        "a", landed="OnGround", armed=True, command=command, reported_at=T0 + timedelta(seconds=1)
+    )
+    assert plan_mission(
+        observe(vehicles, spec=spec, status=first.status, aps=[on_ground_armed])
+    ).status.phase == (MissionPhase.ABORTING)
+    executed = CommandResult(id=command.id, result="Executed", time=T0)
+    disarmed = autopilots("a", landed="InAir", armed=False, command=command, last_command=executed)
+    done = plan_mission(observe(vehicles, spec=spec, status=first.status, aps=[disarmed]))
+    assert done.status.phase == MissionPhase.ABORTED
+    assert vehicle_status(done, "a").reason == "Disarmed"
+
+
+def test_an_expired_command_is_issued_again_with_the_next_id() -> None:
+    status, vehicles = started(["a"])
+    spec = mission_spec(vehicles={"names": ["a"], "count": 1}, abort=True)
+    first = plan_mission(observe(vehicles, spec=spec, status=status))
+    command = first.commands["a"]
+    expired = CommandResult(id=command.id, result="Expired", time=T0)
+    aps = [autopilots("a", command=command, last_command=expired)]
+    retry = plan_mission(
+        observe(vehicles, spec=spec, status=first.status, aps=aps, now=T0 + timedelta(minutes=5))
+    )
+    assert retry.commands["a"].id == abort_command_id(ME, "a", CommandAction.SAFETY_ROUTINE, 2)
+
+
+def test_a_rejected_command_is_reported_and_the_abort_waits() -> None:
+    status, vehicles = started(["a"])
+    spec = mission_spec(vehicles={"names": ["a"], "count": 1}, abort=True)
+    first = plan_mission(observe(vehicles, spec=spec, status=status))
+    command = first.commands["a"]
+    rejected = CommandResult(
+        id=command.id, result="Rejected", message="no healthy autopilot", time=T0
+    )
+    aps = [autopilots("a", command=command, last_command=rejected)]
+    plan = plan_mission(observe(vehicles, spec=spec, status=first.status, aps=aps))
+    assert plan.commands == {}
+    a = vehicle_status(plan, "a")
+    assert a.reason == "SafetyRoutineRejected" and "no healthy autopilot" in a.message
+
+
+def test_a_vehicle_without_redundant_autopilots_cannot_be_commanded_and_is_reported() -> None:
+    spec = mission_spec(
+        vehicles={"names": ["a"], "count": 1},
+        preflight={"requireActiveHealthy": False, "requireRedundancy": False},
+    )
+    status, vehicles = started(["a"], spec=spec)
+    plan = plan_mission(
+        observe(vehicles, spec=spec.model_copy(update={"abort": True}), status=status, aps=[])
+    )
+    assert plan.status.phase == MissionPhase.ABORTED
+    assert vehicle_status(plan, "a").reason == "NoRedundantAutopilot"
+
+
+@pytest.mark.parametrize(
+    ("action", "landed", "armed", "done"),
+    [
+        (CommandAction.SAFETY_ROUTINE, "OnGround", True, True),
+        (CommandAction.SAFETY_ROUTINE, "InAir", False, True),
+        (CommandAction.SAFETY_ROUTINE, "Landing", True, False),
+        (CommandAction.EMERGENCY_STOP, "OnGround", True, False),
+        (CommandAction.EMERGENCY_STOP, "InAir", False, True),
+    ],
+)
+def test_stopped_means_on_the_ground_or_disarmed_and_disarmed_for_an_estop(
+    action: CommandAction, landed: str, armed: bool, done: bool
+) -> None:
+    assert stopped(action, autopilots("a", landed=landed, armed=armed).status) is done
+
+
+# -- failover policy -----------------------------------------------------------------------
+
+
+def _failover_obs(policy: str, failover_at: datetime) -> tuple[Observation, MissionSpec]:
+    spec = mission_spec(vehicles={"names": ["a", "b"], "count": 2}, onFailover=policy)
+    status, vehicles = started(["a", "b"], spec=spec)
+    aps = [autopilots("a", failover_at=failover_at), autopilots("b")]
+    obs = observe(
+        vehicles,
+        spec=spec,
+        status=status,
+        aps=aps,
+        jobs=[job("a"), job("b")],
+        now=T0 + timedelta(seconds=30),
+    )
+    return obs, spec
+
+
+def test_failover_with_continue_marks_the_mission_degraded_and_goes_on() -> None:
+    obs, _ = _failover_obs("Continue", T0 + timedelta(seconds=10))
+    plan = plan_mission(obs)
+    assert plan.status.phase == MissionPhase.RUNNING
+    assert condition_is_true(plan.status.conditions, "Degraded")
+    assert plan.commands == {} and plan.jobs_to_delete == []
+    assert vehicle_status(plan, "a").failed_over_at == T0 + timedelta(seconds=10)
+    assert [e.reason for e in plan.events] == ["VehicleFailedOver"]
+    again = plan_mission(replace(obs, status=plan.status))
+    assert again.events == [], "one failover, one Event"
+
+
+def test_failover_with_abort_vehicle_lands_that_vehicle_and_the_mission_carries_on() -> None:
+    obs, _ = _failover_obs("AbortVehicle", T0 + timedelta(seconds=10))
+    plan = plan_mission(obs)
+    assert plan.status.phase == MissionPhase.RUNNING
+    assert condition_is_true(plan.status.conditions, "Degraded")
+    assert list(plan.commands) == ["a"]
+    assert plan.commands["a"].action == CommandAction.SAFETY_ROUTINE
+    assert plan.jobs_to_delete == [onboard_job_name("survey", "a")]
+    assert vehicle_status(plan, "a").phase == MissionVehiclePhase.ABORTING
+    assert vehicle_status(plan, "b").phase == MissionVehiclePhase.RUNNING
+    command = plan.commands["a"]
+    landed = autopilots(
+        "a",
+        failover_at=T0 + timedelta(seconds=10),
+        landed="OnGround",
+        command=command,
+        reported_at=T0 + timedelta(seconds=40),
+    )
+    later = replace(
+        obs,
+        status=plan.status,
+        autopilots={"a": landed, "b": autopilots("b")},
+        jobs={onboard_job_name("survey", "b"): job("b", JobPhase.SUCCEEDED)},
+    )
+    done = plan_mission(later)
+    assert vehicle_status(done, "a").phase == MissionVehiclePhase.ABORTED
+    assert done.status.phase == MissionPhase.SUCCEEDED
+    assert "1 aborted after a failover" in (done.status.message or "")
+    assert condition_is_true(done.status.conditions, "Degraded")
+
+
+def test_failover_with_abort_mission_aborts_every_vehicle() -> None:
+    obs, _ = _failover_obs("AbortMission", T0 + timedelta(seconds=10))
+    plan = plan_mission(obs)
+    assert plan.status.phase == MissionPhase.ABORTING
+    assert plan.status.reason == "VehicleFailedOver"
+    assert sorted(plan.commands) == ["a", "b"]
+    assert all(c.action == CommandAction.SAFETY_ROUTINE for c in plan.commands.values())
+    assert "autopilot failover on a" in (plan.status.message or "")
+
+
+def test_a_failover_before_the_mission_started_is_not_acted_on() -> None:
+    obs, _ = _failover_obs("AbortMission", T0 - timedelta(seconds=1))
+    plan = plan_mission(obs)
+    assert plan.status.phase == MissionPhase.RUNNING
+    assert plan.commands == {}
+
+
+def test_every_vehicle_aborted_after_failovers_is_a_failed_mission() -> None:
+    spec = mission_spec(vehicles={"names": ["a"], "count": 1}, onFailover="AbortVehicle")
+    status, vehicles = started(["a"], spec=spec)
+    at = T0 + timedelta(seconds=1)
+    first = plan_mission(
+        observe(vehicles, spec=spec, status=status, aps=[autopilots("a", failover_at=at)], now=at)
+    )
+    command = first.commands["a"]
+    landed = autopilots(
+        "a", failover_at=at, armed=False, command=command, reported_at=at + timedelta(seconds=9)
+    )
+    done = plan_mission(observe(vehicles, spec=spec, status=first.status, aps=[landed], now=at))
+    assert done.status.phase == MissionPhase.FAILED
+    assert done.status.reason == "AllVehiclesAborted"
+
+
+# -- deletion, events, wake-ups ------------------------------------------------------------
+
+
+def test_deleting_a_running_mission_lands_its_vehicles_and_releases_them() -> None:
+    status, vehicles = started(["a", "b"])
+    plan = plan_deletion(observe(vehicles, status=status, jobs=[job("a"), job("b")]))
+    assert sorted(plan.commands) == ["a", "b"]
+    assert sorted(plan.releases) == ["a", "b"]
+    assert [e.reason for e in plan.events] == ["DeletedWhileRunning"]
+
+
+def test_deleting_a_pending_mission_only_releases() -> None:
+    plan = plan_deletion(observe(claimed("a")))
+    assert plan.commands == {} and plan.releases == ["a"]
+
+
+def test_transitions_produce_events_for_the_mission_and_each_vehicle() -> None:
+    before, _ = started(["a", "b"])
+    preflight = plan_mission(
+        observe(
+            claimed("a", "b"),
+            spec=mission_spec(vehicles={"names": ["a", "b"], "count": 2}),
+            aps=[autopilots("a"), autopilots("b", redundant=False)],
+        )
+    )
+    reasons = [(e.reason, e.vehicle, e.type) for e in preflight.events]
+    assert ("PreflightFailed", None, "Warning") in reasons
+    assert ("NotRedundant", "b", "Warning") in reasons
+    assert ("PreflightPassed", "a", "Normal") in reasons
+    assert transition_events(before, before) == []
+
+
+def test_wakeups_reach_the_holder_the_claimant_and_waiting_missions() -> None:
+    async def scenario() -> list[bool]:
+        wakeups = Wakeups()
+        holder, waiting, other = (
+            wakeups.register(k) for k in ("ns/holder", "ns/waiting", "ns/other")
+        )
+        wakeups.track("ns/holder", vehicles=["a"], waiting=False)
+        wakeups.track("ns/waiting", vehicles=[], waiting=True)
+        wakeups.track("ns/other", vehicles=["b"], waiting=False)
+        wakeups.wake_holder("a")
+        seen = [holder.is_set(), waiting.is_set(), other.is_set()]
+        holder.clear()
+        wakeups.wake_for_vehicle("c", claimant="ns/other")
+        seen += [holder.is_set(), waiting.is_set(), other.is_set()]
+        never = asyncio.Event()
+        woken = await sleep_until_woken(holder, never.wait(), 0.01)
+        return [*seen, woken]
+
+    assert asyncio.run(scenario()) == [True, False, False, False, True, True, False]
