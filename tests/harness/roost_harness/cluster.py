@@ -9,6 +9,7 @@ process (:class:`~roost_harness.controlplane.ControlPlane`, then reachable as
 from __future__ import annotations
 
 import subprocess
+import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -77,13 +78,25 @@ class Cluster:
     def install_crds(self, directory: Path = REPO_ROOT / "crds", timeout_s: float = 60) -> None:
         """``kubectl apply`` every CRD in ``directory`` and wait until all are Established."""
         self.kubectl("apply", "-f", str(directory))
-        self.kubectl(
-            "wait",
-            "--for=condition=Established",
-            f"--timeout={timeout_s:.0f}s",
-            "-f",
-            str(directory),
-        )
+        # A CRD created a moment ago may have no status.conditions yet, which makes
+        # `kubectl wait` fail at once instead of waiting: retry until the deadline.
+        deadline = time.monotonic() + timeout_s
+        while True:
+            result = self.kubectl(
+                "wait",
+                "--for=condition=Established",
+                "--timeout=5s",
+                "-f",
+                str(directory),
+                check=False,
+            )
+            if result.returncode == 0:
+                return
+            if time.monotonic() > deadline:
+                raise subprocess.CalledProcessError(
+                    result.returncode, result.args, output=result.stdout, stderr=result.stderr
+                )
+            time.sleep(0.5)
 
     def as_service_account(
         self, namespace: str, name: str, kubeconfig: Path, duration: str = "1h"
