@@ -25,6 +25,7 @@ from roost_api.autopilot import CommandAction
 from roost_cli import actions, render, tables, view
 from roost_cli.cluster import Fleet, resolve_kubeconfig
 from roost_cli.errors import CliError
+from roost_cli.sandbox import plan, runner, sims
 from roost_cli.sandbox import state as sandbox_state
 
 
@@ -46,6 +47,11 @@ app = RoostApp(
     rich_markup_mode="rich",
     pretty_exceptions_show_locals=False,
 )
+sandbox_app = typer.Typer(
+    help="A local fleet: a real control plane, simulated vehicles, the operator and agents.",
+    no_args_is_help=True,
+)
+app.add_typer(sandbox_app, name="sandbox")
 console = Console()
 
 
@@ -189,3 +195,66 @@ def estop(
     console.print(table)
     if any(ack.result != "Executed" for ack in acks):
         raise typer.Exit(code=2)
+
+
+@app.command()
+def fault(
+    ctx: typer.Context,
+    vehicle: Annotated[str, typer.Argument(help="Sandbox vehicle, e.g. drone-1.")],
+    autopilot: Annotated[str, typer.Argument(help="Its autopilot, e.g. px4-a.")],
+    kind: Annotated[
+        str,
+        typer.Argument(
+            help="silence, freeze, sensor, state, reboot, garbage, loss, jitter, spoof, or "
+            "clear (remove every fault)."
+        ),
+    ],
+    value: Annotated[
+        str | None, typer.Option(help="Fault parameter, e.g. --value gyro for sensor.")
+    ] = None,
+) -> None:
+    """Inject a fault into a sandbox vehicle's simulated autopilot (or clear its faults)."""
+    directory = _context(ctx).sandbox_dir
+    recorded = sandbox_state.running(directory)
+    if recorded is None:
+        raise CliError(
+            f"no sandbox is running in {directory}: `roost fault` works on sandbox vehicles. "
+            "Start one with `roost sandbox up` (or pass --sandbox-dir)"
+        )
+    answer = sims.control(recorded, vehicle, autopilot, sims.fault_message(kind, value))
+    faults = answer.get("state", {}).get("faults") or {}
+    shown = ", ".join(f"{k}={v}" if v else k for k, v in faults.items()) or "none"
+    console.print(f"{vehicle}/{autopilot}: faults now {shown}. Watch with `roost status -w`.")
+
+
+@sandbox_app.command("up")
+def sandbox_up(
+    ctx: typer.Context,
+    vehicles: Annotated[
+        int, typer.Option(min=1, max=plan.MAX_VEHICLES, help="Simulated vehicles to run.")
+    ] = runner.DEFAULT_VEHICLES,
+    fault: Annotated[
+        bool, typer.Option(help="Inject an autopilot fault on one vehicle to show a failover.")
+    ] = True,
+    fault_after: Annotated[
+        float, typer.Option(min=0, help="Seconds of normal flight before the fault.")
+    ] = runner.DEFAULT_FAULT_AFTER_S,
+    live: Annotated[
+        bool, typer.Option(help="Show the live fleet view (--no-live prints plain lines).")
+    ] = True,
+) -> None:
+    """Start the sandbox and keep it running until Ctrl-C (`make demo` runs this)."""
+    options = runner.Options(
+        directory=_context(ctx).sandbox_dir,
+        vehicles=vehicles,
+        fault=fault,
+        fault_after_s=fault_after,
+        live=live and console.is_terminal,
+    )
+    runner.Sandbox(options, console).run()
+
+
+@sandbox_app.command("down")
+def sandbox_down(ctx: typer.Context) -> None:
+    """Stop a running sandbox (from another terminal) and every process it started."""
+    runner.down(_context(ctx).sandbox_dir, console)

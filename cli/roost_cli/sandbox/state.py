@@ -6,7 +6,8 @@ it current. It records
 - the ``roost sandbox up`` process itself (pid and start time),
 - every process it started (operator, agents, simulated autopilots) by pid and start time,
   the control plane's own processes being recorded by the harness in ``<dir>/cluster``,
-- the kubeconfig, and each vehicle's simulated autopilots with their ports,
+- the kubeconfig, and each vehicle's simulated autopilots with their ports and control
+  sockets,
 
 so ``roost status`` finds the cluster, ``roost fault`` finds a simulator's control port,
 and ``roost sandbox down`` (another terminal) stops exactly those processes. Pids alone
@@ -46,9 +47,9 @@ class SimulatedAutopilot(BaseModel):
     sysid: int
     agent_port: int
     """UDP port the agent listens on; the simulator sends its MAVLink stream there."""
-    control_port: int
-    """Port of the simulator's fault-injection control channel (127.0.0.1)."""
     bridge_channel: int
+    control: str
+    """The simulator's control socket (faults, take-off); see :mod:`roost_sim.control`."""
 
 
 class SandboxVehicle(BaseModel):

@@ -1,0 +1,177 @@
+"""The sandbox fleet on paper: names, system ids, ports and the manifests to apply.
+
+Pure, so what the sandbox applies is unit-tested against the API models without a
+cluster. Vehicles alternate PX4 and ArduPilot so both stacks' conventions are on screen;
+each has two simulated autopilots of its stack behind a simulated bridge.
+
+Every port comes from the caller (free ports picked at start), never from the SITL
+conventions in :mod:`roost_mavlink.sitl` (14540 + i): other people's tests and sandboxes
+run on the same machine, and a fixed port would collide. System ids do follow
+:func:`roost_mavlink.sitl.sitl_instance` (one global numbering, ``instance + 1``) so no two
+autopilots of the sandbox ever share one.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any
+
+from roost_api.meta import API_VERSION, Stack
+from roost_api.resources import MISSION, REDUNDANT_AUTOPILOT, VEHICLE
+from roost_mavlink.sitl import sitl_instance
+
+MAX_VEHICLES = 10
+"""Two cores run an agent and two simulators per vehicle next to a control plane."""
+AUTOPILOTS_PER_VEHICLE = 2
+FLEET_LABEL = "fleet"
+FLEET_VALUE = "sandbox"
+MISSION_NAME = "survey"
+MISSION_NAMESPACE = "default"
+VEHICLE_SYSID_BASE = 10
+"""Vehicle ids start at Starling's lowest VEHICLE_MAVLINK_SYSID."""
+HOLD_SECONDS = 3.0
+STACK_SHORT_NAMES = {Stack.PX4: "px4", Stack.ARDUPILOT: "apm"}
+_STACK_ORDER = (Stack.PX4, Stack.ARDUPILOT)
+
+
+@dataclass(frozen=True)
+class AutopilotPlan:
+    """One simulated autopilot of a sandbox vehicle."""
+
+    name: str
+    stack: Stack
+    sysid: int
+    bridge_channel: int
+    agent_port: int
+    """UDP port on 127.0.0.1 where the vehicle's agent listens and the simulator sends."""
+
+    @property
+    def connection(self) -> str:
+        """``AutopilotSpec.connection``: the agent listens (``udp://``), the sim sends."""
+        return f"udp://127.0.0.1:{self.agent_port}"
+
+
+@dataclass(frozen=True)
+class VehiclePlan:
+    """One sandbox vehicle: a fake node of the same name, its autopilots, its identity."""
+
+    name: str
+    index: int
+    stack: Stack
+    sysid: int
+    autopilots: tuple[AutopilotPlan, ...]
+
+    @property
+    def node(self) -> str:
+        return self.name
+
+    @property
+    def primary(self) -> AutopilotPlan:
+        return self.autopilots[0]
+
+
+def plan_fleet(count: int, ports: Iterator[int]) -> tuple[VehiclePlan, ...]:
+    """``count`` vehicles ``drone-1`` … with ports drawn from ``ports`` in order."""
+    if not 1 <= count <= MAX_VEHICLES:
+        raise ValueError(f"the sandbox runs 1 to {MAX_VEHICLES} vehicles, not {count}")
+    fleet = []
+    for index in range(count):
+        stack = _STACK_ORDER[index % len(_STACK_ORDER)]
+        autopilots = tuple(
+            AutopilotPlan(
+                name=f"{STACK_SHORT_NAMES[stack]}-{'abcdefgh'[slot]}",
+                stack=stack,
+                sysid=sitl_instance(index, slot, AUTOPILOTS_PER_VEHICLE) + 1,
+                bridge_channel=slot,
+                agent_port=next(ports),
+            )
+            for slot in range(AUTOPILOTS_PER_VEHICLE)
+        )
+        fleet.append(
+            VehiclePlan(
+                name=f"drone-{index + 1}",
+                index=index,
+                stack=stack,
+                sysid=VEHICLE_SYSID_BASE + index,
+                autopilots=autopilots,
+            )
+        )
+    return tuple(fleet)
+
+
+def vehicle_manifest(vehicle: VehiclePlan) -> dict[str, Any]:
+    """A simulated Vehicle on its own node, labelled so the sandbox Mission selects it."""
+    return {
+        "apiVersion": API_VERSION,
+        "kind": VEHICLE.kind,
+        "metadata": {"name": vehicle.name, "labels": {FLEET_LABEL: FLEET_VALUE}},
+        "spec": {
+            "nodeName": vehicle.node,
+            "sysid": vehicle.sysid,
+            "simulation": {"stack": vehicle.stack.value, "instance": vehicle.index},
+        },
+    }
+
+
+def autopilot_manifest(vehicle: VehiclePlan) -> dict[str, Any]:
+    """Its RedundantAutopilot: automatic failover, hold then land, manual failback."""
+    return {
+        "apiVersion": API_VERSION,
+        "kind": REDUNDANT_AUTOPILOT.kind,
+        "metadata": {"name": vehicle.name},
+        "spec": {
+            "vehicleName": vehicle.name,
+            "primary": vehicle.primary.name,
+            "autopilots": [
+                {
+                    "name": autopilot.name,
+                    "stack": autopilot.stack.value,
+                    "connection": autopilot.connection,
+                    "sysid": autopilot.sysid,
+                    "bridgeChannel": autopilot.bridge_channel,
+                }
+                for autopilot in vehicle.autopilots
+            ],
+            "failoverPolicy": {
+                "mode": "Automatic",
+                "safetyRoutine": {"holdSeconds": HOLD_SECONDS, "finalAction": "Land"},
+                "failback": "Manual",
+            },
+        },
+    }
+
+
+def mission_manifest(count: int) -> dict[str, Any]:
+    """A Mission flying every sandbox vehicle; a vehicle that fails over lands, the rest go on.
+
+    The onboard image is never pulled: kwok plays the kubelet and reports the pods
+    Running (and Job pods complete), which is all the operator observes.
+    """
+    return {
+        "apiVersion": API_VERSION,
+        "kind": MISSION.kind,
+        "metadata": {"name": MISSION_NAME, "namespace": MISSION_NAMESPACE},
+        "spec": {
+            "vehicles": {
+                "selector": {"matchLabels": {FLEET_LABEL: FLEET_VALUE}},
+                "count": count,
+            },
+            "onFailover": "AbortVehicle",
+            "preflight": {"requireRedundancy": True},
+            "onboard": {
+                "metadata": {"labels": {"app": "survey-controller"}},
+                "spec": {
+                    "restartPolicy": "Never",
+                    "containers": [
+                        {
+                            "name": "controller",
+                            "image": "roost.dev/sandbox/survey-controller:demo",
+                            "command": ["fly-survey"],
+                            "resources": {"requests": {"cpu": "100m", "memory": "64Mi"}},
+                        }
+                    ],
+                },
+            },
+        },
+    }

@@ -1,0 +1,334 @@
+"""``roost sandbox up`` and ``roost sandbox down``: bring the local fleet up, and take it down.
+
+Up, in order (each step shown as it happens):
+
+1. build or reuse the control-plane binaries, start the control plane (real kube-apiserver,
+   etcd, controller manager, scheduler, kwok) in ``<dir>/cluster``;
+2. install the CRDs and create one fake (kwok) node per vehicle;
+3. start the simulated autopilots (two per vehicle, on free UDP ports);
+4. start the operator, then apply the Vehicles, RedundantAutopilots and the Mission;
+5. start one ``roost-agent`` per vehicle, with the simulated bridge;
+6. show the fleet live, and after a pause inject a fault on one vehicle's active autopilot
+   so the failover happens on screen;
+7. keep running until Ctrl-C (or SIGTERM from ``roost sandbox down``), then stop every
+   process it started, newest first, and the control plane last.
+
+All programs are started from the main thread (see :mod:`.processes` for why) and are
+recorded in ``<dir>/state.json`` (:mod:`.state`) as they start, so ``roost sandbox down``
+from another terminal can stop them even if this process was killed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import socket
+import subprocess
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from types import FrameType
+from typing import Any
+
+import psutil
+import yaml
+from kubernetes import client
+from rich.console import Console, Group, RenderableType
+from rich.text import Text
+
+from roost_cli import view
+from roost_cli.cluster import Fleet, Target
+from roost_cli.errors import CliError
+from roost_cli.sandbox import plan, sims, state
+from roost_cli.sandbox.director import Cue, Director, Script
+from roost_cli.sandbox.processes import Launcher, console_script
+from roost_cli.sandbox.progress import build_control_plane, start_control_plane
+from roost_harness import nodes
+from roost_harness.cluster import Cluster
+from roost_harness.controlplane import ControlPlane
+from roost_harness.processes import ManagedProcess
+
+DEFAULT_VEHICLES = 3
+DEFAULT_FAULT_AFTER_S = 15.0
+NODES_READY_TIMEOUT_S = 120.0
+CRD_ATTEMPTS = 5
+DOWN_TIMEOUT_S = 60.0
+HEADLESS_POLL_S = 1.0
+
+
+@dataclass(frozen=True)
+class Options:
+    """What ``roost sandbox up`` was asked for."""
+
+    directory: Path
+    vehicles: int = DEFAULT_VEHICLES
+    fault: bool = True
+    fault_after_s: float = DEFAULT_FAULT_AFTER_S
+    live: bool = True
+
+
+def _interrupt(signum: int, frame: FrameType | None) -> None:
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+def free_udp_ports() -> Iterator[int]:
+    """Free UDP ports on 127.0.0.1, one at a time (nobody is bound to them right now)."""
+    while True:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            sock.bind(("127.0.0.1", 0))
+            yield int(sock.getsockname()[1])
+
+
+class Sandbox:
+    """One run of ``roost sandbox up``; :meth:`run` returns when it has been stopped."""
+
+    def __init__(self, options: Options, console: Console) -> None:
+        self.options = options
+        self.console = console
+        self.directory = options.directory
+        me = psutil.Process()
+        self.state = state.SandboxState(
+            pid=me.pid, create_time=me.create_time(), directory=str(self.directory)
+        )
+        self.launcher = Launcher(self.directory / "logs", self._save)
+        self.plane: ControlPlane | None = None
+        self.fleet_plan: tuple[plan.VehiclePlan, ...] = ()
+        self.script = Script()
+        self.director: Director | None = None
+        self._stop = threading.Event()
+
+    # ---- lifecycle ---------------------------------------------------------------------
+    def run(self) -> None:
+        """Bring everything up, show it, wait for Ctrl-C or SIGTERM, tear everything down."""
+        self._refuse_second_sandbox()
+        previous = signal.signal(signal.SIGTERM, _interrupt)
+        try:
+            self._save()
+            self._up()
+            self.state.phase = state.Phase.RUNNING
+            self._save()
+            self._announce()
+            self._direct()
+            self._watch()
+        except KeyboardInterrupt:
+            self.console.print("\n[bold]Stopping the sandbox…[/]")
+        finally:
+            self._stop.set()
+            if self.director is not None:
+                self.director.stop()
+                self.director.join()
+            self._down()
+            signal.signal(signal.SIGTERM, previous)
+
+    def _refuse_second_sandbox(self) -> None:
+        existing = state.running(self.directory)
+        if existing is not None and existing.pid != self.state.pid:
+            raise CliError(
+                f"a sandbox is already running in {self.directory} (pid {existing.pid}): "
+                "use it (`roost status`), or stop it first with `roost sandbox down`"
+            )
+        stale = state.load(self.directory)
+        if stale is not None:
+            self.console.print("Cleaning up after a sandbox that did not stop cleanly…")
+            stop_recorded(stale)
+
+    def _save(self) -> None:
+        self.state.processes = self.launcher.states()
+        state.save(self.state)
+
+    def _up(self) -> None:
+        try:
+            self._bring_up()
+        except subprocess.CalledProcessError as error:
+            command = " ".join(str(arg) for arg in error.cmd)
+            raise CliError(
+                f"`{command}` failed (exit {error.returncode}):\n{error.stderr or error.output}"
+            ) from error
+
+    def _bring_up(self) -> None:
+        self.fleet_plan = plan.plan_fleet(self.options.vehicles, free_udp_ports())
+        bin_dir = build_control_plane(self.console)
+        self.plane = ControlPlane(self.state.cluster_dir, bin_dir=bin_dir)
+        start_control_plane(self.console, self.plane)
+        self.state.kubeconfig = str(self.plane.kubeconfig)
+        self.state.server = self.plane.server
+        self._save()
+        cluster = Cluster.of(self.plane)
+        with self.console.status("Installing the Roost CRDs…"):
+            self._install_crds(cluster)
+        self._step("CRDs installed (Vehicle, RedundantAutopilot, Mission)")
+        self._add_nodes(cluster)
+        self._start_sims()
+        self._start_operator()
+        self._apply(cluster)
+
+    @staticmethod
+    def _install_crds(cluster: Cluster) -> None:
+        """Apply the CRDs and wait until Established.
+
+        ``kubectl wait`` fails outright ("accessor error") instead of waiting when it reads
+        a CRD whose status has no conditions yet, which happens right after the apply; a
+        retry then finds the conditions. Apply and wait are both idempotent.
+        """
+        for attempt in range(CRD_ATTEMPTS):
+            try:
+                cluster.install_crds()
+                return
+            except subprocess.CalledProcessError as error:
+                if "accessor error" not in (error.stderr or "") or attempt == CRD_ATTEMPTS - 1:
+                    raise
+                time.sleep(1.0)
+
+    def _step(self, message: str) -> None:
+        self.console.print(f"[green]✓[/] {message}")
+
+    def _add_nodes(self, cluster: Cluster) -> None:
+        names = [vehicle.node for vehicle in self.fleet_plan]
+        with self.console.status(f"Creating {len(names)} fake vehicle nodes (kwok)…"):
+            for name in names:
+                cluster.add_node(name, labels={plan.FLEET_LABEL: plan.FLEET_VALUE}, wait=False)
+            with cluster.api_client() as api:
+                nodes.wait_nodes_ready(client.CoreV1Api(api), names, NODES_READY_TIMEOUT_S)
+        self._step(f"nodes Ready: {', '.join(names)}")
+
+    def _start_sims(self) -> None:
+        with self.console.status("Starting the simulated autopilots…"):
+            for vehicle in self.fleet_plan:
+                self.state.vehicles.append(sims.start(self.launcher, vehicle, self.directory))
+                self._save()
+        described = ", ".join(
+            f"{v.name} ({'+'.join(a.name for a in v.autopilots)})" for v in self.state.vehicles
+        )
+        self._step(f"simulated autopilots running: {described}")
+
+    def _env(self) -> dict[str, str]:
+        assert self.plane is not None
+        return {"KUBECONFIG": str(self.plane.kubeconfig)}
+
+    def _start_operator(self) -> None:
+        self.launcher.start(
+            "roost-operator", [console_script("roost-operator"), "--standalone"], self._env()
+        )
+        self._step("roost-operator started")
+
+    def _apply(self, cluster: Cluster) -> None:
+        documents: list[dict[str, Any]] = []
+        for vehicle in self.fleet_plan:
+            documents += [plan.vehicle_manifest(vehicle), plan.autopilot_manifest(vehicle)]
+        documents.append(plan.mission_manifest(len(self.fleet_plan)))
+        manifest = self.directory / "fleet.yaml"
+        manifest.write_text(yaml.safe_dump_all(documents, sort_keys=False))
+        cluster.kubectl("apply", "-f", str(manifest))
+        self._step(
+            f"applied {len(self.fleet_plan)} Vehicles, their RedundantAutopilots and "
+            f"Mission {plan.MISSION_NAMESPACE}/{plan.MISSION_NAME} ({manifest})"
+        )
+
+    # ---- while running -----------------------------------------------------------------
+    def _announce(self) -> None:
+        assert self.plane is not None
+        self.console.print(
+            Group(
+                Text.from_markup(
+                    "\n[bold green]The Roost sandbox is running.[/] In another terminal:"
+                ),
+                Text(f"  export KUBECONFIG={self.plane.kubeconfig}", style="bold"),
+                Text("  kubectl get roost            # every Roost object", style="dim"),
+                Text("  roost status --watch         # this fleet view", style="dim"),
+                Text("  roost sandbox down           # stop it (or Ctrl-C here)", style="dim"),
+                Text(f"Logs: {self.directory / 'logs'}, control plane: {self.plane.logs_dir}\n"),
+            )
+        )
+
+    def _direct(self) -> None:
+        """Start the script: take-off, then (unless --no-fault) the fault on the first vehicle."""
+        cue = (
+            Cue(vehicle=self.fleet_plan[0].name, after_s=self.options.fault_after_s)
+            if self.options.fault
+            else None
+        )
+        self.director = Director(self._fleet, self.state, self.script, cue)
+        self.director.start()
+
+    def _fleet(self) -> Fleet:
+        assert self.plane is not None
+        return Fleet(Target(self.plane.kubeconfig, "sandbox"))
+
+    def _watch(self) -> None:
+        """The live view (or, headless, each new line of the script) until stopped."""
+        fleet = self._fleet()
+        if self.options.live:
+            view.live(self.console, fleet, interval_s=1.0, footer=self._footer, stop=self._stop)
+            return
+        shown = 0
+        while not self._stop.wait(HEADLESS_POLL_S):
+            self._check_processes()
+            lines = self.script.lines()
+            for message, _ in lines[shown:]:
+                self.console.print(message, highlight=False)
+            shown = len(lines)
+
+    def _footer(self) -> RenderableType | None:
+        self._check_processes()
+        return self.script.renderable()
+
+    def _check_processes(self) -> None:
+        for proc in self.launcher.dead():
+            self.script.warn(f"{proc.name} exited; its log: {proc.log}")
+
+    # ---- teardown ----------------------------------------------------------------------
+    def _down(self) -> None:
+        self.state.phase = state.Phase.STOPPING
+        self._save()
+        pids = self.launcher.stop_all()
+        if self.plane is not None:
+            pids += list(self.plane.pids().values())
+            self.plane.stop()
+        state.remove(self.directory)
+        self.console.print(f"[green]✓[/] sandbox stopped ({len(pids)} processes: {pids})")
+
+
+def stop_recorded(recorded: state.SandboxState) -> list[int]:
+    """Stop every process a (possibly dead) sandbox recorded, then its control plane.
+
+    Identity is pid plus start time, so a pid the system has since reused is left alone.
+    """
+    stopped: list[int] = []
+    for entry in reversed(recorded.processes):
+        proc = ManagedProcess.from_state(entry)
+        if proc.alive() and proc.pid is not None:
+            stopped.append(proc.pid)
+        proc.stop()
+    plane = ControlPlane.attach(recorded.cluster_dir)
+    if plane is not None:
+        stopped += [p for n, p in plane.pids().items() if plane.alive().get(n)]
+        plane.stop()
+    state.remove(Path(recorded.directory))
+    return stopped
+
+
+def down(directory: Path, console: Console) -> None:
+    """Stop the sandbox recorded in ``directory``: ask its ``up`` to stop, then make sure."""
+    recorded = state.load(directory)
+    if recorded is None:
+        console.print(f"No sandbox recorded in {directory}: nothing to stop.")
+        return
+    if state.process_alive(recorded.pid, recorded.create_time):
+        console.print(f"Asking the sandbox (pid {recorded.pid}) to stop…")
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(recorded.pid, signal.SIGTERM)
+        deadline = time.monotonic() + DOWN_TIMEOUT_S
+        while state.process_alive(recorded.pid, recorded.create_time):
+            if time.monotonic() > deadline:
+                console.print(f"It did not stop within {DOWN_TIMEOUT_S:.0f} s; stopping it.")
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(recorded.pid, signal.SIGKILL)
+                break
+            time.sleep(0.2)
+    leftovers = stop_recorded(state.load(directory) or recorded)
+    if leftovers:
+        console.print(f"Stopped leftover processes: {leftovers}")
+    console.print("[green]✓[/] sandbox stopped")

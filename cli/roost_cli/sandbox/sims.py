@@ -1,0 +1,140 @@
+"""The sandbox's simulated autopilots: one ``roost-sim run`` per vehicle, reached by socket.
+
+Each vehicle's two autopilots run in one ``roost-sim`` process streaming MAVLink over UDP
+to the ports its agent listens on (the RedundantAutopilot's connection URLs). Control
+sockets live in ``<dir>/sims/<vehicle>/`` because autopilot names repeat across vehicles
+(every PX4 vehicle has a ``px4-a``) and ``roost_sim`` names a socket after its autopilot.
+
+Faults and take-off go through :mod:`roost_sim.control`, the same channel ``roost-sim
+fault`` uses, so ``roost fault`` and the sandbox's scripted fault mean exactly what the
+simulator documents (:mod:`roost_sim.faults`).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from roost_cli.errors import CliError
+from roost_cli.sandbox import plan, state
+from roost_cli.sandbox.processes import Launcher, console_script
+from roost_sim.control import request, socket_path
+from roost_sim.faults import FaultKind
+
+READY_TIMEOUT_S = 30.0
+CLEAR = "clear"
+
+
+def sim_config(vehicle: plan.VehiclePlan) -> dict[str, Any]:
+    """``roost-sim run --config`` for one vehicle: its autopilots, streaming to the agent."""
+    return {
+        "autopilots": [
+            {
+                "name": autopilot.name,
+                "stack": autopilot.stack.value,
+                "sysid": autopilot.sysid,
+                "udp_out": f"127.0.0.1:{autopilot.agent_port}",
+            }
+            for autopilot in vehicle.autopilots
+        ]
+    }
+
+
+def start(launcher: Launcher, vehicle: plan.VehiclePlan, directory: Path) -> state.SandboxVehicle:
+    """Start the vehicle's simulators and return once every control socket answers."""
+    sims_dir = directory / "sims" / vehicle.name
+    sims_dir.mkdir(mode=0o700, parents=True, exist_ok=True)
+    config = sims_dir / "sims.yaml"
+    config.write_text(yaml.safe_dump(sim_config(vehicle), sort_keys=False))
+    proc = launcher.start(
+        f"roost-sim-{vehicle.name}",
+        [console_script("roost-sim"), "--state-dir", str(sims_dir), "run", "--config", str(config)],
+        {},
+    )
+    recorded = state.SandboxVehicle(
+        name=vehicle.name,
+        node=vehicle.node,
+        stack=vehicle.stack.value,
+        autopilots=[
+            state.SimulatedAutopilot(
+                name=autopilot.name,
+                stack=autopilot.stack.value,
+                sysid=autopilot.sysid,
+                agent_port=autopilot.agent_port,
+                bridge_channel=autopilot.bridge_channel,
+                control=str(socket_path(autopilot.name, sims_dir)),
+            )
+            for autopilot in vehicle.autopilots
+        ],
+    )
+    deadline = time.monotonic() + READY_TIMEOUT_S
+    for autopilot in recorded.autopilots:
+        while True:
+            try:
+                request(Path(autopilot.control), {"op": "status"}, timeout=1.0)
+                break
+            except OSError:
+                if not proc.alive():
+                    raise CliError(
+                        f"the simulators of {vehicle.name} exited; log {proc.log}:\n"
+                        f"{proc.log_tail()}"
+                    ) from None
+                if time.monotonic() > deadline:
+                    raise CliError(
+                        f"simulator {vehicle.name}/{autopilot.name} did not answer on "
+                        f"{autopilot.control} within {READY_TIMEOUT_S:.0f} s; log {proc.log}"
+                    ) from None
+                time.sleep(0.1)
+    return recorded
+
+
+def _find(recorded: state.SandboxState, vehicle: str, autopilot: str) -> state.SimulatedAutopilot:
+    found = recorded.vehicle(vehicle)
+    if found is None:
+        names = ", ".join(v.name for v in recorded.vehicles) or "none yet"
+        raise CliError(f"{vehicle} is not a sandbox vehicle (sandbox vehicles: {names})")
+    for candidate in found.autopilots:
+        if candidate.name == autopilot:
+            return candidate
+    names = ", ".join(a.name for a in found.autopilots)
+    raise CliError(f"{vehicle} has no autopilot {autopilot} (its autopilots: {names})")
+
+
+def control(
+    recorded: state.SandboxState, vehicle: str, autopilot: str, message: dict[str, Any]
+) -> dict[str, Any]:
+    """Send one control request to a sandbox simulator; its answer (``ok`` and ``state``)."""
+    target = _find(recorded, vehicle, autopilot)
+    try:
+        answer = request(Path(target.control), message)
+    except (OSError, ValueError) as error:
+        raise CliError(
+            f"cannot reach the simulator of {vehicle}/{autopilot} at {target.control}: "
+            f"{error}. Is the sandbox still running? (`roost sandbox up`)"
+        ) from error
+    if not answer.get("ok"):
+        raise CliError(f"{vehicle}/{autopilot} refused: {answer.get('error', answer)}")
+    return answer
+
+
+def fault_message(kind: str, value: str | None) -> dict[str, Any]:
+    """The control request for ``roost fault``: a FaultKind, or ``clear`` (all faults)."""
+    if kind == CLEAR:
+        return {"op": "clear", "kind": None}
+    try:
+        FaultKind(kind)
+    except ValueError:
+        kinds = ", ".join([*(k.value for k in FaultKind), CLEAR])
+        raise CliError(f"unknown fault {kind!r}: one of {kinds}") from None
+    return {"op": "fault", "kind": kind, "value": value}
+
+
+def fly(recorded: state.SandboxVehicle) -> None:
+    """Arm and take off every autopilot of the vehicle (its standby flies along)."""
+    for autopilot in recorded.autopilots:
+        answer = request(Path(autopilot.control), {"op": "fly"})
+        if not answer.get("ok"):
+            raise CliError(f"{recorded.name}/{autopilot.name} did not take off: {answer}")
