@@ -54,7 +54,6 @@ from roost_harness.processes import ManagedProcess
 DEFAULT_VEHICLES = 3
 DEFAULT_FAULT_AFTER_S = 15.0
 NODES_READY_TIMEOUT_S = 120.0
-CRD_ATTEMPTS = 5
 DOWN_TIMEOUT_S = 60.0
 HEADLESS_POLL_S = 1.0
 
@@ -158,29 +157,12 @@ class Sandbox:
         self._save()
         cluster = Cluster.of(self.plane)
         with self.console.status("Installing the Roost CRDs…"):
-            self._install_crds(cluster)
+            cluster.install_crds()
         self._step("CRDs installed (Vehicle, RedundantAutopilot, Mission)")
         self._add_nodes(cluster)
         self._start_sims()
         self._start_operator()
         self._apply(cluster)
-
-    @staticmethod
-    def _install_crds(cluster: Cluster) -> None:
-        """Apply the CRDs and wait until Established.
-
-        ``kubectl wait`` fails outright ("accessor error") instead of waiting when it reads
-        a CRD whose status has no conditions yet, which happens right after the apply; a
-        retry then finds the conditions. Apply and wait are both idempotent.
-        """
-        for attempt in range(CRD_ATTEMPTS):
-            try:
-                cluster.install_crds()
-                return
-            except subprocess.CalledProcessError as error:
-                if "accessor error" not in (error.stderr or "") or attempt == CRD_ATTEMPTS - 1:
-                    raise
-                time.sleep(1.0)
 
     def _step(self, message: str) -> None:
         self.console.print(f"[green]✓[/] {message}")
