@@ -92,7 +92,12 @@ def install_args(
     values: Mapping[str, Any] | None,
     values_dir: Path,
 ) -> list[str]:
-    """Arguments of ``helm upgrade --install`` for :meth:`Cluster.helm`."""
+    """Arguments of ``helm upgrade --install`` for :meth:`Cluster.helm`.
+
+    ``--force-conflicts``: Helm 4 installs the chart's CRDs with server-side apply, which
+    conflicts with CRDs a test applied earlier with client-side ``kubectl apply``; on a
+    fresh cluster it changes nothing.
+    """
     args = [
         "upgrade",
         "--install",
@@ -101,6 +106,7 @@ def install_args(
         "--namespace",
         namespace,
         "--create-namespace",
+        "--force-conflicts",
         "--wait",
         "--timeout",
         "3m",

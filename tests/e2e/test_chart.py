@@ -1,0 +1,494 @@
+"""The Helm chart on a real control plane: install, RBAC sufficient, RBAC minimal, node identity.
+
+``helm install`` puts the chart onto the harness (etcd, kube-apiserver, controller
+manager, scheduler, kwok). kwok marks the operator and agent pods Running without
+running their images, so the chart's workloads are checked as the scheduler and the
+controllers see them, and the operator itself is run here as a process with the
+chart's service-account token, which is what proves the RBAC is sufficient.
+
+Minimality is checked two ways, both against the real API server: ``kubectl auth
+can-i`` with impersonation for RBAC, and real writes for the node-restriction
+admission policy, once with impersonation (``--as-user-extra`` carrying the node name,
+as the brief of the policy says) and once with a real pod-bound token of an agent pod,
+which is where the node name comes from in production.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import time
+import urllib.request
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from roost_api.wellknown import LABEL_NODE, LABEL_VEHICLE, TAINT_VEHICLE
+from roost_harness.binaries import REPO_ROOT
+from roost_harness.chart import install_args
+from roost_harness.cluster import Cluster
+from roost_harness.controlplane import free_port
+from roost_harness.processes import ManagedProcess
+
+RELEASE = "chart-e2e"
+NAMESPACE = "roost-chart-e2e"
+FULLNAME = f"{RELEASE}-roost"
+OPERATOR_SA = f"{FULLNAME}-operator"
+AGENT_SA = f"{FULLNAME}-agent"
+AGENT_USER = f"system:serviceaccount:{NAMESPACE}:{AGENT_SA}"
+OPERATOR_USER = f"system:serviceaccount:{NAMESPACE}:{OPERATOR_SA}"
+NODE_NAME_KEY = "authentication.kubernetes.io/node-name"
+POLICY = f"{AGENT_SA}-node-restriction"
+
+NODE_A = "chart-e2e-node-a"
+NODE_B = "chart-e2e-node-b"
+NODE_PLAIN = "chart-e2e-node-plain"
+NODE_OPERATED = "chart-e2e-node-operated"
+VEHICLE_A = "chart-e2e-veh-a"
+VEHICLE_B = "chart-e2e-veh-b"
+UNLABELLED_RA = "chart-e2e-veh-unlabelled"
+OPERATED_VEHICLE = "chart-e2e-veh-operated"
+WAIT_S = 60.0
+
+
+def _vehicle(name: str, node: str, sysid: int) -> dict[str, Any]:
+    return {
+        "apiVersion": "roost.dev/v1alpha1",
+        "kind": "Vehicle",
+        "metadata": {"name": name},
+        "spec": {"nodeName": node, "sysid": sysid},
+    }
+
+
+def _autopilot(name: str, node: str | None) -> dict[str, Any]:
+    labels = {LABEL_NODE: node} if node else {}
+    return {
+        "apiVersion": "roost.dev/v1alpha1",
+        "kind": "RedundantAutopilot",
+        "metadata": {"name": name, "labels": labels},
+        "spec": {
+            "vehicleName": name,
+            "primary": "fc-a",
+            "autopilots": [
+                {"name": "fc-a", "stack": "px4", "connection": "udp://:14540", "sysid": 1,
+                 "bridgeChannel": 0},
+                {"name": "fc-b", "stack": "px4", "connection": "udp://:14541", "sysid": 2,
+                 "bridgeChannel": 1},
+            ],
+        },
+    }  # fmt: skip
+
+
+def _apply(cluster: Cluster, *manifests: dict[str, Any]) -> None:
+    text = "\n---\n".join(yaml.safe_dump(m) for m in manifests)
+    cluster.kubectl("apply", "-f", "-", input_text=text)
+
+
+def _wait_for(what: str, check: Callable[[], bool], timeout_s: float = WAIT_S) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not check():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s:.0f}s waiting for {what}")
+        time.sleep(0.5)
+
+
+def _get(cluster: Cluster, *args: str) -> dict[str, Any]:
+    result: dict[str, Any] = json.loads(cluster.kubectl("get", *args, "-o", "json").stdout)
+    return result
+
+
+def _agent_pods(cluster: Cluster) -> dict[str, dict[str, Any]]:
+    """node name -> this release's agent pod there."""
+    pods = _get(
+        cluster,
+        "pods",
+        "-n",
+        NAMESPACE,
+        "-l",
+        f"app.kubernetes.io/instance={RELEASE},app.kubernetes.io/component=agent",
+    )["items"]
+    return {pod["spec"]["nodeName"]: pod for pod in pods if pod["spec"].get("nodeName")}
+
+
+@pytest.fixture(scope="module")
+def installed(
+    cluster: Cluster,
+    fake_nodes_module: Callable[..., Any],
+    tmp_path_factory: pytest.TempPathFactory,
+) -> Iterator[Cluster]:
+    """The chart installed with default values, two vehicle nodes, one plain node, and a
+    Vehicle plus RedundantAutopilot on each vehicle node (as the operator would label them)."""
+    # helm installs the CRDs from the chart (they may exist already: --force-conflicts).
+    taint = {"key": TAINT_VEHICLE, "value": "x", "effect": "NoSchedule"}
+    for node in (NODE_A, NODE_B):
+        fake_nodes_module(node, labels={LABEL_VEHICLE: node}, taints=[taint])
+    fake_nodes_module(NODE_PLAIN)
+    values_dir = tmp_path_factory.mktemp("chart-values")
+    result = cluster.helm(*install_args(RELEASE, NAMESPACE, None, values_dir), check=False)
+    assert result.returncode == 0, result.stderr
+    _apply(
+        cluster,
+        _vehicle(VEHICLE_A, NODE_A, 101),
+        _vehicle(VEHICLE_B, NODE_B, 102),
+        _autopilot(VEHICLE_A, NODE_A),
+        _autopilot(VEHICLE_B, NODE_B),
+        _autopilot(UNLABELLED_RA, None),
+    )
+    yield cluster
+    for kind, name in [
+        ("redundantautopilot", VEHICLE_A),
+        ("redundantautopilot", VEHICLE_B),
+        ("redundantautopilot", UNLABELLED_RA),
+        ("vehicle", VEHICLE_A),
+        ("vehicle", VEHICLE_B),
+    ]:
+        cluster.kubectl("delete", kind, name, "--ignore-not-found", "--wait=false")
+    cluster.helm("uninstall", RELEASE, "--namespace", NAMESPACE, "--wait")
+
+
+@pytest.fixture(scope="module")
+def fake_nodes_module(cluster: Cluster) -> Iterator[Callable[..., dict[str, Any]]]:
+    """Like the ``fake_nodes`` fixture, for the whole module."""
+    added: list[str] = []
+
+    def add(name: str, **kwargs: Any) -> dict[str, Any]:
+        added.append(name)
+        return cluster.add_node(name, **kwargs)
+
+    yield add
+    for name in added:
+        cluster.kubectl("delete", "node", name, "--ignore-not-found")
+
+
+def _can(cluster: Cluster, user: str, *args: str, node: str | None = None) -> bool:
+    identity = [f"--as={user}"]
+    if node:
+        identity.append(f"--as-user-extra={NODE_NAME_KEY}={node}")
+    result = cluster.kubectl("auth", "can-i", *args, *identity, check=False)
+    answer = result.stdout.strip()
+    assert answer in ("yes", "no"), result.stderr
+    return answer == "yes"
+
+
+def _as_agent(cluster: Cluster, node: str | None, *args: str) -> subprocess.CompletedProcess[str]:
+    identity = [f"--as={AGENT_USER}"]
+    if node:
+        identity.append(f"--as-user-extra={NODE_NAME_KEY}={node}")
+    return cluster.kubectl(*args, *identity, check=False)
+
+
+def _status_patch(kind: str, name: str, node: str) -> list[str]:
+    patch = {"status": {"nodeName": node}}
+    return ["patch", kind, name, "--subresource=status", "--type=merge", "-p", json.dumps(patch)]
+
+
+def _event(name: str, involved: str, instance: str, api: str = "v1") -> dict[str, Any]:
+    involved_ref = {"apiVersion": "roost.dev/v1alpha1", "kind": "Vehicle", "name": involved}
+    if api == "v1":
+        return {
+            "apiVersion": "v1",
+            "kind": "Event",
+            "metadata": {"name": name, "namespace": "default"},
+            "involvedObject": involved_ref,
+            "reason": "Test",
+            "message": "chart e2e",
+            "type": "Normal",
+            "reportingComponent": "roost-agent",
+            "reportingInstance": instance,
+        }
+    return {
+        "apiVersion": "events.k8s.io/v1",
+        "kind": "Event",
+        "metadata": {"name": name, "namespace": "default"},
+        "regarding": involved_ref,
+        "reason": "Test",
+        "note": "chart e2e",
+        "type": "Normal",
+        "action": "Report",
+        "eventTime": "2025-01-01T00:00:00.000000Z",
+        "reportingController": "roost.dev/agent",
+        "reportingInstance": instance,
+    }
+
+
+def _create_as_agent(
+    cluster: Cluster, node: str | None, manifest: dict[str, Any]
+) -> subprocess.CompletedProcess[str]:
+    identity = [f"--as={AGENT_USER}"]
+    if node:
+        identity.append(f"--as-user-extra={NODE_NAME_KEY}={node}")
+    return cluster.kubectl(
+        "create", "-f", "-", *identity, input_text=json.dumps(manifest), check=False
+    )
+
+
+# -- install ---------------------------------------------------------------------------
+
+
+def test_helm_install_runs_the_operator_and_an_agent_on_every_vehicle_node_only(
+    installed: Cluster,
+) -> None:
+    deployment = _get(installed, "deployment", "-n", NAMESPACE, f"{FULLNAME}-operator")
+    assert deployment["status"].get("availableReplicas") == 1
+    _wait_for(
+        "agent pods on both vehicle nodes", lambda: {NODE_A, NODE_B} <= set(_agent_pods(installed))
+    )
+    assert NODE_PLAIN not in _agent_pods(installed)
+    peering = _get(installed, "clusterkopfpeering", FULLNAME)
+    assert peering["metadata"]["name"] == FULLNAME
+    policy = _get(installed, "validatingadmissionpolicy", POLICY)
+    assert not policy.get("status", {}).get("typeChecking", {}).get("expressionWarnings")
+
+
+# -- RBAC minimality (kubectl auth can-i, impersonated) --------------------------------
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("get", "secrets", "-n", NAMESPACE),
+        ("list", "secrets", "--all-namespaces"),
+        ("create", "pods", "-n", "default"),
+        ("delete", "nodes"),
+        ("create", "clusterroles"),
+        ("create", "clusterrolebindings"),
+        ("impersonate", "serviceaccounts"),
+        ("patch", "redundantautopilots.roost.dev", "--subresource=status"),
+        ("delete", "vehicles.roost.dev"),
+        ("patch", "clusterkopfpeerings.kopf.dev/someone-elses-peering"),
+        ("create", "customresourcedefinitions"),
+    ],
+    ids=" ".join,
+)
+def test_operator_may_not(installed: Cluster, args: tuple[str, ...]) -> None:
+    assert not _can(installed, OPERATOR_USER, *args)
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("patch", "nodes"),
+        ("patch", "vehicles.roost.dev", "--subresource=status"),
+        ("patch", "redundantautopilots.roost.dev"),
+        ("create", "configmaps", "-n", "default"),
+        ("create", "deployments.apps", "-n", NAMESPACE),
+        ("create", "jobs.batch", "-n", "default"),
+        ("create", "events", "-n", "default"),
+        ("patch", f"clusterkopfpeerings.kopf.dev/{FULLNAME}"),
+    ],
+    ids=" ".join,
+)
+def test_operator_may(installed: Cluster, args: tuple[str, ...]) -> None:
+    assert _can(installed, OPERATOR_USER, *args)
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("patch", "vehicles.roost.dev"),
+        ("update", "vehicles.roost.dev"),
+        ("patch", "redundantautopilots.roost.dev"),
+        ("create", "vehicles.roost.dev"),
+        ("delete", "redundantautopilots.roost.dev"),
+        ("patch", "missions.roost.dev", "--subresource=status", "-n", "default"),
+        ("get", "secrets", "-n", NAMESPACE),
+        ("get", "configmaps", "-n", NAMESPACE),
+        ("patch", "nodes"),
+        ("list", "pods", "--all-namespaces"),
+    ],
+    ids=" ".join,
+)
+def test_agent_may_not(installed: Cluster, args: tuple[str, ...]) -> None:
+    assert not _can(installed, AGENT_USER, *args, node=NODE_A)
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("watch", "vehicles.roost.dev"),
+        ("list", "redundantautopilots.roost.dev"),
+        ("patch", "vehicles.roost.dev", "--subresource=status"),
+        ("patch", "redundantautopilots.roost.dev", "--subresource=status"),
+        ("create", "events", "-n", "default"),
+        ("create", "events.events.k8s.io", "-n", "default"),
+    ],
+    ids=" ".join,
+)
+def test_agent_may(installed: Cluster, args: tuple[str, ...]) -> None:
+    assert _can(installed, AGENT_USER, *args, node=NODE_A)
+
+
+# -- node-scoped agent identity (real writes through the admission policy) -------------
+
+
+def test_agent_of_node_a_writes_its_own_vehicle_and_autopilot_status(installed: Cluster) -> None:
+    for kind, name in (("vehicle", VEHICLE_A), ("redundantautopilot", VEHICLE_A)):
+        result = _as_agent(installed, NODE_A, *_status_patch(kind, name, NODE_A))
+        assert result.returncode == 0, result.stderr
+
+
+@pytest.mark.parametrize("kind", ["vehicle", "redundantautopilot"])
+def test_agent_of_node_a_is_refused_node_b_status(installed: Cluster, kind: str) -> None:
+    result = _as_agent(installed, NODE_A, *_status_patch(kind, VEHICLE_B, NODE_A))
+    assert result.returncode != 0
+    assert POLICY in result.stderr and f"on node {NODE_A}" in result.stderr
+
+
+def test_agent_is_refused_an_autopilot_without_the_node_label(installed: Cluster) -> None:
+    result = _as_agent(
+        installed, NODE_A, *_status_patch("redundantautopilot", UNLABELLED_RA, NODE_A)
+    )
+    assert result.returncode != 0
+    assert LABEL_NODE in result.stderr
+
+
+def test_agent_without_a_node_in_its_token_is_refused(installed: Cluster) -> None:
+    result = _as_agent(installed, None, *_status_patch("vehicle", VEHICLE_A, NODE_A))
+    assert result.returncode != 0
+    assert "carries no node name" in result.stderr
+
+
+def test_agent_events_must_name_its_own_node(installed: Cluster) -> None:
+    own = _create_as_agent(installed, NODE_A, _event("chart-e2e-own", VEHICLE_A, NODE_A))
+    assert own.returncode == 0, own.stderr
+    forged = _create_as_agent(installed, NODE_A, _event("chart-e2e-forged", VEHICLE_B, NODE_B))
+    assert forged.returncode != 0 and POLICY in forged.stderr
+    forged_new_api = _create_as_agent(
+        installed, NODE_A, _event("chart-e2e-forged-v1", VEHICLE_B, NODE_B, api="events.k8s.io")
+    )
+    assert forged_new_api.returncode != 0 and POLICY in forged_new_api.stderr
+    installed.kubectl("delete", "event", "chart-e2e-own", "-n", "default", "--ignore-not-found")
+
+
+def test_agent_events_about_non_roost_objects_are_refused(installed: Cluster) -> None:
+    event = _event("chart-e2e-about-node", NODE_A, NODE_A)
+    event["involvedObject"] = {"apiVersion": "v1", "kind": "Node", "name": NODE_A}
+    result = _create_as_agent(installed, NODE_A, event)
+    assert result.returncode != 0 and "Vehicles and RedundantAutopilots only" in result.stderr
+
+
+def test_policy_leaves_other_users_alone(installed: Cluster) -> None:
+    result = installed.kubectl(*_status_patch("vehicle", VEHICLE_B, NODE_B), check=False)
+    assert result.returncode == 0, result.stderr
+
+
+def _bound_token_kubeconfig(cluster: Cluster, pod: dict[str, Any], path: Path) -> Cluster:
+    """A kubeconfig holding a token bound to ``pod``, as the kubelet gives the agent."""
+    token = cluster.kubectl(
+        "create",
+        "token",
+        AGENT_SA,
+        "-n",
+        NAMESPACE,
+        "--bound-object-kind=Pod",
+        f"--bound-object-name={pod['metadata']['name']}",
+        f"--bound-object-uid={pod['metadata']['uid']}",
+        "--duration=10m",
+    ).stdout.strip()
+    agent = cluster.as_service_account(NAMESPACE, AGENT_SA, path)
+    config = yaml.safe_load(path.read_text())
+    config["users"][0]["user"] = {"token": token}
+    path.write_text(yaml.safe_dump(config))
+    return agent
+
+
+def test_real_pod_bound_agent_token_carries_its_node_and_is_scoped_to_it(
+    installed: Cluster, tmp_path: Path
+) -> None:
+    _wait_for("agent pod on node A", lambda: NODE_A in _agent_pods(installed))
+    agent = _bound_token_kubeconfig(installed, _agent_pods(installed)[NODE_A], tmp_path / "kc")
+    whoami = json.loads(agent.kubectl("auth", "whoami", "-o", "json").stdout)
+    assert whoami["status"]["userInfo"]["username"] == AGENT_USER
+    assert whoami["status"]["userInfo"]["extra"][NODE_NAME_KEY] == [NODE_A]
+    own = agent.kubectl(*_status_patch("redundantautopilot", VEHICLE_A, NODE_A), check=False)
+    assert own.returncode == 0, own.stderr
+    other = agent.kubectl(*_status_patch("redundantautopilot", VEHICLE_B, NODE_A), check=False)
+    assert other.returncode != 0 and POLICY in other.stderr
+    spec = agent.kubectl(
+        "patch", "vehicle", VEHICLE_A, "--type=merge", "-p", '{"spec":{"sysid":9}}', check=False
+    )
+    assert spec.returncode != 0 and "forbidden" in spec.stderr.lower()
+
+
+# -- RBAC sufficiency: the operator, run with the chart's service account --------------
+
+
+@pytest.fixture
+def operator_as_chart_account(
+    installed: Cluster, tmp_path: Path
+) -> Iterator[tuple[ManagedProcess, int]]:
+    """roost-operator started with a token of the chart's operator service account."""
+    account = installed.as_service_account(NAMESPACE, OPERATOR_SA, tmp_path / "kubeconfig")
+    port = free_port()
+    process = ManagedProcess(
+        "operator",
+        [
+            str(REPO_ROOT / ".venv" / "bin" / "roost-operator"),
+            f"--liveness=http://127.0.0.1:{port}/healthz",
+        ],
+        tmp_path / "operator.log",
+    )
+    env = {
+        **os.environ,
+        "KUBECONFIG": str(account.kubeconfig),
+        "ROOST_NAMESPACE": NAMESPACE,
+        "ROOST_PEERING": FULLNAME,
+    }
+    process.launch(env=env, die_with_parent=True)
+    try:
+        yield process, port
+    finally:
+        process.stop()
+
+
+def _healthz(port: int) -> bool:
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=2) as answer:
+            return bool(answer.status == 200)
+    except OSError:
+        return False
+
+
+def _condition(obj: dict[str, Any], kind: str) -> str | None:
+    for condition in obj.get("status", {}).get("conditions", []):
+        if condition["type"] == kind:
+            return str(condition["status"])
+    return None
+
+
+def test_operator_with_the_chart_service_account_reconciles_a_vehicle(
+    installed: Cluster,
+    fake_nodes_module: Callable[..., Any],
+    operator_as_chart_account: tuple[ManagedProcess, int],
+) -> None:
+    process, port = operator_as_chart_account
+    fake_nodes_module(NODE_OPERATED)
+    _apply(installed, _vehicle(OPERATED_VEHICLE, NODE_OPERATED, 103))
+    try:
+        _wait_for("the operator's liveness endpoint", lambda: _healthz(port))
+        _wait_for(
+            "the node to be labelled by the operator",
+            lambda: (
+                LABEL_VEHICLE
+                in _get(installed, "node", NODE_OPERATED)["metadata"].get("labels", {})
+            ),
+        )
+        _wait_for(
+            "Vehicle NodeBound=True",
+            lambda: _condition(_get(installed, "vehicle", OPERATED_VEHICLE), "NodeBound") == "True",
+        )
+        log = process.log.read_text()
+        assert "403" not in log and "Forbidden" not in log, process.log_tail(60)
+        assert process.alive()
+    finally:
+        installed.kubectl("delete", "vehicle", OPERATED_VEHICLE, "--wait=false")
+    _wait_for(
+        "the finalizer to release the deleted Vehicle",
+        lambda: installed.kubectl("get", "vehicle", OPERATED_VEHICLE, check=False).returncode != 0,
+    )
+    log = process.log.read_text()
+    assert "403" not in log and "Forbidden" not in log, process.log_tail(60)
