@@ -245,16 +245,17 @@ def _reconcile_once(kube: Kube, namespace: str, name: str, peers: Peers) -> None
         except ApiError as err:
             failures[workload.component] = err
     owned = {LABEL_MANAGED_BY: MANAGED_BY, LABEL_VEHICLE: name}
+    wanted_components = {w.component for w in wanted}
     stale = [
         d
         for d in kube.list_objects(DEPLOYMENTS, namespace=namespace, labels=owned)
-        if d["metadata"].get("labels", {}).get(LABEL_COMPONENT) not in {w.component for w in wanted}
+        if d["metadata"].get("labels", {}).get(LABEL_COMPONENT) not in wanted_components
     ]
     kube.delete_all(DEPLOYMENTS, stale)
 
     states = [
         ComponentState(
-            w.component, False, f"applying its Deployment failed: {failures[w.component]}"
+            w.component, False, f"its Deployment was refused: {failures[w.component].message}"
         )
         if w.component in failures
         else deployment_state(w.component, live.get(w.component))

@@ -1,0 +1,661 @@
+"""The Vehicle operator, running as a real ``roost-operator`` process, on the real control
+plane (tests/harness): kube-apiserver and etcd store the objects, kube-controller-manager
+runs the Deployments, kube-scheduler places their pods and kwok's fake kubelets run them on
+fake vehicle nodes.
+
+The operator gets its own namespace and a short resync period (2 s) so that "nothing
+changes while idle" is observed across several resyncs. Vehicles are cluster-scoped and
+the cluster is shared by the session, so every test uses unique names and deletes its
+Vehicles while the operator still runs (their finalizer needs it).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+import urllib.request
+import uuid
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from roost_api.wellknown import (
+    ANNOTATION_CONFIG_HASH,
+    ANNOTATION_MANAGED_LABELS,
+    LABEL_VEHICLE,
+    LABEL_VEHICLE_CLASS,
+    LABEL_VEHICLE_TYPE,
+    STARLING_LABEL_TYPE,
+    TAINT_VEHICLE,
+)
+from roost_harness.apiwrites import write_requests
+from roost_harness.binaries import REPO_ROOT
+from roost_harness.cluster import Cluster
+from roost_harness.controlplane import free_port
+from roost_harness.processes import ManagedProcess
+from roost_operator.kube import (
+    CONFIGMAPS,
+    DEPLOYMENTS,
+    NODES,
+    PODS,
+    VEHICLES,
+    Kube,
+    Obj,
+)
+
+pytestmark = pytest.mark.cluster
+
+NAMESPACE = "roost-it-vehicles"
+RESYNC_S = 2
+WAIT_S = 60.0
+AddNode = Callable[..., dict[str, Any]]
+
+# What the operator writes for vehicles; nothing else writes these while a test is idle
+# (kwok's heartbeats go to nodes/status, leader election to leases).
+VEHICLE_WRITE_TARGETS = [
+    ("vehicles", ""),
+    ("vehicles", "status"),
+    ("nodes", ""),
+    ("configmaps", ""),
+    ("deployments", ""),
+    ("events", ""),
+]
+
+
+def unique(prefix: str) -> str:
+    return f"{prefix}-{uuid.uuid4().hex[:6]}"
+
+
+def wait_until(what: str, check: Callable[[], Any], timeout_s: float = WAIT_S) -> Any:
+    """Poll ``check`` until it returns something truthy; return that."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        result = check()
+        if result:
+            return result
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout_s:.0f} s waiting for {what}")
+        time.sleep(0.3)
+
+
+class OperatorProcess:
+    """``roost-operator`` as a child process, with its kopf liveness endpoint."""
+
+    def __init__(self, cluster: Cluster, log: Path) -> None:
+        self.cluster = cluster
+        self.port = free_port()
+        self.process = ManagedProcess(
+            "roost-operator",
+            [
+                str(REPO_ROOT / ".venv" / "bin" / "roost-operator"),
+                "--standalone",
+                f"--liveness=http://127.0.0.1:{self.port}/healthz",
+            ],
+            log,
+        )
+        self.env = {
+            **os.environ,
+            "KUBECONFIG": str(cluster.kubeconfig),
+            "ROOST_NAMESPACE": NAMESPACE,
+            "ROOST_RESYNC_SECONDS": str(RESYNC_S),
+        }
+
+    def healthy(self) -> bool:
+        try:
+            url = f"http://127.0.0.1:{self.port}/healthz"
+            with urllib.request.urlopen(url, timeout=2) as answer:
+                return bool(answer.status == 200)
+        except OSError:
+            return False
+
+    def start(self) -> None:
+        self.process.launch(self.env, die_with_parent=True)
+        wait_until("the operator's liveness endpoint", self.healthy)
+
+    def crash(self) -> None:
+        """SIGKILL: no shutdown handlers, no finalisation, like a node losing power."""
+        assert self.process.pid is not None
+        os.killpg(self.process.pid, signal.SIGKILL)
+        self.process.stop()
+
+    def stop(self) -> None:
+        self.process.stop()
+
+
+@pytest.fixture(scope="module")
+def operator(
+    roost_crds: Cluster, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[OperatorProcess]:
+    proc = OperatorProcess(roost_crds, tmp_path_factory.mktemp("operator") / "operator.log")
+    proc.start()
+    yield proc
+    proc.stop()
+
+
+@pytest.fixture(scope="module")
+def kube(roost_crds: Cluster) -> Iterator[Kube]:
+    with roost_crds.api_client() as api:
+        yield Kube(api=api)
+
+
+@pytest.fixture
+def vehicles(
+    roost_crds: Cluster, operator: OperatorProcess, kube: Kube
+) -> Iterator[Callable[..., str]]:
+    """``vehicles(name, node, **spec)`` applies a Vehicle with kubectl; deleted at the end."""
+    created: list[str] = []
+
+    def apply(name: str, node: str, **spec: Any) -> str:
+        created.append(name)
+        manifest = {
+            "apiVersion": "roost.dev/v1alpha1",
+            "kind": "Vehicle",
+            "metadata": {"name": name},
+            "spec": {"nodeName": node, "sysid": 10 + len(created), **spec},
+        }
+        roost_crds.kubectl("apply", "-f", "-", input_text=json.dumps(manifest))
+        return name
+
+    yield apply
+    if not operator.process.alive():
+        operator.start()
+    for name in created:
+        roost_crds.kubectl("delete", "vehicle", name, "--ignore-not-found", "--wait=false")
+    wait_until(
+        "the test's Vehicles to be gone",
+        lambda: all(kube.get(VEHICLES, name) is None for name in created),
+    )
+
+
+def condition(kube: Kube, vehicle: str, type_: str) -> Obj | None:
+    obj = kube.get(VEHICLES, vehicle) or {}
+    return next(
+        (c for c in (obj.get("status") or {}).get("conditions", []) if c["type"] == type_), None
+    )
+
+
+def wait_ready(kube: Kube, vehicle: str, timeout_s: float = WAIT_S) -> Obj:
+    def ready() -> Obj | None:
+        cond = condition(kube, vehicle, "Ready")
+        return cond if cond and cond["status"] == "True" else None
+
+    result: Obj = wait_until(f"Vehicle {vehicle} Ready=True", ready, timeout_s)
+    return result
+
+
+def wait_condition(kube: Kube, vehicle: str, type_: str, status: str, reason: str) -> Obj:
+    def matches() -> Obj | None:
+        cond = condition(kube, vehicle, type_)
+        if cond and cond["status"] == status and cond["reason"] == reason:
+            return cond
+        return None
+
+    result: Obj = wait_until(f"{vehicle} {type_}={status} ({reason})", matches)
+    return result
+
+
+def deployments_of(kube: Kube, vehicle: str) -> dict[str, Obj]:
+    return {
+        d["metadata"]["labels"]["roost.dev/component"]: d
+        for d in kube.list_objects(
+            DEPLOYMENTS, namespace=NAMESPACE, labels={LABEL_VEHICLE: vehicle}
+        )
+    }
+
+
+def pods_of(kube: Kube, vehicle: str, component: str) -> list[Obj]:
+    return [
+        p
+        for p in kube.list_objects(
+            PODS,
+            namespace=NAMESPACE,
+            labels={LABEL_VEHICLE: vehicle, "roost.dev/component": component},
+        )
+        if not p["metadata"].get("deletionTimestamp")
+    ]
+
+
+def node_labels(kube: Kube, node: str) -> dict[str, str]:
+    labels: dict[str, str] = (kube.get(NODES, node) or {})["metadata"].get("labels", {})
+    return labels
+
+
+def roost_taints(kube: Kube, node: str) -> list[Obj]:
+    taints = ((kube.get(NODES, node) or {}).get("spec") or {}).get("taints") or []
+    return [t for t in taints if t["key"] == TAINT_VEHICLE]
+
+
+def redundant_autopilot(name: str, vehicle: str) -> dict[str, Any]:
+    return {
+        "apiVersion": "roost.dev/v1alpha1",
+        "kind": "RedundantAutopilot",
+        "metadata": {"name": name},
+        "spec": {
+            "vehicleName": vehicle,
+            "primary": "fc-a",
+            "autopilots": [
+                {
+                    "name": "fc-a",
+                    "stack": "px4",
+                    "connection": "udp://127.0.0.1:14540",
+                    "sysid": 1,
+                    "bridgeChannel": 0,
+                },
+                {
+                    "name": "fc-b",
+                    "stack": "px4",
+                    "connection": "udp://127.0.0.1:14541",
+                    "fcuUrl": "udp://127.0.0.1:14641@",
+                    "sysid": 2,
+                    "bridgeChannel": 1,
+                },
+            ],
+        },
+    }
+
+
+# ---- binding, config and components ---------------------------------------------------
+
+
+def test_a_simulated_vehicle_gets_its_node_config_and_components(
+    roost_crds: Cluster, fake_nodes: AddNode, vehicles: Callable[..., str], kube: Kube
+) -> None:
+    node = unique("veh-node")
+    fake_nodes(node)
+    name = unique("sim")
+    rap = unique("rap")
+    roost_crds.kubectl("apply", "-f", "-", input_text=json.dumps(redundant_autopilot(rap, name)))
+    try:
+        vehicles(
+            name,
+            node,
+            simulation={"stack": "px4", "instance": 1},
+            components={"vicon": {"enabled": True, "image": "example.org/vicon:7"}},
+            config={"MISSION_AREA": "flight-arena"},
+        )
+        wait_ready(kube, name)
+
+        labels = node_labels(kube, node)
+        assert labels[LABEL_VEHICLE] == name
+        assert labels["roost.dev/simulated"] == "true"
+        assert labels["roost.dev/sitl-stack"] == "px4"
+        assert labels[STARLING_LABEL_TYPE] == "vehicle"
+        assert roost_taints(kube, node) == [
+            {"key": TAINT_VEHICLE, "value": name, "effect": "NoSchedule"}
+        ]
+
+        vehicle = kube.get(VEHICLES, name)
+        assert vehicle is not None
+        status = vehicle["status"]
+        assert status["nodeName"] == node
+        assert status["observedGeneration"] == vehicle["metadata"]["generation"]
+        assert LABEL_VEHICLE in status["managedLabels"]
+        assert status["fcuUrl"] == "udp://127.0.0.1:14540"
+        assert {c["type"] for c in status["conditions"]} >= {
+            "NodeBound",
+            "ComponentsReady",
+            "Ready",
+        }
+
+        cm = kube.get(CONFIGMAPS, f"roost-vehicle-{name}", NAMESPACE)
+        assert cm is not None
+        text = cm["data"]["vehicle.config"]
+        for line in (
+            f"VEHICLE_NAME={name}",
+            "VEHICLE_FCU_URL=udp://127.0.0.1:14540",
+            "VEHICLE_FIRMWARE=px4",
+            "MISSION_AREA=flight-arena",
+        ):
+            assert line in text.splitlines()
+
+        deps = deployments_of(kube, name)
+        assert set(deps) == {"mavros", "vicon", "sitl-fc-a", "sitl-fc-b"}
+        for dep in deps.values():
+            assert dep["metadata"]["ownerReferences"][0]["uid"] == vehicle["metadata"]["uid"]
+            assert dep["spec"]["strategy"]["type"] == "Recreate"
+            assert ANNOTATION_CONFIG_HASH in dep["spec"]["template"]["metadata"]["annotations"]
+        assert deps["vicon"]["spec"]["template"]["spec"]["containers"][0]["image"] == (
+            "example.org/vicon:7"
+        )
+
+        (mavros,) = pods_of(kube, name, "mavros")
+        assert mavros["spec"]["nodeName"] == node
+        assert mavros["status"]["phase"] == "Running"
+        mounts = {m["mountPath"]: m for m in mavros["spec"]["containers"][0]["volumeMounts"]}
+        assert mounts["/etc/roost"]["readOnly"] and mounts["/etc/starling"]["readOnly"]
+        env = {e["name"] for e in mavros["spec"]["containers"][0]["env"]}
+        assert {"VEHICLE_NAME", "VEHICLE_MAVLINK_SYSID", "MISSION_AREA"} <= env
+
+        events = json.loads(
+            roost_crds.kubectl(
+                "get",
+                "events",
+                "-n",
+                "default",
+                "--field-selector",
+                f"involvedObject.name={name}",
+                "-o",
+                "json",
+            ).stdout
+        )["items"]
+        assert {"NodeLabeled", "VehicleReady"} <= {e["reason"] for e in events}
+    finally:
+        roost_crds.kubectl("delete", "redundantautopilot", rap, "--ignore-not-found")
+
+
+def test_an_idle_vehicle_costs_no_api_writes(
+    roost_crds: Cluster, fake_nodes: AddNode, vehicles: Callable[..., str], kube: Kube
+) -> None:
+    node = unique("veh-node")
+    fake_nodes(node)
+    name = vehicles(unique("idle"), node, simulation={"stack": "ardupilot"})
+    wait_ready(kube, name)
+    time.sleep(RESYNC_S * 2)  # let the rollout's last status updates settle
+
+    def versions() -> list[str]:
+        objs = [kube.get(VEHICLES, name), kube.get(CONFIGMAPS, f"roost-vehicle-{name}", NAMESPACE)]
+        objs += list(deployments_of(kube, name).values())
+        return [o["metadata"]["resourceVersion"] for o in objs if o]
+
+    def node_state() -> Any:
+        meta = (kube.get(NODES, node) or {})["metadata"]
+        return meta.get("labels"), meta.get("annotations"), roost_taints(kube, node)
+
+    writes_before = write_requests(roost_crds, VEHICLE_WRITE_TARGETS)
+    versions_before, node_before = versions(), node_state()
+    time.sleep(RESYNC_S * 4)  # four resyncs, plus node heartbeats and Deployment events
+    assert write_requests(roost_crds, VEHICLE_WRITE_TARGETS) == writes_before
+    assert versions() == versions_before
+    assert node_state() == node_before
+
+
+# ---- node labels: only Roost's own keys ------------------------------------------------
+
+
+def test_hand_edits_are_put_back_and_others_labels_survive_deletion(
+    roost_crds: Cluster, fake_nodes: AddNode, vehicles: Callable[..., str], kube: Kube
+) -> None:
+    node = unique("veh-node")
+    foreign_taint = {
+        "key": "example.org/maintenance",
+        "value": "soon",
+        "effect": "PreferNoSchedule",
+    }
+    fake_nodes(node, labels={"team": "blue", "roost.dev/hand-set": "keep"}, taints=[foreign_taint])
+    name = vehicles(unique("edit"), node, vehicleClass="fixed-wing")
+    wait_ready(kube, name)
+    assert node_labels(kube, node)[LABEL_VEHICLE_CLASS] == "fixed-wing"
+
+    roost_crds.kubectl("label", "node", node, f"{LABEL_VEHICLE_CLASS}-", "team=red", "--overwrite")
+    wait_until(
+        "the operator to put its label back",
+        lambda: node_labels(kube, node).get(LABEL_VEHICLE_CLASS) == "fixed-wing",
+    )
+    assert node_labels(kube, node)["team"] == "red"
+
+    roost_crds.kubectl("delete", "vehicle", name, "--wait=true", "--timeout=60s")
+    labels = node_labels(kube, node)
+    assert labels["team"] == "red"
+    assert labels["roost.dev/hand-set"] == "keep"
+    assert not {k for k in labels if k.startswith("starling.dev/")}
+    assert LABEL_VEHICLE not in labels
+    node_obj = kube.get(NODES, node)
+    assert node_obj is not None
+    assert ANNOTATION_MANAGED_LABELS not in node_obj["metadata"].get("annotations", {})
+    assert node_obj["spec"]["taints"] == [foreign_taint]
+    assert kube.get(CONFIGMAPS, f"roost-vehicle-{name}", NAMESPACE) is None
+    wait_until("the workloads to be deleted", lambda: not deployments_of(kube, name))
+
+
+# ---- config changes, failover input, self-healing ---------------------------------------
+
+
+def test_config_changes_roll_pods_and_a_new_active_autopilot_repoints_only_mavros(
+    roost_crds: Cluster, fake_nodes: AddNode, vehicles: Callable[..., str], kube: Kube
+) -> None:
+    node = unique("veh-node")
+    fake_nodes(node)
+    name = unique("roll")
+    rap = unique("rap")
+    roost_crds.kubectl("apply", "-f", "-", input_text=json.dumps(redundant_autopilot(rap, name)))
+    try:
+        vehicles(name, node, simulation={"stack": "px4"})
+        wait_ready(kube, name)
+        (mavros_before,) = pods_of(kube, name, "mavros")
+        sitl_before = {
+            p["metadata"]["name"]
+            for c in ("sitl-fc-a", "sitl-fc-b")
+            for p in pods_of(kube, name, c)
+        }
+
+        roost_crds.kubectl(
+            "patch", "vehicle", name, "--type=merge", "-p", '{"spec":{"config":{"FOO":"bar"}}}'
+        )
+        wait_until(
+            "the config to reach the ConfigMap",
+            lambda: (
+                "FOO=bar"
+                in (kube.get(CONFIGMAPS, f"roost-vehicle-{name}", NAMESPACE) or {})["data"][
+                    "vehicle.config"
+                ]
+            ),
+        )
+        mavros_after = wait_until(
+            "mavros to be replaced",
+            lambda: [
+                p
+                for p in pods_of(kube, name, "mavros")
+                if p["metadata"]["name"] != mavros_before["metadata"]["name"]
+                and p["status"].get("phase") == "Running"
+            ],
+        )
+        assert {
+            "name": "FOO",
+            "valueFrom": {"configMapKeyRef": {"name": f"roost-vehicle-{name}", "key": "FOO"}},
+        } in mavros_after[0]["spec"]["containers"][0]["env"]
+        wait_ready(kube, name)
+
+        # The node agent reports a failover to fc-b: mavros follows, the SITLs stay up.
+        sitl_before = {
+            p["metadata"]["name"]
+            for c in ("sitl-fc-a", "sitl-fc-b")
+            for p in pods_of(kube, name, c)
+        }
+        roost_crds.kubectl(
+            "patch",
+            "redundantautopilot",
+            rap,
+            "--subresource=status",
+            "--type=merge",
+            "-p",
+            '{"status":{"activeAutopilot":"fc-b"}}',
+        )
+        wait_until(
+            "status.fcuUrl to follow the active autopilot",
+            lambda: (
+                (kube.get(VEHICLES, name) or {}).get("status", {}).get("fcuUrl")
+                == "udp://127.0.0.1:14641@"
+            ),
+        )
+        cm = kube.get(CONFIGMAPS, f"roost-vehicle-{name}", NAMESPACE)
+        assert cm is not None and cm["data"]["VEHICLE_FCU_URL"] == "udp://127.0.0.1:14641@"
+        assert cm["data"]["ROOST_ACTIVE_AUTOPILOT"] == "fc-b"
+        wait_ready(kube, name)
+        sitl_after = {
+            p["metadata"]["name"]
+            for c in ("sitl-fc-a", "sitl-fc-b")
+            for p in pods_of(kube, name, c)
+        }
+        assert sitl_after == sitl_before
+    finally:
+        roost_crds.kubectl("delete", "redundantautopilot", rap, "--ignore-not-found")
+
+
+def test_deleted_pods_come_back_and_disabled_components_go_away(
+    roost_crds: Cluster, fake_nodes: AddNode, vehicles: Callable[..., str], kube: Kube
+) -> None:
+    node = unique("veh-node")
+    fake_nodes(node)
+    name = vehicles(unique("heal"), node, components={"vicon": {"enabled": True}})
+    wait_ready(kube, name)
+    (pod,) = pods_of(kube, name, "mavros")
+    roost_crds.kubectl("delete", "pod", "-n", NAMESPACE, pod["metadata"]["name"], "--wait=false")
+    wait_until(
+        "a replacement mavros pod",
+        lambda: [
+            p
+            for p in pods_of(kube, name, "mavros")
+            if p["metadata"]["uid"] != pod["metadata"]["uid"]
+        ],
+    )
+    roost_crds.kubectl(
+        "patch",
+        "vehicle",
+        name,
+        "--type=merge",
+        "-p",
+        '{"spec":{"components":{"vicon":{"enabled":false}}}}',
+    )
+    wait_until(
+        "the vicon Deployment to be removed", lambda: set(deployments_of(kube, name)) == {"mavros"}
+    )
+    wait_ready(kube, name)
+
+
+# ---- hot swap, missing node, contested node -----------------------------------------
+
+
+def test_hot_swap_moves_the_workloads_and_releases_the_old_node(
+    roost_crds: Cluster, fake_nodes: AddNode, vehicles: Callable[..., str], kube: Kube
+) -> None:
+    old, new = unique("veh-old"), unique("veh-new")
+    fake_nodes(old, labels={"team": "blue"})
+    fake_nodes(new)
+    name = vehicles(unique("swap"), old)
+    wait_ready(kube, name)
+    roost_crds.kubectl(
+        "patch", "vehicle", name, "--type=merge", "-p", json.dumps({"spec": {"nodeName": new}})
+    )
+
+    wait_until(
+        "mavros to run on the new node",
+        lambda: [
+            p
+            for p in pods_of(kube, name, "mavros")
+            if p["spec"].get("nodeName") == new and p["status"].get("phase") == "Running"
+        ],
+    )
+    wait_ready(kube, name)
+    assert node_labels(kube, new)[LABEL_VEHICLE] == name
+    assert node_labels(kube, old) == {
+        k: v
+        for k, v in node_labels(kube, old).items()
+        if not k.startswith(("roost.dev/", "starling.dev/"))
+    }
+    assert node_labels(kube, old)["team"] == "blue"
+    assert roost_taints(kube, old) == []
+    assert all(p["spec"].get("nodeName") == new for p in pods_of(kube, name, "mavros"))
+    assert (kube.get(VEHICLES, name) or {})["status"]["nodeName"] == new
+
+
+def test_a_missing_node_is_reported_and_the_vehicle_converges_when_it_joins(
+    fake_nodes: AddNode, vehicles: Callable[..., str], kube: Kube
+) -> None:
+    node = unique("veh-late")
+    name = vehicles(unique("late"), node)
+    cond = wait_condition(kube, name, "NodeBound", "False", "NodeNotFound")
+    assert node in cond["message"]
+    ready = condition(kube, name, "Ready")
+    assert ready is not None and (ready["status"], ready["reason"]) == ("False", "NodeNotFound")
+
+    fake_nodes(node)
+    wait_ready(kube, name)
+    assert node_labels(kube, node)[LABEL_VEHICLE] == name
+
+
+def test_two_vehicles_on_one_node_the_older_keeps_it_without_a_fight(
+    roost_crds: Cluster, fake_nodes: AddNode, vehicles: Callable[..., str], kube: Kube
+) -> None:
+    node = unique("veh-node")
+    fake_nodes(node)
+    first = vehicles(unique("first"), node)
+    wait_ready(kube, first)
+    time.sleep(1.1)  # creationTimestamps have one-second resolution
+    second = vehicles(unique("second"), node)
+
+    cond = wait_condition(kube, second, "NodeBound", "False", "NodeClaimedByOtherVehicle")
+    assert first in cond["message"]
+    assert not deployments_of(kube, second)
+    assert node_labels(kube, node)[LABEL_VEHICLE] == first
+
+    node_writes = write_requests(roost_crds, [("nodes", "")])
+    time.sleep(RESYNC_S * 3)
+    assert write_requests(roost_crds, [("nodes", "")]) == node_writes, "the two vehicles fight"
+    assert node_labels(kube, node)[LABEL_VEHICLE] == first
+    assert condition(kube, first, "Ready")["status"] == "True"  # type: ignore[index]
+
+    roost_crds.kubectl("delete", "vehicle", first, "--wait=true", "--timeout=60s")
+    wait_ready(kube, second)
+    assert node_labels(kube, node)[LABEL_VEHICLE] == second
+
+
+# ---- crash in the middle of a reconcile ------------------------------------------------
+
+
+@pytest.fixture
+def deployments_refused(roost_crds: Cluster) -> Iterator[Callable[[], None]]:
+    """A ResourceQuota allowing no new Deployments in the operator's namespace; call to lift it."""
+    quota = {
+        "apiVersion": "v1",
+        "kind": "ResourceQuota",
+        "metadata": {"name": "it-no-deployments", "namespace": NAMESPACE},
+        "spec": {"hard": {"count/deployments.apps": "0"}},
+    }
+    roost_crds.kubectl("apply", "-f", "-", input_text=json.dumps(quota))
+
+    def lift() -> None:
+        roost_crds.kubectl(
+            "delete", "resourcequota", "-n", NAMESPACE, "it-no-deployments", "--ignore-not-found"
+        )
+
+    yield lift
+    lift()
+
+
+def test_an_operator_killed_mid_reconcile_converges_after_restart(
+    fake_nodes: AddNode,
+    vehicles: Callable[..., str],
+    kube: Kube,
+    operator: OperatorProcess,
+    deployments_refused: Callable[[], None],
+) -> None:
+    cluster = operator.cluster
+    node = unique("veh-node")
+    fake_nodes(node)
+    name = vehicles(unique("crash"), node)
+
+    # Half-way: node labelled and config written, the Deployment refused by the quota.
+    cond = wait_condition(kube, name, "ComponentsReady", "False", "ComponentsNotReady")
+    assert "refused" in cond["message"] and "quota" in cond["message"]
+    assert node_labels(kube, node)[LABEL_VEHICLE] == name
+    assert kube.get(CONFIGMAPS, f"roost-vehicle-{name}", NAMESPACE) is not None
+    assert not deployments_of(kube, name)
+
+    operator.crash()
+    cluster.kubectl(
+        "patch", "vehicle", name, "--type=merge", "-p", '{"spec":{"vehicleType":"hexarotor"}}'
+    )
+    deployments_refused()
+    operator.start()
+
+    wait_ready(kube, name)
+    assert node_labels(kube, node)[LABEL_VEHICLE_TYPE] == "hexarotor"
+    assert set(deployments_of(kube, name)) == {"mavros"}
+    assert len(pods_of(kube, name, "mavros")) == 1
+    vehicle = kube.get(VEHICLES, name)
+    assert vehicle is not None
+    assert vehicle["status"]["observedGeneration"] == vehicle["metadata"]["generation"]
