@@ -31,7 +31,7 @@ crds: $(STAMP) ## regenerate crds/ (and the chart's copies) from the models in a
 	$(MAKE) --no-print-directory chart-crds
 
 .PHONY: chart-crds
-chart-crds: $(STAMP) ## copy crds/ into charts/roost/crds (Helm installs CRDs from there)
+chart-crds: ## copy crds/ into charts/roost/crds (Helm installs CRDs from there)
 	cp crds/roost.dev_*.yaml charts/roost/crds/
 
 .PHONY: lint
