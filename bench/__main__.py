@@ -12,7 +12,7 @@ import sys
 
 from bench.core import Figure, write_results
 
-MODULES: tuple[str, ...] = ()
+MODULES: tuple[str, ...] = ("controlplane",)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -62,7 +62,10 @@ for t in "${missing[@]}"; do
   tmp="$bin_dir/.$name.partial"
   (cd "$dir" && go build -trimpath -ldflags "$ldflags" -o "$tmp" "$pkg")
   mv -f "$tmp" "$bin_dir/$name"
-  echo "control plane: [$i/${#missing[@]}] $name built in $(( $(date +%s) - t0 )) s" >&2
+  secs=$(( $(date +%s) - t0 ))
+  echo "control plane: [$i/${#missing[@]}] $name built in $secs s" >&2
+  # Build times per binary, read by bench/controlplane.py (controlplane.cold_build_s).
+  printf '%s\t%s\t%s\n' "$name" "$secs" "$(date -u +%Y-%m-%dT%H:%M:%SZ)" >>"$bin_dir/../build-times.tsv"
 done
 echo "control plane: built ${#missing[@]} binaries in $(( $(date +%s) - start )) s into $bin_dir" >&2
 echo "$bin_dir"

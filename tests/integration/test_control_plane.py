@@ -399,3 +399,23 @@ def test_killed_owner_takes_its_control_plane_with_it(tmp_path: Path) -> None:
         os.kill(owner.pid, signal.SIGKILL)
         owner.wait()
     wait_until("the orphaned components to exit", lambda: _none_alive(started), timeout_s=30)
+
+
+def test_helm_installs_a_chart(cluster: Cluster, tmp_path: Path) -> None:
+    chart = tmp_path / "tiny"
+    (chart / "templates").mkdir(parents=True)
+    (chart / "Chart.yaml").write_text("apiVersion: v2\nname: tiny\nversion: 0.1.0\n")
+    (chart / "templates" / "cm.yaml").write_text(
+        "apiVersion: v1\nkind: ConfigMap\nmetadata: {name: '{{ .Release.Name }}-cm'}\n"
+        "data: {colour: '{{ .Values.colour }}'}\n"
+    )
+    ns = unique("helm")
+    release = unique("tiny")
+    cluster.helm(
+        "install", release, str(chart), "-n", ns, "--create-namespace", "--set", "colour=green"
+    )
+    cm = get_json(cluster, "configmap", f"{release}-cm", "-n", ns)
+    assert cm["data"] == {"colour": "green"}
+    assert release in cluster.helm("list", "-n", ns, "--short").stdout
+    cluster.helm("uninstall", release, "-n", ns)
+    cluster.kubectl("delete", "namespace", ns, "--wait=false")
