@@ -2,14 +2,11 @@
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Callable, Iterator
-from typing import Any
+from collections.abc import Iterator
 
 import pytest
-from kubernetes.client.exceptions import ApiException
 
-from roost_harness.cluster import Cluster
+from roost_harness.cluster import Cluster, FakeNodes
 from roost_harness.controlplane import ControlPlane
 
 
@@ -37,17 +34,10 @@ def roost_crds(cluster: Cluster) -> Cluster:
 
 
 @pytest.fixture
-def fake_nodes(cluster: Cluster) -> Iterator[Callable[..., dict[str, Any]]]:
+def fake_nodes(cluster: Cluster) -> Iterator[FakeNodes]:
     """``fake_nodes(name, **kwargs)`` adds a Ready kwok node (``Cluster.add_node`` kwargs);
     the nodes a test added are deleted when it ends. Use test-unique names and labels: the
     cluster is shared by the whole session."""
-    added: list[str] = []
-
-    def add(name: str, **kwargs: Any) -> dict[str, Any]:
-        added.append(name)
-        return cluster.add_node(name, **kwargs)
-
-    yield add
-    for name in added:
-        with contextlib.suppress(ApiException):
-            cluster.delete_node(name)
+    pool = FakeNodes(cluster)
+    yield pool
+    pool.cleanup()

@@ -27,7 +27,7 @@ from roost_api.mission import MissionSpec
 from roost_api.vehicle import VehicleSpec
 from roost_api.wellknown import LABEL_VEHICLE, LABEL_VEHICLE_CLASS
 from roost_harness.binaries import REPO_ROOT
-from roost_harness.cluster import Cluster
+from roost_harness.cluster import Cluster, FakeNodes
 from roost_harness.controlplane import START_ORDER, ControlPlane
 from roost_harness.processes import ManagedProcess
 
@@ -36,7 +36,6 @@ pytestmark = pytest.mark.cluster
 CRDS = REPO_ROOT / "crds"
 EXAMPLES = REPO_ROOT / "examples"
 EXPECT_PREFIX = "# expect: "
-AddNode = Callable[..., dict[str, Any]]
 
 
 def unique(prefix: str) -> str:
@@ -114,7 +113,7 @@ def test_invalid_example_is_rejected_with_its_message(roost_crds: Cluster, examp
 # ---- workloads on fake vehicle nodes ---------------------------------------------------------
 
 
-def test_daemonset_runs_one_pod_per_vehicle_node(cluster: Cluster, fake_nodes: AddNode) -> None:
+def test_daemonset_runs_one_pod_per_vehicle_node(cluster: Cluster, fake_nodes: FakeNodes) -> None:
     fleet = unique("fleet")
     vehicles = [unique("vehicle") for _ in range(3)]
     for name in vehicles:
@@ -148,7 +147,7 @@ def test_daemonset_runs_one_pod_per_vehicle_node(cluster: Cluster, fake_nodes: A
     cluster.kubectl("delete", "daemonset", ds, "-n", "default", "--wait=false")
 
 
-def test_job_on_a_fake_node_completes(cluster: Cluster, fake_nodes: AddNode) -> None:
+def test_job_on_a_fake_node_completes(cluster: Cluster, fake_nodes: FakeNodes) -> None:
     node = unique("vehicle")
     fake_nodes(node, labels={LABEL_VEHICLE: node})
     job = unique("mission-step")
@@ -327,7 +326,7 @@ def test_validating_admission_policy_is_enforced(cluster: Cluster) -> None:
 # ---- harness lifecycle -----------------------------------------------------------------------
 
 
-def test_api_server_restart_keeps_the_cluster(cluster: Cluster, fake_nodes: AddNode) -> None:
+def test_api_server_restart_keeps_the_cluster(cluster: Cluster, fake_nodes: FakeNodes) -> None:
     """stop_apiserver/start_apiserver (for partition tests): same port, same data."""
     plane = cluster.control_plane
     assert plane is not None

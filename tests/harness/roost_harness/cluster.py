@@ -170,3 +170,23 @@ class Cluster:
     def delete_node(self, name: str) -> None:
         with self.api_client() as api:
             client.CoreV1Api(api).delete_node(name)
+
+
+class FakeNodes:
+    """Adds fake nodes to a cluster and deletes all of them on :meth:`cleanup`.
+
+    A pytest fixture of any scope is ``pool = FakeNodes(cluster); yield pool;
+    pool.cleanup()``; calling ``pool(name, **kwargs)`` is :meth:`Cluster.add_node`.
+    """
+
+    def __init__(self, cluster: Cluster) -> None:
+        self.cluster = cluster
+        self.names: list[str] = []
+
+    def __call__(self, name: str, **kwargs: Any) -> dict[str, Any]:
+        self.names.append(name)  # before creating: a node that never gets Ready is removed too
+        return self.cluster.add_node(name, **kwargs)
+
+    def cleanup(self) -> None:
+        while self.names:
+            self.cluster.kubectl("delete", "node", self.names.pop(), "--ignore-not-found")
