@@ -385,7 +385,9 @@ class Publisher:
         )
         if due:
             try:
-                self._kube.patch_autopilot_status(target.name, status.to_api())
+                # With explicit nulls: in a merge patch a missing key means "keep".
+                body = status.model_dump(by_alias=True, mode="json")
+                self._kube.patch_autopilot_status(target.name, body)
             except ApiUnavailableError as exc:
                 return self._failed("status write", exc)
             except ApiException as exc:

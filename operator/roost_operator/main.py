@@ -29,12 +29,13 @@ import kopf
 
 from roost_api.wellknown import FINALIZER, PREFIX
 from roost_operator import runtime as runtime_module
+from roost_operator.autopilots import handlers as autopilot_handlers
 from roost_operator.kube import NAMESPACES, Kube
 from roost_operator.missions import handlers as mission_handlers
 from roost_operator.settings import SETTINGS
 from roost_operator.vehicles import handlers as vehicle_handlers
 
-HANDLER_MODULES = (vehicle_handlers, mission_handlers)
+HANDLER_MODULES = (vehicle_handlers, mission_handlers, autopilot_handlers)
 ANNOTATION_PREFIX = PREFIX.rstrip("/")
 
 WATCH_SERVER_TIMEOUT_S = 290  # seconds; the API server wants an integer

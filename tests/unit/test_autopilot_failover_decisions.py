@@ -21,7 +21,11 @@ from roost_api.autopilot import (
 from roost_api.meta import Condition
 from roost_api.vehicle import FailoverAction, VehicleFailover, VehicleSpec, VehicleStatus
 from roost_api.wellknown import ANNOTATION_CLEAR_FAILOVER_LATCH, ANNOTATION_PAUSE_FAILOVER_ACTIONS
-from roost_operator.autopilots.conditions import agent_connected, autopilots_healthy
+from roost_operator.autopilots.conditions import (
+    agent_connected,
+    autopilots_healthy,
+    load_stale_after,
+)
 from roost_operator.autopilots.guards import (
     FleetGuards,
     Verdict,
@@ -32,7 +36,9 @@ from roost_operator.autopilots.guards import (
     observe_failovers,
     vehicle_paused,
 )
-from roost_operator.autopilots.plan import FailoverPlan, plan
+from roost_operator.autopilots.plan import FailoverPlan, mavros_follows, plan
+from roost_operator.autopilots.reconcile import ActionLedger
+from roost_operator.vehicles.config import config_hash
 
 NOW = datetime(2026, 5, 1, 12, 0, 0, tzinfo=UTC)
 NODE = "drone-1"
@@ -475,3 +481,51 @@ def test_a_stale_agent_changes_conditions_but_not_the_followed_autopilot() -> No
     result = run(status=pointed_at("fc1", URL1), report=report)
     assert [c.status for c in result.conditions] == ["Unknown", "Unknown"]
     assert result.fcu_url == URL1 and result.events == ()
+
+
+# -- end of a re-point, the cap's ledger, settings -----------------------------------
+
+
+def config_map(url: str) -> dict[str, Any]:
+    return {"data": {"vehicle.config": f"VEHICLE_FCU_URL={url}\n", "VEHICLE_FCU_URL": url}}
+
+
+def mavros(config_hash_value: str, *, generation: int = 2, observed: int = 2) -> dict[str, Any]:
+    return {
+        "metadata": {"generation": generation},
+        "spec": {
+            "template": {"metadata": {"annotations": {"roost.dev/config-hash": config_hash_value}}}
+        },
+        "status": {
+            "observedGeneration": observed,
+            "replicas": 1,
+            "updatedReplicas": 1,
+            "availableReplicas": 1,
+        },
+    }
+
+
+def test_mavros_follows_only_once_its_pods_come_from_the_new_config_and_are_rolled_out() -> None:
+    new_hash = config_hash({"VEHICLE_FCU_URL": URL2})
+    assert mavros_follows(URL2, config_map(URL2), mavros(new_hash))
+    assert not mavros_follows(URL2, config_map(URL1), mavros(new_hash))  # config not yet
+    old_hash = config_hash({"VEHICLE_FCU_URL": URL1})
+    assert not mavros_follows(URL2, config_map(URL2), mavros(old_hash))  # template not yet
+    assert not mavros_follows(URL2, config_map(URL2), mavros(new_hash, observed=1))  # rolling
+    assert not mavros_follows(URL2, None, mavros(new_hash))
+    assert not mavros_follows(URL2, config_map(URL2), None)
+
+
+def test_the_ledger_counts_actions_elsewhere_preferring_this_processs_own_writes() -> None:
+    ledger = ActionLedger()
+    with ledger.lock:
+        assert ledger.others("v1", ["v1", "v2", "v3"]) == 2
+        ledger.record("v2", False)  # finished here; the index has not caught up yet
+        ledger.record("v4", True)  # started here; not in the index yet
+        assert ledger.others("v1", ["v1", "v2", "v3"]) == 2  # v3 and v4
+        assert ledger.others("v4", ["v3"]) == 1
+
+
+def test_staleness_window_setting() -> None:
+    assert load_stale_after({}) == timedelta(seconds=30)
+    assert load_stale_after({"ROOST_AGENT_STALE_SECONDS": "4.5"}) == timedelta(seconds=4.5)

@@ -32,14 +32,14 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
-from typing import Literal
+from typing import Any, Literal
 
 from roost_api.autopilot import (
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
 )
 from roost_api.vehicle import FailoverAction, VehicleFailover, VehicleSpec, VehicleStatus
-from roost_api.wellknown import ANNOTATION_CLEAR_FAILOVER_LATCH
+from roost_api.wellknown import ANNOTATION_CLEAR_FAILOVER_LATCH, ANNOTATION_CONFIG_HASH
 from roost_operator.autopilots.conditions import (
     DEFAULT_AGENT_STALE_AFTER,
     ConditionUpdate,
@@ -53,7 +53,8 @@ from roost_operator.autopilots.guards import (
     clear_latch,
     observe_failovers,
 )
-from roost_operator.vehicles.desired import autopilots_of
+from roost_operator.vehicles.config import config_hash, config_values_of
+from roost_operator.vehicles.desired import autopilots_of, deployment_state
 
 REPOINT_MAVROS = "RepointMavros"
 
@@ -84,6 +85,27 @@ class FailoverPlan:
     events: tuple[PlannedEvent, ...] = ()
     acting: bool = field(default=False)
     """True while an action is in progress (it counts against the fleet's cap)."""
+
+
+def mavros_follows(
+    fcu_url: str | None, config_map: Mapping[str, Any] | None, mavros: Mapping[str, Any] | None
+) -> bool:
+    """Whether the vehicle's mavros runs with ``fcu_url`` (ends a re-point action).
+
+    Three things must hold: the vehicle's config carries the URL, the mavros
+    Deployment's pod template carries that config's hash (so its pods were made from
+    it), and the rollout is complete (the new pod available, the old one gone).
+    """
+    if fcu_url is None or config_map is None or mavros is None:
+        return False
+    values = config_values_of(config_map)
+    if values.get("VEHICLE_FCU_URL") != fcu_url:
+        return False
+    template = (mavros.get("spec") or {}).get("template") or {}
+    annotations = (template.get("metadata") or {}).get("annotations") or {}
+    if annotations.get(ANNOTATION_CONFIG_HASH) != config_hash(values):
+        return False
+    return deployment_state("mavros", mavros).ready
 
 
 def plan(
@@ -191,13 +213,13 @@ def plan(
         followed, fcu_url = target.name, target.fcu_url
     elif target is not None and target.name != followed:
         if verdict is Verdict.ALLOWED:
-            followed, fcu_url = target.name, target.fcu_url
+            previous, followed, fcu_url = followed, target.name, target.fcu_url
             action = FailoverAction(kind=REPOINT_MAVROS, autopilot=target.name, started_at=now)
             events.append(
                 PlannedEvent(
                     "Normal",
                     "RepointingMavros",
-                    f"pointing mavros at {target.name} ({target.fcu_url}), was {followed}",
+                    f"pointing mavros at {target.name} ({target.fcu_url}), was {previous}",
                     now,
                 )
             )

@@ -215,8 +215,13 @@ def _reconcile_once(kube: Kube, namespace: str, name: str, peers: Peers) -> None
 
     ra_spec, reported_active = _autopilot_inputs(kube, peers.autopilots_of(name))
     autopilots = autopilots_of(spec, ra_spec)
+    # Once the failover side (roost_operator.autopilots) has chosen the autopilot the
+    # workloads follow, that choice wins: its fleet guards may hold a re-point back.
+    followed = status.failover.followed_autopilot if status.failover else None
     active = active_autopilot(
-        autopilots, reported_active=reported_active, primary=ra_spec.primary if ra_spec else None
+        autopilots,
+        reported_active=followed or reported_active,
+        primary=ra_spec.primary if ra_spec else None,
     )
     fcu_url = active.fcu_url if active else DEFAULT_FCU_URL
     values = vehicle_config(
