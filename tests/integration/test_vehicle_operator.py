@@ -32,7 +32,7 @@ from roost_api.wellknown import (
     STARLING_LABEL_TYPE,
     TAINT_VEHICLE,
 )
-from roost_harness.apiwrites import write_requests
+from roost_harness.apiwrites import VEHICLE_WRITE_TARGETS, write_requests
 from roost_harness.binaries import REPO_ROOT
 from roost_harness.cluster import Cluster
 from roost_harness.controlplane import free_port
@@ -53,17 +53,6 @@ NAMESPACE = "roost-it-vehicles"
 RESYNC_S = 2
 WAIT_S = 60.0
 AddNode = Callable[..., dict[str, Any]]
-
-# What the operator writes for vehicles; nothing else writes these while a test is idle
-# (kwok's heartbeats go to nodes/status, leader election to leases).
-VEHICLE_WRITE_TARGETS = [
-    ("vehicles", ""),
-    ("vehicles", "status"),
-    ("nodes", ""),
-    ("configmaps", ""),
-    ("deployments", ""),
-    ("events", ""),
-]
 
 
 def unique(prefix: str) -> str:

@@ -26,6 +26,18 @@ _LABEL = re.compile(r'(\w+)="((?:[^"\\]|\\.)*)"')
 # (resource, subresource) pairs; subresource "" is the object itself.
 Target = tuple[str, str]
 
+# What Roost's operator writes for Vehicles. Nothing else writes these while a vehicle is
+# idle: kwok's node heartbeats go to nodes/status, leader election to leases, and the
+# Deployment controller writes deployments/status only when a rollout moves.
+VEHICLE_WRITE_TARGETS: tuple[Target, ...] = (
+    ("vehicles", ""),
+    ("vehicles", "status"),
+    ("nodes", ""),
+    ("configmaps", ""),
+    ("deployments", ""),
+    ("events", ""),
+)
+
 
 def write_counts(metrics_text: str) -> Counter[Target]:
     """Write requests per (resource, subresource) in a Prometheus text exposition."""
