@@ -28,8 +28,8 @@ What is modelled, per stack (facts from ``shared/reference/mavlink-health.md``):
   critical sensor failed both report CRITICAL (a failsafe is active). An injected
   MAV_STATE overrides all of that.
 - SYS_STATUS: the stack's sensor set present and enabled; healthy except the stack's
-  normally-unhealthy bits and injected failures; ArduPilot's PREARM_CHECK is unhealthy
-  while disarmed with a failing check.
+  normally-unhealthy bits and injected failures; PREARM_CHECK is unhealthy while
+  disarmed and a pre-arm check fails (booting, or a counted sensor failed).
 """
 
 from __future__ import annotations
@@ -178,12 +178,8 @@ class AutopilotModel:
         """SYS_STATUS masks as this stack would report them now."""
         enabled = stack_sensors(self.stack) | self.sensor_faults
         health = enabled & ~stack_normally_unhealthy(self.stack) & ~self.sensor_faults
-        if (
-            self.stack is Stack.ARDUPILOT
-            and not self.armed
-            and (self._counted_failures() or self.booting)
-        ):
-            health &= ~SensorBit.PREARM_CHECK
+        if not self.armed and (self._counted_failures() or self.booting):
+            health &= ~SensorBit.PREARM_CHECK  # the pre-arm checks do not pass
         return Sensors(present=int(enabled), enabled=int(enabled), health=int(health))
 
     def system_status(self) -> MavState:

@@ -1,0 +1,521 @@
+"""The simulated autopilot on real sockets and a real pseudo-terminal.
+
+Clients here are real MAVLink implementations: pymavlink (the agent's library) and, in
+the slow tests, MAVSDK's native library, which was written against real PX4/ArduPilot
+and shares no code with the simulator. Rates are measured and checked loosely (the
+machine is shared); speed figures belong to the benchmarks.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from collections import Counter
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from mavsdk import ComponentType, Configuration, Mavsdk
+from mavsdk.plugins.action import Action
+from mavsdk.plugins.telemetry import Telemetry
+
+from roost_api.autopilot import RedundantAutopilotSpec
+from roost_api.meta import Stack
+from roost_mavlink import (
+    FORCE_DISARM_MAGIC,
+    MAV_CMD_COMPONENT_ARM_DISARM,
+    MAV_CMD_DO_SET_MODE,
+    MAV_CMD_NAV_LAND,
+    MAV_CMD_NAV_RETURN_TO_LAUNCH,
+    MAV_CMD_NAV_TAKEOFF,
+    MAV_CMD_REQUEST_MESSAGE,
+    MAV_CMD_SET_MESSAGE_INTERVAL,
+    MavResult,
+    heartbeat_autopilot,
+    intent_mode,
+    mode_name,
+    pymavlink_device,
+    set_mode_params,
+)
+from roost_mavlink.modes import ModeIntent
+from roost_mavlink.status import MAV_AUTOPILOT_INVALID, MavState, SensorBit
+from roost_sim import (
+    FaultKind,
+    SimulatedAutopilot,
+    autopilot_specs,
+    free_udp_port,
+    message_id,
+    start_vehicle_sims,
+    stop_sims,
+)
+from roost_sim.main import main as sim_cli
+
+os.environ.setdefault("MAVLINK20", "1")  # before mavutil is imported: the sims speak MAVLink 2
+from pymavlink import mavutil
+
+if getattr(mavutil.mavlink, "WIRE_PROTOCOL_VERSION", "2.0") != "2.0":
+    mavutil.set_dialect(mavutil.current_dialect)  # mavutil was imported before the env was set
+
+NAN = math.nan
+STACKS = list(Stack)
+
+
+class Client:
+    """A pymavlink connection that records every message, the way a GCS would."""
+
+    def __init__(self, device: str, baud: int = 57600) -> None:
+        self.conn = mavutil.mavlink_connection(
+            device, baud=baud, source_system=245, source_component=190
+        )
+
+    def close(self) -> None:
+        self.conn.close()
+
+    def collect(self, seconds: float) -> list[tuple[float, Any]]:
+        """(arrival monotonic time, message) for everything valid that arrives."""
+        out: list[tuple[float, Any]] = []
+        deadline = time.monotonic() + seconds
+        while (left := deadline - time.monotonic()) > 0:
+            msg = self.conn.recv_match(blocking=True, timeout=min(left, 0.1))
+            if msg is not None and msg.get_type() != "BAD_DATA":
+                out.append((time.monotonic(), msg))
+        return out
+
+    def drain(self) -> None:
+        """Discard what is already queued in the socket (older than the next event)."""
+        while self.conn.recv_match(blocking=False) is not None:
+            pass
+
+    def wait_for(self, kind: str, cond: Callable[[Any], bool], timeout: float = 5.0) -> Any:
+        deadline = time.monotonic() + timeout
+        while (left := deadline - time.monotonic()) > 0:
+            msg = self.conn.recv_match(type=kind, blocking=True, timeout=min(left, 0.2))
+            if msg is not None and cond(msg):
+                return msg
+        raise AssertionError(f"no {kind} matching the condition within {timeout}s")
+
+    def command(self, sysid: int, command: int, *params: float, timeout: float = 2.0) -> int:
+        """Send COMMAND_LONG and return the COMMAND_ACK result for it."""
+        padded = [*params, *([0.0] * (7 - len(params)))]
+        self.conn.mav.command_long_send(sysid, 1, command, 0, *padded)
+        ack = self.wait_for("COMMAND_ACK", lambda m: m.command == command, timeout)
+        return int(ack.result)
+
+    def command_unanswered(self, sysid: int, command: int, wait: float = 1.0) -> bool:
+        self.conn.mav.command_long_send(sysid, 1, command, 0, 0, 0, 0, 0, 0, 0, 0)
+        try:
+            self.wait_for("COMMAND_ACK", lambda m: m.command == command, wait)
+        except AssertionError:
+            return True
+        return False
+
+
+@pytest.fixture
+def udp_sim(request: pytest.FixtureRequest) -> Iterator[tuple[SimulatedAutopilot, Client]]:
+    """A sim streaming to a listening client, like the agent's ``udp://`` links."""
+    stack = getattr(request, "param", Stack.PX4)
+    port = free_udp_port()
+    client = Client(pymavlink_device(f"udp://127.0.0.1:{port}").device)
+    sim = SimulatedAutopilot.udp(stack, 7, target_port=port).start()
+    try:
+        # Booted (STANDBY): from here on commands behave as on a ready autopilot.
+        client.wait_for("HEARTBEAT", lambda m: m.system_status == MavState.STANDBY)
+        yield sim, client
+    finally:
+        sim.stop()
+        client.close()
+
+
+def by_type(messages: list[tuple[float, Any]], sysid: int | None = None) -> Counter[str]:
+    return Counter(m.get_type() for _, m in messages if sysid is None or m.get_srcSystem() == sysid)
+
+
+def fly(client: Client, stack: Stack, sysid: int) -> None:
+    if stack is Stack.ARDUPILOT:
+        guided = set_mode_params(stack, "GUIDED")
+        assert client.command(sysid, MAV_CMD_DO_SET_MODE, *guided) == MavResult.ACCEPTED
+    assert client.command(sysid, MAV_CMD_COMPONENT_ARM_DISARM, 1) == MavResult.ACCEPTED
+    takeoff = (0, 0, 0, NAN, NAN, NAN, NAN if stack is Stack.PX4 else 2.5)
+    assert client.command(sysid, MAV_CMD_NAV_TAKEOFF, *takeoff) == MavResult.ACCEPTED
+
+
+# ---- streams and identity -------------------------------------------------------------
+
+
+@pytest.mark.parametrize("udp_sim", STACKS, indirect=True)
+def test_streams_arrive_at_roughly_their_rates(
+    udp_sim: tuple[SimulatedAutopilot, Client],
+) -> None:
+    sim, client = udp_sim
+    seconds = 3.0
+    counts = by_type(client.collect(seconds), sim.sysid)
+    rates = {kind: n / seconds for kind, n in counts.items()}
+    # Loose bounds: the 2-core machine is shared; exact rates are a benchmark concern.
+    assert 0.5 <= rates["HEARTBEAT"] <= 2.0
+    assert 2.5 <= rates["SYS_STATUS"] <= 7.5
+    assert 2.5 <= rates["EXTENDED_SYS_STATE"] <= 7.5
+    assert 25 <= rates["ATTITUDE"] <= 75
+    assert 5 <= rates["GLOBAL_POSITION_INT"] <= 15
+    assert rates["SYSTEM_TIME"] > 0
+
+
+@pytest.mark.parametrize("udp_sim", STACKS, indirect=True)
+def test_heartbeat_and_sys_status_follow_the_stack(
+    udp_sim: tuple[SimulatedAutopilot, Client],
+) -> None:
+    sim, client = udp_sim
+    hb = client.wait_for("HEARTBEAT", lambda m: m.system_status == MavState.STANDBY)
+    assert hb.autopilot == heartbeat_autopilot(sim.stack)
+    assert hb.type == mavutil.mavlink.MAV_TYPE_QUADROTOR
+    assert mode_name(sim.stack, hb.custom_mode) == sim.snapshot().mode
+    status = client.wait_for("SYS_STATUS", lambda m: True)
+    assert status.onboard_control_sensors_enabled & SensorBit.GYRO
+    assert status.onboard_control_sensors_health & SensorBit.GYRO
+    rc_healthy = bool(status.onboard_control_sensors_health & SensorBit.RC_RECEIVER)
+    assert rc_healthy is (sim.stack is Stack.ARDUPILOT)  # PX4 SITL has no RC
+
+
+def test_a_client_that_talks_first_is_answered_and_streamed_to() -> None:
+    with SimulatedAutopilot.udp(Stack.PX4, 3) as sim:  # no target: udpout:// clients
+        assert sim.connection.startswith("udpout://127.0.0.1:")
+        client = Client(pymavlink_device(sim.connection).device)
+        try:
+            client.conn.mav.heartbeat_send(6, MAV_AUTOPILOT_INVALID, 0, 0, 0)
+            client.wait_for("HEARTBEAT", lambda m: m.system_status == MavState.STANDBY)
+            assert client.command(3, MAV_CMD_COMPONENT_ARM_DISARM, 1) == MavResult.ACCEPTED
+        finally:
+            client.close()
+
+
+def test_serial_pseudo_terminal_link() -> None:
+    with SimulatedAutopilot.pty(Stack.ARDUPILOT, 4) as sim:
+        assert sim.connection == f"serial://{sim.device}:57600"
+        device = pymavlink_device(sim.connection)
+        client = Client(device.device, device.baud)
+        try:
+            counts = by_type(client.collect(1.5), 4)  # includes the 0.5 s BOOT phase
+            assert counts["HEARTBEAT"] >= 1 and counts["ATTITUDE"] >= 30
+            fly(client, Stack.ARDUPILOT, 4)
+            sim.wait_until(lambda s: s.landed_state == "InAir", timeout=5)
+            assert client.command(4, MAV_CMD_NAV_LAND) == MavResult.ACCEPTED
+            sim.wait_until(lambda s: not s.armed, timeout=8)
+        finally:
+            client.close()
+
+
+# ---- commands -------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("udp_sim", STACKS, indirect=True)
+def test_arm_takeoff_hold_land_over_the_wire(udp_sim: tuple[SimulatedAutopilot, Client]) -> None:
+    sim, client = udp_sim
+    stack = sim.stack
+    fly(client, stack, sim.sysid)
+    client.wait_for("EXTENDED_SYS_STATE", lambda m: m.landed_state == 2, timeout=5)  # in air
+    position = client.wait_for("GLOBAL_POSITION_INT", lambda m: m.relative_alt > 2000)
+    assert position.relative_alt == pytest.approx(2500, abs=100)
+    hold = intent_mode(stack, ModeIntent.HOLD)
+    params = set_mode_params(stack, hold)
+    assert client.command(sim.sysid, MAV_CMD_DO_SET_MODE, *params) == MavResult.ACCEPTED
+    client.wait_for("HEARTBEAT", lambda m: mode_name(stack, m.custom_mode) == hold)
+    assert client.command(sim.sysid, MAV_CMD_NAV_LAND) == MavResult.ACCEPTED
+    client.wait_for("EXTENDED_SYS_STATE", lambda m: m.landed_state == 4)  # landing
+    client.wait_for("EXTENDED_SYS_STATE", lambda m: m.landed_state == 1, timeout=6)
+    client.wait_for(
+        "HEARTBEAT", lambda m: not m.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+    )
+    modes = [change.mode for change in sim.mode_history]
+    assert modes[-2:] == [hold, intent_mode(stack, ModeIntent.LAND)]
+    names = [c.name for c in sim.commands]
+    assert names[-2:] == ["MAV_CMD_DO_SET_MODE", "MAV_CMD_NAV_LAND"]
+    assert sim.commands[-1].source == (245, 190)
+
+
+@pytest.mark.parametrize("udp_sim", STACKS, indirect=True)
+def test_refusals_use_each_stacks_result_codes(udp_sim: tuple[SimulatedAutopilot, Client]) -> None:
+    sim, client = udp_sim
+    refused = MavResult.TEMPORARILY_REJECTED if sim.stack is Stack.PX4 else MavResult.FAILED
+    sim.inject(FaultKind.SENSOR, "gyro")
+    assert client.command(sim.sysid, MAV_CMD_COMPONENT_ARM_DISARM, 1) == refused
+    sim.clear()
+    fly(client, sim.stack, sim.sysid)
+    sim.wait_until(lambda s: s.landed_state == "InAir")
+    assert client.command(sim.sysid, MAV_CMD_COMPONENT_ARM_DISARM, 0) == refused
+    sim.inject(FaultKind.SENSOR, "gps")
+    assert client.command(sim.sysid, MAV_CMD_NAV_RETURN_TO_LAUNCH) == refused
+    force = (0, FORCE_DISARM_MAGIC)
+    assert client.command(sim.sysid, MAV_CMD_COMPONENT_ARM_DISARM, *force) == MavResult.ACCEPTED
+    sim.wait_until(lambda s: s.landed_state == "OnGround" and not s.armed)
+    assert client.command(sim.sysid, 31000) == MavResult.UNSUPPORTED  # a user command
+
+
+@pytest.mark.parametrize("udp_sim", [Stack.PX4], indirect=True)
+def test_message_interval_and_request_message(udp_sim: tuple[SimulatedAutopilot, Client]) -> None:
+    sim, client = udp_sim
+    attitude = message_id("ATTITUDE")
+    assert client.command(sim.sysid, MAV_CMD_SET_MESSAGE_INTERVAL, attitude, 1e5) == 0
+    counts = by_type(client.collect(2.0), sim.sysid)
+    assert 10 <= counts["ATTITUDE"] <= 30  # 10 Hz now
+    assert client.command(sim.sysid, MAV_CMD_SET_MESSAGE_INTERVAL, attitude, -1) == 0
+    time.sleep(0.1)
+    assert by_type(client.collect(1.0), sim.sysid)["ATTITUDE"] == 0
+    heartbeat = message_id("HEARTBEAT")
+    assert client.command(sim.sysid, MAV_CMD_SET_MESSAGE_INTERVAL, heartbeat, 1e5) == 2
+    version = message_id("AUTOPILOT_VERSION")
+    assert client.command(sim.sysid, MAV_CMD_REQUEST_MESSAGE, version) == 0
+    reply = client.wait_for("AUTOPILOT_VERSION", lambda m: m.get_srcSystem() == sim.sysid)
+    assert reply.capabilities & mavutil.mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+    assert client.command(sim.sysid, MAV_CMD_REQUEST_MESSAGE, 9999) == MavResult.DENIED
+
+
+def test_commands_for_another_system_are_ignored(
+    udp_sim: tuple[SimulatedAutopilot, Client],
+) -> None:
+    sim, client = udp_sim
+    assert client.command_unanswered(sim.sysid + 1, MAV_CMD_COMPONENT_ARM_DISARM)
+    assert not sim.snapshot().armed and sim.commands == []
+
+
+# ---- faults, each seen on the wire ----------------------------------------------------
+
+
+def test_fault_silence(udp_sim: tuple[SimulatedAutopilot, Client]) -> None:
+    sim, client = udp_sim
+    sim.inject(FaultKind.SILENCE)
+    time.sleep(0.05)
+    client.drain()
+    assert by_type(client.collect(1.0), sim.sysid) == Counter()
+    assert client.command_unanswered(sim.sysid, MAV_CMD_COMPONENT_ARM_DISARM, wait=0.5)
+    sim.clear(FaultKind.SILENCE)
+    assert by_type(client.collect(0.5), sim.sysid)["ATTITUDE"] > 5
+
+
+def test_fault_freeze_repeats_values(udp_sim: tuple[SimulatedAutopilot, Client]) -> None:
+    sim, client = udp_sim
+    sim.inject(FaultKind.FREEZE)
+    time.sleep(0.05)
+    client.drain()
+    received = client.collect(1.0)
+    attitudes = [m for _, m in received if m.get_type() == "ATTITUDE"]
+    assert len(attitudes) > 25  # the stream keeps its rate...
+    values = {(m.time_boot_ms, m.roll, m.pitch, m.yaw) for m in attitudes}
+    assert len(values) == 1  # ...but every sample is the same
+    times = {m.time_boot_ms for _, m in received if m.get_type() == "SYSTEM_TIME"}
+    assert len(times) <= 1
+    assert client.command_unanswered(sim.sysid, MAV_CMD_COMPONENT_ARM_DISARM, wait=0.5)
+    sim.clear(FaultKind.FREEZE)
+    after = [m for _, m in client.collect(0.5) if m.get_type() == "ATTITUDE"]
+    assert len({m.time_boot_ms for m in after}) > 5
+
+
+def test_fault_sensor_bit(udp_sim: tuple[SimulatedAutopilot, Client]) -> None:
+    sim, client = udp_sim
+    sim.inject(FaultKind.SENSOR, "gyro")
+    status = client.wait_for(
+        "SYS_STATUS", lambda m: not m.onboard_control_sensors_health & SensorBit.GYRO
+    )
+    assert status.onboard_control_sensors_enabled & SensorBit.GYRO
+    assert status.onboard_control_sensors_present & SensorBit.GYRO
+    sim.clear()
+    client.wait_for("SYS_STATUS", lambda m: m.onboard_control_sensors_health & SensorBit.GYRO)
+
+
+@pytest.mark.parametrize("state", ["CRITICAL", "EMERGENCY"])
+def test_fault_mav_state(udp_sim: tuple[SimulatedAutopilot, Client], state: str) -> None:
+    sim, client = udp_sim
+    sim.inject(FaultKind.STATE, state)
+    client.wait_for("HEARTBEAT", lambda m: m.system_status == MavState[state], timeout=3)
+    sim.clear(FaultKind.STATE)
+    client.wait_for("HEARTBEAT", lambda m: m.system_status == MavState.STANDBY, timeout=3)
+
+
+@pytest.mark.parametrize("udp_sim", STACKS, indirect=True)
+def test_fault_reboot_in_flight(udp_sim: tuple[SimulatedAutopilot, Client]) -> None:
+    sim, client = udp_sim
+    fly(client, sim.stack, sim.sysid)
+    sim.wait_until(lambda s: s.landed_state == "InAir")
+    before = client.wait_for("ATTITUDE", lambda m: True).time_boot_ms
+    sim.inject(FaultKind.REBOOT, 0.3)
+    boot = client.wait_for("HEARTBEAT", lambda m: m.system_status == MavState.BOOT, timeout=3)
+    assert not boot.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+    after = client.wait_for("ATTITUDE", lambda m: True).time_boot_ms
+    assert after < before and after < 1000  # time_boot_ms went backwards
+    client.wait_for("HEARTBEAT", lambda m: m.system_status == MavState.STANDBY, timeout=3)
+
+
+def test_fault_garbage_is_seen_and_valid_frames_still_arrive(
+    udp_sim: tuple[SimulatedAutopilot, Client],
+) -> None:
+    sim, client = udp_sim
+    errors_before = client.conn.mav.total_receive_errors
+    sim.inject(FaultKind.GARBAGE, 4000)
+    counts = by_type(client.collect(1.0), sim.sysid)
+    assert client.conn.mav.total_receive_errors > errors_before
+    assert counts["ATTITUDE"] > 10
+
+
+def test_fault_packet_loss(udp_sim: tuple[SimulatedAutopilot, Client]) -> None:
+    sim, client = udp_sim
+    baseline = by_type(client.collect(1.0), sim.sysid)["ATTITUDE"]
+    sim.inject(FaultKind.LOSS, 60)
+    lossy = by_type(client.collect(1.0), sim.sysid)["ATTITUDE"]
+    assert 0 < lossy < 0.75 * baseline
+
+
+def test_fault_jitter_delays_frames_in_order(udp_sim: tuple[SimulatedAutopilot, Client]) -> None:
+    sim, client = udp_sim
+
+    def lateness(seconds: float) -> list[float]:
+        samples = [(t, m) for t, m in client.collect(seconds) if m.get_type() == "ATTITUDE"]
+        # Arrival time minus the autopilot's own timestamp: constant on a perfect link.
+        return [t - m.time_boot_ms / 1000.0 for t, m in samples]
+
+    base = lateness(1.0)
+    sim.inject(FaultKind.JITTER, 200)
+    time.sleep(0.3)
+    jittery = lateness(1.5)
+    assert max(jittery) - min(jittery) > 0.1 > max(base) - min(base)
+    in_order = [m.time_boot_ms for _, m in client.collect(0.5) if m.get_type() == "ATTITUDE"]
+    assert in_order == sorted(in_order)
+
+
+def test_fault_spoofed_sysid_and_component(udp_sim: tuple[SimulatedAutopilot, Client]) -> None:
+    sim, client = udp_sim
+    sim.inject(FaultKind.SPOOF, 42)
+    received = [m for _, m in client.collect(1.0) if m.get_type() == "HEARTBEAT"]
+    foreign = [m for m in received if m.get_srcSystem() == 42]
+    gimbal = [m for m in received if m.get_srcSystem() == sim.sysid and m.get_srcComponent() != 1]
+    assert foreign and foreign[0].system_status == MavState.EMERGENCY
+    assert gimbal and gimbal[0].autopilot == MAV_AUTOPILOT_INVALID
+    own = [m for m in received if m.get_srcSystem() == sim.sysid and m.get_srcComponent() == 1]
+    assert all(m.system_status == MavState.STANDBY for m in own)
+
+
+# ---- helpers for the agent and benchmarks, and the CLI ---------------------------------
+
+
+def test_start_vehicle_sims_gives_unique_ids_ports_and_valid_specs() -> None:
+    sims = start_vehicle_sims([Stack.PX4, Stack.ARDUPILOT, Stack.PX4])
+    try:
+        assert [s.name for s in sims] == ["fc1", "fc2", "fc3"]
+        assert len({s.sysid for s in sims}) == 3
+        assert len({s.connection for s in sims}) == 3
+        specs = autopilot_specs(sims)
+        RedundantAutopilotSpec(vehicle_name="v1", autopilots=specs, primary="fc1")
+        for sim in sims:  # each one streams to its own agent port
+            client = Client(pymavlink_device(sim.connection).device)
+            try:
+                hb = client.wait_for("HEARTBEAT", lambda m: True)
+                assert hb.get_srcSystem() == sim.sysid
+                assert hb.autopilot == heartbeat_autopilot(sim.stack)
+            finally:
+                client.close()
+    finally:
+        stop_sims(sims)
+
+
+def test_cli_run_fault_status_clear(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``roost-sim run`` in its own process; fault/status/clear through the CLI entry point
+    in this one (same code as the console script, without paying interpreter start-up)."""
+    monkeypatch.setenv("ROOST_SIM_STATE_DIR", str(tmp_path))
+    port = free_udp_port()
+    client = Client(pymavlink_device(f"udp://127.0.0.1:{port}").device)
+    run = [sys.executable, "-m", "roost_sim.main", "run", "--stack", "ardupilot"]
+    proc = subprocess.Popen(
+        [*run, "--sysid", "9", "--name", "fcx", "--udp-out", f"127.0.0.1:{port}"],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        started = json.loads(proc.stdout.readline())
+        assert started["connection"] == f"udp://127.0.0.1:{port}" and started["sysid"] == 9
+        client.wait_for("HEARTBEAT", lambda m: m.get_srcSystem() == 9)
+
+        def cli(*args: str) -> tuple[int, dict[str, Any]]:
+            code = sim_cli(list(args))
+            out = capsys.readouterr().out
+            return code, json.loads(out) if out.strip() else {}
+
+        assert cli("fault", "fcx", "state", "--value", "EMERGENCY")[0] == 0
+        client.wait_for("HEARTBEAT", lambda m: m.system_status == MavState.EMERGENCY)
+        code, answer = cli("status", "fcx")
+        assert code == 0 and answer["state"]["faults"] == {"state": "EMERGENCY"}
+        assert answer["state"]["stack"] == "ardupilot"
+        assert cli("clear", "fcx")[0] == 0
+        client.wait_for("HEARTBEAT", lambda m: m.system_status == MavState.STANDBY)
+        assert cli("fault", "fcx", "state", "--value", "PANIC")[0] == 1
+        assert cli("status", "nobody")[0] == 2
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+        client.close()
+    assert proc.returncode == 0
+    assert not list(tmp_path.glob("*.sock"))  # the control socket is removed on exit
+
+
+# ---- an independent MAVLink implementation --------------------------------------------
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("stack", STACKS)
+def test_mavsdk_connects_reads_telemetry_arms_takes_off_and_lands(stack: Stack) -> None:
+    port = free_udp_port()
+    mavsdk = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
+    sim = SimulatedAutopilot.udp(stack, 1, target_port=port).start()
+    try:
+        assert int(mavsdk.add_any_connection(f"udpin://127.0.0.1:{port}")) == 0
+        system = mavsdk.first_autopilot(10.0)
+        assert system is not None and system.get_system_id() == 1
+        telemetry, action = Telemetry(system), Action(system)
+
+        def eventually(check: Callable[[], bool], timeout: float = 10.0) -> None:
+            deadline = time.monotonic() + timeout
+            while not check():
+                assert time.monotonic() < deadline, "MAVSDK never saw the expected state"
+                time.sleep(0.1)
+
+        # MAVSDK reads "armable" from SYS_STATUS PREARM_CHECK: false while the sim boots.
+        eventually(lambda: telemetry.health().is_armable)
+        eventually(lambda: telemetry.health().is_home_position_ok)
+        position = telemetry.position()
+        assert position.latitude_deg == pytest.approx(sim.config.home_lat_deg, abs=1e-6)
+        assert telemetry.health().is_global_position_ok
+        action.arm()
+        action.takeoff()
+        eventually(lambda: telemetry.in_air() and telemetry.position().relative_altitude_m > 1.5)
+        assert sim.snapshot().armed
+        action.land()
+        eventually(lambda: not telemetry.in_air() and not telemetry.armed())
+        snap = sim.snapshot()
+        assert snap.landed_state == "OnGround" and not snap.armed
+        names = [c.name for c in sim.commands if c.result == MavResult.ACCEPTED]
+        for expected in ("MAV_CMD_COMPONENT_ARM_DISARM", "MAV_CMD_NAV_TAKEOFF", "MAV_CMD_NAV_LAND"):
+            assert expected in names
+    finally:
+        mavsdk.destroy()
+        sim.stop()
+
+
+@pytest.mark.slow
+def test_mavsdk_over_the_serial_pseudo_terminal() -> None:
+    mavsdk = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
+    with SimulatedAutopilot.pty(Stack.PX4, 2) as sim:
+        try:
+            assert int(mavsdk.add_any_connection(f"serial://{sim.device}:57600")) == 0
+            system = mavsdk.first_autopilot(10.0)
+            assert system is not None and system.get_system_id() == 2
+            telemetry = Telemetry(system)
+            deadline = time.monotonic() + 10
+            while math.isnan(telemetry.position().latitude_deg):
+                assert time.monotonic() < deadline
+                time.sleep(0.1)
+        finally:
+            mavsdk.destroy()

@@ -1,0 +1,351 @@
+"""Decision tables of the simulated autopilot's flight-controller rules (no sockets).
+
+The simulator decides when to arm, refuse, disarm and land; agent tests trust those
+decisions, so they are pinned here with a fake clock: each stack's refusal codes, forced
+disarm, position-dependent modes, kinematics, auto-disarm, MAV_STATE and sensor bits.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from typing import Any
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from pymavlink.dialects.v20 import common as mavlink
+
+from roost_api.meta import Stack
+from roost_mavlink import FORCE_DISARM_MAGIC, MavResult, custom_mode
+from roost_mavlink.status import LandedState, MavState, SensorBit
+from roost_sim.autopilot import SimulatedAutopilot
+from roost_sim.control import handle_request
+from roost_sim.faults import FaultKind, parse_number, parse_sensor, parse_state
+from roost_sim.model import AutopilotModel, SimConfig
+from roost_sim.params import ParamStore
+
+
+class FakeClock:
+    """Monotonic time the test advances by hand."""
+
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def make(stack: Stack, **config: Any) -> tuple[AutopilotModel, FakeClock]:
+    clock = FakeClock()
+    model = AutopilotModel(stack, SimConfig(**config), clock=clock)
+    clock.now += 1.0  # past the BOOT phase
+    return model, clock
+
+
+def run(model: AutopilotModel, clock: FakeClock, seconds: float, dt: float = 0.02) -> None:
+    for _ in range(round(seconds / dt)):
+        clock.now += dt
+        model.step()
+
+
+def airborne(stack: Stack) -> tuple[AutopilotModel, FakeClock]:
+    model, clock = make(stack)
+    if stack is Stack.ARDUPILOT:
+        assert model.set_mode(custom_mode(stack, "GUIDED")) == MavResult.ACCEPTED
+    assert model.arm(arm=True) == MavResult.ACCEPTED
+    assert model.takeoff(math.nan) == MavResult.ACCEPTED
+    run(model, clock, 2.0)
+    assert model.landed_state is LandedState.IN_AIR
+    return model, clock
+
+
+REFUSED = {Stack.PX4: MavResult.TEMPORARILY_REJECTED, Stack.ARDUPILOT: MavResult.FAILED}
+
+
+@pytest.mark.parametrize("stack", list(Stack))
+def test_boot_state_defaults(stack: Stack) -> None:
+    clock = FakeClock()
+    model = AutopilotModel(stack, clock=clock)
+    assert model.system_status() is MavState.BOOT
+    assert model.arm(arm=True) == REFUSED[stack]
+    clock.now += 1.0
+    assert model.system_status() is MavState.STANDBY
+    assert model.mode == {Stack.PX4: "AUTO.LOITER", Stack.ARDUPILOT: "STABILIZE"}[stack]
+    assert model.time_boot_ms() == 1000
+
+
+@pytest.mark.parametrize("stack", list(Stack))
+def test_arm_refused_with_a_failed_sensor_unless_forced(stack: Stack) -> None:
+    model, _ = make(stack)
+    model.sensor_faults = SensorBit.GYRO
+    assert model.arm(arm=True) == REFUSED[stack]
+    assert not model.armed
+    assert model.arm(arm=True, magic=FORCE_DISARM_MAGIC) == MavResult.ACCEPTED
+    assert model.armed
+
+
+@pytest.mark.parametrize("stack", list(Stack))
+def test_ignored_sensor_bits_do_not_block_arming(stack: Stack) -> None:
+    model, _ = make(stack)
+    model.sensor_faults = SensorBit.LOGGING
+    assert model.arm(arm=True) == MavResult.ACCEPTED
+
+
+@pytest.mark.parametrize("state", [MavState.CRITICAL, MavState.EMERGENCY])
+def test_arm_refused_under_injected_bad_state(state: MavState) -> None:
+    model, _ = make(Stack.PX4)
+    model.state_override = state
+    assert model.arm(arm=True) == MavResult.TEMPORARILY_REJECTED
+    assert model.system_status() is state
+
+
+def test_ardupilot_cannot_arm_in_land_mode() -> None:
+    model, _ = make(Stack.ARDUPILOT)
+    model.set_mode(custom_mode(Stack.ARDUPILOT, "LAND"))
+    assert model.arm(arm=True) == MavResult.FAILED
+
+
+@pytest.mark.parametrize("stack", list(Stack))
+def test_disarm_in_air_needs_the_force_magic(stack: Stack) -> None:
+    model, clock = airborne(stack)
+    assert model.arm(arm=False) == REFUSED[stack]
+    assert model.armed
+    assert model.arm(arm=False, magic=math.nan) == REFUSED[stack]
+    assert model.arm(arm=False, magic=FORCE_DISARM_MAGIC) == MavResult.ACCEPTED
+    run(model, clock, 1.0)  # unpowered: it falls
+    assert model.on_ground and not model.armed
+
+
+@pytest.mark.parametrize("stack", list(Stack))
+def test_takeoff_hold_land_and_auto_disarm(stack: Stack) -> None:
+    model, clock = airborne(stack)
+    assert model.altitude_m == pytest.approx(2.5)
+    assert model.system_status() is MavState.ACTIVE
+    hold = {Stack.PX4: "AUTO.LOITER", Stack.ARDUPILOT: "LOITER"}[stack]
+    assert model.set_mode(custom_mode(stack, hold)) == MavResult.ACCEPTED
+    run(model, clock, 1.0)
+    assert model.altitude_m == pytest.approx(2.5)
+    assert model.land() == MavResult.ACCEPTED
+    run(model, clock, 0.5)
+    assert model.landed_state is LandedState.LANDING
+    run(model, clock, 1.5)
+    assert model.on_ground and model.armed  # touched down; disarms a moment later
+    run(model, clock, 1.1)
+    assert not model.armed
+    modes = [change.mode for change in model.mode_history]
+    land = {Stack.PX4: "AUTO.LAND", Stack.ARDUPILOT: "LAND"}[stack]
+    assert modes[-2:] == [hold, land]
+
+
+def test_px4_takeoff_goes_to_hold_and_uses_amsl_param7() -> None:
+    model, clock = make(Stack.PX4)
+    model.arm(arm=True)
+    assert model.takeoff(model.config.home_amsl_m + 4.0) == MavResult.ACCEPTED
+    assert model.mode == "AUTO.TAKEOFF"
+    run(model, clock, 0.5)
+    assert model.landed_state is LandedState.TAKEOFF
+    run(model, clock, 2.0)
+    assert model.altitude_m == pytest.approx(4.0)
+    assert model.mode == "AUTO.LOITER"
+    assert model.takeoff(model.config.home_amsl_m - 1.0) == MavResult.DENIED
+
+
+def test_px4_takeoff_before_arming_climbs_once_armed() -> None:
+    model, clock = make(Stack.PX4)
+    assert model.takeoff(math.nan) == MavResult.ACCEPTED
+    run(model, clock, 0.5)
+    assert model.on_ground
+    model.arm(arm=True)
+    run(model, clock, 1.5)
+    assert model.altitude_m == pytest.approx(2.5)
+
+
+def test_ardupilot_takeoff_rules() -> None:
+    model, clock = make(Stack.ARDUPILOT)
+    assert model.takeoff(3.0) == MavResult.FAILED  # disarmed
+    model.arm(arm=True)
+    assert model.takeoff(3.0) == MavResult.FAILED  # STABILIZE has no user takeoff
+    model.set_mode(custom_mode(Stack.ARDUPILOT, "GUIDED"))
+    assert model.takeoff(3.0) == MavResult.ACCEPTED
+    assert model.system_status() is MavState.STANDBY  # still on the ground
+    run(model, clock, 2.0)
+    assert model.altitude_m == pytest.approx(3.0)
+    assert model.mode == "GUIDED"
+    assert model.system_status() is MavState.ACTIVE
+    assert model.takeoff(5.0) == MavResult.FAILED  # already flying
+
+
+@pytest.mark.parametrize(
+    ("stack", "hold", "land"),
+    [(Stack.PX4, "AUTO.LOITER", "AUTO.LAND"), (Stack.ARDUPILOT, "LOITER", "LAND")],
+)
+def test_position_modes_refused_without_gps_but_land_works(
+    stack: Stack, hold: str, land: str
+) -> None:
+    model, _ = airborne(stack)
+    model.sensor_faults = SensorBit.GPS
+    assert model.set_mode(custom_mode(stack, hold)) == REFUSED[stack]
+    assert model.return_to_launch() == REFUSED[stack]
+    assert model.set_mode(custom_mode(stack, land)) == MavResult.ACCEPTED
+
+
+def test_unknown_mode_is_invalid() -> None:
+    px4, _ = make(Stack.PX4)
+    assert px4.set_mode(0x12345678) == MavResult.DENIED
+    ardu, _ = make(Stack.ARDUPILOT)
+    assert ardu.set_mode(8) == MavResult.FAILED
+
+
+@pytest.mark.parametrize("stack", list(Stack))
+def test_rtl_descends_and_lands_at_home(stack: Stack) -> None:
+    model, clock = airborne(stack)
+    assert model.return_to_launch() == MavResult.ACCEPTED
+    run(model, clock, 3.0)
+    assert model.on_ground
+
+
+def test_idle_armed_on_the_ground_disarms() -> None:
+    model, clock = make(Stack.PX4, idle_disarm_s=2.0)
+    model.arm(arm=True)
+    run(model, clock, 1.5)
+    assert model.armed
+    run(model, clock, 0.6)
+    assert not model.armed
+
+
+@pytest.mark.parametrize("stack", list(Stack))
+def test_critical_sensor_in_flight_reports_critical(stack: Stack) -> None:
+    model, _ = airborne(stack)
+    model.sensor_faults = SensorBit.ACCEL
+    assert model.system_status() is MavState.CRITICAL
+    model.sensor_faults = SensorBit.MAG
+    assert model.system_status() is MavState.ACTIVE
+
+
+def test_sensor_bits_per_stack() -> None:
+    px4, _ = make(Stack.PX4)
+    s = px4.sensors()
+    assert s.present == s.enabled
+    assert s.enabled & SensorBit.RC_RECEIVER and not s.health & SensorBit.RC_RECEIVER
+    assert s.health & SensorBit.GYRO
+    px4.sensor_faults = SensorBit.GYRO | SensorBit.GYRO2
+    s = px4.sensors()
+    assert s.enabled & SensorBit.GYRO2 and not s.health & (SensorBit.GYRO | SensorBit.GYRO2)
+
+
+@pytest.mark.parametrize("stack", list(Stack))
+def test_prearm_bit_tracks_the_arming_checks(stack: Stack) -> None:
+    model, _ = make(stack)
+    assert model.sensors().health & SensorBit.PREARM_CHECK
+    model.sensor_faults = SensorBit.MAG
+    assert not model.sensors().health & SensorBit.PREARM_CHECK  # a pre-arm check fails
+    model.arm(arm=True, magic=FORCE_DISARM_MAGIC)
+    assert model.sensors().health & SensorBit.PREARM_CHECK  # not judged once armed
+    model.sensor_faults = SensorBit(0)
+    model.reboot()
+    assert not model.sensors().health & SensorBit.PREARM_CHECK  # still booting
+
+
+@pytest.mark.parametrize("stack", list(Stack))
+def test_reboot_forgets_the_flight(stack: Stack) -> None:
+    model, clock = airborne(stack)
+    model.state_override = MavState.CRITICAL
+    model.reboot()
+    assert (model.armed, model.altitude_m, model.time_boot_ms()) == (False, 0.0, 0)
+    assert model.system_status() is MavState.BOOT
+    clock.now += 1.0
+    assert model.system_status() is MavState.STANDBY
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    actions=st.lists(
+        st.sampled_from(["arm", "disarm", "takeoff", "land", "hold", "rtl", "wait", "gps"]),
+        max_size=25,
+    ),
+    stack=st.sampled_from(list(Stack)),
+)
+def test_a_disarmed_vehicle_never_climbs_and_the_landed_state_matches_altitude(
+    actions: list[str], stack: Stack
+) -> None:
+    model, clock = make(stack)
+    for action in actions:
+        before = model.altitude_m
+        if action == "arm":
+            model.arm(arm=True)
+        elif action == "disarm":
+            model.arm(arm=False)
+        elif action == "takeoff":
+            model.takeoff(math.nan)
+        elif action == "land":
+            model.land()
+        elif action == "hold":
+            model.set_mode(custom_mode(stack, "AUTO.LOITER" if stack is Stack.PX4 else "LOITER"))
+        elif action == "rtl":
+            model.return_to_launch()
+        elif action == "gps":
+            model.sensor_faults ^= SensorBit.GPS
+        run(model, clock, 0.3, dt=0.05)
+        assert model.altitude_m >= 0.0
+        if not model.armed:
+            assert model.altitude_m <= before
+        assert not model.on_ground or model.altitude_m == 0.0
+        assert model.altitude_m > 0.0 or model.landed_state in (
+            LandedState.ON_GROUND,
+            LandedState.TAKEOFF,
+        )
+
+
+def test_fault_values_parse() -> None:
+    assert parse_sensor(None) is SensorBit.GYRO
+    assert parse_sensor("ahrs") is SensorBit.AHRS
+    assert parse_sensor("0x20") is SensorBit.GPS
+    with pytest.raises(ValueError):
+        parse_sensor("3")  # two bits
+    assert parse_state("emergency") is MavState.EMERGENCY
+    assert parse_state(None) is MavState.CRITICAL
+    with pytest.raises(ValueError):
+        parse_state("panic")
+    assert parse_number(FaultKind.LOSS, "5", 0.0) == 5.0
+    with pytest.raises(ValueError):
+        parse_number(FaultKind.LOSS, "150", 0.0)
+    with pytest.raises(ValueError):
+        parse_number(FaultKind.JITTER, "-1", 0.0)
+
+
+def _param_set(name: str, value: float, param_type: int) -> Any:
+    return mavlink.MAVLink_param_set_message(1, 1, name.encode(), value, param_type)
+
+
+def test_params_drive_the_config_with_each_stacks_int_encoding() -> None:
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    config = SimConfig()
+    px4 = ParamStore(Stack.PX4, sysid=7, config=config)
+    [reply] = px4.handle(
+        _param_set("MIS_TAKEOFF_ALT", 6.0, mavlink.MAV_PARAM_TYPE_REAL32), mav, 1, 1
+    )
+    assert reply.param_value == 6.0 and config.takeoff_alt_m == 6.0
+    read = mavlink.MAVLink_param_request_read_message(1, 1, b"MAV_SYS_ID", -1)
+    [value] = px4.handle(read, mav, 1, 1)
+    # PX4 copies the int32 bytes into the float field.
+    assert struct.unpack("<i", struct.pack("<f", value.param_value))[0] == 7
+    ardu = ParamStore(Stack.ARDUPILOT, sysid=7, config=config)
+    listing = ardu.handle(mavlink.MAVLink_param_request_list_message(1, 1), mav, 1, 1)
+    assert [m.param_id for m in listing] == ardu.names()
+    by_name = {m.param_id: m.param_value for m in listing}
+    assert by_name["SYSID_THISMAV"] == 7.0  # ArduPilot converts the number
+    assert by_name["PILOT_TKOFF_ALT"] == pytest.approx(600.0)
+    assert px4.handle(_param_set("NOPE", 1.0, mavlink.MAV_PARAM_TYPE_REAL32), mav, 1, 1) == []
+    other = mavlink.MAVLink_param_request_list_message(9, 1)
+    assert px4.handle(other, mav, 1, 1) == []
+
+
+def test_control_requests_are_validated() -> None:
+    sim = SimulatedAutopilot.udp(Stack.PX4, 1)  # not started: no socket is opened
+    ok = handle_request(sim, {"op": "fault", "kind": "sensor", "value": "accel"})
+    assert ok["ok"] and ok["state"]["unhealthy_sensors"] == ["accel"]
+    assert handle_request(sim, {"op": "clear", "kind": None})["state"]["faults"] == {}
+    assert not handle_request(sim, {"op": "fault", "kind": "meteor"})["ok"]
+    assert not handle_request(sim, {"op": "explode"})["ok"]
+    assert not handle_request(sim, {"op": "fault", "kind": "state", "value": "panic"})["ok"]
