@@ -26,6 +26,8 @@ PHASE_STYLES = {
     "Aborted": "red",
 }
 ACTIVE_MARKER = "▸"
+MESSAGE_WIDTH = 100
+"""Long operator messages are cut to one line; ``kubectl describe`` has the whole text."""
 
 
 def health_text(row: FleetRow) -> Text:
@@ -91,10 +93,10 @@ def missions_table(rows: Sequence[MissionRow]) -> Table:
     table.add_column("MISSION", style="bold cyan", no_wrap=True)
     table.add_column("PHASE", no_wrap=True)
     table.add_column("ASSIGNED", justify="right")
-    table.add_column("VEHICLES")
-    table.add_column("DEGRADED")
-    table.add_column("STARTED", justify="right")
-    table.add_column("MESSAGE")
+    table.add_column("VEHICLES", no_wrap=True)
+    table.add_column("DEGRADED", no_wrap=True)
+    table.add_column("STARTED", justify="right", no_wrap=True)
+    table.add_column("MESSAGE", overflow="ellipsis", no_wrap=True, max_width=MESSAGE_WIDTH)
     for row in rows:
         phase = Text(row.phase, style=PHASE_STYLES.get(row.phase, ""))
         if row.abort and row.phase not in ("Aborting", "Aborted"):
@@ -120,7 +122,7 @@ def events_table(rows: Sequence[EventRow]) -> Table:
     table.add_column("TYPE", no_wrap=True)
     table.add_column("OBJECT", no_wrap=True)
     table.add_column("REASON", no_wrap=True)
-    table.add_column("MESSAGE")
+    table.add_column("MESSAGE", overflow="ellipsis", no_wrap=True, max_width=MESSAGE_WIDTH)
     for row in rows:
         table.add_row(
             row.age,

@@ -121,12 +121,21 @@ def format_age(then: datetime | None, now: datetime) -> str:
     return f"{seconds}s"
 
 
+def format_latency(milliseconds: float) -> str:
+    """Switch latency as people read it: ``0.42 ms``, ``7.5 ms``, ``21 ms``."""
+    if milliseconds < 1:
+        return f"{milliseconds:.2f} ms"
+    if milliseconds < 10:
+        return f"{milliseconds:.1f} ms"
+    return f"{milliseconds:.0f} ms"
+
+
 def describe_failover(record: FailoverRecord | None, now: datetime) -> tuple[str, str]:
     """(summary, detail) of the last failover: ``a → b 12s ago`` and why, how fast, outcome."""
     if record is None:
         return NONE, ""
     summary = f"{record.from_autopilot} → {record.to_autopilot} {format_age(record.time, now)} ago"
-    detail = [record.reason, f"{record.latency_ms:.0f} ms", record.trigger]
+    detail = [record.reason, format_latency(record.latency_ms), record.trigger]
     if record.safety_routine:
         detail.append(f"safety routine {record.safety_routine}")
     return summary, ", ".join(detail)

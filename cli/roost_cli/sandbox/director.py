@@ -27,16 +27,31 @@ from pydantic import ValidationError
 from rich.console import Group, RenderableType
 from rich.text import Text
 
+from roost_agent.arbiter import SafetyPlan
+from roost_agent.safety import Phase as SafetyPhase
 from roost_api.autopilot import FailoverRecord, RedundantAutopilotStatus
 from roost_api.meta import now
 from roost_api.mission import MissionPhase, MissionStatus
 from roost_cli.cluster import Fleet
 from roost_cli.errors import CliError
 from roost_cli.sandbox import plan, sims, state
+from roost_cli.tables import format_latency
 
 TAKEOFF_WAIT_S = 90.0
 AGENT_WAIT_S = 60.0
 FAILOVER_WAIT_S = 60.0
+SAFETY_ROUTINE_WAIT_S = 60.0
+SAFETY_ROUTINE_DONE = frozenset(
+    phase.value
+    for phase in (
+        SafetyPhase.LANDED,
+        SafetyPhase.HELD,
+        SafetyPhase.CANCELLED,
+        SafetyPhase.FAILED,
+        SafetyPhase.DISARMED,
+    )
+)
+"""The agent's safety-routine phases after which it no longer changes."""
 POLL_S = 0.5
 DEFAULT_FAULT = "silence"
 FAULT_STORY = {
@@ -100,6 +115,11 @@ def active_autopilot(obj: Mapping[str, Any]) -> str | None:
     """The autopilot the agent reports as driving the motors (None before it reports)."""
     status = _parse_ra_status(obj)
     return status.active_autopilot if status else None
+
+
+def routine_done(phase: str | None) -> bool:
+    """True once the safety routine has finished or was skipped (a pilot in manual mode)."""
+    return phase in SAFETY_ROUTINE_DONE or phase == SafetyPlan.SKIPPED_PILOT.value
 
 
 def mission_phase(obj: Mapping[str, Any]) -> str:
@@ -237,10 +257,24 @@ class Director(threading.Thread):
         record = records[-1]
         self._script.say(
             f"✓ {cue.vehicle} failed over {record.from_autopilot} → {record.to_autopilot} in "
-            f"{record.latency_ms:.0f} ms ({record.reason}); safety routine "
-            f"{record.safety_routine or 'pending'}. `kubectl get events` and "
-            f"`kubectl describe redundantautopilot {ra_name}` show the details.",
+            f"{format_latency(record.latency_ms)} ({record.reason}); the safety routine holds "
+            f"on {record.to_autopilot}, then lands.",
             "bold green",
+        )
+
+        def routine_finished() -> bool:
+            latest = failover_since(fleet.autopilot(ra_name), injected_at)
+            if latest is not None:
+                records.append(latest)
+            return latest is not None and routine_done(latest.safety_routine)
+
+        finished = self._wait(routine_finished, SAFETY_ROUTINE_WAIT_S)
+        outcome = records[-1].safety_routine or "not reported"
+        self._script.say(
+            f"{'✓' if finished else '…'} safety routine on {record.to_autopilot}: {outcome}. "
+            f"`kubectl get events` and `kubectl describe redundantautopilot {ra_name}` show "
+            "the details.",
+            "bold green" if finished else "yellow",
         )
         self._script.say(
             f"Clear the fault with `roost fault {cue.vehicle} {target} clear`; Ctrl-C stops "

@@ -163,6 +163,7 @@ class Sandbox:
         self._start_sims()
         self._start_operator()
         self._apply(cluster)
+        self._start_agents()
 
     def _step(self, message: str) -> None:
         self.console.print(f"[green]✓[/] {message}")
@@ -208,6 +209,21 @@ class Sandbox:
             f"applied {len(self.fleet_plan)} Vehicles, their RedundantAutopilots and "
             f"Mission {plan.MISSION_NAMESPACE}/{plan.MISSION_NAME} ({manifest})"
         )
+
+    def _start_agents(self) -> None:
+        """One ``roost-agent`` per vehicle, as its node's DaemonSet pod would run.
+
+        Cluster mode: it finds its Vehicle and RedundantAutopilot from its node name, flies
+        with that spec (the simulators' UDP ports), drives a simulated bridge and reports
+        status and Events. Its decision state lives in its own directory, as on a vehicle.
+        """
+        for vehicle in self.fleet_plan:
+            self.launcher.start(
+                f"roost-agent-{vehicle.name}",
+                agent_argv(vehicle, self.directory / "agents" / vehicle.name),
+                {**self._env(), "NODE_NAME": vehicle.node},
+            )
+        self._step(f"roost-agent running on {', '.join(v.node for v in self.fleet_plan)}")
 
     # ---- while running -----------------------------------------------------------------
     def _announce(self) -> None:
@@ -271,6 +287,23 @@ class Sandbox:
             self.plane.stop()
         state.remove(self.directory)
         self.console.print(f"[green]✓[/] sandbox stopped ({len(pids)} processes: {pids})")
+
+
+def agent_argv(vehicle: plan.VehiclePlan, state_dir: Path) -> list[str]:
+    """Command line of the agent of one sandbox vehicle (KUBECONFIG and NODE_NAME in env)."""
+    return [
+        console_script("roost-agent"),
+        "--cluster",
+        "on",
+        "--node-name",
+        vehicle.node,
+        "--state-dir",
+        str(state_dir),
+        "--bridge",
+        "simulated",
+        "--status-interval",
+        "0",
+    ]
 
 
 def stop_recorded(recorded: state.SandboxState) -> list[int]:

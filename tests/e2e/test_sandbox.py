@@ -1,0 +1,204 @@
+"""`roost sandbox up` end to end, as a user runs it, then `roost sandbox down`.
+
+Everything is real: the `roost` CLI as a subprocess, the control plane it starts, the
+operator, one agent per vehicle, the simulated autopilots over UDP, kubectl. The test
+plays the user in a second terminal: it waits for the Mission, breaks the active
+autopilot of one vehicle with `roost fault`, reads the failover back through kubectl and
+`roost status`, stops the sandbox with `roost sandbox down`, and checks that not one of
+the processes the sandbox started is left.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from roost_cli.sandbox import state as sandbox_state
+
+pytestmark = [pytest.mark.cluster, pytest.mark.slow, pytest.mark.timeout(600)]
+
+BIN = Path(sys.executable).parent
+VEHICLES = 2
+FAULT_VEHICLE = "drone-1"
+UP_TIMEOUT_S = 240.0
+STEP_TIMEOUT_S = 90.0
+
+
+@dataclass
+class RunningSandbox:
+    """A `roost sandbox up` subprocess and how to talk to what it started."""
+
+    directory: Path
+    process: subprocess.Popen[str]
+    output: Path
+
+    def roost(self, *args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
+        env = {**os.environ, "COLUMNS": "220", sandbox_state.DIR_ENV: str(self.directory)}
+        env.pop("KUBECONFIG", None)
+        return subprocess.run(
+            [str(BIN / "roost"), *args],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            check=check,
+            env=env,
+        )
+
+    def kubectl(self, *args: str) -> str:
+        recorded = sandbox_state.load(self.directory)
+        assert recorded is not None and recorded.kubeconfig is not None
+        return subprocess.run(
+            [str(BIN / "kubectl"), "--kubeconfig", recorded.kubeconfig, *args],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=True,
+        ).stdout
+
+    def get(self, kind: str, name: str, namespace: str | None = None) -> dict[str, Any]:
+        scope = ["-n", namespace] if namespace else []
+        obj: dict[str, Any] = json.loads(self.kubectl("get", kind, name, *scope, "-o", "json"))
+        return obj
+
+    def log(self) -> str:
+        return self.output.read_text(errors="replace")
+
+
+def _await(what: str, check: Callable[[], bool], sandbox: RunningSandbox, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not check():
+        if sandbox.process.poll() is not None:
+            pytest.fail(f"roost sandbox up exited while waiting for {what}:\n{sandbox.log()}")
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout_s:.0f} s waiting for {what}:\n{sandbox.log()}")
+        time.sleep(0.5)
+
+
+def _identities(directory: Path) -> dict[int, float]:
+    """pid → start time of every process the sandbox recorded, itself included."""
+    recorded = sandbox_state.load(directory)
+    assert recorded is not None
+    found = {recorded.pid: recorded.create_time}
+    found |= {p["pid"]: p["create_time"] for p in recorded.processes if p["pid"]}
+    plane = json.loads((recorded.cluster_dir / "state.json").read_text())
+    found |= {p["pid"]: p["create_time"] for p in plane["processes"] if p["pid"]}
+    return found
+
+
+def _still_running(identities: dict[int, float]) -> list[int]:
+    return [pid for pid, started in identities.items() if sandbox_state.process_alive(pid, started)]
+
+
+@pytest.fixture
+def sandbox(tmp_path: Path) -> Iterator[RunningSandbox]:
+    directory = tmp_path / "sandbox"
+    output = tmp_path / "sandbox-up.log"
+    with output.open("w") as out:
+        process = subprocess.Popen(
+            [
+                str(BIN / "roost"),
+                "--sandbox-dir",
+                str(directory),
+                "sandbox",
+                "up",
+                "--vehicles",
+                str(VEHICLES),
+                "--no-live",
+                "--no-fault",
+            ],
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env={**os.environ, "COLUMNS": "200"},
+        )
+    running = RunningSandbox(directory, process, output)
+    try:
+        yield running
+    finally:
+        if process.poll() is None:
+            with contextlib.suppress(subprocess.SubprocessError):
+                running.roost("sandbox", "down", check=False)
+        if process.poll() is None:
+            process.send_signal(signal.SIGKILL)
+        process.wait(timeout=30)
+
+
+def test_sandbox_flies_a_mission_fails_over_and_leaves_nothing_behind(
+    sandbox: RunningSandbox,
+) -> None:
+    def up() -> bool:
+        recorded = sandbox_state.load(sandbox.directory)
+        return recorded is not None and recorded.phase == sandbox_state.Phase.RUNNING
+
+    _await("the sandbox to be running", up, sandbox, UP_TIMEOUT_S)
+    recorded = sandbox_state.load(sandbox.directory)
+    assert recorded is not None
+    assert [v.name for v in recorded.vehicles] == ["drone-1", "drone-2"]
+    assert "export KUBECONFIG=" in sandbox.log()
+
+    def mission_started() -> bool:
+        phase = sandbox.get("mission", "survey", "default").get("status", {}).get("phase")
+        return phase in ("Running", "Succeeded")
+
+    _await("Mission survey to run", mission_started, sandbox, STEP_TIMEOUT_S)
+
+    def active_of(vehicle: str) -> str | None:
+        status = sandbox.get("redundantautopilot", vehicle).get("status", {})
+        active: str | None = status.get("activeAutopilot")
+        return active
+
+    _await("the agent to report", lambda: active_of(FAULT_VEHICLE) == "px4-a", sandbox, 60)
+    fault = sandbox.roost("fault", FAULT_VEHICLE, "px4-a", "silence")
+    assert "faults now silence" in fault.stdout
+
+    _await("the failover", lambda: active_of(FAULT_VEHICLE) == "px4-b", sandbox, STEP_TIMEOUT_S)
+    ra = sandbox.get("redundantautopilot", FAULT_VEHICLE)
+    last = ra["status"]["lastFailover"]
+    assert (last["from"], last["to"], last["trigger"]) == ("px4-a", "px4-b", "Automatic")
+    assert last["latencyMs"] >= 0
+    conditions = {c["type"]: c["status"] for c in ra["status"]["conditions"]}
+    assert conditions["FailedOver"] == "True"
+    assert active_of("drone-2") == "apm-a", "the other vehicle is untouched"
+
+    def failover_event() -> bool:
+        events = json.loads(
+            sandbox.kubectl(
+                "get",
+                "events",
+                "-A",
+                "--field-selector",
+                f"involvedObject.name={FAULT_VEHICLE}",
+                "-o",
+                "json",
+            )
+        )["items"]
+        return any("px4-b" in e.get("message", "") for e in events)
+
+    _await("an Event about the failover", failover_event, sandbox, 30)
+
+    table = sandbox.roost("status").stdout
+    row = next(line for line in table.splitlines() if FAULT_VEHICLE in line)
+    assert "px4-a → px4-b" in row
+    assert "▸px4-b" in row
+    rows = {r["vehicle"]: r for r in json.loads(sandbox.roost("status", "-o", "json").stdout)}
+    assert rows[FAULT_VEHICLE]["active"] == "px4-b"
+    assert rows["drone-2"]["last_failover"] == "-"
+
+    identities = _identities(sandbox.directory)
+    assert len(identities) >= 1 + VEHICLES * 2 + 1 + 5  # up, sims + agents, operator, plane
+    down = sandbox.roost("sandbox", "down")
+    assert "sandbox stopped" in down.stdout
+    sandbox.process.wait(timeout=60)
+    assert _still_running(identities) == []
+    assert sandbox_state.load(sandbox.directory) is None

@@ -1,0 +1,103 @@
+"""How the sandbox reads the cluster to narrate a failover, and what it asks the simulators.
+
+Pure parts of :mod:`roost_cli.sandbox.director` and :mod:`roost_cli.sandbox.sims`; the e2e
+sandbox test runs them against a live fleet.
+"""
+
+from __future__ import annotations
+
+import itertools
+from datetime import UTC, datetime, timedelta
+from typing import Any
+
+import pytest
+
+from roost_cli.errors import CliError
+from roost_cli.sandbox import director, plan, sims
+from roost_cli.tables import format_latency
+
+FAULT_AT = datetime(2026, 5, 1, 12, 0, 0, 600000, tzinfo=UTC)
+
+
+def _ra(last_failover_at: datetime | None, safety: str | None = "Holding") -> dict[str, Any]:
+    status: dict[str, Any] = {"activeAutopilot": "px4-b"}
+    if last_failover_at is not None:
+        status["lastFailover"] = {
+            "time": last_failover_at.isoformat(),
+            "from": "px4-a",
+            "to": "px4-b",
+            "reason": "px4-a: silent for 610 ms",
+            "latencyMs": 0.4,
+            "trigger": "Automatic",
+            "safetyRoutine": safety,
+        }
+    return {"metadata": {"name": "drone-1"}, "status": status}
+
+
+def test_only_a_failover_after_the_fault_counts() -> None:
+    assert director.failover_since(_ra(None), FAULT_AT) is None
+    assert director.failover_since(_ra(FAULT_AT - timedelta(seconds=5)), FAULT_AT) is None
+    # Kubernetes keeps whole seconds: a switch in the same second as the fault counts.
+    same_second = FAULT_AT.replace(microsecond=0)
+    record = director.failover_since(_ra(same_second), FAULT_AT)
+    assert record is not None and record.to_autopilot == "px4-b"
+
+
+def test_the_active_autopilot_is_unknown_until_the_agent_reports() -> None:
+    assert director.active_autopilot({"status": {}}) is None
+    assert director.active_autopilot({}) is None
+    assert director.active_autopilot(_ra(None)) == "px4-b"
+    assert director.active_autopilot({"status": {"autopilots": "garbage"}}) is None
+
+
+@pytest.mark.parametrize(
+    ("phase", "done"),
+    [
+        (None, False),
+        ("Run", False),
+        ("Holding", False),
+        ("Landing", False),
+        ("ReturningToLaunch", False),
+        ("Landed", True),
+        ("Held", True),
+        ("Failed", True),
+        ("Disarmed", True),
+        ("Cancelled", True),
+        ("Skipped: pilot in manual mode", True),
+    ],
+)
+def test_the_safety_routine_is_done_only_in_a_final_phase(phase: str | None, done: bool) -> None:
+    assert director.routine_done(phase) is done
+
+
+def test_mission_phase_defaults_to_pending() -> None:
+    assert director.mission_phase({}) == "Pending"
+    assert director.mission_phase({"status": {"phase": "Running"}}) == "Running"
+
+
+@pytest.mark.parametrize(
+    ("ms", "text"), [(0.4, "0.40 ms"), (7.46, "7.5 ms"), (21.4, "21 ms"), (1500.0, "1500 ms")]
+)
+def test_latency_reads_well_at_every_scale(ms: float, text: str) -> None:
+    assert format_latency(ms) == text
+
+
+def test_each_sim_streams_to_its_own_agent_port() -> None:
+    [vehicle] = plan.plan_fleet(1, itertools.count(41000))
+    assert sims.sim_config(vehicle) == {
+        "autopilots": [
+            {"name": "px4-a", "stack": "px4", "sysid": 1, "udp_out": "127.0.0.1:41000"},
+            {"name": "px4-b", "stack": "px4", "sysid": 2, "udp_out": "127.0.0.1:41001"},
+        ]
+    }
+
+
+def test_fault_requests_follow_the_simulators_fault_table() -> None:
+    assert sims.fault_message("sensor", "gyro") == {
+        "op": "fault",
+        "kind": "sensor",
+        "value": "gyro",
+    }
+    assert sims.fault_message("clear", None) == {"op": "clear", "kind": None}
+    with pytest.raises(CliError, match="unknown fault 'melt': one of silence"):
+        sims.fault_message("melt", None)
