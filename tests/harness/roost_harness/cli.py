@@ -42,6 +42,9 @@ def up(state_dir: Path) -> int:
     except ControlPlaneError as err:
         print(f"roost-cluster: failed to start: {err}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:
+        print("roost-cluster: interrupted; stopped what had started", file=sys.stderr)
+        return 130
     finally:
         signal.signal(signal.SIGTERM, previous)
     print(
