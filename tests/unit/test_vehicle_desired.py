@@ -9,7 +9,7 @@ import pytest
 
 from roost_api.autopilot import RedundantAutopilotSpec
 from roost_api.meta import Condition, ConditionStatus, Stack, find_condition, set_condition
-from roost_api.vehicle import VehicleSpec
+from roost_api.vehicle import VehicleSpec, VehicleStatus
 from roost_api.wellknown import ANNOTATION_CONFIG_HASH, LABEL_VEHICLE, TAINT_VEHICLE
 from roost_operator.vehicles.config import vehicle_config
 from roost_operator.vehicles.desired import (
@@ -27,6 +27,7 @@ from roost_operator.vehicles.desired import (
     transitions,
     vehicle_conditions,
 )
+from roost_operator.vehicles.status import status_patch
 
 
 def spec(**overrides: object) -> VehicleSpec:
@@ -327,3 +328,20 @@ def test_losing_the_node_makes_ready_false_with_the_node_reason() -> None:
     ready = find_condition(after, "Ready")
     assert ready is not None
     assert (ready.status, ready.reason) == ("False", "NodeNotFound")
+
+
+def test_status_patch_sends_only_changed_owned_fields_with_nulls_for_removals() -> None:
+    old = VehicleStatus.model_validate(
+        {
+            "nodeName": "node-a",
+            "fcuUrl": "udp://a",
+            "managedLabels": ["x"],
+            "activeAutopilot": "fc1",
+        }
+    )
+    new = VehicleStatus.model_validate(
+        {"fcuUrl": "udp://a", "managedLabels": [], "activeAutopilot": "fc2"}
+    )
+    fields = ("nodeName", "fcuUrl", "managedLabels")
+    assert status_patch(old, new, fields) == {"nodeName": None, "managedLabels": []}
+    assert status_patch(new, new, fields) is None

@@ -11,7 +11,8 @@ keeps the authoritative copy, ``roost-vehicle-<vehicle>``, in its namespace
 (``ROOST_NAMESPACE``, default ``roost-system``), owned by the Vehicle, next to the
 component Deployments. A Mission's onboard pods live in the Mission's namespace, so
 the Mission handler applies a copy there with the same name and the same data
-(``vehicle_config_map(name, data_of(authoritative), namespace=..., owners=[mission])``),
+(``vehicle_config_map(name, config_values_of(authoritative), namespace=...,
+  owners=[mission])``),
 owned by the Mission so it disappears with it.
 
 How a pod gets it (:func:`mount_vehicle_config`):

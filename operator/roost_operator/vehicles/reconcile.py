@@ -26,12 +26,12 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, Final
+from typing import Final
 
 from roost_api.autopilot import RedundantAutopilotSpec
-from roost_api.meta import Stack, now
+from roost_api.meta import Stack
 from roost_api.vehicle import VehicleSpec, VehicleStatus
 from roost_api.wellknown import LABEL_COMPONENT, LABEL_MANAGED_BY, LABEL_VEHICLE, MANAGED_BY
 from roost_operator.kube import (
@@ -58,7 +58,6 @@ from roost_operator.vehicles.desired import (
     components_condition,
     deployment,
     deployment_state,
-    transitions,
     vehicle_conditions,
 )
 from roost_operator.vehicles.placement import (
@@ -70,10 +69,13 @@ from roost_operator.vehicles.placement import (
     plan_node,
     vehicle_name_problem,
 )
+from roost_operator.vehicles.status import write_vehicle_status
 
 log = logging.getLogger(__name__)
 
 CONFLICT_RETRIES: Final = 5
+# The Vehicle status fields this reconcile owns (see roost_operator.vehicles.status).
+STATUS_FIELDS: Final = ("observedGeneration", "conditions", "nodeName", "managedLabels", "fcuUrl")
 
 
 @dataclass(frozen=True)
@@ -283,38 +285,13 @@ def _reconcile_once(kube: Kube, namespace: str, name: str, peers: Peers) -> None
             "fcuUrl": fcu_url,
         }
     )
-    _write_status(kube, vehicle, status, new_status)
+    write_vehicle_status(
+        kube,
+        vehicle,
+        status,
+        new_status,
+        fields=STATUS_FIELDS,
+        event_types=EVENT_CONDITIONS,
+    )
     if failures:  # reported in the status; raising makes kopf retry
         raise next(iter(failures.values()))
-
-
-def _status_patch(old: VehicleStatus, new: VehicleStatus) -> dict[str, Any] | None:
-    """Merge patch for the operator's status fields, or None when nothing changed."""
-    old_api, new_api = old.to_api(), new.to_api()
-    fields = ("observedGeneration", "conditions", "nodeName", "managedLabels", "fcuUrl")
-    changed = {f: new_api.get(f) for f in fields if old_api.get(f) != new_api.get(f)}
-    return changed or None
-
-
-def _write_status(
-    kube: Kube, vehicle: Mapping[str, Any], old: VehicleStatus, new: VehicleStatus
-) -> None:
-    patch = _status_patch(old, new)
-    if patch is None:
-        return
-    meta = vehicle["metadata"]
-    kube.merge_patch(
-        VEHICLES,
-        meta["name"],
-        {"metadata": {"resourceVersion": meta["resourceVersion"]}, "status": patch},
-        subresource="status",
-    )
-    at = now().isoformat().replace("+00:00", "Z")
-    for cond in transitions(old.conditions, new.conditions, EVENT_CONDITIONS):
-        kube.post_event(
-            vehicle,
-            reason=cond.reason,
-            message=f"{cond.type} is {cond.status}: {cond.message}",
-            type="Normal" if cond.status == "True" else "Warning",
-            at=at,
-        )

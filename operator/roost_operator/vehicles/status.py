@@ -1,0 +1,78 @@
+"""Writing a Vehicle's status: only the fields a writer owns, only when they changed.
+
+Several parts of the operator write ``Vehicle.status`` (the vehicle reconcile writes
+NodeBound/ComponentsReady/Ready and the binding fields; the autopilot side writes
+AutopilotsHealthy/AgentConnected and the failover fields). Each names the fields it
+owns; :func:`write_vehicle_status` sends a JSON merge patch of just those, carrying the
+``resourceVersion`` the new status was computed from, so two writers never overwrite
+each other's conditions (the list is written whole) without a 409 and a fresh read.
+
+Nothing is sent when nothing changed, which keeps idle reconciles free of writes.
+Transitions of the chosen condition types are recorded as Events.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+from roost_api.meta import now
+from roost_api.vehicle import VehicleStatus
+from roost_operator.kube import VEHICLES, Kube
+from roost_operator.vehicles.desired import transitions
+
+
+def status_patch(
+    old: VehicleStatus, new: VehicleStatus, fields: Iterable[str]
+) -> dict[str, Any] | None:
+    """Merge patch of ``fields`` (camelCase) that differ, or None when none do.
+
+    In a merge patch a missing key means "keep", so a field that became empty is sent as
+    an explicit null, and an object field carries nulls for its emptied members (objects
+    merge recursively). Lists are replaced whole and sent without nulls, which the
+    schema would reject inside list items.
+    """
+    old_api, new_api = old.to_api(), new.to_api()
+    with_nulls = new.model_dump(by_alias=True, mode="json")
+    changed = {
+        f: with_nulls[f] if isinstance(with_nulls.get(f), dict) else new_api.get(f)
+        for f in fields
+        if old_api.get(f) != new_api.get(f)
+    }
+    return changed or None
+
+
+def write_vehicle_status(
+    kube: Kube,
+    vehicle: Mapping[str, Any],
+    old: VehicleStatus,
+    new: VehicleStatus,
+    *,
+    fields: Iterable[str],
+    event_types: Iterable[str],
+) -> bool:
+    """Patch the owned ``fields`` of ``vehicle``'s status if they changed; True if sent.
+
+    Raises :class:`~roost_operator.kube.ConflictError` when the Vehicle changed since
+    ``vehicle`` was read: recompute from a fresh read and call again.
+    """
+    patch = status_patch(old, new, fields)
+    if patch is None:
+        return False
+    meta = vehicle["metadata"]
+    kube.merge_patch(
+        VEHICLES,
+        meta["name"],
+        {"metadata": {"resourceVersion": meta["resourceVersion"]}, "status": patch},
+        subresource="status",
+    )
+    at = now().isoformat().replace("+00:00", "Z")
+    for cond in transitions(old.conditions, new.conditions, event_types):
+        kube.post_event(
+            vehicle,
+            reason=cond.reason,
+            message=f"{cond.type} is {cond.status}: {cond.message}",
+            type="Normal" if cond.status == "True" else "Warning",
+            at=at,
+        )
+    return True
