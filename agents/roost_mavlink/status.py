@@ -210,7 +210,8 @@ def classify_sensors(enabled: int, health: int) -> SensorReport:
 
 # Bits each stack reports present/enabled in a healthy, flyable SITL without RC. Healthy
 # is all of them except what the stack keeps unhealthy on the ground (see below).
-_PX4_SENSORS = (
+# ArduPilot additionally reports terrain and logging.
+_COMMON_SENSORS = (
     SensorBit.GYRO
     | SensorBit.ACCEL
     | SensorBit.MAG
@@ -224,31 +225,12 @@ _PX4_SENSORS = (
     | SensorBit.MOTOR_OUTPUTS
     | SensorBit.RC_RECEIVER
     | SensorBit.AHRS
-    | SensorBit.BATTERY
-    | SensorBit.PREARM_CHECK
-)
-_ARDUPILOT_SENSORS = (
-    SensorBit.GYRO
-    | SensorBit.ACCEL
-    | SensorBit.MAG
-    | SensorBit.ABSOLUTE_PRESSURE
-    | SensorBit.GPS
-    | SensorBit.ANGULAR_RATE_CONTROL
-    | SensorBit.ATTITUDE_STABILIZATION
-    | SensorBit.YAW_POSITION
-    | SensorBit.Z_ALTITUDE_CONTROL
-    | SensorBit.XY_POSITION_CONTROL
-    | SensorBit.MOTOR_OUTPUTS
-    | SensorBit.RC_RECEIVER
-    | SensorBit.AHRS
-    | SensorBit.TERRAIN
-    | SensorBit.LOGGING
     | SensorBit.BATTERY
     | SensorBit.PREARM_CHECK
 )
 _STACK_SENSORS: dict[Stack, SensorBit] = {
-    Stack.PX4: _PX4_SENSORS,
-    Stack.ARDUPILOT: _ARDUPILOT_SENSORS,
+    Stack.PX4: _COMMON_SENSORS,
+    Stack.ARDUPILOT: _COMMON_SENSORS | SensorBit.TERRAIN | SensorBit.LOGGING,
 }
 
 

@@ -6,7 +6,7 @@
     roost-sim run --config sims.yaml               # autopilots: [{name, stack, sysid,
                                                    #   udp_out, udp_bind, pty}, ...]
     roost-sim fault fc1 sensor --value gyro
-    roost-sim clear fc1 [sensor]
+    roost-sim clear fc1 [sensor]                   # "all" as target: every autopilot
     roost-sim fly fc1 [--altitude 10]
     roost-sim status fc1
     roost-sim list
@@ -34,6 +34,8 @@ from roost_sim.control import ControlServer, request, socket_path, state_dir
 from roost_sim.faults import FaultKind
 from roost_sim.vehicle import start_vehicle_sims, stop_sims
 
+ALL_TARGETS = "all"  # target name meaning every autopilot with a control socket
+
 
 def _address(text: str) -> tuple[str, int]:
     host, _, port = text.rpartition(":")
@@ -56,7 +58,8 @@ def _sim_from_entry(entry: dict[str, Any]) -> SimulatedAutopilot:
     )  # fmt: skip
 
 
-def _build_sims(args: argparse.Namespace) -> list[SimulatedAutopilot]:
+def build_sims(args: argparse.Namespace) -> list[SimulatedAutopilot]:
+    """Start the autopilots a ``run`` command line (or its YAML config) describes."""
     if args.vehicle:
         return start_vehicle_sims(args.vehicle.split(","), transport="pty" if args.pty else "udp")
     if args.config:
@@ -76,6 +79,8 @@ def _build_sims(args: argparse.Namespace) -> list[SimulatedAutopilot]:
     names = [s.name for s in sims]
     if len(set(names)) != len(names) or len({s.sysid for s in sims}) != len(sims):
         raise SystemExit(f"autopilot names and sysids must be unique: {names}")
+    if ALL_TARGETS in names:
+        raise SystemExit(f"{ALL_TARGETS!r} is reserved as a target for every autopilot")
     started: list[SimulatedAutopilot] = []
     try:
         for sim in sims:
@@ -89,7 +94,7 @@ def _build_sims(args: argparse.Namespace) -> list[SimulatedAutopilot]:
 def _run(args: argparse.Namespace) -> int:
     directory = Path(args.state_dir) if args.state_dir else state_dir()
     directory.mkdir(mode=0o700, parents=True, exist_ok=True)
-    sims = _build_sims(args)
+    sims = build_sims(args)
     servers: list[ControlServer] = []
     done = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -117,14 +122,22 @@ def _run(args: argparse.Namespace) -> int:
 
 def _control(args: argparse.Namespace, message: dict[str, Any]) -> int:
     directory = Path(args.state_dir) if args.state_dir else state_dir()
-    path = socket_path(args.target, directory)
-    try:
-        answer = request(path, message)
-    except OSError as exc:
-        print(f"roost-sim: cannot reach {args.target} at {path}: {exc}", file=sys.stderr)
-        return 2
-    print(json.dumps(answer, indent=2))
-    return 0 if answer.get("ok") else 1
+    if args.target == ALL_TARGETS:
+        targets = sorted(p.stem for p in directory.glob("*.sock"))
+    else:
+        targets = [args.target]
+    worst = 0
+    for target in targets:
+        path = socket_path(target, directory)
+        try:
+            answer = request(path, message)
+        except OSError as exc:
+            print(f"roost-sim: cannot reach {target} at {path}: {exc}", file=sys.stderr)
+            worst = 2
+            continue
+        print(json.dumps(answer, indent=2))
+        worst = max(worst, 0 if answer.get("ok") else 1)
+    return worst
 
 
 def _list(args: argparse.Namespace) -> int:
@@ -152,7 +165,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.set_defaults(func=_run)
 
     fault = sub.add_parser("fault", help="inject a fault into a running autopilot")
-    fault.add_argument("target", help="autopilot name")
+    fault.add_argument("target", help="autopilot name, or 'all'")
     fault.add_argument("kind", choices=[k.value for k in FaultKind])
     fault.add_argument("--value", help="fault parameter (see roost_sim.faults)")
     fault.set_defaults(
@@ -160,7 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
 
     clear = sub.add_parser("clear", help="clear one fault kind or all faults")
-    clear.add_argument("target", help="autopilot name")
+    clear.add_argument("target", help="autopilot name, or 'all'")
     clear.add_argument("kind", nargs="?", choices=[k.value for k in FaultKind])
     clear.set_defaults(func=lambda a: _control(a, {"op": "clear", "kind": a.kind}))
 
@@ -170,7 +183,7 @@ def build_parser() -> argparse.ArgumentParser:
     fly.set_defaults(func=lambda a: _control(a, {"op": "fly", "value": a.altitude}))
 
     status = sub.add_parser("status", help="print an autopilot's state")
-    status.add_argument("target", help="autopilot name")
+    status.add_argument("target", help="autopilot name, or 'all'")
     status.set_defaults(func=lambda a: _control(a, {"op": "status"}))
 
     listing = sub.add_parser("list", help="list autopilots with a control socket")

@@ -53,6 +53,7 @@ from roost_sim import (
     start_vehicle_sims,
     stop_sims,
 )
+from roost_sim.main import build_parser, build_sims
 from roost_sim.main import main as sim_cli
 
 os.environ.setdefault("MAVLINK20", "1")  # before mavutil is imported: the sims speak MAVLink 2
@@ -449,7 +450,7 @@ def test_cli_run_fault_status_clear(
         code, answer = cli("status", "fcx")
         assert code == 0 and answer["state"]["faults"] == {"state": "EMERGENCY"}
         assert answer["state"]["stack"] == "ardupilot"
-        assert cli("clear", "fcx")[0] == 0
+        assert cli("clear", "all")[0] == 0
         client.wait_for("HEARTBEAT", lambda m: m.system_status == MavState.STANDBY)
         assert cli("fault", "fcx", "state", "--value", "PANIC")[0] == 1
         assert cli("status", "nobody")[0] == 2
@@ -459,6 +460,30 @@ def test_cli_run_fault_status_clear(
         client.close()
     assert proc.returncode == 0
     assert not list(tmp_path.glob("*.sock"))  # the control socket is removed on exit
+
+
+def test_cli_config_file_starts_several_autopilots(tmp_path: Path) -> None:
+    port = free_udp_port()
+    config = tmp_path / "sims.yaml"
+    config.write_text(
+        "autopilots:\n"
+        f"  - {{name: a, stack: px4, sysid: 11, udp_out: '127.0.0.1:{port}'}}\n"
+        "  - {name: b, stack: ardupilot, sysid: 12, pty: true}\n"
+    )
+    sims = build_sims(build_parser().parse_args(["run", "--config", str(config)]))
+    try:
+        assert [(s.name, s.stack, s.sysid) for s in sims] == [
+            ("a", Stack.PX4, 11),
+            ("b", Stack.ARDUPILOT, 12),
+        ]
+        assert sims[0].connection == f"udp://127.0.0.1:{port}"
+        assert sims[1].connection.startswith("serial:///dev/")
+    finally:
+        stop_sims(sims)
+    clash = tmp_path / "clash.yaml"
+    clash.write_text("autopilots: [{name: a, sysid: 1, pty: true}, {name: a, sysid: 2}]\n")
+    with pytest.raises(SystemExit):
+        build_sims(build_parser().parse_args(["run", "--config", str(clash)]))
 
 
 # ---- an independent MAVLink implementation --------------------------------------------
