@@ -225,6 +225,17 @@ class SimulatedAutopilot:
         self._next_spoof = 0.0
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
+        self._builders: dict[int, Callable[[_View], Any]] = {
+            mavlink.MAVLINK_MSG_ID_HEARTBEAT: self._heartbeat,
+            mavlink.MAVLINK_MSG_ID_SYS_STATUS: self._sys_status,
+            mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: self._extended_sys_state,
+            mavlink.MAVLINK_MSG_ID_ATTITUDE: self._attitude,
+            mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: self._global_position,
+            mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: self._system_time,
+            mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: self._gps_raw,
+            mavlink.MAVLINK_MSG_ID_HOME_POSITION: self._home_position,
+            mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self._autopilot_version,
+        }
 
     # ---- construction helpers --------------------------------------------------------
 
@@ -462,7 +473,10 @@ class SimulatedAutopilot:
                 due = [m for m, t in self._streams.due.items() if t <= now]
                 for msg_id in due:
                     self._streams.due[msg_id] = self._next_due(msg_id, now)
-                messages = [self._build(m) for m in due] if self._sending() else []
+                messages = []
+                if due and self._sending():
+                    view = self._frozen or self._view()
+                    messages = [self._builders[m](view) for m in due]
                 noise = self._noise(now) if self._sending() else []
                 next_due = min(self._streams.due.values(), default=now + _MAX_SLEEP_S)
             for message in messages:
@@ -498,23 +512,13 @@ class SimulatedAutopilot:
         )
 
     def _build(self, msg_id: int) -> Any:
-        view = self._frozen or self._view()
-        builders: dict[int, Callable[[_View], Any]] = {
-            mavlink.MAVLINK_MSG_ID_HEARTBEAT: self._heartbeat,
-            mavlink.MAVLINK_MSG_ID_SYS_STATUS: self._sys_status,
-            mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: lambda v: (
-                self._mav.extended_sys_state_encode(0, v.landed_state)
-            ),
-            mavlink.MAVLINK_MSG_ID_ATTITUDE: self._attitude,
-            mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: self._global_position,
-            mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: lambda v: self._mav.system_time_encode(
-                v.unix_usec, v.time_boot_ms
-            ),
-            mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: self._gps_raw,
-            mavlink.MAVLINK_MSG_ID_HOME_POSITION: self._home_position,
-            mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self._autopilot_version,
-        }
-        return builders[msg_id](view)
+        return self._builders[msg_id](self._frozen or self._view())
+
+    def _extended_sys_state(self, v: _View) -> Any:
+        return self._mav.extended_sys_state_encode(0, v.landed_state)
+
+    def _system_time(self, v: _View) -> Any:
+        return self._mav.system_time_encode(v.unix_usec, v.time_boot_ms)
 
     def _heartbeat(self, v: _View) -> Any:
         base_mode = MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (
