@@ -364,7 +364,11 @@ class SimulatedAutopilot:
     # ---- local control (tests, benchmarks) -------------------------------------------
 
     def fly(self, altitude_m: float | None = None) -> None:
-        """Arm and take off through the same rules as commands (logged with source 0/0)."""
+        """Arm and take off through the same rules as commands (logged with source 0/0).
+
+        Raises RuntimeError when a step is refused, e.g. during the BOOT phase right after
+        start: wait with ``wait_until(lambda s: s.system_status != "BOOT")`` first.
+        """
         alt = altitude_m if altitude_m is not None else self.config.takeoff_alt_m
         with self._lock:
             if self.stack is Stack.ARDUPILOT:

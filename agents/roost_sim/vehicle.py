@@ -30,13 +30,16 @@ def start_vehicle_sims(
     sysids: Sequence[int] | None = None,
     transport: str = "udp",
     config: SimConfig | None = None,
+    rates: dict[int, float] | None = None,
     name_prefix: str = "fc",
 ) -> list[SimulatedAutopilot]:
     """Start one sim per stack: names fc1..fcN, sysids 1..N unless given.
 
     ``transport`` is ``udp`` (each sim streams to its own free agent port; its
     ``connection`` is ``udp://127.0.0.1:PORT``) or ``pty`` (``serial:///dev/pts/N:57600``).
-    Each sim gets its own copy of ``config``. Stop them with :func:`stop_sims`.
+    Each sim gets its own copy of ``config``; ``rates`` overrides stream rates by message
+    id (e.g. ``{message_id("ATTITUDE"): 0}`` for heartbeats and slow streams only). Stop
+    them with :func:`stop_sims`.
     """
     ids = list(sysids) if sysids is not None else list(range(1, len(stacks) + 1))
     if len(ids) != len(stacks) or len(set(ids)) != len(ids):
@@ -50,10 +53,15 @@ def start_vehicle_sims(
             own_config = SimConfig(**vars(config)) if config else None
             sim = (
                 SimulatedAutopilot.udp(
-                    stack, sysid, target_port=free_udp_port(), name=name, config=own_config
+                    stack,
+                    sysid,
+                    target_port=free_udp_port(),
+                    name=name,
+                    config=own_config,
+                    rates=rates,
                 )
                 if transport == "udp"
-                else SimulatedAutopilot.pty(stack, sysid, name=name, config=own_config)
+                else SimulatedAutopilot.pty(stack, sysid, name=name, config=own_config, rates=rates)
             )
             sims.append(sim.start())
     except BaseException:

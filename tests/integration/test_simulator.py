@@ -53,6 +53,7 @@ from roost_sim import (
     start_vehicle_sims,
     stop_sims,
 )
+from roost_sim.autopilot import DEFAULT_RATES
 from roost_sim.main import build_parser, build_sims
 from roost_sim.main import main as sim_cli
 
@@ -417,6 +418,17 @@ def test_start_vehicle_sims_gives_unique_ids_ports_and_valid_specs() -> None:
             finally:
                 client.close()
     finally:
+        stop_sims(sims)
+
+
+def test_vehicle_sims_with_heartbeats_only() -> None:
+    quiet = {msg: 0.0 for msg in DEFAULT_RATES if msg != message_id("HEARTBEAT")}
+    sims = start_vehicle_sims([Stack.ARDUPILOT], rates=quiet)
+    client = Client(pymavlink_device(sims[0].connection).device)
+    try:
+        assert set(by_type(client.collect(1.5), sims[0].sysid)) == {"HEARTBEAT"}
+    finally:
+        client.close()
         stop_sims(sims)
 
 
