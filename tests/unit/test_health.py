@@ -1,0 +1,331 @@
+"""Health judgement from MAVLink messages (real pymavlink message objects, explicit times)."""
+
+from __future__ import annotations
+
+import math
+import os
+
+os.environ.setdefault("MAVLINK20", "1")
+
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mav
+
+from roost_agent.health import (
+    REBOOT_REMEMBERED_S,
+    Assessment,
+    HealthTracker,
+    tilt_degrees,
+)
+from roost_api.autopilot import Thresholds
+from roost_api.meta import HealthLevel, Stack
+from roost_mavlink import LandedState, MavState, SensorBit, custom_mode
+from roost_mavlink.status import (
+    MAV_AUTOPILOT_ARDUPILOTMEGA,
+    MAV_AUTOPILOT_INVALID,
+    MAV_AUTOPILOT_PX4,
+    stack_sensors,
+)
+
+OK, WARN, ERROR, STALE = HealthLevel.OK, HealthLevel.WARN, HealthLevel.ERROR, HealthLevel.STALE
+ARMED = 128 | 1
+SENSORS = int(stack_sensors(Stack.PX4)) & ~int(SensorBit.RC_RECEIVER | SensorBit.PREARM_CHECK)
+LOITER = custom_mode(Stack.PX4, "AUTO.LOITER")
+
+
+class Vehicle:
+    """Feeds one tracker the messages of a PX4-like autopilot at chosen times."""
+
+    def __init__(self, stack: Stack = Stack.PX4, thresholds: Thresholds | None = None) -> None:
+        self.tracker = HealthTracker("fc1", stack, thresholds or Thresholds())
+        self.boot_ms = 100_000
+        self.t = 0.0
+        self.sensors_health = SENSORS
+        self.sensors_enabled = SENSORS
+
+    def heartbeat(
+        self,
+        *,
+        state: int = MavState.ACTIVE,
+        base_mode: int = ARMED,
+        mode: int = LOITER,
+        autopilot: int = MAV_AUTOPILOT_PX4,
+    ) -> bool:
+        msg = mav.MAVLink_heartbeat_message(2, autopilot, base_mode, mode, state, 3)
+        return self.tracker.observe(msg, self.t)
+
+    def landed(self, state: int = LandedState.IN_AIR) -> bool:
+        return self.tracker.observe(mav.MAVLink_extended_sys_state_message(0, state), self.t)
+
+    def sys_status(self, health: int | None = None, enabled: int | None = None) -> bool:
+        if health is not None:
+            self.sensors_health = health
+        if enabled is not None:
+            self.sensors_enabled = enabled
+        enabled, health = self.sensors_enabled, self.sensors_health
+        msg = mav.MAVLink_sys_status_message(
+            enabled, enabled, health, 100, 12000, -1, -1, 0, 0, 0, 0, 0, 0
+        )
+        return self.tracker.observe(msg, self.t)
+
+    def attitude(self, roll: float = 0.0, pitch: float = 0.0, *, advance: bool = True) -> None:
+        if advance:
+            self.boot_ms = 100_000 + round(self.t * 1000)
+        msg = mav.MAVLink_attitude_message(self.boot_ms, roll, pitch, 0.0, 0.0, 0.0, 0.0)
+        self.tracker.observe(msg, self.t)
+
+    def fly(self, seconds: float, *, rate_hz: float = 50.0, **attitude: float) -> None:
+        """Stream ATTITUDE at ``rate_hz`` plus 1 Hz heartbeats and 5 Hz status for ``seconds``."""
+        end = self.t + seconds
+        n = 0
+        while self.t < end:
+            if n % round(rate_hz) == 0:
+                self.heartbeat()
+                self.landed()
+            if n % max(1, round(rate_hz / 5)) == 0:
+                self.sys_status()
+            self.attitude(**attitude)
+            self.t += 1 / rate_hz
+            n += 1
+
+    def at(self, dt: float) -> Assessment:
+        return self.tracker.assess(self.t + dt)
+
+
+def codes(a: Assessment) -> set[str]:
+    return {f.code for f in a.findings}
+
+
+def failing_codes(a: Assessment) -> set[str]:
+    return {f.code for f in a.findings if f.triggers_failover}
+
+
+def test_nothing_heard_is_stale_and_failing() -> None:
+    a = Vehicle().tracker.assess(5.0)
+    assert a.level == STALE and a.failing and codes(a) == {"no-data"}
+
+
+def test_healthy_streaming_autopilot_is_ok_and_described() -> None:
+    v = Vehicle()
+    v.fly(2.0)
+    a = v.at(0.01)
+    assert a.level == OK and not a.findings and not a.failing
+    health = a.to_api()
+    assert health.mode == "AUTO.LOITER" and health.armed is True
+    assert health.landed_state == "InAir" and health.system_status == "ACTIVE"
+    assert health.heartbeat_age_ms is not None and health.unhealthy_sensors == []
+    assert a.in_air is True and not a.pilot_in_control
+
+
+def test_silence_on_a_fast_link_goes_warn_error_stale() -> None:
+    v = Vehicle()
+    v.fly(2.0)
+    last = v.t - 1 / 50
+    assert v.at(0.1).level == OK
+    assert codes(v.at(0.25)) == {"late"} and v.at(0.25).level == WARN
+    silent = v.at(0.55)
+    assert silent.level == ERROR and "silent" in failing_codes(silent)
+    assert silent.onset == pytest.approx(last)
+    lost = v.at(3.2)
+    assert lost.level == STALE and {"link-lost", "heartbeat-lost"} <= failing_codes(lost)
+
+
+def test_heartbeat_only_link_is_judged_by_heartbeat_age_alone() -> None:
+    v = Vehicle()
+    for _ in range(5):
+        v.heartbeat()
+        v.t += 1.0
+    v.t -= 1.0
+    assert v.at(0.95).level == OK  # no "silent" although > message_error_ms
+    assert codes(v.at(1.6)) == {"heartbeat-late"}
+    lost = v.at(3.1)
+    assert lost.failing and "heartbeat-lost" in failing_codes(lost)
+
+
+def test_frozen_telemetry_is_an_error_although_messages_keep_coming() -> None:
+    v = Vehicle()
+    v.fly(1.0)
+    frozen_since = v.t - 1 / 50
+    for _ in range(30):  # 0.6 s of ATTITUDE repeating one time_boot_ms
+        v.attitude(advance=False)
+        v.t += 1 / 50
+    a = v.at(0.0)
+    assert "frozen" in failing_codes(a) and a.level == ERROR
+    assert a.onset == pytest.approx(frozen_since, abs=0.03)
+
+
+def test_reboot_from_time_boot_going_back_is_remembered_for_a_while() -> None:
+    v = Vehicle()
+    v.fly(1.0)
+    assert v.tracker.observe(mav.MAVLink_attitude_message(1200, 0, 0, 0, 0, 0, 0), v.t) is True
+    assert "reboot" in failing_codes(v.at(0.0))
+    v.t += REBOOT_REMEMBERED_S + 0.1
+    v.fly(1.0)
+    assert "reboot" not in codes(v.at(0.0))
+
+
+def test_reordered_packets_are_not_a_reboot() -> None:
+    v = Vehicle()
+    v.fly(1.0)
+    late = mav.MAVLink_attitude_message(v.boot_ms - 60, 0, 0, 0, 0, 0, 0)
+    assert v.tracker.observe(late, v.t) is False
+    assert v.at(0.0).level == OK
+
+
+def test_boot_state_after_being_up_is_a_reboot() -> None:
+    v = Vehicle()
+    v.fly(1.0)
+    v.heartbeat(state=MavState.BOOT, base_mode=1)
+    a = v.at(0.0)
+    assert "reboot" in failing_codes(a)
+
+
+@pytest.mark.parametrize(
+    "state", [MavState.EMERGENCY, MavState.POWEROFF, MavState.FLIGHT_TERMINATION]
+)
+def test_fatal_mav_states_are_errors(state: MavState) -> None:
+    v = Vehicle()
+    v.fly(1.0)
+    assert v.heartbeat(state=state) is True  # a change wakes the arbiter
+    a = v.at(0.0)
+    assert a.level == ERROR and "mav-state" in failing_codes(a)
+    assert a.onset == v.t
+
+
+def test_critical_alone_warns_but_corroborated_is_an_error() -> None:
+    v = Vehicle()
+    v.fly(1.0)
+    v.heartbeat(state=MavState.CRITICAL)
+    alone = v.at(0.0)
+    assert alone.level == WARN and not alone.failing
+    v.sys_status(health=SENSORS & ~int(SensorBit.GPS))
+    corroborated = v.at(0.0)
+    assert corroborated.level == ERROR and "mav-state" in failing_codes(corroborated)
+
+
+def test_boot_like_state_in_the_air_is_an_error_on_the_ground_it_is_not() -> None:
+    v = Vehicle()
+    v.fly(0.5)
+    v.heartbeat(state=MavState.CALIBRATING)
+    assert "mav-state" in failing_codes(v.at(0.0))
+    ground = Vehicle()
+    ground.landed(LandedState.ON_GROUND)
+    ground.heartbeat(state=MavState.CALIBRATING, base_mode=1)
+    assert "mav-state" not in codes(ground.at(0.0))
+
+
+def test_critical_sensor_must_persist_before_it_triggers() -> None:
+    v = Vehicle()
+    v.fly(1.0)
+    assert v.sys_status(health=SENSORS & ~int(SensorBit.GYRO)) is True
+    early = v.at(0.3)
+    assert early.level == WARN and not early.failing and "gyro" in early.to_api().unhealthy_sensors
+    late = v.at(0.61)
+    assert late.level == ERROR and "sensor:gyro" in failing_codes(late)
+    v.t += 0.7
+    v.sys_status(health=SENSORS)
+    v.fly(0.5)
+    assert v.at(0.0).level == OK
+
+
+@pytest.mark.parametrize(
+    ("bit", "level"),
+    [
+        (SensorBit.GPS, WARN),
+        (SensorBit.MAG, WARN),
+        (SensorBit.GYRO2, WARN),
+        (SensorBit.RC_RECEIVER, OK),
+        (SensorBit.PREARM_CHECK, OK),
+    ],
+)
+def test_non_critical_sensors_only_warn_or_are_ignored(bit: SensorBit, level: HealthLevel) -> None:
+    v = Vehicle()
+    v.fly(1.0)
+    enabled = SENSORS | int(bit)
+    v.sys_status(health=enabled & ~int(bit), enabled=enabled)
+    v.fly(1.5)  # well past sensor_persist_ms: still only a warning (or nothing)
+    a = v.at(0.0)
+    assert a.level == level and not a.failing
+
+
+def test_disarmed_in_the_air_until_it_reports_the_ground() -> None:
+    v = Vehicle()
+    v.fly(1.0)
+    v.heartbeat(base_mode=1)
+    assert "disarmed-in-air" in failing_codes(v.at(0.0))
+    v.landed(LandedState.ON_GROUND)
+    assert "disarmed-in-air" not in codes(v.at(0.0))
+
+
+def test_attitude_envelope() -> None:
+    v = Vehicle()
+    v.fly(1.0)
+    v.fly(0.2, roll=math.radians(40))
+    assert codes(v.at(0.0)) == {"tilt"} and v.at(0.0).level == WARN
+    v.fly(0.4, roll=math.radians(70))
+    a = v.at(0.0)
+    assert a.level == ERROR and "tilt" in failing_codes(a)
+    assert tilt_degrees(math.radians(30), math.radians(40)) > 40
+
+
+def test_estimator_attitude_loss_persisting_is_an_error() -> None:
+    v = Vehicle()
+    v.fly(1.0)
+    good = 0x1 | 0x2 | 0x4 | 0x8 | 0x10 | 0x20
+    status = mav.MAVLink_estimator_status_message(0, good, 0, 0, 0, 0, 0, 0, 0, 0)
+    v.tracker.observe(status, v.t)
+    assert v.at(0.0).level == OK
+    lost = mav.MAVLink_estimator_status_message(0, good & ~0x1 & ~0x10, 0, 0, 0, 0, 0, 0, 0, 0)
+    v.tracker.observe(lost, v.t)
+    assert v.at(0.1).level == WARN and not v.at(0.1).failing
+    assert "estimator" in failing_codes(v.at(0.7))
+    assert "position" in codes(v.at(0.7))
+
+
+def test_non_autopilot_heartbeat_is_ignored() -> None:
+    v = Vehicle()
+    v.fly(1.0)
+    v.heartbeat(state=MavState.EMERGENCY, autopilot=MAV_AUTOPILOT_INVALID)
+    assert v.at(0.0).level == OK
+
+
+def test_stack_mismatch_warns() -> None:
+    v = Vehicle()
+    v.fly(0.5)
+    v.heartbeat(autopilot=MAV_AUTOPILOT_ARDUPILOTMEGA)
+    a = v.at(0.0)
+    assert codes(a) == {"stack-mismatch"} and a.level == WARN
+
+
+def test_pilot_mode_is_recognised_per_stack() -> None:
+    px4 = Vehicle()
+    px4.heartbeat(mode=custom_mode(Stack.PX4, "POSCTL"))
+    assert px4.at(0.0).pilot_in_control
+    ardu = Vehicle(Stack.ARDUPILOT)
+    ardu.heartbeat(
+        mode=custom_mode(Stack.ARDUPILOT, "ALT_HOLD"), autopilot=MAV_AUTOPILOT_ARDUPILOTMEGA
+    )
+    assert ardu.at(0.0).pilot_in_control and ardu.at(0.0).mode == "ALT_HOLD"
+    ardu.heartbeat(
+        mode=custom_mode(Stack.ARDUPILOT, "LOITER"), autopilot=MAV_AUTOPILOT_ARDUPILOTMEGA
+    )
+    assert not ardu.at(0.0).pilot_in_control
+
+
+def test_observe_reports_only_changes_that_matter_to_the_arbiter() -> None:
+    v = Vehicle()
+    assert v.heartbeat() is True
+    assert v.heartbeat() is False
+    assert v.landed() is True
+    assert v.landed() is False
+    assert v.sys_status() is True
+    assert v.sys_status() is False
+    assert v.heartbeat(mode=custom_mode(Stack.PX4, "AUTO.LAND")) is True
+
+
+def test_thresholds_come_from_the_spec() -> None:
+    tight = Thresholds(message_warn_ms=100, message_error_ms=200)
+    v = Vehicle(thresholds=tight)
+    v.fly(1.0)
+    assert v.at(0.22).level == ERROR
+    v.tracker.set_thresholds(Thresholds())
+    assert v.at(0.22).level == WARN
