@@ -294,7 +294,10 @@ def test_operator_may(installed: Cluster, args: tuple[str, ...]) -> None:
         ("patch", "redundantautopilots.roost.dev"),
         ("create", "vehicles.roost.dev"),
         ("delete", "redundantautopilots.roost.dev"),
+        ("patch", "vehicles.roost.dev", "--subresource=status"),
+        ("update", "redundantautopilots.roost.dev", "--subresource=status"),
         ("patch", "missions.roost.dev", "--subresource=status", "-n", "default"),
+        ("patch", "events", "-n", "default"),
         ("get", "secrets", "-n", NAMESPACE),
         ("get", "configmaps", "-n", NAMESPACE),
         ("patch", "nodes"),
@@ -311,10 +314,8 @@ def test_agent_may_not(installed: Cluster, args: tuple[str, ...]) -> None:
     [
         ("watch", "vehicles.roost.dev"),
         ("list", "redundantautopilots.roost.dev"),
-        ("patch", "vehicles.roost.dev", "--subresource=status"),
         ("patch", "redundantautopilots.roost.dev", "--subresource=status"),
         ("create", "events", "-n", "default"),
-        ("create", "events.events.k8s.io", "-n", "default"),
     ],
     ids=" ".join,
 )
@@ -325,15 +326,50 @@ def test_agent_may(installed: Cluster, args: tuple[str, ...]) -> None:
 # -- node-scoped agent identity (real writes through the admission policy) -------------
 
 
-def test_agent_of_node_a_writes_its_own_vehicle_and_autopilot_status(installed: Cluster) -> None:
-    for kind, name in (("vehicle", VEHICLE_A), ("redundantautopilot", VEHICLE_A)):
-        result = _as_agent(installed, NODE_A, *_status_patch(kind, name, NODE_A))
-        assert result.returncode == 0, result.stderr
+@pytest.fixture(scope="module")
+def agent_over_granted(installed: Cluster) -> Iterator[Cluster]:
+    """The agent with more RBAC than the chart gives it: Vehicle status and new-API Events.
+
+    The policy must hold on its own, whatever RBAC someone adds later; this grant lets
+    the requests reach it.
+    """
+    name = f"{AGENT_SA}-test-extra"
+    role = {
+        "apiVersion": "rbac.authorization.k8s.io/v1",
+        "kind": "ClusterRole",
+        "metadata": {"name": name},
+        "rules": [
+            {
+                "apiGroups": ["roost.dev"],
+                "resources": ["vehicles/status"],
+                "verbs": ["get", "patch"],
+            },
+            {"apiGroups": ["events.k8s.io"], "resources": ["events"], "verbs": ["create"]},
+        ],
+    }
+    binding = {
+        "apiVersion": "rbac.authorization.k8s.io/v1",
+        "kind": "ClusterRoleBinding",
+        "metadata": {"name": name},
+        "roleRef": {"apiGroup": "rbac.authorization.k8s.io", "kind": "ClusterRole", "name": name},
+        "subjects": [{"kind": "ServiceAccount", "name": AGENT_SA, "namespace": NAMESPACE}],
+    }
+    _apply(installed, role, binding)
+    _wait_for(
+        "the extra grant",
+        lambda: _can(installed, AGENT_USER, "patch", "vehicles.roost.dev", "--subresource=status"),
+    )
+    yield installed
+    installed.kubectl("delete", "clusterrolebinding,clusterrole", name, "--ignore-not-found")
 
 
-@pytest.mark.parametrize("kind", ["vehicle", "redundantautopilot"])
-def test_agent_of_node_a_is_refused_node_b_status(installed: Cluster, kind: str) -> None:
-    result = _as_agent(installed, NODE_A, *_status_patch(kind, VEHICLE_B, NODE_A))
+def test_agent_of_node_a_writes_its_own_autopilot_status(installed: Cluster) -> None:
+    result = _as_agent(installed, NODE_A, *_status_patch("redundantautopilot", VEHICLE_A, NODE_A))
+    assert result.returncode == 0, result.stderr
+
+
+def test_agent_of_node_a_is_refused_node_b_autopilot_status(installed: Cluster) -> None:
+    result = _as_agent(installed, NODE_A, *_status_patch("redundantautopilot", VEHICLE_B, NODE_A))
     assert result.returncode != 0
     assert POLICY in result.stderr and f"on node {NODE_A}" in result.stderr
 
@@ -347,21 +383,32 @@ def test_agent_is_refused_an_autopilot_without_the_node_label(installed: Cluster
 
 
 def test_agent_without_a_node_in_its_token_is_refused(installed: Cluster) -> None:
-    result = _as_agent(installed, None, *_status_patch("vehicle", VEHICLE_A, NODE_A))
+    result = _as_agent(installed, None, *_status_patch("redundantautopilot", VEHICLE_A, NODE_A))
     assert result.returncode != 0
     assert "carries no node name" in result.stderr
 
 
-def test_agent_events_must_name_its_own_node(installed: Cluster) -> None:
-    own = _create_as_agent(installed, NODE_A, _event("chart-e2e-own", VEHICLE_A, NODE_A))
+def test_agent_vehicle_status_writes_granted_later_are_still_node_scoped(
+    agent_over_granted: Cluster,
+) -> None:
+    own = _as_agent(agent_over_granted, NODE_A, *_status_patch("vehicle", VEHICLE_A, NODE_A))
     assert own.returncode == 0, own.stderr
-    forged = _create_as_agent(installed, NODE_A, _event("chart-e2e-forged", VEHICLE_B, NODE_B))
+    other = _as_agent(agent_over_granted, NODE_A, *_status_patch("vehicle", VEHICLE_B, NODE_A))
+    assert other.returncode != 0
+    assert POLICY in other.stderr and "Vehicle bound to its node" in other.stderr
+
+
+def test_agent_events_must_name_its_own_node(agent_over_granted: Cluster) -> None:
+    cluster = agent_over_granted
+    own = _create_as_agent(cluster, NODE_A, _event("chart-e2e-own", VEHICLE_A, NODE_A))
+    assert own.returncode == 0, own.stderr
+    forged = _create_as_agent(cluster, NODE_A, _event("chart-e2e-forged", VEHICLE_B, NODE_B))
     assert forged.returncode != 0 and POLICY in forged.stderr
     forged_new_api = _create_as_agent(
-        installed, NODE_A, _event("chart-e2e-forged-v1", VEHICLE_B, NODE_B, api="events.k8s.io")
+        cluster, NODE_A, _event("chart-e2e-forged-v1", VEHICLE_B, NODE_B, api="events.k8s.io")
     )
     assert forged_new_api.returncode != 0 and POLICY in forged_new_api.stderr
-    installed.kubectl("delete", "event", "chart-e2e-own", "-n", "default", "--ignore-not-found")
+    cluster.kubectl("delete", "event", "chart-e2e-own", "-n", "default", "--ignore-not-found")
 
 
 def test_agent_events_about_non_roost_objects_are_refused(installed: Cluster) -> None:
@@ -372,7 +419,7 @@ def test_agent_events_about_non_roost_objects_are_refused(installed: Cluster) ->
 
 
 def test_policy_leaves_other_users_alone(installed: Cluster) -> None:
-    result = installed.kubectl(*_status_patch("vehicle", VEHICLE_B, NODE_B), check=False)
+    result = installed.kubectl(*_status_patch("redundantautopilot", VEHICLE_B, NODE_A), check=False)
     assert result.returncode == 0, result.stderr
 
 

@@ -9,6 +9,7 @@ RBAC and the node-restriction policy there.
 
 from __future__ import annotations
 
+import functools
 import re
 from pathlib import Path
 from typing import Any
@@ -50,7 +51,9 @@ VALUE_SETS: dict[str, tuple[dict[str, Any], tuple[Path, ...]]] = {
 }
 
 
+@functools.cache
 def _render_set(name: str, *, include_crds: bool = False) -> list[Manifest]:
+    """Rendered once per value set (read-only: callers must not modify the result)."""
     values, files = VALUE_SETS[name]
     return render(values, values_files=files, include_crds=include_crds)
 
@@ -269,14 +272,43 @@ def test_privileged_agent_without_a_device_list_is_refused() -> None:
         render({"agent": {"devices": {"access": "privileged"}}})
 
 
-def test_agent_role_writes_status_and_events_only() -> None:
+def test_agent_role_writes_autopilot_status_and_new_events_only() -> None:
     rules = _rules(_render_set("defaults"), "-agent")
     for resource in ("vehicles", "redundantautopilots"):
         for verb in ("create", "update", "patch", "delete"):
             assert not _grants(rules, "roost.dev", resource, verb), (resource, verb)
-        assert _grants(rules, "roost.dev", f"{resource}/status", "patch")
+    assert _grants(rules, "roost.dev", "redundantautopilots/status", "patch")
+    assert not _grants(rules, "roost.dev", "vehicles/status", "patch")
     assert _grants(rules, "", "events", "create")
+    assert not _grants(rules, "", "events", "patch")
     assert all("*" not in r["verbs"] for r in rules)
+
+
+def test_agent_drives_the_gpio_bridge_on_hardware_and_a_simulated_one_otherwise() -> None:
+    assert "--bridge=simulated" in _agent_pod("defaults")["containers"][0]["args"]
+    args = _agent_pod("hardware")["containers"][0]["args"]
+    assert "--bridge=gpio" in args and "--gpio-chip=/dev/gpiochip0" in args
+    assert "--status-interval=0" in args and "--cluster=on" in args
+
+
+@pytest.mark.parametrize(
+    ("values", "message"),
+    [
+        ({"agent": {"bridge": {"driver": "gpio"}}}, "needs device access"),
+        (
+            {
+                "agent": {
+                    "bridge": {"driver": "gpio", "gpioChip": "/dev/gpiochip1"},
+                    "devices": {"access": "privileged", "paths": ["/dev/ttyUSB0"]},
+                }
+            },
+            "must be listed in agent.devices.paths",
+        ),
+    ],
+)
+def test_gpio_bridge_without_its_device_is_refused(values: dict[str, Any], message: str) -> None:
+    with pytest.raises(ChartError, match=message):
+        render(values)
 
 
 def test_node_restriction_policy_matches_only_the_agent_and_uses_the_node_label() -> None:
