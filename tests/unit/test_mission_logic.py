@@ -89,8 +89,12 @@ def vehicle(
     labels: dict[str, str] | None = None,
     deleting: bool = False,
 ) -> VehicleView:
+    """A Vehicle as the operator reports it; ``ready`` is the node/components side."""
+    flag = "True" if ready else "False"
     conditions = [
-        cond("Ready", "True" if ready else "False", "VehicleReady" if ready else "NodeNotReady")
+        cond("NodeBound", flag, "NodeLabeled" if ready else "NodeNotReady"),
+        cond("ComponentsReady", "True", "NoComponents"),
+        cond("Ready", flag, "VehicleReady" if ready else "NodeNotReady"),
     ]
     if agent is not None:
         conditions.append(cond("AgentConnected", "True" if agent else "False", "Reporting"))
@@ -339,6 +343,38 @@ def test_once_vehicles_are_held_the_mission_stops_claiming() -> None:
     plan = plan_mission(observe([*claimed("a", "b"), vehicle("c")]))
     assert plan.claims == []
     assert plan.status.phase == MissionPhase.RUNNING
+
+
+def test_a_vehicle_without_redundancy_may_fly_a_mission_that_does_not_require_it() -> None:
+    single = vehicle("a")
+    single.status.conditions = [
+        *(c for c in single.status.conditions if c.type != "Ready"),
+        cond("AutopilotsHealthy", "False", "NotRedundant"),
+        cond("Ready", "False", "NotRedundant"),
+    ]
+    relaxed = mission_spec(
+        vehicles={"names": ["a"], "count": 1}, preflight={"requireRedundancy": False}
+    )
+    obs = observe([single], spec=relaxed, aps=[autopilots("a", redundant=False)])
+    assert plan_mission(obs).claims == ["a"]
+    strict = replace(obs, spec=mission_spec(vehicles={"names": ["a"], "count": 1}))
+    held = replace(
+        strict,
+        vehicles={
+            "a": replace(
+                single, status=single.status.model_copy(update={"claimed_by": ME.reference})
+            )
+        },
+    )
+    plan = plan_mission(held)
+    assert plan.status.phase == MissionPhase.PREFLIGHT
+    assert vehicle_status(plan, "a").reason == "NotRedundant"
+
+
+def test_vehicles_that_pass_this_missions_preflight_are_claimed_first() -> None:
+    aps = [autopilots("a", redundant=False), autopilots("b"), autopilots("c")]
+    plan = plan_mission(observe([vehicle("a"), vehicle("b"), vehicle("c")], aps=aps))
+    assert plan.claims == ["b", "c"]
 
 
 # -- preflight -----------------------------------------------------------------------------

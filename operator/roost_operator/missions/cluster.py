@@ -7,7 +7,7 @@ Everything goes through :class:`~roost_operator.kube.Kube`. The parts that need 
   the API server accepts exactly one patch; the other gets 409. A 409 is not always a
   lost race — the vehicle operator also writes Vehicle status (its own fields only) —
   so the loser re-reads the vehicle and retries only while it is still unclaimed and
-  Ready. Claims are all-or-nothing: when one fails, the vehicles claimed in the same
+  claimable. Claims are all-or-nothing: when one fails, the vehicles claimed in the same
   round are given back and the mission plans again from a fresh read.
 * **Order**: Vehicles are listed before Missions, so an orphaned claim is never
   confused with a claim by a Mission created in between (see
@@ -64,7 +64,7 @@ from roost_operator.missions.machine import (
     plan_mission,
 )
 from roost_operator.missions.observed import AutopilotView, JobView, MissionRef, VehicleView
-from roost_operator.missions.selection import is_ready
+from roost_operator.missions.selection import is_claimable
 from roost_operator.missions.workloads import bounded_name
 from roost_operator.vehicles.config import CONFIG_COMPONENT, config_values_of
 
@@ -189,7 +189,7 @@ def claim_vehicle(kube: Kube, vehicle: VehicleView, mission: MissionRef) -> Vehi
     """Claim ``vehicle`` for ``mission`` unless someone else holds it; the claimed view.
 
     The first attempt may take over an orphaned claim (decided by the caller from the
-    same read); retries after a 409 only claim a vehicle that is unclaimed and Ready.
+    same read); retries after a 409 only claim a vehicle that is unclaimed and claimable.
     """
     claim = mission.reference.to_api()
     current = vehicle
@@ -203,7 +203,7 @@ def claim_vehicle(kube: Kube, vehicle: VehicleView, mission: MissionRef) -> Vehi
             current = VehicleView.from_body(fresh)
             if mission.owns(current.status.claimed_by):
                 return current
-            if current.status.claimed_by is not None or current.deleting or not is_ready(current):
+            if current.status.claimed_by is not None or not is_claimable(current):
                 return None
     return None
 

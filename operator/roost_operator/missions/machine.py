@@ -13,8 +13,9 @@ Phases::
        └──── abort ────────┴─▶ Aborted                    └─ abort / AbortMission ─▶
                                                              Aborting ──landed──▶ Aborted
 
-* **Pending**: not enough free Ready vehicles. Claims are all-or-nothing (see
-  :mod:`.selection`); the message counts what is missing and why.
+* **Pending**: not enough free vehicles. Claims are all-or-nothing (see
+  :mod:`.selection`), vehicles that pass this mission's preflight first; the message
+  counts what is missing and why.
 * **Preflight**: vehicles held, some check failing; per-vehicle reasons in status.
 * **Running**: ``status.startTime`` is written *before* any Job is created, so a restart
   in between finds "started" and creates only what is missing. A mission also counts as
@@ -267,7 +268,8 @@ def _assign(obs: Observation, plan: Plan) -> None:
         available = availability(obs.spec.vehicles, obs.vehicles, obs.mission, obs.live_missions)
         need = required - len(order)
         if len(available.free) >= need:
-            plan.claims = available.free[:need]
+            fit_first = sorted(available.free, key=lambda name: bool(_failures(obs, name)))
+            plan.claims = fit_first[:need]
             _set_phase(
                 status,
                 MissionPhase.PENDING,
@@ -294,14 +296,18 @@ def _assign(obs: Observation, plan: Plan) -> None:
     _preflight(obs, plan, order)
 
 
-def _config_failure(obs: Observation, name: str) -> list[PreflightFailure]:
-    if name in obs.config_values:
-        return []
-    return [
-        PreflightFailure(
-            "VehicleConfigMissing", "the vehicle's config ConfigMap has not been written yet"
+def _failures(obs: Observation, name: str) -> list[PreflightFailure]:
+    """Every preflight check ``name`` fails for this mission (its config included)."""
+    failures = preflight_failures(
+        obs.vehicles.get(name), obs.autopilots.get(name), obs.spec.preflight
+    )
+    if name not in obs.config_values:
+        failures.append(
+            PreflightFailure(
+                "VehicleConfigMissing", "the vehicle's config ConfigMap has not been written yet"
+            )
         )
-    ]
+    return failures
 
 
 def _preflight(obs: Observation, plan: Plan, assigned: list[str]) -> None:
@@ -316,15 +322,7 @@ def _preflight(obs: Observation, plan: Plan, assigned: list[str]) -> None:
         reason="Assigned",
         message=f"{len(assigned)}/{obs.spec.vehicles.count}: {names}",
     )
-    results = {
-        name: [
-            *preflight_failures(
-                obs.vehicles.get(name), obs.autopilots.get(name), obs.spec.preflight
-            ),
-            *_config_failure(obs, name),
-        ]
-        for name in assigned
-    }
+    results = {name: _failures(obs, name) for name in assigned}
     vehicles = []
     for name in assigned:
         vehicle = obs.vehicles.get(name)

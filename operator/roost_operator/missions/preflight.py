@@ -1,10 +1,12 @@
 """Preflight: the checks every assigned vehicle passes before anything starts on it.
 
-Each check reads one writer's verdict rather than re-deriving it: ``Ready`` and
-``AgentConnected`` are the vehicle operator's conditions on the Vehicle, ``ActiveHealthy``
-and ``Redundant`` are the node agent's on the RedundantAutopilot. A condition that is
-absent counts as failing: before the agent has ever reported, nobody knows the vehicle
-is fit to fly. Which checks apply is the mission's ``spec.preflight``; Ready always does.
+Each check reads one writer's verdict rather than re-deriving it: ``NodeBound``,
+``ComponentsReady`` and ``AgentConnected`` are the operator's conditions on the Vehicle,
+``ActiveHealthy`` and ``Redundant`` are the node agent's on the RedundantAutopilot. A
+condition that is absent counts as failing: before the agent has ever reported, nobody
+knows the vehicle is fit to fly. Which checks apply is the mission's ``spec.preflight``;
+the vehicle-side checks (node bound, components ready) always do. The Vehicle's summary
+``Ready`` is not used: it also requires redundancy, which a mission may waive.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from roost_api.meta import Condition, find_condition
 from roost_api.mission import Preflight
 from roost_api.vehicle import VehicleConditionType
 from roost_operator.missions.observed import AutopilotView, VehicleView
-from roost_operator.missions.selection import is_ready, not_ready_reason
+from roost_operator.missions.selection import is_claimable, unfit_reason
 
 
 @dataclass(frozen=True)
@@ -41,9 +43,9 @@ def preflight_failures(
     if vehicle is None:
         return [PreflightFailure("VehicleMissing", "the Vehicle no longer exists")]
     failures: list[PreflightFailure] = []
-    if vehicle.deleting or not is_ready(vehicle):
+    if not is_claimable(vehicle):
         failures.append(
-            PreflightFailure("VehicleNotReady", f"Vehicle not Ready: {not_ready_reason(vehicle)}")
+            PreflightFailure("VehicleNotReady", f"vehicle not ready: {unfit_reason(vehicle)}")
         )
     if checks.require_agent_connected:
         agent = find_condition(vehicle.status.conditions, VehicleConditionType.AGENT_CONNECTED)

@@ -11,6 +11,15 @@ Exclusivity itself is not decided here: the write of ``status.claimedBy`` carrie
 Vehicle's resourceVersion, so of two missions claiming one vehicle exactly one write
 succeeds (see :mod:`roost_operator.missions.cluster`).
 
+Which vehicles may be claimed: those whose *vehicle-side* readiness holds — the vehicle
+operator's ``NodeBound`` and ``ComponentsReady`` are True — rather than the summary
+``Ready``. ``Ready`` also folds in ``AgentConnected`` and ``AutopilotsHealthy`` (which is
+False when a standby autopilot is down), and whether those matter is each mission's
+choice (``spec.preflight``): a mission that does not require redundancy may fly a
+vehicle whose second autopilot has failed. Those checks are the preflight gate's
+(:mod:`~roost_operator.missions.preflight`); the planner prefers vehicles that would
+pass it, so a fit vehicle is claimed before one that would hold the mission in Preflight.
+
 A claim naming a Mission that no longer exists (its finalizer was removed by hand) is an
 orphan and counts as free; the observer lists Missions *after* Vehicles, so a claim by a
 Mission created in between is never mistaken for one.
@@ -58,24 +67,39 @@ def candidates(selection: VehicleSelection, vehicles: Mapping[str, VehicleView])
     return ordered
 
 
-def is_ready(vehicle: VehicleView) -> bool:
-    """The Vehicle's Ready condition is True (the vehicle operator's summary)."""
-    return condition_is_true(vehicle.status.conditions, VehicleConditionType.READY)
+# The vehicle operator's conditions that say the vehicle itself can run workloads.
+CLAIMABLE_CONDITIONS = (VehicleConditionType.NODE_BOUND, VehicleConditionType.COMPONENTS_READY)
 
 
-def not_ready_reason(vehicle: VehicleView) -> str:
-    """Why a vehicle is not Ready, from its Ready condition."""
+def is_claimable(vehicle: VehicleView) -> bool:
+    """Node bound and components ready, and not being deleted (see the module docstring)."""
+    conditions = vehicle.status.conditions
+    return not vehicle.deleting and all(
+        condition_is_true(conditions, kind) for kind in CLAIMABLE_CONDITIONS
+    )
+
+
+def unfit_reason(vehicle: VehicleView) -> str:
+    """Why :func:`is_claimable` is False, in the vehicle operator's words."""
     if vehicle.deleting:
         return "being deleted"
-    ready = find_condition(vehicle.status.conditions, VehicleConditionType.READY)
-    if ready is None:
-        return "no Ready condition yet"
-    return f"{ready.reason}: {ready.message}" if ready.message else ready.reason
+    problems = []
+    for kind in CLAIMABLE_CONDITIONS:
+        condition = find_condition(vehicle.status.conditions, kind)
+        if condition is None:
+            problems.append(f"no {kind} condition yet")
+        elif condition.status != "True":
+            detail = f": {condition.message}" if condition.message else ""
+            problems.append(f"{kind}={condition.status} ({condition.reason}{detail})")
+    return "; ".join(problems)
 
 
 @dataclass(frozen=True)
 class Availability:
-    """The mission's candidates other than those it already holds, sorted by state."""
+    """The mission's candidates other than those it already holds, sorted by state.
+
+    ``free`` keeps the preference order of :func:`candidates`.
+    """
 
     free: list[str] = field(default_factory=list)
     claimed_elsewhere: dict[str, str] = field(default_factory=dict)
@@ -98,8 +122,8 @@ def availability(
             continue
         if claim is not None and reference_key(claim) in live_missions:
             result.claimed_elsewhere[name] = reference_key(claim)
-        elif vehicle.deleting or not is_ready(vehicle):
-            result.not_ready[name] = not_ready_reason(vehicle)
+        elif not is_claimable(vehicle):
+            result.not_ready[name] = unfit_reason(vehicle)
         else:
             result.free.append(name)
     return result
@@ -126,7 +150,7 @@ def shortage_message(*, required: int, held: int, available: Availability) -> st
     if available.not_ready:
         listed = [f"{n} ({why})" for n, why in sorted(available.not_ready.items())[:5]]
         more = ", …" if len(available.not_ready) > 5 else ""
-        parts.append(f"{len(available.not_ready)} not Ready: {', '.join(listed)}{more}")
+        parts.append(f"{len(available.not_ready)} not ready: {', '.join(listed)}{more}")
     if available.unknown_names:
         parts.append(f"no such vehicle: {', '.join(available.unknown_names[:5])}")
     return "; ".join(parts)

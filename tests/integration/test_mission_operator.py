@@ -1,0 +1,821 @@
+"""Missions on the real control plane, with ``roost-operator`` running as a process.
+
+kube-apiserver and etcd store the objects (CRD validation and CEL included), the
+controller manager runs the Jobs, the scheduler places their pods on the fake vehicle
+nodes and kwok plays the kubelets. The vehicle half of the operator labels and taints
+the nodes and writes each vehicle's config, exactly as in production.
+
+Two stand-ins, both because the real part is not wired up here yet:
+
+* **The node agent.** :class:`FakeAgents` writes each RedundantAutopilot's status the way
+  the agent does (conditions ActiveHealthy/Redundant/FailedOver/Ready, per-autopilot
+  health with landed state and armed flag, lastFailover, reportedAt, nodeName) and
+  executes commands from ``spec.command`` as the agent would (the safety routine ends on
+  the ground and disarmed, an e-stop disarms; the result goes to ``status.lastCommand``).
+  Agent-driven end-to-end tests with simulated autopilots come separately.
+  The operator's autopilot handlers turn these reports into the Vehicle's
+  ``AgentConnected`` and ``AutopilotsHealthy``, as they would for the real agent.
+
+Workload timing: kwok v0.7's default "fast" pod stages complete every pod owned by a Job
+the moment it runs (stage ``pod-complete``: phase Running + ownerReference kind Job →
+Succeeded). To hold a mission in Running, the onboard template carries a scheduling gate
+(``schedulingGates``); a gated pod stays Pending and unscheduled, so its Job stays
+active. A test lets the workloads finish by removing the gates (as a scheduler plugin
+would); kwok then runs and completes the pods. A failed pod is produced by writing the
+pod's status phase Failed, which is what a kubelet reports for a failed container.
+
+The cluster is shared by the session: every test uses unique names and its own vehicle
+label, and removes its Missions before its Vehicles (their finalizers need the
+operator).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import threading
+import uuid
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from typing import Any
+
+import pytest
+
+from roost_api.autopilot import CommandAction
+from roost_api.meta import Condition, set_condition
+from roost_api.wellknown import LABEL_MISSION, LABEL_VEHICLE
+from roost_harness.cluster import Cluster
+from roost_harness.operator import OperatorProcess, wait_for
+from roost_operator.kube import (
+    JOBS,
+    MISSIONS,
+    PODS,
+    REDUNDANT_AUTOPILOTS,
+    VEHICLES,
+    ConflictError,
+    Kube,
+    Obj,
+)
+from roost_operator.missions.cluster import claim_vehicle
+from roost_operator.missions.observed import MissionRef, VehicleView
+from roost_operator.missions.workloads import ENV_MISSION_VEHICLES, bounded_name
+
+pytestmark = pytest.mark.cluster
+
+OPERATOR_NAMESPACE = "roost-it-missions"
+FLIGHTS = "roost-it-flights"
+WAIT_S = 60.0
+HOLD_GATE = "roost.dev/test-hold"
+AddNode = Callable[..., dict[str, Any]]
+
+
+def unique(prefix: str) -> str:
+    return f"{prefix}-{uuid.uuid4().hex[:6]}"
+
+
+def rfc3339(at: datetime) -> str:
+    return at.astimezone(UTC).isoformat().replace("+00:00", "Z")
+
+
+# -- the stand-in node agent ---------------------------------------------------------------
+
+
+@dataclass
+class AgentState:
+    """What one vehicle's (simulated) autopilots look like to its agent."""
+
+    vehicle: str
+    node: str
+    active: str = "fc1"
+    healthy: bool = True
+    redundant: bool = True
+    landed: str = "InAir"
+    armed: bool = True
+    execute_commands: bool = True
+    failover: dict[str, Any] | None = None
+    failover_count: int = 0
+    last_command: dict[str, Any] | None = None
+    conditions: list[Condition] = field(default_factory=list)
+
+
+class FakeAgents:
+    """Stand-in node agents: report every second, execute commands (see module docstring)."""
+
+    PERIOD_S = 1.0
+
+    def __init__(self, kube: Kube) -> None:
+        self.kube = kube
+        self.states: dict[str, AgentState] = {}
+        self.lock = threading.Lock()
+        self.stopping = threading.Event()
+        self.thread = threading.Thread(target=self._run, name="fake-agents", daemon=True)
+
+    def add(self, autopilots: str, vehicle: str, node: str, **state: Any) -> None:
+        with self.lock:
+            self.states[autopilots] = AgentState(vehicle=vehicle, node=node, **state)
+        self.report(autopilots)
+
+    def forget(self, autopilots: str) -> None:
+        with self.lock:
+            self.states.pop(autopilots, None)
+
+    def set(self, autopilots: str, **changes: Any) -> None:
+        with self.lock:
+            for key, value in changes.items():
+                setattr(self.states[autopilots], key, value)
+        self.report(autopilots)
+
+    def fail_over(self, autopilots: str) -> None:
+        """The agent switched the bridge from fc1 to fc2 (fc1 lost its heartbeat)."""
+        with self.lock:
+            state = self.states[autopilots]
+            state.active = "fc2"
+            state.redundant = False
+            state.failover_count += 1
+            state.failover = {
+                "time": rfc3339(datetime.now(UTC)),
+                "from": "fc1",
+                "to": "fc2",
+                "reason": "heartbeat lost on fc1",
+                "latencyMs": 21.0,
+                "trigger": "Automatic",
+            }
+        self.report(autopilots)
+
+    def _execute(self, state: AgentState, command: Obj | None) -> None:
+        if command is None or not state.execute_commands:
+            return
+        if state.last_command is not None and state.last_command["id"] == command["id"]:
+            return
+        action = command["action"]
+        if action == CommandAction.SAFETY_ROUTINE:
+            state.landed, state.armed = "OnGround", False
+        elif action == CommandAction.EMERGENCY_STOP:
+            state.armed = False
+        state.last_command = {
+            "id": command["id"],
+            "result": "Executed",
+            "message": f"{action} done",
+            "time": rfc3339(datetime.now(UTC)),
+        }
+
+    def _status(self, state: AgentState) -> Obj:
+        for type_, ok, reason in (
+            ("ActiveHealthy", state.healthy, "HeartbeatLost"),
+            ("Redundant", state.redundant, "StandbyUnhealthy"),
+            ("FailedOver", state.failover is not None, "Switched"),
+            ("Ready", state.healthy, "ActiveUnhealthy"),
+        ):
+            state.conditions = set_condition(
+                state.conditions,
+                type=type_,
+                status="True" if ok else "False",
+                reason="AsExpected" if ok == (type_ != "FailedOver") else reason,
+            )
+        health = [
+            {
+                "name": name,
+                "level": "OK" if state.healthy or name != state.active else "ERROR",
+                "landedState": state.landed,
+                "armed": state.armed,
+            }
+            for name in ("fc1", "fc2")
+        ]
+        status: Obj = {
+            "conditions": [c.to_api() for c in state.conditions],
+            "activeAutopilot": state.active,
+            "autopilots": health,
+            "failoverCount": state.failover_count,
+            "nodeName": state.node,
+            "reportedAt": rfc3339(datetime.now(UTC)),
+        }
+        if state.failover is not None:
+            status["lastFailover"] = state.failover
+        if state.last_command is not None:
+            status["lastCommand"] = state.last_command
+        return status
+
+    def report(self, autopilots: str) -> None:
+        """One report: read the command, execute it, write the status (serialised)."""
+        with self.lock:
+            state = self.states.get(autopilots)
+            body = self.kube.get(REDUNDANT_AUTOPILOTS, autopilots)
+            if state is None or body is None:
+                return
+            self._execute(state, (body.get("spec") or {}).get("command"))
+            self.kube.merge_patch(
+                REDUNDANT_AUTOPILOTS,
+                autopilots,
+                {"status": self._status(state)},
+                subresource="status",
+            )
+
+    def _run(self) -> None:
+        while not self.stopping.wait(self.PERIOD_S):
+            with self.lock:
+                names = list(self.states)
+            for name in names:
+                self.report(name)
+
+    def __enter__(self) -> FakeAgents:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.stopping.set()
+        self.thread.join()
+
+
+# -- fixtures ------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def operator(
+    roost_crds: Cluster, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[OperatorProcess]:
+    roost_crds.kubectl("create", "namespace", FLIGHTS, check=False)
+    proc = OperatorProcess(
+        roost_crds,
+        tmp_path_factory.mktemp("mission-operator") / "operator.log",
+        namespace=OPERATOR_NAMESPACE,
+    )
+    proc.start()
+    yield proc
+    proc.stop()
+
+
+@pytest.fixture(scope="module")
+def kube(roost_crds: Cluster) -> Iterator[Kube]:
+    with roost_crds.api_client() as api:
+        yield Kube(api=api)
+
+
+@pytest.fixture
+def agents(kube: Kube) -> Iterator[FakeAgents]:
+    with FakeAgents(kube) as running:
+        yield running
+
+
+@dataclass
+class Fleet:
+    """Vehicles of one test: nodes, Vehicles and RedundantAutopilots under one label."""
+
+    cluster: Cluster
+    kube: Kube
+    agents: FakeAgents
+    add_node: AddNode
+    label: str = field(default_factory=lambda: unique("fleet"))
+    vehicles: list[str] = field(default_factory=list)
+    missions: list[str] = field(default_factory=list)
+
+    def add(self, count: int, **agent_state: Any) -> list[str]:
+        names = []
+        for _ in range(count):
+            name = unique("drone")
+            node = f"{name}-node"
+            self.add_node(node)
+            self.apply(
+                {
+                    "apiVersion": "roost.dev/v1alpha1",
+                    "kind": "Vehicle",
+                    "metadata": {"name": name, "labels": {"fleet": self.label}},
+                    "spec": {
+                        "nodeName": node,
+                        "sysid": 10 + len(self.vehicles),
+                        "components": {"mavros": {"enabled": False}},
+                    },
+                }
+            )
+            self.apply(autopilots_manifest(name))
+            self.agents.add(f"{name}-autopilots", name, node, **agent_state)
+            self.vehicles.append(name)
+            names.append(name)
+        wait_for(
+            "the Vehicles Ready", lambda: all(vehicle_ready(self.kube, n) for n in names), WAIT_S
+        )
+        return names
+
+    def apply(self, manifest: Obj) -> None:
+        self.cluster.kubectl("apply", "-f", "-", input_text=json.dumps(manifest))
+
+    def mission(self, name: str, **spec: Any) -> str:
+        self.missions.append(name)
+        self.apply(mission_manifest(name, **spec))
+        return name
+
+    def cleanup(self) -> None:
+        for name in self.missions:
+            self.cluster.kubectl("delete", "mission", name, "-n", FLIGHTS, "--ignore-not-found")
+        for name in self.vehicles:
+            self.agents.forget(f"{name}-autopilots")
+            self.cluster.kubectl("delete", "redundantautopilot", f"{name}-autopilots", check=False)
+            self.cluster.kubectl("delete", "vehicle", name, "--ignore-not-found", "--wait=false")
+        wait_for(
+            "the test's Vehicles to be gone",
+            lambda: all(self.kube.get(VEHICLES, n) is None for n in self.vehicles),
+            WAIT_S,
+        )
+
+
+@pytest.fixture
+def fleet(
+    roost_crds: Cluster,
+    operator: OperatorProcess,
+    kube: Kube,
+    agents: FakeAgents,
+    fake_nodes: AddNode,
+) -> Iterator[Fleet]:
+    created = Fleet(roost_crds, kube, agents, fake_nodes)
+    yield created
+    if not operator.process.alive():
+        operator.start()
+    created.cleanup()
+
+
+# -- manifests and reads -------------------------------------------------------------------
+
+
+def autopilots_manifest(vehicle: str) -> Obj:
+    return {
+        "apiVersion": "roost.dev/v1alpha1",
+        "kind": "RedundantAutopilot",
+        "metadata": {"name": f"{vehicle}-autopilots"},
+        "spec": {
+            "vehicleName": vehicle,
+            "primary": "fc1",
+            "autopilots": [
+                {
+                    "name": "fc1",
+                    "stack": "px4",
+                    "connection": "udp://127.0.0.1:14540",
+                    "sysid": 1,
+                    "bridgeChannel": 0,
+                },
+                {
+                    "name": "fc2",
+                    "stack": "px4",
+                    "connection": "udp://127.0.0.1:14541",
+                    "sysid": 2,
+                    "bridgeChannel": 1,
+                },
+            ],
+        },
+    }
+
+
+def mission_manifest(
+    name: str,
+    *,
+    selector: dict[str, str] | None = None,
+    names: list[str] | None = None,
+    count: int,
+    hold: bool = True,
+    offboard: bool = False,
+    **spec: Any,
+) -> Obj:
+    vehicles: Obj = {"count": count}
+    if selector is not None:
+        vehicles["selector"] = {"matchLabels": selector}
+    if names is not None:
+        vehicles["names"] = names
+    pod: Obj = {
+        "restartPolicy": "Never",
+        "containers": [{"name": "controller", "image": "example.org/controller:1"}],
+    }
+    if hold:
+        pod["schedulingGates"] = [{"name": HOLD_GATE}]
+    body: Obj = {
+        "vehicles": vehicles,
+        "onboard": {"metadata": {"labels": {"app": "controller"}}, "spec": pod},
+        **spec,
+    }
+    if offboard:
+        body["offboard"] = {
+            "spec": {
+                "restartPolicy": "Never",
+                "containers": [{"name": "monitor", "image": "example.org/monitor:1"}],
+            }
+        }
+    return {
+        "apiVersion": "roost.dev/v1alpha1",
+        "kind": "Mission",
+        "metadata": {"name": name, "namespace": FLIGHTS},
+        "spec": body,
+    }
+
+
+def vehicle_ready(kube: Kube, name: str) -> bool:
+    body = kube.get(VEHICLES, name) or {}
+    conditions = (body.get("status") or {}).get("conditions") or []
+    return any(c["type"] == "Ready" and c["status"] == "True" for c in conditions)
+
+
+def mission_status(kube: Kube, name: str) -> Obj:
+    body = kube.get(MISSIONS, name, FLIGHTS) or {}
+    status: Obj = body.get("status") or {}
+    return status
+
+
+def wait_phase(kube: Kube, name: str, phase: str, timeout_s: float = WAIT_S) -> Obj:
+    def reached() -> Obj | None:
+        status = mission_status(kube, name)
+        return status if status.get("phase") == phase else None
+
+    try:
+        result: Obj = wait_for(f"mission {name} phase {phase}", reached, timeout_s)
+    except TimeoutError as error:
+        status = json.dumps(mission_status(kube, name))
+        raise AssertionError(f"{error}; status now: {status}") from error
+    return result
+
+
+def condition_of(status: Obj, type_: str) -> Obj | None:
+    return next((c for c in status.get("conditions") or [] if c["type"] == type_), None)
+
+
+def jobs_of(kube: Kube, mission: str) -> dict[str, Obj]:
+    return {
+        j["metadata"]["name"]: j
+        for j in kube.list_objects(
+            JOBS, namespace=FLIGHTS, labels={LABEL_MISSION: bounded_name(mission)}
+        )
+        if not j["metadata"].get("deletionTimestamp")
+    }
+
+
+def pods_of(kube: Kube, mission: str) -> list[Obj]:
+    return [
+        p
+        for p in kube.list_objects(
+            PODS, namespace=FLIGHTS, labels={LABEL_MISSION: bounded_name(mission)}
+        )
+        if not p["metadata"].get("deletionTimestamp")
+    ]
+
+
+def claimed_by(kube: Kube, vehicle: str) -> str | None:
+    claim = ((kube.get(VEHICLES, vehicle) or {}).get("status") or {}).get("claimedBy")
+    return f"{claim['namespace']}/{claim['name']}" if claim else None
+
+
+def command_of(kube: Kube, vehicle: str) -> Obj | None:
+    """The command on the vehicle's RedundantAutopilot (spec.command), if any."""
+    body = kube.get(REDUNDANT_AUTOPILOTS, f"{vehicle}-autopilots") or {}
+    command: Obj | None = (body.get("spec") or {}).get("command")
+    return command
+
+
+def assigned(status: Obj) -> list[str]:
+    return [v["name"] for v in status.get("vehicles") or []]
+
+
+def release_holds(kube: Kube, mission: str, vehicle: str | None = None) -> None:
+    """Remove the scheduling gates: the pods get scheduled, kwok runs and completes them."""
+    for pod in pods_of(kube, mission):
+        if vehicle is not None and pod["metadata"]["labels"].get(LABEL_VEHICLE) != vehicle:
+            continue
+        if pod["spec"].get("schedulingGates"):
+            kube.merge_patch(
+                PODS,
+                pod["metadata"]["name"],
+                {"spec": {"schedulingGates": None}},
+                namespace=FLIGHTS,
+            )
+
+
+def events_for(cluster: Cluster, mission: str) -> list[str]:
+    out = cluster.kubectl(
+        "get",
+        "events",
+        "-n",
+        FLIGHTS,
+        "--field-selector",
+        f"involvedObject.name={mission}",
+        "-o",
+        "jsonpath={range .items[*]}{.reason}{'\\n'}{end}",
+    ).stdout
+    return out.split()
+
+
+# -- tests ---------------------------------------------------------------------------------
+
+
+def test_three_vehicles_fly_to_succeeded_with_an_offboard_monitor(
+    fleet: Fleet, kube: Kube, fake_nodes: AddNode, roost_crds: Cluster
+) -> None:
+    ground = unique("ground")
+    fake_nodes(ground)
+    vehicles = fleet.add(3)
+    name = fleet.mission(
+        unique("happy"), selector={"fleet": fleet.label}, count=3, hold=False, offboard=True
+    )
+
+    status = wait_phase(kube, name, "Succeeded")
+    assert sorted(assigned(status)) == sorted(vehicles)
+    assert all(v["phase"] == "Succeeded" for v in status["vehicles"])
+    assert status["assignedCount"] == 3
+    assert condition_of(status, "Complete")["status"] == "True"  # type: ignore[index]
+
+    pods = pods_of(kube, name)
+    onboard = {p["spec"]["nodeName"]: p for p in pods if p["metadata"]["labels"].get(LABEL_VEHICLE)}
+    assert set(onboard) == {f"{v}-node" for v in vehicles}, "one onboard pod on each vehicle"
+    pod = next(iter(onboard.values()))
+    container = pod["spec"]["containers"][0]
+    env = {e["name"]: e for e in container["env"]}
+    assert env[ENV_MISSION_VEHICLES]["value"] == ",".join(assigned(status))
+    assert "configMapKeyRef" in env["VEHICLE_NAME"]["valueFrom"]
+    assert {m["mountPath"] for m in container["volumeMounts"]} >= {"/etc/roost", "/etc/starling"}
+    (monitor,) = [p for p in pods if not p["metadata"]["labels"].get(LABEL_VEHICLE)]
+    assert monitor["spec"]["nodeName"] not in {f"{v}-node" for v in vehicles}
+
+    wait_for(
+        "vehicles released", lambda: all(claimed_by(kube, v) is None for v in vehicles), WAIT_S
+    )
+    columns = roost_crds.kubectl("get", "missions", name, "-n", FLIGHTS).stdout
+    assert "Succeeded" in columns and "3" in columns
+    reasons = events_for(roost_crds, name)
+    assert "Started" in reasons and "Completed" in reasons
+
+
+def test_a_mission_waits_for_vehicles_and_starts_when_they_are_freed(
+    fleet: Fleet, kube: Kube
+) -> None:
+    vehicles = fleet.add(2)
+    first = fleet.mission(unique("first"), names=vehicles[:1], count=1)
+    wait_phase(kube, first, "Running")
+    second = fleet.mission(unique("second"), selector={"fleet": fleet.label}, count=2)
+
+    status = wait_phase(kube, second, "Pending")
+    wait_for(
+        "the shortage message",
+        lambda: "1 missing" in (mission_status(kube, second).get("message") or ""),
+        WAIT_S,
+    )
+    status = mission_status(kube, second)
+    assert status["reason"] == "InsufficientVehicles"
+    assert f"{FLIGHTS}/{first}" in status["message"]
+    assert claimed_by(kube, vehicles[1]) is None, "a waiting mission holds no partial set"
+
+    release_holds(kube, first)
+    wait_phase(kube, first, "Succeeded")
+    status = wait_phase(kube, second, "Running")
+    assert sorted(assigned(status)) == sorted(vehicles)
+
+
+def test_preflight_holds_the_mission_until_the_autopilot_is_healthy(
+    fleet: Fleet, kube: Kube, agents: FakeAgents
+) -> None:
+    good, bad = fleet.add(2)
+    agents.set(f"{bad}-autopilots", healthy=False)
+    name = fleet.mission(unique("preflight"), selector={"fleet": fleet.label}, count=2)
+
+    status = wait_phase(kube, name, "Preflight")
+    by_name = {v["name"]: v for v in status["vehicles"]}
+    assert by_name[bad]["phase"] == "Preflight"
+    assert by_name[bad]["reason"] == "ActiveAutopilotUnhealthy"
+    assert by_name[good]["phase"] == "Claimed"
+    assert condition_of(status, "PreflightPassed")["status"] == "False"  # type: ignore[index]
+    assert jobs_of(kube, name) == {}, "nothing starts before every vehicle passes"
+
+    agents.set(f"{bad}-autopilots", healthy=True)
+    wait_phase(kube, name, "Running")
+    wait_for("both Jobs", lambda: len(jobs_of(kube, name)) == 2, WAIT_S)
+
+
+@pytest.mark.parametrize("action", ["SafetyRoutine", "EmergencyStop"])
+def test_abort_lands_every_vehicle_and_stops_the_workloads(
+    fleet: Fleet, kube: Kube, agents: FakeAgents, roost_crds: Cluster, action: str
+) -> None:
+    vehicles = fleet.add(2, execute_commands=False)
+    name = fleet.mission(
+        unique("abort"), selector={"fleet": fleet.label}, count=2, abortAction=action
+    )
+    wait_phase(kube, name, "Running")
+    wait_for("both Jobs", lambda: len(jobs_of(kube, name)) == 2, WAIT_S)
+
+    roost_crds.kubectl(
+        "patch", "mission", name, "-n", FLIGHTS, "--type=merge", "-p", '{"spec":{"abort":true}}'
+    )
+    status = wait_phase(kube, name, "Aborting")
+    assert status["reason"] == "AbortRequested"
+
+    def all_commanded() -> list[Obj] | None:
+        found = [command_of(kube, v) for v in vehicles]
+        return [c for c in found if c is not None] if all(found) else None
+
+    commands = wait_for("commands on every vehicle", all_commanded, WAIT_S)
+    assert {c["action"] for c in commands} == {action}
+    assert len({c["id"] for c in commands}) == 2
+    wait_for("the Jobs to be stopped", lambda: jobs_of(kube, name) == {}, WAIT_S)
+    assert mission_status(kube, name)["phase"] == "Aborting", "not Aborted before they land"
+    assert all(claimed_by(kube, v) == f"{FLIGHTS}/{name}" for v in vehicles)
+
+    for vehicle in vehicles:
+        agents.set(f"{vehicle}-autopilots", execute_commands=True)
+    status = wait_phase(kube, name, "Aborted")
+    assert {v["reason"] for v in status["vehicles"]} == {
+        "Disarmed" if action == "EmergencyStop" else "Landed"
+    }
+    for vehicle in vehicles:
+        body = kube.get(REDUNDANT_AUTOPILOTS, f"{vehicle}-autopilots") or {}
+        assert body["status"]["lastCommand"]["result"] == "Executed"
+    wait_for(
+        "vehicles released", lambda: all(claimed_by(kube, v) is None for v in vehicles), WAIT_S
+    )
+    assert jobs_of(kube, name) == {}, "nothing is started after an abort"
+    with pytest.raises(subprocess.CalledProcessError) as undo:
+        roost_crds.kubectl(
+            "patch",
+            "mission",
+            name,
+            "-n",
+            FLIGHTS,
+            "--type=merge",
+            "-p",
+            '{"spec":{"abort":false}}',
+        )
+    assert "abort cannot be undone" in undo.value.stderr
+
+
+@pytest.mark.parametrize("policy", ["Continue", "AbortVehicle", "AbortMission"])
+def test_a_failover_mid_mission_follows_the_policy(
+    fleet: Fleet, kube: Kube, agents: FakeAgents, policy: str
+) -> None:
+    fleet.add(2)
+    name = fleet.mission(
+        unique("failover"), selector={"fleet": fleet.label}, count=2, onFailover=policy
+    )
+    status = wait_phase(kube, name, "Running")
+    hit, other = assigned(status)
+
+    agents.fail_over(f"{hit}-autopilots")
+
+    if policy == "AbortMission":
+        status = wait_phase(kube, name, "Aborted")
+        assert status["reason"] == "VehicleFailedOver"
+        assert all(v["phase"] == "Aborted" for v in status["vehicles"])
+        return
+    degraded = wait_for(
+        "Degraded=True",
+        lambda: (
+            (c := condition_of(mission_status(kube, name), "Degraded")) and c["status"] == "True"
+        ),
+        WAIT_S,
+    )
+    assert degraded
+    if policy == "AbortVehicle":
+        wait_for(
+            f"{hit} aborted",
+            lambda: (
+                {v["name"]: v["phase"] for v in mission_status(kube, name)["vehicles"]}[hit]
+                == "Aborted"
+            ),
+            WAIT_S,
+        )
+        assert (command_of(kube, hit) or {})["action"] == "SafetyRoutine"
+        assert command_of(kube, other) is None
+        wait_for(f"{hit}'s Job stopped", lambda: len(jobs_of(kube, name)) == 1, WAIT_S)
+    else:
+        assert len(jobs_of(kube, name)) == 2
+    assert mission_status(kube, name)["phase"] == "Running"
+    release_holds(kube, name)
+    status = wait_phase(kube, name, "Succeeded")
+    assert condition_of(status, "Degraded")["status"] == "True"  # type: ignore[index]
+
+
+def test_a_failed_workload_fails_the_mission_and_stops_the_others(fleet: Fleet, kube: Kube) -> None:
+    vehicles = fleet.add(2)
+    name = fleet.mission(unique("fails"), selector={"fleet": fleet.label}, count=2, backoffLimit=0)
+    status = wait_phase(kube, name, "Running")
+    broken = assigned(status)[0]
+    wait_for("both pods", lambda: len(pods_of(kube, name)) == 2, WAIT_S)
+    (pod,) = [p for p in pods_of(kube, name) if p["metadata"]["labels"][LABEL_VEHICLE] == broken]
+    kube.merge_patch(
+        PODS,
+        pod["metadata"]["name"],
+        {"status": {"phase": "Failed", "reason": "Error", "message": "controller crashed"}},
+        namespace=FLIGHTS,
+        subresource="status",
+    )
+    status = wait_phase(kube, name, "Failed")
+    assert status["reason"] == "VehicleWorkloadFailed"
+    assert status["message"].startswith(f"{broken}: onboard Job")
+    wait_for(
+        "the other Job stopped",
+        lambda: (
+            jobs_of(kube, name) == {k: v for k, v in jobs_of(kube, name).items() if broken in k}
+        ),
+        WAIT_S,
+    )
+    wait_for(
+        "vehicles released", lambda: all(claimed_by(kube, v) is None for v in vehicles), WAIT_S
+    )
+
+
+def test_competing_missions_never_share_a_vehicle(
+    fleet: Fleet, kube: Kube, roost_crds: Cluster
+) -> None:
+    vehicles = fleet.add(5)
+    names = [unique(f"rival{i}") for i in range(4)]
+    fleet.missions.extend(names)
+    manifests = "\n---\n".join(
+        json.dumps(mission_manifest(n, selector={"fleet": fleet.label}, count=2)) for n in names
+    )
+    roost_crds.kubectl("apply", "-f", "-", input_text=manifests)
+
+    def settled() -> dict[str, Obj] | None:
+        statuses = {n: mission_status(kube, n) for n in names}
+        running = [s for s in statuses.values() if s.get("phase") == "Running"]
+        pending = [s for s in statuses.values() if s.get("reason") == "InsufficientVehicles"]
+        return statuses if len(running) == 2 and len(pending) == 2 else None
+
+    statuses = wait_for("two missions running and two waiting", settled, WAIT_S)
+    flying = [assigned(s) for s in statuses.values() if s["phase"] == "Running"]
+    taken = [v for group in flying for v in group]
+    assert len(taken) == len(set(taken)) == 4, f"a vehicle was shared: {flying}"
+    for mission, status in statuses.items():
+        for vehicle in assigned(status) if status["phase"] == "Running" else []:
+            assert claimed_by(kube, vehicle) == f"{FLIGHTS}/{mission}"
+    free = set(vehicles) - set(taken)
+    assert all(claimed_by(kube, v) is None for v in free), "waiting missions hold nothing"
+
+
+def test_a_claim_written_from_a_stale_read_loses(fleet: Fleet, kube: Kube) -> None:
+    """The optimistic concurrency itself: two claims computed from one read, one wins."""
+    (name,) = fleet.add(1)
+    view = VehicleView.from_body(kube.get(VEHICLES, name) or {})
+    alpha = MissionRef(namespace=FLIGHTS, name=unique("alpha"), uid="uid-alpha")
+    beta = MissionRef(namespace=FLIGHTS, name=unique("beta"), uid="uid-beta")
+    results: list[VehicleView | None] = [None, None]
+
+    def claim(index: int, mission: MissionRef) -> None:
+        results[index] = claim_vehicle(kube, view, mission)
+
+    threads = [threading.Thread(target=claim, args=(i, m)) for i, m in enumerate((alpha, beta))]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    winners = [r for r in results if r is not None]
+    assert len(winners) == 1
+    holder = claimed_by(kube, name)
+    assert holder in {alpha.key, beta.key}
+    with pytest.raises(ConflictError):
+        kube.merge_patch(
+            VEHICLES,
+            name,
+            {"metadata": {"resourceVersion": view.resource_version}, "status": {"claimedBy": None}},
+            subresource="status",
+        )
+    kube.merge_patch(VEHICLES, name, {"status": {"claimedBy": None}}, subresource="status")
+
+
+def test_a_restarted_operator_resumes_without_duplicating_workloads(
+    fleet: Fleet, kube: Kube, operator: OperatorProcess
+) -> None:
+    vehicles = fleet.add(3)
+    name = fleet.mission(unique("restart"), selector={"fleet": fleet.label}, count=3)
+    wait_phase(kube, name, "Running")
+    wait_for("three Jobs", lambda: len(jobs_of(kube, name)) == 3, WAIT_S)
+    before = {n: j["metadata"]["uid"] for n, j in jobs_of(kube, name).items()}
+    pods_before = {p["metadata"]["uid"] for p in pods_of(kube, name)}
+
+    operator.crash()
+    lost = sorted(before)[0]
+    kube.delete(JOBS, lost, FLIGHTS)
+    operator.start()
+
+    wait_for("the lost Job to be back", lambda: lost in jobs_of(kube, name), WAIT_S)
+    after = {n: j["metadata"]["uid"] for n, j in jobs_of(kube, name).items()}
+    assert set(after) == set(before)
+    assert {n: u for n, u in after.items() if n != lost} == {
+        n: u for n, u in before.items() if n != lost
+    }
+    assert after[lost] != before[lost]
+    survivors = {p["metadata"]["uid"] for p in pods_of(kube, name)}
+    assert len(pods_of(kube, name)) == 3
+    assert len(pods_before & survivors) == 2
+    release_holds(kube, name)
+    status = wait_phase(kube, name, "Succeeded")
+    assert sorted(assigned(status)) == sorted(vehicles)
+
+
+def test_deleting_a_running_mission_lands_and_releases_its_vehicles(
+    fleet: Fleet, kube: Kube, roost_crds: Cluster
+) -> None:
+    vehicles = fleet.add(2)
+    name = fleet.mission(unique("deleted"), selector={"fleet": fleet.label}, count=2)
+    wait_phase(kube, name, "Running")
+    roost_crds.kubectl("delete", "mission", name, "-n", FLIGHTS)
+    assert kube.get(MISSIONS, name, FLIGHTS) is None
+    for vehicle in vehicles:
+        assert claimed_by(kube, vehicle) is None
+        assert (command_of(kube, vehicle) or {})["action"] == "SafetyRoutine"
+
+
+def test_invalid_missions_are_rejected_with_a_clear_message(roost_crds: Cluster) -> None:
+    manifest = mission_manifest(unique("bad"), names=["x"], count=2)
+    result = roost_crds.kubectl("apply", "-f", "-", input_text=json.dumps(manifest), check=False)
+    assert result.returncode != 0
+    assert "count is larger than the number of names" in result.stderr
