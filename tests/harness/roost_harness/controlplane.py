@@ -93,6 +93,9 @@ class Settings:
     node_monitor_grace_period_s: int = 50
     ready_timeout_s: float = 120.0
     kube_api_qps: int = 100
+    kwok_config: Path | None = None
+    """Extra kwok configuration (``--config``), e.g. Stage objects replacing kwok's default
+    pod lifecycle; kwok keeps its defaults for any resource kind the file has no stages for."""
 
 
 def _args_etcd(bin_dir: Path, ports: Ports, data_dir: Path) -> list[str]:
@@ -192,6 +195,7 @@ def _args_kwok(bin_dir: Path, ports: Ports, kubeconfig: Path, settings: Settings
         "--node-ip=127.0.0.1",
         f"--node-lease-duration-seconds={settings.node_lease_duration_s}",
         f"--server-address=127.0.0.1:{ports.kwok}",
+        *([f"--config={settings.kwok_config}"] if settings.kwok_config else []),
     ]
 
 
