@@ -26,8 +26,12 @@ PHASE_STYLES = {
     "Aborted": "red",
 }
 ACTIVE_MARKER = "▸"
-MESSAGE_WIDTH = 100
-"""Long operator messages are cut to one line; ``kubectl describe`` has the whole text."""
+MESSAGE_LIMIT = 140
+"""Longer messages are cut (``kubectl describe`` has the whole text): a live view must fit."""
+
+
+def _shorten(message: str) -> str:
+    return message if len(message) <= MESSAGE_LIMIT else message[: MESSAGE_LIMIT - 1] + "…"
 
 
 def health_text(row: FleetRow) -> Text:
@@ -92,11 +96,11 @@ def missions_table(rows: Sequence[MissionRow]) -> Table:
     table = Table(title="Roost missions", title_justify="left", header_style="bold")
     table.add_column("MISSION", style="bold cyan", no_wrap=True)
     table.add_column("PHASE", no_wrap=True)
-    table.add_column("ASSIGNED", justify="right")
-    table.add_column("VEHICLES", no_wrap=True)
+    table.add_column("ASSIGNED", justify="right", no_wrap=True)
+    table.add_column("VEHICLES")
     table.add_column("DEGRADED", no_wrap=True)
     table.add_column("STARTED", justify="right", no_wrap=True)
-    table.add_column("MESSAGE", overflow="ellipsis", no_wrap=True, max_width=MESSAGE_WIDTH)
+    table.add_column("MESSAGE")
     for row in rows:
         phase = Text(row.phase, style=PHASE_STYLES.get(row.phase, ""))
         if row.abort and row.phase not in ("Aborting", "Aborted"):
@@ -108,7 +112,7 @@ def missions_table(rows: Sequence[MissionRow]) -> Table:
             row.vehicles,
             Text(row.degraded, style="yellow" if row.degraded == "True" else "dim"),
             row.started,
-            row.message,
+            _shorten(row.message),
         )
     if not rows:
         table.caption = "no Missions yet: kubectl apply -f examples/mission.yaml"
@@ -122,14 +126,14 @@ def events_table(rows: Sequence[EventRow]) -> Table:
     table.add_column("TYPE", no_wrap=True)
     table.add_column("OBJECT", no_wrap=True)
     table.add_column("REASON", no_wrap=True)
-    table.add_column("MESSAGE", overflow="ellipsis", no_wrap=True, max_width=MESSAGE_WIDTH)
+    table.add_column("MESSAGE")
     for row in rows:
         table.add_row(
             row.age,
             Text(row.type, style="yellow" if row.type == "Warning" else "dim"),
             row.object,
             Text(row.reason, style="bold"),
-            row.message,
+            _shorten(row.message),
         )
     if not rows:
         table.caption = "no events yet"

@@ -45,9 +45,11 @@ def read(fleet: Fleet, events: int = DEFAULT_EVENTS) -> Snapshot:
     )
 
 
-def renderable(snapshot: Snapshot, title: str) -> Group:
-    """The three tables one above the other."""
+def renderable(snapshot: Snapshot, title: str, story: RenderableType | None = None) -> Group:
+    """The fleet table, then ``story`` (if any), missions and events."""
     parts: list[RenderableType] = [render.fleet_table(snapshot.fleet, title=title)]
+    if story is not None:
+        parts.append(story)
     if snapshot.missions:
         parts.append(render.missions_table(snapshot.missions))
     if snapshot.events:
@@ -65,23 +67,23 @@ def live(
     *,
     interval_s: float,
     events: int = DEFAULT_EVENTS,
-    footer: Callable[[], RenderableType | None] = lambda: None,
+    story: Callable[[], RenderableType | None] = lambda: None,
     stop: threading.Event | None = None,
 ) -> None:
     """Refresh the view every ``interval_s`` until ``stop`` is set or Ctrl-C.
 
-    ``footer`` is drawn under the tables on every refresh (the sandbox shows its
-    script there: what it is about to do and how to use the cluster).
+    ``story`` is drawn right under the fleet table on every refresh, where it stays
+    visible on a small terminal (the sandbox narrates its script there).
     """
     stop = stop or threading.Event()
 
     def frame() -> RenderableType:
+        narration = story()
         try:
-            body: RenderableType = renderable(read(fleet, events), title_for(fleet))
+            return renderable(read(fleet, events), title_for(fleet), narration)
         except CliError as error:
-            body = Panel(Text(str(error), style="red"), title="cannot read the fleet")
-        extra = footer()
-        return Group(body, extra) if extra is not None else body
+            failed = Panel(Text(str(error), style="red"), title="cannot read the fleet")
+            return Group(failed, narration) if narration is not None else failed
 
     with Live(frame(), console=console, refresh_per_second=4, transient=False) as screen:
         while not stop.wait(interval_s):

@@ -62,7 +62,7 @@ def test_the_active_autopilot_is_unknown_until_the_agent_reports() -> None:
         ("Held", True),
         ("Failed", True),
         ("Disarmed", True),
-        ("Cancelled", True),
+        ("Cancelled", False),
         ("Skipped: pilot in manual mode", True),
     ],
 )

@@ -46,12 +46,12 @@ SAFETY_ROUTINE_DONE = frozenset(
     for phase in (
         SafetyPhase.LANDED,
         SafetyPhase.HELD,
-        SafetyPhase.CANCELLED,
         SafetyPhase.FAILED,
         SafetyPhase.DISARMED,
     )
 )
-"""The agent's safety-routine phases after which it no longer changes."""
+"""The agent's safety-routine phases after which it no longer changes. Not Cancelled: a
+routine is cancelled when another replaces it (a mission's abort asking for one again)."""
 POLL_S = 0.5
 DEFAULT_FAULT = "silence"
 FAULT_STORY = {

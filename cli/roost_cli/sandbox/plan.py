@@ -19,6 +19,7 @@ from typing import Any
 
 from roost_api.meta import API_VERSION, Stack
 from roost_api.resources import MISSION, REDUNDANT_AUTOPILOT, VEHICLE
+from roost_cli.sandbox.kwok import RUNTIME_ANNOTATION
 from roost_mavlink.sitl import sitl_instance
 
 MAX_VEHICLES = 10
@@ -31,6 +32,8 @@ MISSION_NAMESPACE = "default"
 VEHICLE_SYSID_BASE = 10
 """Vehicle ids start at Starling's lowest VEHICLE_MAVLINK_SYSID."""
 HOLD_SECONDS = 3.0
+MISSION_RUNTIME = "10m"
+"""How long kwok lets each onboard pod run: long enough to watch a failover mid-mission."""
 STACK_SHORT_NAMES = {Stack.PX4: "px4", Stack.ARDUPILOT: "apm"}
 _STACK_ORDER = (Stack.PX4, Stack.ARDUPILOT)
 
@@ -146,7 +149,8 @@ def mission_manifest(count: int) -> dict[str, Any]:
     """A Mission flying every sandbox vehicle; a vehicle that fails over lands, the rest go on.
 
     The onboard image is never pulled: kwok plays the kubelet and reports the pods
-    Running (and Job pods complete), which is all the operator observes.
+    Running, then (after :data:`MISSION_RUNTIME`, see :mod:`.kwok`) Succeeded, which is
+    all the operator observes.
     """
     return {
         "apiVersion": API_VERSION,
@@ -160,7 +164,10 @@ def mission_manifest(count: int) -> dict[str, Any]:
             "onFailover": "AbortVehicle",
             "preflight": {"requireRedundancy": True},
             "onboard": {
-                "metadata": {"labels": {"app": "survey-controller"}},
+                "metadata": {
+                    "labels": {"app": "survey-controller"},
+                    "annotations": {RUNTIME_ANNOTATION: MISSION_RUNTIME},
+                },
                 "spec": {
                     "restartPolicy": "Never",
                     "containers": [

@@ -42,13 +42,13 @@ from rich.text import Text
 from roost_cli import view
 from roost_cli.cluster import Fleet, Target
 from roost_cli.errors import CliError
-from roost_cli.sandbox import plan, sims, state
+from roost_cli.sandbox import kwok, plan, sims, state
 from roost_cli.sandbox.director import Cue, Director, Script
 from roost_cli.sandbox.processes import Launcher, console_script
 from roost_cli.sandbox.progress import build_control_plane, start_control_plane
 from roost_harness import nodes
 from roost_harness.cluster import Cluster
-from roost_harness.controlplane import ControlPlane
+from roost_harness.controlplane import ControlPlane, Settings
 from roost_harness.processes import ManagedProcess
 
 DEFAULT_VEHICLES = 3
@@ -56,6 +56,7 @@ DEFAULT_FAULT_AFTER_S = 15.0
 NODES_READY_TIMEOUT_S = 120.0
 DOWN_TIMEOUT_S = 60.0
 HEADLESS_POLL_S = 1.0
+LIVE_EVENTS = 6
 
 
 @dataclass(frozen=True)
@@ -150,7 +151,11 @@ class Sandbox:
     def _bring_up(self) -> None:
         self.fleet_plan = plan.plan_fleet(self.options.vehicles, free_udp_ports())
         bin_dir = build_control_plane(self.console)
-        self.plane = ControlPlane(self.state.cluster_dir, bin_dir=bin_dir)
+        stages = self.directory / "kwok-stages.yaml"
+        stages.write_text(yaml.safe_dump_all(kwok.pod_stages(), sort_keys=False))
+        self.plane = ControlPlane(
+            self.state.cluster_dir, bin_dir=bin_dir, settings=Settings(kwok_config=stages)
+        )
         start_control_plane(self.console, self.plane)
         self.state.kubeconfig = str(self.plane.kubeconfig)
         self.state.server = self.plane.server
@@ -259,7 +264,14 @@ class Sandbox:
         """The live view (or, headless, each new line of the script) until stopped."""
         fleet = self._fleet()
         if self.options.live:
-            view.live(self.console, fleet, interval_s=1.0, footer=self._footer, stop=self._stop)
+            view.live(
+                self.console,
+                fleet,
+                interval_s=1.0,
+                events=LIVE_EVENTS,
+                story=self._story,
+                stop=self._stop,
+            )
             return
         shown = 0
         while not self._stop.wait(HEADLESS_POLL_S):
@@ -269,7 +281,7 @@ class Sandbox:
                 self.console.print(message, highlight=False)
             shown = len(lines)
 
-    def _footer(self) -> RenderableType | None:
+    def _story(self) -> RenderableType | None:
         self._check_processes()
         return self.script.renderable()
 
