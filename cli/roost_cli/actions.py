@@ -18,8 +18,13 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from roost_api.autopilot import AutopilotCommand, CommandAction, RedundantAutopilotStatus
-from roost_api.commands import command_patch, new_command
+from roost_api.autopilot import (
+    AutopilotCommand,
+    CommandAction,
+    RedundantAutopilotSpec,
+    RedundantAutopilotStatus,
+)
+from roost_api.commands import CommandOutcome, command_outcome, command_patch, new_command
 from roost_cli.cluster import Fleet
 from roost_cli.errors import CliError
 
@@ -77,23 +82,32 @@ class Acknowledgement:
     autopilot: str
     command_id: str
     result: str
-    """Executed, Rejected or Expired from the agent; ``NoAnswer`` when it never replied."""
+    """A :class:`~roost_api.commands.CommandOutcome` (Executed, Rejected, Expired,
+    Superseded), or ``NoAnswer`` when the agent did not answer in time."""
     message: str
 
 
 def acknowledgement(
     vehicle: str, autopilot: Mapping[str, Any], command: AutopilotCommand
 ) -> Acknowledgement | None:
-    """The agent's answer to ``command`` in this RedundantAutopilot's status, if any."""
+    """How the agent answered ``command`` on this RedundantAutopilot, None while pending.
+
+    The outcome is :func:`roost_api.commands.command_outcome`'s, so a command another
+    request replaced before the agent saw it reads ``Superseded``, exactly as the
+    operator reads it.
+    """
     try:
+        spec = RedundantAutopilotSpec.model_validate(autopilot.get("spec") or {})
         status = RedundantAutopilotStatus.model_validate(autopilot.get("status") or {})
     except ValidationError:
         return None
-    last = status.last_command
-    if last is None or last.id != command.id:
+    outcome = command_outcome(command, spec.command, status.last_command)
+    if outcome is CommandOutcome.PENDING:
         return None
+    last = status.last_command
+    message = last.message if last is not None and last.id == command.id else ""
     name = str(autopilot.get("metadata", {}).get("name", ""))
-    return Acknowledgement(vehicle, name, command.id, last.result, last.message)
+    return Acknowledgement(vehicle, name, command.id, outcome.value, message)
 
 
 def request_abort(fleet: Fleet, namespace: str, name: str) -> dict[str, Any]:

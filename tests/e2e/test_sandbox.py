@@ -147,11 +147,13 @@ def test_sandbox_flies_a_mission_fails_over_and_leaves_nothing_behind(
     assert [v.name for v in recorded.vehicles] == ["drone-1", "drone-2"]
     assert "export KUBECONFIG=" in sandbox.log()
 
-    def mission_started() -> bool:
-        phase = sandbox.get("mission", "survey", "default").get("status", {}).get("phase")
-        return phase in ("Running", "Succeeded")
+    def mission_phase() -> str | None:
+        phase: str | None = (
+            sandbox.get("mission", "survey", "default").get("status", {}).get("phase")
+        )
+        return phase
 
-    _await("Mission survey to run", mission_started, sandbox, STEP_TIMEOUT_S)
+    _await("Mission survey to run", lambda: mission_phase() == "Running", sandbox, STEP_TIMEOUT_S)
 
     def active_of(vehicle: str) -> str | None:
         status = sandbox.get("redundantautopilot", vehicle).get("status", {})
@@ -187,6 +189,21 @@ def test_sandbox_flies_a_mission_fails_over_and_leaves_nothing_behind(
 
     _await("an Event about the failover", failover_event, sandbox, 30)
 
+    def vehicle_in_mission(name: str) -> dict[str, Any]:
+        mission = sandbox.get("mission", "survey", "default")
+        entry: dict[str, Any] = next(v for v in mission["status"]["vehicles"] if v["name"] == name)
+        return entry
+
+    # The Mission's onFailover is AbortVehicle: drone-1 lands and leaves, drone-2 flies on.
+    _await(
+        "the mission to abort drone-1",
+        lambda: vehicle_in_mission(FAULT_VEHICLE)["phase"] in ("Aborting", "Aborted"),
+        sandbox,
+        STEP_TIMEOUT_S,
+    )
+    assert mission_phase() == "Running"
+    assert vehicle_in_mission("drone-2")["phase"] == "Running"
+
     table = sandbox.roost("status").stdout
     row = next(line for line in table.splitlines() if FAULT_VEHICLE in line)
     assert "px4-a → px4-b" in row
@@ -194,6 +211,36 @@ def test_sandbox_flies_a_mission_fails_over_and_leaves_nothing_behind(
     rows = {r["vehicle"]: r for r in json.loads(sandbox.roost("status", "-o", "json").stdout)}
     assert rows[FAULT_VEHICLE]["active"] == "px4-b"
     assert rows["drone-2"]["last_failover"] == "-"
+    assert rows["drone-2"]["mission"] == "default/survey Running"
+    missions = json.loads(sandbox.roost("missions", "-o", "json").stdout)
+    assert [(m["name"], m["phase"], m["degraded"]) for m in missions] == [
+        ("default/survey", "Running", "True")
+    ]
+
+    # E-stop through the CLI, the API and the agent to the simulated autopilot.
+    sims_of_drone_2 = sandbox.directory / "sims" / "drone-2"
+    estop = sandbox.roost("estop", "--vehicle", "drone-2", "--yes")
+    assert "Executed" in estop.stdout
+    sim = json.loads(
+        subprocess.run(
+            [str(BIN / "roost-sim"), "--state-dir", str(sims_of_drone_2), "status", "apm-a"],
+            capture_output=True,
+            text=True,
+            timeout=30,
+            check=True,
+        ).stdout
+    )
+    assert sim["state"]["armed"] is False
+
+    aborted = sandbox.roost("abort", "survey")
+    assert "abort requested" in aborted.stdout
+    assert sandbox.get("mission", "survey", "default")["spec"]["abort"] is True
+    _await(
+        "the mission to end",
+        lambda: mission_phase() in ("Aborting", "Aborted", "Failed"),
+        sandbox,
+        STEP_TIMEOUT_S,
+    )
 
     identities = _identities(sandbox.directory)
     assert len(identities) >= 1 + VEHICLES * 2 + 1 + 5  # up, sims + agents, operator, plane

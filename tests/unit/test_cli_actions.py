@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -127,25 +128,55 @@ def test_estop_all_on_an_empty_fleet_says_so() -> None:
         actions.select_targets({}, [], True)
 
 
-def _answered(command: AutopilotCommand | None, result: str = "Executed") -> dict[str, object]:
+SPEC: dict[str, Any] = {
+    "vehicleName": "d2",
+    "primary": "a",
+    "autopilots": [
+        {"name": n, "stack": "px4", "connection": "udp://:1", "sysid": i, "bridgeChannel": i}
+        for i, n in enumerate("ab", start=1)
+    ],
+}
+
+
+def _ra(
+    spec_command: AutopilotCommand | None,
+    answered: AutopilotCommand | None = None,
+    result: str = "Executed",
+) -> dict[str, object]:
     status: dict[str, object] = {}
-    if command is not None:
+    if answered is not None:
         status["lastCommand"] = {
-            "id": command.id,
+            "id": answered.id,
             "result": result,
             "message": "disarmed fc-b",
             "time": (AT + timedelta(seconds=1)).isoformat(),
         }
-    return {"metadata": {"name": "ra-of-d2"}, "status": status}
+    spec: dict[str, Any] = dict(SPEC)
+    if spec_command is not None:
+        spec["command"] = spec_command.to_api()
+    return {"metadata": {"name": "ra-of-d2"}, "spec": spec, "status": status}
 
 
-def test_only_an_answer_carrying_the_commands_id_acknowledges_it() -> None:
+def test_a_command_still_in_the_spec_and_unanswered_is_pending() -> None:
     mine = new_command(CommandAction.EMERGENCY_STOP, issued_at=AT)
     older = new_command(CommandAction.EMERGENCY_STOP, issued_at=AT)
-    assert actions.acknowledgement("d2", _answered(None), mine) is None
-    assert actions.acknowledgement("d2", _answered(older), mine) is None
-    ack = actions.acknowledgement("d2", _answered(mine, "Rejected"), mine)
-    assert ack == actions.Acknowledgement("d2", "ra-of-d2", mine.id, "Rejected", "disarmed fc-b")
+    assert actions.acknowledgement("d2", _ra(mine), mine) is None
+    assert actions.acknowledgement("d2", _ra(mine, answered=older), mine) is None
+
+
+@pytest.mark.parametrize("result", ["Executed", "Rejected", "Expired"])
+def test_the_agents_answer_to_this_id_is_the_outcome(result: str) -> None:
+    mine = new_command(CommandAction.EMERGENCY_STOP, issued_at=AT)
+    ack = actions.acknowledgement("d2", _ra(mine, answered=mine, result=result), mine)
+    assert ack == actions.Acknowledgement("d2", "ra-of-d2", mine.id, result, "disarmed fc-b")
+
+
+def test_a_command_replaced_before_the_agent_saw_it_is_superseded() -> None:
+    mine = new_command(CommandAction.EMERGENCY_STOP, issued_at=AT)
+    newer = new_command(CommandAction.SAFETY_ROUTINE, issued_at=AT)
+    ack = actions.acknowledgement("d2", _ra(newer), mine)
+    assert ack is not None
+    assert (ack.result, ack.message) == ("Superseded", "")
 
 
 def test_the_kubeconfig_comes_from_the_flag_then_env_then_sandbox_then_home(
