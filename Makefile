@@ -72,7 +72,7 @@ run-operator: $(STAMP) ## run the operator in the foreground against $$KUBECONFI
 	KUBECONFIG=$${KUBECONFIG:-$(CURDIR)/$(CLUSTER_DIR)/kubeconfig} $(BIN)/roost-operator
 
 .PHONY: demo
-demo: $(STAMP) cluster-build ## start the local fleet sandbox (Ctrl-C stops it)
+demo: $(STAMP) ## start the local fleet sandbox (builds the control plane with a progress bar; Ctrl-C stops it)
 	$(BIN)/roost sandbox up
 
 .PHONY: e2e-kind
@@ -81,4 +81,4 @@ e2e-kind: $(STAMP) ## end-to-end suite on KinD (skips where no container engine 
 
 .PHONY: clean
 clean: ## remove the virtualenv and local state (keeps the ~/.cache build)
-	rm -rf $(VENV) $(CLUSTER_DIR) .mypy_cache .ruff_cache .pytest_cache
+	rm -rf $(VENV) $(CLUSTER_DIR) .sandbox .mypy_cache .ruff_cache .pytest_cache
