@@ -33,8 +33,8 @@ from roost_cli.errors import CliError
 from roost_harness import binaries
 from roost_harness.controlplane import START_ORDER, ControlPlane, ControlPlaneError
 
-_BUILDING = re.compile(r"\[(\d+)/(\d+)\] building (\S+)")
-_BUILT = re.compile(r"\[(\d+)/(\d+)\] (\S+) built")
+_BUILDING = re.compile(r"\[\d+/\d+\] building (\S+)")
+_BUILT = re.compile(r"\[\d+/\d+\] \S+ built")
 _WATCH_INTERVAL_S = 0.2
 
 
@@ -74,9 +74,9 @@ def build_control_plane(console: Console) -> Path:
         for line in proc.stderr:
             tail.append(line.rstrip())
             if match := _BUILDING.search(line):
-                progress.update(task, description=f"building {match.group(3)}")
-            elif match := _BUILT.search(line):
-                progress.update(task, completed=int(match.group(1)))
+                progress.update(task, description=f"building {match.group(1)}")
+            elif _BUILT.search(line):
+                progress.advance(task)
         if proc.wait() != 0:
             raise CliError(
                 "building the control plane failed (see the log below); it needs Go 1.25+ "
