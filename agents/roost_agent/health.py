@@ -598,12 +598,9 @@ def _mav_state(o: _Observed, others: list[Finding]) -> list[Finding]:
             )
         ]
     if status == MavState.CRITICAL:
-        corroborated = any(f.level.rank >= HealthLevel.WARN.rank for f in others)
-        if corroborated:
-            return [
-                Finding(
-                    HealthLevel.ERROR, "mav-state", "MAV_STATE CRITICAL, corroborated", True, onset
-                )
-            ]
+        corroboration = [f.reason for f in others if f.level.rank >= HealthLevel.WARN.rank]
+        if corroboration:
+            why = "MAV_STATE CRITICAL, corroborated by " + ", ".join(corroboration)
+            return [Finding(HealthLevel.ERROR, "mav-state", why, True, onset)]
         return [Finding(HealthLevel.WARN, "mav-state", "MAV_STATE CRITICAL (failsafe active)")]
     return []

@@ -1,0 +1,451 @@
+"""The node agent against simulated autopilots over real UDP sockets and a serial pty.
+
+Each test flies two or three simulated autopilots (roost_sim: real MAVLink 2 bytes, PX4 or
+ArduPilot conventions), runs the real agent on them with a simulated bridge (the only
+stand-in: no GPIO hardware here), injects a fault and checks what a person would check:
+the bridge switched to the healthy autopilot, the safety routine ran on it as seen by the
+simulator (hold mode entered, landing only after the hold time, touchdown), the failed
+autopilot got no commands, and garbage or spoofed traffic changed nothing.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import IO, Any
+
+import pytest
+import yaml
+
+from roost_agent import Agent
+from roost_agent.bridge import SimulatedBridge
+from roost_agent.state import STATE_FILE_NAME, StateFile
+from roost_api.autopilot import (
+    AutopilotCommand,
+    FailoverPolicy,
+    FinalAction,
+    RedundantAutopilotSpec,
+    SafetyRoutine,
+)
+from roost_api.meta import HealthLevel, Stack
+from roost_mavlink import (
+    AGENT_COMPONENT_ID,
+    MAV_CMD_DO_SET_MODE,
+    MAV_CMD_NAV_LAND,
+    ModeIntent,
+    custom_mode,
+    intent_mode,
+    set_mode_params,
+)
+from roost_mavlink.modes import custom_mode_from_set_mode
+from roost_sim import FaultKind, SimulatedAutopilot, autopilot_specs, start_vehicle_sims, stop_sims
+
+pytestmark = pytest.mark.slow
+
+HOLD_S = 1.0
+CLEAR_S = 1.0  # Thresholds.clear_ms default: a standby must be OK this long
+
+
+def wait_for(predicate: Callable[[], Any], timeout: float = 10.0, what: str = "") -> Any:
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout}s waiting for {what or predicate}")
+        time.sleep(0.02)
+
+
+@dataclass
+class Flight:
+    sims: list[SimulatedAutopilot]
+    agent: Agent
+    bridge: SimulatedBridge
+    spec: RedundantAutopilotSpec
+    state_path: Path
+
+    def sim(self, name: str) -> SimulatedAutopilot:
+        return next(s for s in self.sims if s.name == name)
+
+    def agent_commands(self, name: str, since: float = 0.0) -> list[Any]:
+        """Commands the agent (component 191) sent to autopilot ``name``."""
+        return [
+            c
+            for c in self.sim(name).commands
+            if c.source[1] == AGENT_COMPONENT_ID and c.at >= since
+        ]
+
+
+def make_spec(
+    sims: list[SimulatedAutopilot], final_action: FinalAction = FinalAction.LAND
+) -> RedundantAutopilotSpec:
+    return RedundantAutopilotSpec(
+        vehicle_name="v1",
+        autopilots=autopilot_specs(sims),
+        primary=sims[0].name,
+        failover_policy=FailoverPolicy(
+            safety_routine=SafetyRoutine(hold_seconds=HOLD_S, final_action=final_action)
+        ),
+    )
+
+
+def take_off(sims: list[SimulatedAutopilot]) -> None:
+    for sim in sims:
+        sim.wait_until(lambda s: s.system_status != "BOOT", timeout=5)
+    for sim in sims:
+        sim.fly()
+    for sim in sims:
+        sim.wait_until(lambda s: s.landed_state == "InAir" and s.altitude_m > 2.0, timeout=15)
+
+
+def all_ok(agent: Agent, names: list[str]) -> bool:
+    assessments = agent.assessments()
+    return all(n in assessments and assessments[n].level == HealthLevel.OK for n in names)
+
+
+@contextlib.contextmanager
+def flying(
+    stacks: list[str],
+    tmp_path: Path,
+    *,
+    transport: str = "udp",
+    final_action: FinalAction = FinalAction.LAND,
+) -> Iterator[Flight]:
+    """Sims started and airborne, an agent watching them, every standby ready."""
+    sims = start_vehicle_sims(stacks, transport=transport)
+    agent: Agent | None = None
+    try:
+        spec = make_spec(sims, final_action)
+        bridge = SimulatedBridge(range(len(sims)))
+        state_path = tmp_path / STATE_FILE_NAME
+        agent = Agent(spec, bridge, state_file=StateFile(state_path))
+        agent.start()
+        take_off(sims)
+        names = [s.name for s in sims]
+        wait_for(lambda: all_ok(agent, names), 10, "every autopilot OK")
+        time.sleep(CLEAR_S + 0.2)  # T_off: standbys become failover targets
+        assert all_ok(agent, names), agent.assessments()
+        yield Flight(sims, agent, bridge, spec, state_path)
+    finally:
+        if agent is not None:
+            agent.stop()
+        stop_sims(sims)
+
+
+def assert_held_then_landed(flight: Flight, name: str, since: float) -> None:
+    """The simulator saw hold requested and entered, then land after the hold time, then
+    touchdown; all commanded by the agent."""
+    sim = flight.sim(name)
+    stack = Stack(sim.stack)
+    hold = custom_mode(stack, intent_mode(stack, ModeIntent.HOLD))
+    land = custom_mode(stack, intent_mode(stack, ModeIntent.LAND))
+    sim.wait_until(lambda s: s.landed_state == "OnGround", timeout=20)
+    sent = flight.agent_commands(name, since)
+    holds = [
+        c
+        for c in sent
+        if c.command == MAV_CMD_DO_SET_MODE
+        and custom_mode_from_set_mode(stack, *c.params[:3]) == hold
+        and c.result == 0
+    ]
+    lands = [c for c in sent if c.command == MAV_CMD_NAV_LAND and c.result == 0]
+    assert holds and lands, [(c.name, c.result) for c in sent]
+    assert lands[0].at - holds[0].at >= HOLD_S
+    modes = sim.mode_history
+    holding = [m.mode for m in modes if m.at <= holds[0].at + HOLD_S / 2][-1]
+    assert custom_mode(stack, holding) == hold, modes  # held (PX4 may already have been)
+    assert custom_mode(stack, modes[-1].mode) == land, modes  # then landed
+    assert modes[-1].at - holds[0].at >= HOLD_S
+
+    def routine_outcome() -> str | None:
+        record = flight.agent.status().last_failover
+        return record.safety_routine if record else None
+
+    wait_for(lambda: routine_outcome() == "Landed", 5, "safety routine reported Landed")
+
+
+FAULTS = [
+    pytest.param(FaultKind.SILENCE, None, "silent", id="silence"),
+    pytest.param(FaultKind.FREEZE, None, "frozen", id="freeze"),
+    pytest.param(FaultKind.SENSOR, "gyro", "gyro unhealthy", id="sensor-gyro"),
+    pytest.param(FaultKind.STATE, "EMERGENCY", "MAV_STATE EMERGENCY", id="state-emergency"),
+    pytest.param(FaultKind.REBOOT, 0.0, "rebooted", id="reboot"),
+]
+
+
+@pytest.mark.parametrize("stack", ["px4", "ardupilot"])
+@pytest.mark.parametrize(("fault", "value", "reason"), FAULTS)
+def test_fault_on_active_switches_bridge_and_runs_safety_routine(
+    tmp_path: Path, stack: str, fault: FaultKind, value: Any, reason: str
+) -> None:
+    with flying([stack, stack], tmp_path) as flight:
+        injected = time.monotonic()
+        flight.sim("fc1").inject(fault, value)
+        (event,) = wait_for(flight.agent.failovers, 10, "a failover")
+        record = event.record
+        assert (record.from_autopilot, record.to_autopilot, record.trigger) == (
+            "fc1",
+            "fc2",
+            "Automatic",
+        )
+        assert reason in record.reason
+        assert record.latency_ms >= 0 and event.switched_at >= injected
+        assert flight.bridge.selected == 1
+        assert [s.channel for s in flight.bridge.history] == [0, 1]
+        assert flight.agent.active == "fc2" and flight.agent.latched
+        assert_held_then_landed(flight, "fc2", injected)
+        assert flight.agent_commands("fc1", injected) == []
+        assert len(flight.agent.failovers()) == 1
+
+
+def test_three_autopilots_fail_over_in_turn_and_never_back(tmp_path: Path) -> None:
+    with flying(["px4", "ardupilot", "px4"], tmp_path, final_action=FinalAction.HOLD) as flight:
+        flight.sim("fc1").inject(FaultKind.SILENCE)
+        wait_for(lambda: len(flight.agent.failovers()) == 1, 10, "first failover")
+        flight.sim("fc1").clear()  # fc1 recovers, but it was left this flight
+        time.sleep(CLEAR_S + 0.5)
+        flight.sim("fc2").inject(FaultKind.SENSOR, "gyro")
+        wait_for(lambda: len(flight.agent.failovers()) == 2, 10, "second failover")
+        time.sleep(1.0)
+        moves = [(e.record.from_autopilot, e.record.to_autopilot) for e in flight.agent.failovers()]
+        assert moves == [("fc1", "fc2"), ("fc2", "fc3")]
+        assert [s.channel for s in flight.bridge.history] == [0, 1, 2]
+        assert flight.agent.status().active_autopilot == "fc3"
+
+
+def test_both_bad_keeps_the_active_and_lands_it(tmp_path: Path) -> None:
+    with flying(["px4", "px4"], tmp_path) as flight:
+        flight.sim("fc2").inject(FaultKind.SENSOR, "gyro")
+        wait_for(lambda: flight.agent.assessments()["fc2"].failing, 5, "fc2 failing")
+        started = time.monotonic()
+        flight.sim("fc1").inject(FaultKind.STATE, "EMERGENCY")
+        flight.sim("fc1").wait_until(lambda s: s.landed_state == "OnGround", timeout=20)
+        assert flight.agent.failovers() == []
+        assert [s.channel for s in flight.bridge.history] == [0]
+        lands = [c for c in flight.agent_commands("fc1", started) if c.command == MAV_CMD_NAV_LAND]
+        assert len(lands) == 1
+        assert flight.agent_commands("fc2", started) == []
+
+
+@pytest.mark.parametrize("stack", ["px4", "ardupilot"])
+def test_garbage_and_spoofed_traffic_never_cause_a_failover(tmp_path: Path, stack: str) -> None:
+    with flying([stack, stack], tmp_path) as flight:
+        for sim in flight.sims:
+            sim.inject(FaultKind.GARBAGE, 8000)
+            sim.inject(FaultKind.SPOOF)
+        time.sleep(4.0)
+        assert flight.agent.failovers() == []
+        assert [s.channel for s in flight.bridge.history] == [0]
+        for name, link in flight.agent.links.items():
+            assert link.counters.foreign > 0, name  # spoofed sysid and the gimbal were seen
+            assert link.counters.bad > 0, name  # and garbage was parsed and dropped
+            assert not flight.agent.assessments()[name].failing
+        for sim in flight.sims:
+            sim.clear()
+        wait_for(lambda: all_ok(flight.agent, ["fc1", "fc2"]), 3, "both OK")
+
+
+def test_serial_link_over_a_pseudo_terminal(tmp_path: Path) -> None:
+    with flying(["px4", "ardupilot"], tmp_path, transport="pty") as flight:
+        assert all(s.connection.startswith("serial://") for s in flight.spec.autopilots)
+        injected = time.monotonic()
+        flight.sim("fc1").inject(FaultKind.SILENCE)
+        wait_for(flight.agent.failovers, 10, "a failover over serial")
+        assert flight.bridge.selected == 1
+        assert_held_then_landed(flight, "fc2", injected)
+
+
+def _gcs_set_mode(sim: SimulatedAutopilot, mode: str) -> None:
+    """A pilot/ground station switches ``sim`` to ``mode`` over its own UDP port."""
+    from pymavlink import mavutil  # noqa: PLC0415 - test-only client
+
+    host, port = sim.link.local_address  # type: ignore[attr-defined]
+    gcs = mavutil.mavlink_connection(
+        f"udpout:{host}:{port}", source_system=250, source_component=190
+    )
+    try:
+        stack = Stack(sim.stack)
+        gcs.mav.command_long_send(
+            sim.sysid, 1, MAV_CMD_DO_SET_MODE, 0, *set_mode_params(stack, mode)
+        )
+        sim.wait_until(lambda s: s.mode == mode, timeout=5)
+    finally:
+        gcs.close()
+
+
+def test_pilot_in_manual_mode_gets_the_switch_but_no_safety_routine(tmp_path: Path) -> None:
+    with flying(["px4", "px4"], tmp_path) as flight:
+        for sim in flight.sims:
+            _gcs_set_mode(sim, "POSCTL")
+        time.sleep(0.3)
+        injected = time.monotonic()
+        flight.sim("fc1").inject(FaultKind.SILENCE)
+        (event,) = wait_for(flight.agent.failovers, 10, "a failover")
+        assert event.record.safety_routine == "Skipped: pilot in manual mode"
+        assert flight.bridge.selected == 1
+        time.sleep(HOLD_S + 1.0)
+        assert flight.agent_commands("fc2", injected) == []
+        assert flight.sim("fc2").snapshot().mode == "POSCTL"
+
+
+def test_restart_mid_flight_keeps_the_failed_over_autopilot(tmp_path: Path) -> None:
+    with flying(["px4", "px4"], tmp_path, final_action=FinalAction.HOLD) as flight:
+        flight.sim("fc1").inject(FaultKind.STATE, "EMERGENCY")
+        wait_for(flight.agent.failovers, 10, "a failover")
+        flight.agent.stop()
+        flight.sim("fc1").clear()  # the old primary looks perfect again
+        bridge = SimulatedBridge([0, 1])
+        again = Agent(flight.spec, bridge, state_file=StateFile(flight.state_path))
+        again.start()
+        try:
+            assert bridge.selected == 1  # asserted at start, before any telemetry
+            assert again.active == "fc2" and again.latched
+            wait_for(lambda: all_ok(again, ["fc1", "fc2"]), 5, "both OK after restart")
+            time.sleep(CLEAR_S + 1.0)
+            assert again.failovers() == []
+            assert [s.channel for s in bridge.history] == [1]
+            status = again.status()
+            assert status.active_autopilot == "fc2" and status.latched
+            assert status.last_failover is not None and status.last_failover.from_autopilot == "fc1"
+        finally:
+            again.stop()
+
+
+def _command(command_id: str, action: str, target: str | None = None) -> AutopilotCommand:
+    return AutopilotCommand(
+        id=command_id, action=action, target=target, issued_at=datetime.now(UTC)
+    )
+
+
+def test_switch_command_runs_once_per_id_also_after_restart(tmp_path: Path) -> None:
+    with flying(["ardupilot", "ardupilot"], tmp_path) as flight:
+        first = flight.agent.submit(_command("sw-1", "Switch", "fc2")).result(timeout=5)
+        assert first.result == "Executed"
+        assert flight.bridge.selected == 1
+        assert flight.agent.failovers()[0].record.trigger == "Command"
+        again = flight.agent.submit(_command("sw-1", "Switch", "fc1")).result(timeout=5)
+        assert again == first and flight.bridge.selected == 1
+        back = flight.agent.submit(_command("sw-2", "Switch", "fc1")).result(timeout=5)
+        assert back.result == "Executed" and flight.bridge.selected == 0
+        flight.agent.stop()
+        bridge = SimulatedBridge([0, 1])
+        restarted = Agent(flight.spec, bridge, state_file=StateFile(flight.state_path))
+        restarted.start()
+        try:
+            replay = restarted.submit(_command("sw-1", "Switch", "fc2")).result(timeout=5)
+            assert replay == first
+            assert [s.channel for s in bridge.history] == [0]
+        finally:
+            restarted.stop()
+
+
+def test_emergency_stop_force_disarms_every_autopilot(tmp_path: Path) -> None:
+    with flying(["px4", "ardupilot"], tmp_path) as flight:
+        done = flight.agent.submit(_command("estop-1", "EmergencyStop")).result(timeout=5)
+        assert done.result == "Executed"
+        for sim in flight.sims:
+            sim.wait_until(lambda s: not s.armed, timeout=5)
+
+
+# -- the console script ---------------------------------------------------------------
+
+
+class AgentProcess:
+    """``roost-agent`` as a subprocess, read line by line from its JSON stdout."""
+
+    def __init__(self, args: list[str]) -> None:
+        exe = Path(sys.executable).with_name("roost-agent")
+        self.proc = subprocess.Popen(
+            [str(exe), *args, "--status-interval", "0.3"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
+        self.seen: list[dict[str, Any]] = []
+
+    def wait_line(
+        self, predicate: Callable[[dict[str, Any]], bool], timeout: float
+    ) -> dict[str, Any]:
+        deadline = time.monotonic() + timeout
+        out: IO[str] | None = self.proc.stdout
+        assert out is not None
+        while time.monotonic() < deadline:
+            line = out.readline()
+            if not line:
+                raise AssertionError(f"roost-agent exited with {self.proc.wait()}")
+            doc = json.loads(line)
+            self.seen.append(doc)
+            if predicate(doc):
+                return doc
+        raise AssertionError("timed out reading roost-agent output")
+
+    def stop(self) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+        return self.proc.wait(timeout=10)
+
+
+def test_console_script_fails_over_and_restarts_from_its_state_dir(tmp_path: Path) -> None:
+    sims = start_vehicle_sims(["px4", "px4"])
+    state_dir = tmp_path / "state"
+    config = tmp_path / "ra.yaml"
+    spec = make_spec(sims, FinalAction.HOLD)
+    config.write_text(
+        yaml.safe_dump(
+            {
+                "apiVersion": "roost.dev/v1alpha1",
+                "kind": "RedundantAutopilot",
+                "metadata": {"name": "v1", "generation": 3},
+                "spec": spec.to_api(),
+            }
+        )
+    )
+    agent = AgentProcess(
+        ["--config", str(config), "--state-dir", str(state_dir), "--cluster", "off"]
+    )
+    try:
+        agent.wait_line(lambda d: d.get("reason") == "AgentStarted", 10)
+        take_off(sims)
+
+        def both_ok(doc: dict[str, Any]) -> bool:
+            aps = doc.get("status", {}).get("autopilots", [])
+            return len(aps) == 2 and all(a["level"] == "OK" for a in aps)
+
+        agent.wait_line(both_ok, 10)
+        time.sleep(CLEAR_S + 0.3)
+        sims[0].inject(FaultKind.SILENCE)
+        event = agent.wait_line(lambda d: d.get("event") == "Failover", 10)
+        assert event["failover"]["from"] == "fc1" and event["failover"]["to"] == "fc2"
+        assert event["latencyMs"] >= 0
+        assert agent.stop() == 0
+        sims[0].clear()
+        saved = json.loads((state_dir / STATE_FILE_NAME).read_text())
+        assert saved["active"] == "fc2" and saved["latched"] and saved["generation"] == 3
+
+        restarted = AgentProcess(
+            ["--state-dir", str(state_dir), "--cluster", "off"]
+        )  # no config: the saved spec
+        try:
+            started = restarted.wait_line(lambda d: d.get("reason") == "AgentStarted", 10)
+            assert "fc2 (restored from the state file, latched)" in started["message"]
+            status = restarted.wait_line(both_ok, 10)["status"]
+            assert status["activeAutopilot"] == "fc2" and status["latched"]
+            time.sleep(CLEAR_S + 0.5)
+            restarted.wait_line(lambda d: "status" in d, 5)
+            assert not [d for d in restarted.seen if d.get("event") == "Failover"]
+        finally:
+            assert restarted.stop() == 0
+    finally:
+        agent.stop()
+        stop_sims(sims)
