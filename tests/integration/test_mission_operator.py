@@ -7,11 +7,12 @@ the nodes and writes each vehicle's config, exactly as in production.
 
 Two stand-ins, both because the real part is not wired up here yet:
 
-* **The node agent.** :class:`FakeAgents` writes each RedundantAutopilot's status the way
-  the agent does (conditions ActiveHealthy/Redundant/FailedOver/Ready, per-autopilot
-  health with landed state and armed flag, lastFailover, reportedAt, nodeName) and
-  executes commands from ``spec.command`` as the agent would (the safety routine ends on
-  the ground and disarmed, an e-stop disarms; the result goes to ``status.lastCommand``).
+* **The node agent.** :class:`~roost_harness.fakeagents.FakeAgents` writes each
+  RedundantAutopilot's status the way the agent does (conditions
+  ActiveHealthy/Redundant/FailedOver/Ready, per-autopilot health with landed state and
+  armed flag, lastFailover, reportedAt, nodeName) and executes commands from
+  ``spec.command`` as the agent would (the safety routine ends on the ground and
+  disarmed, an e-stop disarms; the result goes to ``status.lastCommand``).
   Agent-driven end-to-end tests with simulated autopilots come separately.
   The operator's autopilot handlers turn these reports into the Vehicle's
   ``AgentConnected`` and ``AutopilotsHealthy``, as they would for the real agent.
@@ -37,15 +38,13 @@ import threading
 import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
 from typing import Any
 
 import pytest
 
-from roost_api.autopilot import CommandAction
-from roost_api.meta import Condition, set_condition
 from roost_api.wellknown import LABEL_MISSION, LABEL_VEHICLE
 from roost_harness.cluster import Cluster
+from roost_harness.fakeagents import FakeAgents
 from roost_harness.operator import OperatorProcess, wait_for
 from roost_operator.kube import (
     JOBS,
@@ -74,159 +73,6 @@ def unique(prefix: str) -> str:
     return f"{prefix}-{uuid.uuid4().hex[:6]}"
 
 
-def rfc3339(at: datetime) -> str:
-    return at.astimezone(UTC).isoformat().replace("+00:00", "Z")
-
-
-# -- the stand-in node agent ---------------------------------------------------------------
-
-
-@dataclass
-class AgentState:
-    """What one vehicle's (simulated) autopilots look like to its agent."""
-
-    vehicle: str
-    node: str
-    active: str = "fc1"
-    healthy: bool = True
-    redundant: bool = True
-    landed: str = "InAir"
-    armed: bool = True
-    execute_commands: bool = True
-    failover: dict[str, Any] | None = None
-    failover_count: int = 0
-    last_command: dict[str, Any] | None = None
-    conditions: list[Condition] = field(default_factory=list)
-
-
-class FakeAgents:
-    """Stand-in node agents: report every second, execute commands (see module docstring)."""
-
-    PERIOD_S = 1.0
-
-    def __init__(self, kube: Kube) -> None:
-        self.kube = kube
-        self.states: dict[str, AgentState] = {}
-        self.lock = threading.Lock()
-        self.stopping = threading.Event()
-        self.thread = threading.Thread(target=self._run, name="fake-agents", daemon=True)
-
-    def add(self, autopilots: str, vehicle: str, node: str, **state: Any) -> None:
-        with self.lock:
-            self.states[autopilots] = AgentState(vehicle=vehicle, node=node, **state)
-        self.report(autopilots)
-
-    def forget(self, autopilots: str) -> None:
-        with self.lock:
-            self.states.pop(autopilots, None)
-
-    def set(self, autopilots: str, **changes: Any) -> None:
-        with self.lock:
-            for key, value in changes.items():
-                setattr(self.states[autopilots], key, value)
-        self.report(autopilots)
-
-    def fail_over(self, autopilots: str) -> None:
-        """The agent switched the bridge from fc1 to fc2 (fc1 lost its heartbeat)."""
-        with self.lock:
-            state = self.states[autopilots]
-            state.active = "fc2"
-            state.redundant = False
-            state.failover_count += 1
-            state.failover = {
-                "time": rfc3339(datetime.now(UTC)),
-                "from": "fc1",
-                "to": "fc2",
-                "reason": "heartbeat lost on fc1",
-                "latencyMs": 21.0,
-                "trigger": "Automatic",
-            }
-        self.report(autopilots)
-
-    def _execute(self, state: AgentState, command: Obj | None) -> None:
-        if command is None or not state.execute_commands:
-            return
-        if state.last_command is not None and state.last_command["id"] == command["id"]:
-            return
-        action = command["action"]
-        if action == CommandAction.SAFETY_ROUTINE:
-            state.landed, state.armed = "OnGround", False
-        elif action == CommandAction.EMERGENCY_STOP:
-            state.armed = False
-        state.last_command = {
-            "id": command["id"],
-            "result": "Executed",
-            "message": f"{action} done",
-            "time": rfc3339(datetime.now(UTC)),
-        }
-
-    def _status(self, state: AgentState) -> Obj:
-        for type_, ok, reason in (
-            ("ActiveHealthy", state.healthy, "HeartbeatLost"),
-            ("Redundant", state.redundant, "StandbyUnhealthy"),
-            ("FailedOver", state.failover is not None, "Switched"),
-            ("Ready", state.healthy, "ActiveUnhealthy"),
-        ):
-            state.conditions = set_condition(
-                state.conditions,
-                type=type_,
-                status="True" if ok else "False",
-                reason="AsExpected" if ok == (type_ != "FailedOver") else reason,
-            )
-        health = [
-            {
-                "name": name,
-                "level": "OK" if state.healthy or name != state.active else "ERROR",
-                "landedState": state.landed,
-                "armed": state.armed,
-            }
-            for name in ("fc1", "fc2")
-        ]
-        status: Obj = {
-            "conditions": [c.to_api() for c in state.conditions],
-            "activeAutopilot": state.active,
-            "autopilots": health,
-            "failoverCount": state.failover_count,
-            "nodeName": state.node,
-            "reportedAt": rfc3339(datetime.now(UTC)),
-        }
-        if state.failover is not None:
-            status["lastFailover"] = state.failover
-        if state.last_command is not None:
-            status["lastCommand"] = state.last_command
-        return status
-
-    def report(self, autopilots: str) -> None:
-        """One report: read the command, execute it, write the status (serialised)."""
-        with self.lock:
-            state = self.states.get(autopilots)
-            body = self.kube.get(REDUNDANT_AUTOPILOTS, autopilots)
-            if state is None or body is None:
-                return
-            self._execute(state, (body.get("spec") or {}).get("command"))
-            self.kube.merge_patch(
-                REDUNDANT_AUTOPILOTS,
-                autopilots,
-                {"status": self._status(state)},
-                subresource="status",
-            )
-
-    def _run(self) -> None:
-        while not self.stopping.wait(self.PERIOD_S):
-            with self.lock:
-                names = list(self.states)
-            for name in names:
-                self.report(name)
-
-    def __enter__(self) -> FakeAgents:
-        self.thread.start()
-        return self
-
-    def __exit__(self, *_: object) -> None:
-        self.stopping.set()
-        self.thread.join()
-
-
 # -- fixtures ------------------------------------------------------------------------------
 
 
@@ -252,8 +98,8 @@ def kube(roost_crds: Cluster) -> Iterator[Kube]:
 
 
 @pytest.fixture
-def agents(kube: Kube) -> Iterator[FakeAgents]:
-    with FakeAgents(kube) as running:
+def agents(roost_crds: Cluster) -> Iterator[FakeAgents]:
+    with FakeAgents(roost_crds) as running:
         yield running
 
 

@@ -1,0 +1,196 @@
+"""Mission figures, on the harness control plane with ``roost-operator`` running.
+
+- ``mission.rollout_10_s`` / ``mission.rollout_100_s``: from ``kubectl apply`` of a
+  Mission needing 10 (then 100) vehicles of an idle, Ready fleet of 100 fake vehicles
+  until every one of its onboard workloads is Running: vehicles claimed (one
+  optimistic-concurrency write each), preflight passed, status written, one Job per
+  vehicle created, scheduled onto the vehicle's node and started by kwok. kwok's default
+  stages complete a Job's pod as soon as it runs, so a pod counts once it has reached
+  Running or Succeeded. Polled every 100 ms.
+
+The fleet's node agents are :class:`~roost_harness.fakeagents.FakeAgents` reporting every
+few seconds (the real agent reports every 10 s), so the operator's ``AgentConnected`` and
+the preflight checks see live reports as they would in a fleet.
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+from bench.core import Figure
+from roost_api.wellknown import LABEL_MISSION, LABEL_VEHICLE
+from roost_harness import binaries
+from roost_harness.cluster import Cluster
+from roost_harness.controlplane import ControlPlane
+from roost_harness.fakeagents import FakeAgents
+from roost_harness.operator import OperatorProcess, wait_for
+from roost_operator.kube import MISSIONS, PODS, VEHICLES, Kube
+from roost_operator.missions.workloads import bounded_name
+
+COMMAND = "python -m bench mission"
+FLEET = 100
+SIZES = (10, 100)
+NAMESPACE = "roost-bench"
+FLIGHTS = "bench-flights"
+FLEET_LABEL = "bench-fleet"
+AGENT_PERIOD_S = 5.0
+SETUP_TIMEOUT_S = 600.0
+ROLLOUT_TIMEOUT_S = 300.0
+STARTED_PHASES = frozenset({"Running", "Succeeded"})
+
+
+def _documents(manifests: Sequence[Mapping[str, object]]) -> str:
+    return "\n---\n".join(json.dumps(m) for m in manifests)
+
+
+def _autopilots(vehicle: str) -> dict[str, object]:
+    return {
+        "apiVersion": "roost.dev/v1alpha1",
+        "kind": "RedundantAutopilot",
+        "metadata": {"name": f"{vehicle}-autopilots"},
+        "spec": {
+            "vehicleName": vehicle,
+            "primary": "fc1",
+            "autopilots": [
+                {
+                    "name": f"fc{i}",
+                    "stack": "px4",
+                    "connection": f"udp://127.0.0.1:{14540 + i}",
+                    "sysid": i,
+                    "bridgeChannel": i,
+                }
+                for i in (1, 2)
+            ],
+        },
+    }
+
+
+def _ready(kube: Kube) -> bool:
+    vehicles = kube.list_objects(VEHICLES, labels={"fleet": FLEET_LABEL})
+    return len(vehicles) == FLEET and all(
+        any(
+            c["type"] == "Ready" and c["status"] == "True"
+            for c in (v.get("status") or {}).get("conditions", [])
+        )
+        for v in vehicles
+    )
+
+
+def _fleet(cluster: Cluster, kube: Kube, agents: FakeAgents) -> None:
+    names = [f"bench-drone-{i:03d}" for i in range(FLEET)]
+    for name in names:
+        cluster.add_node(f"{name}-node", wait=False)
+    cluster.wait_nodes_ready([f"{n}-node" for n in names], SETUP_TIMEOUT_S)
+    vehicles = [
+        {
+            "apiVersion": "roost.dev/v1alpha1",
+            "kind": "Vehicle",
+            "metadata": {"name": name, "labels": {"fleet": FLEET_LABEL}},
+            "spec": {
+                "nodeName": f"{name}-node",
+                "sysid": 10 + i,
+                "components": {"mavros": {"enabled": False}},
+            },
+        }
+        for i, name in enumerate(names)
+    ]
+    cluster.kubectl("apply", "-f", "-", input_text=_documents([_autopilots(n) for n in names]))
+    cluster.kubectl("apply", "-f", "-", input_text=_documents(vehicles))
+    for name in names:
+        agents.add(f"{name}-autopilots", name, f"{name}-node")
+    wait_for("the fleet Ready", lambda: _ready(kube), SETUP_TIMEOUT_S, poll_s=1.0)
+
+
+def _workloads_started(kube: Kube, mission: str) -> int:
+    pods = kube.list_objects(PODS, namespace=FLIGHTS, labels={LABEL_MISSION: bounded_name(mission)})
+    return len(
+        {
+            p["metadata"]["labels"][LABEL_VEHICLE]
+            for p in pods
+            if LABEL_VEHICLE in p["metadata"]["labels"]
+            and (p.get("status") or {}).get("phase") in STARTED_PHASES
+        }
+    )
+
+
+def _rollout(cluster: Cluster, kube: Kube, count: int) -> float:
+    name = f"rollout-{count}"
+    manifest = {
+        "apiVersion": "roost.dev/v1alpha1",
+        "kind": "Mission",
+        "metadata": {"name": name, "namespace": FLIGHTS},
+        "spec": {
+            "vehicles": {"selector": {"matchLabels": {"fleet": FLEET_LABEL}}, "count": count},
+            "onboard": {
+                "spec": {
+                    "restartPolicy": "Never",
+                    "containers": [{"name": "controller", "image": "example.org/controller:1"}],
+                }
+            },
+        },
+    }
+    started = time.monotonic()
+    cluster.kubectl("apply", "-f", "-", input_text=json.dumps(manifest))
+    wait_for(
+        f"{count} onboard workloads running",
+        lambda: _workloads_started(kube, name) >= count,
+        ROLLOUT_TIMEOUT_S,
+        poll_s=0.1,
+    )
+    elapsed = time.monotonic() - started
+    wait_for(
+        f"mission {name} Succeeded",
+        lambda: (
+            ((kube.get(MISSIONS, name, FLIGHTS) or {}).get("status") or {}).get("phase")
+            == "Succeeded"
+        ),
+        ROLLOUT_TIMEOUT_S,
+    )
+    wait_for(
+        "the fleet released",
+        lambda: (
+            not any(
+                (v.get("status") or {}).get("claimedBy")
+                for v in kube.list_objects(VEHICLES, labels={"fleet": FLEET_LABEL})
+            )
+        ),
+        ROLLOUT_TIMEOUT_S,
+    )
+    return elapsed
+
+
+def run() -> list[Figure]:
+    binaries.ensure_built()
+    with (
+        tempfile.TemporaryDirectory(prefix="bench-mission-") as tmp,
+        ControlPlane(Path(tmp)) as plane,
+    ):
+        cluster = Cluster.of(plane)
+        cluster.install_crds()
+        cluster.kubectl("create", "namespace", FLIGHTS)
+        operator = OperatorProcess(cluster, Path(tmp) / "operator.log", namespace=NAMESPACE)
+        operator.start()
+        try:
+            with cluster.api_client() as api, FakeAgents(cluster, AGENT_PERIOD_S) as agents:
+                kube = Kube(api=api)
+                _fleet(cluster, kube, agents)
+                times = {count: _rollout(cluster, kube, count) for count in SIZES}
+        finally:
+            operator.stop()
+    targets = {10: "informational", 100: "<= 30"}
+    return [
+        Figure(
+            f"mission.rollout_{count}_s",
+            seconds,
+            "s",
+            targets[count],
+            COMMAND,
+            note=f"apply → {count} onboard Jobs' pods Running, fleet of {FLEET} Ready fake "
+            f"vehicles, stand-in agents reporting every {AGENT_PERIOD_S:.0f} s",
+        )
+        for count, seconds in times.items()
+    ]
