@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import os
 import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -188,3 +189,72 @@ def test_pinned_kind_rejects_a_misspelt_field(kind_binary: Path, tmp_path: Path)
     output, calls = _kind_create(kind_binary, path, tmp_path)
     assert "extraMount" in output, output
     assert not [call for call in calls if _versions()["KIND_NODE_IMAGE"] in call], calls
+
+
+# -- the fleet run.sh applies and the scripts ------------------------------------------
+
+
+def _fleet() -> list[dict[str, Any]]:
+    return [doc for doc in yaml.safe_load_all((KIND_DIR / "fleet.yaml").read_text()) if doc]
+
+
+def test_fleet_declares_the_identity_of_each_workers_host_file() -> None:
+    vehicles = [doc for doc in _fleet() if doc["kind"] == "Vehicle"]
+    cluster = _config()["name"]
+    # KinD names workers <cluster>-worker, <cluster>-worker2, ... in config order.
+    node_names = [f"{cluster}-worker{'' if i == 1 else i}" for i in range(1, 4)]
+    assert [v["spec"]["nodeName"] for v in vehicles] == node_names
+    for vehicle, worker in zip(vehicles, _workers(), strict=True):
+        host_file = REPO_ROOT / next(
+            m["hostPath"]
+            for m in worker["extraMounts"]
+            if m["containerPath"] == "/etc/starling/vehicle.config"
+        )
+        entries = dict(line.split("=", 1) for line in host_file.read_text().splitlines())
+        assert vehicle["metadata"]["name"] == entries["VEHICLE_NAME"]
+        assert vehicle["spec"]["sysid"] == int(entries["VEHICLE_MAVLINK_SYSID"])
+
+
+def test_fleet_is_valid_against_the_crds() -> None:
+    schemas = {}
+    for path in (REPO_ROOT / "crds").glob("*.yaml"):
+        crd = yaml.safe_load(path.read_text())
+        schemas[crd["spec"]["names"]["kind"]] = crd["spec"]["versions"][0]["schema"][
+            "openAPIV3Schema"
+        ]
+    for doc in _fleet():
+        jsonschema.Draft4Validator(schemas[doc["kind"]]).validate(doc)
+
+
+@pytest.mark.parametrize("script", ["run.sh", "install-kind.sh"])
+def test_kind_scripts_pass_shellcheck(script: str) -> None:
+    shellcheck = Path(sys.executable).parent / "shellcheck"
+    result = subprocess.run(
+        [str(shellcheck), "--external-sources", str(KIND_DIR / script)],
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=60,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_run_sh_skips_cleanly_without_a_container_engine(tmp_path: Path) -> None:
+    """No engine (a docker that cannot connect): a clear message and exit status 0."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    docker = bin_dir / "docker"
+    docker.write_text(
+        "#!/bin/sh\necho 'Cannot connect to the Docker daemon at unix:///none' >&2\nexit 1\n"
+    )
+    docker.chmod(0o755)
+    result = subprocess.run(
+        [str(KIND_DIR / "run.sh")],
+        env={**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}"},
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=60,
+    )
+    assert result.returncode == 0, result.stderr
+    assert "SKIPPED" in result.stdout and "Cannot connect" in result.stdout

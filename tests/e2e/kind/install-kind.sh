@@ -6,7 +6,7 @@
 # already on PATH is used only when it is exactly the pinned version.
 set -euo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"
-# shellcheck source=versions.env
+# shellcheck source-path=SCRIPTDIR source=versions.env
 source "$here/versions.env"
 
 if command -v kind >/dev/null 2>&1 && kind version 2>/dev/null | grep -q "^kind ${KIND_VERSION} "; then
