@@ -333,3 +333,16 @@ def test_node_restriction_can_be_switched_off_for_old_clusters() -> None:
 def test_operator_only_install_creates_no_agent_objects() -> None:
     names = [m["metadata"]["name"] for m in _render_set("operator-only")]
     assert not [name for name in names if "-agent" in name]
+
+
+def test_kubernetes_1_29_is_refused_the_node_restriction_and_told_the_fallback() -> None:
+    with pytest.raises(ChartError, match=r"nodeRestriction\.enabled=false"):
+        render(kube_version="1.29.4")
+
+
+def test_kubernetes_1_29_installs_without_the_node_restriction() -> None:
+    manifests = render({"agent": {"nodeRestriction": {"enabled": False}}}, kube_version="1.29.4")
+    for manifest in manifests:
+        if manifest["kind"] != "ClusterKopfPeering":
+            kubernetes_validate.validate(manifest, "1.29.0", strict=True)
+    assert "ValidatingAdmissionPolicy" not in {m["kind"] for m in manifests}

@@ -56,6 +56,7 @@ def render(
     release: str = "roost",
     namespace: str = "roost-system",
     include_crds: bool = False,
+    kube_version: str | None = None,
 ) -> list[Manifest]:
     """``helm template`` the chart; the documents it prints, parsed, in order.
 
@@ -69,6 +70,8 @@ def render(
             args += ["--values", str(_values_file(values, Path(tmp)))]
         if include_crds:
             args.append("--include-crds")
+        if kube_version:
+            args += ["--kube-version", kube_version]
         result = helm(*args)
     if result.returncode != 0:
         raise ChartError(result.stderr.strip())
