@@ -185,7 +185,12 @@ def estop(
     console.print(f"[bold red]EmergencyStop[/] sent to {names}")
     if wait <= 0:
         return
-    table = Table("VEHICLE", "AUTOPILOTS", "COMMAND", "RESULT", "MESSAGE", header_style="bold")
+    table = Table(header_style="bold")
+    table.add_column("VEHICLE", no_wrap=True)
+    table.add_column("REDUNDANTAUTOPILOT", no_wrap=True)
+    table.add_column("COMMAND ID", no_wrap=True)
+    table.add_column("RESULT", no_wrap=True)
+    table.add_column("MESSAGE")
     acks = actions.await_acknowledgements(fleet, targets, sent, timeout_s=wait)
     for ack in acks:
         style = "green" if ack.result == "Executed" else "bold red"
