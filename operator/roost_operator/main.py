@@ -13,7 +13,9 @@ Settings are explicit rather than kopf's defaults, following operator practice:
   successful handler and timer run, which is an API write per vehicle per resync.
   Roost posts its own Events on meaningful transitions;
 * watch ``server_timeout`` below the client timeout so a silently stalled watch is
-  reopened (kopf #955, #1276), and request timeouts on every API call.
+  reopened (kopf #955, #1276), and request timeouts on every API call;
+* a short ``background.cancellation_polling``: a deleted Vehicle whose (sync) resync
+  timer happens to be running would otherwise keep its finalizer for a minute.
 
 Importing :mod:`roost_operator.vehicles.handlers` (and the other handler modules)
 registers their handlers with kopf.
@@ -42,6 +44,9 @@ WATCH_SERVER_TIMEOUT_S = 290  # seconds; the API server wants an integer
 WATCH_CLIENT_TIMEOUT_S = 300.0
 CONNECT_TIMEOUT_S = 10.0
 REQUEST_TIMEOUT_S = 60.0
+# A sync timer caught mid-run when its object is deleted cannot be cancelled; kopf then
+# re-checks it every cancellation_polling seconds (default 60), holding the finalizer.
+CANCELLATION_POLLING_S = 1.0
 
 
 def configure(settings: kopf.OperatorSettings) -> None:
@@ -63,6 +68,7 @@ def configure(settings: kopf.OperatorSettings) -> None:
     settings.watching.connect_timeout = CONNECT_TIMEOUT_S
     settings.networking.request_timeout = REQUEST_TIMEOUT_S
     settings.networking.connect_timeout = CONNECT_TIMEOUT_S
+    settings.background.cancellation_polling = CANCELLATION_POLLING_S
 
 
 @kopf.on.startup()
