@@ -153,6 +153,13 @@ class AgentEvent:
             doc["failover"] = self.failover.record.to_api()
             doc["latencyMs"] = self.failover.latency_ms
             doc["onsetToSwitchMs"] = self.failover.onset_to_switch_ms
+            # CLOCK_MONOTONIC seconds, comparable with time.monotonic() in any process
+            # on the same host (benchmarks measure fault onset -> switch with them).
+            doc["monotonic"] = {
+                "detectedAt": self.failover.detected_at,
+                "switchedAt": self.failover.switched_at,
+                "onsetAt": self.failover.onset_at,
+            }
         if self.health is not None:
             doc["health"] = self.health.to_api()
         if self.command is not None:

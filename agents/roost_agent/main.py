@@ -13,7 +13,8 @@ nor flags it flies on with the spec saved there (an agent restarted while the cl
 unreachable).
 
 Output: one JSON object per line on stdout, ``{"event": ...}`` for every event and
-``{"status": ...}`` every ``--status-interval`` seconds. Logs go to stderr (so does
+``{"status": ..., "links": ...}`` (status and per-link message counters) every
+``--status-interval`` seconds. Logs go to stderr (so does
 anything pymavlink prints). SIGHUP re-reads the config file (thresholds, policy,
 primary, and a ``command`` executed once per id); SIGTERM/SIGINT stop the agent.
 """
@@ -28,6 +29,7 @@ import signal
 import socket
 import sys
 import threading
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -230,7 +232,8 @@ def main(argv: list[str] | None = None) -> int:
         publisher.start()
     try:
         while not stop.wait(args.status_interval or None):
-            out.write({"status": agent.status().to_api()})
+            links = {name: asdict(link.counters) for name, link in agent.links.items()}
+            out.write({"status": agent.status().to_api(), "links": links})
     finally:
         if publisher is not None:
             publisher.stop()
