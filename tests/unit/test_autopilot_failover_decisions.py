@@ -529,3 +529,18 @@ def test_the_ledger_counts_actions_elsewhere_preferring_this_processs_own_writes
 def test_staleness_window_setting() -> None:
     assert load_stale_after({}) == timedelta(seconds=30)
     assert load_stale_after({"ROOST_AGENT_STALE_SECONDS": "4.5"}) == timedelta(seconds=4.5)
+
+
+def test_the_same_decision_made_later_names_the_same_events() -> None:
+    """A crash between posting and writing must not record an Event twice."""
+    report = ra_status(active="fc2", count=3, last=failover(T2))
+    book = {"observed_failover_count": 2, "observed_failover_time": T1, "recent": [T1, T1]}
+    for guards in (FleetGuards(), FleetGuards(latch_after=3), FleetGuards(paused=True)):
+        first = run(status=pointed_at("fc1", URL1, **book), report=report, guards=guards)
+        later = run(
+            status=pointed_at("fc1", URL1, **book),
+            report=report,
+            guards=guards,
+            now=NOW + timedelta(seconds=7),
+        )
+        assert first.events and first.events == later.events

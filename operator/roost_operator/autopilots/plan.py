@@ -61,11 +61,13 @@ REPOINT_MAVROS = "RepointMavros"
 
 @dataclass(frozen=True)
 class PlannedEvent:
-    """An Event to record on the Vehicle once the status write succeeded.
+    """An Event to record on the Vehicle about this decision.
 
-    ``at`` is chosen from the data the Event is about (the failover's time, the action's
-    start) wherever there is one, so posting it again after a restart is recognised as a
-    duplicate rather than recorded twice.
+    ``at`` comes from the data the Event is about (the failover's time, the action's
+    start), never from the clock, so the same decision made again — after a crash, a
+    conflict, a restart — names the same Event and the API refuses the duplicate.
+    That is why the handlers may post these *before* writing the status: a crash in
+    between can neither lose the Event nor record it twice.
     """
 
     type: Literal["Normal", "Warning"]
@@ -134,7 +136,12 @@ def plan(
     )
     healthy = autopilots_healthy(autopilot_status, connected)
 
+    last = autopilot_status.last_failover
+    # Events are stamped with the failover they are about (or the latch or action), never
+    # with "now": the same decision made again after a crash names the same Event.
+    about = last.time if last is not None else now
     book = vehicle_status.failover or VehicleFailover()
+    latched_at = book.latched_at
     book, cleared = clear_latch(book, annotations)
     if cleared:
         events.append(
@@ -143,12 +150,11 @@ def plan(
                 "FailoverLatchCleared",
                 f"latch cleared by {ANNOTATION_CLEAR_FAILOVER_LATCH}={book.cleared_token}; "
                 "cluster-side failover actions resume",
-                now,
+                latched_at or about,
             )
         )
     was_latched = book.latched
     book, new = observe_failovers(book, autopilot_status, guards=guards, now=now)
-    last = autopilot_status.last_failover
     if new and last is not None:
         earlier = f"; {new - 1} earlier switch(es) while reports were missing" if new > 1 else ""
         events.append(
@@ -168,7 +174,7 @@ def plan(
                 f"{len(book.recent)} failovers within {guards.latch_window}; cluster-side "
                 "actions wait for a human: kubectl annotate vehicle "
                 f"{vehicle_name} {ANNOTATION_CLEAR_FAILOVER_LATCH}=<new token> --overwrite",
-                book.latched_at or now,
+                about,
             )
         )
 
@@ -220,7 +226,7 @@ def plan(
                     "Normal",
                     "RepointingMavros",
                     f"pointing mavros at {target.name} ({target.fcu_url}), was {previous}",
-                    now,
+                    about,
                 )
             )
         else:
@@ -233,8 +239,8 @@ def plan(
             PlannedEvent(
                 "Warning",
                 "FailoverActionBlocked",
-                f"cluster-side failover action held back: {blocked.value}",
-                now,
+                f"re-pointing mavros at {active} held back: {blocked.value}",
+                about,
             )
         )
     book = book.model_copy(

@@ -9,9 +9,11 @@ handler, a test or a benchmark. Rules it keeps:
 * **optimistic locking**: the Vehicle status patch carries the ``resourceVersion`` it
   was computed from (the vehicle reconcile writes other conditions of the same list);
   a conflict means "read again and decide again", never a lost update;
-* **Events after the write**: the plan's Events are posted only once its status is
-  stored, and carry deterministic times, so a retried or repeated run never records an
-  action twice;
+* **Events exactly once**: the plan's Events carry deterministic names (see
+  :class:`~roost_operator.autopilots.plan.PlannedEvent`) and are posted *before* the
+  status write, so a crash in between neither loses one nor, when the same decision is
+  made again, records it twice; condition transitions are posted after the write that
+  makes them (a crash there can lose one, never duplicate it);
 * **the fleet-wide cap is race-free** within the operator (one replica, see the chart):
   counting actions elsewhere and reserving this vehicle's happen under one lock, and
   :class:`ActionLedger` overrides the kopf index with what this process itself wrote
@@ -227,7 +229,7 @@ def _reconcile_once(
     if autopilot is None:
         conditions = _without_mine(status.conditions, generation, at)
         new = status.model_copy(update={"conditions": conditions, "active_autopilot": None})
-        _write(kube, vehicle, status, new, events=())
+        _write(kube, vehicle, status, new)
         return Outcome(False, None, False, None)
     _ensure_node_label(kube, autopilot, spec.node_name)
 
@@ -263,7 +265,8 @@ def _reconcile_once(
         }
     )
     try:
-        _write(kube, vehicle, status, new, events=result.events)
+        _post(kube, vehicle, result.events)
+        _write(kube, vehicle, status, new)
     except Exception:
         with ctx.ledger.lock:  # nothing was stored: the index/status stay the truth
             ctx.ledger.record(name, book is not None and book.action is not None)
@@ -278,23 +281,30 @@ def _reconcile_once(
     )
 
 
-def _write(
-    kube: Kube,
-    vehicle: Obj,
-    old: VehicleStatus,
-    new: VehicleStatus,
-    *,
-    events: Iterable[PlannedEvent],
-) -> None:
-    patch = _status_patch(old, new)
-    if patch is not None:
-        meta = vehicle["metadata"]
-        kube.merge_patch(
-            VEHICLES,
-            meta["name"],
-            {"metadata": {"resourceVersion": meta["resourceVersion"]}, "status": patch},
-            subresource="status",
+def _post(kube: Kube, vehicle: Obj, events: Iterable[PlannedEvent]) -> None:
+    """Post the plan's Events (deterministic names: a repeat is refused as a duplicate)."""
+    for event in events:
+        kube.post_event(
+            vehicle,
+            reason=event.reason,
+            message=event.message,
+            type=event.type,
+            at=event.at.isoformat().replace("+00:00", "Z"),
         )
+
+
+def _write(kube: Kube, vehicle: Obj, old: VehicleStatus, new: VehicleStatus) -> None:
+    """Patch the status (optimistic lock), then post its condition transitions."""
+    patch = _status_patch(old, new)
+    if patch is None:
+        return
+    meta = vehicle["metadata"]
+    kube.merge_patch(
+        VEHICLES,
+        meta["name"],
+        {"metadata": {"resourceVersion": meta["resourceVersion"]}, "status": patch},
+        subresource="status",
+    )
     stamp = now().isoformat().replace("+00:00", "Z")
     for cond in transitions(old.conditions, new.conditions, EVENT_TYPES):
         kube.post_event(
@@ -303,12 +313,4 @@ def _write(
             message=f"{cond.type} is {cond.status}: {cond.message}",
             type="Normal" if cond.status == "True" else "Warning",
             at=stamp,
-        )
-    for event in events:
-        kube.post_event(
-            vehicle,
-            reason=event.reason,
-            message=event.message,
-            type=event.type,
-            at=event.at.isoformat().replace("+00:00", "Z"),
         )

@@ -1,0 +1,444 @@
+"""Agent ↔ cluster on the real control plane: failover reported, followed and guarded.
+
+Every part is real: ``roost-agent`` processes (chart-style: ``NODE_NAME`` and a
+kubeconfig, no config file) supervise simulated autopilots (``roost_sim``, in this test
+process) over UDP; a ``roost-operator`` process reconciles Vehicles and the cluster side
+of failover; kube-apiserver/etcd store everything, the controller manager rolls the
+mavros Deployments and kwok runs their pods on fake vehicle nodes. The API server is
+stopped and started for the partition tests.
+
+Each test flies a fresh vehicle (its own node, sims, agent, Vehicle and
+RedundantAutopilot). The agents report every 2 s and the operator calls a report stale
+after 6 s, so staleness shows within a test's patience.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from roost_api.autopilot import CommandAction
+from roost_api.commands import command_patch, new_command
+from roost_harness.agent import AgentProcess
+from roost_harness.apiwrites import write_requests
+from roost_harness.cluster import Cluster
+from roost_harness.operator import OperatorProcess, wait_for
+from roost_operator.autopilots.plan import mavros_follows
+from roost_operator.kube import (
+    CONFIGMAPS,
+    DEPLOYMENTS,
+    EVENTS,
+    REDUNDANT_AUTOPILOTS,
+    VEHICLES,
+    Kube,
+    Obj,
+)
+from roost_operator.vehicles.config import config_map_name
+from roost_operator.vehicles.desired import workload_name
+from roost_sim import SimulatedAutopilot, autopilot_specs, start_vehicle_sims, stop_sims
+
+pytestmark = pytest.mark.cluster
+
+NAMESPACE = "roost-it-failover"
+REPORT_INTERVAL_S = 2.0
+STALE_S = 6.0
+WAIT_S = 60.0
+FakeNodes = Callable[..., dict[str, Any]]
+
+
+def unique(prefix: str) -> str:
+    return f"{prefix}-{uuid.uuid4().hex[:6]}"
+
+
+def until(what: str, check: Callable[[], Any], timeout_s: float = WAIT_S) -> Any:
+    return wait_for(what, check, timeout_s, poll_s=0.1)
+
+
+@pytest.fixture(scope="module")
+def operator(
+    roost_crds: Cluster, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[OperatorProcess]:
+    proc = OperatorProcess(
+        roost_crds,
+        tmp_path_factory.mktemp("failover-operator") / "operator.log",
+        namespace=NAMESPACE,
+        environment={"ROOST_AGENT_STALE_SECONDS": str(STALE_S)},
+    )
+    proc.start()
+    yield proc
+    proc.stop()
+
+
+@pytest.fixture(scope="module")
+def kube(roost_crds: Cluster) -> Iterator[Kube]:
+    with roost_crds.api_client() as api:
+        yield Kube(api=api)
+
+
+@dataclass
+class Rig:
+    """One flying vehicle: its objects' name, node, simulated autopilots and agent."""
+
+    name: str
+    node: str
+    sims: list[SimulatedAutopilot]
+    agent: AgentProcess
+    kube: Kube
+
+    def autopilots(self) -> Obj:
+        obj = self.kube.get(REDUNDANT_AUTOPILOTS, self.name)
+        assert obj is not None
+        return obj
+
+    def ra_status(self) -> Obj:
+        return self.autopilots().get("status") or {}
+
+    def vehicle_status(self) -> Obj:
+        obj = self.kube.get(VEHICLES, self.name) or {}
+        return obj.get("status") or {}
+
+    def url(self, index: int) -> str:
+        return self.sims[index].connection
+
+    def mavros(self) -> Obj | None:
+        return self.kube.get(DEPLOYMENTS, workload_name(self.name, "mavros"), NAMESPACE)
+
+    def mavros_on(self, index: int) -> bool:
+        config = self.kube.get(CONFIGMAPS, config_map_name(self.name), NAMESPACE)
+        return mavros_follows(self.url(index), config, self.mavros())
+
+    def command(self, action: CommandAction, **kwargs: Any) -> str:
+        command = new_command(action, **kwargs)
+        self.kube.merge_patch(REDUNDANT_AUTOPILOTS, self.name, command_patch(command))
+        return command.id
+
+
+FLIGHT_ORDERS = frozenset(
+    {
+        "MAV_CMD_DO_SET_MODE",
+        "MAV_CMD_NAV_LAND",
+        "MAV_CMD_NAV_RETURN_TO_LAUNCH",
+        "MAV_CMD_COMPONENT_ARM_DISARM",
+    }
+)
+
+
+def orders(sim: SimulatedAutopilot) -> int:
+    """Commands the agent sent this autopilot that change how it flies (hold, land, disarm)."""
+    return sum(1 for c in sim.commands if c.source != (0, 0) and c.name in FLIGHT_ORDERS)
+
+
+def conditions(status: Obj) -> dict[str, tuple[str, str]]:
+    return {c["type"]: (c["status"], c["reason"]) for c in status.get("conditions", [])}
+
+
+def reasons(kube: Kube, kind: str, name: str) -> list[str]:
+    """Reasons of the Events about one object (Roost records them in ``default``)."""
+    selector = f"involvedObject.kind={kind},involvedObject.name={name}"
+    events = kube.list_objects(EVENTS, namespace="default", field_selector=selector)
+    return [e["reason"] for e in events]
+
+
+@pytest.fixture
+def rig(
+    roost_crds: Cluster,
+    operator: OperatorProcess,
+    kube: Kube,
+    fake_nodes: FakeNodes,
+    tmp_path: Path,
+) -> Iterator[Rig]:
+    """A vehicle flying on two PX4 sims, its agent reporting, the Vehicle Ready."""
+    name = unique("fo")
+    node = f"{name}-node"
+    fake_nodes(node)
+    sims = start_vehicle_sims(["px4", "px4"])
+    agent = AgentProcess(roost_crds, node, tmp_path, report_interval_s=REPORT_INTERVAL_S)
+    try:
+        for sim in sims:
+            sim.wait_until(lambda s: s.system_status != "BOOT")
+            sim.fly(altitude_m=5)
+        for sim in sims:
+            sim.wait_until(lambda s: s.landed_state == "InAir", timeout=30)
+        specs = [a.to_api() for a in autopilot_specs(sims)]
+        for manifest in (
+            {
+                "apiVersion": "roost.dev/v1alpha1",
+                "kind": "Vehicle",
+                "metadata": {"name": name},
+                "spec": {"nodeName": node, "sysid": 42},
+            },
+            {
+                "apiVersion": "roost.dev/v1alpha1",
+                "kind": "RedundantAutopilot",
+                "metadata": {"name": name},
+                "spec": {"vehicleName": name, "primary": "fc1", "autopilots": specs},
+            },
+        ):
+            roost_crds.kubectl("apply", "-f", "-", input_text=json.dumps(manifest))
+        agent.start()
+        result = Rig(name, node, sims, agent, kube)
+        until(
+            f"Vehicle {name} Ready with its agent reporting",
+            lambda: (
+                conditions(result.vehicle_status()).get("Ready", ("",))[0] == "True"
+                and result.mavros_on(0)
+            ),
+        )
+        yield result
+    finally:
+        agent.stop()
+        stop_sims(sims)
+        if not operator.process.alive():
+            operator.start()
+        for kind in ("redundantautopilot", "vehicle"):
+            roost_crds.kubectl("delete", kind, name, "--ignore-not-found", "--wait=false")
+        until(f"Vehicle {name} gone", lambda: kube.get(VEHICLES, name) is None)
+
+
+def failed_over(rig: Rig, count: int = 1) -> Obj | None:
+    status = rig.ra_status()
+    if status.get("activeAutopilot") == "fc2" and status.get("failoverCount") == count:
+        return status
+    return None
+
+
+def test_killing_the_active_autopilot_switches_locally_and_the_cluster_follows(
+    rig: Rig, kube: Kube
+) -> None:
+    rig.sims[0].inject("silence")
+
+    status = until("the agent to report the switch to fc2", lambda: failed_over(rig))
+    assert status["lastFailover"]["from"] == "fc1" and status["lastFailover"]["to"] == "fc2"
+    assert status["lastFailover"]["trigger"] == "Automatic" and status["latched"] is True
+    got = conditions(status)
+    assert got["ActiveHealthy"] == ("True", "Healthy")
+    assert got["FailedOver"] == ("True", "AutomaticFailover")
+    assert got["Redundant"][0] == "False" and got["Ready"][0] == "False"
+    # the safety routine ran on the new active autopilot: hold, then land
+    rig.sims[1].wait_until(lambda s: s.landed_state == "OnGround", timeout=30)
+    assert "AUTO.LOITER" in [m.mode for m in rig.sims[1].mode_history]
+
+    def vehicle_followed() -> Obj | None:
+        vehicle = rig.vehicle_status()
+        failover = vehicle.get("failover") or {}
+        done = rig.mavros_on(1) and not failover.get("action")
+        return vehicle if done and vehicle.get("fcuUrl") == rig.url(1) else None
+
+    vehicle = until("mavros re-pointed at fc2 and the action finished", vehicle_followed)
+    assert vehicle["activeAutopilot"] == "fc2"
+    assert vehicle["failover"]["followedAutopilot"] == "fc2"
+    got = conditions(vehicle)
+    assert got["AgentConnected"] == ("True", "Reporting")
+    assert got["AutopilotsHealthy"] == ("False", "FailedOver")
+    assert got["Ready"][0] == "False"
+    assert "FailedOver" in reasons(kube, "RedundantAutopilot", rig.name)
+    vehicle_events = reasons(kube, "Vehicle", rig.name)
+    assert {"FailedOver", "RepointingMavros", "MavrosRepointed"} <= set(vehicle_events)
+
+
+def test_a_silent_agent_turns_agent_connected_unknown_and_back(rig: Rig) -> None:
+    rig.agent.crash()
+
+    def stale() -> Obj | None:
+        got = conditions(rig.vehicle_status())
+        return got if got.get("AgentConnected") == ("Unknown", "ReportsStale") else None
+
+    got = until("AgentConnected Unknown", stale, timeout_s=STALE_S * 6)
+    assert got["AutopilotsHealthy"] == ("Unknown", "AgentNotConnected")
+    assert got["Ready"][0] == "Unknown"
+    rig.agent.start()
+    until(
+        "AgentConnected True again",
+        lambda: conditions(rig.vehicle_status()).get("AgentConnected", ("",))[0] == "True",
+    )
+
+
+def test_a_failover_during_an_api_outage_happens_and_the_status_catches_up(
+    rig: Rig, roost_crds: Cluster, kube: Kube
+) -> None:
+    plane = roost_crds.control_plane
+    assert plane is not None, "partition tests need the harness's own control plane"
+    plane.stop_apiserver()
+    try:
+        rig.sims[0].inject("silence")
+        switched = until("the local switch (agent output)", lambda: rig.agent.events("Failover"))
+        assert switched[0]["failover"]["to"] == "fc2"
+        rig.sims[1].wait_until(lambda s: s.mode == "AUTO.LOITER", timeout=20)
+    finally:
+        plane.start_apiserver()
+
+    status = until("the switch in the API after the outage", lambda: failed_over(rig))
+    assert status["lastFailover"]["time"] == switched[0]["failover"]["time"]
+    assert conditions(status)["FailedOver"] == ("True", "AutomaticFailover")
+    until(
+        "the failover Event posted after the outage",
+        lambda: "FailedOver" in reasons(kube, "RedundantAutopilot", rig.name),
+    )
+    until("mavros re-pointed after the outage", lambda: rig.mavros_on(1))
+
+
+def test_a_command_issued_before_a_partition_expires_instead_of_running_late(
+    rig: Rig, roost_crds: Cluster
+) -> None:
+    assert (rig.agent.state_dir / "agent-state.json").exists()
+    rig.agent.crash()  # the agent is cut off: it cannot see the command in time
+    sent = orders(rig.sims[0])
+    command_id = rig.command(CommandAction.SAFETY_ROUTINE, deadline_seconds=2)
+    plane = roost_crds.control_plane
+    assert plane is not None, "partition tests need the harness's own control plane"
+    plane.stop_apiserver()
+    try:
+        rig.agent.start()  # API down: it flies on with the spec saved on disk
+        until("the agent running on its saved spec", lambda: rig.agent.events("Started"))
+        time.sleep(3)  # past the command's deadline
+    finally:
+        plane.start_apiserver()
+
+    def recorded() -> Obj | None:
+        last = rig.ra_status().get("lastCommand") or {}
+        return last if last.get("id") == command_id else None
+
+    last = until("the agent to record the stale command", recorded)
+    assert last["result"] == "Expired"
+    assert orders(rig.sims[0]) == sent
+    assert rig.ra_status()["activeAutopilot"] == "fc1"
+
+
+def test_an_operator_restarted_mid_failover_acts_once(
+    rig: Rig, operator: OperatorProcess, kube: Kube
+) -> None:
+    before = rig.mavros()
+    assert before is not None
+    generation = before["metadata"]["generation"]
+    operator.crash()
+    rig.sims[0].inject("silence")
+    until("the agent to report the switch", lambda: failed_over(rig))
+    operator.start()
+    until(
+        "the operator to start the re-point",
+        lambda: (rig.vehicle_status().get("failover") or {}).get("followedAutopilot") == "fc2",
+        timeout_s=WAIT_S,
+    )
+    operator.crash()  # in the middle: mavros rolling, the action not finished
+    operator.start()
+
+    until(
+        "mavros on fc2 and the action finished",
+        lambda: rig.mavros_on(1) and not (rig.vehicle_status()["failover"].get("action")),
+    )
+    time.sleep(REPORT_INTERVAL_S * 2)  # a few more reports and reconciles
+    after = rig.mavros()
+    assert after is not None and after["metadata"]["generation"] == generation + 1
+    failover = rig.vehicle_status()["failover"]
+    assert failover["observedFailoverCount"] == 1 and len(failover["recent"]) == 1
+    vehicle_events = reasons(kube, "Vehicle", rig.name)
+    assert vehicle_events.count("RepointingMavros") == 1
+    assert vehicle_events.count("FailedOver") <= 2  # the failover Event and Ready's transition
+
+
+def test_manual_switch_and_safety_routine_run_once_even_when_replayed(rig: Rig) -> None:
+    switch_id = f"switch-{uuid.uuid4().hex[:8]}"
+    rig.command(CommandAction.SWITCH, target="fc2", command_id=switch_id)
+
+    def executed(command_id: str) -> Obj | None:
+        status = rig.ra_status()
+        last = status.get("lastCommand") or {}
+        return status if last.get("id") == command_id and last["result"] == "Executed" else None
+
+    status = until("the Switch executed", lambda: executed(switch_id))
+    assert status["activeAutopilot"] == "fc2"
+    switched = {k: status["lastFailover"][k] for k in ("time", "from", "to", "trigger")}
+    assert switched["trigger"] == "Command" and switched["to"] == "fc2"
+    assert conditions(status)["FailedOver"] == ("True", "SwitchedByCommand")
+
+    routine_id = f"routine-{uuid.uuid4().hex[:8]}"
+    rig.command(CommandAction.SAFETY_ROUTINE, command_id=routine_id)
+    until("the SafetyRoutine executed", lambda: executed(routine_id))
+    rig.sims[1].wait_until(lambda s: s.mode == "AUTO.LOITER", timeout=20)
+    rig.sims[1].wait_until(lambda s: s.landed_state == "OnGround", timeout=30)
+    sent = [orders(sim) for sim in rig.sims]
+
+    # replay both requests (same ids, fresh issuedAt), then restart the agent on top
+    rig.command(CommandAction.SWITCH, target="fc2", command_id=switch_id)
+    rig.command(CommandAction.SAFETY_ROUTINE, command_id=routine_id)
+    time.sleep(REPORT_INTERVAL_S * 2)
+    rig.agent.crash()
+    rig.agent.start()
+    stamp = rig.ra_status()["reportedAt"]
+    until("a report from the restarted agent", lambda: rig.ra_status()["reportedAt"] != stamp)
+    time.sleep(REPORT_INTERVAL_S)
+    status = rig.ra_status()
+    assert status["activeAutopilot"] == "fc2"
+    assert {k: status["lastFailover"][k] for k in switched} == switched
+    assert status["lastCommand"]["id"] == routine_id
+    assert [orders(sim) for sim in rig.sims] == sent
+    assert len(rig.agent.events("Failover")) == 1
+
+
+def test_a_flapping_autopilot_does_not_cause_a_storm(
+    rig: Rig, roost_crds: Cluster, kube: Kube
+) -> None:
+    rig.sims[0].inject("silence")
+    until("the failover", lambda: failed_over(rig))
+    rig.sims[1].wait_until(lambda s: s.landed_state == "OnGround", timeout=30)
+    until("mavros on fc2", lambda: rig.mavros_on(1))
+    time.sleep(REPORT_INTERVAL_S)
+    mavros = rig.mavros()
+    assert mavros is not None
+    generation = mavros["metadata"]["generation"]
+    status_writes = write_requests(roost_crds, [("redundantautopilots", "status")])
+    vehicle_writes = write_requests(roost_crds, [("vehicles", "status")])
+    agent_events = len(reasons(kube, "RedundantAutopilot", rig.name))
+    vehicle_events = len(reasons(kube, "Vehicle", rig.name))
+
+    window_s = 12.0
+    started = time.monotonic()
+    flips = 0
+    while time.monotonic() - started < window_s:  # fc1 comes and goes, again and again
+        rig.sims[0].clear()
+        time.sleep(1.2)
+        rig.sims[0].inject("silence")
+        time.sleep(0.8)
+        flips += 1
+    rig.sims[0].clear()
+
+    ra_writes = write_requests(roost_crds, [("redundantautopilots", "status")]) - status_writes
+    v_writes = write_requests(roost_crds, [("vehicles", "status")]) - vehicle_writes
+    # coalesced: at most one routine write per second plus the periodic refreshes
+    assert ra_writes <= window_s / 1.0 + window_s / REPORT_INTERVAL_S + 2, ra_writes
+    assert v_writes <= ra_writes + 1, (v_writes, ra_writes)
+    status = rig.ra_status()
+    assert status["failoverCount"] == 1 and status["activeAutopilot"] == "fc2"
+    assert len(rig.agent.events("Failover")) == 1
+    assert len(reasons(kube, "RedundantAutopilot", rig.name)) == agent_events
+    assert len(reasons(kube, "Vehicle", rig.name)) == vehicle_events
+    after = rig.mavros()
+    assert after is not None and after["metadata"]["generation"] == generation
+    assert flips >= 5
+
+
+def test_a_guard_holds_the_repoint_until_a_human_lifts_it(rig: Rig, roost_crds: Cluster) -> None:
+    roost_crds.kubectl(
+        "annotate", "vehicle", rig.name, "roost.dev/pause-failover-actions=true", "--overwrite"
+    )
+    rig.sims[0].inject("silence")
+    until("the switch", lambda: failed_over(rig))
+
+    def held() -> Obj | None:
+        vehicle = rig.vehicle_status()
+        return vehicle if (vehicle.get("failover") or {}).get("blocked") == "Paused" else None
+
+    vehicle = until("the re-point held back by the pause", held)
+    assert vehicle["activeAutopilot"] == "fc2"  # the truth, from the agent
+    assert vehicle["fcuUrl"] == rig.url(0)  # mavros stays until a human decides
+    assert rig.mavros_on(0)
+    roost_crds.kubectl("annotate", "vehicle", rig.name, "roost.dev/pause-failover-actions-")
+    until("mavros re-pointed once the pause is lifted", lambda: rig.mavros_on(1))
+    assert rig.vehicle_status()["failover"].get("blocked") is None
