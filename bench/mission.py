@@ -26,7 +26,7 @@ from roost_api.wellknown import LABEL_MISSION, LABEL_VEHICLE
 from roost_harness import binaries
 from roost_harness.cluster import Cluster
 from roost_harness.controlplane import ControlPlane
-from roost_harness.fakeagents import FakeAgents
+from roost_harness.fakeagents import FakeAgents, redundant_autopilot
 from roost_harness.operator import OperatorProcess, wait_for
 from roost_operator.kube import MISSIONS, PODS, VEHICLES, Kube
 from roost_operator.missions.workloads import bounded_name
@@ -45,28 +45,6 @@ STARTED_PHASES = frozenset({"Running", "Succeeded"})
 
 def _documents(manifests: Sequence[Mapping[str, object]]) -> str:
     return "\n---\n".join(json.dumps(m) for m in manifests)
-
-
-def _autopilots(vehicle: str) -> dict[str, object]:
-    return {
-        "apiVersion": "roost.dev/v1alpha1",
-        "kind": "RedundantAutopilot",
-        "metadata": {"name": f"{vehicle}-autopilots"},
-        "spec": {
-            "vehicleName": vehicle,
-            "primary": "fc1",
-            "autopilots": [
-                {
-                    "name": f"fc{i}",
-                    "stack": "px4",
-                    "connection": f"udp://127.0.0.1:{14540 + i}",
-                    "sysid": i,
-                    "bridgeChannel": i,
-                }
-                for i in (1, 2)
-            ],
-        },
-    }
 
 
 def _ready(kube: Kube) -> bool:
@@ -98,7 +76,9 @@ def _fleet(cluster: Cluster, kube: Kube, agents: FakeAgents) -> None:
         }
         for i, name in enumerate(names)
     ]
-    cluster.kubectl("apply", "-f", "-", input_text=_documents([_autopilots(n) for n in names]))
+    cluster.kubectl(
+        "apply", "-f", "-", input_text=_documents([redundant_autopilot(n) for n in names])
+    )
     cluster.kubectl("apply", "-f", "-", input_text=_documents(vehicles))
     for name in names:
         agents.add(f"{name}-autopilots", name, f"{name}-node")

@@ -44,7 +44,7 @@ import pytest
 
 from roost_api.wellknown import LABEL_MISSION, LABEL_VEHICLE
 from roost_harness.cluster import Cluster
-from roost_harness.fakeagents import FakeAgents
+from roost_harness.fakeagents import FakeAgents, redundant_autopilot
 from roost_harness.operator import OperatorProcess, wait_for
 from roost_operator.kube import (
     JOBS,
@@ -133,7 +133,7 @@ class Fleet:
                     },
                 }
             )
-            self.apply(autopilots_manifest(name))
+            self.apply(redundant_autopilot(name))
             self.agents.add(f"{name}-autopilots", name, node, **agent_state)
             self.vehicles.append(name)
             names.append(name)
@@ -180,34 +180,6 @@ def fleet(
 
 
 # -- manifests and reads -------------------------------------------------------------------
-
-
-def autopilots_manifest(vehicle: str) -> Obj:
-    return {
-        "apiVersion": "roost.dev/v1alpha1",
-        "kind": "RedundantAutopilot",
-        "metadata": {"name": f"{vehicle}-autopilots"},
-        "spec": {
-            "vehicleName": vehicle,
-            "primary": "fc1",
-            "autopilots": [
-                {
-                    "name": "fc1",
-                    "stack": "px4",
-                    "connection": "udp://127.0.0.1:14540",
-                    "sysid": 1,
-                    "bridgeChannel": 0,
-                },
-                {
-                    "name": "fc2",
-                    "stack": "px4",
-                    "connection": "udp://127.0.0.1:14541",
-                    "sysid": 2,
-                    "bridgeChannel": 1,
-                },
-            ],
-        },
-    }
 
 
 def mission_manifest(

@@ -33,6 +33,7 @@ from roost_api.mission import (
 )
 from roost_api.vehicle import VehicleSpec, VehicleStatus
 from roost_api.wellknown import LABEL_VEHICLE, TAINT_VEHICLE
+from roost_harness.fakeagents import redundant_autopilot
 from roost_operator.missions.machine import (
     ABORT_COMMAND_DEADLINE_SECONDS,
     Observation,
@@ -145,26 +146,7 @@ def autopilots(
         status["conditions"].append(cond("FailedOver", "True", "Switched", failover_at).to_api())
     if last_command is not None:
         status["lastCommand"] = last_command.to_api()
-    spec: dict[str, Any] = {
-        "vehicleName": vehicle_name,
-        "primary": "fc1",
-        "autopilots": [
-            {
-                "name": "fc1",
-                "stack": "px4",
-                "connection": "udp://127.0.0.1:14540",
-                "sysid": 1,
-                "bridgeChannel": 0,
-            },
-            {
-                "name": "fc2",
-                "stack": "px4",
-                "connection": "udp://127.0.0.1:14541",
-                "sysid": 2,
-                "bridgeChannel": 1,
-            },
-        ],
-    }
+    spec = redundant_autopilot(vehicle_name)["spec"]
     if command is not None:
         spec["command"] = command.to_api()
     return AutopilotView(

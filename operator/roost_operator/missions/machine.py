@@ -280,20 +280,33 @@ def _assign(obs: Observation, plan: Plan) -> None:
             return
         message = shortage_message(required=required, held=len(order), available=available)
         plan.releases.extend(order)
-        _set_phase(status, MissionPhase.PENDING, "InsufficientVehicles", message)
         status.vehicles = []
         status.assigned_count = 0
-        _condition(
+        _wait(
             obs,
             status,
+            MissionPhase.PENDING,
             MissionConditionType.VEHICLES_ASSIGNED,
-            "False",
             reason="InsufficientVehicles",
             message=message,
         )
-        _condition(obs, status, MissionConditionType.COMPLETE, "False", reason="NotStarted")
         return
     _preflight(obs, plan, order)
+
+
+def _wait(
+    obs: Observation,
+    status: MissionStatus,
+    phase: MissionPhase,
+    failing: MissionConditionType,
+    *,
+    reason: str,
+    message: str,
+) -> None:
+    """Not started yet: ``phase`` with ``reason``, condition ``failing`` False."""
+    _set_phase(status, phase, reason, message)
+    _condition(obs, status, failing, "False", reason=reason, message=message)
+    _condition(obs, status, MissionConditionType.COMPLETE, "False", reason="NotStarted")
 
 
 def _failures(obs: Observation, name: str) -> list[PreflightFailure]:
@@ -343,16 +356,14 @@ def _preflight(obs: Observation, plan: Plan, assigned: list[str]) -> None:
         summary = "; ".join(f"{v.name}: {v.message}" for v in failing[:5])
         more = f"; and {len(failing) - 5} more" if len(failing) > 5 else ""
         message = f"{len(failing)} of {len(vehicles)} vehicles fail preflight — {summary}{more}"
-        _set_phase(status, MissionPhase.PREFLIGHT, "PreflightFailed", message)
-        _condition(
+        _wait(
             obs,
             status,
+            MissionPhase.PREFLIGHT,
             MissionConditionType.PREFLIGHT_PASSED,
-            "False",
             reason="PreflightFailed",
             message=message,
         )
-        _condition(obs, status, MissionConditionType.COMPLETE, "False", reason="NotStarted")
         return
     _start(obs, plan, assigned)
 
@@ -361,13 +372,7 @@ def _start(obs: Observation, plan: Plan, assigned: list[str]) -> None:
     status = plan.status
     status.start_time = obs.now
     for vehicle in status.vehicles:
-        vehicle.phase = MissionVehiclePhase.RUNNING
-        vehicle.reason = "JobCreated"
-        vehicle.message = f"onboard Job {vehicle.job_name} created"
-        plan.config_maps.append(
-            config_map_copy(obs.mission, vehicle.name, obs.config_values[vehicle.name])
-        )
-        plan.jobs_to_create.append(_onboard(obs, vehicle.name, assigned))
+        _launch(obs, plan, vehicle, assigned)
     if obs.spec.offboard is not None:
         name = offboard_job_name(obs.mission.name)
         status.offboard = MissionOffboardStatus(
@@ -389,14 +394,24 @@ def _start(obs: Observation, plan: Plan, assigned: list[str]) -> None:
     _condition(obs, status, MissionConditionType.COMPLETE, "False", reason="Running")
 
 
-def _onboard(obs: Observation, vehicle_name: str, assigned: Sequence[str]) -> Obj:
-    return onboard_job(
-        mission=obs.mission,
-        spec=obs.spec,
-        vehicle_name=vehicle_name,
-        assigned=assigned,
-        config_values=obs.config_values[vehicle_name],
+def _launch(
+    obs: Observation, plan: Plan, vehicle: MissionVehicleStatus, assigned: Sequence[str]
+) -> None:
+    """Create the vehicle's onboard Job (and its config copy); it is Running from now."""
+    values = obs.config_values[vehicle.name]
+    plan.config_maps.append(config_map_copy(obs.mission, vehicle.name, values))
+    plan.jobs_to_create.append(
+        onboard_job(
+            mission=obs.mission,
+            spec=obs.spec,
+            vehicle_name=vehicle.name,
+            assigned=assigned,
+            config_values=values,
+        )
     )
+    vehicle.phase = MissionVehiclePhase.RUNNING
+    vehicle.reason = "JobCreated"
+    vehicle.message = f"onboard Job {vehicle.job_name} created"
 
 
 # -- Running -----------------------------------------------------------------------------
@@ -521,13 +536,7 @@ def _follow_job(
             vehicle.reason = "VehicleConfigMissing"
             vehicle.message = "the vehicle's config ConfigMap is gone; cannot start its Job"
             return
-        plan.config_maps.append(
-            config_map_copy(obs.mission, vehicle.name, obs.config_values[vehicle.name])
-        )
-        plan.jobs_to_create.append(_onboard(obs, vehicle.name, assigned))
-        vehicle.phase = MissionVehiclePhase.RUNNING
-        vehicle.reason = "JobCreated"
-        vehicle.message = f"onboard Job {vehicle.job_name} created"
+        _launch(obs, plan, vehicle, assigned)
         return
     if vehicle.name in obs.config_values:
         plan.config_maps.append(

@@ -37,6 +37,30 @@ def rfc3339(at: datetime) -> str:
     return at.astimezone(UTC).isoformat().replace("+00:00", "Z")
 
 
+def redundant_autopilot(vehicle: str) -> dict[str, Any]:
+    """The RedundantAutopilot ``<vehicle>-autopilots`` the stand-in agents report for:
+    two PX4 autopilots, ``fc1`` (primary) and ``fc2``."""
+    return {
+        "apiVersion": f"{GROUP}/{VERSION}",
+        "kind": "RedundantAutopilot",
+        "metadata": {"name": f"{vehicle}-autopilots"},
+        "spec": {
+            "vehicleName": vehicle,
+            "primary": "fc1",
+            "autopilots": [
+                {
+                    "name": f"fc{i}",
+                    "stack": "px4",
+                    "connection": f"udp://127.0.0.1:{14539 + i}",
+                    "sysid": i,
+                    "bridgeChannel": i - 1,
+                }
+                for i in (1, 2)
+            ],
+        },
+    }
+
+
 @dataclass
 class AgentState:
     """What one vehicle's (simulated) autopilots look like to its agent."""
