@@ -833,3 +833,26 @@ def test_wakeups_reach_the_holder_the_claimant_and_waiting_missions() -> None:
         return [*seen, woken]
 
     assert asyncio.run(scenario()) == [True, False, False, False, True, True, False]
+
+
+def test_a_vehicle_still_landing_when_the_mission_fails_stays_claimed_until_it_is_down() -> None:
+    obs, _ = _failover_obs("AbortVehicle", T0 + timedelta(seconds=10))
+    landing = plan_mission(obs)
+    command = landing.commands["a"]
+    failed_b = job("b", JobPhase.FAILED, failed=3, message="BackoffLimitExceeded")
+    failed = plan_mission(replace(obs, status=landing.status, jobs={failed_b.name: failed_b}))
+    assert failed.status.phase == MissionPhase.FAILED
+    assert failed.releases == ["b"], "a is still in the air"
+    assert failed.requeue_after is not None
+    down = autopilots(
+        "a",
+        failover_at=T0 + timedelta(seconds=10),
+        landed="OnGround",
+        command=command,
+        reported_at=T0 + timedelta(seconds=50),
+    )
+    later = plan_mission(
+        replace(obs, status=failed.status, autopilots={"a": down, "b": autopilots("b")})
+    )
+    assert vehicle_status(later, "a").phase == MissionVehiclePhase.ABORTED
+    assert later.releases == ["a", "b"] and later.requeue_after is None

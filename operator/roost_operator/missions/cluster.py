@@ -382,7 +382,8 @@ def reconcile_mission(
     return Outcome(
         plan=plan,
         requeue_after=plan.requeue_after,
-        finished=phase_finished and not plan.releases and not plan.jobs_to_delete,
+        finished=phase_finished
+        and not (plan.releases or plan.jobs_to_delete or plan.requeue_after is not None),
         assigned=tuple(v.name for v in status.vehicles),
         waiting_for_vehicles=status.start_time is None,
     )

@@ -679,14 +679,30 @@ def _finish(obs: Observation, plan: Plan, phase: MissionPhase, reason: str, mess
         status.offboard.message = f"stopped: the mission {phase.value.lower()}"
     complete: ConditionStatus = "True" if phase is MissionPhase.SUCCEEDED else "False"
     _condition(obs, status, MissionConditionType.COMPLETE, complete, reason=reason, message=message)
-    plan.releases.extend(held_by(obs.mission, obs.vehicles))
+    _release_landed(obs, plan)
+
+
+def _release_landed(obs: Observation, plan: Plan) -> None:
+    """Release every held vehicle except those still landing after an abort."""
+    landing = {v.name for v in plan.status.vehicles if v.phase == MissionVehiclePhase.ABORTING}
+    plan.releases.extend(n for n in held_by(obs.mission, obs.vehicles) if n not in landing)
+    if landing:
+        plan.requeue_after = ABORT_POLL_SECONDS
 
 
 def _wind_down(obs: Observation, plan: Plan) -> None:
-    """A finished mission: stop anything still active and give back its vehicles."""
+    """A finished mission: stop anything still active and give back its vehicles.
+
+    A vehicle still landing after an AbortVehicle when the mission ended (another
+    vehicle's workload failed meanwhile) stays claimed and followed until it is down,
+    so no other mission can take it in the air.
+    """
     for job in obs.jobs.values():
         _stop_job(plan, job)
-    plan.releases.extend(held_by(obs.mission, obs.vehicles))
+    for vehicle in plan.status.vehicles:
+        if vehicle.phase == MissionVehiclePhase.ABORTING:
+            _abort_vehicle(obs, plan, vehicle, CommandAction.SAFETY_ROUTINE)
+    _release_landed(obs, plan)
 
 
 # -- Abort -------------------------------------------------------------------------------
