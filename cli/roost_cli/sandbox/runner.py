@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -57,6 +58,7 @@ NODES_READY_TIMEOUT_S = 120.0
 DOWN_TIMEOUT_S = 60.0
 HEADLESS_POLL_S = 1.0
 LIVE_EVENTS = 6
+RUN_DIRECTORIES = ("agents", "sims", "logs", "cluster")
 
 
 @dataclass(frozen=True)
@@ -104,6 +106,7 @@ class Sandbox:
     def run(self) -> None:
         """Bring everything up, show it, wait for Ctrl-C or SIGTERM, tear everything down."""
         self._refuse_second_sandbox()
+        self._forget_previous_run()
         previous = signal.signal(signal.SIGTERM, _interrupt)
         try:
             self._save()
@@ -134,6 +137,15 @@ class Sandbox:
         if stale is not None:
             self.console.print("Cleaning up after a sandbox that did not stop cleanly…")
             stop_recorded(stale)
+
+    def _forget_previous_run(self) -> None:
+        """A new sandbox is a new fleet: drop the last run's agent state, sockets and logs.
+
+        An agent restores its decision state from its directory (as a rebooted vehicle
+        must), so a kept directory would start this run already failed over and latched.
+        """
+        for name in RUN_DIRECTORIES:
+            shutil.rmtree(self.directory / name, ignore_errors=True)
 
     def _save(self) -> None:
         self.state.processes = self.launcher.states()
