@@ -1,11 +1,18 @@
-"""One MAVLink link per autopilot: a pymavlink connection, one reader thread, locked writes.
+"""One MAVLink link per autopilot: a transport, one reader thread, locked writes.
 
-Why one connection per autopilot (not one shared socket): two autopilots behind one
-socket are merged by pymavlink and a command can reach both. Why a single reader:
-pymavlink is not thread-safe and ``recv_match`` discards messages other than the one it
-waits for, so the reader is the only thing that ever reads; it feeds the health tracker
-and hands COMMAND_ACKs to whoever waits for them. Writes (the agent's heartbeat, safety
-commands) take a lock.
+Why one link per autopilot (not one shared socket): two autopilots behind one socket are
+merged by a MAVLink router and a command can reach both. Why a single reader: the
+pymavlink parser is not thread-safe, so the reader is the only thing that ever parses;
+it feeds the health tracker and hands COMMAND_ACKs to whoever waits for them. Writes
+(the agent's heartbeat, safety commands) take a lock, which also keeps the MAVLink
+sequence numbers in order.
+
+Why our own transports instead of ``pymavlink.mavutil`` connections: mavutil imports
+numpy and a MAVLink 1 dialect (about 30 MB of the agent's memory, on a companion
+computer), prints to stdout, and its UDP listener sends every reply to every address
+that ever sent it a datagram, spoofers included. Here the pymavlink dialect does the
+parsing and encoding; a UDP listener replies only to the address this autopilot's
+messages come from; a UDP sender accepts datagrams only from its destination.
 
 Only messages whose source is this autopilot's system id and component id count. A
 spoofed or foreign sysid on the same port, a non-autopilot component sharing the sysid,
@@ -14,18 +21,22 @@ bad input (it reopens the connection after a run of errors).
 
 The agent talks as component 191 (onboard computer) with the autopilot's own system id,
 as a companion computer does, and addresses commands to the autopilot's component
-(never the broadcast component 0).
+(never the broadcast component 0). Connection URLs are read by
+:func:`roost_mavlink.pymavlink_device`, the one parser of ``AutopilotSpec.connection``.
 """
 
 from __future__ import annotations
 
 import logging
-import os
+import select
+import socket
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from roost_agent.health import HealthTracker
 from roost_api.autopilot import AutopilotSpec
@@ -33,21 +44,16 @@ from roost_api.meta import Stack
 from roost_mavlink import AGENT_COMPONENT_ID, MavResult, pymavlink_device
 from roost_mavlink.status import MAV_AUTOPILOT_INVALID, MAV_TYPE_ONBOARD_CONTROLLER, MavState
 
-# pymavlink picks its wire protocol when mavutil is first imported; Roost speaks MAVLink 2.
-os.environ.setdefault("MAVLINK20", "1")
-from pymavlink import mavutil
-
-if getattr(mavutil.mavlink, "WIRE_PROTOCOL_VERSION", "2.0") != "2.0":
-    mavutil.set_dialect(mavutil.current_dialect)  # imported earlier without MAVLINK20
-
 log = logging.getLogger(__name__)
 
 Params = tuple[float, float, float, float, float, float, float]
+Address = tuple[str, int]
 
 READ_WAIT_S = 0.1  # how long the reader blocks in select() before checking for stop
 REOPEN_DELAY_S = 0.5
+CONNECT_TIMEOUT_S = 2.0
 MAX_CONSECUTIVE_ERRORS = 50
-TCP_EOF_READS = 20  # readable-but-empty reads in a row that mean the TCP peer is gone
+UDP_MAX = 65535
 
 
 @dataclass
@@ -57,8 +63,192 @@ class LinkCounters:
     accepted: int = 0  # from this autopilot's sysid/component
     foreign: int = 0  # parsed, but from another sysid or component
     bad: int = 0  # bytes that did not parse (BAD_DATA)
-    errors: int = 0  # exceptions from the parser or the socket
+    errors: int = 0  # exceptions from the parser or the transport
     reopened: int = 0
+
+
+class Transport:
+    """A byte pipe to one autopilot. ``receive`` never blocks (the reader selects first)."""
+
+    def fileno(self) -> int:
+        raise NotImplementedError
+
+    def receive(self) -> tuple[bytes, Address | None]:
+        """Available bytes and who sent them (None where the transport has one peer)."""
+        raise NotImplementedError
+
+    def send(self, data: bytes) -> None:
+        raise NotImplementedError
+
+    def confirm_peer(self, address: Address) -> None:
+        """The autopilot itself sent from ``address`` (only UDP listeners care)."""
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+
+class _Udp(Transport):
+    def __init__(self, bind: Address | None) -> None:
+        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        if bind is not None:
+            self._sock.bind(bind)
+        self._sock.setblocking(False)
+
+    def fileno(self) -> int:
+        return self._sock.fileno()
+
+    def receive(self) -> tuple[bytes, Address | None]:
+        try:
+            data, address = self._sock.recvfrom(UDP_MAX)
+        except (BlockingIOError, ConnectionRefusedError):
+            return b"", None
+        return data, (str(address[0]), int(address[1]))
+
+    def close(self) -> None:
+        self._sock.close()
+
+
+class UdpListen(_Udp):
+    """``udp://HOST:PORT``: listen; reply to where this autopilot's messages come from."""
+
+    def __init__(self, host: str, port: int) -> None:
+        super().__init__((host, port))
+        self._peer: Address | None = None
+
+    def confirm_peer(self, address: Address) -> None:
+        self._peer = address
+
+    def send(self, data: bytes) -> None:
+        if self._peer is not None:  # nothing heard from the autopilot yet: nowhere to send
+            self._sock.sendto(data, self._peer)
+
+
+class UdpOut(_Udp):
+    """``udpout://HOST:PORT``: send there; accept datagrams only from there."""
+
+    def __init__(self, host: str, port: int) -> None:
+        super().__init__(None)
+        self._dest: Address = (socket.gethostbyname(host), port)
+
+    def receive(self) -> tuple[bytes, Address | None]:
+        data, address = super().receive()
+        return (data, address) if address == self._dest else (b"", None)
+
+    def send(self, data: bytes) -> None:
+        self._sock.sendto(data, self._dest)
+
+
+class TcpClient(Transport):
+    """``tcp://HOST:PORT``: connect (ArduPilot SITL serves MAVLink on TCP)."""
+
+    def __init__(self, host: str, port: int) -> None:
+        self._sock = socket.create_connection((host, port), timeout=CONNECT_TIMEOUT_S)
+        self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._sock.setblocking(False)
+
+    def fileno(self) -> int:
+        return self._sock.fileno()
+
+    def receive(self) -> tuple[bytes, Address | None]:
+        try:
+            data = self._sock.recv(UDP_MAX)
+        except BlockingIOError:
+            return b"", None
+        if not data:
+            raise ConnectionError("the autopilot closed the TCP connection")
+        return data, None
+
+    def send(self, data: bytes) -> None:
+        self._sock.sendall(data)
+
+    def close(self) -> None:
+        self._sock.close()
+
+
+class TcpListen(Transport):
+    """``tcpin://HOST:PORT``: accept one autopilot connection at a time."""
+
+    def __init__(self, host: str, port: int) -> None:
+        self._server = socket.create_server((host, port))
+        self._server.setblocking(False)
+        self._client: socket.socket | None = None
+
+    def fileno(self) -> int:
+        return (self._client or self._server).fileno()
+
+    def receive(self) -> tuple[bytes, Address | None]:
+        if self._client is None:
+            try:
+                client, _ = self._server.accept()
+            except BlockingIOError:
+                return b"", None
+            client.setblocking(False)
+            self._client = client
+            return b"", None
+        try:
+            data = self._client.recv(UDP_MAX)
+        except BlockingIOError:
+            return b"", None
+        if not data:
+            self._client.close()
+            self._client = None
+        return data, None
+
+    def send(self, data: bytes) -> None:
+        if self._client is not None:
+            self._client.sendall(data)
+
+    def close(self) -> None:
+        if self._client is not None:
+            self._client.close()
+        self._server.close()
+
+
+class SerialPort(Transport):
+    """``serial:///dev/ttyX:BAUD``: a UART (or a pseudo-terminal) via pyserial."""
+
+    def __init__(self, path: str, baud: int) -> None:
+        import serial  # noqa: PLC0415 - only serial links need pyserial
+
+        self._port = serial.Serial(path, baud, timeout=0, write_timeout=0.5)
+
+    def fileno(self) -> int:
+        return int(self._port.fileno())
+
+    def receive(self) -> tuple[bytes, Address | None]:
+        return bytes(self._port.read(self._port.in_waiting or 1)), None
+
+    def send(self, data: bytes) -> None:
+        self._port.write(data)
+
+    def close(self) -> None:
+        self._port.close()
+
+
+def open_transport(connection: str) -> Transport:
+    """Open the transport an ``AutopilotSpec.connection`` URL names."""
+    device = pymavlink_device(connection)
+    kind, _, rest = device.device.partition(":")
+    host, _, port = rest.rpartition(":")
+    if kind == "udpin":
+        return UdpListen(host, int(port))
+    if kind == "udpout":
+        return UdpOut(host, int(port))
+    if kind == "tcp":
+        return TcpClient(host, int(port))
+    if kind == "tcpin":
+        return TcpListen(host, int(port))
+    return SerialPort(device.device, device.baud)
+
+
+class _Writer:
+    """The file object the pymavlink encoder writes finished frames to."""
+
+    def __init__(self, transport: Transport) -> None:
+        self.transport = transport
+
+    def write(self, data: bytes) -> None:
+        self.transport.send(bytes(data))
 
 
 class AckMailbox:
@@ -113,51 +303,32 @@ class AutopilotLink:
         self._on_change = on_change
         self._clock = clock
         self._write_lock = threading.Lock()
-        self._conn: Any = None
+        self._transport: Transport | None = None
+        self._mav: Any = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
     # -- lifecycle -------------------------------------------------------------------
 
     def start(self) -> None:
-        """Start the reader thread; the connection is opened (and reopened) by it."""
+        """Start the reader thread; the transport is opened (and reopened) by it."""
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name=f"link-{self.name}", daemon=True)
         self._thread.start()
 
     def stop(self) -> None:
-        """Stop the reader and close the connection."""
+        """Stop the reader and close the transport."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=2)
         self._close()
 
-    def wait_open(self, timeout_s: float) -> bool:
-        """Block until the connection is open (tests and startup diagnostics)."""
-        deadline = time.monotonic() + timeout_s
-        while self._conn is None and time.monotonic() < deadline:
-            time.sleep(0.01)
-        return self._conn is not None
-
-    def _open(self) -> Any:
-        device = pymavlink_device(self.spec.connection)
-        # A TCP connection is reopened by this link's own loop, not by pymavlink.
-        extra: dict[str, Any] = {"retries": 0} if device.device.startswith("tcp") else {}
-        return mavutil.mavlink_connection(
-            device.device,
-            baud=device.baud,
-            source_system=self.spec.sysid,
-            source_component=AGENT_COMPONENT_ID,
-            robust_parsing=True,
-            **extra,
-        )
-
     def _close(self) -> None:
         with self._write_lock:
-            conn, self._conn = self._conn, None
-        if conn is not None:
+            transport, self._transport, self._mav = self._transport, None, None
+        if transport is not None:
             try:
-                conn.close()
+                transport.close()
             except OSError:
                 log.debug("closing %s failed", self.name, exc_info=True)
 
@@ -166,55 +337,63 @@ class AutopilotLink:
     def _run(self) -> None:
         while not self._stop.is_set():
             try:
-                conn = self._open()
-            except Exception as exc:  # any failure to open: retry, never kill the agent
+                transport = open_transport(self.spec.connection)
+            except (OSError, ValueError, ImportError) as exc:
                 log.warning("%s: cannot open %s: %s", self.name, self.spec.connection, exc)
                 self._stop.wait(REOPEN_DELAY_S)
                 continue
+            mav = mavlink.MAVLink(
+                _Writer(transport), srcSystem=self.spec.sysid, srcComponent=AGENT_COMPONENT_ID
+            )
+            mav.robust_parsing = True
             with self._write_lock:
-                self._conn = conn
-            self._read_until_broken(conn)
+                self._transport, self._mav = transport, mav
+            self._read_until_broken(transport, mav)
             self._close()
             if not self._stop.is_set():
                 self.counters.reopened += 1
                 self._stop.wait(REOPEN_DELAY_S)
 
-    def _read_until_broken(self, conn: Any) -> None:
-        """Read and dispatch until stopped or the connection is beyond repair."""
+    def _read_until_broken(self, transport: Transport, mav: Any) -> None:
+        """Read and dispatch until stopped or the transport is beyond repair."""
         errors = 0
-        empty_reads = 0
-        is_tcp = str(getattr(conn, "address", "")).startswith("tcp:")
         while not self._stop.is_set():
             try:
-                msg = conn.recv_msg()
-            except Exception:  # the parser or socket choked: count it and go on
+                readable, _, _ = select.select([transport.fileno()], [], [], READ_WAIT_S)
+                if not readable:
+                    continue
+                data, sender = transport.receive()
+                if not data:
+                    continue
+                msg = mav.parse_char(data)
+                while msg is not None:
+                    if self._dispatch(msg) and sender is not None:
+                        transport.confirm_peer(sender)
+                    msg = mav.parse_char(b"")
+            except OSError as exc:  # socket or serial failure (ConnectionError included)
+                log.warning("%s: transport failed (%s); reopening", self.name, exc)
+                return
+            except Exception:  # the parser choked on something: count it and go on
                 self.counters.errors += 1
                 errors += 1
                 if errors >= MAX_CONSECUTIVE_ERRORS:
-                    log.warning("%s: %d read errors in a row; reopening", self.name, errors)
+                    log.warning("%s: %d parse errors in a row; reopening", self.name, errors)
                     return
                 continue
             errors = 0
-            if msg is None:
-                readable = conn.select(READ_WAIT_S)
-                empty_reads = empty_reads + 1 if readable else 0
-                if is_tcp and empty_reads >= TCP_EOF_READS:
-                    return  # readable yet nothing arrives: the peer closed the socket
-                continue
-            empty_reads = 0
-            self._dispatch(msg)
 
-    def _dispatch(self, msg: Any) -> None:
+    def _dispatch(self, msg: Any) -> bool:
+        """Handle one parsed message; True when it came from this autopilot."""
         kind = msg.get_type()
         if kind == "BAD_DATA":
             self.counters.bad += 1
-            return
+            return False
         if (
             msg.get_srcSystem() != self.spec.sysid
             or msg.get_srcComponent() != self.spec.component_id
         ):
             self.counters.foreign += 1
-            return
+            return False
         self.counters.accepted += 1
         now = self._clock()
         if kind == "COMMAND_ACK":
@@ -227,15 +406,16 @@ class AutopilotLink:
                 self.acks.put(int(msg.command), int(msg.result))
         if self.tracker.observe(msg, now):
             self._on_change()
+        return True
 
     # -- writing ---------------------------------------------------------------------
 
     def _send(self, write: Callable[[Any], None]) -> bool:
         with self._write_lock:
-            if self._conn is None:
+            if self._mav is None:
                 return False
             try:
-                write(self._conn.mav)
+                write(self._mav)
             except (OSError, ValueError) as exc:
                 log.debug("%s: write failed: %s", self.name, exc)
                 return False

@@ -31,17 +31,18 @@ import sys
 import threading
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import yaml
 from pydantic import ValidationError
 
 from roost_agent.agent import Agent, restore_state
 from roost_agent.bridge import Bridge, GpioBridge, SimulatedBridge
-from roost_agent.kube import AgentKube
-from roost_agent.publisher import Publisher, PublisherSettings, startup_spec
 from roost_agent.state import STATE_FILE_NAME, StateFile
 from roost_api.autopilot import AutopilotSpec, RedundantAutopilotSpec
+
+if TYPE_CHECKING:
+    from roost_agent.kube import AgentKube
 
 log = logging.getLogger("roost_agent")
 
@@ -119,20 +120,22 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--report-interval",
         type=float,
-        default=PublisherSettings.refresh_s,
-        help="seconds between status reports when nothing changes (cluster)",
+        help="seconds between status reports when nothing changes (cluster; default: "
+        "PublisherSettings.refresh_s)",
     )
     parser.add_argument(
         "--api-retry-max",
         type=float,
-        default=PublisherSettings.retry_max_s,
-        help="longest wait between API retries while the API is unreachable (cluster)",
+        help="longest wait between API retries while the API is unreachable (cluster; "
+        "default: PublisherSettings.retry_max_s)",
     )
     parser.add_argument("--log-level", default="INFO")
     return parser
 
 
 def cluster_client(args: argparse.Namespace) -> AgentKube | None:
+    # The Kubernetes client is imported only in cluster mode: it would add about 18 MB to
+    # the resident memory of a standalone agent.
     """The API client when the agent works with a cluster (see ``--cluster``), else None."""
     if args.cluster == "off":
         return None
@@ -142,6 +145,8 @@ def cluster_client(args: argparse.Namespace) -> AgentKube | None:
         reachable = args.kubeconfig or os.environ.get("KUBERNETES_SERVICE_HOST")
         if standalone or not placed or not (reachable or os.environ.get("KUBECONFIG")):
             return None
+    from roost_agent.kube import AgentKube  # noqa: PLC0415 - cluster mode only
+
     return AgentKube.from_environment(args.kubeconfig)
 
 
@@ -201,6 +206,8 @@ def main(argv: list[str] | None = None) -> int:
         spec, generation = resolve_spec(args, state)
         target = None
     else:
+        from roost_agent.publisher import startup_spec  # noqa: PLC0415 - cluster mode only
+
         spec, generation, target = startup_spec(kube, args.node_name, state)
     restored = restore_state(spec, state.load())
     channel = next(a.bridge_channel for a in spec.autopilots if a.name == restored.active)
@@ -225,7 +232,10 @@ def main(argv: list[str] | None = None) -> int:
     agent.start()
     publisher = None
     if kube is not None:
-        settings = PublisherSettings(refresh_s=args.report_interval, retry_max_s=args.api_retry_max)
+        from roost_agent.publisher import Publisher, PublisherSettings  # noqa: PLC0415
+
+        given = {"refresh_s": args.report_interval, "retry_max_s": args.api_retry_max}
+        settings = PublisherSettings(**{k: v for k, v in given.items() if v is not None})
         publisher = Publisher(
             agent, kube, node_name=args.node_name, target=target, settings=settings
         )
