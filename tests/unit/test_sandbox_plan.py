@@ -20,7 +20,7 @@ from roost_api.autopilot import RedundantAutopilotSpec
 from roost_api.mission import MissionSpec
 from roost_api.resources import KINDS
 from roost_api.vehicle import VehicleSpec
-from roost_cli.sandbox import plan, state
+from roost_cli.sandbox import kwok, plan, state
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -133,3 +133,15 @@ def test_a_sandbox_whose_process_is_gone_is_not_running(tmp_path: Path) -> None:
     # Same pid, different start time: a recycled pid is not our sandbox.
     state.save(state.SandboxState(pid=me.pid, create_time=1.0, directory=str(tmp_path)))
     assert state.running(tmp_path) is None
+
+
+def test_kwok_keeps_the_missions_pods_running_for_the_annotated_runtime() -> None:
+    stages = {stage["metadata"]["name"]: stage["spec"] for stage in kwok.pod_stages()}
+    assert set(stages) == {"roost-pod-ready", "roost-pod-complete", "roost-pod-delete"}
+    assert all(spec["resourceRef"] == {"apiGroup": "v1", "kind": "Pod"} for spec in stages.values())
+    delay = stages["roost-pod-complete"]["delay"]["durationFrom"]["expressionFrom"]
+    onboard = plan.mission_manifest(1)["spec"]["onboard"]["metadata"]["annotations"]
+    assert delay == f'.metadata.annotations["{kwok.RUNTIME_ANNOTATION}"]'
+    assert onboard == {kwok.RUNTIME_ANNOTATION: plan.MISSION_RUNTIME}
+    # Round-trips through YAML as the sandbox writes it for kwok's --config.
+    assert list(yaml.safe_load_all(yaml.safe_dump_all(kwok.pod_stages()))) == kwok.pod_stages()
