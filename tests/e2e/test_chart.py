@@ -28,11 +28,13 @@ import pytest
 import yaml
 
 from roost_api.wellknown import LABEL_NODE, LABEL_VEHICLE, TAINT_VEHICLE
+from roost_harness.agent import AgentProcess
 from roost_harness.binaries import REPO_ROOT
 from roost_harness.chart import install_args
 from roost_harness.cluster import Cluster
 from roost_harness.controlplane import free_port
 from roost_harness.processes import ManagedProcess
+from roost_sim import autopilot_specs, start_vehicle_sims, stop_sims
 
 RELEASE = "chart-e2e"
 NAMESPACE = "roost-chart-e2e"
@@ -56,6 +58,8 @@ NODE_MISSION = "chart-e2e-node-mission"
 MISSION_VEHICLE = "chart-e2e-veh-mission"
 MISSION_NAMESPACE = "roost-chart-e2e-missions"
 MISSION = "chart-e2e-mission"
+NODE_AGENT = "chart-e2e-node-agent"
+AGENT_VEHICLE = "chart-e2e-veh-agent"
 WAIT_S = 60.0
 
 
@@ -463,6 +467,47 @@ def test_real_pod_bound_agent_token_carries_its_node_and_is_scoped_to_it(
         "patch", "vehicle", VEHICLE_A, "--type=merge", "-p", '{"spec":{"sysid":9}}', check=False
     )
     assert spec.returncode != 0 and "forbidden" in spec.stderr.lower()
+
+
+# -- RBAC sufficiency: the agent, run with a token bound to the chart's agent pod ------
+
+
+def test_agent_with_its_pod_bound_token_reports_its_autopilots(
+    installed: Cluster, fake_nodes_module: Callable[..., Any], tmp_path: Path
+) -> None:
+    """The real roost-agent, as the chart runs it but outside the (kwok) pod: NODE_NAME
+    and a token bound to the agent pod on its node. It finds its Vehicle and labelled
+    RedundantAutopilot and writes their health from simulated autopilots over UDP."""
+    taint = {"key": TAINT_VEHICLE, "value": "x", "effect": "NoSchedule"}
+    fake_nodes_module(NODE_AGENT, labels={LABEL_VEHICLE: AGENT_VEHICLE}, taints=[taint])
+    sims = start_vehicle_sims(["px4", "px4"])
+    agent: AgentProcess | None = None
+    try:
+        autopilot = _autopilot(AGENT_VEHICLE, NODE_AGENT)
+        autopilot["spec"]["autopilots"] = [spec.to_api() for spec in autopilot_specs(sims)]
+        autopilot["spec"]["primary"] = sims[0].name
+        _apply(installed, _vehicle(AGENT_VEHICLE, NODE_AGENT, 105), autopilot)
+        _wait_for("the agent pod on its node", lambda: NODE_AGENT in _agent_pods(installed))
+        token_cluster = _bound_token_kubeconfig(
+            installed, _agent_pods(installed)[NODE_AGENT], tmp_path / "agent.kubeconfig"
+        )
+        agent = AgentProcess(token_cluster, NODE_AGENT, tmp_path / "agent")
+        agent.start()
+
+        def reported_healthy() -> bool:
+            status = _get(installed, "redundantautopilot", AGENT_VEHICLE).get("status", {})
+            levels = {a.get("level") for a in status.get("autopilots", [])}
+            return levels == {"OK"} and status.get("nodeName") == NODE_AGENT
+
+        _wait_for("the agent's healthy report", reported_healthy)
+        log = agent.log.read_text()
+        assert f'User "{AGENT_USER}" cannot' not in log, log[-3000:]
+        assert "denied request" not in log, log[-3000:]
+    finally:
+        if agent is not None:
+            agent.stop()
+        stop_sims(sims)
+        installed.kubectl("delete", "redundantautopilot,vehicle", AGENT_VEHICLE, "--wait=false")
 
 
 # -- RBAC sufficiency: the operator, run with the chart's service account --------------
