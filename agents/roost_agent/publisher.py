@@ -50,7 +50,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Protocol
 
 from kubernetes.client.exceptions import ApiException
@@ -58,7 +58,7 @@ from pydantic import ValidationError
 
 from roost_agent.agent import AgentEvent, EventKind
 from roost_agent.kube import AgentKube, ApiUnavailableError, Obj, event_manifest
-from roost_agent.report import Change, change_class
+from roost_agent.report import change_class, write_delay
 from roost_agent.state import StateFile
 from roost_api.autopilot import (
     AutopilotCommand,
@@ -235,7 +235,6 @@ class Counters:
     failures: int = 0
     commands_submitted: int = 0
     specs_applied: int = 0
-    write_times: list[float] = field(default_factory=list)
 
 
 class Publisher:
@@ -376,14 +375,13 @@ class Publisher:
                     )
                 }
             )
-        change = change_class(self._last_written, status)
-        since = now - self._last_write_at
-        due = (
-            change is Change.URGENT
-            or (change is Change.ROUTINE and since >= settings.min_interval_s)
-            or since >= settings.refresh_s
+        delay = write_delay(
+            change_class(self._last_written, status),
+            now - self._last_write_at,
+            min_interval_s=settings.min_interval_s,
+            refresh_s=settings.refresh_s,
         )
-        if due:
+        if delay <= 0:
             try:
                 # With explicit nulls: in a merge patch a missing key means "keep".
                 body = status.model_dump(by_alias=True, mode="json")
@@ -401,14 +399,10 @@ class Publisher:
             self._last_write_at = self._clock()
             self._backoff = 0.0
             self.counters.status_writes += 1
-            self.counters.write_times.append(self._last_write_at)
+            delay = settings.refresh_s
         if not self._post_events(target):
             return self._backoff
-        since = self._clock() - self._last_write_at
-        wait = settings.refresh_s - since
-        if change is Change.ROUTINE and not due:
-            wait = min(wait, settings.min_interval_s - since)
-        return wait
+        return delay
 
     def _post_events(self, target: Target) -> bool:
         """Post queued Events in order; False when the API failed (they stay queued)."""

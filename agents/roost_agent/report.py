@@ -23,11 +23,12 @@ changes, via :func:`roost_api.meta.set_condition`):
     ``ActiveHealthy`` and ``Redundant`` both True; otherwise the first that is not, with
     its status (False or Unknown) and reason.
 
-:func:`change_class` tells the publisher whether a new report must go out at once
-(``URGENT``: the active autopilot, a failover, the latch or a command result changed),
-may wait for the coalescing interval (``ROUTINE``: a health level, a mode, armed or
-landed state changed) or carries nothing new (``NONE``: only ages and numbers inside
-reasons moved — those are refreshed by the periodic report, never on their own).
+:func:`change_class` and :func:`write_delay` tell the publisher whether a new report
+must go out at once (``URGENT``: the active autopilot, a failover, the latch or a
+command result changed), may wait for the coalescing interval (``ROUTINE``: a health
+level, a mode, armed or landed state changed) or carries nothing new (``NONE``: only
+ages and numbers inside reasons moved — those are refreshed by the periodic report,
+never on their own).
 """
 
 from __future__ import annotations
@@ -244,3 +245,18 @@ def change_class(
     ] or before.observed_generation != after.observed_generation:
         return Change.ROUTINE
     return Change.NONE
+
+
+def write_delay(
+    change: Change, since_last_write_s: float, *, min_interval_s: float, refresh_s: float
+) -> float:
+    """Seconds until a report with ``change`` must be written (0: now).
+
+    Urgent changes go at once; routine ones wait until ``min_interval_s`` after the last
+    write (so a burst becomes one write carrying its latest state); with nothing new,
+    the periodic refresh is due ``refresh_s`` after the last write.
+    """
+    if change is Change.URGENT:
+        return 0.0
+    wait = min(min_interval_s, refresh_s) if change is Change.ROUTINE else refresh_s
+    return max(0.0, wait - since_last_write_s)

@@ -7,7 +7,7 @@ from datetime import UTC, datetime, timedelta
 
 import pytest
 
-from roost_agent.report import Change, change_class, conditions, report
+from roost_agent.report import Change, change_class, conditions, report, write_delay
 from roost_api.autopilot import (
     AutopilotHealth,
     CommandResult,
@@ -241,3 +241,29 @@ def test_only_meaningful_changes_are_written_and_the_switch_goes_first(
 
 def test_the_first_report_is_urgent() -> None:
     assert change_class(None, BASE) is Change.URGENT
+
+
+@pytest.mark.parametrize(
+    ("change", "since", "delay"),
+    [
+        (Change.URGENT, 0.0, 0.0),  # a switch never waits for the coalescing interval
+        (Change.ROUTINE, 0.2, 0.8),  # a burst waits: one write carries its latest state
+        (Change.ROUTINE, 1.5, 0.0),
+        (Change.NONE, 0.2, 9.8),  # nothing new: only the periodic refresh
+        (Change.NONE, 12.0, 0.0),
+    ],
+)
+def test_write_delay_decision_table(change: Change, since: float, delay: float) -> None:
+    got = write_delay(change, since, min_interval_s=1.0, refresh_s=10.0)
+    assert got == pytest.approx(delay)
+
+
+def test_a_flapping_health_level_costs_one_write_per_interval() -> None:
+    """Ten health flips within a second: one write now, the next one a second later."""
+    writes, last_write, now = [], float("-inf"), 0.0
+    for flip in range(10):
+        now = flip * 0.1
+        if write_delay(Change.ROUTINE, now - last_write, min_interval_s=1.0, refresh_s=10.0) == 0:
+            writes.append(now)
+            last_write = now
+    assert writes == [0.0]
