@@ -16,10 +16,7 @@ which is where the node name comes from in production.
 from __future__ import annotations
 
 import json
-import os
 import subprocess
-import time
-import urllib.request
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -29,10 +26,9 @@ import yaml
 
 from roost_api.wellknown import LABEL_NODE, LABEL_VEHICLE, TAINT_VEHICLE
 from roost_harness.agent import AgentProcess
-from roost_harness.binaries import REPO_ROOT
 from roost_harness.chart import install_args
 from roost_harness.cluster import Cluster
-from roost_harness.controlplane import free_port
+from roost_harness.operator import OperatorProcess, wait_for
 from roost_harness.processes import ManagedProcess
 from roost_sim import autopilot_specs, start_vehicle_sims, stop_sims
 
@@ -96,12 +92,8 @@ def _apply(cluster: Cluster, *manifests: dict[str, Any]) -> None:
     cluster.kubectl("apply", "-f", "-", input_text=text)
 
 
-def _wait_for(what: str, check: Callable[[], bool], timeout_s: float = WAIT_S) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not check():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s:.0f}s waiting for {what}")
-        time.sleep(0.5)
+def _wait_for(what: str, check: Callable[[], object], timeout_s: float = WAIT_S) -> None:
+    wait_for(what, check, timeout_s)
 
 
 def _get(cluster: Cluster, *args: str) -> dict[str, Any]:
@@ -514,39 +506,22 @@ def test_agent_with_its_pod_bound_token_reports_its_autopilots(
 
 
 @pytest.fixture
-def operator_as_chart_account(
-    installed: Cluster, tmp_path: Path
-) -> Iterator[tuple[ManagedProcess, int]]:
-    """roost-operator started with a token of the chart's operator service account."""
+def operator_as_chart_account(installed: Cluster, tmp_path: Path) -> Iterator[OperatorProcess]:
+    """roost-operator with a token of the chart's operator service account and the chart's
+    peering (not standalone), serving its liveness endpoint."""
     account = installed.as_service_account(NAMESPACE, OPERATOR_SA, tmp_path / "kubeconfig")
-    port = free_port()
-    process = ManagedProcess(
-        "operator",
-        [
-            str(REPO_ROOT / ".venv" / "bin" / "roost-operator"),
-            f"--liveness=http://127.0.0.1:{port}/healthz",
-        ],
+    operator = OperatorProcess(
+        account,
         tmp_path / "operator.log",
+        namespace=NAMESPACE,
+        environment={"ROOST_PEERING": FULLNAME},
+        standalone=False,
     )
-    env = {
-        **os.environ,
-        "KUBECONFIG": str(account.kubeconfig),
-        "ROOST_NAMESPACE": NAMESPACE,
-        "ROOST_PEERING": FULLNAME,
-    }
-    process.launch(env=env, die_with_parent=True)
+    operator.start()
     try:
-        yield process, port
+        yield operator
     finally:
-        process.stop()
-
-
-def _healthz(port: int) -> bool:
-    try:
-        with urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=2) as answer:
-            return bool(answer.status == 200)
-    except OSError:
-        return False
+        operator.stop()
 
 
 def _condition(obj: dict[str, Any], kind: str) -> str | None:
@@ -559,13 +534,12 @@ def _condition(obj: dict[str, Any], kind: str) -> str | None:
 def test_operator_with_the_chart_service_account_reconciles_a_vehicle(
     installed: Cluster,
     fake_nodes_module: Callable[..., Any],
-    operator_as_chart_account: tuple[ManagedProcess, int],
+    operator_as_chart_account: OperatorProcess,
 ) -> None:
-    process, port = operator_as_chart_account
+    process = operator_as_chart_account.process
     fake_nodes_module(NODE_OPERATED)
     _apply(installed, _vehicle(OPERATED_VEHICLE, NODE_OPERATED, 103))
     try:
-        _wait_for("the operator's liveness endpoint", lambda: _healthz(port))
         _wait_for(
             "the node to be labelled by the operator",
             lambda: (
@@ -598,11 +572,11 @@ def _operator_log_is_clean(process: ManagedProcess) -> None:
 def test_operator_with_the_chart_service_account_labels_the_autopilot_and_flies_a_mission(
     installed: Cluster,
     fake_nodes_module: Callable[..., Any],
-    operator_as_chart_account: tuple[ManagedProcess, int],
+    operator_as_chart_account: OperatorProcess,
 ) -> None:
     """A Mission on one vehicle runs to its Job (preflight limited to the operator's own
     conditions, so no agent is needed); every step is a write the chart must allow."""
-    process, _ = operator_as_chart_account
+    process = operator_as_chart_account.process
     fake_nodes_module(NODE_MISSION)
     installed.kubectl("create", "namespace", MISSION_NAMESPACE)
     mission = {

@@ -50,14 +50,17 @@ class OperatorProcess:
         *,
         namespace: str,
         environment: Mapping[str, str] | None = None,
+        standalone: bool = True,
     ) -> None:
+        """``standalone=False`` runs with kopf peering, as the chart does (set the peering
+        name with ``ROOST_PEERING`` in ``environment``; the peering object must exist)."""
         self.cluster = cluster
         self.port = free_port()
         self.process = ManagedProcess(
             "roost-operator",
             [
                 str(REPO_ROOT / ".venv" / "bin" / "roost-operator"),
-                "--standalone",
+                *(["--standalone"] if standalone else []),
                 f"--liveness=http://127.0.0.1:{self.port}/healthz",
             ],
             log,
