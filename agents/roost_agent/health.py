@@ -48,10 +48,13 @@ from roost_mavlink import (
 from roost_mavlink.status import MAV_AUTOPILOT_INVALID, is_airborne, sensor_name
 
 # The any-message age only means "silent" on a link that normally streams several
-# messages inside the warn window; on a heartbeat-only link it would fire every second.
-# The check applies while the smoothed gap between messages is at most warn/FACTOR.
+# messages inside the warn window; on a link with only 1 Hz telemetry it would fire every
+# second. The check applies while the message rate measured over the last completed
+# window brings at least FACTOR messages per warn interval. Counting per window, not
+# averaging gaps, keeps bursts (heartbeat, status and landed state sent together) from
+# looking like a fast stream.
 FAST_STREAM_FACTOR = 4.0
-GAP_SMOOTHING = 0.05  # weight of the newest inter-message gap in the running average
+RATE_WINDOW_S = 1.0
 
 # time_boot_ms may step back a little when UDP reorders packets (jitter); a reboot
 # restarts it near zero. Only a step back larger than this counts as a reboot.
@@ -184,7 +187,9 @@ class _Observed:
 
     first_at: float | None = None
     last_at: float | None = None
-    mean_gap_s: float | None = None
+    window_start: float = 0.0
+    window_count: int = 0
+    stream_rate: float | None = None  # messages/s over the last completed window
     heartbeat_at: float | None = None
     heartbeat_autopilot: int | None = None
     base_mode: int | None = None
@@ -238,16 +243,13 @@ class HealthTracker:
         kind = msg.get_type()
         with self._lock:
             o = self._o
-            if o.last_at is not None:
-                gap = now - o.last_at
-                o.mean_gap_s = (
-                    gap
-                    if o.mean_gap_s is None
-                    else o.mean_gap_s + GAP_SMOOTHING * (gap - o.mean_gap_s)
-                )
-            else:
-                o.first_at = now
+            if o.first_at is None:
+                o.first_at = o.window_start = now
             o.last_at = now
+            o.window_count += 1
+            if now - o.window_start >= RATE_WINDOW_S:
+                o.stream_rate = o.window_count / (now - o.window_start)
+                o.window_start, o.window_count = now, 0
             changed = False
             boot_ms = getattr(msg, "time_boot_ms", None)
             if isinstance(boot_ms, int):
@@ -491,7 +493,8 @@ def _liveness(o: _Observed, th: Thresholds, now: float) -> list[Finding]:
 
 def _fast_stream(o: _Observed, th: Thresholds) -> bool:
     return (
-        o.mean_gap_s is not None and o.mean_gap_s * 1000 * FAST_STREAM_FACTOR <= th.message_warn_ms
+        o.stream_rate is not None
+        and o.stream_rate * th.message_warn_ms / 1000 >= FAST_STREAM_FACTOR
     )
 
 

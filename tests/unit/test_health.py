@@ -141,6 +141,19 @@ def test_heartbeat_only_link_is_judged_by_heartbeat_age_alone() -> None:
     assert lost.failing and "heartbeat-lost" in failing_codes(lost)
 
 
+def test_one_hertz_bursts_are_not_a_fast_stream() -> None:
+    """HEARTBEAT, SYS_STATUS and EXTENDED_SYS_STATE arriving together once a second must
+    not make the any-message age apply (it would call the link silent every second)."""
+    v = Vehicle()
+    for _ in range(6):
+        v.heartbeat()
+        v.sys_status()
+        v.landed()
+        v.t += 1.0
+    v.t -= 1.0
+    assert v.at(0.9).level == OK
+
+
 def test_frozen_telemetry_is_an_error_although_messages_keep_coming() -> None:
     v = Vehicle()
     v.fly(1.0)
@@ -325,7 +338,7 @@ def test_observe_reports_only_changes_that_matter_to_the_arbiter() -> None:
 def test_thresholds_come_from_the_spec() -> None:
     tight = Thresholds(message_warn_ms=100, message_error_ms=200)
     v = Vehicle(thresholds=tight)
-    v.fly(1.0)
+    v.fly(1.5)
     assert v.at(0.22).level == ERROR
     v.tracker.set_thresholds(Thresholds())
     assert v.at(0.22).level == WARN
