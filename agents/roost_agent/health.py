@@ -38,6 +38,7 @@ from roost_mavlink import (
     MAV_MODE_FLAG_SAFETY_ARMED,
     LandedState,
     MavState,
+    SensorReport,
     classify_sensors,
     is_manual_mode,
     landed_state_name,
@@ -200,6 +201,8 @@ class _Observed:
     landed_state: int | None = None
     sensors_enabled: int | None = None
     sensors_health: int | None = None
+    sensors: SensorReport | None = None  # classified once per change, not per assessment
+    unhealthy_names: tuple[str, ...] = ()
     critical_since: dict[int, float] = field(default_factory=dict)
     boot_ms_max: int | None = None
     boot_advanced_at: float | None = None
@@ -286,7 +289,8 @@ class HealthTracker:
         o.reboot_at = now
         o.reboot_reason = reason
         o.was_up = False
-        o.sensors_enabled = o.sensors_health = None  # re-judged from the next SYS_STATUS
+        o.sensors_enabled = o.sensors_health = o.sensors = None  # re-judged from the next one
+        o.unhealthy_names = ()
         o.critical_since.clear()
         o.disarmed_in_air_at = None
 
@@ -322,8 +326,11 @@ class HealthTracker:
         changed = (enabled, health) != (o.sensors_enabled, o.sensors_health)
         o.sensors_enabled, o.sensors_health = enabled, health
         if changed:
-            critical = {int(b) for b in classify_sensors(enabled, health).critical}
-            o.critical_since = {b: o.critical_since.get(b, now) for b in critical}
+            o.sensors = classify_sensors(enabled, health)
+            o.unhealthy_names = tuple(sensor_name(b) for b in o.sensors.unhealthy)
+            o.critical_since = {
+                int(b): o.critical_since.get(int(b), now) for b in o.sensors.critical
+            }
         return changed
 
     def _observe_landed_state(self, landed: int, now: float) -> bool:
@@ -359,10 +366,6 @@ class HealthTracker:
         with self._lock:
             o = self._o
             findings = _findings(o, self.stack, self.thresholds, now)
-            unhealthy: tuple[str, ...] = ()
-            if o.sensors_enabled is not None and o.sensors_health is not None:
-                report = classify_sensors(o.sensors_enabled, o.sensors_health)
-                unhealthy = tuple(sensor_name(b) for b in report.unhealthy)
             level = max((f.level for f in findings), key=lambda lv: lv.rank, default=HealthLevel.OK)
             return Assessment(
                 name=self.name,
@@ -378,7 +381,7 @@ class HealthTracker:
                 else bool(o.base_mode & MAV_MODE_FLAG_SAFETY_ARMED),
                 landed_state=o.landed_state,
                 system_status=o.system_status,
-                unhealthy_sensors=unhealthy,
+                unhealthy_sensors=o.unhealthy_names,
             )
 
     def heartbeat(self) -> tuple[int, int, float] | None:
@@ -505,10 +508,10 @@ def _reboot(o: _Observed, now: float) -> list[Finding]:
 
 
 def _sensors(o: _Observed, th: Thresholds, now: float) -> list[Finding]:
-    if o.sensors_enabled is None or o.sensors_health is None:
+    report = o.sensors
+    if report is None:
         return []
     found: list[Finding] = []
-    report = classify_sensors(o.sensors_enabled, o.sensors_health)
     for bit in report.critical:
         since = o.critical_since.get(int(bit), now)
         lasted_ms = (now - since) * 1000

@@ -1,0 +1,507 @@
+"""Node-agent benchmarks: failover latency, link-loss detection next to MAVSDK and
+MAVProxy, false failovers under loss and jitter, CPU time and resident memory.
+
+How it measures: the simulated autopilots (``roost_sim``) run in this process and the
+agent runs as its own process (``roost-agent``, standalone, simulated bridge), as on a
+vehicle. The agent prints every failover as a JSON line that carries CLOCK_MONOTONIC
+timestamps (``time.monotonic()`` is that clock in every process on one host), so a fault
+onset taken here when the fault is injected and the bridge switch taken there are
+compared directly. Commands (ClearLatch, Switch) reach the agent the standalone way: a
+new ``command`` in its config file and SIGHUP.
+
+Knobs (environment): ``ROOST_BENCH_FAILOVERS`` (failovers for the latency figures,
+default 100), ``ROOST_BENCH_HEARTBEAT_FAILOVERS`` (default 12), ``ROOST_BENCH_PEER_SAMPLES``
+(default 3), ``ROOST_BENCH_CPU_S`` (default 30), ``ROOST_BENCH_SOAK_S`` (healthy flight
+under 5 % loss and 50 ms jitter, default 600: the committed figure must come from 600).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import queue
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import IO, Any
+
+import psutil
+import yaml
+
+from bench.core import Figure
+from roost_api.autopilot import (
+    AutopilotCommand,
+    FailoverPolicy,
+    FinalAction,
+    RedundantAutopilotSpec,
+    SafetyRoutine,
+    Thresholds,
+)
+from roost_sim import (
+    FaultKind,
+    SimulatedAutopilot,
+    autopilot_specs,
+    message_id,
+    start_vehicle_sims,
+    stop_sims,
+)
+
+FAILOVERS = int(os.environ.get("ROOST_BENCH_FAILOVERS", "100"))
+HEARTBEAT_FAILOVERS = int(os.environ.get("ROOST_BENCH_HEARTBEAT_FAILOVERS", "12"))
+PEER_SAMPLES = int(os.environ.get("ROOST_BENCH_PEER_SAMPLES", "3"))
+CPU_S = float(os.environ.get("ROOST_BENCH_CPU_S", "30"))
+SOAK_S = float(os.environ.get("ROOST_BENCH_SOAK_S", "600"))
+COMMAND = "make bench (python -m bench agent)"
+
+# Tuned for 50 Hz telemetry: silent after 200 ms (10 missed ATTITUDE samples), confirm
+# 20 ms. The false-failover soak runs with the same thresholds, which is what makes them
+# defensible.
+FAST = Thresholds(message_warn_ms=100, message_error_ms=200, confirm_ms=20, clear_ms=300)
+HEARTBEAT_ONLY_RATES = {
+    message_id(name): rate
+    for name, rate in {
+        "ATTITUDE": 0.0,
+        "GLOBAL_POSITION_INT": 0.0,
+        "SYSTEM_TIME": 0.0,
+        "GPS_RAW_INT": 0.0,
+        "HOME_POSITION": 0.0,
+        "SYS_STATUS": 1.0,
+        "EXTENDED_SYS_STATE": 1.0,
+    }.items()
+}
+# PX4's onboard mode streams 400-500 messages/s. The sim has fewer message types, so the
+# rate is reached with faster ATTITUDE and GLOBAL_POSITION_INT (about 470 msg/s per link).
+PX4_ONBOARD_RATES = {message_id("ATTITUDE"): 300.0, message_id("GLOBAL_POSITION_INT"): 150.0}
+
+
+def percentile(values: list[float], q: float) -> float:
+    """Nearest-rank percentile (q in 0..100)."""
+    ordered = sorted(values)
+    return ordered[max(0, math.ceil(q / 100 * len(ordered)) - 1)]
+
+
+class AgentProcess:
+    """``roost-agent`` in its own process; JSON lines are read on a thread."""
+
+    def __init__(
+        self, workdir: Path, spec: RedundantAutopilotSpec, status_interval_s: float = 0.25
+    ) -> None:
+        self.workdir = workdir
+        self.config = workdir / "redundantautopilot.yaml"
+        self.spec = spec
+        self._write_config(None)
+        exe = Path(sys.executable).with_name("roost-agent")
+        self._stderr = (workdir / "agent.log").open("w")
+        self.proc = subprocess.Popen(
+            [
+                str(exe),
+                "--config",
+                str(self.config),
+                "--state-dir",
+                str(workdir / "state"),
+                "--cluster",
+                "off",
+                "--status-interval",
+                str(status_interval_s),
+                "--log-level",
+                "WARNING",
+            ],
+            stdout=subprocess.PIPE,
+            stderr=self._stderr,
+            text=True,
+        )
+        self.events: queue.Queue[dict[str, Any]] = queue.Queue()
+        self.status: dict[str, Any] = {}
+        self.links: dict[str, dict[str, int]] = {}
+        self._commands = 0
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _write_config(self, command: AutopilotCommand | None) -> None:
+        spec = self.spec.model_copy(update={"command": command})
+        self.config.write_text(yaml.safe_dump({"spec": spec.to_api()}))
+
+    def _read(self) -> None:
+        out: IO[str] | None = self.proc.stdout
+        assert out is not None
+        for line in out:
+            doc = json.loads(line)
+            if "status" in doc:
+                self.status, self.links = doc["status"], doc.get("links", {})
+            else:
+                self.events.put(doc)
+
+    def wait_event(
+        self, predicate: Callable[[dict[str, Any]], bool], timeout: float
+    ) -> dict[str, Any]:
+        deadline = time.monotonic() + timeout
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise TimeoutError("no matching agent event")
+            try:
+                doc = self.events.get(timeout=remaining)
+            except queue.Empty:
+                continue
+            if predicate(doc):
+                return doc
+
+    def drain(self) -> list[dict[str, Any]]:
+        seen = []
+        while True:
+            try:
+                seen.append(self.events.get_nowait())
+            except queue.Empty:
+                return seen
+
+    def command(self, action: str, target: str | None = None) -> dict[str, Any]:
+        """Execute a command through the config file and SIGHUP; returns its result."""
+        self._commands += 1
+        cid = f"bench-{self._commands}"
+        issued = datetime.now(UTC)
+        self._write_config(AutopilotCommand(id=cid, action=action, target=target, issued_at=issued))
+        self.proc.send_signal(signal.SIGHUP)
+        doc = self.wait_event(lambda d: d.get("command", {}).get("id") == cid, 10)
+        return dict(doc["command"])
+
+    def levels(self) -> dict[str, str]:
+        return {a["name"]: a["level"] for a in self.status.get("autopilots", [])}
+
+    def wait_ok(self, names: list[str], timeout: float = 15.0) -> None:
+        deadline = time.monotonic() + timeout
+        while not all(self.levels().get(n) == "OK" for n in names):
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"not OK: {self.levels()}")
+            time.sleep(0.05)
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._stderr.close()
+
+
+def take_off(sims: list[SimulatedAutopilot]) -> None:
+    for sim in sims:
+        sim.wait_until(lambda s: s.system_status != "BOOT", timeout=5)
+    for sim in sims:
+        sim.fly()
+    for sim in sims:
+        sim.wait_until(lambda s: s.landed_state == "InAir" and s.altitude_m > 2.0, timeout=15)
+
+
+@contextmanager
+def vehicle(
+    thresholds: Thresholds, rates: dict[int, float] | None = None, status_interval_s: float = 0.25
+) -> Iterator[tuple[list[SimulatedAutopilot], AgentProcess]]:
+    """Two flying PX4 sims and an agent watching them, standbys ready."""
+    sims = start_vehicle_sims(["px4", "px4"], rates=rates)
+    agent: AgentProcess | None = None
+    with tempfile.TemporaryDirectory(prefix="roost-bench-agent-") as tmp:
+        try:
+            spec = RedundantAutopilotSpec(
+                vehicle_name="bench",
+                autopilots=autopilot_specs(sims),
+                primary="fc1",
+                failover_policy=FailoverPolicy(
+                    thresholds=thresholds,
+                    safety_routine=SafetyRoutine(hold_seconds=0, final_action=FinalAction.HOLD),
+                ),
+            )
+            agent = AgentProcess(Path(tmp), spec, status_interval_s)
+            take_off(sims)
+            agent.wait_ok(["fc1", "fc2"])
+            time.sleep(thresholds.clear_ms / 1000 + 0.2)
+            yield sims, agent
+        finally:
+            if agent is not None:
+                agent.stop()
+            stop_sims(sims)
+
+
+def _by_name(sims: list[SimulatedAutopilot]) -> dict[str, SimulatedAutopilot]:
+    return {s.name: s for s in sims}
+
+
+def _recover(agent: AgentProcess, sim: SimulatedAutopilot, thresholds: Thresholds) -> None:
+    """Clear the fault, unlatch, and wait until the failed autopilot is a target again."""
+    sim.clear()
+    assert agent.command("ClearLatch")["result"] == "Executed"
+    agent.wait_ok([sim.name])
+    time.sleep(thresholds.clear_ms / 1000 + 0.1)
+
+
+def failover_cycles() -> tuple[list[float], list[float]]:
+    """Alternating faults on whichever autopilot is active: detection->switch for all,
+    onset->switch for the silent ones."""
+    detect_ms: list[float] = []
+    silent_ms: list[float] = []
+    faults = [
+        (FaultKind.SILENCE, None),
+        (FaultKind.STATE, "EMERGENCY"),
+        (FaultKind.SILENCE, None),
+        (FaultKind.SENSOR, "gyro"),
+    ]
+    with vehicle(FAST) as (sims, agent):
+        by_name, active = _by_name(sims), "fc1"
+        for i in range(FAILOVERS):
+            kind, value = faults[i % len(faults)]
+            onset = time.monotonic()
+            by_name[active].inject(kind, value)
+            event = agent.wait_event(lambda d: d.get("event") == "Failover", 10)
+            detect_ms.append(float(event["latencyMs"]))
+            if kind is FaultKind.SILENCE:
+                silent_ms.append((event["monotonic"]["switchedAt"] - onset) * 1000)
+            _recover(agent, by_name[active], FAST)
+            active = event["failover"]["to"]
+    return detect_ms, silent_ms
+
+
+def heartbeat_only_cycles() -> list[float]:
+    """Silent autopilot that streams nothing faster than 1 Hz, default thresholds."""
+    onset_ms: list[float] = []
+    defaults = Thresholds()
+    with vehicle(defaults, HEARTBEAT_ONLY_RATES) as (sims, agent):
+        by_name, active = _by_name(sims), "fc1"
+        for _ in range(HEARTBEAT_FAILOVERS):
+            onset = time.monotonic()
+            by_name[active].inject(FaultKind.SILENCE)
+            event = agent.wait_event(lambda d: d.get("event") == "Failover", 15)
+            onset_ms.append((event["monotonic"]["switchedAt"] - onset) * 1000)
+            _recover(agent, by_name[active], defaults)
+            active = event["failover"]["to"]
+    return onset_ms
+
+
+class MavproxyWatch:
+    """MAVProxy on the autopilot's UDP port; reports when it says the link is down/OK."""
+
+    def __init__(self, host: str, port: int, workdir: Path) -> None:
+        exe = Path(sys.executable).with_name("mavproxy.py")
+        self.proc = subprocess.Popen(
+            [str(exe), f"--master=udpout:{host}:{port}", "--daemon", "--non-interactive"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            cwd=workdir,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
+        self.lines: queue.Queue[tuple[float, str]] = queue.Queue()
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.put((time.monotonic(), line.strip()))
+
+    def wait_for(self, text: str, timeout: float) -> float:
+        deadline = time.monotonic() + timeout
+        while True:
+            at, line = self.lines.get(timeout=max(0.01, deadline - time.monotonic()))
+            if text in line:
+                return at
+
+    def stop(self) -> None:
+        self.proc.terminate()
+        try:
+            self.proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+
+
+def peer_link_lost() -> tuple[list[float], list[float], list[float]]:
+    """One silent autopilot watched at once by the agent, MAVSDK and MAVProxy."""
+    from mavsdk import ComponentType, Configuration, Mavsdk  # noqa: PLC0415 - bench only
+
+    agent_ms: list[float] = []
+    mavsdk_ms: list[float] = []
+    mavproxy_ms: list[float] = []
+    with vehicle(FAST) as (sims, agent), tempfile.TemporaryDirectory() as tmp:
+        fc1 = _by_name(sims)["fc1"]
+        host, port = fc1.link.local_address  # type: ignore[attr-defined]
+        mavsdk = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
+        mavproxy = MavproxyWatch(host, port, Path(tmp))
+        try:
+            mavsdk.add_any_connection(f"udpout://{host}:{port}")
+            system = mavsdk.first_autopilot(10.0)
+            assert system is not None
+            changes: queue.Queue[tuple[float, bool]] = queue.Queue()
+            handle = system.subscribe_is_connected(
+                lambda connected, _: changes.put((time.monotonic(), bool(connected)))
+            )
+            mavproxy.wait_for("online system", 20)
+            for _ in range(PEER_SAMPLES):
+                while not system.is_connected():
+                    time.sleep(0.05)
+                time.sleep(1.0)
+                _ = [changes.get_nowait() for _ in range(changes.qsize())]
+                onset = time.monotonic()
+                fc1.inject(FaultKind.SILENCE)
+                event = agent.wait_event(lambda d: d.get("event") == "Failover", 10)
+                agent_ms.append((event["monotonic"]["switchedAt"] - onset) * 1000)
+                lost_at, connected = changes.get(timeout=20)
+                assert not connected
+                mavsdk_ms.append((lost_at - onset) * 1000)
+                mavproxy_ms.append((mavproxy.wait_for("link 1 down", 20) - onset) * 1000)
+                _recover(agent, fc1, FAST)
+                mavproxy.wait_for("link 1 OK", 20)
+                assert agent.command("Switch", "fc1")["result"] == "Executed"
+            system.unsubscribe_is_connected(handle)
+        finally:
+            mavproxy.stop()
+            mavsdk.destroy()
+    return agent_ms, mavsdk_ms, mavproxy_ms
+
+
+def cpu_and_memory() -> tuple[float, float, float]:
+    """(CPU ms per 10k messages, peak RSS MB, messages/s) at PX4 onboard stream rates."""
+    with vehicle(Thresholds(), PX4_ONBOARD_RATES, status_interval_s=1.0) as (_, agent):
+        proc = psutil.Process(agent.proc.pid)
+        time.sleep(2.0)
+
+        def messages() -> int:
+            return sum(c["accepted"] + c["foreign"] + c["bad"] for c in agent.links.values())
+
+        cpu0, msgs0, t0 = sum(proc.cpu_times()[:2]), messages(), time.monotonic()
+        peak = 0.0
+        while time.monotonic() - t0 < CPU_S:
+            peak = max(peak, proc.memory_info().rss / 1e6)
+            time.sleep(0.5)
+        cpu1, msgs1, t1 = sum(proc.cpu_times()[:2]), messages(), time.monotonic()
+        count = msgs1 - msgs0
+        return (cpu1 - cpu0) * 1000 / count * 10_000, peak, count / (t1 - t0)
+
+
+def false_failovers() -> tuple[int, int, int]:
+    """(failovers, ERROR judgements, messages) in SOAK_S of healthy flight with 5 % loss
+    and 50 ms jitter on every autopilot link."""
+    with vehicle(FAST) as (sims, agent):
+        for sim in sims:
+            sim.inject(FaultKind.LOSS, 5)
+            sim.inject(FaultKind.JITTER, 50)
+        start = sum(c["accepted"] for c in agent.links.values())
+        agent.drain()
+        time.sleep(SOAK_S)
+        seen = agent.drain()
+        received = sum(c["accepted"] for c in agent.links.values()) - start
+    failovers = sum(1 for d in seen if d.get("event") == "Failover")
+    errors = sum(
+        1
+        for d in seen
+        if d.get("event") == "HealthChanged"
+        and d["health"]["level"] != "OK"
+        and d["health"]["level"] != "WARN"
+    )
+    return failovers, errors, received
+
+
+def run() -> list[Figure]:
+    cpu_ms, rss_mb, rate = cpu_and_memory()
+    detect, silent = failover_cycles()
+    heartbeat = heartbeat_only_cycles()
+    agent_ms, mavsdk_ms, mavproxy_ms = peer_link_lost()
+    soak_failovers, soak_errors, soak_msgs = false_failovers()
+    fast = (
+        f"thresholds message warn/error {FAST.message_warn_ms}/{FAST.message_error_ms} ms, "
+        f"confirm {FAST.confirm_ms} ms"
+    )
+    return [
+        Figure(
+            "failover.detect_to_switch_p50_ms",
+            round(percentile(detect, 50), 3),
+            "ms",
+            "",
+            COMMAND,
+            f"{len(detect)} failovers (silence, MAV_STATE EMERGENCY, gyro); from the start of "
+            "the decision tick that saw the confirmed failure to the bridge write returning "
+            "(simulated bridge); thesis: 20 ms",
+        ),
+        Figure(
+            "failover.detect_to_switch_p99_ms",
+            round(percentile(detect, 99), 3),
+            "ms",
+            "<= 5",
+            COMMAND,
+            f"{len(detect)} failovers; max {max(detect):.3f} ms",
+        ),
+        Figure(
+            "failover.silent_onset_to_switch_p99_ms",
+            round(percentile(silent, 99), 1),
+            "ms",
+            "<= 250",
+            COMMAND,
+            f"{len(silent)} silent autopilots streaming ATTITUDE at 50 Hz; {fast}; "
+            f"median {statistics.median(silent):.0f} ms",
+        ),
+        Figure(
+            "failover.heartbeat_only_onset_to_switch_p99_ms",
+            round(percentile(heartbeat, 99), 1),
+            "ms",
+            "<= 3500",
+            COMMAND,
+            f"{len(heartbeat)} silent autopilots sending only 1 Hz HEARTBEAT, SYS_STATUS, "
+            f"EXTENDED_SYS_STATE; default thresholds (heartbeat error 3 s); p99 of "
+            f"{len(heartbeat)} is their maximum; median {statistics.median(heartbeat):.0f} ms",
+        ),
+        Figure(
+            "peer.mavsdk_link_lost_ms",
+            round(statistics.median(mavsdk_ms), 1),
+            "ms",
+            "",
+            COMMAND,
+            f"median of {len(mavsdk_ms)}: MAVSDK 4.1.0 is_connected -> false after the same "
+            f"silent onsets where the agent switched after a median "
+            f"{statistics.median(agent_ms):.0f} ms ({fast})",
+        ),
+        Figure(
+            "peer.mavproxy_link_lost_ms",
+            round(statistics.median(mavproxy_ms), 1),
+            "ms",
+            "",
+            COMMAND,
+            f"median of {len(mavproxy_ms)}: MAVProxy prints 'link 1 down' (5 s timeout) after "
+            "the same silent onsets",
+        ),
+        Figure(
+            "failover.false_failovers_10min",
+            float(soak_failovers),
+            "count",
+            "== 0",
+            f"ROOST_BENCH_SOAK_S={SOAK_S:.0f} {COMMAND}",
+            f"{SOAK_S:.0f} s of healthy flight, two PX4 sims, 5 % loss and 50 ms jitter on "
+            f"every link, {fast}; {soak_msgs} messages accepted; {soak_errors} ERROR "
+            "judgements",
+        ),
+        Figure(
+            "agent.cpu_ms_per_10k_msgs",
+            round(cpu_ms, 1),
+            "ms",
+            "",
+            COMMAND,
+            f"roost-agent process user+system CPU over {CPU_S:.0f} s at {rate:.0f} msg/s (two "
+            "sims at PX4 onboard-like rates), including its 100 Hz decision loop and a status "
+            "line per second",
+        ),
+        Figure(
+            "agent.rss_mb",
+            round(rss_mb, 1),
+            "MB",
+            "<= 40",
+            COMMAND,
+            "peak RSS of the standalone roost-agent process with two autopilots at "
+            f"{rate:.0f} msg/s; the Kubernetes client (cluster mode) adds about 18 MB",
+        ),
+    ]
