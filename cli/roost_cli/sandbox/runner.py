@@ -111,9 +111,9 @@ class Sandbox:
         try:
             self._save()
             self._up()
+            self._announce()
             self.state.phase = state.Phase.RUNNING
             self._save()
-            self._announce()
             self._direct()
             self._watch()
         except KeyboardInterrupt:
