@@ -184,13 +184,14 @@ def rig(
             roost_crds.kubectl("apply", "-f", "-", input_text=json.dumps(manifest))
         agent.start()
         result = Rig(name, node, sims, agent, kube)
-        until(
-            f"Vehicle {name} Ready with its agent reporting",
-            lambda: (
-                conditions(result.vehicle_status()).get("Ready", ("",))[0] == "True"
-                and result.mavros_on(0)
-            ),
-        )
+
+        def reporting() -> bool:
+            got = conditions(result.vehicle_status())
+            ready = got.get("Ready", ("",))[0] == "True"
+            connected = got.get("AgentConnected", ("",))[0] == "True"
+            return ready and connected and result.mavros_on(0)
+
+        until(f"Vehicle {name} Ready with its agent reporting", reporting)
         yield result
     finally:
         agent.stop()
