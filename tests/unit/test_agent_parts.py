@@ -5,6 +5,8 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from datetime import UTC, datetime
@@ -210,3 +212,14 @@ def test_udp_listener_replies_only_to_the_confirmed_autopilot_address() -> None:
     finally:
         for t in (listener, autopilot, spoofer):
             t.close()
+
+
+def test_standalone_agent_imports_neither_kopf_nor_heavy_clients() -> None:
+    """The agent must not import kopf; standalone it also skips the Kubernetes client and
+    numpy (pulled in by pymavlink's mavutil), which would cost tens of MB on a vehicle."""
+    probe = (
+        "import sys, roost_agent.main, roost_agent.agent; "
+        "print(sorted(m for m in ('kopf', 'kubernetes', 'numpy') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
