@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import socket
 import subprocess
 import sys
 import time
@@ -16,10 +17,13 @@ import pytest
 
 from roost_agent.agent import restore_state
 from roost_agent.bridge import BridgeError, GpioBridge, SimulatedBridge
-from roost_agent.links import AckMailbox, UdpListen, UdpOut, open_transport
+from roost_agent.health import HealthTracker
+from roost_agent.links import AckMailbox, AutopilotLink, UdpListen, UdpOut, open_transport
 from roost_agent.main import load_spec, parse_autopilot
 from roost_agent.state import PersistedState, StateFile
-from roost_api.autopilot import CommandResult, RedundantAutopilotSpec
+from roost_api.autopilot import CommandResult, RedundantAutopilotSpec, Thresholds
+from roost_api.meta import Stack
+from roost_mavlink import AGENT_COMPONENT_ID
 from roost_sim import free_udp_port
 
 SPEC = RedundantAutopilotSpec.model_validate(
@@ -223,3 +227,41 @@ def test_standalone_agent_imports_neither_kopf_nor_heavy_clients() -> None:
     )
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_tcp_link_reads_only_its_autopilot_answers_as_191_and_reconnects() -> None:
+    """A real TCP MAVLink peer (ArduPilot SITL serves TCP): frames from the autopilot
+    count, a foreign sysid does not, the agent's own heartbeat goes out as component 191,
+    and a closed connection is reopened."""
+    from pymavlink.dialects.v20 import common  # noqa: PLC0415
+
+    server = socket.create_server(("127.0.0.1", 0))
+    port = server.getsockname()[1]
+    spec = SPEC.autopilots[0].model_copy(update={"connection": f"tcp://127.0.0.1:{port}"})
+    link = AutopilotLink(spec, HealthTracker("fc1", Stack.PX4, Thresholds()))
+    link.start()
+    try:
+        conn, _ = server.accept()
+        autopilot = common.MAVLink(None, srcSystem=1, srcComponent=1)
+        foreign = common.MAVLink(None, srcSystem=99, srcComponent=1)
+        for mav in (autopilot, foreign):
+            conn.sendall(mav.heartbeat_encode(2, 12, 129, 0x03040000, 4).pack(mav))
+        deadline = time.monotonic() + 5
+        while link.counters.accepted < 1 or link.counters.foreign < 1:
+            assert time.monotonic() < deadline, link.counters
+            time.sleep(0.01)
+        assert link.heartbeat() is not None and link.heartbeat()[0] == 0x03040000  # type: ignore[index]
+        assert link.send_heartbeat()
+        parser = common.MAVLink(None)
+        conn.settimeout(5)
+        msgs = parser.parse_buffer(conn.recv(1024)) or []
+        assert [(m.get_type(), m.get_srcSystem(), m.get_srcComponent()) for m in msgs] == [
+            ("HEARTBEAT", 1, AGENT_COMPONENT_ID)
+        ]
+        conn.close()
+        again, _ = server.accept()  # the link noticed and connected again
+        again.close()
+        assert link.counters.reopened >= 1
+    finally:
+        link.stop()
+        server.close()
