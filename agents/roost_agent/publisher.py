@@ -51,7 +51,7 @@ from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 from kubernetes.client.exceptions import ApiException
 from pydantic import ValidationError
@@ -225,6 +225,19 @@ def carry_transitions(
     return [c for c in result if c.type in kept]
 
 
+def merge_patch_body(status: RedundantAutopilotStatus) -> dict[str, Any]:
+    """The whole status as a JSON merge patch that leaves nothing stale behind.
+
+    A missing key means "keep" in a merge patch, so emptied fields go as explicit nulls,
+    and so do emptied members of object fields (``lastFailover.safetyRoutine``); lists
+    are replaced whole and go without nulls (the rule of the operator's Vehicle status
+    writes, :func:`roost_operator.vehicles.status.status_patch`).
+    """
+    compact = status.to_api()
+    full = status.model_dump(by_alias=True, mode="json")
+    return {k: v if isinstance(v, dict) else compact.get(k) for k, v in full.items()}
+
+
 @dataclass
 class Counters:
     """What the publisher did; read by tests and benchmarks."""
@@ -383,9 +396,7 @@ class Publisher:
         )
         if delay <= 0:
             try:
-                # With explicit nulls: in a merge patch a missing key means "keep".
-                body = status.model_dump(by_alias=True, mode="json")
-                self._kube.patch_autopilot_status(target.name, body)
+                self._kube.patch_autopilot_status(target.name, merge_patch_body(status))
             except ApiUnavailableError as exc:
                 return self._failed("status write", exc)
             except ApiException as exc:

@@ -7,8 +7,9 @@ from datetime import UTC, datetime, timedelta
 
 from roost_agent.agent import EventKind
 from roost_agent.kube import event_manifest
-from roost_agent.publisher import POSTED_KINDS, carry_transitions
-from roost_api.meta import Condition
+from roost_agent.publisher import POSTED_KINDS, carry_transitions, merge_patch_body
+from roost_api.autopilot import AutopilotHealth, FailoverRecord, RedundantAutopilotStatus
+from roost_api.meta import Condition, HealthLevel
 
 T0 = datetime(2026, 5, 1, 12, 0, 0, tzinfo=UTC)
 LATER = T0 + timedelta(minutes=5)
@@ -48,3 +49,26 @@ def test_health_changes_are_never_posted_as_events() -> None:
     """Under a flapping link they would be a storm; conditions carry them instead."""
     assert EventKind.HEALTH not in POSTED_KINDS
     assert EventKind.FAILOVER in POSTED_KINDS and EventKind.COMMAND in POSTED_KINDS
+
+
+def test_the_status_patch_removes_what_the_agent_no_longer_reports() -> None:
+    status = RedundantAutopilotStatus(
+        active_autopilot="fc2",
+        autopilots=[AutopilotHealth(name="fc1", level=HealthLevel.STALE)],
+        last_failover=FailoverRecord.model_validate(
+            {
+                "time": T0,
+                "from": "fc1",
+                "to": "fc2",
+                "reason": "r",
+                "latencyMs": 1.0,
+                "trigger": "Automatic",
+            }
+        ),
+    )
+    body = merge_patch_body(status)
+    assert body["lastCommand"] is None  # top-level: null deletes it
+    assert body["lastFailover"]["safetyRoutine"] is None  # object member: null deletes it
+    assert body["autopilots"] == [
+        {"name": "fc1", "level": "STALE", "reasons": [], "unhealthySensors": []}
+    ]  # list items: no nulls

@@ -31,7 +31,7 @@ import threading
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
-from typing import Any, Final
+from typing import Final
 
 from roost_api.autopilot import RedundantAutopilotSpec, RedundantAutopilotStatus
 from roost_api.meta import Condition, now, set_condition
@@ -50,17 +50,15 @@ from roost_operator.kube import (
     Obj,
 )
 from roost_operator.vehicles.config import config_map_name
-from roost_operator.vehicles.desired import (
-    ready_condition,
-    transitions,
-    workload_name,
-)
+from roost_operator.vehicles.desired import ready_condition, workload_name
+from roost_operator.vehicles.status import write_vehicle_status
 
 log = logging.getLogger(__name__)
 
 CONFLICT_RETRIES: Final = 5
 MINE: Final = (VehicleConditionType.AGENT_CONNECTED, VehicleConditionType.AUTOPILOTS_HEALTHY)
 EVENT_TYPES: Final = (*MINE, VehicleConditionType.READY)
+OWNED: Final = ("conditions", "activeAutopilot", "fcuUrl", "failover")
 
 
 class ActionLedger:
@@ -159,19 +157,6 @@ def _without_mine(
         observed_generation=generation,
         at=at,
     )
-
-
-def _status_patch(old: VehicleStatus, new: VehicleStatus) -> dict[str, Any] | None:
-    """Merge patch of the fields this module owns, or None when nothing changed.
-
-    Values are sent with explicit nulls: in a JSON merge patch a missing key means "keep",
-    so an action that ended (``failover.action`` gone) must be sent as null to be removed.
-    """
-    old_api, new_api = old.to_api(), new.to_api()
-    with_nulls = new.model_dump(by_alias=True, mode="json")
-    owned = ("conditions", "activeAutopilot", "fcuUrl", "failover")
-    changed = {f: with_nulls.get(f) for f in owned if old_api.get(f) != new_api.get(f)}
-    return changed or None
 
 
 def _ensure_node_label(kube: Kube, autopilot: Obj, node_name: str) -> None:
@@ -294,23 +279,5 @@ def _post(kube: Kube, vehicle: Obj, events: Iterable[PlannedEvent]) -> None:
 
 
 def _write(kube: Kube, vehicle: Obj, old: VehicleStatus, new: VehicleStatus) -> None:
-    """Patch the status (optimistic lock), then post its condition transitions."""
-    patch = _status_patch(old, new)
-    if patch is None:
-        return
-    meta = vehicle["metadata"]
-    kube.merge_patch(
-        VEHICLES,
-        meta["name"],
-        {"metadata": {"resourceVersion": meta["resourceVersion"]}, "status": patch},
-        subresource="status",
-    )
-    stamp = now().isoformat().replace("+00:00", "Z")
-    for cond in transitions(old.conditions, new.conditions, EVENT_TYPES):
-        kube.post_event(
-            vehicle,
-            reason=cond.reason,
-            message=f"{cond.type} is {cond.status}: {cond.message}",
-            type="Normal" if cond.status == "True" else "Warning",
-            at=stamp,
-        )
+    """Patch the fields this module owns (optimistic lock), with transition Events."""
+    write_vehicle_status(kube, vehicle, old, new, fields=OWNED, event_types=EVENT_TYPES)
