@@ -37,6 +37,7 @@ from typing import Any
 import psutil
 import yaml
 from kubernetes import client
+from kubernetes.client.exceptions import ApiException
 from rich.console import Console, Group, RenderableType
 from rich.text import Text
 
@@ -158,6 +159,11 @@ class Sandbox:
             command = " ".join(str(arg) for arg in error.cmd)
             raise CliError(
                 f"`{command}` failed (exit {error.returncode}):\n{error.stderr or error.output}"
+            ) from error
+        except (TimeoutError, subprocess.TimeoutExpired, ApiException) as error:
+            logs = self.plane.logs_dir if self.plane is not None else self.directory
+            raise CliError(
+                f"the sandbox did not come up: {error}. Logs: {self.directory / 'logs'} and {logs}"
             ) from error
 
     def _bring_up(self) -> None:
