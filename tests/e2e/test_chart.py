@@ -164,21 +164,23 @@ def fake_nodes_module(cluster: Cluster) -> Iterator[Callable[..., dict[str, Any]
         cluster.kubectl("delete", "node", name, "--ignore-not-found")
 
 
-def _can(cluster: Cluster, user: str, *args: str, node: str | None = None) -> bool:
-    identity = [f"--as={user}"]
+def _identity(user: str, node: str | None) -> list[str]:
+    """kubectl flags impersonating ``user`` with ``node`` in its token's extra info."""
+    flags = [f"--as={user}"]
     if node:
-        identity.append(f"--as-user-extra={NODE_NAME_KEY}={node}")
-    result = cluster.kubectl("auth", "can-i", *args, *identity, check=False)
+        flags.append(f"--as-user-extra={NODE_NAME_KEY}={node}")
+    return flags
+
+
+def _can(cluster: Cluster, user: str, *args: str, node: str | None = None) -> bool:
+    result = cluster.kubectl("auth", "can-i", *args, *_identity(user, node), check=False)
     answer = result.stdout.strip()
     assert answer in ("yes", "no"), result.stderr
     return answer == "yes"
 
 
 def _as_agent(cluster: Cluster, node: str | None, *args: str) -> subprocess.CompletedProcess[str]:
-    identity = [f"--as={AGENT_USER}"]
-    if node:
-        identity.append(f"--as-user-extra={NODE_NAME_KEY}={node}")
-    return cluster.kubectl(*args, *identity, check=False)
+    return cluster.kubectl(*args, *_identity(AGENT_USER, node), check=False)
 
 
 def _status_patch(kind: str, name: str, node: str) -> list[str]:
@@ -218,11 +220,13 @@ def _event(name: str, involved: str, instance: str, api: str = "v1") -> dict[str
 def _create_as_agent(
     cluster: Cluster, node: str | None, manifest: dict[str, Any]
 ) -> subprocess.CompletedProcess[str]:
-    identity = [f"--as={AGENT_USER}"]
-    if node:
-        identity.append(f"--as-user-extra={NODE_NAME_KEY}={node}")
     return cluster.kubectl(
-        "create", "-f", "-", *identity, input_text=json.dumps(manifest), check=False
+        "create",
+        "-f",
+        "-",
+        *_identity(AGENT_USER, node),
+        input_text=json.dumps(manifest),
+        check=False,
     )
 
 
