@@ -26,6 +26,7 @@ import yaml
 
 from roost_api.wellknown import LABEL_NODE, LABEL_VEHICLE, TAINT_VEHICLE
 from roost_harness.agent import AgentProcess
+from roost_harness.binaries import REPO_ROOT
 from roost_harness.chart import install_args
 from roost_harness.cluster import Cluster
 from roost_harness.operator import OperatorProcess, wait_for
@@ -642,3 +643,18 @@ def test_operator_with_the_chart_service_account_labels_the_autopilot_and_flies_
         timeout_s=120,
     )
     _operator_log_is_clean(process)
+
+
+def test_documented_crd_upgrade_path_works_after_helm_installed_the_crds(
+    installed: Cluster,
+) -> None:
+    """README: apply the chart's CRDs server-side (Helm never upgrades them), then upgrade."""
+    crds = str(REPO_ROOT / "charts" / "roost" / "crds")
+    applied = installed.kubectl("apply", "--server-side", "--force-conflicts", "-f", crds)
+    assert "serverside-applied" in applied.stdout
+    installed.kubectl("wait", "--for=condition=Established", "--timeout=60s", "-f", crds)
+    upgraded = installed.helm(
+        "upgrade", RELEASE, str(REPO_ROOT / "charts" / "roost"), "--namespace", NAMESPACE,
+        "--reuse-values", "--wait", "--timeout", "3m", check=False,
+    )  # fmt: skip
+    assert upgraded.returncode == 0, upgraded.stderr

@@ -173,6 +173,7 @@ def _kind_create(kind: Path, config: Path, tmp_path: Path) -> tuple[str, list[st
     return result.stdout + result.stderr, calls
 
 
+@pytest.mark.slow
 def test_pinned_kind_accepts_kind_config(kind_binary: Path, tmp_path: Path) -> None:
     output, calls = _kind_create(kind_binary, CONFIG, tmp_path)
     image = _versions()["KIND_NODE_IMAGE"]
@@ -181,6 +182,7 @@ def test_pinned_kind_accepts_kind_config(kind_binary: Path, tmp_path: Path) -> N
     assert "invalid" not in output.lower() and "unable to decode" not in output, output
 
 
+@pytest.mark.slow
 def test_pinned_kind_rejects_a_misspelt_field(kind_binary: Path, tmp_path: Path) -> None:
     config = _config()
     config["nodes"][1]["extraMount"] = config["nodes"][1].pop("extraMounts")
