@@ -88,7 +88,10 @@ class Fleet:
         self._api = client.CustomObjectsApi(self._client)
         self._core = client.CoreV1Api(self._client)
 
-    def _call(self, what: str, kind: ResourceKind, fn: Any, *args: Any, **kwargs: Any) -> Any:
+    def _call(
+        self, what: str, kind: ResourceKind | None, fn: Any, *args: Any, **kwargs: Any
+    ) -> Any:
+        """``fn(*args)`` with a timeout; ``kind`` (None for core objects) shapes the errors."""
         try:
             return fn(*args, _request_timeout=REQUEST_TIMEOUT_S, **kwargs)
         except urllib3.exceptions.HTTPError as error:
@@ -99,7 +102,7 @@ class Fleet:
                 "cluster."
             ) from error
         except ApiException as error:
-            raise _api_error(what, kind, error) from error
+            raise api_error(what, kind, error) from error
 
     def _list(self, kind: ResourceKind, namespace: str | None = None) -> list[dict[str, Any]]:
         if kind.namespaced and namespace:
@@ -136,7 +139,7 @@ class Fleet:
     def events(self) -> list[dict[str, Any]]:
         """Every Event in the cluster, as API dicts (camelCase), for the Roost event feed."""
         result = self._call(
-            "list events", VEHICLE, self._core.list_event_for_all_namespaces, limit=500
+            "list events", None, self._core.list_event_for_all_namespaces, limit=500
         )
         raw = self._client.sanitize_for_serialization(result)  # type: ignore[no-untyped-call]
         items: list[dict[str, Any]] = raw["items"]
@@ -183,19 +186,19 @@ class Fleet:
         return obj
 
 
-def _api_error(what: str, kind: ResourceKind, error: ApiException) -> CliError:
+def api_error(what: str, kind: ResourceKind | None, error: ApiException) -> CliError:
     """A message for an API error that says what to do about it."""
     reason = _server_message(error)
-    if error.status == 404 and what.startswith("list "):
+    if kind is not None and error.status == 404 and what.startswith("list "):
         return CliError(
             f"the {kind.kind} API is not installed in this cluster: "
             "`kubectl apply -f crds/` (the sandbox installs it for you)"
         )
-    if error.status == 404:
+    if kind is not None and error.status == 404:
         listing = "roost missions" if kind is MISSION else "roost status"
         return CliError(f"cannot {what}: not found. `{listing}` lists what exists")
     if error.status in (401, 403):
-        return CliError(f"cannot {what}: {reason}. Use a kubeconfig with rights to {kind.plural}")
+        return CliError(f"cannot {what}: {reason}. Use a kubeconfig with the rights to do it")
     if error.status == 422:
         return CliError(f"cannot {what}: the API server rejected it: {reason}")
     return CliError(f"cannot {what}: HTTP {error.status} {reason}")

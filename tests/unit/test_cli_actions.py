@@ -7,16 +7,21 @@ real one through the API server to a real agent.
 
 from __future__ import annotations
 
+import json
+import socket
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
 import pytest
+import yaml
+from kubernetes.client.exceptions import ApiException
 
 from roost_api.autopilot import AutopilotCommand, CommandAction, RedundantAutopilotSpec
 from roost_api.commands import command_patch, new_command
+from roost_api.resources import MISSION, REDUNDANT_AUTOPILOT, VEHICLE, ResourceKind
 from roost_cli import actions
-from roost_cli.cluster import NO_CLUSTER, resolve_kubeconfig
+from roost_cli.cluster import NO_CLUSTER, Fleet, Target, api_error, resolve_kubeconfig
 from roost_cli.errors import CliError
 
 AT = datetime(2026, 5, 1, 12, 0, 0, tzinfo=UTC)
@@ -213,3 +218,47 @@ def test_a_named_kubeconfig_that_does_not_exist_is_an_error_not_a_fallback(
         resolve_kubeconfig(None, {"KUBECONFIG": str(tmp_path / "nope")}, None, tmp_path)
     with pytest.raises(CliError, match=r"--kubeconfig .* does not exist"):
         resolve_kubeconfig(tmp_path / "nope", {}, None, tmp_path)
+
+
+@pytest.mark.parametrize(
+    ("what", "kind", "status", "expected"),
+    [
+        ("list vehicles", VEHICLE, 404, "Vehicle API is not installed"),
+        ("patch Mission default/x", MISSION, 404, "`roost missions` lists what exists"),
+        ("get RedundantAutopilot d1", REDUNDANT_AUTOPILOT, 404, "`roost status` lists"),
+        ("patch Mission default/x", MISSION, 403, "forbidden thing. Use a kubeconfig"),
+        ("patch Mission default/x", MISSION, 422, "rejected it: forbidden thing"),
+        ("list events", None, 404, "HTTP 404 forbidden thing"),
+    ],
+)
+def test_api_errors_say_what_to_do(
+    what: str, kind: ResourceKind | None, status: int, expected: str
+) -> None:
+    error = ApiException(status=status, reason="Reason")
+    error.body = json.dumps({"kind": "Status", "message": "forbidden thing"})
+    assert expected in str(api_error(what, kind, error))
+
+
+def test_an_unreachable_api_server_is_named_with_what_to_do(tmp_path: Path) -> None:
+    with socket.socket() as probe:  # a port nobody listens on
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    kubeconfig = tmp_path / "kubeconfig"
+    kubeconfig.write_text(
+        yaml.safe_dump(
+            {
+                "apiVersion": "v1",
+                "kind": "Config",
+                "clusters": [{"name": "c", "cluster": {"server": f"http://127.0.0.1:{port}"}}],
+                "users": [{"name": "u", "user": {"token": "t"}}],
+                "contexts": [{"name": "x", "context": {"cluster": "c", "user": "u"}}],
+                "current-context": "x",
+            }
+        )
+    )
+    fleet = Fleet(Target(kubeconfig, "$KUBECONFIG"))
+    with pytest.raises(CliError) as error:
+        fleet.vehicles()
+    message = str(error.value)
+    assert f"cannot reach the API server at http://127.0.0.1:{port}" in message
+    assert "roost sandbox up" in message
