@@ -120,7 +120,9 @@ class AgentProcess:
             text=True,
         )
         self.events: queue.Queue[dict[str, Any]] = queue.Queue()
+        self.history: list[dict[str, Any]] = []
         self.status: dict[str, Any] = {}
+        self.status_at = 0.0  # monotonic time the last status line was read
         self.links: dict[str, dict[str, int]] = {}
         self._commands = 0
         self._reader = threading.Thread(target=self._read, daemon=True)
@@ -137,6 +139,7 @@ class AgentProcess:
             doc = json.loads(line)
             if "status" in doc:
                 self.status, self.links = doc["status"], doc.get("links", {})
+                self.status_at = time.monotonic()
             else:
                 self.events.put(doc)
 
@@ -147,11 +150,17 @@ class AgentProcess:
         while True:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                raise TimeoutError("no matching agent event")
+                recent = [f"{d.get('reason')}: {d.get('message')}" for d in self.history[-8:]]
+                log = (self.workdir / "agent.log").read_text().splitlines()[-20:]
+                raise TimeoutError(
+                    "no matching agent event; last events and log lines:\n"
+                    + "\n".join(recent + log)
+                )
             try:
                 doc = self.events.get(timeout=remaining)
             except queue.Empty:
                 continue
+            self.history.append(doc)
             if predicate(doc):
                 return doc
 
@@ -177,8 +186,10 @@ class AgentProcess:
         return {a["name"]: a["level"] for a in self.status.get("autopilots", [])}
 
     def wait_ok(self, names: list[str], timeout: float = 15.0) -> None:
-        deadline = time.monotonic() + timeout
-        while not all(self.levels().get(n) == "OK" for n in names):
+        """Until a status line printed after this call shows every one of ``names`` OK."""
+        since = time.monotonic()
+        deadline = since + timeout
+        while self.status_at <= since or not all(self.levels().get(n) == "OK" for n in names):
             if time.monotonic() > deadline:
                 raise TimeoutError(f"not OK: {self.levels()}")
             time.sleep(0.05)
@@ -224,7 +235,8 @@ def vehicle(
             agent = AgentProcess(Path(tmp), spec, status_interval_s)
             take_off(sims)
             agent.wait_ok(["fc1", "fc2"])
-            time.sleep(thresholds.clear_ms / 1000 + 0.2)
+            # The any-message age applies once a full rate window has been seen (1 s).
+            time.sleep(thresholds.clear_ms / 1000 + 1.5)
             yield sims, agent
         finally:
             if agent is not None:

@@ -11,8 +11,8 @@ Rules (see ``shared/reference/mavlink-health.md`` and the thesis in ``shared/see
 
 - The active autopilot counts as failing only on findings that trigger failover (never a
   warning), and only after it failed continuously for ``confirm`` seconds (T_on).
-- A standby is a target only when it is strictly healthier: OK continuously for ``clear``
-  seconds (T_off), armed and in the air. Priority: primary first, then spec order.
+- A standby is a target only when it is strictly healthier: OK now, free of failures for
+  ``clear`` seconds (T_off), armed and in the air. Priority: primary first, then spec order.
 - Only in flight: the vehicle's flight state is the active autopilot's landed state as
   last reported while it was healthy; a standby must itself report in-air and armed.
 - After an automatic failover the agent is latched: the autopilot it left is never an
@@ -111,7 +111,7 @@ class ArbiterState:
     failed_from: frozenset[str] = frozenset()
     failover_count: int = 0
     failing_since: float | None = None
-    ok_since: Mapping[str, float] = field(default_factory=dict)
+    ok_since: Mapping[str, float] = field(default_factory=dict)  # free of failures since
     in_flight: bool | None = None
     landing_ordered: bool = False
 
@@ -208,7 +208,8 @@ class Decision:
 
 
 def _is_target(view: AutopilotView | None, state: ArbiterState, policy: Policy, now: float) -> bool:
-    """A standby that is strictly healthier: OK for T_off, armed, in the air, not left."""
+    """A standby that is strictly healthier: OK now, no failure for T_off, armed, in the
+    air, and not one the agent left this flight."""
     if view is None or view.name in state.failed_from:
         return False
     since = state.ok_since.get(view.name)
@@ -224,10 +225,16 @@ def _is_target(view: AutopilotView | None, state: ArbiterState, policy: Policy, 
 def _ok_since(
     state: ArbiterState, views: Mapping[str, AutopilotView], now: float
 ) -> dict[str, float]:
+    """Since when each autopilot has been free of failures (OK or a passing warning).
+
+    A warning (a late message, a GPS glitch) does not restart T_off: it is not a failure,
+    and on a busy link it comes and goes. A target must still be OK at the moment of the
+    switch (:func:`_is_target`).
+    """
     return {
         name: state.ok_since.get(name, now)
         for name, view in views.items()
-        if view.level == HealthLevel.OK and not view.failing
+        if view.level.rank <= HealthLevel.WARN.rank and not view.failing
     }
 
 
@@ -305,7 +312,13 @@ def _failback(
     primary = views.get(policy.primary)
     since = state.ok_since.get(policy.primary)
     on_ground = all(v.armed is False and v.in_air is not True for v in views.values())
-    if primary is None or since is None or now - since < policy.clear_s or not on_ground:
+    if (
+        primary is None
+        or primary.level != HealthLevel.OK
+        or since is None
+        or now - since < policy.clear_s
+        or not on_ground
+    ):
         return Decision(state)
     back = replace(state, active=policy.primary, latched=False, failed_from=frozenset())
     return Decision(

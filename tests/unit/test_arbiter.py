@@ -173,15 +173,29 @@ def test_no_qualifying_standby_keeps_the_active_and_lands_it_once(
     assert actions[0].autopilot == "fc1"
 
 
-def test_standby_must_be_ok_for_the_clear_time_before_it_is_a_target() -> None:
+def test_standby_must_be_free_of_failures_for_the_clear_time_before_it_is_a_target() -> None:
     pol = policy()
-    state = ArbiterState(active="fc1", in_flight=True)  # nobody has been OK long
-    timeline = [(0.0, views(view("fc1"), view("fc2", WARN)))]
+    state = ArbiterState(active="fc1", in_flight=True)
+    timeline = [(0.0, views(view("fc1"), view("fc2", ERROR)))]
     timeline += [(t, views(view("fc1", ERROR), view("fc2"))) for t in (0.5, 0.7)]
     state, actions = run(state, pol, timeline)
-    assert [type(a) for a in actions] == [LandInPlace]  # fc2 OK only since 0.5
+    assert [type(a) for a in actions] == [LandInPlace]  # fc2 without failure only since 0.5
     state, actions = run(state, pol, [(1.6, views(view("fc1", ERROR), view("fc2")))])
     assert [type(a) for a in actions] == [SwitchBridge] and state.active == "fc2"
+
+
+def test_a_passing_warning_does_not_restart_the_clear_time_but_blocks_the_moment() -> None:
+    pol = policy()
+    timeline = [
+        (0.0, views(view("fc1"), view("fc2"))),
+        (0.9, views(view("fc1"), view("fc2", WARN))),  # e.g. one late message
+        (1.2, views(view("fc1", ERROR), view("fc2", WARN))),
+        (1.3, views(view("fc1", ERROR), view("fc2", WARN))),
+    ]
+    state, actions = run(ArbiterState(active="fc1", in_flight=True), pol, timeline)
+    assert [type(a) for a in actions] == [LandInPlace]  # WARN now: not a target yet
+    state, actions = run(state, pol, [(1.35, views(view("fc1", ERROR), view("fc2")))])
+    assert [type(a) for a in actions] == [SwitchBridge]  # OK again, failure-free since 0
 
 
 def test_never_acts_when_the_active_last_reported_the_ground() -> None:
