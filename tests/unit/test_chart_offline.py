@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import re
+import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -346,3 +347,10 @@ def test_kubernetes_1_29_installs_without_the_node_restriction() -> None:
         if manifest["kind"] != "ClusterKopfPeering":
             kubernetes_validate.validate(manifest, "1.29.0", strict=True)
     assert "ValidatingAdmissionPolicy" not in {m["kind"] for m in manifests}
+
+
+def test_chart_app_version_is_the_distribution_version() -> None:
+    """Default image tags are the appVersion; the images are built from pyproject.toml."""
+    chart = yaml.safe_load((CHART_DIR / "Chart.yaml").read_text())
+    project = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())["project"]
+    assert chart["appVersion"] == project["version"]
