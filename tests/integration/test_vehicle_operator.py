@@ -30,6 +30,8 @@ from roost_api.wellknown import (
 )
 from roost_harness.apiwrites import VEHICLE_WRITE_TARGETS, write_requests
 from roost_harness.cluster import Cluster
+from roost_harness.controlplane import KWOK_NODE_ANNOTATION
+from roost_harness.nodes import fake_node
 from roost_harness.operator import OperatorProcess, wait_for
 from roost_operator.kube import (
     CONFIGMAPS,
@@ -522,6 +524,25 @@ def test_a_missing_node_is_reported_and_the_vehicle_converges_when_it_joins(
     fake_nodes(node)
     wait_ready(kube, name)
     assert node_labels(kube, node)[LABEL_VEHICLE] == name
+
+
+def test_a_node_that_is_not_ready_is_reported_with_the_kubelets_words(
+    roost_crds: Cluster, vehicles: Callable[..., str], kube: Kube
+) -> None:
+    node = unique("veh-down")
+    # A node no kubelet (here: kwok) looks after: it never reports Ready.
+    manifest = fake_node(node)
+    del manifest["metadata"]["annotations"][KWOK_NODE_ANNOTATION]
+    roost_crds.kubectl("create", "-f", "-", input_text=json.dumps(manifest))
+    try:
+        name = vehicles(unique("down"), node)
+        cond = wait_condition(kube, name, "NodeBound", "False", "NodeNotReady")
+        assert node in cond["message"] and "Ready" in cond["message"]
+        assert node_labels(kube, node)[LABEL_VEHICLE] == name  # labelled all the same
+        ready = condition(kube, name, "Ready")
+        assert ready is not None and (ready["status"], ready["reason"]) == ("False", "NodeNotReady")
+    finally:
+        roost_crds.kubectl("delete", "node", node, "--ignore-not-found", "--wait=false")
 
 
 def test_two_vehicles_on_one_node_the_older_keeps_it_without_a_fight(
