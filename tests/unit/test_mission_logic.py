@@ -856,3 +856,14 @@ def test_a_vehicle_still_landing_when_the_mission_fails_stays_claimed_until_it_i
     )
     assert vehicle_status(later, "a").phase == MissionVehiclePhase.ABORTED
     assert later.releases == ["a", "b"] and later.requeue_after is None
+
+
+def test_many_vehicles_making_one_transition_share_one_event() -> None:
+    names = [f"v{i}" for i in range(12)]
+    spec = mission_spec(vehicles={"selector": {}, "count": 12})
+    plan = plan_mission(observe(claimed(*names), spec=spec))
+    assert plan.status.phase == MissionPhase.RUNNING
+    vehicle_events = [e for e in plan.events if e.reason == "JobCreated"]
+    assert len(vehicle_events) == 1
+    assert vehicle_events[0].message.startswith("12 vehicles Running: v0, v1")
+    assert vehicle_events[0].vehicle is None

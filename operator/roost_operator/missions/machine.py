@@ -96,6 +96,9 @@ ABORT_COMMAND_DEADLINE_SECONDS = 30
 ABORT_POLL_SECONDS = 2.0
 """Re-check period while vehicles land (agent reports wake the mission sooner)."""
 
+VEHICLE_EVENTS_MAX = 5
+"""More vehicles than this making one transition together get one Event, not one each."""
+
 ON_GROUND = landed_state_name(LandedState.ON_GROUND)
 
 Severity = Literal["Normal", "Warning"]
@@ -891,7 +894,9 @@ def _abort_vehicle(
 def transition_events(old: MissionStatus, new: MissionStatus) -> list[MissionEvent]:
     """Events for what changed: the mission's phase/reason, each vehicle's phase/reason.
 
-    Progress inside Running (a pod becoming ready) is status, not an Event.
+    Progress inside Running (a pod becoming ready) is status, not an Event. When more
+    than :data:`VEHICLE_EVENTS_MAX` vehicles make the same transition at once (a large
+    mission starting), one Event names them instead of one Event each.
     """
     events: list[MissionEvent] = []
     if (old.phase, old.reason) != (new.phase, new.reason) and new.reason:
@@ -899,6 +904,7 @@ def transition_events(old: MissionStatus, new: MissionStatus) -> list[MissionEve
         severity: Severity = "Warning" if warning else "Normal"
         events.append(MissionEvent(severity, new.reason, new.message or str(new.phase)))
     before = {v.name: (v.phase, v.reason) for v in old.vehicles}
+    moved: dict[tuple[MissionVehiclePhase, str], list[MissionVehicleStatus]] = {}
     for vehicle in new.vehicles:
         phase = MissionVehiclePhase(vehicle.phase)
         prior = before.get(vehicle.name)
@@ -907,13 +913,17 @@ def transition_events(old: MissionStatus, new: MissionStatus) -> list[MissionEve
         )
         if prior is not None and prior[0] == phase and quiet:
             continue
+        moved.setdefault((phase, vehicle.reason or phase.value), []).append(vehicle)
+    for (phase, reason), vehicles in moved.items():
         severity = "Warning" if phase in _WARNING_VEHICLE_PHASES else "Normal"
-        events.append(
-            MissionEvent(
-                severity,
-                vehicle.reason or phase.value,
-                f"{vehicle.name}: {vehicle.message or phase.value}",
-                vehicle=vehicle.name,
+        if len(vehicles) > VEHICLE_EVENTS_MAX:
+            names = ", ".join(v.name for v in vehicles[:VEHICLE_EVENTS_MAX])
+            events.append(
+                MissionEvent(severity, reason, f"{len(vehicles)} vehicles {phase}: {names}, …")
             )
+            continue
+        events.extend(
+            MissionEvent(severity, reason, f"{v.name}: {v.message or phase}", vehicle=v.name)
+            for v in vehicles
         )
     return events
