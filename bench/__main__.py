@@ -12,7 +12,7 @@ import sys
 
 from bench.core import Figure, write_results
 
-MODULES: tuple[str, ...] = ("controlplane", "mission", "agent", "vehicle")
+MODULES: tuple[str, ...] = ("controlplane", "mission", "cluster", "agent", "vehicle")
 
 
 def main(argv: list[str] | None = None) -> int:
