@@ -37,7 +37,7 @@ AUTOPILOTS: Final = (GROUP, VERSION, "redundantautopilots")
 RESYNC_S: Final = 10.0
 """Reconcile a mission at least this often (Jobs and agents also wake it)."""
 ERROR_BACKOFF_S: Final = 5.0
-COALESCE_S: Final = 0.1
+COALESCE_S: Final = 0.5
 """After a wake-up, wait this long so a burst of events costs one reconcile."""
 
 WAKEUPS: Final = Wakeups()

@@ -39,7 +39,10 @@ Phases::
   An abort before anything started ends at once: nothing flew for this mission.
 * Commands are re-issued (next attempt, new id) only when the agent reports one Expired
   or another request replaced it unprocessed; otherwise a command is written once.
-* Finished missions release every vehicle they still hold.
+* Finished missions release every vehicle they still hold, except one still landing
+  after an AbortVehicle: it stays claimed and followed until it is down.
+* A Mission deleted while it runs (:func:`plan_deletion`) sends the abort command to its
+  vehicles and releases them without waiting for the landing.
 """
 
 from __future__ import annotations
