@@ -238,18 +238,6 @@ def merge_patch_body(status: RedundantAutopilotStatus) -> dict[str, Any]:
     return {k: v if isinstance(v, dict) else compact.get(k) for k, v in full.items()}
 
 
-@dataclass
-class Counters:
-    """What the publisher did; read by tests and benchmarks."""
-
-    status_writes: int = 0
-    events_posted: int = 0
-    events_dropped: int = 0
-    failures: int = 0
-    commands_submitted: int = 0
-    specs_applied: int = 0
-
-
 class Publisher:
     """Reports one agent's status and Events, and follows its RedundantAutopilot."""
 
@@ -282,7 +270,6 @@ class Publisher:
         self._seen_command: str | None = None
         self._unsubscribe: Callable[[], None] | None = None
         self._threads: list[threading.Thread] = []
-        self.counters = Counters()
         if target is not None:
             self._adopt(target, applied=True)
 
@@ -324,8 +311,8 @@ class Publisher:
         with self._cond:
             if post:
                 if len(self._events) >= self._settings.max_pending_events:
-                    self._events.popleft()
-                    self.counters.events_dropped += 1
+                    dropped = self._events.popleft()
+                    log.warning("API away too long: dropping Event %s", dropped.reason)
                 self._events.append(event)
             self._kick = True
             self._cond.notify()
@@ -345,7 +332,6 @@ class Publisher:
                 self._kick = False
 
     def _failed(self, what: str, exc: Exception) -> float:
-        self.counters.failures += 1
         settings = self._settings
         self._backoff = min(max(self._backoff * 2, settings.retry_min_s), settings.retry_max_s)
         self._retry_at = self._clock() + self._backoff
@@ -409,7 +395,6 @@ class Publisher:
             self._last_written = status
             self._last_write_at = self._clock()
             self._backoff = 0.0
-            self.counters.status_writes += 1
             delay = settings.refresh_s
         if not self._post_events(target):
             return self._backoff
@@ -438,7 +423,6 @@ class Publisher:
             with self._cond:
                 if self._events and self._events[0] is event:
                     self._events.popleft()
-            self.counters.events_posted += 1
 
     # -- spec and commands in ------------------------------------------------------------
 
@@ -476,10 +460,8 @@ class Publisher:
         key = (target.uid, target.generation)
         if key != self._followed:
             self._followed = key
-            self.counters.specs_applied += 1
             self._agent.apply_spec(spec, target.generation)  # also submits its command
         elif spec.command is not None and spec.command.id != self._seen_command:
-            self.counters.commands_submitted += 1
             self._agent.submit(spec.command)
         self._seen_command = spec.command.id if spec.command is not None else None
         self._target = target
