@@ -6,7 +6,8 @@ events over; the listener below only queues them and wakes a thread).
 
 **Identity.** :func:`discover` finds the Vehicle whose ``spec.nodeName`` is this node
 (``NODE_NAME`` from the downward API) and the RedundantAutopilot whose
-``spec.vehicleName`` is that Vehicle. Until both exist the publisher keeps looking.
+``spec.vehicleName`` is that Vehicle. Until both exist the publisher keeps looking; when
+the operator relabels the RedundantAutopilot for another node (a hot swap), it lets go.
 
 **Status out** (thread ``publisher``). The status is a level, not a log: every write is
 the agent's complete :meth:`~roost_agent.agent.Agent.status` (active autopilot, health,
@@ -67,6 +68,7 @@ from roost_api.autopilot import (
     RedundantAutopilotStatus,
 )
 from roost_api.meta import Condition, set_condition
+from roost_api.wellknown import LABEL_NODE
 
 log = logging.getLogger(__name__)
 
@@ -444,13 +446,30 @@ class Publisher:
                         break
                     if kind in ("ADDED", "MODIFIED"):
                         self._follow(obj)
+                    if self._target is None:
+                        break
             except (ApiUnavailableError, ApiException) as exc:
                 backoff = min(max(backoff * 2, settings.retry_min_s), settings.retry_max_s)
                 log.warning("watch of %s failed (%s); again in %.1f s", target.name, exc, backoff)
                 self._stop.wait(backoff)
 
     def _follow(self, obj: Obj) -> None:
-        """Hand a new spec or a new command from the API to the agent."""
+        """Hand a new spec or a new command from the API to the agent.
+
+        When the operator has labelled the RedundantAutopilot with another node (its
+        Vehicle moved: a hot swap), this agent stops reporting on it and looks for a
+        Vehicle on its own node again, so two agents never write one status.
+        """
+        node = (obj["metadata"].get("labels") or {}).get(LABEL_NODE)
+        if node and node != self._node_name:
+            log.warning(
+                "RedundantAutopilot %s now belongs to node %s: no longer reporting on it",
+                obj["metadata"]["name"],
+                node,
+            )
+            self._target_ready.clear()
+            self._target = None
+            return
         target = Target(self._target.vehicle if self._target else "", obj)
         try:
             spec = target.spec()
