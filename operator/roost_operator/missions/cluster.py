@@ -36,7 +36,7 @@ from pydantic import ValidationError
 
 from roost_api.autopilot import AutopilotCommand
 from roost_api.commands import command_patch
-from roost_api.meta import API_VERSION
+from roost_api.meta import API_VERSION, ObjectReference
 from roost_api.mission import MissionPhase, MissionSpec, MissionStatus
 from roost_api.resources import MISSION, VEHICLE
 from roost_api.wellknown import (
@@ -71,6 +71,7 @@ from roost_operator.missions.observed import AutopilotView, JobView, MissionRef,
 from roost_operator.missions.selection import is_claimable
 from roost_operator.missions.workloads import bounded_name
 from roost_operator.vehicles.config import CONFIG_COMPONENT, config_values_of
+from roost_operator.vehicles.status import write_vehicle_status
 
 log = logging.getLogger(__name__)
 
@@ -197,14 +198,18 @@ def observe(
 # -- claims ---------------------------------------------------------------------------
 
 
-def _patch_claim(kube: Kube, vehicle: VehicleView, claim: Obj | None) -> VehicleView:
-    patched = kube.merge_patch(
-        VEHICLES,
-        vehicle.name,
-        {"metadata": {"resourceVersion": vehicle.resource_version}, "status": {"claimedBy": claim}},
-        subresource="status",
+CLAIM_FIELDS: Final = ("claimedBy",)
+"""The only Vehicle status field the mission controller writes."""
+
+
+def _patch_claim(kube: Kube, vehicle: VehicleView, claim: ObjectReference | None) -> VehicleView:
+    """Write ``claimedBy`` alone, conditional on the resourceVersion ``vehicle`` was read at."""
+    claimed = vehicle.status.model_copy(update={"claimed_by": claim})
+    read_at = {"metadata": {"name": vehicle.name, "resourceVersion": vehicle.resource_version}}
+    write_vehicle_status(
+        kube, read_at, vehicle.status, claimed, fields=CLAIM_FIELDS, event_types=()
     )
-    return VehicleView.from_body(patched)
+    return replace(vehicle, status=claimed)
 
 
 def claim_vehicle(kube: Kube, vehicle: VehicleView, mission: MissionRef) -> VehicleView | None:
@@ -213,7 +218,7 @@ def claim_vehicle(kube: Kube, vehicle: VehicleView, mission: MissionRef) -> Vehi
     The first attempt may take over an orphaned claim (decided by the caller from the
     same read); retries after a 409 only claim a vehicle that is unclaimed and claimable.
     """
-    claim = mission.reference.to_api()
+    claim = mission.reference
     current = vehicle
     for _ in range(CLAIM_RETRIES):
         try:
