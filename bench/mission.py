@@ -16,6 +16,7 @@ the preflight checks see live reports as they would in a fleet.
 from __future__ import annotations
 
 import json
+import os
 import tempfile
 import time
 from collections.abc import Mapping, Sequence
@@ -159,6 +160,7 @@ def run() -> list[Figure]:
                 kube = Kube(api=api)
                 _fleet(cluster, kube, agents)
                 times = {count: _rollout(cluster, kube, count) for count in SIZES}
+                load = os.getloadavg()[0]
         finally:
             operator.stop()
     targets = {10: "informational", 100: "<= 30"}
@@ -170,7 +172,9 @@ def run() -> list[Figure]:
             targets[count],
             COMMAND,
             note=f"apply → {count} onboard Jobs' pods Running, fleet of {FLEET} Ready fake "
-            f"vehicles, stand-in agents reporting every {AGENT_PERIOD_S:.0f} s",
+            f"vehicles, stand-in agents reporting every {AGENT_PERIOD_S:.0f} s; 1-min load "
+            f"average {load:.1f} on {os.cpu_count()} cores (the figure grows with the load: "
+            "operator, API server and kwok share them)",
         )
         for count, seconds in times.items()
     ]
