@@ -55,6 +55,7 @@ from roost_operator.missions.preflight import preflight_failures
 from roost_operator.missions.selection import (
     availability,
     candidates,
+    holding_missions,
     matches_selector,
     shortage_message,
 )
@@ -867,3 +868,18 @@ def test_many_vehicles_making_one_transition_share_one_event() -> None:
     assert len(vehicle_events) == 1
     assert vehicle_events[0].message.startswith("12 vehicles Running: v0, v1")
     assert vehicle_events[0].vehicle is None
+
+
+def test_claims_of_finished_missions_count_only_while_a_vehicle_is_landing() -> None:
+    def body(name: str, status: dict[str, Any]) -> dict[str, Any]:
+        return {"metadata": {"namespace": "ns", "name": name}, "status": status}
+
+    landing = {"name": "a", "phase": "Aborting"}
+    missions = [
+        body("new", {}),
+        body("running", {"phase": "Running"}),
+        body("done", {"phase": "Succeeded", "vehicles": [{"name": "a", "phase": "Succeeded"}]}),
+        body("failed-landing", {"phase": "Failed", "vehicles": [landing]}),
+        body("aborted", {"phase": "Aborted"}),
+    ]
+    assert holding_missions(missions) == {"ns/new", "ns/running", "ns/failed-landing"}

@@ -68,7 +68,7 @@ from roost_operator.missions.machine import (
     plan_mission,
 )
 from roost_operator.missions.observed import AutopilotView, JobView, MissionRef, VehicleView
-from roost_operator.missions.selection import is_claimable
+from roost_operator.missions.selection import holding_missions, is_claimable
 from roost_operator.missions.workloads import bounded_name
 from roost_operator.vehicles.config import CONFIG_COMPONENT, config_values_of
 from roost_operator.vehicles.status import write_vehicle_status
@@ -169,14 +169,7 @@ def observe(
         labels={LABEL_MANAGED_BY: MANAGED_BY, LABEL_COMPONENT: CONFIG_COMPONENT},
     )
     started = status.start_time is not None or bool(jobs)
-    live = (
-        frozenset({mission.key})
-        if started
-        else frozenset(
-            f"{m['metadata']['namespace']}/{m['metadata']['name']}"
-            for m in kube.list_objects(MISSIONS)
-        )
-    )
+    live = frozenset({mission.key}) if started else holding_missions(kube.list_objects(MISSIONS))
     return Observation(
         mission=mission,
         generation=int(meta.get("generation") or 0),

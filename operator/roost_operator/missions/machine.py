@@ -133,7 +133,8 @@ class Observation:
     config_values: Mapping[str, Mapping[str, str]]
     """Each vehicle's authoritative config entries, by vehicle name."""
     live_missions: frozenset[str]
-    """``namespace/name`` of every existing Mission (listed after the Vehicles)."""
+    """``namespace/name`` of the Missions whose claims count (listed after the Vehicles;
+    see :func:`~roost_operator.missions.selection.holding_missions`)."""
     now: datetime
 
 

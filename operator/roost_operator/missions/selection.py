@@ -20,18 +20,27 @@ vehicle whose second autopilot has failed. Those checks are the preflight gate's
 (:mod:`~roost_operator.missions.preflight`); the planner prefers vehicles that would
 pass it, so a fit vehicle is claimed before one that would hold the mission in Preflight.
 
-A claim naming a Mission that no longer exists (its finalizer was removed by hand) is an
-orphan and counts as free; the observer lists Missions *after* Vehicles, so a claim by a
-Mission created in between is never mistaken for one.
+A claim naming a Mission that no longer exists (its finalizer was removed by hand), or
+one that has finished and is not still landing that vehicle (its release did not get
+through), is an orphan and counts as free (:func:`holding_missions`). The observer lists
+Missions *after* Vehicles, so a claim by a Mission created in between is never mistaken
+for one, and the claim itself carries the resourceVersion it was read at.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 from roost_api.meta import condition_is_true, find_condition
-from roost_api.mission import LabelSelector, VehicleSelection
+from roost_api.mission import (
+    LabelSelector,
+    MissionPhase,
+    MissionStatus,
+    MissionVehiclePhase,
+    VehicleSelection,
+)
 from roost_api.vehicle import VehicleConditionType
 from roost_operator.missions.observed import MissionRef, VehicleView, reference_key
 
@@ -127,6 +136,22 @@ def availability(
         else:
             result.free.append(name)
     return result
+
+
+def holding_missions(missions: Iterable[Mapping[str, Any]]) -> frozenset[str]:
+    """``namespace/name`` of the Missions whose claims still count.
+
+    Every Mission that has not finished, and a finished one only for as long as one of
+    its vehicles is still landing after an abort.
+    """
+    holding = set()
+    for body in missions:
+        status = MissionStatus.model_validate(body.get("status") or {})
+        landing = any(v.phase == MissionVehiclePhase.ABORTING for v in status.vehicles)
+        if not MissionPhase(status.phase).finished or landing:
+            meta = body["metadata"]
+            holding.add(f"{meta['namespace']}/{meta['name']}")
+    return frozenset(holding)
 
 
 def held_by(mission: MissionRef, vehicles: Mapping[str, VehicleView]) -> list[str]:
