@@ -8,6 +8,7 @@ import pytest
 
 from roost_harness.cluster import Cluster, FakeNodes
 from roost_harness.controlplane import ControlPlane
+from roost_operator.kube import Kube
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
@@ -41,3 +42,11 @@ def fake_nodes(cluster: Cluster) -> Iterator[FakeNodes]:
     pool = FakeNodes(cluster)
     yield pool
     pool.cleanup()
+
+
+@pytest.fixture(scope="session")
+def kube(roost_crds: Cluster) -> Iterator[Kube]:
+    """Roost's own API access layer (:class:`roost_operator.kube.Kube`) as the cluster's
+    admin, for tests that read and write objects the way the operator does."""
+    with roost_crds.api_client() as api:
+        yield Kube(api=api)

@@ -91,12 +91,6 @@ def operator(
     proc.stop()
 
 
-@pytest.fixture(scope="module")
-def kube(roost_crds: Cluster) -> Iterator[Kube]:
-    with roost_crds.api_client() as api:
-        yield Kube(api=api)
-
-
 @pytest.fixture
 def agents(roost_crds: Cluster) -> Iterator[FakeAgents]:
     with FakeAgents(roost_crds) as running:
