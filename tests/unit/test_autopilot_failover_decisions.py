@@ -39,6 +39,7 @@ from roost_operator.autopilots.guards import (
 from roost_operator.autopilots.plan import FailoverPlan, mavros_follows, plan
 from roost_operator.autopilots.reconcile import ActionLedger
 from roost_operator.vehicles.config import config_hash
+from roost_operator.vehicles.desired import ready_condition
 
 NOW = datetime(2026, 5, 1, 12, 0, 0, tzinfo=UTC)
 NODE = "drone-1"
@@ -544,3 +545,12 @@ def test_the_same_decision_made_later_names_the_same_events() -> None:
             now=NOW + timedelta(seconds=7),
         )
         assert first.events and first.events == later.events
+
+
+def test_a_vehicle_with_redundant_autopilots_is_not_ready_before_its_agent_is_heard() -> None:
+    bound = [cond("NodeBound", "True"), cond("ComponentsReady", "True")]
+    assert ready_condition(bound) == ("True", "VehicleReady", "node bound, components ready")
+    status, reason, _ = ready_condition(bound, agent_expected=True)
+    assert (status, reason) == ("Unknown", "AgentNotHeardYet")
+    heard = [*bound, cond("AgentConnected", "True"), cond("AutopilotsHealthy", "True")]
+    assert ready_condition(heard, agent_expected=True)[0] == "True"

@@ -367,18 +367,35 @@ READY_INPUTS: Final = (
 )
 
 
-def ready_condition(conditions: Sequence[Condition]) -> tuple[ConditionStatus, str, str]:
+def ready_condition(
+    conditions: Sequence[Condition], *, agent_expected: bool = False
+) -> tuple[ConditionStatus, str, str]:
     """Ready from the detail conditions present: False on any False, else Unknown on any
-    Unknown, else True. AutopilotsHealthy and AgentConnected count once they exist.
+    Unknown, else True. AutopilotsHealthy and AgentConnected count once they exist;
+    ``agent_expected`` (the vehicle has a RedundantAutopilot) makes a missing
+    AgentConnected count as Unknown, so Ready is never True before the failover side
+    has heard from the vehicle's agent.
     """
     present = {c.type: c for c in conditions}
-    inputs = [present[t] for t in READY_INPUTS if t in present]
+    inputs = [
+        (c.type, c.status, c.reason, c.message)
+        for c in (present.get(t) for t in READY_INPUTS)
+        if c is not None
+    ]
+    if agent_expected and VehicleConditionType.AGENT_CONNECTED not in present:
+        inputs.append(
+            (
+                VehicleConditionType.AGENT_CONNECTED.value,
+                "Unknown",
+                "AgentNotHeardYet",
+                "the vehicle's node agent has not been heard from yet",
+            )
+        )
     for wanted in ("False", "Unknown"):
-        failing = [c for c in inputs if c.status == wanted]
+        failing = [i for i in inputs if i[1] == wanted]
         if failing:
-            first = failing[0]
-            message = "; ".join(f"{c.type}: {c.message}" for c in failing)
-            return wanted, first.reason, message
+            message = "; ".join(f"{kind}: {text}" for kind, _, _, text in failing)
+            return wanted, failing[0][2], message
     return "True", "VehicleReady", "node bound, components ready"
 
 
@@ -388,8 +405,12 @@ def vehicle_conditions(
     binding: NodeBinding,
     components: tuple[ConditionStatus, str, str],
     generation: int | None,
+    agent_expected: bool = False,
 ) -> list[Condition]:
-    """The Vehicle's conditions after this reconcile (others' condition types kept)."""
+    """The Vehicle's conditions after this reconcile (others' condition types kept).
+
+    ``agent_expected``: see :func:`ready_condition`.
+    """
     conditions = set_condition(
         previous,
         type=VehicleConditionType.NODE_BOUND,
@@ -407,7 +428,7 @@ def vehicle_conditions(
         message=message,
         observed_generation=generation,
     )
-    status, reason, message = ready_condition(conditions)
+    status, reason, message = ready_condition(conditions, agent_expected=agent_expected)
     return set_condition(
         conditions,
         type=VehicleConditionType.READY,

@@ -274,6 +274,7 @@ def _reconcile_once(kube: Kube, namespace: str, name: str, peers: Peers) -> None
         binding=binding,
         components=components,
         generation=meta.get("generation"),
+        agent_expected=ra_spec is not None,
     )
     new_status = VehicleStatus.model_validate(
         {
