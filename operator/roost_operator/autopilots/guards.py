@@ -1,8 +1,9 @@
 """Fleet guards on the cluster side of failover, after node-healthcheck-operator.
 
 A failover on a vehicle is decided and executed by its node agent alone; nothing here
-can delay or veto it. What the cluster does *in response* — re-pointing the vehicle's
-mavros at the new autopilot, a mission's failover policy, automatic failback — is
+can delay or veto it (automatic failback included: the agent decides it on the ground).
+What the cluster does *in response* — re-pointing the vehicle's mavros at the new
+autopilot (after a failover or a failback), a mission's failover policy — is
 remediation, and remediation can itself cause a storm (a flapping link rolling mavros
 pods every few seconds, a fleet-wide network blip re-pointing every vehicle at once). So,
 as NHC does for node remediation:
