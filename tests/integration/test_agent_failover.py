@@ -121,8 +121,18 @@ def flying(
     transport: str = "udp",
     final_action: FinalAction = FinalAction.LAND,
 ) -> Iterator[Flight]:
-    """Sims started and airborne, an agent watching them, every standby ready."""
-    sims = start_vehicle_sims(stacks, transport=transport)
+    """Sims started and airborne, an agent watching them, every standby ready.
+
+    ``transport``: ``udp`` (the agent listens), ``pty`` (serial) or ``udpout`` (the agent
+    sends to each sim's own port; the sim streams back to whoever sent it a packet).
+    """
+    if transport == "udpout":
+        sims = [
+            SimulatedAutopilot.udp(stack, i + 1, name=f"fc{i + 1}").start()
+            for i, stack in enumerate(stacks)
+        ]
+    else:
+        sims = start_vehicle_sims(stacks, transport=transport)
     agent: Agent | None = None
     try:
         spec = make_spec(sims, final_action)
@@ -263,6 +273,14 @@ def test_serial_link_over_a_pseudo_terminal(tmp_path: Path) -> None:
         wait_for(flight.agent.failovers, 10, "a failover over serial")
         assert flight.bridge.selected == 1
         assert_held_then_landed(flight, "fc2", injected)
+
+
+def test_udpout_link_where_the_agent_sends_first(tmp_path: Path) -> None:
+    with flying(["ardupilot", "px4"], tmp_path, transport="udpout") as flight:
+        assert all(s.connection.startswith("udpout://") for s in flight.spec.autopilots)
+        flight.sim("fc1").inject(FaultKind.SENSOR, "gyro")
+        (event,) = wait_for(flight.agent.failovers, 10, "a failover over udpout")
+        assert event.record.to_autopilot == "fc2" and flight.bridge.selected == 1
 
 
 def _gcs_set_mode(sim: SimulatedAutopilot, mode: str) -> None:
