@@ -181,7 +181,8 @@ class MissionSpec(ApiModel):
     on_failover: OnFailover = Field(
         default=OnFailover.ABORT_VEHICLE,
         description="Continue, AbortVehicle (land it, mission goes on Degraded) or "
-        "AbortMission, when a vehicle fails over mid-mission.",
+        "AbortMission, when a vehicle fails over mid-mission. The abort waits while the "
+        "fleet guards' pause switch or the vehicle's failover latch is on.",
     )
     abort: bool = Field(
         default=False,
@@ -231,7 +232,14 @@ class MissionVehicleStatus(ApiModel):
     failed_over_at: datetime | None = Field(
         default=None,
         description="Time of the last autopilot failover on this vehicle that the mission "
-        "has acted on (per spec.onFailover).",
+        "has taken into account: its spec.onFailover consequence is applied, or held back "
+        "as failoverActionHeld says.",
+    )
+    failover_action_held: str | None = Field(
+        default=None,
+        description="The fleet guard (Paused or Latched) holding back the spec.onFailover "
+        "consequence of the failover at failedOverAt; unset once it is applied. The "
+        "vehicle's agent runs its own safety routine after a failover regardless.",
     )
     command: AutopilotCommand | None = Field(
         default=None,

@@ -42,7 +42,7 @@ from typing import Any
 
 import pytest
 
-from roost_api.wellknown import LABEL_MISSION, LABEL_VEHICLE
+from roost_api.wellknown import ANNOTATION_PAUSE_FAILOVER_ACTIONS, LABEL_MISSION, LABEL_VEHICLE
 from roost_harness.cluster import Cluster
 from roost_harness.fakeagents import FakeAgents, redundant_autopilot
 from roost_harness.operator import OperatorProcess, wait_for
@@ -494,6 +494,45 @@ def test_a_failover_mid_mission_follows_the_policy(
     release_holds(kube, name)
     status = wait_phase(kube, name, "Succeeded")
     assert condition_of(status, "Degraded")["status"] == "True"  # type: ignore[index]
+
+
+def test_a_paused_failover_consequence_is_applied_once_the_pause_is_lifted(
+    fleet: Fleet, kube: Kube, agents: FakeAgents, roost_crds: Cluster
+) -> None:
+    fleet.add(2)
+    name = fleet.mission(
+        unique("paused"), selector={"fleet": fleet.label}, count=2, onFailover="AbortVehicle"
+    )
+    hit, other = assigned(wait_phase(kube, name, "Running"))
+    roost_crds.kubectl("annotate", "vehicle", hit, f"{ANNOTATION_PAUSE_FAILOVER_ACTIONS}=true")
+
+    agents.fail_over(f"{hit}-autopilots")
+
+    def entry_of(vehicle: str) -> Obj:
+        vehicles = mission_status(kube, name).get("vehicles") or []
+        found: Obj = next(v for v in vehicles if v["name"] == vehicle)
+        return found
+
+    def held_back() -> Obj | None:
+        entry = entry_of(hit)
+        return entry if entry.get("failoverActionHeld") == "Paused" else None
+
+    held = wait_for(f"{hit}'s consequence held back", held_back, WAIT_S)
+    assert held["phase"] == "Running" and held["reason"] == "FailoverActionPaused"
+    assert command_of(kube, hit) is None and len(jobs_of(kube, name)) == 2
+    degraded = condition_of(mission_status(kube, name), "Degraded")
+    assert degraded is not None and degraded["reason"] == "FailoverActionPaused"
+    wait_for(
+        "the FailoverActionPaused Event",
+        lambda: "FailoverActionPaused" in events_for(roost_crds, name),
+        WAIT_S,
+    )
+
+    roost_crds.kubectl("annotate", "vehicle", hit, f"{ANNOTATION_PAUSE_FAILOVER_ACTIONS}-")
+    wait_for(f"{hit} aborted", lambda: entry_of(hit)["phase"] == "Aborted", WAIT_S)
+    assert (command_of(kube, hit) or {})["action"] == "SafetyRoutine"
+    assert command_of(kube, other) is None
+    assert entry_of(hit).get("failoverActionHeld") is None
 
 
 def test_a_failed_workload_fails_the_mission_and_stops_the_others(fleet: Fleet, kube: Kube) -> None:

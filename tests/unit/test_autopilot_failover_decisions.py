@@ -31,6 +31,7 @@ from roost_operator.autopilots.guards import (
     Verdict,
     check,
     clear_latch,
+    consequence_verdict,
     load_fleet_guards,
     new_failovers,
     observe_failovers,
@@ -313,6 +314,57 @@ def test_a_human_clears_the_latch_with_a_new_token(
     assert after.cleared_token == (token or recorded)
     if cleared:
         assert after.recent == [] and after.latched_at is None
+
+
+# -- mission consequences: pause and latch, never the cap ------------------------------
+
+PAUSE = {ANNOTATION_PAUSE_FAILOVER_ACTIONS: "true"}
+LATCHED = VehicleFailover(
+    latched=True, latched_at=T1, observed_failover_count=3, observed_failover_time=T1
+)
+TWO_RECENT = VehicleFailover(observed_failover_count=2, observed_failover_time=T1, recent=[T1, T1])
+
+
+@pytest.mark.parametrize(
+    ("fleet_paused", "annotations", "book", "status", "verdict"),
+    [
+        (False, {}, None, ra_status(), Verdict.ALLOWED),
+        (False, PAUSE, None, ra_status(), Verdict.PAUSED),
+        (True, {}, None, ra_status(), Verdict.PAUSED),
+        (False, {}, LATCHED, ra_status(count=3, last=failover(T1)), Verdict.LATCHED),
+        (False, PAUSE, LATCHED, ra_status(count=3, last=failover(T1)), Verdict.PAUSED),
+        # a new clear token lifts the latch before the vehicle's reconcile has honoured it
+        (
+            False,
+            {ANNOTATION_CLEAR_FAILOVER_LATCH: "t1"},
+            LATCHED,
+            ra_status(count=3, last=failover(T1)),
+            Verdict.ALLOWED,
+        ),
+        # the failover that trips the latch is held even before the latch is written
+        (False, {}, TWO_RECENT, ra_status(count=3, last=failover(T2)), Verdict.LATCHED),
+        (False, {}, TWO_RECENT, ra_status(count=2, last=failover(T1)), Verdict.ALLOWED),
+    ],
+)
+def test_mission_consequence_guard_decision_table(
+    fleet_paused: bool,
+    annotations: dict[str, str],
+    book: VehicleFailover | None,
+    status: RedundantAutopilotStatus,
+    verdict: Verdict,
+) -> None:
+    guards = FleetGuards(latch_after=3, paused=fleet_paused)
+    got = consequence_verdict(guards, annotations=annotations, book=book, status=status, now=NOW)
+    assert got is verdict
+
+
+def test_mission_consequences_never_wait_for_the_concurrency_cap() -> None:
+    full = FleetGuards(max_concurrent_actions=0)
+    assert check(full, paused_here=False, latched=False, actions_elsewhere=0) is (
+        Verdict.CONCURRENCY_LIMIT
+    )
+    got = consequence_verdict(full, annotations={}, book=None, status=ra_status(), now=NOW)
+    assert got is Verdict.ALLOWED
 
 
 # -- the whole plan -------------------------------------------------------------------

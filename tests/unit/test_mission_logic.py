@@ -31,9 +31,15 @@ from roost_api.mission import (
     Preflight,
     VehicleSelection,
 )
-from roost_api.vehicle import VehicleSpec, VehicleStatus
-from roost_api.wellknown import LABEL_VEHICLE, TAINT_VEHICLE
+from roost_api.vehicle import VehicleFailover, VehicleSpec, VehicleStatus
+from roost_api.wellknown import (
+    ANNOTATION_CLEAR_FAILOVER_LATCH,
+    ANNOTATION_PAUSE_FAILOVER_ACTIONS,
+    LABEL_VEHICLE,
+    TAINT_VEHICLE,
+)
 from roost_harness.fakeagents import redundant_autopilot
+from roost_operator.autopilots.guards import FleetGuards
 from roost_operator.missions.machine import (
     ABORT_COMMAND_DEADLINE_SECONDS,
     Observation,
@@ -90,6 +96,8 @@ def vehicle(
     claimed_by: ObjectReference | None = None,
     labels: dict[str, str] | None = None,
     deleting: bool = False,
+    annotations: dict[str, str] | None = None,
+    failover: VehicleFailover | None = None,
 ) -> VehicleView:
     """A Vehicle as the operator reports it; ``ready`` is the node/components side."""
     flag = "True" if ready else "False"
@@ -104,10 +112,11 @@ def vehicle(
         name=name,
         labels=labels if labels is not None else {"fleet": "a"},
         spec=VehicleSpec.model_validate({"nodeName": f"node-{name}", "sysid": 10}),
-        status=VehicleStatus(conditions=conditions, claimed_by=claimed_by),
+        status=VehicleStatus(conditions=conditions, claimed_by=claimed_by, failover=failover),
         resource_version="1",
         uid=f"uid-{name}",
         deleting=deleting,
+        annotations=annotations or {},
     )
 
 
@@ -180,6 +189,9 @@ def config(name: str) -> dict[str, str]:
     return {"VEHICLE_NAME": name, "VEHICLE_MAVLINK_SYSID": "10"}
 
 
+NO_GUARD_ENGAGED = FleetGuards()
+
+
 def observe(
     vehicles: list[VehicleView],
     *,
@@ -189,6 +201,7 @@ def observe(
     jobs: list[JobView] | None = None,
     live: set[str] | None = None,
     now: datetime = T0,
+    guards: FleetGuards = NO_GUARD_ENGAGED,
 ) -> Observation:
     by_name = {v.name: v for v in vehicles}
     return Observation(
@@ -205,6 +218,7 @@ def observe(
         config_values={name: config(name) for name in by_name},
         live_missions=frozenset(live if live is not None else {ME.key, "default/rival"}),
         now=now,
+        guards=guards,
     )
 
 
@@ -781,6 +795,134 @@ def test_every_vehicle_aborted_after_failovers_is_a_failed_mission() -> None:
     done = plan_mission(observe(vehicles, spec=spec, status=first.status, aps=[landed], now=at))
     assert done.status.phase == MissionPhase.FAILED
     assert done.status.reason == "AllVehiclesAborted"
+
+
+# -- failover consequences and the fleet guards ------------------------------------------
+
+PAUSED = {ANNOTATION_PAUSE_FAILOVER_ACTIONS: "true"}
+FAILED_OVER_AT = T0 + timedelta(seconds=10)
+LATCH = VehicleFailover(
+    latched=True,
+    latched_at=FAILED_OVER_AT,
+    observed_failover_count=0,
+    observed_failover_time=FAILED_OVER_AT,
+)
+
+
+def _guarded(
+    obs: Observation, *, annotations: dict[str, str], book: VehicleFailover | None = None
+) -> Observation:
+    """``obs`` with vehicle a's Vehicle carrying ``annotations`` and failover bookkeeping."""
+    a = vehicle("a", claimed_by=ME.reference, annotations=annotations, failover=book)
+    return replace(obs, vehicles={**obs.vehicles, "a": a})
+
+
+@pytest.mark.parametrize(
+    ("policy", "annotations", "book", "fleet_paused", "held"),
+    [
+        ("AbortVehicle", PAUSED, None, False, "Paused"),
+        ("AbortVehicle", {}, None, True, "Paused"),
+        ("AbortVehicle", {}, LATCH, False, "Latched"),
+        ("AbortMission", PAUSED, None, False, "Paused"),
+        ("AbortMission", {}, LATCH, False, "Latched"),
+        ("AbortVehicle", {}, None, False, None),
+        ("AbortMission", {}, None, False, None),
+        ("Continue", PAUSED, LATCH, False, None),  # nothing to hold back
+    ],
+)
+def test_failover_consequences_honour_the_pause_and_the_latch(
+    policy: str,
+    annotations: dict[str, str],
+    book: VehicleFailover | None,
+    fleet_paused: bool,
+    held: str | None,
+) -> None:
+    obs, _ = _failover_obs(policy, FAILED_OVER_AT)
+    obs = replace(
+        _guarded(obs, annotations=annotations, book=book),
+        guards=FleetGuards(paused=fleet_paused),
+    )
+    plan = plan_mission(obs)
+    a = vehicle_status(plan, "a")
+    assert a.failed_over_at == FAILED_OVER_AT
+    assert a.failover_action_held == held
+    degraded = find_condition(plan.status.conditions, "Degraded")
+    assert degraded is not None and degraded.status == "True"
+    if held is None:
+        assert degraded.reason == "VehicleFailedOver"
+        if policy != "Continue":
+            assert plan.commands, "an unguarded consequence is applied at once"
+        return
+    assert plan.commands == {} and plan.jobs_to_delete == []
+    assert plan.status.phase == MissionPhase.RUNNING
+    assert a.phase == MissionVehiclePhase.RUNNING
+    assert a.reason == degraded.reason == f"FailoverAction{held}"
+    assert f"onFailover={policy} held back" in (a.message or "")
+    assert [e.reason for e in plan.events] == ["VehicleFailedOver", f"FailoverAction{held}"]
+    again = plan_mission(replace(obs, status=plan.status))
+    assert again.events == [] and again.commands == {}, "a hold is announced once"
+    assert vehicle_status(again, "a").failover_action_held == held
+
+
+def test_a_paused_abort_vehicle_is_applied_once_the_pause_is_lifted() -> None:
+    obs, _ = _failover_obs("AbortVehicle", FAILED_OVER_AT)
+    held = plan_mission(_guarded(obs, annotations=PAUSED))
+    lifted = plan_mission(replace(_guarded(obs, annotations={}), status=held.status))
+    a = vehicle_status(lifted, "a")
+    assert a.phase == MissionVehiclePhase.ABORTING and a.failover_action_held is None
+    assert list(lifted.commands) == ["a"]
+    assert lifted.commands["a"].action == CommandAction.SAFETY_ROUTINE
+    assert lifted.jobs_to_delete == [onboard_job_name("survey", "a")]
+    assert "VehicleFailedOver" not in [e.reason for e in lifted.events], "not a new failover"
+    degraded = find_condition(lifted.status.conditions, "Degraded")
+    assert degraded is not None and degraded.reason == "VehicleFailedOver"
+
+
+def test_a_consequence_held_until_the_workload_ends_is_not_applied() -> None:
+    obs, _ = _failover_obs("AbortVehicle", FAILED_OVER_AT)
+    held = plan_mission(_guarded(obs, annotations=PAUSED))
+    done = plan_mission(
+        replace(
+            _guarded(obs, annotations=PAUSED),
+            status=held.status,
+            jobs={onboard_job_name("survey", "a"): job("a", JobPhase.SUCCEEDED)},
+        )
+    )
+    a = vehicle_status(done, "a")
+    assert a.phase == MissionVehiclePhase.SUCCEEDED and a.failover_action_held is None
+    assert done.commands == {}
+
+
+def test_a_latched_abort_mission_waits_for_a_human_to_clear_the_latch() -> None:
+    obs, _ = _failover_obs("AbortMission", FAILED_OVER_AT)
+    held = plan_mission(_guarded(obs, annotations={}, book=LATCH))
+    assert held.status.phase == MissionPhase.RUNNING
+    cleared = plan_mission(
+        replace(
+            _guarded(obs, annotations={ANNOTATION_CLEAR_FAILOVER_LATCH: "looked"}, book=LATCH),
+            status=held.status,
+        )
+    )
+    assert cleared.status.phase == MissionPhase.ABORTING
+    assert sorted(cleared.commands) == ["a", "b"]
+
+
+def test_a_requested_abort_is_never_held_back_by_a_guard() -> None:
+    obs, spec = _failover_obs("AbortVehicle", FAILED_OVER_AT)
+    held = plan_mission(_guarded(obs, annotations=PAUSED, book=LATCH))
+    assert vehicle_status(held, "a").failover_action_held == "Paused"
+    aborting = spec.model_copy(update={"abort": True})
+    plan = plan_mission(
+        replace(
+            _guarded(obs, annotations=PAUSED, book=LATCH),
+            spec=aborting,
+            status=held.status,
+            guards=FleetGuards(paused=True),
+        )
+    )
+    assert plan.status.phase == MissionPhase.ABORTING
+    assert sorted(plan.commands) == ["a", "b"]
+    assert vehicle_status(plan, "a").failover_action_held is None
 
 
 # -- deletion, events, wake-ups ------------------------------------------------------------

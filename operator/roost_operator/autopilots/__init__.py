@@ -10,7 +10,8 @@ actions — never to the on-vehicle switch.
 ``conditions``
     AgentConnected / AutopilotsHealthy from the agent's report (pure).
 ``guards``
-    Fleet guards and the failover bookkeeping they need (pure).
+    Fleet guards and the failover bookkeeping they need (pure); the mission state
+    machine asks them too before applying ``spec.onFailover``.
 ``plan``
     One vehicle's cluster side of failover, as one pure decision.
 ``reconcile``

@@ -2,25 +2,32 @@
 
 A failover on a vehicle is decided and executed by its node agent alone; nothing here
 can delay or veto it (automatic failback included: the agent decides it on the ground).
-What the cluster does *in response* — re-pointing the vehicle's mavros at the new
-autopilot (after a failover or a failback), a mission's failover policy — is
-remediation, and remediation can itself cause a storm (a flapping link rolling mavros
-pods every few seconds, a fleet-wide network blip re-pointing every vehicle at once). So,
-as NHC does for node remediation:
+Right after every failover the agent also runs its own safety routine (hold, then land)
+locally, so the vehicle is protected without the cluster. What the cluster does *in
+response* — re-pointing the vehicle's mavros at the new autopilot (after a failover or
+a failback), a mission's ``spec.onFailover`` consequence (AbortVehicle, AbortMission) —
+is remediation, and remediation can itself cause a storm (a flapping link rolling mavros
+pods every few seconds, a fleet-wide network blip re-pointing every vehicle or aborting
+every mission at once). So, as NHC does for node remediation:
 
 * **pause switch** — ``roost.dev/pause-failover-actions: "true"`` on a Vehicle, or the
-  operator's fleet-wide setting, holds every cluster-side action back;
+  operator's fleet-wide setting, holds every cluster-side action back, mission
+  consequences included;
 * **latch** — ``latch_after`` failovers of one vehicle within ``latch_window`` latch it:
-  no further cluster-side action until a human sets a new value in the annotation
-  ``roost.dev/clear-failover-latch`` (one value clears one latch, so a leftover token
-  can never pre-clear a future latch). The failover that trips the latch is itself not
-  acted on;
-* **concurrency cap** — at most ``max_concurrent_actions`` actions run at once across
+  no further cluster-side action, mission consequences included, until a human sets a
+  new value in the annotation ``roost.dev/clear-failover-latch`` (one value clears one
+  latch, so a leftover token can never pre-clear a future latch). The failover that
+  trips the latch is itself not acted on;
+* **concurrency cap** — at most ``max_concurrent_actions`` re-points run at once across
   the fleet; an action runs until its effect is observed or ``action_timeout`` passes.
+  Mission consequences are not counted and never wait for the cap
+  (:func:`consequence_verdict`): they stop Jobs and ask vehicles to land — they remove
+  risk rather than add it, and a fleet-wide blip is exactly when they must not queue.
 
 A held-back action is not dropped: the decision is level-based, so it runs as soon as
 the guard lifts. The bookkeeping lives in ``Vehicle.status.failover`` so an operator
-restart neither forgets a latch nor repeats an action.
+restart neither forgets a latch nor repeats an action. A user's own abort of a mission
+(``spec.abort``) is not a failover consequence and no guard applies to it.
 
 Pure functions: no API calls, ``now`` is a parameter.
 """
@@ -109,6 +116,15 @@ def vehicle_paused(annotations: Mapping[str, str]) -> bool:
     return value.strip().lower() in TRUE_VALUES
 
 
+def pause_or_latch(guards: FleetGuards, *, paused_here: bool, latched: bool) -> Verdict:
+    """The pause and latch guards alone; a pause wins so its reason is shown first."""
+    if guards.paused or paused_here:
+        return Verdict.PAUSED
+    if latched:
+        return Verdict.LATCHED
+    return Verdict.ALLOWED
+
+
 def check(
     guards: FleetGuards,
     *,
@@ -123,10 +139,9 @@ def check(
     does not add to the fleet's load. Order: a pause wins over a latch, which wins over
     the cap, so the reason shown is the one a human must act on first.
     """
-    if guards.paused or paused_here:
-        return Verdict.PAUSED
-    if latched:
-        return Verdict.LATCHED
+    verdict = pause_or_latch(guards, paused_here=paused_here, latched=latched)
+    if verdict is not Verdict.ALLOWED:
+        return verdict
     if actions_elsewhere >= guards.max_concurrent_actions:
         return Verdict.CONCURRENCY_LIMIT
     return Verdict.ALLOWED
@@ -198,3 +213,26 @@ def clear_latch(
     if cleared:
         update |= {"latched": False, "latched_at": None, "recent": []}
     return book.model_copy(update=update), cleared
+
+
+def consequence_verdict(
+    guards: FleetGuards,
+    *,
+    annotations: Mapping[str, str],
+    book: VehicleFailover | None,
+    status: RedundantAutopilotStatus,
+    now: datetime,
+) -> Verdict:
+    """May a mission apply its ``spec.onFailover`` consequence on this vehicle now?
+
+    Pause and latch only, never the cap (see the module docstring). The latch is judged
+    on the bookkeeping as the vehicle's failover reconcile is about to make it — a new
+    clear token honoured, the agent's unaccounted failovers counted — so a mission that
+    sees a failover before that reconcile has written ``Vehicle.status.failover`` still
+    holds back the failover that trips the latch, and resumes with the same clear.
+    """
+    projected, _ = clear_latch(book or VehicleFailover(), annotations)
+    projected, _ = observe_failovers(projected, status, guards=guards, now=now)
+    return pause_or_latch(
+        guards, paused_here=vehicle_paused(annotations), latched=projected.latched
+    )

@@ -20,7 +20,9 @@ What it decides, in order:
 Automatic failback (``failoverPolicy.failback: OnGround``) is decided on the vehicle by
 the agent's arbiter, like every switch; its cluster side is the re-point back to the
 primary, which goes through the same guards. Mission consequences of a failover are the
-Mission handler's, which asks :func:`roost_operator.autopilots.guards.check` too.
+Mission state machine's, which asks
+:func:`~roost_operator.autopilots.guards.consequence_verdict` (pause and latch, not the
+cap) on the same bookkeeping this plan writes.
 
 Everything it returns is a function of its inputs (``now`` included): running it twice
 on the same inputs gives the same result, so the handlers write only on change and an

@@ -46,6 +46,7 @@ from roost_api.wellknown import (
     LABEL_VEHICLE,
     MANAGED_BY,
 )
+from roost_operator.autopilots.guards import FleetGuards
 from roost_operator.kube import (
     CONFIGMAPS,
     JOBS,
@@ -143,7 +144,7 @@ def vehicle_body(vehicle: VehicleView) -> Obj:
 
 
 def observe(
-    kube: Kube, *, namespace: str, name: str, operator_namespace: str
+    kube: Kube, *, namespace: str, name: str, operator_namespace: str, guards: FleetGuards
 ) -> Observation | None:
     """Read everything a decision about Mission ``namespace/name`` needs (None if gone)."""
     body = kube.get(MISSIONS, name, namespace)
@@ -185,6 +186,7 @@ def observe(
         },
         live_missions=live,
         now=datetime.now(UTC),
+        guards=guards,
     )
 
 
@@ -392,10 +394,12 @@ def carry_out(kube: Kube, obs: Observation, plan: Plan, operator_namespace: str)
 
 
 def reconcile_mission(
-    kube: Kube, *, namespace: str, name: str, operator_namespace: str
+    kube: Kube, *, namespace: str, name: str, operator_namespace: str, guards: FleetGuards
 ) -> Outcome | None:
     """Observe, plan, claim (all or nothing), carry out. None when the Mission is gone."""
-    obs = observe(kube, namespace=namespace, name=name, operator_namespace=operator_namespace)
+    obs = observe(
+        kube, namespace=namespace, name=name, operator_namespace=operator_namespace, guards=guards
+    )
     if obs is None:
         return None
     plan = plan_mission(obs)
@@ -409,7 +413,11 @@ def reconcile_mission(
             return Outcome(plan, random.uniform(0.5, 2.0), False, (), True)
         else:
             fresh = observe(
-                kube, namespace=namespace, name=name, operator_namespace=operator_namespace
+                kube,
+                namespace=namespace,
+                name=name,
+                operator_namespace=operator_namespace,
+                guards=guards,
             )
             if fresh is None:
                 return None
@@ -429,10 +437,12 @@ def reconcile_mission(
 
 
 def release_deleted_mission(
-    kube: Kube, *, namespace: str, name: str, operator_namespace: str
+    kube: Kube, *, namespace: str, name: str, operator_namespace: str, guards: FleetGuards
 ) -> None:
     """The Mission is being deleted: abort what still flies for it, release its vehicles."""
-    obs = observe(kube, namespace=namespace, name=name, operator_namespace=operator_namespace)
+    obs = observe(
+        kube, namespace=namespace, name=name, operator_namespace=operator_namespace, guards=guards
+    )
     if obs is None:
         return
     plan = plan_deletion(obs)

@@ -26,6 +26,7 @@ import kopf
 
 from roost_api.meta import GROUP, VERSION
 from roost_api.wellknown import LABEL_MISSION
+from roost_operator.autopilots.handlers import GUARDS
 from roost_operator.missions.cluster import reconcile_mission, release_deleted_mission
 from roost_operator.missions.wakeups import Wakeups, sleep_until_woken
 from roost_operator.runtime import runtime
@@ -63,6 +64,7 @@ async def mission_daemon(
                     namespace=namespace,
                     name=name,
                     operator_namespace=rt.settings.namespace,
+                    guards=GUARDS,
                 )
             except Exception:
                 log.exception("reconciling mission %s failed; retrying", key)
@@ -89,6 +91,7 @@ async def mission_deleted(*, name: str, namespace: str | None, memo: Any, **_: A
         namespace=namespace,
         name=name,
         operator_namespace=rt.settings.namespace,
+        guards=GUARDS,
     )
 
 

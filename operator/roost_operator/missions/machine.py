@@ -25,6 +25,15 @@ Phases::
   applies ``spec.onFailover``: ``Continue`` (mission Degraded), ``AbortVehicle`` (that
   vehicle's Job stops, its agent runs the safety routine, mission Degraded and goes on)
   or ``AbortMission``.
+* Those consequences are cluster-side remediation and honour the fleet guards' pause
+  switch and latch (:func:`~roost_operator.autopilots.guards.consequence_verdict`; not
+  the concurrency cap — they only stop and land). The vehicle is safe meanwhile: its
+  agent runs its own safety routine right after every failover. While a guard holds
+  the consequence back, the vehicle keeps its workload, its status says
+  ``FailoverActionPaused`` / ``FailoverActionLatched`` (``failoverActionHeld``), as do
+  an Event and the Degraded condition; once the guard lifts the consequence is applied.
+  A consequence still held when the vehicle's workload ends is not applied.
+  A requested abort (``spec.abort``) is the user's own decision: no guard applies.
 * **Succeeded** when every onboard Job completed (vehicles aborted after a failover
   excepted, as long as one completed); **Failed** when one fails beyond its
   ``backoffLimit`` or the offboard Job fails — then, as in a JobSet, the remaining Jobs
@@ -74,7 +83,9 @@ from roost_api.mission import (
     OnFailover,
     WorkloadPhase,
 )
+from roost_api.wellknown import ANNOTATION_CLEAR_FAILOVER_LATCH, ANNOTATION_PAUSE_FAILOVER_ACTIONS
 from roost_mavlink.status import LandedState, landed_state_name
+from roost_operator.autopilots.guards import FleetGuards, Verdict, consequence_verdict
 from roost_operator.kube import Obj
 from roost_operator.missions.observed import (
     AutopilotView,
@@ -136,6 +147,8 @@ class Observation:
     """``namespace/name`` of the Missions whose claims count (listed after the Vehicles;
     see :func:`~roost_operator.missions.selection.holding_missions`)."""
     now: datetime
+    guards: FleetGuards
+    """The fleet guards a failover consequence must pass (pause and latch)."""
 
 
 @dataclass(frozen=True)
@@ -472,18 +485,34 @@ def _run(obs: Observation, plan: Plan) -> None:
             updated.append(vehicle)
             continue
         failed_over = _new_failover(vehicle, autopilots, start)
+        policy = OnFailover(obs.spec.on_failover)
+        pending = vehicle.failover_action_held is not None
         if failed_over is not None and autopilots is not None:
             vehicle.failed_over_at = failed_over
-            what = _failover_text(autopilots.status)
-            policy = OnFailover(obs.spec.on_failover)
+            pending = True
             plan.events.append(
                 MissionEvent(
                     "Warning",
                     "VehicleFailedOver",
-                    f"{vehicle.name}: {what}; onFailover={policy}",
+                    f"{vehicle.name}: {_failover_text(autopilots.status)}; onFailover={policy}",
                     vehicle=vehicle.name,
                 )
             )
+        held = vehicle.failover_action_held
+        vehicle.failover_action_held = None
+        if pending and autopilots is not None and policy is not OnFailover.CONTINUE:
+            verdict = _consequence_verdict(obs, vehicle.name, autopilots)
+            if verdict is not Verdict.ALLOWED:
+                _hold(obs, plan, vehicle, verdict, held)
+                _follow_job(obs, plan, vehicle, job, assigned)
+                if vehicle.phase == MissionVehiclePhase.RUNNING:
+                    vehicle.reason = f"FailoverAction{verdict.value}"
+                    vehicle.message = _held_text(vehicle.name, verdict, policy)
+                else:  # its workload ended meanwhile: nothing is left to hold back
+                    vehicle.failover_action_held = None
+                updated.append(vehicle)
+                continue
+            what = _failover_text(autopilots.status)
             if policy is OnFailover.ABORT_VEHICLE:
                 vehicle.phase = MissionVehiclePhase.ABORTING
                 vehicle.reason = "FailedOver"
@@ -504,6 +533,53 @@ def _run(obs: Observation, plan: Plan) -> None:
         _abort(obs, plan)
         return
     _aggregate(obs, plan)
+
+
+def _consequence_verdict(obs: Observation, name: str, autopilots: AutopilotView) -> Verdict:
+    """Whether the fleet guards let ``spec.onFailover`` act on vehicle ``name`` now."""
+    view = obs.vehicles.get(name)
+    return consequence_verdict(
+        obs.guards,
+        annotations=view.annotations if view is not None else {},
+        book=view.status.failover if view is not None else None,
+        status=autopilots.status,
+        now=obs.now,
+    )
+
+
+def _held_text(name: str, verdict: Verdict, policy: OnFailover) -> str:
+    why = {
+        Verdict.PAUSED: f"failover actions are paused ({ANNOTATION_PAUSE_FAILOVER_ACTIONS} "
+        "on the Vehicle, or fleet-wide)",
+        Verdict.LATCHED: "the vehicle's failover latch is set; a human clears it with "
+        f"kubectl annotate vehicle {name} {ANNOTATION_CLEAR_FAILOVER_LATCH}=<new token> "
+        "--overwrite",
+    }[verdict]
+    return (
+        f"onFailover={policy} held back: {why}; the vehicle's agent ran its own safety "
+        "routine; applied once the guard lifts"
+    )
+
+
+def _hold(
+    obs: Observation,
+    plan: Plan,
+    vehicle: MissionVehicleStatus,
+    verdict: Verdict,
+    held_before: str | None,
+) -> None:
+    """Record that a guard holds the vehicle's failover consequence; an Event when new."""
+    vehicle.failover_action_held = verdict.value
+    if held_before != verdict.value:
+        policy = OnFailover(obs.spec.on_failover)
+        plan.events.append(
+            MissionEvent(
+                "Warning",
+                f"FailoverAction{verdict.value}",
+                f"{vehicle.name}: {_held_text(vehicle.name, verdict, policy)}",
+                vehicle=vehicle.name,
+            )
+        )
 
 
 def _new_failover(
@@ -607,12 +683,19 @@ def _degraded(obs: Observation, status: MissionStatus) -> None:
     names = ", ".join(v.name for v in failed_over)
     policy = OnFailover(obs.spec.on_failover)
     message = f"autopilot failover on {names} (onFailover={policy})"
+    reason = "VehicleFailedOver"
+    held = [v for v in failed_over if v.failover_action_held is not None]
+    if held:
+        reason = f"FailoverAction{held[0].failover_action_held}"
+        message += "; held back by a fleet guard on " + ", ".join(
+            f"{v.name} ({v.failover_action_held})" for v in held
+        )
     _condition(
         obs,
         status,
         MissionConditionType.DEGRADED,
         "True",
-        reason="VehicleFailedOver",
+        reason=reason,
         message=message,
     )
 
@@ -750,6 +833,7 @@ def _abort(obs: Observation, plan: Plan) -> None:
         status.offboard.phase = WorkloadPhase.STOPPED
         status.offboard.message = "stopped by the abort"
     for vehicle in status.vehicles:
+        vehicle.failover_action_held = None  # the abort supersedes a held consequence
         if vehicle.phase != MissionVehiclePhase.ABORTED:
             _abort_vehicle(obs, plan, vehicle, action)
     waiting = [v for v in status.vehicles if v.phase != MissionVehiclePhase.ABORTED]

@@ -8,7 +8,7 @@ the edge, not halfway through a decision).
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime
 from enum import StrEnum
 from typing import Any
@@ -55,6 +55,8 @@ class VehicleView:
     resource_version: str
     uid: str = ""
     deleting: bool = False
+    annotations: Mapping[str, str] = field(default_factory=dict)
+    """Its annotations (the fleet guards' pause switch and latch clear live there)."""
 
     @property
     def node_name(self) -> str:
@@ -72,6 +74,7 @@ class VehicleView:
             resource_version=meta.get("resourceVersion", ""),
             uid=meta.get("uid", ""),
             deleting=bool(meta.get("deletionTimestamp")),
+            annotations=dict(meta.get("annotations") or {}),
         )
 
 
