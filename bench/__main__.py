@@ -1,16 +1,17 @@
 """Run Roost's benchmarks: ``python -m bench [module ...]`` (``make bench`` runs all).
 
 Each module listed in :data:`MODULES` measures one area and returns figures; results
-are merged into ``bench/results.json`` and printed as a table.
+are merged into ``bench/results.json``, printed, and summarised in the README's table.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import sys
 
-from bench.core import Figure, write_results
+from bench.core import RESULTS, Figure, update_readme, write_results
 
 MODULES: tuple[str, ...] = ("controlplane", "mission", "cluster", "agent", "vehicle")
 
@@ -18,13 +19,21 @@ MODULES: tuple[str, ...] = ("controlplane", "mission", "cluster", "agent", "vehi
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("modules", nargs="*", help=f"subset of {', '.join(MODULES)}")
+    parser.add_argument(
+        "--readme-only",
+        action="store_true",
+        help="only rewrite the README table from bench/results.json",
+    )
     args = parser.parse_args(argv)
+    if args.readme_only:
+        update_readme(json.loads(RESULTS.read_text()))
+        return 0
     figures: list[Figure] = []
     for name in args.modules or MODULES:
         module = importlib.import_module(f"bench.{name}")
         print(f"bench: running {name} ...", file=sys.stderr, flush=True)
         figures.extend(module.run())
-    write_results(figures)
+    update_readme(write_results(figures))
     for fig in figures:
         verdict = {True: "meets", False: "MISSES", None: ""}[fig.meets_target()]
         print(f"{fig.name:45} {fig.value:12.3f} {fig.unit:6} target {fig.target:10} {verdict}")

@@ -16,6 +16,9 @@ from pathlib import Path
 from typing import Any
 
 RESULTS = Path(__file__).with_name("results.json")
+README = Path(__file__).resolve().parents[1] / "README.md"
+TABLE_START = "<!-- bench-table -->"
+TABLE_END = "<!-- /bench-table -->"
 
 
 @dataclass(frozen=True)
@@ -55,3 +58,35 @@ def write_results(figures: list[Figure], path: Path = RESULTS) -> dict[str, Any]
     }
     path.write_text(json.dumps(doc, indent=2) + "\n")
     return doc
+
+
+def _fmt(value: float) -> str:
+    return f"{value:.3g}" if abs(value) < 1000 else f"{value:.0f}"
+
+
+def markdown_table(doc: dict[str, Any]) -> str:
+    """The results file as a Markdown table (what the README shows)."""
+    verdicts = {True: "✅ meets", False: "❌ misses", None: "—"}
+    rows = [
+        "| figure | value | target | | note |",
+        "|---|---|---|---|---|",
+    ]
+    for fig in doc["figures"]:
+        note = " ".join(str(fig.get("note", "")).split())
+        rows.append(
+            f"| `{fig['name']}` | {_fmt(fig['value'])} {fig['unit']} | {fig['target']} "
+            f"| {verdicts[fig['meets_target']]} | {note} |"
+        )
+    rows.append("")
+    rows.append(f"Measured on {doc['machine']}; updated {doc['updated']}.")
+    return "\n".join(rows)
+
+
+def update_readme(doc: dict[str, Any], readme: Path = README) -> None:
+    """Replace the README's table between the bench-table markers with ``doc``'s figures."""
+    text = readme.read_text()
+    if TABLE_START not in text:
+        return
+    head, rest = text.split(TABLE_START, 1)
+    tail = rest.split(TABLE_END, 1)[1] if TABLE_END in rest else ""
+    readme.write_text(f"{head}{TABLE_START}\n{markdown_table(doc)}\n{TABLE_END}{tail}")
