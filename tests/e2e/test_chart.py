@@ -28,7 +28,7 @@ from roost_api.wellknown import LABEL_NODE, LABEL_VEHICLE, TAINT_VEHICLE
 from roost_harness.agent import AgentProcess
 from roost_harness.binaries import REPO_ROOT
 from roost_harness.chart import install_args
-from roost_harness.cluster import Cluster
+from roost_harness.cluster import Cluster, FakeNodes
 from roost_harness.operator import OperatorProcess, wait_for
 from roost_harness.processes import ManagedProcess
 from roost_sim import autopilot_specs, start_vehicle_sims, stop_sims
@@ -118,7 +118,7 @@ def _agent_pods(cluster: Cluster) -> dict[str, dict[str, Any]]:
 @pytest.fixture(scope="module")
 def installed(
     cluster: Cluster,
-    fake_nodes_module: Callable[..., Any],
+    fake_nodes_module: FakeNodes,
     tmp_path_factory: pytest.TempPathFactory,
 ) -> Iterator[Cluster]:
     """The chart installed with default values, two vehicle nodes, one plain node, and a
@@ -152,17 +152,11 @@ def installed(
 
 
 @pytest.fixture(scope="module")
-def fake_nodes_module(cluster: Cluster) -> Iterator[Callable[..., dict[str, Any]]]:
+def fake_nodes_module(cluster: Cluster) -> Iterator[FakeNodes]:
     """Like the ``fake_nodes`` fixture, for the whole module."""
-    added: list[str] = []
-
-    def add(name: str, **kwargs: Any) -> dict[str, Any]:
-        added.append(name)
-        return cluster.add_node(name, **kwargs)
-
-    yield add
-    for name in added:
-        cluster.kubectl("delete", "node", name, "--ignore-not-found")
+    pool = FakeNodes(cluster)
+    yield pool
+    pool.cleanup()
 
 
 def _identity(user: str, node: str | None) -> list[str]:
@@ -475,7 +469,7 @@ def test_real_pod_bound_agent_token_carries_its_node_and_is_scoped_to_it(
 
 
 def test_agent_with_its_pod_bound_token_reports_its_autopilots(
-    installed: Cluster, fake_nodes_module: Callable[..., Any], tmp_path: Path
+    installed: Cluster, fake_nodes_module: FakeNodes, tmp_path: Path
 ) -> None:
     """The real roost-agent, as the chart runs it but outside the (kwok) pod: NODE_NAME
     and a token bound to the agent pod on its node. It finds its Vehicle and labelled
@@ -543,7 +537,7 @@ def _condition(obj: dict[str, Any], kind: str) -> str | None:
 
 def test_operator_with_the_chart_service_account_reconciles_a_vehicle(
     installed: Cluster,
-    fake_nodes_module: Callable[..., Any],
+    fake_nodes_module: FakeNodes,
     operator_as_chart_account: OperatorProcess,
 ) -> None:
     process = operator_as_chart_account.process
@@ -581,7 +575,7 @@ def _operator_log_is_clean(process: ManagedProcess) -> None:
 
 def test_operator_with_the_chart_service_account_labels_the_autopilot_and_flies_a_mission(
     installed: Cluster,
-    fake_nodes_module: Callable[..., Any],
+    fake_nodes_module: FakeNodes,
     operator_as_chart_account: OperatorProcess,
 ) -> None:
     """A Mission on one vehicle runs to its Job (preflight limited to the operator's own

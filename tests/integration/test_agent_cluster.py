@@ -76,12 +76,6 @@ def operator(
     proc.stop()
 
 
-@pytest.fixture(scope="module")
-def kube(roost_crds: Cluster) -> Iterator[Kube]:
-    with roost_crds.api_client() as api:
-        yield Kube(api=api)
-
-
 @dataclass
 class Rig:
     """One flying vehicle: its objects' name, node, simulated autopilots and agent."""

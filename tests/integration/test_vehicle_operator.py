@@ -75,12 +75,6 @@ def operator(
     proc.stop()
 
 
-@pytest.fixture(scope="module")
-def kube(roost_crds: Cluster) -> Iterator[Kube]:
-    with roost_crds.api_client() as api:
-        yield Kube(api=api)
-
-
 @pytest.fixture
 def vehicles(
     roost_crds: Cluster, operator: OperatorProcess, kube: Kube
