@@ -50,7 +50,7 @@ from roost_operator.kube import (
     Obj,
 )
 from roost_operator.vehicles.config import config_map_name
-from roost_operator.vehicles.desired import ready_condition, workload_name
+from roost_operator.vehicles.desired import with_ready, workload_name
 from roost_operator.vehicles.status import write_vehicle_status
 
 log = logging.getLogger(__name__)
@@ -128,16 +128,7 @@ def _with_conditions(
             observed_generation=generation,
             at=at,
         )
-    status, reason, message = ready_condition(conditions)
-    return set_condition(
-        conditions,
-        type=VehicleConditionType.READY,
-        status=status,
-        reason=reason,
-        message=message,
-        observed_generation=generation,
-        at=at,
-    )
+    return with_ready(conditions, generation=generation, at=at)
 
 
 def _without_mine(
@@ -147,16 +138,7 @@ def _without_mine(
     kept = [c for c in previous if c.type not in MINE]
     if len(kept) == len(previous):
         return previous
-    status, reason, message = ready_condition(kept)
-    return set_condition(
-        kept,
-        type=VehicleConditionType.READY,
-        status=status,
-        reason=reason,
-        message=message,
-        observed_generation=generation,
-        at=at,
-    )
+    return with_ready(kept, generation=generation, at=at)
 
 
 def _ensure_node_label(kube: Kube, autopilot: Obj, node_name: str) -> None:

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from datetime import datetime
 from typing import Any, Final
 
 from roost_api.autopilot import RedundantAutopilotSpec
@@ -428,6 +429,18 @@ def vehicle_conditions(
         message=message,
         observed_generation=generation,
     )
+    return with_ready(conditions, generation=generation, agent_expected=agent_expected)
+
+
+def with_ready(
+    conditions: Sequence[Condition],
+    *,
+    generation: int | None,
+    at: datetime | None = None,
+    agent_expected: bool = False,
+) -> list[Condition]:
+    """``conditions`` with Ready recomputed from the detail conditions (see
+    :func:`ready_condition`); the one place every Vehicle condition writer summarises."""
     status, reason, message = ready_condition(conditions, agent_expected=agent_expected)
     return set_condition(
         conditions,
@@ -436,6 +449,7 @@ def vehicle_conditions(
         reason=reason,
         message=message,
         observed_generation=generation,
+        at=at,
     )
 
 
