@@ -28,13 +28,14 @@ vehicle (``spec.components.<c>.image``, ``spec.simulation.image``).
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
+from copy import deepcopy
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any, Final
 
 from roost_api.autopilot import RedundantAutopilotSpec
 from roost_api.meta import Condition, ConditionStatus, Stack, set_condition
-from roost_api.vehicle import VehicleConditionType, VehicleSpec
+from roost_api.vehicle import ComponentSpec, VehicleConditionType, VehicleSpec
 from roost_api.wellknown import (
     ANNOTATION_CONFIG_HASH,
     LABEL_COMPONENT,
@@ -148,47 +149,41 @@ def workload_name(vehicle_name: str, component: str) -> str:
     return f"{vehicle_name}-{component}"
 
 
+# Container and pod fields of each optional component beyond its image and resources.
+_HOST_NETWORK: Final[Obj] = {"hostNetwork": True, "dnsPolicy": "ClusterFirstWithHostNet"}
+_COMPONENT_FIELDS: Final[dict[str, tuple[Obj, Obj]]] = {
+    "mavros": ({}, _HOST_NETWORK),
+    "vicon": ({}, _HOST_NETWORK),
+    # Device access (cameras, payload buses) needs the host's /dev and a privileged
+    # container; this is the only privileged Roost workload and it is off by default.
+    "hardware": (
+        {
+            "securityContext": {"privileged": True},
+            "volumeMounts": [{"name": "dev", "mountPath": "/dev"}],
+        },
+        {"volumes": [{"name": "dev", "hostPath": {"path": "/dev"}}]},
+    ),
+}
+
+
 def component_workloads(spec: VehicleSpec, autopilots: Sequence[Autopilot]) -> list[Workload]:
-    """Every workload the vehicle should run, in a stable order."""
-    host_network = {"hostNetwork": True, "dnsPolicy": "ClusterFirstWithHostNet"}
+    """Every workload the vehicle should run, in a stable order.
+
+    Only mavros follows a failover: it is the component pointed at the active autopilot.
+    """
     workloads: list[Workload] = []
-    comps = spec.components
-    if comps.mavros.enabled:
-        workloads.append(
-            Workload(
-                "mavros",
-                comps.mavros.image or DEFAULT_IMAGES["mavros"],
-                {"resources": COMPONENT_RESOURCES["mavros"]},
-                host_network,
-                follows_failover=True,
+    for component, (container, pod) in _COMPONENT_FIELDS.items():
+        chosen: ComponentSpec = getattr(spec.components, component)
+        if chosen.enabled:
+            workloads.append(
+                Workload(
+                    component,
+                    chosen.image or DEFAULT_IMAGES[component],
+                    {"resources": COMPONENT_RESOURCES[component], **deepcopy(container)},
+                    deepcopy(pod),
+                    follows_failover=component == "mavros",
+                )
             )
-        )
-    if comps.vicon.enabled:
-        workloads.append(
-            Workload(
-                "vicon",
-                comps.vicon.image or DEFAULT_IMAGES["vicon"],
-                {"resources": COMPONENT_RESOURCES["vicon"]},
-                host_network,
-                follows_failover=False,
-            )
-        )
-    if comps.hardware.enabled:
-        # Device access (cameras, payload buses) needs the host's /dev and a privileged
-        # container; this is the only privileged Roost workload and it is off by default.
-        workloads.append(
-            Workload(
-                "hardware",
-                comps.hardware.image or DEFAULT_IMAGES["hardware"],
-                {
-                    "resources": COMPONENT_RESOURCES["hardware"],
-                    "securityContext": {"privileged": True},
-                    "volumeMounts": [{"name": "dev", "mountPath": "/dev"}],
-                },
-                {"volumes": [{"name": "dev", "hostPath": {"path": "/dev"}}]},
-                follows_failover=False,
-            )
-        )
     if spec.simulation is not None:
         workloads.extend(
             sitl_workload(spec, index, autopilot) for index, autopilot in enumerate(autopilots)
