@@ -11,7 +11,8 @@ Protocol: the client sends one JSON object on one line and reads one line back.
 - ``{"op": "clear", "kind": null}`` (null = every fault)
 - ``{"op": "status"}``
 - ``{"op": "fly", "value": 10}`` (arm and take off to ``value`` metres, default the
-  configured takeoff altitude: what a mission's controller would do; the sandbox uses it)
+  configured takeoff altitude, once the autopilot has booted: what a mission's controller
+  would do; the sandbox uses it)
 
 Every answer is ``{"ok": true, "state": <SimSnapshot>}`` or ``{"ok": false, "error": ...}``.
 """
@@ -55,6 +56,9 @@ def handle_request(sim: SimulatedAutopilot, request: dict[str, Any]) -> dict[str
             sim.clear(FaultKind(kind) if kind else None)
         elif op == "fly":
             value = request.get("value")
+            # Like a mission controller, wait for the autopilot to finish booting: right
+            # after start it refuses to arm, which made an early request fail at random.
+            sim.wait_until(lambda snap: snap.system_status != "BOOT", timeout=5.0)
             sim.fly(float(value) if value is not None else None)
         elif op != "status":
             raise ValueError(f"unknown op {op!r}")
