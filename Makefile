@@ -16,9 +16,10 @@ help: ## list the targets
 	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-16s %s\n", $$1, $$2}'
 
 $(STAMP): pyproject.toml
-	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[dev]'
+	@echo "setup: creating $(VENV) with Roost and its dev tools (pip's log: $(VENV)/pip.log)"
+	@$(PYTHON) -m venv $(VENV)
+	@{ $(PY) -m pip install --upgrade pip && $(PY) -m pip install -e '.[dev]'; } > $(VENV)/pip.log 2>&1 \
+	  || { tail -n 40 $(VENV)/pip.log; echo "setup: pip failed; the whole log is $(VENV)/pip.log"; exit 1; }
 	$(PY) -m roost_harness.clients install
 	touch $@
 
