@@ -7,7 +7,7 @@ the nodes and writes each vehicle's config, exactly as in production.
 
 Two stand-ins, both because the real part is not wired up here yet:
 
-* **The node agent.** :class:`~roost_harness.fakeagents.FakeAgents` writes each
+* **The node agent.** :class:`~tests.support.fakeagents.FakeAgents` writes each
   RedundantAutopilot's status the way the agent does (conditions
   ActiveHealthy/Redundant/FailedOver/Ready, per-autopilot health with landed state and
   armed flag, lastFailover, reportedAt, nodeName) and executes commands from
@@ -43,9 +43,7 @@ from typing import Any
 import pytest
 
 from roost_api.wellknown import ANNOTATION_PAUSE_FAILOVER_ACTIONS, LABEL_MISSION, LABEL_VEHICLE
-from roost_harness.cluster import Cluster
-from roost_harness.fakeagents import FakeAgents, redundant_autopilot
-from roost_harness.operator import OperatorProcess, wait_for
+from roost_localcluster.cluster import Cluster
 from roost_operator.kube import (
     JOBS,
     MISSIONS,
@@ -59,6 +57,8 @@ from roost_operator.kube import (
 from roost_operator.missions.cluster import claim_vehicle
 from roost_operator.missions.observed import MissionRef, VehicleView
 from roost_operator.missions.workloads import ENV_MISSION_VEHICLES, bounded_name
+from tests.support.fakeagents import FakeAgents, redundant_autopilot
+from tests.support.operator import OperatorProcess, wait_for
 
 pytestmark = pytest.mark.cluster
 
