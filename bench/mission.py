@@ -82,7 +82,7 @@ def _fleet(cluster: Cluster, kube: Kube, agents: FakeAgents) -> None:
     )
     cluster.kubectl("apply", "-f", "-", input_text=_documents(vehicles))
     for name in names:
-        agents.add(f"{name}-autopilots", name, f"{name}-node")
+        agents.add(name, name, f"{name}-node")
     wait_for("the fleet Ready", lambda: _ready(kube), SETUP_TIMEOUT_S, poll_s=1.0)
 
 

@@ -79,9 +79,9 @@ def _autopilot(name: str, node: str | None) -> dict[str, Any]:
             "vehicleName": name,
             "primary": "fc-a",
             "autopilots": [
-                {"name": "fc-a", "stack": "px4", "connection": "udp://:14540", "sysid": 1,
+                {"name": "fc-a", "stack": "px4", "connection": "udp://127.0.0.1:14540", "sysid": 1,
                  "bridgeChannel": 0},
-                {"name": "fc-b", "stack": "px4", "connection": "udp://:14541", "sysid": 2,
+                {"name": "fc-b", "stack": "px4", "connection": "udp://127.0.0.1:14541", "sysid": 2,
                  "bridgeChannel": 1},
             ],
         },

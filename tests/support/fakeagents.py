@@ -38,12 +38,12 @@ def rfc3339(at: datetime) -> str:
 
 
 def redundant_autopilot(vehicle: str) -> dict[str, Any]:
-    """The RedundantAutopilot ``<vehicle>-autopilots`` the stand-in agents report for:
+    """The RedundantAutopilot of ``vehicle`` (named after it) the stand-in agents report for:
     two PX4 autopilots, ``fc1`` (primary) and ``fc2``."""
     return {
         "apiVersion": f"{GROUP}/{VERSION}",
         "kind": "RedundantAutopilot",
-        "metadata": {"name": f"{vehicle}-autopilots"},
+        "metadata": {"name": vehicle},
         "spec": {
             "vehicleName": vehicle,
             "primary": "fc1",
