@@ -59,6 +59,7 @@ from roost_sim.faults import (
     DEFAULT_GARBAGE_BYTES_PER_S,
     SPOOF_SYSID_OFFSET,
     FaultKind,
+    check_value,
     parse_number,
     parse_sensor,
     parse_state,
@@ -395,8 +396,12 @@ class SimulatedAutopilot:
     # ---- fault injection -------------------------------------------------------------
 
     def inject(self, kind: FaultKind | str, value: str | float | None = None) -> None:
-        """Start a fault (see :mod:`roost_sim.faults` for kinds and values)."""
+        """Start a fault (see :mod:`roost_sim.faults` for kinds and values).
+
+        An invalid value raises ValueError before anything changes.
+        """
         kind = FaultKind(kind)
+        check_value(kind, value)
         now = time.monotonic()
         with self._lock:
             if kind is FaultKind.SILENCE:

@@ -27,10 +27,16 @@ spoof     foreign sysid      10 Hz HEARTBEAT (EMERGENCY) + ATTITUDE from another
 ========  =================  ==========================================================
 
 ``clear`` removes one kind or all of them (a pending reboot is not undone).
+
+Numeric values must be finite and within :data:`NUMERIC_RANGES`: an infinite jitter
+would delay every frame forever, which no ``clear`` could undo. :func:`check_value` is
+the one judge of a value, used by :meth:`SimulatedAutopilot.inject` and, before anything
+is sent, by the ``roost fault`` and ``roost-sim fault`` command lines.
 """
 
 from __future__ import annotations
 
+import math
 from enum import StrEnum
 
 from roost_mavlink.status import MavState, SensorBit, sensor_from_name
@@ -78,11 +84,44 @@ def parse_state(value: str | int | None) -> MavState:
         raise ValueError(f"unknown MAV_STATE {value!r}") from None
 
 
+NUMERIC_RANGES: dict[FaultKind, tuple[float, float, str]] = {
+    FaultKind.REBOOT: (0, 3600, "seconds silent"),
+    FaultKind.GARBAGE: (0, 100_000, "bytes per second"),
+    FaultKind.LOSS: (0, 100, "percent"),
+    FaultKind.JITTER: (0, 10_000, "milliseconds"),
+    FaultKind.SPOOF: (1, 255, "a system id"),
+}
+VALUELESS = frozenset({FaultKind.SILENCE, FaultKind.FREEZE})
+
+
 def parse_number(kind: FaultKind, value: str | float | None, default: float) -> float:
-    """A non-negative number for loss, jitter, garbage and reboot."""
+    """The number for reboot, garbage, loss, jitter or spoof: finite and in range."""
     if value is None or value == "":
         return default
-    number = float(value)
-    if number < 0 or (kind is FaultKind.LOSS and number > 100):
-        raise ValueError(f"{kind} value {value!r} out of range")
+    low, high, unit = NUMERIC_RANGES[kind]
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{kind} takes a number ({unit}), not {value!r}") from None
+    if not math.isfinite(number) or not low <= number <= high:
+        raise ValueError(f"{kind} value {value!r} out of range: {unit} from {low:g} to {high:g}")
+    if kind is FaultKind.SPOOF and not number.is_integer():
+        raise ValueError(f"spoof takes a whole system id, not {value!r}")
     return number
+
+
+def check_value(kind: FaultKind | str, value: str | float | None) -> None:
+    """Raise ValueError (with the reason) unless ``value`` is valid for ``kind``."""
+    kind = FaultKind(kind)
+    try:
+        if kind in VALUELESS:
+            if value is not None and value != "":
+                raise ValueError(f"{kind} takes no value")
+        elif kind is FaultKind.SENSOR:
+            parse_sensor(value if not isinstance(value, float) else int(value))
+        elif kind is FaultKind.STATE:
+            parse_state(value if not isinstance(value, float) else int(value))
+        else:
+            parse_number(kind, value, 0.0)
+    except KeyError as error:
+        raise ValueError(error.args[0] if error.args else str(error)) from None

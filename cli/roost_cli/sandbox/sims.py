@@ -22,7 +22,7 @@ from roost_cli.errors import CliError
 from roost_cli.sandbox import plan, state
 from roost_cli.sandbox.processes import Launcher, console_script
 from roost_sim.control import request, socket_path
-from roost_sim.faults import FaultKind
+from roost_sim.faults import FaultKind, check_value
 
 READY_TIMEOUT_S = 30.0
 CLEAR = "clear"
@@ -129,6 +129,10 @@ def fault_message(kind: str, value: str | None) -> dict[str, Any]:
     except ValueError:
         kinds = ", ".join([*(k.value for k in FaultKind), CLEAR])
         raise CliError(f"unknown fault {kind!r}: one of {kinds}") from None
+    try:
+        check_value(kind, value)
+    except ValueError as error:
+        raise CliError(f"--value: {error}") from None
     return {"op": "fault", "kind": kind, "value": value}
 
 
