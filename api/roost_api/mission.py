@@ -108,6 +108,7 @@ class LabelSelectorRequirement(ApiModel):
 
     key: str = Field(max_length=317, description="Label key.")
     operator: str = Field(
+        max_length=12,
         pattern=r"^(In|NotIn|Exists|DoesNotExist)$",
         description="In, NotIn, Exists or DoesNotExist.",
     )
