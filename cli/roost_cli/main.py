@@ -22,7 +22,7 @@ from typing import Annotated, Any
 import typer
 from rich.console import Console
 from rich.table import Table
-from typer._click.exceptions import NoArgsIsHelpError
+from typer._click.exceptions import NoArgsIsHelpError  # typer >= 0.29 vendors click
 
 from roost_api.autopilot import CommandAction
 from roost_cli import actions, render, tables, view
