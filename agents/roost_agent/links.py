@@ -760,4 +760,3 @@ class AutopilotLink:
     def landed_state(self) -> int | None:
         """The autopilot's last reported landed state."""
         return self.tracker.landed_state()
-
