@@ -369,8 +369,8 @@ class _RateAlarm:
         self._quiet_until = 0.0
         self.sources: OrderedDict[str, int] = OrderedDict()
 
-    def note(self, now: float, source: str) -> int | None:
-        """Record one; the count in the window when the alarm fires, else None."""
+    def note(self, now: float, source: str) -> str | None:
+        """Record one; "N in S s" when the alarm fires, else None."""
         times = self._times
         times.append(now)
         while times and now - times[0] > self.window_s:
@@ -381,9 +381,9 @@ class _RateAlarm:
         if len(times) < self.threshold or now < self._quiet_until:
             return None
         self._quiet_until = now + ALERT_QUIET_S
-        count = len(times)
+        text = f"{len(times)} in {max(now - times[0], 0.001):.2f} s"
         times.clear()
-        return count
+        return text
 
     def describe(self) -> str:
         text = ", ".join(self.sources)
@@ -605,7 +605,7 @@ class AutopilotLink:
             if fired is not None:
                 self._event(
                     "ForeignMavlinkTraffic",
-                    f"ignored {fired} datagrams in {ALERT_WINDOW_S:.0f} s from "
+                    f"ignored datagrams ({fired}) from "
                     f"{self._foreign_alarm.describe()}; only the autopilot at "
                     f"{_address_text(lock.locked)} is heard (a misconfigured second sender, "
                     "or MAVLink injection)",
@@ -683,8 +683,8 @@ class AutopilotLink:
         if fired is not None:
             self._event(
                 "UnsignedMavlink",
-                f"dropped {fired} frames in {ALERT_WINDOW_S:.0f} s that carry the autopilot's "
-                f"ids without a valid signature, from {self._signature_alarm.describe()}",
+                f"dropped frames ({fired}) that carry the autopilot's ids without a valid "
+                f"signature, from {self._signature_alarm.describe()}",
                 True,
             )
         return False
