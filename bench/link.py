@@ -22,16 +22,14 @@ Knobs (environment): ``ROOST_BENCH_HOSTILE_S`` (default 20), ``ROOST_BENCH_FLOOD
 from __future__ import annotations
 
 import os
-import tempfile
 import time
-from pathlib import Path
 
 import psutil
 
-from bench.agent import PX4_ONBOARD_RATES, AgentProcess, take_off
+from bench.agent import PX4_ONBOARD_RATES, AgentProcess, vehicle
 from bench.core import Figure
-from roost_api.autopilot import FailoverMode, FailoverPolicy, RedundantAutopilotSpec
-from roost_sim import FaultKind, SimulatedAutopilot, autopilot_specs, start_vehicle_sims, stop_sims
+from roost_api.autopilot import FailoverMode, Thresholds
+from roost_sim import FaultKind, SimulatedAutopilot
 from roost_sim.hostile import HostileSender, Target
 from roost_sim.link import UdpLink
 
@@ -66,43 +64,27 @@ def _quiet_totals(sims: list[SimulatedAutopilot], agent: AgentProcess) -> tuple[
 def measure() -> tuple[int, int, float, float, int, dict[str, int]]:
     """(real frames sent, lost, agent CPU % in the flood, achieved flood datagrams/s,
     hostile datagrams in all, link counters summed)."""
-    sims = start_vehicle_sims(["px4", "px4"], rates=PX4_ONBOARD_RATES)
-    agent: AgentProcess | None = None
-    with tempfile.TemporaryDirectory(prefix="roost-bench-link-") as tmp:
-        try:
-            spec = RedundantAutopilotSpec(
-                vehicle_name="bench",
-                autopilots=autopilot_specs(sims),
-                primary="fc1",
-                failover_policy=FailoverPolicy(mode=FailoverMode.MANUAL),
-            )
-            agent = AgentProcess(Path(tmp), spec)
-            take_off(sims)
-            agent.wait_ok(["fc1", "fc2"])
-            targets = [Target(_agent_port(s), s.sysid) for s in sims]
-            sent0, accepted0 = _quiet_totals(sims, agent)
-            with HostileSender(targets, rounds_per_s=10.0, duration_s=HOSTILE_S) as steady:
-                time.sleep(HOSTILE_S)
-            rounds = FLOOD_PER_S / (DATAGRAMS_PER_ROUND * len(targets))
-            proc = psutil.Process(agent.proc.pid)
-            with HostileSender(targets, rounds_per_s=rounds, duration_s=FLOOD_S) as flood:
-                cpu0, t0 = sum(proc.cpu_times()[:2]), time.monotonic()
-                time.sleep(FLOOD_S)
-                cpu1, t1 = sum(proc.cpu_times()[:2]), time.monotonic()
-                flooded = flood.sent
-            sent1, accepted1 = _quiet_totals(sims, agent)
-            totals: dict[str, int] = {}
-            for counters in agent.links.values():
-                for key, value in counters.items():
-                    totals[key] = totals.get(key, 0) + int(value)
-            sent = sent1 - sent0
-            lost = sent - (accepted1 - accepted0)
-            cpu_pct = (cpu1 - cpu0) / (t1 - t0) * 100
-            return sent, lost, cpu_pct, flooded / (t1 - t0), steady.sent + flood.sent, totals
-        finally:
-            if agent is not None:
-                agent.stop()
-            stop_sims(sims)
+    with vehicle(Thresholds(), PX4_ONBOARD_RATES, mode=FailoverMode.MANUAL) as (sims, agent):
+        targets = [Target(_agent_port(s), s.sysid) for s in sims]
+        sent0, accepted0 = _quiet_totals(sims, agent)
+        with HostileSender(targets, rounds_per_s=10.0, duration_s=HOSTILE_S) as steady:
+            time.sleep(HOSTILE_S)
+        rounds = FLOOD_PER_S / (DATAGRAMS_PER_ROUND * len(targets))
+        proc = psutil.Process(agent.proc.pid)
+        with HostileSender(targets, rounds_per_s=rounds, duration_s=FLOOD_S) as flood:
+            cpu0, t0 = sum(proc.cpu_times()[:2]), time.monotonic()
+            time.sleep(FLOOD_S)
+            cpu1, t1 = sum(proc.cpu_times()[:2]), time.monotonic()
+            flooded = flood.sent
+        sent1, accepted1 = _quiet_totals(sims, agent)
+        totals: dict[str, int] = {}
+        for counters in agent.links.values():
+            for key, value in counters.items():
+                totals[key] = totals.get(key, 0) + int(value)
+        sent = sent1 - sent0
+        lost = sent - (accepted1 - accepted0)
+        cpu_pct = (cpu1 - cpu0) / (t1 - t0) * 100
+        return sent, lost, cpu_pct, flooded / (t1 - t0), steady.sent + flood.sent, totals
 
 
 def run() -> list[Figure]:

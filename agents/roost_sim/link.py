@@ -19,7 +19,9 @@ MAVLink 2 signing (:meth:`Link.enable_signing`) acts where a flight stack's MAVL
 does, on whole frames: every frame sent is signed, and incoming frames are checked and,
 when signing is required, dropped unless their signature is good (counted in
 :class:`SigningCounters`). Injected noise and spoofed frames stay unsigned, as an
-attacker's would be.
+attacker's would be. Incoming frames are checked per received chunk, which is exact on
+UDP (whole frames per datagram); on a pseudo-terminal a frame split across two reads is
+dropped, so signing tests use UDP.
 """
 
 from __future__ import annotations
