@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
+from roost_agent.agent import connection_problems
 from roost_agent.links import SourceLock
 from roost_agent.signing import (
     RESERVE_TICKS,
@@ -20,6 +21,7 @@ from roost_agent.signing import (
     SigningMode,
     load_signing,
 )
+from roost_api.autopilot import AutopilotSpec, RedundantAutopilotSpec
 from roost_mavlink import pymavlink_device
 from roost_mavlink.signing import (
     NEW_STREAM_SLACK_TICKS,
@@ -231,3 +233,29 @@ def test_a_udp_listener_may_name_its_autopilot() -> None:
     assert (exact.device, exact.peer) == ("udpin:0.0.0.0:14540", ("127.0.0.1", 14580))
     host_only = pymavlink_device("udp://0.0.0.0:14540@10.0.0.3")
     assert host_only.peer == ("10.0.0.3", None)
+
+
+def test_a_spec_with_a_connection_the_agent_could_not_open_is_named_per_autopilot() -> None:
+    spec = RedundantAutopilotSpec(
+        vehicle_name="v1",
+        autopilots=[
+            AutopilotSpec(
+                name="fc1",
+                stack="px4",
+                connection="udp://127.0.0.1:70000",
+                sysid=1,
+                bridge_channel=0,
+            ),
+            AutopilotSpec(
+                name="fc2",
+                stack="px4",
+                connection="udp://127.0.0.1:14541",
+                sysid=2,
+                bridge_channel=1,
+            ),
+        ],
+        primary="fc1",
+    )
+    assert connection_problems(spec) == [
+        "autopilot fc1: connection 'udp://127.0.0.1:70000': port 70000 is not 1-65535"
+    ]
