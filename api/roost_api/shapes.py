@@ -114,7 +114,12 @@ HOSTNAME: Final = (
 HOST: Final = rf"({IPV4}|{HOSTNAME})"
 NETWORK_SCHEMES: Final = ("udp", "udpin", "udpout", "tcp", "tcpin")
 NETWORK_SCHEME_PATTERN: Final = rf"^({'|'.join(NETWORK_SCHEMES)})://"
-NETWORK_CONNECTION: Final = rf"{NETWORK_SCHEME_PATTERN}{HOST}:{PORT}$"
+# udp and udpin listeners may name the autopilot's address after "@" (the agent then hears
+# only that sender; the port is optional, as in mavros' FCU URLs).
+UDP_PEER: Final = rf"@{HOST}(:{PORT})?"
+NETWORK_CONNECTION: Final = (
+    rf"(^(udp|udpin)://{HOST}:{PORT}({UDP_PEER})?$)|(^(udpout|tcp|tcpin)://{HOST}:{PORT}$)"
+)
 DEVICE: Final = r"/dev(/[A-Za-z0-9_+-][A-Za-z0-9._+:-]*)+"
 BAUD: Final = r"[1-9][0-9]{1,7}"
 SERIAL_CONNECTION: Final = rf"^serial://{DEVICE}:{BAUD}$"
@@ -167,7 +172,8 @@ CONNECTION_RULES: Final = [
     rule(
         f"!{matches('self', NETWORK_SCHEME_PATTERN)} || {matches('self', NETWORK_CONNECTION)}",
         "connection: udp, udpin, udpout, tcp and tcpin take HOST:PORT, an IPv4 address or "
-        "host name and a port from 1 to 65535, e.g. udp://127.0.0.1:14540",
+        "host name and a port from 1 to 65535, e.g. udp://127.0.0.1:14540; udp and udpin "
+        "may add the autopilot's address as @HOST[:PORT]",
     ),
     rule(
         f"!self.startsWith('serial://') || {matches('self', SERIAL_CONNECTION)}",

@@ -60,6 +60,8 @@ def valid_connection(url: str) -> bool:
         "serial:///dev/ttyUSB0:921600",
         "serial:///dev/serial/by-id/usb-FTDI_FT232R-if00-port0:57600",
         "serial:///dev/serial/by-path/pci-0000:00:14.0-usb-0:2:1.0-port0:115200",
+        "udp://127.0.0.1:14540@127.0.0.1:14580",
+        "udpin://0.0.0.0:14540@192.168.8.2",
     ],
 )
 def test_connection_urls_the_agent_can_open_are_accepted(url: str) -> None:
@@ -68,7 +70,7 @@ def test_connection_urls_the_agent_can_open_are_accepted(url: str) -> None:
     if url.startswith("serial://"):
         assert device.device.startswith("/dev/") and device.baud == int(url.rsplit(":", 1)[1])
     else:
-        assert device.device.endswith(":" + url.rsplit(":", 1)[1])
+        assert device.device.endswith(":" + url.split("@", maxsplit=1)[0].rsplit(":", 1)[1])
 
 
 @pytest.mark.parametrize(
@@ -94,6 +96,10 @@ def test_connection_urls_the_agent_can_open_are_accepted(url: str) -> None:
         "serial:///dev/../etc/shadow:57600",
         "serial:///dev/:57600",
         "udp://127.0.0.1:14540\nROOST_VEHICLE=x",
+        "udpout://127.0.0.1:14540@127.0.0.1:14580",
+        "tcp://127.0.0.1:5760@127.0.0.1",
+        "udp://127.0.0.1:14540@",
+        "udp://127.0.0.1:14540@127.0.0.1:0",
     ],
 )
 def test_connection_urls_that_cannot_work_are_refused(url: str) -> None:
