@@ -24,10 +24,11 @@ from pathlib import Path
 
 from bench.core import Figure
 from roost_api.wellknown import LABEL_MISSION, LABEL_VEHICLE
+from roost_kube.client import Kube
+from roost_kube.resources import MISSIONS, PODS, VEHICLES
 from roost_localcluster import binaries
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import ControlPlane
-from roost_operator.kube import MISSIONS, PODS, VEHICLES, Kube
 from roost_operator.missions.workloads import bounded_name
 from tests.support.fakeagents import FakeAgents, redundant_autopilot
 from tests.support.operator import OperatorProcess, wait_for
@@ -157,7 +158,7 @@ def run() -> list[Figure]:
         operator.start()
         try:
             with cluster.api_client() as api, FakeAgents(cluster, AGENT_PERIOD_S) as agents:
-                kube = Kube(api=api)
+                kube = Kube(api, "roost-bench")
                 _fleet(cluster, kube, agents)
                 times = {count: _rollout(cluster, kube, count) for count in SIZES}
                 load = os.getloadavg()[0]

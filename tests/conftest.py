@@ -6,9 +6,9 @@ from collections.abc import Iterator
 
 import pytest
 
+from roost_kube.client import Kube
 from roost_localcluster.cluster import Cluster, FakeNodes
 from roost_localcluster.controlplane import ControlPlane
-from roost_operator.kube import Kube
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
@@ -46,7 +46,7 @@ def fake_nodes(cluster: Cluster) -> Iterator[FakeNodes]:
 
 @pytest.fixture(scope="session")
 def kube(roost_crds: Cluster) -> Iterator[Kube]:
-    """Roost's own API access layer (:class:`roost_operator.kube.Kube`) as the cluster's
+    """Roost's own API access layer (:class:`roost_kube.client.Kube`) as the cluster's
     admin, for tests that read and write objects the way the operator does."""
     with roost_crds.api_client() as api:
-        yield Kube(api=api)
+        yield Kube(api, "roost-tests")

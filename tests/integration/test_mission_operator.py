@@ -43,17 +43,11 @@ from typing import Any
 import pytest
 
 from roost_api.wellknown import ANNOTATION_PAUSE_FAILOVER_ACTIONS, LABEL_MISSION, LABEL_VEHICLE
+from roost_kube.client import Kube
+from roost_kube.errors import ConflictError
+from roost_kube.patches import Obj
+from roost_kube.resources import JOBS, MISSIONS, PODS, REDUNDANT_AUTOPILOTS, VEHICLES
 from roost_localcluster.cluster import Cluster
-from roost_operator.kube import (
-    JOBS,
-    MISSIONS,
-    PODS,
-    REDUNDANT_AUTOPILOTS,
-    VEHICLES,
-    ConflictError,
-    Kube,
-    Obj,
-)
 from roost_operator.missions.cluster import claim_vehicle
 from roost_operator.missions.observed import MissionRef, VehicleView
 from roost_operator.missions.workloads import ENV_MISSION_VEHICLES, bounded_name

@@ -28,18 +28,12 @@ from roost_api.wellknown import (
     STARLING_LABEL_TYPE,
     TAINT_VEHICLE,
 )
+from roost_kube.client import Kube
+from roost_kube.patches import Obj
+from roost_kube.resources import CONFIGMAPS, DEPLOYMENTS, NODES, PODS, VEHICLES
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import KWOK_NODE_ANNOTATION
 from roost_localcluster.nodes import fake_node
-from roost_operator.kube import (
-    CONFIGMAPS,
-    DEPLOYMENTS,
-    NODES,
-    PODS,
-    VEHICLES,
-    Kube,
-    Obj,
-)
 from tests.support.apiwrites import VEHICLE_WRITE_TARGETS, write_requests
 from tests.support.operator import OperatorProcess, wait_for
 
