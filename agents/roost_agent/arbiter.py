@@ -41,9 +41,12 @@ from enum import StrEnum
 from roost_api.autopilot import (
     AutopilotCommand,
     CommandAction,
+    CommandResultKind,
     Failback,
     FailoverMode,
+    FailoverTrigger,
     RedundantAutopilotSpec,
+    SafetyRoutinePhase,
 )
 from roost_api.meta import HealthLevel
 
@@ -116,20 +119,17 @@ class ArbiterState:
     landing_ordered: bool = False
 
 
-class Trigger(StrEnum):
-    """Why the bridge switched (FailoverRecord.trigger)."""
-
-    AUTOMATIC = "Automatic"
-    COMMAND = "Command"
-    FAILBACK = "Failback"
+Trigger = FailoverTrigger
+"""Why the bridge switched (FailoverRecord.trigger); the value set is the API's."""
 
 
 class SafetyPlan(StrEnum):
     """What happens on the new active autopilot after a switch."""
 
-    RUN = "Run"
-    SKIPPED_PILOT = "Skipped: pilot in manual mode"
+    RUN = SafetyRoutinePhase.RUN.value
+    SKIPPED_PILOT = SafetyRoutinePhase.SKIPPED_PILOT.value
     NONE = "None"
+    """No routine: nothing is written to ``lastFailover.safetyRoutine``."""
 
 
 @dataclass(frozen=True)
@@ -175,14 +175,6 @@ class ForceDisarm:
 
     autopilots: tuple[str, ...]
     reason: str
-
-
-class CommandResultKind(StrEnum):
-    """CommandResult.result values."""
-
-    EXECUTED = "Executed"
-    REJECTED = "Rejected"
-    EXPIRED = "Expired"
 
 
 @dataclass(frozen=True)
