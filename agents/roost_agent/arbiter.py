@@ -7,7 +7,7 @@ a list of actions. The agent executes the actions (bridge write first). That mak
 whole decision table and its safety properties (never to a worse autopilot, never on the
 ground, no flapping, the latch holds) testable exhaustively and by property tests.
 
-Rules (see ``shared/reference/mavlink-health.md`` and the thesis in ``shared/seeds``):
+Rules (``docs/failover.md`` has the decision table and its sources):
 
 - The active autopilot counts as failing only on findings that trigger failover (never a
   warning), and only after it failed continuously for ``confirm`` seconds (T_on).

@@ -9,7 +9,7 @@ chart's service-account token, which is what proves the RBAC is sufficient.
 Minimality is checked two ways, both against the real API server: ``kubectl auth
 can-i`` with impersonation for RBAC, and real writes for the node-restriction
 admission policy, once with impersonation (``--as-user-extra`` carrying the node name,
-as the brief of the policy says) and once with a real pod-bound token of an agent pod,
+where the policy's CEL rule reads it) and once with a real pod-bound token of an agent pod,
 which is where the node name comes from in production.
 """
 

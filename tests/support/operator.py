@@ -10,7 +10,6 @@ test module can give its operator a namespace of its own.
 from __future__ import annotations
 
 import os
-import signal
 import urllib.request
 from collections.abc import Mapping
 from pathlib import Path
@@ -71,9 +70,7 @@ class OperatorProcess:
 
     def crash(self) -> None:
         """SIGKILL: no shutdown handlers, no finalisation, like a node losing power."""
-        assert self.process.pid is not None
-        os.killpg(self.process.pid, signal.SIGKILL)
-        self.process.stop()
+        self.process.crash()
 
     def stop(self) -> None:
         """SIGTERM, then SIGKILL after a grace period."""
