@@ -1,6 +1,6 @@
 """Agent ↔ cluster figures: how fast a local switch shows in the API and reaches mavros.
 
-One simulated vehicle on the harness control plane: two PX4 sims flying (in this
+One simulated vehicle on the local control plane: two PX4 sims flying (in this
 process, real UDP), ``roost-agent`` as a process with the chart's defaults (no config,
 ``NODE_NAME``, 10 s report period), ``roost-operator`` as a process. The vehicle is
 switched back and forth by ``Switch`` commands written to the RedundantAutopilot's spec;

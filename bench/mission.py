@@ -1,4 +1,4 @@
-"""Mission figures, on the harness control plane with ``roost-operator`` running.
+"""Mission figures, on the local control plane with ``roost-operator`` running.
 
 - ``mission.rollout_10_s`` / ``mission.rollout_100_s``: from ``kubectl apply`` of a
   Mission needing 10 (then 100) vehicles of an idle, Ready fleet of 100 fake vehicles

@@ -1,4 +1,4 @@
-"""Vehicle operator figures, on the harness control plane with ``roost-operator`` running.
+"""Vehicle operator figures, on the local control plane with ``roost-operator`` running.
 
 - ``vehicle.apply_to_ready_s``: from ``kubectl apply`` of a simulated Vehicle (mavros and
   one SITL) on a fresh fake node until its ``Ready`` condition is True: node labelled and
