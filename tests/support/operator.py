@@ -1,4 +1,4 @@
-"""``roost-operator`` as a child process against a local cluster (:mod:`roost_localcluster`), for tests and benchmarks.
+"""``roost-operator`` as a child process against a local cluster, for tests and benchmarks.
 
 The operator runs exactly as a user would run it (``roost-operator --standalone``, the
 console script of the editable install), with its kopf liveness endpoint on a free
