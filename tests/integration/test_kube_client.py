@@ -26,6 +26,7 @@ from roost_kube.errors import (
 from roost_kube.patches import precondition
 from roost_kube.resources import CONFIGMAPS, REDUNDANT_AUTOPILOTS
 from roost_localcluster.cluster import Cluster
+from tests.support.fakeagents import redundant_autopilot
 from tests.support.waiting import unique
 
 NAMESPACE = "default"
@@ -102,26 +103,16 @@ def test_a_retried_event_post_is_a_duplicate(kube: Kube) -> None:
         kube.delete(CONFIGMAPS, name, NAMESPACE)
 
 
-def test_a_watch_starts_with_the_object_as_it_is(kube: Kube, roost_crds: Cluster) -> None:
-    name = unique("kube-watch")
-    roost_crds.kubectl(
-        "apply",
-        "-f",
-        "-",
-        input_text=(
-            "apiVersion: roost.dev/v1alpha1\nkind: RedundantAutopilot\n"
-            f"metadata: {{name: {name}}}\n"
-            "spec:\n  vehicleName: v\n  primary: fc1\n  autopilots:\n"
-            "  - {name: fc1, stack: px4, connection: 'udp://127.0.0.1:14540'}\n"
-        ),
-    )
+def test_a_watch_starts_with_the_object_as_it_is(kube: Kube) -> None:
+    created = kube.create(redundant_autopilot(unique("kube-watch")))
+    name = created["metadata"]["name"]
     try:
         kind, obj = next(iter(kube.watch(REDUNDANT_AUTOPILOTS, name, timeout_s=5)))
         assert (kind, obj["metadata"]["name"]) == ("ADDED", name)
         events = [k for k, _ in kube.watch(REDUNDANT_AUTOPILOTS, unique("none"), timeout_s=1)]
         assert events == []  # ends after its timeout when nothing matches
     finally:
-        roost_crds.kubectl("delete", "redundantautopilot", name, "--wait=false")
+        kube.delete(REDUNDANT_AUTOPILOTS, name)
 
 
 def test_a_server_that_is_not_there_is_unavailable(roost_crds: Cluster) -> None:
