@@ -16,6 +16,8 @@ from typing import Any
 
 import pytest
 
+from roost_cli.cluster import Fleet, Target
+from roost_cli.errors import CliError
 from roost_kube.client import Kube
 from roost_kube.errors import (
     ApiUnavailableError,
@@ -126,3 +128,11 @@ def test_a_server_that_is_not_there_is_unavailable(roost_crds: Cluster) -> None:
         with pytest.raises(ApiUnavailableError) as error:
             kube.get(CONFIGMAPS, "x", NAMESPACE)
     assert error.value.transport == "refused" and error.value.status is None
+
+
+def test_the_cli_refuses_a_namespace_that_does_not_exist(roost_crds: Cluster) -> None:
+    fleet = Fleet(Target(roost_crds.kubeconfig, "--kubeconfig"))
+    fleet.require_namespace(NAMESPACE)
+    missing = unique("no-such-namespace")
+    with pytest.raises(CliError, match=f"namespace '{missing}' does not exist"):
+        fleet.require_namespace(missing)
