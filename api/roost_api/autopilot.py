@@ -90,9 +90,13 @@ class SafetyRoutinePhase(StrEnum):
 
     RUN = "Run"
     SKIPPED_PILOT = "Skipped: pilot in manual mode"
+    STARTED = "Started"
+    CONFIRMING_HOLD = "ConfirmingHold"
     HOLDING = "Holding"
     HOLD_REFUSED = "HoldRefused"
+    HOLD_FAILED = "HoldFailed"
     LANDING = "Landing"
+    LAND_TIMED_OUT = "LandTimedOut"
     LANDED = "Landed"
     RETURNING = "ReturningToLaunch"
     HELD = "Held"
