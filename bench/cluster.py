@@ -1,6 +1,6 @@
 """Agent ↔ cluster figures: how fast a local switch shows in the API and reaches mavros.
 
-One simulated vehicle on the harness control plane: two PX4 sims flying (in this
+One simulated vehicle on the local control plane: two PX4 sims flying (in this
 process, real UDP), ``roost-agent`` as a process with the chart's defaults (no config,
 ``NODE_NAME``, 10 s report period), ``roost-operator`` as a process. The vehicle is
 switched back and forth by ``Switch`` commands written to the RedundantAutopilot's spec;
@@ -37,16 +37,18 @@ from kubernetes import client, watch
 from bench.core import Figure
 from roost_api.autopilot import CommandAction
 from roost_api.commands import command_patch, new_command
+from roost_kube.client import Kube
+from roost_kube.resources import CONFIGMAPS, DEPLOYMENTS, REDUNDANT_AUTOPILOTS, VEHICLES
 from roost_localcluster import binaries
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import ControlPlane
 from roost_operator.autopilots.plan import mavros_follows
-from roost_operator.kube import CONFIGMAPS, DEPLOYMENTS, REDUNDANT_AUTOPILOTS, VEHICLES, Kube
 from roost_operator.vehicles.config import config_map_name
 from roost_operator.vehicles.desired import workload_name
 from roost_sim import SimulatedAutopilot, autopilot_specs, start_vehicle_sims, stop_sims
 from tests.support.agent import AgentProcess
-from tests.support.operator import OperatorProcess, wait_for
+from tests.support.operator import OperatorProcess
+from tests.support.waiting import wait_until
 
 COMMAND = "python -m bench cluster"
 NAMESPACE = "roost-bench-failover"
@@ -156,9 +158,11 @@ def _switch_once(
     before = len(agent.events("Failover"))
     command = new_command(CommandAction.SWITCH, target=target.name)
     kube.merge_patch(REDUNDANT_AUTOPILOTS, VEHICLE, command_patch(command))
-    switched = wait_for("the switch", lambda: _new_switch(agent, before), WAIT_S, 0.01)
-    seen = wait_for("the status", lambda: statuses.first_after(switched, target.name), WAIT_S, 0.01)
-    wait_for("mavros", lambda: _mavros_on(kube, target.connection), WAIT_S, 0.05)
+    switched = wait_until("the switch", lambda: _new_switch(agent, before), WAIT_S, 0.01)
+    seen = wait_until(
+        "the status", lambda: statuses.first_after(switched, target.name), WAIT_S, 0.01
+    )
+    wait_until("mavros", lambda: _mavros_on(kube, target.connection), WAIT_S, 0.05)
     return (seen - switched) * 1000, (time.time() - switched) * 1000
 
 
@@ -198,8 +202,8 @@ def run() -> list[Figure]:
             _apply_vehicle(cluster, sims)
             agent.start()
             with cluster.api_client() as api, StatusWatch(cluster) as statuses:
-                kube = Kube(api=api)
-                wait_for("the vehicle Ready", lambda: _ready(kube), WAIT_S)
+                kube = Kube(api, "roost-bench")
+                wait_until("the vehicle Ready", lambda: _ready(kube), WAIT_S)
                 to_status, to_mavros = _measure(kube, agent, sims, statuses)
         finally:
             agent.stop()

@@ -1,4 +1,4 @@
-"""Vehicle operator figures, on the harness control plane with ``roost-operator`` running.
+"""Vehicle operator figures, on the local control plane with ``roost-operator`` running.
 
 - ``vehicle.apply_to_ready_s``: from ``kubectl apply`` of a simulated Vehicle (mavros and
   one SITL) on a fresh fake node until its ``Ready`` condition is True: node labelled and
@@ -21,12 +21,14 @@ import time
 from pathlib import Path
 
 from bench.core import Figure
+from roost_kube.client import Kube
+from roost_kube.resources import VEHICLES
 from roost_localcluster import binaries
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import ControlPlane
-from roost_operator.kube import VEHICLES, Kube
 from tests.support.apiwrites import VEHICLE_WRITE_TARGETS, write_requests
-from tests.support.operator import OperatorProcess, wait_for
+from tests.support.operator import OperatorProcess
+from tests.support.waiting import wait_until
 
 COMMAND = "python -m bench vehicle"
 VEHICLE_COUNT = 5
@@ -53,7 +55,7 @@ def _apply_to_ready(cluster: Cluster, kube: Kube, name: str, sysid: int) -> floa
     }
     started = time.monotonic()
     cluster.kubectl("apply", "-f", "-", input_text=json.dumps(manifest))
-    wait_for(f"{name} Ready", lambda: _is_ready(kube, name), READY_TIMEOUT_S, poll_s=0.05)
+    wait_until(f"{name} Ready", lambda: _is_ready(kube, name), READY_TIMEOUT_S, poll_s=0.05)
     return time.monotonic() - started
 
 
@@ -74,7 +76,7 @@ def run() -> list[Figure]:
         operator.start()
         try:
             with cluster.api_client() as api:
-                kube = Kube(api=api)
+                kube = Kube(api, "roost-bench")
                 times = [
                     _apply_to_ready(cluster, kube, f"bench-vehicle-{i}", 10 + i)
                     for i in range(VEHICLE_COUNT)

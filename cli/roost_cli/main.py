@@ -22,6 +22,7 @@ from typing import Annotated, Any
 import typer
 from rich.console import Console
 from rich.table import Table
+from rich.text import Text
 from typer._click.exceptions import NoArgsIsHelpError  # typer >= 0.29 vendors click
 
 from roost_api.autopilot import CommandAction
@@ -33,7 +34,8 @@ from roost_cli.sandbox import state as sandbox_state
 
 
 def _error(message: str, code: int) -> SystemExit:
-    Console(stderr=True).print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+    line = Text.assemble(("error:", "bold red"), " ", message)  # no markup read from message
+    Console(stderr=True).print(line, highlight=False, soft_wrap=True)
     return SystemExit(code)
 
 
@@ -105,14 +107,19 @@ class Output(StrEnum):
 class Context:
     """Options common to every command (set by the callback)."""
 
-    def __init__(self, kubeconfig: Path | None, sandbox_dir: Path) -> None:
+    def __init__(
+        self, kubeconfig: Path | None, sandbox_dir: Path, context: str | None = None
+    ) -> None:
         self.kubeconfig = kubeconfig
         self.sandbox_dir = sandbox_dir
+        self.context = context
 
     def fleet(self) -> Fleet:
         running = sandbox_state.running(self.sandbox_dir)
         kubeconfig = Path(running.kubeconfig) if running and running.kubeconfig else None
-        return Fleet(resolve_kubeconfig(self.kubeconfig, os.environ, kubeconfig, Path.home()))
+        return Fleet(
+            resolve_kubeconfig(self.kubeconfig, os.environ, kubeconfig, Path.home(), self.context)
+        )
 
 
 @app.callback()
@@ -122,6 +129,10 @@ def main(
         Path | None,
         typer.Option(help="Kubeconfig to use (default: $KUBECONFIG, a running sandbox, ~/.kube)."),
     ] = None,
+    context: Annotated[
+        str | None,
+        typer.Option(help="Kubeconfig context to use (default: its current-context)."),
+    ] = None,
     sandbox_dir: Annotated[
         Path | None,
         typer.Option(
@@ -130,7 +141,7 @@ def main(
     ] = None,
 ) -> None:
     """Roost: a Kubernetes operator for drone fleets with redundant autopilots."""
-    ctx.obj = Context(kubeconfig, sandbox_state.sandbox_dir(sandbox_dir))
+    ctx.obj = Context(kubeconfig, sandbox_state.sandbox_dir(sandbox_dir), context)
 
 
 def _context(ctx: typer.Context) -> Context:

@@ -3,7 +3,7 @@
 kopf hands each handler the operator's ``memo``; :func:`startup` (registered in
 :mod:`roost_operator.main`) stores one :class:`Runtime` there, and handlers call
 :func:`runtime` to get it typed. Nothing here talks to kopf's own API client: all of
-Roost's reads and writes go through :class:`roost_operator.kube.Kube`.
+Roost's reads and writes go through :class:`roost_kube.client.Kube`.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, cast
 
-from roost_operator.kube import Kube
+from roost_kube.client import Kube
 from roost_operator.settings import Settings
 
 

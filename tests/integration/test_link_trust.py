@@ -34,7 +34,6 @@ from roost_api.autopilot import (
     Thresholds,
 )
 from roost_api.meta import HealthLevel
-from roost_harness.operator import wait_for
 from roost_sim import (
     FaultKind,
     SimulatedAutopilot,
@@ -45,6 +44,7 @@ from roost_sim import (
 )
 from roost_sim.hostile import HostileSender, Target
 from roost_sim.link import UdpLink
+from tests.support.waiting import wait_until
 
 KEY = bytes(range(32))
 WRONG_KEY = bytes(range(100, 132))
@@ -146,11 +146,11 @@ def test_a_hostile_sender_costs_the_autopilots_nothing_and_hears_nothing(tmp_pat
     try:
         with agent_for(sims, tmp_path) as (agent, events):
             take_off(sims)
-            wait_for("both OK", lambda: set(levels(agent).values()) == {HealthLevel.OK}, 15, 0.02)
+            wait_until("both OK", lambda: set(levels(agent).values()) == {HealthLevel.OK}, 15, 0.02)
             standby, link = sims[1], agent.links["fc2"]
             sent0, accepted0 = _quiet_counts(standby, link)
             standby.clear()
-            wait_for("fc2 OK again", lambda: levels(agent)["fc2"] == HealthLevel.OK, 10, 0.02)
+            wait_until("fc2 OK again", lambda: levels(agent)["fc2"] == HealthLevel.OK, 10, 0.02)
             targets = [Target(agent_port(s), s.sysid) for s in sims]
             events.clear()
             with HostileSender(targets, rounds_per_s=10.0, duration_s=60.0) as hostile:
@@ -166,11 +166,11 @@ def test_a_hostile_sender_costs_the_autopilots_nothing_and_hears_nothing(tmp_pat
                 assert all(lnk.tracker.refuted == 0 for lnk in agent.links.values())
                 # A real failover under attack: the safety routine's commands go to fc2.
                 standby.clear()
-                wait_for("fc2 OK", lambda: levels(agent)["fc2"] == HealthLevel.OK, 10, 0.02)
+                wait_until("fc2 OK", lambda: levels(agent)["fc2"] == HealthLevel.OK, 10, 0.02)
                 time.sleep(1.2)  # T_off: fc2 is a failover target again
                 sims[0].inject(FaultKind.SILENCE)
-                wait_for("failover to fc2", lambda: agent.active == "fc2", 5, 0.02)
-                wait_for("safety routine commands", lambda: len(standby.commands) > 0, 5, 0.02)
+                wait_until("failover to fc2", lambda: agent.active == "fc2", 5, 0.02)
+                wait_until("safety routine commands", lambda: len(standby.commands) > 0, 5, 0.02)
                 time.sleep(0.5)
             assert hostile.sent > 500
             assert hostile.received == []  # no datagram of the agent reached the spoofer
@@ -188,17 +188,21 @@ def test_signing_required_hears_only_well_signed_autopilots(tmp_path: Path) -> N
         clock = PersistentTimestamps(state / "signing-timestamp")
         signing = LinkSigning(key=KEY, require=True, clock=clock)
         with agent_for(sims, state, signing) as (agent, events):
-            wait_for("fc1 OK", lambda: levels(agent).get("fc1") == HealthLevel.OK, 10, 0.02)
+            wait_until("fc1 OK", lambda: levels(agent).get("fc1") == HealthLevel.OK, 10, 0.02)
             counters = good.link.signing_counters
             assert counters is not None
-            wait_for("the agent's signed heartbeat", lambda: counters.good > 0, 5, 0.02)
+            wait_until("the agent's signed heartbeat", lambda: counters.good > 0, 5, 0.02)
             assert counters.unsigned == counters.bad == 0
-            wait_for("bad sigs", lambda: agent.links["fc2"].counters.bad_signature > 20, 5, 0.02)
-            wait_for("unsigned frames", lambda: agent.links["fc3"].counters.unsigned > 20, 5, 0.02)
+            wait_until("bad sigs", lambda: agent.links["fc2"].counters.bad_signature > 20, 5, 0.02)
+            wait_until(
+                "unsigned frames", lambda: agent.links["fc3"].counters.unsigned > 20, 5, 0.02
+            )
             assert agent.links["fc2"].counters.accepted == 0
             assert agent.links["fc3"].counters.accepted == 0
             assert levels(agent)["fc2"] == levels(agent)["fc3"] == HealthLevel.STALE
-            wait_for("Event", lambda: "UnsignedMavlink" in events.reasons(EventKind.LINK), 15, 0.02)
+            wait_until(
+                "Event", lambda: "UnsignedMavlink" in events.reasons(EventKind.LINK), 15, 0.02
+            )
             messages = " ".join(e.message for e in events.seen)
             assert KEY.hex() not in messages and WRONG_KEY.hex() not in messages
         first_run = counters.good
@@ -209,7 +213,7 @@ def test_signing_required_hears_only_well_signed_autopilots(tmp_path: Path) -> N
         )
         assert restarted.clock.current() >= clock.current()
         with agent_for(sims, state, restarted) as (agent, _):
-            wait_for("signed heartbeat after restart", lambda: counters.good > first_run, 5, 0.02)
+            wait_until("signed heartbeat after restart", lambda: counters.good > first_run, 5, 0.02)
             assert counters.bad == 0
     finally:
         stop_sims(sims)
@@ -231,15 +235,15 @@ def test_the_link_relocks_when_the_autopilot_comes_back_on_another_port() -> Non
     second: SimulatedAutopilot | None = None
     link.start()
     try:
-        wait_for("first lock", lambda: link.locked_address == udp(first).local_address, 5, 0.02)
+        wait_until("first lock", lambda: link.locked_address == udp(first).local_address, 5, 0.02)
         first.stop()  # the autopilot reboots; it comes back sending from another port
         second = SimulatedAutopilot.udp("px4", 1, target_port=port, name="fc1").start()
-        wait_for("relock", lambda: link.locked_address == udp(second).local_address, 10, 0.02)
+        wait_until("relock", lambda: link.locked_address == udp(second).local_address, 10, 0.02)
         locks = [r for r, _ in seen if r.startswith("Autopilot")]
         assert locks == ["AutopilotLocked", "AutopilotAddressChanged"]
         assert link.counters.relocked == 1
         accepted = link.counters.accepted
-        wait_for(
+        wait_until(
             "messages from the new port", lambda: link.counters.accepted > accepted + 10, 5, 0.02
         )
     finally:
@@ -261,19 +265,19 @@ def test_a_link_that_cannot_open_reports_retries_and_recovers(tmp_path: Path) ->
     ]
     try:
         with agent_for(sims, tmp_path) as (agent, events):
-            wait_for("LinkError", lambda: "LinkError" in events.reasons(EventKind.LINK), 5, 0.02)
-            reasons = wait_for(
+            wait_until("LinkError", lambda: "LinkError" in events.reasons(EventKind.LINK), 5, 0.02)
+            reasons = wait_until(
                 "fc1 status",
                 lambda: [a.reasons for a in agent.status().autopilots if a.name == "fc1"],
                 5,
                 0.02,
             )
             assert any("link error: OSError" in r for r in reasons[0]), reasons
-            wait_for("retries", lambda: agent.links["fc1"].counters.reopened >= 2, 5, 0.02)
+            wait_until("retries", lambda: agent.links["fc1"].counters.reopened >= 2, 5, 0.02)
             assert agent.links["fc1"].error is not None
             assert events.reasons(EventKind.LINK).count("LinkError") == 1  # no Event storm
             blocker.close()
-            wait_for("fc1 OK", lambda: levels(agent).get("fc1") == HealthLevel.OK, 20, 0.02)
+            wait_until("fc1 OK", lambda: levels(agent).get("fc1") == HealthLevel.OK, 20, 0.02)
             assert agent.links["fc1"].error is None
             assert "LinkRecovered" in events.reasons(EventKind.LINK)
     finally:

@@ -38,10 +38,9 @@ import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 from datetime import datetime, timedelta
-from enum import StrEnum
 
 from roost_api.autopilot import RedundantAutopilotStatus
-from roost_api.vehicle import VehicleFailover
+from roost_api.vehicle import FailoverGuard, VehicleFailover
 from roost_api.wellknown import ANNOTATION_CLEAR_FAILOVER_LATCH, ANNOTATION_PAUSE_FAILOVER_ACTIONS
 
 MAX_RECENT = 64
@@ -101,13 +100,8 @@ def load_fleet_guards(environ: Mapping[str, str] = os.environ) -> FleetGuards:
     )
 
 
-class Verdict(StrEnum):
-    """Whether a cluster-side action may start now, and if not, which guard holds it."""
-
-    ALLOWED = "Allowed"
-    PAUSED = "Paused"
-    LATCHED = "Latched"
-    CONCURRENCY_LIMIT = "ConcurrencyLimit"
+Verdict = FailoverGuard
+"""Whether a cluster-side action may start now, and if not, which guard holds it."""
 
 
 def vehicle_paused(annotations: Mapping[str, str]) -> bool:

@@ -37,18 +37,13 @@ from roost_api.autopilot import RedundantAutopilotSpec, RedundantAutopilotStatus
 from roost_api.meta import Condition, now, set_condition
 from roost_api.vehicle import VehicleConditionType, VehicleSpec, VehicleStatus
 from roost_api.wellknown import LABEL_NODE
+from roost_kube.client import Kube
+from roost_kube.errors import ConflictError
+from roost_kube.patches import Obj
+from roost_kube.resources import CONFIGMAPS, DEPLOYMENTS, REDUNDANT_AUTOPILOTS, VEHICLES
 from roost_operator.autopilots.conditions import DEFAULT_AGENT_STALE_AFTER
 from roost_operator.autopilots.guards import FleetGuards, vehicle_paused
 from roost_operator.autopilots.plan import FailoverPlan, PlannedEvent, mavros_follows, plan
-from roost_operator.kube import (
-    CONFIGMAPS,
-    DEPLOYMENTS,
-    REDUNDANT_AUTOPILOTS,
-    VEHICLES,
-    ConflictError,
-    Kube,
-    Obj,
-)
 from roost_operator.vehicles.config import config_map_name
 from roost_operator.vehicles.desired import with_ready, workload_name
 from roost_operator.vehicles.status import write_vehicle_status

@@ -1,6 +1,6 @@
 """A mission's reads and writes: build an Observation, carry out a Plan. No decisions.
 
-Everything goes through :class:`~roost_operator.kube.Kube`. The parts that need care:
+Everything goes through :class:`~roost_kube.client.Kube`. The parts that need care:
 
 * **Claims** are a JSON merge patch of ``status.claimedBy`` alone, carrying the
   ``resourceVersion`` the decision was made on. Of two missions claiming one vehicle,
@@ -46,20 +46,11 @@ from roost_api.wellknown import (
     LABEL_VEHICLE,
     MANAGED_BY,
 )
+from roost_kube.client import Kube
+from roost_kube.errors import ApiError, ConflictError
+from roost_kube.patches import Obj, needs_apply, with_applied_hash
+from roost_kube.resources import CONFIGMAPS, JOBS, MISSIONS, REDUNDANT_AUTOPILOTS, VEHICLES
 from roost_operator.autopilots.guards import FleetGuards
-from roost_operator.kube import (
-    CONFIGMAPS,
-    JOBS,
-    MISSIONS,
-    REDUNDANT_AUTOPILOTS,
-    VEHICLES,
-    ApiError,
-    ConflictError,
-    Kube,
-    Obj,
-    needs_apply,
-    with_applied_hash,
-)
 from roost_operator.missions.machine import (
     MissionEvent,
     Observation,

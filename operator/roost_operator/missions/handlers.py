@@ -24,16 +24,16 @@ from typing import Any, Final
 
 import kopf
 
-from roost_api.meta import GROUP, VERSION
 from roost_api.wellknown import LABEL_MISSION
+from roost_kube import resources
 from roost_operator.autopilots.handlers import GUARDS
 from roost_operator.missions.cluster import reconcile_mission, release_deleted_mission
 from roost_operator.missions.wakeups import Wakeups, sleep_until_woken
 from roost_operator.runtime import runtime
 
-MISSIONS: Final = (GROUP, VERSION, "missions")
-VEHICLES: Final = (GROUP, VERSION, "vehicles")
-AUTOPILOTS: Final = (GROUP, VERSION, "redundantautopilots")
+MISSIONS: Final = resources.MISSIONS.kopf
+VEHICLES: Final = resources.VEHICLES.kopf
+AUTOPILOTS: Final = resources.REDUNDANT_AUTOPILOTS.kopf
 
 RESYNC_S: Final = 10.0
 """Reconcile a mission at least this often (Jobs and agents also wake it)."""

@@ -31,16 +31,16 @@ from typing import Any, Final
 
 import kopf
 
-from roost_api.meta import GROUP, VERSION
 from roost_api.wellknown import LABEL_COMPONENT, LABEL_MANAGED_BY, LABEL_VEHICLE, MANAGED_BY
-from roost_operator.kube import content_hash
+from roost_kube import resources
+from roost_kube.patches import content_hash
 from roost_operator.runtime import runtime
 from roost_operator.settings import SETTINGS
 from roost_operator.vehicles.placement import NodeClaim
 from roost_operator.vehicles.reconcile import Peers, reconcile_vehicle, release_vehicle
 
-VEHICLES: Final = (GROUP, VERSION, "vehicles")
-AUTOPILOTS: Final = (GROUP, VERSION, "redundantautopilots")
+VEHICLES: Final = resources.VEHICLES.kopf
+AUTOPILOTS: Final = resources.REDUNDANT_AUTOPILOTS.kopf
 RETRY_BACKOFF_S: Final = 2.0
 
 NodeClaims = kopf.Index[str, NodeClaim]

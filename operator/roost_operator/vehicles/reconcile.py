@@ -4,7 +4,7 @@ Every kopf handler that concerns a Vehicle (its own events, its node's, its comp
 Deployments', its RedundantAutopilot's, the periodic resync) ends up in
 :func:`reconcile_vehicle`, so there is exactly one path from "what the cluster looks
 like" to "what it should look like". It does not import kopf: it is plain code over
-:class:`~roost_operator.kube.Kube`, callable from any handler (the autopilot handlers
+:class:`~roost_kube.client.Kube`, callable from any handler (the autopilot handlers
 call it when the active autopilot changes) and from tests.
 
 Why it is safe to run at any time, any number of times, and to be killed half-way:
@@ -12,7 +12,7 @@ Why it is safe to run at any time, any number of times, and to be killed half-wa
 * every step computes the full desired state from what it has just read and writes
   only where that differs (node patch planned by
   :func:`~roost_operator.vehicles.placement.plan_node`, objects through
-  :meth:`~roost_operator.kube.Kube.apply`, status compared before patching);
+  :meth:`~roost_kube.client.Kube.apply`, status compared before patching);
 * nodes are found by the vehicle label, not by what the last run remembered, so a
   crash between "label new node" and "release old node" is repaired by the next run;
 * writes that replace lists (node taints, status conditions) carry the
@@ -34,18 +34,10 @@ from roost_api.autopilot import RedundantAutopilotSpec
 from roost_api.meta import Stack
 from roost_api.vehicle import VehicleSpec, VehicleStatus
 from roost_api.wellknown import LABEL_COMPONENT, LABEL_MANAGED_BY, LABEL_VEHICLE, MANAGED_BY
-from roost_operator.kube import (
-    CONFIGMAPS,
-    DEPLOYMENTS,
-    NODES,
-    REDUNDANT_AUTOPILOTS,
-    VEHICLES,
-    ApiError,
-    ConflictError,
-    Kube,
-    Obj,
-    owner_reference,
-)
+from roost_kube.client import Kube
+from roost_kube.errors import ApiError, ConflictError
+from roost_kube.patches import Obj, owner_reference
+from roost_kube.resources import CONFIGMAPS, DEPLOYMENTS, NODES, REDUNDANT_AUTOPILOTS, VEHICLES
 from roost_operator.vehicles.config import vehicle_config, vehicle_config_map
 from roost_operator.vehicles.desired import (
     DEFAULT_FCU_URL,

@@ -1,0 +1,77 @@
+"""Where the Kubernetes layer's errors meet kopf: temporary → retry, permanent → stop.
+
+:mod:`roost_kube.errors` splits every API failure into temporary (conflict, timeout,
+5xx, 429: the same request may succeed later) and permanent (400/422/403/404-on-write:
+it will fail the same way again). kopf has the same split —
+``kopf.TemporaryError(delay=…)`` retries the handler after the delay,
+``kopf.PermanentError`` marks it failed and never retries — so the mapping is one
+function, :func:`kopf_error`, applied at the edge of a handler by :func:`handler_edge`.
+The layer itself never imports kopf (the agent and the CLI use it too).
+
+Every message names the object (kind namespace/name), so an operator log line says
+which object failed.
+"""
+
+from __future__ import annotations
+
+import functools
+import inspect
+from collections.abc import Awaitable, Callable, Mapping
+from typing import Any, Final, TypeVar, cast
+
+import kopf
+
+from roost_kube.errors import ApiError, ApiUnavailableError, ConflictError
+
+FIELD_MANAGER: Final = "roost-operator"
+"""Who the operator's writes are from (server-side apply field manager, Event source)."""
+
+CONFLICT_DELAY_S: Final = 1.0
+"""Retry delay after a 409: someone wrote in between; re-read and retry soon."""
+UNAVAILABLE_DELAY_S: Final = 10.0
+"""Retry delay when the API server gave no usable answer (timeout, 5xx, 429)."""
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def object_name(kwargs: Mapping[str, Any]) -> str:
+    """``Kind namespace/name`` of the object a kopf handler was called for."""
+    resource = kwargs.get("resource")
+    kind = getattr(resource, "kind", None) or getattr(resource, "plural", None) or "object"
+    name = kwargs.get("name") or "?"
+    namespace = kwargs.get("namespace")
+    return f"{kind} {namespace}/{name}" if namespace else f"{kind} {name}"
+
+
+def kopf_error(error: ApiError, what: str) -> kopf.TemporaryError | kopf.PermanentError:
+    """The kopf error for an API error met while handling ``what``."""
+    message = f"{what}: {error}"
+    if isinstance(error, ConflictError):
+        return kopf.TemporaryError(message, delay=CONFLICT_DELAY_S)
+    if isinstance(error, ApiUnavailableError) or error.temporary:
+        return kopf.TemporaryError(message, delay=UNAVAILABLE_DELAY_S)
+    return kopf.PermanentError(message)
+
+
+def handler_edge(fn: F) -> F:
+    """Wrap a kopf handler (sync or async) so API errors leave it as kopf errors."""
+    if inspect.iscoroutinefunction(fn):
+        coroutine = cast(Callable[..., Awaitable[Any]], fn)
+
+        @functools.wraps(fn)
+        async def async_edge(*args: Any, **kwargs: Any) -> Any:
+            try:
+                return await coroutine(*args, **kwargs)
+            except ApiError as error:
+                raise kopf_error(error, object_name(kwargs)) from error
+
+        return cast(F, async_edge)
+
+    @functools.wraps(fn)
+    def edge(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except ApiError as error:
+            raise kopf_error(error, object_name(kwargs)) from error
+
+    return cast(F, edge)
