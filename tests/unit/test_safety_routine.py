@@ -74,7 +74,7 @@ class ScriptedAutopilot:
         self.climb_in = climb_in or {}
         self.telemetry = telemetry
         self.touches_down = touches_down
-        self.status = MavState.ACTIVE
+        self.status: int = MavState.ACTIVE
         self.altitude = 10.0
         self.moved_at = time.monotonic()
         self.lowest = self.altitude
@@ -341,7 +341,7 @@ def test_judge_hold_table() -> None:
         False, "no altitude telemetry (none received)"
     )
     stale = judge_hold(steady, 10.0, 2.0, t)
-    assert stale is not None and "no altitude telemetry (last 1.0 s ago)" == stale.reason
+    assert stale is not None and stale.reason == "no altitude telemetry (last 1.0 s ago)"
     low = judge_hold([Motion(9.3, 0.0, 1.0)], 10.0, 1.0, t)
     assert low is not None and low.reason.startswith("lost 0.70 m")
     # one fast sample is noise; a fast run longer than hold_violation_s is not
