@@ -890,16 +890,17 @@ class Agent:
         if known is None or known[0] is not link:  # a new link (spec change): a new keeper
             known = self._keepers[link.name] = (link, StreamKeeper(link.stack))
         keeper = known[1]
-        epoch, verified = keeper.epoch, keeper.verified
+        epoch, verified, checks = keeper.epoch, keeper.verified, keeper.checks
         requests = keeper.step(
             link.tracker.stream_facts(),
             self._clock(),
             link.acks.latest(MAV_CMD_SET_MESSAGE_INTERVAL),
         )
-        if keeper.epoch is not epoch or (verified and not keeper.verified):
+        if keeper.epoch is not epoch:
             link.tracker.expect_streams(None)  # new stream configuration: judge what arrives
+        elif keeper.checks != checks:
+            link.tracker.expect_streams(keeper.arriving_rate)
         if keeper.verified and not verified:
-            link.tracker.expect_streams(keeper.total_rate)
             log.info("%s: requested streams arrive (%s)", link.name, _rates(keeper))
         if requests:
             why = keeper.epoch.value if keeper.epoch is not None else Why.CONNECT.value

@@ -16,9 +16,10 @@ agent asks, per stack, and verifies:
 - on ArduPilot, when SET_MESSAGE_INTERVAL was refused (COMMAND_ACK DENIED/UNSUPPORTED/
   FAILED) or did not bring the rates, the request falls back to REQUEST_DATA_STREAM for the
   stream group that carries the message (older firmware, or SRx parameters in the way);
-- once every wanted rate arrives, the epoch is *verified*: the tracker is told the total
-  rate, and liveness ("silent for N ms") is judged on the streams that were asked for;
-  checks continue at a slower period, and a stream that stops is requested again;
+- after each check the tracker is told the rate of the requested streams that arrive,
+  and liveness ("silent for N ms") is judged on them; once every wanted rate arrives the
+  epoch is *verified*, checks continue at a slower period, and a stream that stops is
+  requested again;
 - repeated failures back off (up to :data:`MAX_BACKOFF_S`) so a stream the firmware does
   not have (PX4 without ESTIMATOR_STATUS on a link) is not requested forever at 1 Hz.
 
@@ -128,6 +129,7 @@ class StreamKeeper:
     _lost: bool = False
     missing: tuple[str, ...] = ()
     rates: dict[str, float] = field(default_factory=dict)
+    checks: int = 0  # measurements made (the agent updates the tracker after each)
 
     def __post_init__(self) -> None:
         self.stack = Stack(self.stack)
@@ -136,8 +138,17 @@ class StreamKeeper:
 
     @property
     def total_rate(self) -> float:
-        """Messages per second of the wanted streams (what liveness may expect)."""
+        """Messages per second of all wanted streams."""
         return sum(self.wanted.values())
+
+    @property
+    def arriving_rate(self) -> float | None:
+        """Messages per second of the wanted streams that arrived in the last check (what
+        liveness may expect), None before a check in this epoch or when none arrive."""
+        if not self.rates:
+            return None
+        rate = sum(hz for name, hz in self.wanted.items() if name not in self.missing)
+        return rate or None
 
     def _start(self, why: Why, facts: StreamFacts, now: float) -> None:
         self.epoch = why
@@ -145,6 +156,7 @@ class StreamKeeper:
         self.attempts = 0
         self.fallback = False
         self.missing = ()
+        self.rates = {}
         self._window_at = now
         self._window_counts = dict(facts.counts)
         self._next_check = now + CHECK_S
@@ -176,6 +188,7 @@ class StreamKeeper:
             for name in self.wanted
         }
         self._window_at, self._window_counts = now, dict(facts.counts)
+        self.checks += 1
         self.missing = tuple(
             name for name, hz in self.wanted.items() if self.rates[name] < RATE_TOLERANCE * hz
         )

@@ -41,6 +41,7 @@ from roost_mavlink import (
     AGENT_COMPONENT_ID,
     MAV_CMD_DO_SET_MODE,
     MAV_CMD_NAV_LAND,
+    MAV_CMD_SET_MESSAGE_INTERVAL,
     ModeIntent,
     custom_mode,
     intent_mode,
@@ -78,11 +79,14 @@ class Flight:
         return next(s for s in self.sims if s.name == name)
 
     def agent_commands(self, name: str, since: float = 0.0) -> list[Any]:
-        """Commands the agent (component 191) sent to autopilot ``name``."""
+        """Commands the agent (component 191) sent to autopilot ``name``, except its
+        telemetry requests (SET_MESSAGE_INTERVAL), which it sends to every autopilot."""
         return [
             c
             for c in self.sim(name).commands
-            if c.source[1] == AGENT_COMPONENT_ID and c.at >= since
+            if c.source[1] == AGENT_COMPONENT_ID
+            and c.at >= since
+            and c.command != MAV_CMD_SET_MESSAGE_INTERVAL
         ]
 
 

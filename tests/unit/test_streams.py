@@ -171,3 +171,18 @@ def test_repeated_failures_back_off() -> None:
     gaps = [b - a for a, b in itertools.pairwise(asked_at)]
     assert gaps[0] <= CHECK_S + 0.11 and max(gaps) <= MAX_BACKOFF_S + 0.11
     assert gaps[-1] > 5 * CHECK_S
+
+
+def test_liveness_rate_is_what_arrives_of_the_requested_streams() -> None:
+    keeper, feed = StreamKeeper(Stack.PX4), Feed()
+    some = {"ATTITUDE": 50.0, "SYS_STATUS": 5.0, "HEARTBEAT": 1.0}
+    feed.run(0.1, some)
+    keeper.step(feed.facts(), feed.t)
+    assert keeper.arriving_rate is None  # nothing measured yet
+    feed.run(CHECK_S, some)
+    keeper.step(feed.facts(), feed.t)
+    assert keeper.arriving_rate == 55.0 and keeper.checks == 1
+    feed.reboots = 1
+    feed.run(0.1, some)
+    keeper.step(feed.facts(), feed.t)
+    assert keeper.arriving_rate is None  # a new epoch: measure again
