@@ -86,6 +86,10 @@ class SimConfig:
     home_lat_deg: float = 47.397742
     home_lon_deg: float = 8.545594
     home_amsl_m: float = 488.0
+    # ArduCopter LOITER follows the throttle stick; without RC it rests low and the
+    # vehicle descends (measured on ArduCopter SITL: 2.45 m/s into the ground). 0 keeps
+    # LOITER holding altitude.
+    loiter_sink_mps: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -299,6 +303,8 @@ class AutopilotModel:
             return
         if self.mode in _DESCEND_MODES[self.stack]:
             self._descend(dt, now)
+        elif self._sinking_in_loiter():
+            self._sink(dt)
         elif self.takeoff_target_m is not None:
             self._climb(dt)
         else:
@@ -329,6 +335,24 @@ class AutopilotModel:
             self.landed_state = LandedState.IN_AIR
             if self.stack is Stack.PX4:
                 self._enter_mode(custom_mode(self.stack, intent_mode(self.stack, ModeIntent.HOLD)))
+
+    def _sinking_in_loiter(self) -> bool:
+        return (
+            self.stack is Stack.ARDUPILOT
+            and self.mode == "LOITER"
+            and self.config.loiter_sink_mps > 0
+            and not self.on_ground
+        )
+
+    def _sink(self, dt: float) -> None:
+        """LOITER with the throttle stick low: down at the pilot's rate, no flare."""
+        self.takeoff_target_m = None
+        self.altitude_m = max(0.0, self.altitude_m - self.config.loiter_sink_mps * dt)
+        self.climb_mps = -self.config.loiter_sink_mps
+        self.landed_state = LandedState.IN_AIR
+        if self.altitude_m <= 0.0:
+            self.climb_mps = 0.0
+            self.landed_state = LandedState.ON_GROUND
 
     def _descend(self, dt: float, now: float) -> None:
         self.takeoff_target_m = None
