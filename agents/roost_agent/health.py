@@ -355,9 +355,10 @@ class HealthTracker:
         if status != o.system_status:
             o.system_status_since = now
         o.system_status = status
-        if status in (MavState.BOOT, MavState.UNINIT) and o.was_up:
-            name = mav_state_name(status)
-            self._note_reboot(now, f"rebooted: MAV_STATE {name} after it was up")
+        # Only BOOT: PX4 v1.16 also reports UNINIT after a battery-failsafe landing and
+        # disarm, without rebooting (its reboots show as time_boot_ms going back).
+        if status == MavState.BOOT and o.was_up:
+            self._note_reboot(now, "rebooted: MAV_STATE BOOT after it was up")
         elif status in _UP_STATES:
             o.was_up = True
         armed = bool(o.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)

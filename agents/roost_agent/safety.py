@@ -10,9 +10,11 @@ A hold that holds. The hold is one that needs no pilot input: PX4 AUTO.LOITER, A
 BRAKE with GUIDED (position hold at the stopping point) as second choice — never
 ArduCopter LOITER, which follows the throttle stick and, with no radio, descends into the
 ground (measured 2.45 m/s) while its mode reads "accepted". So a hold is confirmed by
-telemetry, not by the mode: for :attr:`Timing.hold_confirm_s` the vertical speed stays
-within :attr:`Timing.hold_max_vspeed_mps` and the altitude within
-:attr:`Timing.hold_band_m` of where the hold began (GLOBAL_POSITION_INT). The watch goes
+telemetry, not by the mode: for :attr:`Timing.hold_confirm_s` the vehicle does not
+descend faster than :attr:`Timing.hold_max_vspeed_mps` and stays within
+:attr:`Timing.hold_band_m` below where the hold began (GLOBAL_POSITION_INT). Climbing is
+not held against it: a hold entered during a climb brakes it (ArduCopter BRAKE entered
+at 4.8 m while climbing rose to 5.5 m on real firmware), which endangers nothing. The watch goes
 on for the whole hold; a hold that is not holding (or cannot be seen) escalates to the
 final action at once, and says so (phase ``HoldFailed``). A final action of Hold cannot
 be escalated to, so it becomes Land.
@@ -110,11 +112,12 @@ class Timing:
     attempts: int = 3
     mode_confirm_s: float = 1.5
     hold_confirm_s: float = 1.0  # telemetry window that confirms a hold
-    hold_max_vspeed_mps: float = 0.5  # |vertical speed| allowed while holding
+    hold_max_vspeed_mps: float = 0.5  # descent speed allowed while holding
     hold_band_m: float = 0.5  # altitude allowed below where the hold began
     hold_violation_s: float = 0.2  # a vertical speed beyond the limit must last this long
     telemetry_max_age_s: float = 0.5  # older GLOBAL_POSITION_INT is no evidence
     land_timeout_s: float = 90.0
+    resume_wait_s: float = 5.0  # after a restart: wait this long to hear the autopilot
     poll_s: float = 0.02
 
 
@@ -191,7 +194,7 @@ def judge_hold(
     """Judge a hold from the GLOBAL_POSITION_INT samples seen since it began.
 
     Returns a failing verdict as soon as the altitude leaves the band below
-    ``reference_m`` or the vertical speed stays beyond the limit for
+    ``reference_m`` or the descent speed stays beyond the limit for
     ``hold_violation_s``, or when the newest sample is older than
     ``telemetry_max_age_s`` (no evidence); None while nothing speaks against the hold.
     """
@@ -206,15 +209,14 @@ def judge_hold(
         )
     fast_since: float | None = None
     for sample in samples:
-        if abs(sample.climb_mps) > timing.hold_max_vspeed_mps:
+        if -sample.climb_mps > timing.hold_max_vspeed_mps:
             fast_since = sample.at if fast_since is None else fast_since
         else:
             fast_since = None
     if fast_since is not None and last.at - fast_since >= timing.hold_violation_s:
-        way = "descending" if last.climb_mps < 0 else "climbing"
         return HoldVerdict(
             False,
-            f"{way} at {abs(last.climb_mps):.2f} m/s (limit {timing.hold_max_vspeed_mps:.2f} m/s)",
+            f"descending at {-last.climb_mps:.2f} m/s (limit {timing.hold_max_vspeed_mps:.2f} m/s)",
         )
     return None
 
@@ -384,6 +386,8 @@ class SafetyRunner:
         phase = Phase(progress.phase)
         if phase in TERMINAL_PHASES:
             return phase
+        # A restarted agent's link has heard nothing yet; commands sent now would be lost.
+        self._await(lambda: self.link.heartbeat() is not None, self.timing.resume_wait_s)
         if phase in (Phase.LANDING, Phase.LAND_TIMED_OUT):
             return self._confirm_landing(progress)
         if not progress.holds:
@@ -511,7 +515,6 @@ class SafetyRunner:
         since = self.clock()
         stack = self.link.stack
         land_mode = custom_mode(stack, intent_mode(stack, ModeIntent.LAND))
-        self._await(lambda: self.link.heartbeat() is not None, self.timing.mode_confirm_s)
         how = self.landed(0.0)
         if how is not None:
             return self._finish(Phase.LANDED, f"{name} landed ({how}), confirmed after restart")

@@ -22,6 +22,7 @@ import signal
 import threading
 import time
 from collections.abc import Iterator
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -361,11 +362,21 @@ def test_agent_killed_in_each_phase_completes_the_routine_after_restart(
             if custom_mode_from_set_mode(Stack.PX4, *c.params[:3]) == HOLD_PX4
         ]
         lands_after = _agent_sent(fc2, restart_at, MAV_CMD_NAV_LAND)
+        hold_over = [
+            d
+            for d in restarted.seen
+            if "hold ended while the agent was down" in d.get("message", "")
+        ]
+        if dead_s > hold_s:
+            assert hold_over, [d.get("message") for d in restarted.seen if "event" in d]
         if phase_when_killed == "Landing":
             assert lands_after == []  # confirmed, not restarted
             assert holds_after == []
-        elif kill_on == "SafetyRoutineHolding" and dead_s > hold_s:
-            assert holds_after == []  # the hold time had passed: straight to landing
+        elif hold_over:
+            # the hold time had passed when the restarted agent resumed: straight to landing
+            resumed_at = datetime.fromisoformat(hold_over[0]["time"]).timestamp()
+            assert resumed_at - saved["safety"]["holdStarted"] >= hold_s
+            assert holds_after == []
             assert lands_after
         else:
             assert holds_after and lands_after  # the hold went on, then the landing

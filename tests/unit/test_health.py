@@ -436,10 +436,21 @@ def test_gps_wait_is_starting_and_losing_position_later_only_warns() -> None:
     assert v.at(0.0).level == WARN
 
 
-def test_px4_reboot_through_uninit_is_a_reboot_and_restarts_start_up() -> None:
+def test_px4_uninit_after_a_failsafe_landing_is_not_a_reboot() -> None:
+    """PX4 v1.16 reports UNINIT once disarmed after a battery-failsafe landing."""
     v = Vehicle()
     v.fly(1.0)
+    v.landed(LandedState.ON_GROUND)
     v.heartbeat(state=MavState.UNINIT, base_mode=DISARMED)
+    a = v.at(0.0)
+    assert "reboot" not in codes(a) and v.tracker.stream_facts().reboots == 0
+    assert a.level == STARTING and not a.failing
+
+
+def test_boot_after_being_up_is_a_reboot_and_counted() -> None:
+    v = Vehicle()
+    v.fly(1.0)
+    v.heartbeat(state=MavState.BOOT)
     a = v.at(0.0)
     assert "reboot" in codes(a) and a.failing
     assert v.tracker.stream_facts().reboots == 1

@@ -266,12 +266,12 @@ LOITER_NO_RC = {"LOITER": -2.45}  # ArduCopter LOITER, throttle stick low (measu
             [Phase.HOLD_FAILED, Phase.RETURNING],
             [20],
         ),
-        # climbing away is not holding either
+        # braking a climb endangers nothing: still a hold
         (
-            {"AUTO.LOITER": 2.0},
+            {"AUTO.LOITER": 0.7},
             True,
             FinalAction.LAND,
-            [Phase.HOLD_FAILED, Phase.LANDING, Phase.LANDED],
+            [Phase.HOLDING, Phase.LANDING, Phase.LANDED],
             [21],
         ),
         # slow drift inside the limits is a hold
