@@ -36,11 +36,11 @@ from roost_api.autopilot import (
     Thresholds,
 )
 from roost_sim import (
+    ON_REQUEST_ONLY_RATES,
     FaultKind,
     SimConfig,
     SimulatedAutopilot,
     autopilot_specs,
-    message_id,
     start_vehicle_sims,
     stop_sims,
 )
@@ -50,19 +50,6 @@ HOLD_SAMPLES = int(os.environ.get("ROOST_BENCH_HOLD_SAMPLES", "3"))
 COMMAND = "python -m bench firmware"
 HOLD_S = 3.0
 
-# An ArduPilot link before anyone asked: HEARTBEAT only.
-ON_REQUEST_ONLY = {
-    message_id(name): 0.0
-    for name in (
-        "SYS_STATUS",
-        "EXTENDED_SYS_STATE",
-        "ATTITUDE",
-        "GLOBAL_POSITION_INT",
-        "SYSTEM_TIME",
-        "GPS_RAW_INT",
-        "HOME_POSITION",
-    )
-}
 LOITER_NO_RC = SimConfig(loiter_sink_mps=2.45, takeoff_alt_m=6.0)
 HOLD_MODES = {"px4": "AUTO.LOITER", "ardupilot": "BRAKE"}
 
@@ -80,7 +67,7 @@ def unaided_ardupilot_cycles() -> list[float]:
     """Onset->switch for silent ArduPilots that stream only what the agent requested."""
     onset_ms: list[float] = []
     defaults = Thresholds()
-    sims = start_vehicle_sims(["ardupilot", "ardupilot"], rates=ON_REQUEST_ONLY)
+    sims = start_vehicle_sims(["ardupilot", "ardupilot"], rates=ON_REQUEST_ONLY_RATES)
     agent: AgentProcess | None = None
     with tempfile.TemporaryDirectory(prefix="roost-bench-firmware-") as tmp:
         try:

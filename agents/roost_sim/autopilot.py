@@ -88,6 +88,10 @@ DEFAULT_RATES: dict[int, float] = {
     mavlink.MAVLINK_MSG_ID_HOME_POSITION: 1.0,
     mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: 0.0,
 }
+# ArduPilot's link before anyone requests streams: HEARTBEAT only (pass as ``rates``).
+ON_REQUEST_ONLY_RATES: dict[int, float] = {
+    msg_id: 0.0 for msg_id in DEFAULT_RATES if msg_id != mavlink.MAVLINK_MSG_ID_HEARTBEAT
+}
 _NOISE_PERIOD_S = 0.05
 _SPOOF_PERIOD_S = 0.1
 _RX_POLL_S = 0.2

@@ -59,6 +59,7 @@ from roost_mavlink import (
 )
 from roost_mavlink.modes import custom_mode, custom_mode_from_set_mode
 from roost_sim import (
+    ON_REQUEST_ONLY_RATES,
     FaultKind,
     SimConfig,
     SimulatedAutopilot,
@@ -70,19 +71,6 @@ from roost_sim import (
 
 pytestmark = pytest.mark.slow
 
-# An ArduPilot link before anyone asked: HEARTBEAT only.
-ON_REQUEST_ONLY = {
-    message_id(name): 0.0
-    for name in (
-        "SYS_STATUS",
-        "EXTENDED_SYS_STATE",
-        "ATTITUDE",
-        "GLOBAL_POSITION_INT",
-        "SYSTEM_TIME",
-        "GPS_RAW_INT",
-        "HOME_POSITION",
-    )
-}
 HOLD_PX4 = custom_mode(Stack.PX4, "AUTO.LOITER")
 LOITER_NO_RC = SimConfig(loiter_sink_mps=2.45, takeoff_alt_m=6.0)
 
@@ -134,7 +122,9 @@ def ardupilot_flight(
     tmp_path: Path, *, config: SimConfig | None = None
 ) -> Iterator[tuple[Flight, RedundantLog]]:
     """Two ArduPilot sims that stream only on request, an agent, both airborne."""
-    sims = start_vehicle_sims(["ardupilot", "ardupilot"], rates=ON_REQUEST_ONLY, config=config)
+    sims = start_vehicle_sims(
+        ["ardupilot", "ardupilot"], rates=ON_REQUEST_ONLY_RATES, config=config
+    )
     agent: Agent | None = None
     log: RedundantLog | None = None
     try:
@@ -217,10 +207,9 @@ def _link_to(sim: SimulatedAutopilot) -> AutopilotLink:
     return link
 
 
-def test_loiter_without_rc_crash_reproduced_then_caught(tmp_path: Path) -> None:
-    """Old behaviour: LOITER is accepted and shown in the heartbeat (what the old routine
-    called "holding: confirmed") while the vehicle sinks into the ground. New behaviour,
-    forced to use LOITER: the telemetry check sees it sink and lands at once."""
+@contextlib.contextmanager
+def loiter_vehicle() -> Iterator[tuple[SimulatedAutopilot, AutopilotLink]]:
+    """One flying ArduCopter sim (LOITER sinks without RC) and a link to it."""
     sims = start_vehicle_sims(["ardupilot"], config=LOITER_NO_RC)
     try:
         (sim,) = sims
@@ -228,26 +217,28 @@ def test_loiter_without_rc_crash_reproduced_then_caught(tmp_path: Path) -> None:
         sim.wait_until(lambda s: s.altitude_m >= 5.9, timeout=15)
         link = _link_to(sim)
         try:
-            phases: list[tuple[Phase, str]] = []
-            runner = SafetyRunner(link, threading.Event(), lambda p, m: phases.append((p, m)))
-            outcome = runner.set_mode("LOITER")
-            assert outcome.confirmed  # the old routine stopped checking here
-            crashed = sim.wait_until(lambda s: s.landed_state == "OnGround", timeout=10)
-            assert crashed.mode == "LOITER" and crashed.altitude_m == 0.0  # hit the ground
+            yield sim, link
         finally:
             link.stop()
     finally:
         stop_sims(sims)
 
-    sims = start_vehicle_sims(["ardupilot"], config=LOITER_NO_RC)
-    try:
-        (sim,) = sims
-        take_off(sims)
-        sim.wait_until(lambda s: s.altitude_m >= 5.9, timeout=15)
-        link = _link_to(sim)
+
+def test_loiter_without_rc_crash_reproduced_then_caught() -> None:
+    """Old behaviour: LOITER is accepted and shown in the heartbeat (what the old routine
+    called "holding: confirmed") while the vehicle sinks into the ground. New behaviour,
+    forced to use LOITER: the telemetry check sees it sink and lands at once."""
+    with loiter_vehicle() as (sim, link):
+        runner = SafetyRunner(link, threading.Event(), lambda p, m: None)
+        outcome = runner.set_mode("LOITER")
+        assert outcome.confirmed  # the old routine stopped checking here
+        crashed = sim.wait_until(lambda s: s.landed_state == "OnGround", timeout=10)
+        assert crashed.mode == "LOITER" and crashed.altitude_m == 0.0  # hit the ground
+
+    with loiter_vehicle() as (sim, link):
         watch = AltitudeWatch(sim)
+        phases: list[tuple[Phase, str]] = []
         try:
-            phases = []
             runner = SafetyRunner(
                 link,
                 threading.Event(),
@@ -257,17 +248,14 @@ def test_loiter_without_rc_crash_reproduced_then_caught(tmp_path: Path) -> None:
             final = runner.run(SafetyRoutine(hold_seconds=5.0))
         finally:
             watch.stop()
-            link.stop()
-        assert final == Phase.LANDED, phases
-        failed = [m for p, m in phases if p == Phase.HOLD_FAILED]
-        assert failed and "not holding in LOITER" in failed[0], phases
-        assert "descending" in failed[0] or "of altitude" in failed[0], failed
-        assert Phase.HOLDING not in [p for p, _ in phases]
-        # it touched down under LAND's controlled descent, not by sinking in LOITER
-        touchdown_mode = next(m for _, alt, m in watch.samples if alt == 0.0)
-        assert touchdown_mode == "LAND", watch.samples[-5:]
-    finally:
-        stop_sims(sims)
+    assert final == Phase.LANDED, phases
+    failed = [m for p, m in phases if p == Phase.HOLD_FAILED]
+    assert failed and "not holding in LOITER" in failed[0], phases
+    assert "descending" in failed[0] or "of altitude" in failed[0], failed
+    assert Phase.HOLDING not in [p for p, _ in phases]
+    # it touched down under LAND's controlled descent, not by sinking in LOITER
+    touchdown_mode = next(m for _, alt, m in watch.samples if alt == 0.0)
+    assert touchdown_mode == "LAND", watch.samples[-5:]
 
 
 # -- the agent killed in each phase of the safety routine ------------------------------
