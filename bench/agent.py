@@ -48,6 +48,7 @@ from roost_api.autopilot import (
 )
 from roost_sim import (
     FaultKind,
+    SimConfig,
     SimulatedAutopilot,
     autopilot_specs,
     message_id,
@@ -207,7 +208,7 @@ class AgentProcess:
 
 def take_off(sims: list[SimulatedAutopilot]) -> None:
     for sim in sims:
-        sim.wait_until(lambda s: s.system_status != "BOOT", timeout=5)
+        sim.wait_ready(timeout=5)
     for sim in sims:
         sim.fly()
     for sim in sims:
@@ -219,7 +220,7 @@ def vehicle(
     thresholds: Thresholds, rates: dict[int, float] | None = None, status_interval_s: float = 0.25
 ) -> Iterator[tuple[list[SimulatedAutopilot], AgentProcess]]:
     """Two flying PX4 sims and an agent watching them, standbys ready."""
-    sims = start_vehicle_sims(["px4", "px4"], rates=rates)
+    sims = start_vehicle_sims(["px4", "px4"], rates=rates, config=SimConfig.fast())
     agent: AgentProcess | None = None
     with tempfile.TemporaryDirectory(prefix="roost-bench-agent-") as tmp:
         try:

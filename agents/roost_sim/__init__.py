@@ -38,12 +38,14 @@ state directory (:mod:`roost_sim.control`): ``roost-sim fault fc1 silence``.
 from __future__ import annotations
 
 from roost_sim.autopilot import CommandRecord, SimSnapshot, SimulatedAutopilot, message_id
+from roost_sim.battery import Battery
 from roost_sim.faults import FaultKind
 from roost_sim.link import Impairment, PtyLink, UdpLink
 from roost_sim.model import ModeChange, SimConfig
 from roost_sim.vehicle import autopilot_specs, free_udp_port, start_vehicle_sims, stop_sims
 
 __all__ = [
+    "Battery",
     "CommandRecord",
     "FaultKind",
     "Impairment",
