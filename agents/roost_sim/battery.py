@@ -17,7 +17,7 @@ What a battery failsafe should do in each case (for whoever acts on it, e.g. an 
   down (hold, then land), because a vehicle that has lost a power source is degraded.
 
 Calibration (PX4 v1.16 SIH, ``battery empty`` injected in flight): the voltage drops at
-once (15.7 V -> 14.4 V), the filtered remaining charge falls to 0 % within about 5 s, the
+once (15.7 V -> 14.4 V), the filtered remaining charge falls to 0 % within about 4-5 s, the
 SYS_STATUS battery health bit clears about 2 s after the fault, BATTERY_STATUS
 charge_state turns EMERGENCY and the heartbeat CRITICAL after about 3.5 s, and PX4 holds
 5 s before switching itself to AUTO.LAND. ArduCopter's default critical-battery action
@@ -42,7 +42,7 @@ LOW_FRACTION = 0.15  # PX4 BAT_LOW_THR; the health bit clears below it
 CRITICAL_FRACTION = 0.07  # PX4 BAT_CRIT_THR
 EMERGENCY_FRACTION = 0.05  # PX4 BAT_EMERGEN_THR
 FLIGHT_DRAIN_PER_S = 1.0 / 1200.0  # a 20-minute pack at hover current
-FAULT_DRAIN_S = 5.0  # a failed pack reads empty this long after the fault
+FAULT_DRAIN_S = 3.7  # a failed pack reads empty this long after the fault (EMERGENCY at 3.5 s)
 
 
 class ChargeState(IntEnum):

@@ -553,7 +553,10 @@ def test_cli_config_file_starts_several_autopilots(tmp_path: Path) -> None:
 def test_mavsdk_connects_reads_telemetry_arms_takes_off_and_lands(stack: Stack) -> None:
     port = free_udp_port()
     mavsdk = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
-    sim = SimulatedAutopilot.udp(stack, 1, target_port=port, config=FAST).start()
+    # MAVSDK does not request ArduPilot's streams (SYS_STATUS for its health); with the
+    # real firmware one sets the SRn_* stream-rate parameters, which preset_streams is.
+    config = SimConfig.fast(preset_streams=stack is Stack.ARDUPILOT)
+    sim = SimulatedAutopilot.udp(stack, 1, target_port=port, config=config).start()
     try:
         assert int(mavsdk.add_any_connection(f"udpin://127.0.0.1:{port}")) == 0
         system = mavsdk.first_autopilot(10.0)
