@@ -431,6 +431,157 @@ def test_fault_spoofed_sysid_and_component(udp_sim: tuple[SimulatedAutopilot, Cl
     assert all(m.system_status == MavState.STANDBY for m in own)
 
 
+# ---- each stack's link conventions ----------------------------------------------------
+
+
+def test_ardupilot_streams_only_what_is_requested_and_forgets_it_on_reboot() -> None:
+    port = free_udp_port()
+    client = Client(pymavlink_device(f"udp://127.0.0.1:{port}").device)
+    try:
+        with SimulatedAutopilot.udp(Stack.ARDUPILOT, 5, target_port=port, config=FAST) as sim:
+            unasked = set(by_type(client.collect(1.0), 5))
+            assert "HEARTBEAT" in unasked
+            assert unasked <= {"HEARTBEAT", "TIMESYNC", "GPS_GLOBAL_ORIGIN", "HOME_POSITION"}
+            extra1 = mavutil.mavlink.MAV_DATA_STREAM_EXTRA1
+            client.conn.mav.request_data_stream_send(5, 1, extra1, 20, 1)
+            counts = by_type(client.collect(1.0), 5)
+            assert 10 <= counts["ATTITUDE"] <= 30 and counts["SYS_STATUS"] == 0
+            client.conn.mav.request_data_stream_send(5, 1, extra1, 0, 0)
+            time.sleep(0.1)
+            assert by_type(client.collect(0.5), 5)["ATTITUDE"] == 0
+            request_streams(client, 5, {"ATTITUDE": 20.0})
+            sim.inject(FaultKind.REBOOT, 0.0)
+            client.wait_for("HEARTBEAT", lambda m: m.system_status == MavState.BOOT)
+            time.sleep(0.1)
+            assert by_type(client.collect(0.5), 5)["ATTITUDE"] == 0
+    finally:
+        client.close()
+
+
+@pytest.mark.parametrize("udp_sim", STACKS, indirect=True)
+def test_a_mode_change_is_heard_at_once_on_ardupilot_and_at_the_next_second_on_px4(
+    udp_sim: tuple[SimulatedAutopilot, Client],
+) -> None:
+    sim, client = udp_sim
+    mode = "ALT_HOLD" if sim.stack is Stack.ARDUPILOT else "AUTO.LAND"
+    last_beat = client.wait_for("HEARTBEAT", lambda m: True)
+    assert last_beat is not None
+    beat_at = time.monotonic()
+    params = set_mode_params(sim.stack, mode)
+    assert client.command(sim.sysid, MAV_CMD_DO_SET_MODE, *params) == MavResult.ACCEPTED
+    changed_at = time.monotonic()
+    client.wait_for("HEARTBEAT", lambda m: mode_name(sim.stack, m.custom_mode) == mode)
+    seen_at = time.monotonic()
+    if sim.stack is Stack.ARDUPILOT:
+        assert seen_at - changed_at < 0.3
+    else:
+        assert seen_at - beat_at > 0.8  # the regular 1 Hz heartbeat, not an extra one
+
+
+@pytest.mark.parametrize("udp_sim", [Stack.PX4], indirect=True)
+def test_px4_refuses_a_heartbeat_interval_and_ignores_data_stream_requests(
+    udp_sim: tuple[SimulatedAutopilot, Client],
+) -> None:
+    sim, client = udp_sim
+    heartbeat = message_id("HEARTBEAT")
+    result = client.command(sim.sysid, MAV_CMD_SET_MESSAGE_INTERVAL, heartbeat, 1e5)
+    assert result == MavResult.DENIED
+    client.conn.mav.request_data_stream_send(sim.sysid, 1, 0, 1, 0)  # "stop everything"
+    time.sleep(0.2)
+    counts = by_type(client.collect(1.0), sim.sysid)
+    assert counts["HEARTBEAT"] <= 2 and counts["ATTITUDE"] > 50
+
+
+def test_ardupilot_texts_only_after_hearing_the_link_and_refuses_to_arm_until_gps() -> None:
+    port = free_udp_port()
+    client = Client(pymavlink_device(f"udp://127.0.0.1:{port}").device)
+    try:
+        with SimulatedAutopilot.udp(Stack.ARDUPILOT, 6, target_port=port) as sim:  # real timing
+            client.wait_for("HEARTBEAT", lambda m: m.system_status == MavState.STANDBY)
+            assert by_type(client.collect(0.5), 6)["STATUSTEXT"] == 0  # never heard anyone
+            refused = client.command(6, MAV_CMD_COMPONENT_ARM_DISARM, 1)
+            assert refused == MavResult.FAILED
+            text = client.wait_for("STATUSTEXT", lambda m: m.text.startswith("Arm:"))
+            assert text.text == "Arm: AHRS: waiting for home" and text.severity == 2
+            assert not sim.snapshot().ready
+    finally:
+        client.close()
+
+
+def test_ardupilot_routes_other_systems_traffic_onto_the_link_and_px4_does_not() -> None:
+    ports = {stack: free_udp_port() for stack in STACKS}
+    clients = {s: Client(pymavlink_device(f"udp://127.0.0.1:{p}").device) for s, p in ports.items()}
+    config = SimConfig.fast(gcs_heartbeat=True)
+    sims = [
+        SimulatedAutopilot.udp(stack, 1, target_port=ports[stack], config=config).start()
+        for stack in STACKS
+    ]
+    companion = mavutil.mavlink.MAVLink(None, srcSystem=1, srcComponent=191)
+    text = companion.statustext_encode(4, b"companion: low disk", 0, 0).pack(companion)
+    try:
+        for sim in sims:
+            sim.route(text)
+        seen = {s: clients[s].collect(1.5) for s in STACKS}
+    finally:
+        stop_sims(sims)
+        for client in clients.values():
+            client.close()
+    ardupilot = [m for _, m in seen[Stack.ARDUPILOT]]
+    gcs = [m for m in ardupilot if m.get_type() == "HEARTBEAT" and m.get_srcSystem() == 255]
+    assert gcs and gcs[0].type == mavutil.mavlink.MAV_TYPE_GCS
+    assert any(m.get_type() == "STATUSTEXT" and m.get_srcComponent() == 191 for m in ardupilot)
+    px4 = [m for _, m in seen[Stack.PX4]]
+    assert not [m for m in px4 if m.get_srcSystem() == 255 or m.get_srcComponent() == 191]
+
+
+def _airborne_ardupilot(client: Client, sim: SimulatedAutopilot, altitude: float) -> None:
+    guided = set_mode_params(Stack.ARDUPILOT, "GUIDED")
+    assert client.command(sim.sysid, MAV_CMD_DO_SET_MODE, *guided) == MavResult.ACCEPTED
+    assert client.command(sim.sysid, MAV_CMD_COMPONENT_ARM_DISARM, 1) == MavResult.ACCEPTED
+    takeoff = (0, 0, 0, NAN, NAN, NAN, altitude)
+    assert client.command(sim.sysid, MAV_CMD_NAV_TAKEOFF, *takeoff) == MavResult.ACCEPTED
+    sim.wait_until(lambda s: s.altitude_m >= altitude - 0.01, timeout=10)
+    assert sim.snapshot().mode == "GUIDED"  # it stays in GUIDED after the takeoff
+
+
+@pytest.mark.parametrize("udp_sim", [Stack.ARDUPILOT], indirect=True)
+def test_ardupilot_loiter_without_rc_flies_into_the_ground(
+    udp_sim: tuple[SimulatedAutopilot, Client],
+) -> None:
+    """The recorded crash: LOITER with no pilot follows a low stick down at ~2.5 m/s."""
+    sim, client = udp_sim
+    _airborne_ardupilot(client, sim, 5.0)
+    loiter = set_mode_params(Stack.ARDUPILOT, "LOITER")
+    assert client.command(sim.sysid, MAV_CMD_DO_SET_MODE, *loiter) == MavResult.ACCEPTED
+    descending = client.wait_for("GLOBAL_POSITION_INT", lambda m: m.vz > 200, timeout=3)
+    assert descending.relative_alt > 1000
+    hit = client.wait_for("STATUSTEXT", lambda m: m.text.startswith("SIM Hit ground"), timeout=5)
+    assert 2.3 <= float(hit.text.split()[-2]) <= 2.6
+    assert sim.touchdowns[-1].mode == "LOITER" and sim.snapshot().armed
+
+
+@pytest.mark.parametrize("udp_sim", [Stack.ARDUPILOT], indirect=True)
+def test_ardupilot_brake_holds_and_a_centred_rc_stick_holds_loiter(
+    udp_sim: tuple[SimulatedAutopilot, Client],
+) -> None:
+    sim, client = udp_sim
+    _airborne_ardupilot(client, sim, 4.0)
+    brake = set_mode_params(Stack.ARDUPILOT, "BRAKE")
+    assert client.command(sim.sysid, MAV_CMD_DO_SET_MODE, *brake) == MavResult.ACCEPTED
+    altitudes = [
+        m.relative_alt for _, m in client.collect(1.5) if m.get_type() == "GLOBAL_POSITION_INT"
+    ]
+    assert max(altitudes) - min(altitudes) < 50  # millimetres
+    centre = [65535, 65535, 1500, *([65535] * 5)]
+    client.conn.mav.rc_channels_override_send(sim.sysid, 1, *centre)
+    loiter = set_mode_params(Stack.ARDUPILOT, "LOITER")
+    assert client.command(sim.sysid, MAV_CMD_DO_SET_MODE, *loiter) == MavResult.ACCEPTED
+    altitudes = [
+        m.relative_alt for _, m in client.collect(1.5) if m.get_type() == "GLOBAL_POSITION_INT"
+    ]
+    assert max(altitudes) - min(altitudes) < 50 and not sim.touchdowns
+
+
 # ---- helpers for the agent and benchmarks, and the CLI ---------------------------------
 
 
