@@ -105,6 +105,28 @@ def rates(frames: Iterator[tuple[float, Any]] | list[tuple[float, Any]]) -> dict
     return {kind: n / span for kind, n in counts.items()}
 
 
+class FakeClock:
+    """Monotonic time a model test advances by hand."""
+
+    now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def take_off(model: AutopilotModel, clock: FakeClock) -> None:
+    """Boot a fast-booting model, arm it and climb to its takeoff altitude."""
+    clock.now = 1.0
+    model.step()
+    if model.stack is Stack.ARDUPILOT:
+        model.set_mode(custom_mode(Stack.ARDUPILOT, "GUIDED"))
+    assert model.arm(arm=True) == MavResult.ACCEPTED
+    assert model.takeoff(math.nan) == MavResult.ACCEPTED
+    for _ in range(300):
+        clock.now += 0.02
+        model.step()
+
+
 class Listener:
     """Where the simulator streams to: a pymavlink ``udpin`` socket, as the agent has."""
 
@@ -146,6 +168,12 @@ def heartbeat_states(frames: list[tuple[float, Any]] | tuple[tuple[float, Any], 
         if msg.get_type() == "HEARTBEAT" and (not changes or changes[-1][1] != msg.system_status):
             changes.append((t, msg.system_status))
     return changes
+
+
+def assert_same_states(
+    simulated: list[tuple[float, int]], real: list[tuple[float, int]], expected: list[MavState]
+) -> None:
+    assert [state for _, state in simulated] == [state for _, state in real] == expected
 
 
 def assert_rate_close(kind: str, sim: float, real: float, seconds: float) -> None:
@@ -199,14 +227,7 @@ def test_px4_boots_through_uninit_and_arms_only_after_standby_as_recorded() -> N
     listener.close()
     frames_sim = early + late
     sim_states = heartbeat_states(frames_sim)
-    assert (
-        [s for _, s in sim_states]
-        == [s for _, s in real_states]
-        == [
-            MavState.UNINIT,
-            MavState.STANDBY,
-        ]
-    )
+    assert_same_states(sim_states, real_states, [MavState.UNINIT, MavState.STANDBY])
     for (t_sim, _), (t_real, _) in zip(sim_states, real_states, strict=True):
         assert t_sim == pytest.approx(t_real - launch, abs=0.5)
     sim_flags = []
@@ -230,22 +251,10 @@ def test_px4_battery_failsafe_timeline_matches_the_recording() -> None:
         t for t, m in frames if m.get_type() == "HEARTBEAT" and m.custom_mode == land_mode
     )
 
-    class Clock:
-        now = 0.0
-
-        def __call__(self) -> float:
-            return self.now
-
-    clock = Clock()
+    clock = FakeClock()
     battery = Battery(clock=clock)
     model = AutopilotModel(Stack.PX4, SimConfig.fast(), clock=clock, battery=battery)
-    clock.now = 1.0
-    model.step()
-    model.arm(arm=True)
-    model.takeoff(math.nan)
-    for _ in range(200):
-        clock.now += 0.02
-        model.step()
+    take_off(model, clock)
     battery.fail()
     failed_at, sim_critical, sim_land = clock.now, None, None
     while sim_land is None and clock.now < failed_at + 20:
@@ -273,14 +282,7 @@ def test_ardupilot_unrequested_link_carries_only_heartbeats_as_recorded() -> Non
     listener.close()
     assert {m.get_type() for _, m in simulated} == real_kinds == {"HEARTBEAT"}
     sim_states = heartbeat_states(simulated)
-    assert (
-        [s for _, s in sim_states]
-        == [s for _, s in real_states]
-        == [
-            MavState.BOOT,
-            MavState.STANDBY,
-        ]
-    )
+    assert_same_states(sim_states, real_states, [MavState.BOOT, MavState.STANDBY])
     assert sim_states[1][0] - sim_states[0][0] == pytest.approx(
         real_states[1][0] - real_states[0][0], abs=0.5
     )
@@ -316,22 +318,9 @@ def test_ardupilot_loiter_without_rc_descends_into_the_ground_as_recorded() -> N
     ground_t = next(t for t, alt, _ in positions if t > peak_t and alt <= 0.05)
     real_speed = max(vz for _, _, vz in positions)
 
-    class Clock:
-        now = 0.0
-
-        def __call__(self) -> float:
-            return self.now
-
-    clock = Clock()
+    clock = FakeClock()
     model = AutopilotModel(Stack.ARDUPILOT, SimConfig.fast(takeoff_alt_m=peak_alt), clock=clock)
-    clock.now = 1.0
-    model.step()
-    model.set_mode(custom_mode(Stack.ARDUPILOT, "GUIDED"))
-    model.arm(arm=True)
-    model.takeoff(math.nan)
-    for _ in range(300):
-        clock.now += 0.02
-        model.step()
+    take_off(model, clock)
     model.set_mode(loiter)
     start, fastest = clock.now, 0.0
     while not model.touchdowns:

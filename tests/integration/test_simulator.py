@@ -534,9 +534,19 @@ def test_ardupilot_routes_other_systems_traffic_onto_the_link_and_px4_does_not()
     assert not [m for m in px4 if m.get_srcSystem() == 255 or m.get_srcComponent() == 191]
 
 
+def altitudes_mm(client: Client, seconds: float) -> list[int]:
+    """GLOBAL_POSITION_INT relative altitudes (mm) received over ``seconds``."""
+    frames = client.collect(seconds)
+    return [m.relative_alt for _, m in frames if m.get_type() == "GLOBAL_POSITION_INT"]
+
+
+def set_ardupilot_mode(client: Client, sim: SimulatedAutopilot, mode: str) -> None:
+    params = set_mode_params(Stack.ARDUPILOT, mode)
+    assert client.command(sim.sysid, MAV_CMD_DO_SET_MODE, *params) == MavResult.ACCEPTED
+
+
 def _airborne_ardupilot(client: Client, sim: SimulatedAutopilot, altitude: float) -> None:
-    guided = set_mode_params(Stack.ARDUPILOT, "GUIDED")
-    assert client.command(sim.sysid, MAV_CMD_DO_SET_MODE, *guided) == MavResult.ACCEPTED
+    set_ardupilot_mode(client, sim, "GUIDED")
     assert client.command(sim.sysid, MAV_CMD_COMPONENT_ARM_DISARM, 1) == MavResult.ACCEPTED
     takeoff = (0, 0, 0, NAN, NAN, NAN, altitude)
     assert client.command(sim.sysid, MAV_CMD_NAV_TAKEOFF, *takeoff) == MavResult.ACCEPTED
@@ -551,8 +561,7 @@ def test_ardupilot_loiter_without_rc_flies_into_the_ground(
     """The recorded crash: LOITER with no pilot follows a low stick down at ~2.5 m/s."""
     sim, client = udp_sim
     _airborne_ardupilot(client, sim, 5.0)
-    loiter = set_mode_params(Stack.ARDUPILOT, "LOITER")
-    assert client.command(sim.sysid, MAV_CMD_DO_SET_MODE, *loiter) == MavResult.ACCEPTED
+    set_ardupilot_mode(client, sim, "LOITER")
     descending = client.wait_for("GLOBAL_POSITION_INT", lambda m: m.vz > 200, timeout=3)
     assert descending.relative_alt > 1000
     hit = client.wait_for("STATUSTEXT", lambda m: m.text.startswith("SIM Hit ground"), timeout=5)
@@ -566,19 +575,13 @@ def test_ardupilot_brake_holds_and_a_centred_rc_stick_holds_loiter(
 ) -> None:
     sim, client = udp_sim
     _airborne_ardupilot(client, sim, 4.0)
-    brake = set_mode_params(Stack.ARDUPILOT, "BRAKE")
-    assert client.command(sim.sysid, MAV_CMD_DO_SET_MODE, *brake) == MavResult.ACCEPTED
-    altitudes = [
-        m.relative_alt for _, m in client.collect(1.5) if m.get_type() == "GLOBAL_POSITION_INT"
-    ]
+    set_ardupilot_mode(client, sim, "BRAKE")
+    altitudes = altitudes_mm(client, 1.5)
     assert max(altitudes) - min(altitudes) < 50  # millimetres
     centre = [65535, 65535, 1500, *([65535] * 5)]
     client.conn.mav.rc_channels_override_send(sim.sysid, 1, *centre)
-    loiter = set_mode_params(Stack.ARDUPILOT, "LOITER")
-    assert client.command(sim.sysid, MAV_CMD_DO_SET_MODE, *loiter) == MavResult.ACCEPTED
-    altitudes = [
-        m.relative_alt for _, m in client.collect(1.5) if m.get_type() == "GLOBAL_POSITION_INT"
-    ]
+    set_ardupilot_mode(client, sim, "LOITER")
+    altitudes = altitudes_mm(client, 1.5)
     assert max(altitudes) - min(altitudes) < 50 and not sim.touchdowns
 
 

@@ -90,7 +90,7 @@ def test_each_sim_streams_to_its_own_agent_port() -> None:
         "autopilots": [
             {"name": "px4-a", "stack": "px4", "sysid": 1, "udp_out": "127.0.0.1:41000"},
             {"name": "px4-b", "stack": "px4", "sysid": 2, "udp_out": "127.0.0.1:41001"},
-        ]
+        ],
     }
 
 
