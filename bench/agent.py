@@ -48,12 +48,14 @@ from roost_api.autopilot import (
 )
 from roost_sim import (
     FaultKind,
+    SimConfig,
     SimulatedAutopilot,
     autopilot_specs,
     message_id,
     start_vehicle_sims,
     stop_sims,
 )
+from roost_sim.streams import PX4_STREAMS
 
 FAILOVERS = int(os.environ.get("ROOST_BENCH_FAILOVERS", "100"))
 HEARTBEAT_FAILOVERS = int(os.environ.get("ROOST_BENCH_HEARTBEAT_FAILOVERS", "12"))
@@ -66,21 +68,14 @@ COMMAND = "make bench (python -m bench agent)"
 # 20 ms. The false-failover soak runs with the same thresholds, which is what makes them
 # defensible.
 FAST = Thresholds(message_warn_ms=100, message_error_ms=200, confirm_ms=20, clear_ms=300)
+# Every PX4 stream off but HEARTBEAT and 1 Hz status: liveness from heartbeats alone.
 HEARTBEAT_ONLY_RATES = {
-    message_id(name): rate
-    for name, rate in {
-        "ATTITUDE": 0.0,
-        "GLOBAL_POSITION_INT": 0.0,
-        "SYSTEM_TIME": 0.0,
-        "GPS_RAW_INT": 0.0,
-        "HOME_POSITION": 0.0,
-        "SYS_STATUS": 1.0,
-        "EXTENDED_SYS_STATE": 1.0,
-    }.items()
+    **{msg_id: 0.0 for msg_id in PX4_STREAMS if msg_id != message_id("HEARTBEAT")},
+    message_id("SYS_STATUS"): 1.0,
+    message_id("EXTENDED_SYS_STATE"): 1.0,
 }
-# PX4's onboard mode streams 400-500 messages/s. The sim has fewer message types, so the
-# rate is reached with faster ATTITUDE and GLOBAL_POSITION_INT (about 470 msg/s per link).
-PX4_ONBOARD_RATES = {message_id("ATTITUDE"): 300.0, message_id("GLOBAL_POSITION_INT"): 150.0}
+# The simulated PX4 streams its onboard link's real set and rates (~400 messages/s).
+PX4_ONBOARD_RATES: dict[int, float] = {}
 
 
 def percentile(values: list[float], q: float) -> float:
@@ -207,7 +202,7 @@ class AgentProcess:
 
 def take_off(sims: list[SimulatedAutopilot]) -> None:
     for sim in sims:
-        sim.wait_until(lambda s: s.system_status != "BOOT", timeout=5)
+        sim.wait_ready(timeout=5)
     for sim in sims:
         sim.fly()
     for sim in sims:
@@ -219,7 +214,7 @@ def vehicle(
     thresholds: Thresholds, rates: dict[int, float] | None = None, status_interval_s: float = 0.25
 ) -> Iterator[tuple[list[SimulatedAutopilot], AgentProcess]]:
     """Two flying PX4 sims and an agent watching them, standbys ready."""
-    sims = start_vehicle_sims(["px4", "px4"], rates=rates)
+    sims = start_vehicle_sims(["px4", "px4"], rates=rates, config=SimConfig.fast())
     agent: AgentProcess | None = None
     with tempfile.TemporaryDirectory(prefix="roost-bench-agent-") as tmp:
         try:

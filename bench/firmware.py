@@ -36,7 +36,6 @@ from roost_api.autopilot import (
     Thresholds,
 )
 from roost_sim import (
-    ON_REQUEST_ONLY_RATES,
     FaultKind,
     SimConfig,
     SimulatedAutopilot,
@@ -50,7 +49,8 @@ HOLD_SAMPLES = int(os.environ.get("ROOST_BENCH_HOLD_SAMPLES", "3"))
 COMMAND = "python -m bench firmware"
 HOLD_S = 3.0
 
-LOITER_NO_RC = SimConfig(loiter_sink_mps=2.45, takeoff_alt_m=6.0)
+# No RC: ArduCopter LOITER reads the throttle stick as low and sinks (the sim's default).
+LOITER_NO_RC = SimConfig.fast(takeoff_alt_m=6.0)
 HOLD_MODES = {"px4": "AUTO.LOITER", "ardupilot": "BRAKE"}
 
 
@@ -67,7 +67,7 @@ def unaided_ardupilot_cycles() -> list[float]:
     """Onset->switch for silent ArduPilots that stream only what the agent requested."""
     onset_ms: list[float] = []
     defaults = Thresholds()
-    sims = start_vehicle_sims(["ardupilot", "ardupilot"], rates=ON_REQUEST_ONLY_RATES)
+    sims = start_vehicle_sims(["ardupilot", "ardupilot"], config=SimConfig.fast())
     agent: AgentProcess | None = None
     with tempfile.TemporaryDirectory(prefix="roost-bench-firmware-") as tmp:
         try:

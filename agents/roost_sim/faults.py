@@ -24,13 +24,22 @@ jitter    milliseconds       each outgoing frame delayed uniformly 0..J ms, orde
 spoof     foreign sysid      10 Hz HEARTBEAT (EMERGENCY) + ATTITUDE from another sysid,
           (default sysid+100) and EMERGENCY heartbeats from a non-autopilot component
                              (gimbal, autopilot=INVALID) of our own sysid
+battery   --                 the battery fails: voltage drops, charge reads empty within
+                             5 s, health bit clears, CRITICAL; PX4 then holds 5 s and
+                             lands (see :mod:`roost_sim.battery`; a shared battery
+                             fails for every autopilot on it)
 ========  =================  ==========================================================
 
-``clear`` removes one kind or all of them (a pending reboot is not undone).
+``clear`` removes one kind or all of them (a pending reboot is not undone; a cleared
+battery fault is a fresh pack). Values are validated: a non-finite or out-of-range
+number is refused with ValueError and nothing changes (``jitter`` at most
+:data:`MAX_JITTER_MS`, ``garbage`` at most :data:`MAX_GARBAGE_BYTES_PER_S`, ``reboot`` at
+most :data:`MAX_REBOOT_S`, ``loss`` 0..100, ``spoof`` a sysid 1..255).
 """
 
 from __future__ import annotations
 
+import math
 from enum import StrEnum
 
 from roost_mavlink.status import MavState, SensorBit, sensor_from_name
@@ -48,16 +57,34 @@ class FaultKind(StrEnum):
     LOSS = "loss"
     JITTER = "jitter"
     SPOOF = "spoof"
+    BATTERY = "battery"
 
 
 DEFAULT_GARBAGE_BYTES_PER_S = 2000.0
 SPOOF_SYSID_OFFSET = 100
+MAX_JITTER_MS = 10_000.0
+MAX_GARBAGE_BYTES_PER_S = 1_000_000.0
+MAX_REBOOT_S = 3600.0
+_MAXIMUM: dict[str, float] = {
+    "loss": 100.0,
+    "jitter": MAX_JITTER_MS,
+    "garbage": MAX_GARBAGE_BYTES_PER_S,
+    "reboot": MAX_REBOOT_S,
+}
 
 
-def parse_sensor(value: str | int | None) -> SensorBit:
+def _whole_number(value: float) -> int:
+    if not math.isfinite(value) or not value.is_integer():
+        raise ValueError(f"{value!r} is not a whole number")
+    return int(value)
+
+
+def parse_sensor(value: str | float | None) -> SensorBit:
     """A sensor given by name (``gyro``) or bit value; gyro when omitted."""
     if value is None or value == "":
         return SensorBit.GYRO
+    if isinstance(value, float):
+        value = _whole_number(value)
     if isinstance(value, int) or str(value).isdigit() or str(value).startswith("0x"):
         bit = SensorBit(int(str(value), 0))
         if bin(int(bit)).count("1") != 1:
@@ -66,10 +93,12 @@ def parse_sensor(value: str | int | None) -> SensorBit:
     return sensor_from_name(str(value))
 
 
-def parse_state(value: str | int | None) -> MavState:
+def parse_state(value: str | float | None) -> MavState:
     """A MAV_STATE given by name (``EMERGENCY``) or number; CRITICAL when omitted."""
     if value is None or value == "":
         return MavState.CRITICAL
+    if isinstance(value, float):
+        value = _whole_number(value)
     if isinstance(value, int) or str(value).isdigit():
         return MavState(int(value))
     try:
@@ -79,10 +108,27 @@ def parse_state(value: str | int | None) -> MavState:
 
 
 def parse_number(kind: FaultKind, value: str | float | None, default: float) -> float:
-    """A non-negative number for loss, jitter, garbage and reboot."""
+    """A finite, non-negative number within the kind's maximum (loss, jitter, garbage, reboot)."""
     if value is None or value == "":
         return default
-    number = float(value)
-    if number < 0 or (kind is FaultKind.LOSS and number > 100):
-        raise ValueError(f"{kind} value {value!r} out of range")
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{kind} value {value!r} is not a number") from None
+    maximum = _MAXIMUM.get(str(kind), math.inf)
+    if not math.isfinite(number) or number < 0 or number > maximum:
+        raise ValueError(f"{kind} value {value!r} out of range (0 to {maximum:g})")
     return number
+
+
+def parse_sysid(value: str | float | None, default: int) -> int:
+    """A MAVLink system id 1..255 for ``spoof``."""
+    if value is None or value == "":
+        return default
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"spoof value {value!r} is not a system id") from None
+    if not number.is_integer() or not 1 <= number <= 255:
+        raise ValueError(f"spoof value {value!r} out of range (a system id 1 to 255)")
+    return int(number)

@@ -31,7 +31,7 @@ from roost_harness.chart import install_args
 from roost_harness.cluster import Cluster, FakeNodes
 from roost_harness.operator import OperatorProcess, wait_for
 from roost_harness.processes import ManagedProcess
-from roost_sim import autopilot_specs, start_vehicle_sims, stop_sims
+from roost_sim import SimConfig, autopilot_specs, start_vehicle_sims, stop_sims
 
 RELEASE = "chart-e2e"
 NAMESPACE = "roost-chart-e2e"
@@ -476,7 +476,7 @@ def test_agent_with_its_pod_bound_token_reports_its_autopilots(
     RedundantAutopilot and writes their health from simulated autopilots over UDP."""
     taint = {"key": TAINT_VEHICLE, "value": "x", "effect": "NoSchedule"}
     fake_nodes_module(NODE_AGENT, labels={LABEL_VEHICLE: AGENT_VEHICLE}, taints=[taint])
-    sims = start_vehicle_sims(["px4", "px4"])
+    sims = start_vehicle_sims(["px4", "px4"], config=SimConfig.fast())
     agent: AgentProcess | None = None
     try:
         autopilot = _autopilot(AGENT_VEHICLE, NODE_AGENT)

@@ -48,9 +48,19 @@ from roost_mavlink import (
     set_mode_params,
 )
 from roost_mavlink.modes import custom_mode_from_set_mode
-from roost_sim import FaultKind, SimulatedAutopilot, autopilot_specs, start_vehicle_sims, stop_sims
+from roost_sim import (
+    FaultKind,
+    SimConfig,
+    SimulatedAutopilot,
+    autopilot_specs,
+    start_vehicle_sims,
+    stop_sims,
+)
 
 pytestmark = pytest.mark.slow
+
+# Sub-second start-up; ArduPilot streams only what the agent requests, as the firmware.
+SIM_CONFIG = SimConfig.fast()
 
 HOLD_S = 1.0
 CLEAR_S = 1.0  # Thresholds.clear_ms default: a standby must be OK this long
@@ -105,7 +115,7 @@ def make_spec(
 
 def take_off(sims: list[SimulatedAutopilot]) -> None:
     for sim in sims:
-        sim.wait_until(lambda s: s.system_status != "BOOT", timeout=5)
+        sim.wait_ready(timeout=5)
     for sim in sims:
         sim.fly()
     for sim in sims:
@@ -132,11 +142,11 @@ def flying(
     """
     if transport == "udpout":
         sims = [
-            SimulatedAutopilot.udp(stack, i + 1, name=f"fc{i + 1}").start()
+            SimulatedAutopilot.udp(stack, i + 1, name=f"fc{i + 1}", config=SIM_CONFIG).start()
             for i, stack in enumerate(stacks)
         ]
     else:
-        sims = start_vehicle_sims(stacks, transport=transport)
+        sims = start_vehicle_sims(stacks, transport=transport, config=SIM_CONFIG)
     agent: Agent | None = None
     try:
         spec = make_spec(sims, final_action)
@@ -419,7 +429,7 @@ class AgentProcess:
 
 
 def test_console_script_fails_over_and_restarts_from_its_state_dir(tmp_path: Path) -> None:
-    sims = start_vehicle_sims(["px4", "px4"])
+    sims = start_vehicle_sims(["px4", "px4"], config=SIM_CONFIG)
     state_dir = tmp_path / "state"
     config = tmp_path / "ra.yaml"
     spec = make_spec(sims, FinalAction.HOLD)

@@ -1,6 +1,7 @@
 """What real firmware does that a kind simulator hid, against the agent over real UDP.
 
-- An ArduPilot sends nothing but HEARTBEAT until someone requests streams: the agent asks
+- An ArduPilot sends nothing but HEARTBEAT until someone requests streams (so does the
+  calibrated simulator): the agent asks
   for them, and only then knows the standby is armed and in the air and notices a silent
   link within the message thresholds; it fails over unaided.
 - ArduCopter LOITER follows the throttle stick, which rests low without a radio: the old
@@ -59,7 +60,6 @@ from roost_mavlink import (
 )
 from roost_mavlink.modes import custom_mode, custom_mode_from_set_mode
 from roost_sim import (
-    ON_REQUEST_ONLY_RATES,
     FaultKind,
     SimConfig,
     SimulatedAutopilot,
@@ -72,7 +72,8 @@ from roost_sim import (
 pytestmark = pytest.mark.slow
 
 HOLD_PX4 = custom_mode(Stack.PX4, "AUTO.LOITER")
-LOITER_NO_RC = SimConfig(loiter_sink_mps=2.45, takeoff_alt_m=6.0)
+# No RC: ArduCopter LOITER reads the throttle stick as low and sinks (the sim's default).
+LOITER_NO_RC = SimConfig.fast(takeoff_alt_m=6.0)
 
 
 class AltitudeWatch:
@@ -122,9 +123,7 @@ def ardupilot_flight(
     tmp_path: Path, *, config: SimConfig | None = None
 ) -> Iterator[tuple[Flight, RedundantLog]]:
     """Two ArduPilot sims that stream only on request, an agent, both airborne."""
-    sims = start_vehicle_sims(
-        ["ardupilot", "ardupilot"], rates=ON_REQUEST_ONLY_RATES, config=config
-    )
+    sims = start_vehicle_sims(["ardupilot", "ardupilot"], config=config or SimConfig.fast())
     agent: Agent | None = None
     log: RedundantLog | None = None
     try:
@@ -297,7 +296,7 @@ KILL_PHASES = [
 def test_agent_killed_in_each_phase_completes_the_routine_after_restart(
     tmp_path: Path, kill_on: str, dead_s: float, hold_s: float
 ) -> None:
-    config = SimConfig(takeoff_alt_m=6.0, descent_rate_mps=0.8)
+    config = SimConfig.fast(takeoff_alt_m=6.0, descent_rate_mps=0.8)
     sims = start_vehicle_sims(["px4", "px4"], config=config)
     state_dir = tmp_path / "state"
     spec = make_spec(sims).model_copy(

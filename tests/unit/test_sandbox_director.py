@@ -85,10 +85,12 @@ def test_latency_reads_well_at_every_scale(ms: float, text: str) -> None:
 def test_each_sim_streams_to_its_own_agent_port() -> None:
     [vehicle] = plan.plan_fleet(1, itertools.count(41000))
     assert sims.sim_config(vehicle) == {
+        "fast_boot": True,
+        "preset_streams": True,
         "autopilots": [
             {"name": "px4-a", "stack": "px4", "sysid": 1, "udp_out": "127.0.0.1:41000"},
             {"name": "px4-b", "stack": "px4", "sysid": 2, "udp_out": "127.0.0.1:41001"},
-        ]
+        ],
     }
 
 

@@ -31,6 +31,10 @@ CLEAR = "clear"
 def sim_config(vehicle: plan.VehiclePlan) -> dict[str, Any]:
     """``roost-sim run --config`` for one vehicle: its autopilots, streaming to the agent."""
     return {
+        # A demo should not wait for GPS: sub-second start-up. ArduPilot streams as with
+        # its SRn_* stream-rate parameters set, for agents that do not request streams.
+        "fast_boot": True,
+        "preset_streams": True,
         "autopilots": [
             {
                 "name": autopilot.name,
@@ -39,7 +43,7 @@ def sim_config(vehicle: plan.VehiclePlan) -> dict[str, Any]:
                 "udp_out": f"127.0.0.1:{autopilot.agent_port}",
             }
             for autopilot in vehicle.autopilots
-        ]
+        ],
     }
 
 
