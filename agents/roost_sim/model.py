@@ -25,10 +25,12 @@ SITL, two instances each); the numbers below are measured there.
   PILOT_ACCEL_Z (2.5 m/s^2). Without RC the stick rests low, so LOITER without a pilot
   flies into the ground at ~2.45 m/s without flaring -- the recorded crash
   (``throttle`` sets a stick; RC_CHANNELS_OVERRIDE channel 3 does it over MAVLink).
-- **Landing.** A touchdown records its vertical speed (:attr:`AutopilotModel.touchdowns`;
-  ArduPilot SITL says "SIM Hit ground at X m/s"). In a land mode the vehicle is landed
-  at once and disarms after ``auto_disarm_after_land_s``; elsewhere ArduCopter's landing
-  detector needs ``land_detect_s`` (2.3 s measured) and then DISARM_DELAY (10 s).
+- **Landing.** Land modes descend at PX4 0.7 m/s, ArduCopter 0.5 m/s. A touchdown
+  records its vertical speed (:attr:`AutopilotModel.touchdowns`; ArduPilot SITL says "SIM
+  Hit ground at X m/s"). The landing detector reports ON_GROUND ``land_detect_s`` after
+  contact (PX4 ~7 s, ArduCopter ~2 s); in a land mode the vehicle then disarms after
+  ``auto_disarm_after_land_s`` (PX4 2 s, ArduCopter 0.5 s), elsewhere after
+  DISARM_DELAY (10 s). :meth:`SimConfig.fast` lands at 1.5 m/s, detects in 0.3 s.
 - **Takeoff.** PX4 accepts NAV_TAKEOFF on the ground armed or not (AUTO.TAKEOFF, climbs
   once armed, then AUTO.LOITER); param7 is AMSL, NaN means MIS_TAKEOFF_ALT. ArduCopter
   needs to be armed in a mode with user takeoff (GUIDED, LOITER, ALT_HOLD, POSHOLD);
@@ -118,6 +120,27 @@ _REALISTIC_BOOT: dict[Stack, BootTimes] = {
 }
 
 
+@dataclass(frozen=True)
+class Landing:
+    """How a stack lands: descent rate in its land mode, how long its landing detector
+    takes after ground contact, and how long it stays armed once landed there."""
+
+    descent_mps: float
+    detect_s: float
+    disarm_s: float
+
+
+# Measured: PX4 descends at MPC_LAND_SPEED (0.7 m/s), its land detector reports ON_GROUND
+# ~7 s after contact (SIH), COM_DISARM_LAND 2 s. ArduCopter: LAND_SPEED 0.5 m/s, landed
+# 1.6 s (LAND) to 2.3 s (LOITER) after contact, disarms ~0.5 s after landing in LAND.
+_REALISTIC_LANDING: dict[Stack, Landing] = {
+    Stack.PX4: Landing(descent_mps=0.7, detect_s=7.0, disarm_s=2.0),
+    Stack.ARDUPILOT: Landing(descent_mps=0.5, detect_s=2.0, disarm_s=0.5),
+}
+_FAST_LANDING: dict[Stack, Landing] = {
+    stack: Landing(descent_mps=1.5, detect_s=0.3, disarm_s=1.0) for stack in Stack
+}
+
 # ``SimConfig.fast()``: the same order of steps in well under a second.
 _FAST_BOOT: dict[Stack, BootTimes] = {
     Stack.PX4: replace(_REALISTIC_BOOT[Stack.PX4], standby_s=0.4, position_s=0.3),
@@ -142,13 +165,13 @@ class SimConfig:
     """
 
     climb_rate_mps: float = 2.5
-    descent_rate_mps: float = 1.5
+    descent_rate_mps: float | None = None
     takeoff_alt_m: float = 2.5
-    auto_disarm_after_land_s: float = 1.0
+    auto_disarm_after_land_s: float | None = None
     idle_disarm_s: float = 10.0
     boot_s: float | None = None
     position_wait_s: float | None = None
-    land_detect_s: float = 2.3
+    land_detect_s: float | None = None
     pilot_speed_up_mps: float = 2.5
     pilot_speed_dn_mps: float = 0.0  # 0: PILOT_SPEED_UP, as ArduCopter does
     pilot_accel_mps2: float = 2.5
@@ -165,9 +188,24 @@ class SimConfig:
     @classmethod
     def fast(cls, **overrides: object) -> SimConfig:
         """A config that boots in well under a second (tests, benchmarks, the sandbox)."""
-        values: dict[str, object] = {"fast_boot": True, "land_detect_s": 0.3}
+        values: dict[str, object] = {"fast_boot": True}
         values.update(overrides)
         return cls(**values)  # type: ignore[arg-type]
+
+    def landing(self, stack: Stack) -> Landing:
+        """Descent rate, landing detection and disarm delay in effect for ``stack``."""
+        base = (_FAST_LANDING if self.fast_boot else _REALISTIC_LANDING)[Stack(stack)]
+        return Landing(
+            descent_mps=base.descent_mps
+            if self.descent_rate_mps is None
+            else self.descent_rate_mps,
+            detect_s=base.detect_s if self.land_detect_s is None else self.land_detect_s,
+            disarm_s=(
+                base.disarm_s
+                if self.auto_disarm_after_land_s is None
+                else self.auto_disarm_after_land_s
+            ),
+        )
 
     def boot_times(self, stack: Stack) -> BootTimes:
         """This config's start-up timeline for ``stack``."""
@@ -563,7 +601,7 @@ class AutopilotModel:
             return
         if self._contact_at is None:
             self._contact_at = now
-        if now - self._contact_at >= self.config.land_detect_s:
+        if now - self._contact_at >= self.config.landing(self.stack).detect_s:
             self.landed_state = LandedState.ON_GROUND
             self._contact_at = None
 
@@ -609,14 +647,18 @@ class AutopilotModel:
             if self._landed_at is None:
                 self._landed_at = now
             return
-        self.altitude_m = max(0.0, self.altitude_m - self.config.descent_rate_mps * dt)
-        self.climb_mps = -self.config.descent_rate_mps
-        self.landed_state = LandedState.LANDING
+        if self.altitude_m > 0.0:
+            rate = self.config.landing(self.stack).descent_mps
+            self.altitude_m = max(0.0, self.altitude_m - rate * dt)
+            self.climb_mps = -rate
+            self.landed_state = LandedState.LANDING
+            if self.altitude_m <= 0.0:
+                self._touch_down(now, rate)
         if self.altitude_m <= 0.0:
-            self._touch_down(now, self.config.descent_rate_mps)
             self.climb_mps = 0.0
-            self.landed_state = LandedState.ON_GROUND
-            self._landed_at = now
+            self._settle(now)  # LANDING until the landing detector is sure
+            if self.on_ground:
+                self._landed_at = now
 
     def _battery_failsafe(self, now: float) -> None:
         """PX4: hold 5 s at the emergency level, then land; ArduCopter: report only."""
@@ -638,7 +680,7 @@ class AutopilotModel:
             self._on_ground_armed_since = None
             return
         if self._landed_at is not None:
-            if now - self._landed_at >= self.config.auto_disarm_after_land_s:
+            if now - self._landed_at >= self.config.landing(self.stack).disarm_s:
                 self._disarm()
             return
         if self._on_ground_armed_since is None:

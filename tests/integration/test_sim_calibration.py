@@ -18,6 +18,7 @@ from __future__ import annotations
 import itertools
 import math
 import os
+import statistics
 import time
 from collections import Counter
 from collections.abc import Iterator
@@ -330,3 +331,22 @@ def test_ardupilot_loiter_without_rc_descends_into_the_ground_as_recorded() -> N
         assert clock.now - start < 10
     assert fastest == pytest.approx(real_speed, abs=0.15)
     assert model.touchdowns[0].at - start == pytest.approx(ground_t - peak_t, abs=0.5)
+
+
+@pytest.mark.parametrize(
+    ("stack", "name", "land_mode"),
+    [(Stack.PX4, PX4_FLIGHT, "AUTO.LAND"), (Stack.ARDUPILOT, AP_STREAMS, "LAND")],
+)
+def test_land_mode_descends_at_the_recorded_rate(stack: Stack, name: str, land_mode: str) -> None:
+    frames = recorded(name)
+    land = custom_mode(stack, land_mode)
+    entered = next(t for t, m in frames if m.get_type() == "HEARTBEAT" and m.custom_mode == land)
+    speeds = [
+        m.vz / 100
+        for t, m in frames
+        if m.get_type() == "GLOBAL_POSITION_INT" and t > entered + 1.5 and m.relative_alt > 300
+    ]
+    assert len(speeds) > 10
+    assert SimConfig().landing(stack).descent_mps == pytest.approx(
+        statistics.median(speeds), abs=0.15
+    )

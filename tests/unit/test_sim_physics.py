@@ -219,3 +219,29 @@ def test_fault_value_parsers_refuse_what_would_break_the_link() -> None:
     with pytest.raises(ValueError):
         parse_sensor(math.nan)
     assert parse_state(5.0) is MavState.CRITICAL
+
+
+@pytest.mark.parametrize(
+    ("stack", "descent", "detect", "disarm"),
+    [(Stack.PX4, 0.7, 7.0, 2.0), (Stack.ARDUPILOT, 0.5, 2.0, 0.5)],
+)
+def test_realistic_landing_rate_detector_and_disarm(
+    stack: Stack, descent: float, detect: float, disarm: float
+) -> None:
+    model, clock = flying(stack, altitude=2.0, descent_rate_mps=None, land_detect_s=None)
+    model.config.fast_boot = False  # booted already; from here on the firmware's landing
+    model.config.auto_disarm_after_land_s = None
+    assert model.land() == MavResult.ACCEPTED
+    started = clock.now
+    run(model, clock, 1.0)
+    assert model.climb_mps == pytest.approx(-descent)
+    while not model.touchdowns:
+        run(model, clock, 0.02)
+    assert model.touchdowns[0].at - started == pytest.approx(2.0 / descent, abs=0.05)
+    assert model.landed_state is LandedState.LANDING  # the detector is not sure yet
+    run(model, clock, detect - 0.1)
+    assert model.landed_state is LandedState.LANDING
+    run(model, clock, 0.2)
+    assert model.on_ground and model.armed
+    run(model, clock, disarm + 0.1)
+    assert not model.armed
