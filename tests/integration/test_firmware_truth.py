@@ -44,6 +44,7 @@ from roost_agent.health import HealthTracker
 from roost_agent.links import AutopilotLink
 from roost_agent.safety import Phase, SafetyRunner
 from roost_agent.state import STATE_FILE_NAME, StateFile
+from roost_agent.streams import WANTED, Method, Request, send_requests
 from roost_api.autopilot import (
     FailoverPolicy,
     FinalAction,
@@ -203,6 +204,10 @@ def _link_to(sim: SimulatedAutopilot) -> AutopilotLink:
     link = AutopilotLink(spec, HealthTracker(sim.name, Stack(sim.stack), Thresholds()))
     link.start()
     wait_for(link.heartbeat, 5, "a heartbeat on the link")
+    # what the agent's stream keeper would ask for (ArduPilot sends nothing unasked)
+    wanted = WANTED[Stack(sim.stack)]
+    send_requests(link, [Request(name, hz, Method.INTERVAL) for name, hz in wanted.items()])
+    wait_for(link.motion, 5, "altitude telemetry on the link")
     return link
 
 
