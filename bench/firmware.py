@@ -104,7 +104,10 @@ def _watch(sim: SimulatedAutopilot, stop: threading.Event, out: list[tuple[float
 def _lost_in_hold(samples: list[tuple[float, str]], hold: str) -> float:
     """Most altitude lost from entering ``hold`` to the lowest point while in it."""
     inside = [alt for alt, mode in samples if mode == hold]
-    return inside[0] - min(inside) if inside else 0.0
+    if not inside:
+        modes = sorted({mode for _, mode in samples})
+        raise RuntimeError(f"the hold mode {hold} was never entered (modes seen: {modes})")
+    return inside[0] - min(inside)
 
 
 def hold_losses(stack: str) -> list[float]:
