@@ -150,13 +150,21 @@ def standby_usable(agent: Agent) -> bool:
 
 
 def test_ardupilot_streaming_only_on_request_fails_over_unaided(tmp_path: Path) -> None:
-    with ardupilot_flight(tmp_path) as (flight, log):
+    # ArduPilot also routes a ground station's heartbeats (sysid 255, disarmed) onto the
+    # link; taken as the autopilot's, they would make the standby look disarmed.
+    with ardupilot_flight(tmp_path, config=SimConfig.fast(gcs_heartbeat=True)) as (flight, log):
         agent = flight.agent
         wait_for(lambda: log.reasons[-1:] == ["StandbyAvailable"], 15, "a usable standby")
         # heard but not yet streaming: never a healthy standby (then the streams came)
         assert "StandbyStateUnknown" in log.reasons, log.reasons
         fc2 = agent.assessments()["fc2"]
         assert fc2.armed is True and fc2.in_air is True and fc2.level == HealthLevel.OK
+        # over 2.5 s (two routed ground-station heartbeats) the standby never looks
+        # disarmed or unhealthy: "nothing happens" is the point here
+        for _ in range(50):
+            seen = agent.assessments()["fc2"]
+            assert seen.armed is True and seen.level == HealthLevel.OK, seen.reasons
+            time.sleep(0.05)
         asked = {
             int(c.params[0])
             for c in flight.sim("fc2").commands
