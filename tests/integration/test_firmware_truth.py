@@ -181,6 +181,39 @@ def test_ardupilot_streaming_only_on_request_fails_over_unaided(tmp_path: Path) 
         flight.sim("fc2").wait_until(lambda s: s.landed_state == "OnGround", timeout=30)
 
 
+def test_streams_are_requested_again_after_the_autopilot_reboots() -> None:
+    """ArduPilot forgets requested rates when it reboots; the agent asks again."""
+    sims = start_vehicle_sims(["ardupilot", "ardupilot"], config=SimConfig.fast())
+    agent = Agent(make_spec(sims), SimulatedBridge(range(2)))
+    try:
+        agent.start()
+        tracker = agent.links["fc2"].tracker
+
+        def attitudes() -> int:
+            return tracker.stream_facts().counts.get("ATTITUDE", 0)
+
+        wait_for(lambda: attitudes() > 100, 15, "ATTITUDE requested and streaming")
+        rebooted_at = time.monotonic()
+        sims[1].inject(FaultKind.REBOOT, 0.0)
+        wait_for(
+            lambda: [
+                c
+                for c in sims[1].commands
+                if c.command == MAV_CMD_SET_MESSAGE_INTERVAL
+                and c.at > rebooted_at
+                and c.source[1] == AGENT_COMPONENT_ID
+                and int(c.params[0]) == message_id("ATTITUDE")
+            ],
+            20,
+            "ATTITUDE requested again after the reboot",
+        )
+        after = attitudes()
+        wait_for(lambda: attitudes() > after + 100, 10, "ATTITUDE streaming again")
+    finally:
+        agent.stop()
+        stop_sims(sims)
+
+
 def test_ardupilot_hold_is_brake_and_keeps_altitude_where_loiter_would_sink(
     tmp_path: Path,
 ) -> None:
