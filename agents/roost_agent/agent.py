@@ -904,7 +904,8 @@ class Agent:
             log.info("%s: requested streams arrive (%s)", link.name, _rates(keeper))
         if requests:
             why = keeper.epoch.value if keeper.epoch is not None else Why.CONNECT.value
-            log.info(
+            # the first request of an epoch is news; the backed-off repeats are not
+            (log.info if keeper.attempts == 1 else log.debug)(
                 "%s: requesting %s (%s, attempt %d)",
                 link.name,
                 ", ".join(f"{r.message}@{r.hz:g}Hz/{r.method.value}" for r in requests),
