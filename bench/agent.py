@@ -49,12 +49,14 @@ from roost_api.autopilot import (
 )
 from roost_sim import (
     FaultKind,
+    SimConfig,
     SimulatedAutopilot,
     autopilot_specs,
     message_id,
     start_vehicle_sims,
     stop_sims,
 )
+from roost_sim.streams import PX4_STREAMS
 from tests.support.flight import take_off
 
 FAILOVERS = int(os.environ.get("ROOST_BENCH_FAILOVERS", "100"))
@@ -68,21 +70,14 @@ COMMAND = "make bench (python -m bench agent)"
 # 20 ms. The false-failover soak runs with the same thresholds, which is what makes them
 # defensible.
 FAST = Thresholds(message_warn_ms=100, message_error_ms=200, confirm_ms=20, clear_ms=300)
+# Every PX4 stream off but HEARTBEAT and 1 Hz status: liveness from heartbeats alone.
 HEARTBEAT_ONLY_RATES = {
-    message_id(name): rate
-    for name, rate in {
-        "ATTITUDE": 0.0,
-        "GLOBAL_POSITION_INT": 0.0,
-        "SYSTEM_TIME": 0.0,
-        "GPS_RAW_INT": 0.0,
-        "HOME_POSITION": 0.0,
-        "SYS_STATUS": 1.0,
-        "EXTENDED_SYS_STATE": 1.0,
-    }.items()
+    **{msg_id: 0.0 for msg_id in PX4_STREAMS if msg_id != message_id("HEARTBEAT")},
+    message_id("SYS_STATUS"): 1.0,
+    message_id("EXTENDED_SYS_STATE"): 1.0,
 }
-# PX4's onboard mode streams 400-500 messages/s. The sim has fewer message types, so the
-# rate is reached with faster ATTITUDE and GLOBAL_POSITION_INT (about 470 msg/s per link).
-PX4_ONBOARD_RATES = {message_id("ATTITUDE"): 300.0, message_id("GLOBAL_POSITION_INT"): 150.0}
+# The simulated PX4 streams its onboard link's real set and rates (~400 messages/s).
+PX4_ONBOARD_RATES: dict[int, float] = {}
 
 
 def percentile(values: list[float], q: float) -> float:
@@ -216,7 +211,7 @@ def vehicle(
 ) -> Iterator[tuple[list[SimulatedAutopilot], AgentProcess]]:
     """Two flying PX4 sims and an agent watching them, standbys ready (``mode`` Manual:
     the agent judges but never switches on its own)."""
-    sims = start_vehicle_sims(["px4", "px4"], rates=rates)
+    sims = start_vehicle_sims(["px4", "px4"], rates=rates, config=SimConfig.fast())
     agent: AgentProcess | None = None
     with tempfile.TemporaryDirectory(prefix="roost-bench-agent-") as tmp:
         try:

@@ -45,7 +45,7 @@ from roost_localcluster.controlplane import ControlPlane
 from roost_operator.autopilots.plan import mavros_follows
 from roost_operator.vehicles.config import config_map_name
 from roost_operator.vehicles.desired import workload_name
-from roost_sim import SimulatedAutopilot, autopilot_specs, start_vehicle_sims, stop_sims
+from roost_sim import SimConfig, SimulatedAutopilot, autopilot_specs, start_vehicle_sims, stop_sims
 from tests.support.agent import AgentProcess
 from tests.support.operator import OperatorProcess
 from tests.support.waiting import wait_until
@@ -106,7 +106,7 @@ class StatusWatch:
 
 def _fly(sims: list[SimulatedAutopilot]) -> None:
     for sim in sims:
-        sim.wait_until(lambda s: s.system_status != "BOOT")
+        sim.wait_ready()
         sim.fly(altitude_m=5)
     for sim in sims:
         sim.wait_until(lambda s: s.landed_state == "InAir", timeout=30)
@@ -194,7 +194,7 @@ def run() -> list[Figure]:
             namespace=NAMESPACE,
             environment={"ROOST_FAILOVER_LATCH_AFTER": str(SWITCHES * 10)},
         )
-        sims = start_vehicle_sims(["px4", "px4"])
+        sims = start_vehicle_sims(["px4", "px4"], config=SimConfig.fast())
         agent = AgentProcess(cluster, NODE, Path(tmp) / "agent", report_interval_s=10.0)
         operator.start()
         try:

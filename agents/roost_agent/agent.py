@@ -11,7 +11,9 @@ Threads and why:
 - a worker runs the safety routine, landing orders and the emergency stop one at a time
   (a newer job supersedes an older one, nothing supersedes an emergency stop), so the
   decision loop never waits for an autopilot to answer;
-- a heartbeat thread sends the agent's 1 Hz heartbeat on every link;
+- a heartbeat thread sends the agent's 1 Hz heartbeat on every link and, on the same
+  beat (faster: every :data:`STREAM_CHECK_S`), lets each link's stream keeper
+  (:mod:`roost_agent.streams`) request the telemetry the health model needs;
 - a notifier delivers :class:`AgentEvent` objects to subscribers (the standalone JSON
   printer now, the Kubernetes publisher later) so a slow subscriber cannot stall a switch.
 
@@ -19,7 +21,8 @@ Every switch records its reason and the measured latency from detection (the sta
 the decision tick that saw the confirmed failure) to the bridge write returning, plus
 onset-to-switch when the health findings know the onset. Durable state goes to disk
 (:mod:`roost_agent.state`) right after the switch, so a restarted agent keeps the
-autopilot it chose and its latch.
+autopilot it chose and its latch; so does every step of the safety routine, which a
+restarted agent resumes where it was (:meth:`roost_agent.safety.SafetyRunner.resume`).
 
 For the publisher (:mod:`roost_agent.publisher`) the public surface is:
 :meth:`Agent.status` (a complete ``RedundantAutopilotStatus``, conditions from
@@ -64,9 +67,23 @@ from roost_agent.bridge import Bridge, BridgeError
 from roost_agent.health import Assessment, HealthTracker
 from roost_agent.links import AutopilotLink
 from roost_agent.report import report
-from roost_agent.safety import DEFAULT_TIMING, Phase, SafetyRunner, Timing
+from roost_agent.safety import (
+    DEFAULT_TIMING,
+    TERMINAL_PHASES,
+    WARNING_PHASES,
+    Phase,
+    Progress,
+    SafetyRunner,
+    Timing,
+)
 from roost_agent.signing import LinkSigning
-from roost_agent.state import MAX_REMEMBERED_COMMANDS, PersistedState, StateFile
+from roost_agent.state import (
+    MAX_REMEMBERED_COMMANDS,
+    PersistedState,
+    SafetyProgress,
+    StateFile,
+)
+from roost_agent.streams import StreamKeeper, Why, send_requests
 from roost_api.autopilot import (
     AutopilotCommand,
     AutopilotHealth,
@@ -74,16 +91,18 @@ from roost_api.autopilot import (
     CommandResult,
     CommandResultKind,
     FailoverRecord,
+    FinalAction,
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
 )
 from roost_api.meta import HealthLevel
-from roost_mavlink import pymavlink_device
+from roost_mavlink import MAV_CMD_SET_MESSAGE_INTERVAL, pymavlink_device
 
 log = logging.getLogger(__name__)
 
 DEFAULT_TICK_S = 0.01
 HEARTBEAT_PERIOD_S = 1.0
+STREAM_CHECK_S = 0.1
 FAILOVER_HISTORY = 100
 
 
@@ -266,6 +285,10 @@ def restore_state(spec: RedundantAutopilotSpec, saved: PersistedState | None) ->
     )
 
 
+def _rates(keeper: StreamKeeper) -> str:
+    return ", ".join(f"{name} {hz:.0f} Hz" for name, hz in keeper.rates.items())
+
+
 def _view(a: Assessment) -> AutopilotView:
     return AutopilotView(
         name=a.name,
@@ -333,6 +356,8 @@ class Agent:
         self._pending: dict[str, Future[CommandResult]] = {}
         self._inbox: deque[AutopilotCommand] = deque()
         self._last_failover: FailoverRecord | None = saved.last_failover if saved else None
+        self._safety: SafetyProgress | None = saved.safety if saved else None
+        self._keepers: dict[str, tuple[AutopilotLink, StreamKeeper]] = {}
         self._last_command: CommandResult | None = (
             next(reversed(self._processed.values())) if self._processed else None
         )
@@ -366,6 +391,7 @@ class Agent:
         for link in cfg.links.values():
             link.start()
         self._worker.start()
+        self._resume_safety(cfg)
         for target, name in (
             (self._decide_forever, "decision-loop"),
             (self._heartbeat_forever, "agent-heartbeat"),
@@ -610,12 +636,12 @@ class Agent:
             trigger=action.trigger.value,
             safety_routine=None if action.safety == SafetyPlan.NONE else action.safety.value,
         )
-        if action.safety == SafetyPlan.RUN:
-            self._start_routine(cfg, action.to_autopilot)
         event = FailoverEvent(record, action.detected_at, switched_at, action.onset)
         with self._lock:
             self._last_failover = record
             self._failovers.append(event)
+        if action.safety == SafetyPlan.RUN:
+            self._start_routine(cfg, action.to_autopilot)
         onset = event.onset_to_switch_ms
         timing = f"switched {event.latency_ms:.3f} ms after detection" + (
             f", {onset:.0f} ms after onset" if onset is not None else ""
@@ -671,23 +697,79 @@ class Agent:
                 EventKind.SAFETY,
                 f"SafetyRoutine{phase.value}",
                 message,
-                warning=phase in (Phase.FAILED, Phase.HOLD_REFUSED),
+                warning=phase in WARNING_PHASES,
                 autopilot=autopilot,
             )
 
         return report
 
     def _runner(self, link: AutopilotLink, cancel: threading.Event) -> SafetyRunner:
-        return SafetyRunner(link, cancel, self._reporter(link.name), self._timing, self._clock)
+        return SafetyRunner(
+            link,
+            cancel,
+            self._reporter(link.name),
+            self._timing,
+            self._clock,
+            progress=self._record_progress,
+        )
+
+    def _record_progress(self, progress: Progress) -> None:
+        """Keep the routine's progress in the state file (written before it goes on)."""
+        with self._lock:
+            self._safety = SafetyProgress(
+                autopilot=progress.autopilot,
+                phase=progress.phase.value,
+                final_action=progress.final_action,
+                hold_seconds=progress.hold_seconds,
+                hold_started=progress.hold_started,
+                land_started=progress.land_started,
+                holds=progress.holds,
+            )
 
     def _start_routine(self, cfg: _Running, autopilot: str) -> None:
         link = cfg.links[autopilot]
         routine = cfg.spec.failover_policy.safety_routine
+        # Durable before the worker starts: an agent killed right after the switch still
+        # finds the routine to run in its state file.
+        self._record_progress(
+            Progress(autopilot, Phase.STARTED, routine.final_action, routine.hold_seconds)
+        )
+        self._persist()
 
         def run(cancel: threading.Event) -> None:
             self._runner(link, cancel).run(routine)
 
         self._worker.submit(_Job(f"safety routine on {autopilot}", run))
+
+    def _resume_safety(self, cfg: _Running) -> None:
+        """After a restart: continue a safety routine or landing the last run left open."""
+        saved = self._safety
+        if saved is None or Phase(saved.phase) in TERMINAL_PHASES:
+            return
+        link = cfg.links.get(saved.autopilot)
+        if link is None:
+            return
+        progress = Progress(
+            saved.autopilot,
+            Phase(saved.phase),
+            saved.final_action,
+            saved.hold_seconds,
+            saved.hold_started,
+            saved.land_started,
+            saved.holds,
+        )
+        self._emit(
+            EventKind.SAFETY,
+            "SafetyRoutineResumed",
+            f"{saved.autopilot}: resuming the safety routine from {saved.phase} after a restart",
+            warning=True,
+            autopilot=saved.autopilot,
+        )
+
+        def run(cancel: threading.Event) -> None:
+            self._runner(link, cancel).resume(progress)
+
+        self._worker.submit(_Job(f"resumed safety routine on {saved.autopilot}", run))
 
     def _start_landing(self, cfg: _Running, action: LandInPlace) -> None:
         self._emit(
@@ -698,6 +780,10 @@ class Agent:
             autopilot=action.autopilot,
         )
         link = cfg.links[action.autopilot]
+        self._record_progress(
+            Progress(action.autopilot, Phase.STARTED, FinalAction.LAND, 0.0, holds=False)
+        )
+        self._persist()
 
         def run(cancel: threading.Event) -> None:
             self._runner(link, cancel).land_now()
@@ -812,6 +898,7 @@ class Agent:
                 failover_count=state.failover_count,
                 last_failover=self._last_failover,
                 commands=list(self._processed.values()),
+                safety=self._safety,
                 saved_at=self._wall_clock(),
             )
         with self._persist_lock:
@@ -821,10 +908,49 @@ class Agent:
                 log.exception("cannot write the state file %s", self._state_file.path)
 
     def _heartbeat_forever(self) -> None:
+        next_beat = 0.0
         while not self._stop.is_set():
-            for link in self._cfg.links.values():
-                link.send_heartbeat()
-            self._stop.wait(HEARTBEAT_PERIOD_S)
+            links = self._cfg.links
+            if self._clock() >= next_beat:
+                next_beat = self._clock() + HEARTBEAT_PERIOD_S
+                for link in links.values():
+                    link.send_heartbeat()
+            for link in links.values():
+                try:
+                    self._keep_streams(link)
+                except Exception:  # a stream request must never stop the heartbeats
+                    log.exception("%s: stream keeping failed", link.name)
+            self._stop.wait(STREAM_CHECK_S)
+
+    def _keep_streams(self, link: AutopilotLink) -> None:
+        """Step this link's stream keeper and send what it asks for."""
+        known = self._keepers.get(link.name)
+        if known is None or known[0] is not link:  # a new link (spec change): a new keeper
+            known = self._keepers[link.name] = (link, StreamKeeper(link.stack))
+        keeper = known[1]
+        epoch, verified, checks = keeper.epoch, keeper.verified, keeper.checks
+        requests = keeper.step(
+            link.tracker.stream_facts(),
+            self._clock(),
+            link.acks.latest(MAV_CMD_SET_MESSAGE_INTERVAL),
+        )
+        if keeper.epoch is not epoch:
+            link.tracker.expect_streams(None)  # new stream configuration: judge what arrives
+        elif keeper.checks != checks:
+            link.tracker.expect_streams(keeper.arriving_rate)
+        if keeper.verified and not verified:
+            log.info("%s: requested streams arrive (%s)", link.name, _rates(keeper))
+        if requests:
+            why = keeper.epoch.value if keeper.epoch is not None else Why.CONNECT.value
+            # the first request of an epoch is news; the backed-off repeats are not
+            (log.info if keeper.attempts == 1 else log.debug)(
+                "%s: requesting %s (%s, attempt %d)",
+                link.name,
+                ", ".join(f"{r.message}@{r.hz:g}Hz/{r.method.value}" for r in requests),
+                why,
+                keeper.attempts,
+            )
+            send_requests(link, requests)
 
     def _emit(
         self,

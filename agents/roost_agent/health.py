@@ -37,6 +37,19 @@ that passed its CRC cannot trigger a switch. The next message settles the claim:
 At 50 Hz telemetry that costs one message interval (20 ms) of the real-reboot and
 EMERGENCY detection; with heartbeats only, one message of whatever streams.
 
+No health without evidence: an autopilot not heard yet is STALE, one heard but without a
+heartbeat yet is STARTING, and so is one on the ground and disarmed that is still
+starting up — MAV_STATE UNINIT/BOOT (PX4 reports UNINIT for ~4 s, ArduPilot BOOT), an
+estimator that has not yet produced an attitude since boot (PX4 ESTIMATOR_STATUS flags
+0x480, ArduCopter EKF_STATUS_REPORT 0x400), or no absolute position yet (the GPS wait,
+~35 s on ArduCopter). Start-up is neither lost nor failed: STARTING never triggers a
+failover, and it is never a healthy standby either. Once an estimator has worked, losing
+it again is the error it always was.
+
+The tracker also keeps what the stream keeper (:mod:`roost_agent.streams`) and the
+safety routine need: messages counted per type (to verify requested rates arrive) and
+the last altitude and vertical speed (GLOBAL_POSITION_INT) to confirm that a hold holds.
+
 Only findings marked ``triggers_failover`` can make the arbiter switch; warnings never
 do. The arbiter adds the hysteresis (confirm/clear times); here a finding is reported as
 soon as its own definition holds.
@@ -227,6 +240,7 @@ class _Observed:
     window_start: float = 0.0
     window_count: int = 0
     stream_rate: float | None = None  # messages/s over the last completed window
+    expected_rate: float | None = None  # messages/s of the streams requested and verified
     heartbeat_at: float | None = None
     heartbeat_autopilot: int | None = None
     base_mode: int | None = None
@@ -249,10 +263,36 @@ class _Observed:
     estimator_flags: int | None = None
     estimator_kind: str = ""
     estimator_bad_since: float | None = None
+    estimator_ever_ok: bool = False  # attitude estimate seen working since (re)boot
+    position_ever_ok: bool = False  # absolute horizontal position seen since (re)boot
     disarmed_in_air_at: float | None = None
     last_seq: int | None = None
     claim: _Claim | None = None
     refuted: int = 0
+    counts: dict[str, int] = field(default_factory=dict)  # messages per type
+    reboots: int = 0
+    altitude_m: float | None = None  # GLOBAL_POSITION_INT relative_alt
+    climb_mps: float | None = None  # up positive (GLOBAL_POSITION_INT vz is down positive)
+    motion_at: float | None = None
+
+
+@dataclass(frozen=True)
+class Motion:
+    """The last vertical state an autopilot reported (GLOBAL_POSITION_INT)."""
+
+    altitude_m: float  # above home
+    climb_mps: float  # up positive
+    at: float  # when it was received (monotonic)
+
+
+@dataclass(frozen=True)
+class StreamFacts:
+    """What the stream keeper judges requested rates and reconnects by."""
+
+    counts: dict[str, int]
+    heartbeat_at: float | None
+    last_at: float | None
+    reboots: int
 
 
 class HealthTracker:
@@ -288,6 +328,7 @@ class HealthTracker:
             if o.first_at is None:
                 o.first_at = o.window_start = now
             o.last_at = now
+            o.counts[kind] = o.counts.get(kind, 0) + 1
             o.window_count += 1
             if now - o.window_start >= RATE_WINDOW_S:
                 o.stream_rate = o.window_count / (now - o.window_start)
@@ -309,6 +350,10 @@ class HealthTracker:
                 self._observe_attitude(float(msg.roll), float(msg.pitch), now)
             elif kind in ("ESTIMATOR_STATUS", "EKF_STATUS_REPORT"):
                 self._observe_estimator(kind, int(msg.flags), now)
+            elif kind == "GLOBAL_POSITION_INT":
+                o.altitude_m = int(msg.relative_alt) / 1000.0
+                o.climb_mps = -int(msg.vz) / 100.0
+                o.motion_at = now
             return changed
 
     def _observe_boot_time(self, boot_ms: int, now: float, seq: int | None) -> bool:
@@ -365,7 +410,9 @@ class HealthTracker:
         o = self._o
         o.reboot_at = now
         o.reboot_reason = reason
+        o.reboots += 1
         o.was_up = False
+        o.estimator_ever_ok = o.position_ever_ok = False
         o.sensors_enabled = o.sensors_health = o.sensors = None  # re-judged from the next one
         o.unhealthy_names = ()
         o.critical_since.clear()
@@ -382,6 +429,8 @@ class HealthTracker:
         o.base_mode = int(msg.base_mode)
         o.custom_mode = int(msg.custom_mode)
         status = int(msg.system_status)
+        # Only BOOT: PX4 v1.16 also reports UNINIT after a battery-failsafe landing and
+        # disarm, without rebooting (its reboots show as time_boot_ms going back).
         rebooting = status == MavState.BOOT and o.was_up
         if o.claim is None and (rebooting or _newly_fatal(status, o.system_status)):
             reason = "rebooted: MAV_STATE BOOT after it was up" if rebooting else ""
@@ -438,6 +487,9 @@ class HealthTracker:
                 o.estimator_bad_since = now
         else:
             o.estimator_bad_since = None
+            o.estimator_ever_ok = True
+        if flags & ESTIMATOR_POS_HORIZ_ABS:
+            o.position_ever_ok = True
 
     # -- judging ---------------------------------------------------------------------
 
@@ -470,6 +522,11 @@ class HealthTracker:
         with self._lock:
             return self._o.refuted
 
+    def expect_streams(self, rate_hz: float | None) -> None:
+        """Judge liveness on these verified requested streams (None: on what arrives)."""
+        with self._lock:
+            self._o.expected_rate = rate_hz
+
     def heartbeat(self) -> tuple[int, int, float] | None:
         """(custom_mode, base_mode, received_at) of the last heartbeat, for confirmations."""
         with self._lock:
@@ -482,6 +539,25 @@ class HealthTracker:
         """Last EXTENDED_SYS_STATE landed_state."""
         with self._lock:
             return self._o.landed_state
+
+    def system_status(self) -> int | None:
+        """Last heartbeat MAV_STATE."""
+        with self._lock:
+            return self._o.system_status
+
+    def motion(self) -> Motion | None:
+        """Last altitude and vertical speed, None before the first GLOBAL_POSITION_INT."""
+        with self._lock:
+            o = self._o
+            if o.altitude_m is None or o.climb_mps is None or o.motion_at is None:
+                return None
+            return Motion(o.altitude_m, o.climb_mps, o.motion_at)
+
+    def stream_facts(self) -> StreamFacts:
+        """Per-type counts, last heartbeat, last message and reboots (for the keeper)."""
+        with self._lock:
+            o = self._o
+            return StreamFacts(dict(o.counts), o.heartbeat_at, o.last_at, o.reboots)
 
 
 def _seq(msg: Any) -> int | None:
@@ -512,6 +588,7 @@ def _findings(o: _Observed, stack: Stack, th: Thresholds, now: float) -> list[Fi
     found += _estimator(o, th, now)
     found += _flight(o, th, now)
     found += _mav_state(o, found)
+    found += _starting(o)
     if o.heartbeat_autopilot is not None:
         reported = stack_from_heartbeat(o.heartbeat_autopilot)
         if reported is not None and reported != stack:
@@ -590,10 +667,8 @@ def _liveness(o: _Observed, th: Thresholds, now: float) -> list[Finding]:
 
 
 def _fast_stream(o: _Observed, th: Thresholds) -> bool:
-    return (
-        o.stream_rate is not None
-        and o.stream_rate * th.message_warn_ms / 1000 >= FAST_STREAM_FACTOR
-    )
+    rate = o.expected_rate if o.expected_rate is not None else o.stream_rate
+    return rate is not None and rate * th.message_warn_ms / 1000 >= FAST_STREAM_FACTOR
 
 
 def _reboot(o: _Observed, now: float) -> list[Finding]:
@@ -633,11 +708,36 @@ def _sensors(o: _Observed, th: Thresholds, now: float) -> list[Finding]:
     return found
 
 
+def _may_be_starting(o: _Observed) -> bool:
+    """Disarmed and not known to be flying: start-up findings are STARTING, not errors."""
+    armed = o.base_mode is not None and bool(o.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
+    airborne = o.landed_state is not None and is_airborne(o.landed_state)
+    return not armed and not airborne
+
+
+def _starting(o: _Observed) -> list[Finding]:
+    """Start-up that has not finished: no heartbeat yet, booting (not in the air)."""
+    if o.heartbeat_at is None:
+        return [Finding(HealthLevel.STARTING, "starting", "no heartbeat yet")]
+    if o.system_status in (MavState.UNINIT, MavState.BOOT) and _may_be_starting(o):
+        name = mav_state_name(o.system_status)
+        return [Finding(HealthLevel.STARTING, "starting", f"booting (MAV_STATE {name})")]
+    return []
+
+
 def _estimator(o: _Observed, th: Thresholds, now: float) -> list[Finding]:
     if o.estimator_flags is None:
         return []
     found: list[Finding] = []
-    if o.estimator_bad_since is not None:
+    if not o.estimator_ever_ok and o.estimator_bad_since is not None and _may_be_starting(o):
+        found.append(
+            Finding(
+                HealthLevel.STARTING,
+                "estimator-starting",
+                f"estimator starting ({o.estimator_kind} flags {o.estimator_flags:#x})",
+            )
+        )
+    elif o.estimator_bad_since is not None:
         lasted_ms = (now - o.estimator_bad_since) * 1000
         bad = Finding(
             HealthLevel.ERROR if lasted_ms >= th.sensor_persist_ms else HealthLevel.WARN,
@@ -649,9 +749,18 @@ def _estimator(o: _Observed, th: Thresholds, now: float) -> list[Finding]:
         )
         found.append(bad)
     if not o.estimator_flags & ESTIMATOR_POS_HORIZ_ABS:
-        found.append(
-            Finding(HealthLevel.WARN, "position", "no absolute horizontal position estimate")
-        )
+        if not o.position_ever_ok and _may_be_starting(o):
+            found.append(
+                Finding(
+                    HealthLevel.STARTING,
+                    "position-starting",
+                    "waiting for an absolute position estimate (GPS)",
+                )
+            )
+        else:
+            found.append(
+                Finding(HealthLevel.WARN, "position", "no absolute horizontal position estimate")
+            )
     return found
 
 

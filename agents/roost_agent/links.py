@@ -66,7 +66,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from roost_agent.health import HealthTracker
+from roost_agent.health import HealthTracker, Motion
 from roost_agent.signing import LinkSigning
 from roost_api.autopilot import AutopilotSpec
 from roost_api.meta import Stack
@@ -428,6 +428,12 @@ class AckMailbox:
             self._acks[command] = (serial, result)
             self._cond.notify_all()
 
+    def latest(self, command: int) -> int | None:
+        """The last ack result for ``command``, None when none came yet."""
+        with self._cond:
+            entry = self._acks.get(command)
+            return None if entry is None else entry[1]
+
     def wait(self, command: int, after_serial: int, timeout_s: float) -> int | None:
         """The first ack result for ``command`` newer than ``after_serial``, or None."""
         deadline = time.monotonic() + timeout_s
@@ -736,6 +742,14 @@ class AutopilotLink:
             )
         )
 
+    def request_data_stream(self, stream_id: int, hz: int) -> bool:
+        """REQUEST_DATA_STREAM (start) for one MAV_DATA_STREAM group (ArduPilot)."""
+        return self._send(
+            lambda mav: mav.request_data_stream_send(
+                self.spec.sysid, self.spec.component_id, stream_id, hz, 1
+            )
+        )
+
     def command(
         self, command: int, params: Params, *, confirmation: int, timeout_s: float
     ) -> int | None:
@@ -760,3 +774,11 @@ class AutopilotLink:
     def landed_state(self) -> int | None:
         """The autopilot's last reported landed state."""
         return self.tracker.landed_state()
+
+    def system_status(self) -> int | None:
+        """The autopilot's last reported MAV_STATE."""
+        return self.tracker.system_status()
+
+    def motion(self) -> Motion | None:
+        """The autopilot's last altitude and vertical speed."""
+        return self.tracker.motion()

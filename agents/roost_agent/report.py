@@ -10,12 +10,17 @@ changes, via :func:`roost_api.meta.set_condition`):
 
 ``ActiveHealthy``
     True when the active autopilot is OK (reason ``Healthy``) or only WARN (reason
-    ``Degraded``: it flies, with a warning); False on ERROR (``Unhealthy``) or when its
-    link is silent (``NoData``); Unknown while no autopilot is active.
+    ``Degraded``: it flies, with a warning); False on ERROR (``Unhealthy``), while it is
+    still starting up (``Starting``) or when its link is silent (``NoData``); Unknown
+    while no autopilot is active.
 ``Redundant``
     True when some standby is OK *and* the agent would switch to it: after a failover the
     agent is latched and never returns automatically to an autopilot it left, so such a
-    standby does not count, however healthy it looks (reason ``Latched``).
+    standby does not count, however healthy it looks (reason ``Latched``). A standby
+    whose armed or landed state is unknown (no heartbeat, no EXTENDED_SYS_STATE — an
+    ArduPilot nobody requested streams from) can never be switched to, because the
+    arbiter takes over only from an autopilot known to be armed and in the air; it is
+    not a healthy standby however quiet its findings (reason ``StandbyStateUnknown``).
 ``FailedOver``
     True when the active autopilot is not the primary; the reason says how it got there
     (``AutomaticFailover``, ``SwitchedByCommand``, ``NotOnPrimary``).
@@ -81,6 +86,8 @@ def _active_healthy(
         return "True", "Degraded", f"{_describe(health)} active"
     if level is HealthLevel.STALE:
         return "False", "NoData", f"{_describe(health)} active"
+    if level is HealthLevel.STARTING:
+        return "False", "Starting", f"{_describe(health)} active"
     return "False", "Unhealthy", f"{_describe(health)} active"
 
 
@@ -91,7 +98,8 @@ def _redundant(
         return "Unknown", "NoActiveAutopilot", "no autopilot is connected to the motors yet"
     if not standbys:
         return "False", "NoStandby", "no standby autopilot has been assessed"
-    healthy = [h for h in standbys if h.level == HealthLevel.OK]
+    quiet = [h for h in standbys if h.level == HealthLevel.OK]
+    healthy = [h for h in quiet if _state_known(h)]
     usable = [h for h in healthy if h.name not in left_behind]
     if usable:
         names = ", ".join(h.name for h in usable)
@@ -104,7 +112,20 @@ def _redundant(
             f"standby {names} failed earlier this flight; no automatic switch back to it "
             "until a ClearLatch or Switch command",
         )
+    if quiet:
+        names = ", ".join(h.name for h in quiet)
+        return (
+            "False",
+            "StandbyStateUnknown",
+            f"standby {names}: armed or landed state unknown (no heartbeat or "
+            "EXTENDED_SYS_STATE), so it cannot be a failover target",
+        )
     return "False", "NoHealthyStandby", "; ".join(f"standby {_describe(h)}" for h in standbys)
+
+
+def _state_known(health: AutopilotHealth) -> bool:
+    """Armed and landed state both reported (a failover needs armed and in the air)."""
+    return health.armed is not None and health.landed_state not in (None, "Undefined")
 
 
 def _failed_over(

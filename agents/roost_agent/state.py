@@ -4,7 +4,8 @@ A drone cannot wait for the API server, and an agent restarted in flight (crash,
 kill, update) must not switch back to an autopilot it failed over from. So the agent
 writes its last applied spec and the decision state that must outlive it (the active
 autopilot, the latch, which autopilots were failed from, the last failover and the ids
-of commands already executed) to one JSON file, atomically: a temporary file in the same
+of commands already executed, and how far the safety routine got) to one JSON file,
+atomically: a temporary file in the same
 directory, fsync, rename over the old one, fsync the directory. A reader sees either the
 old or the new file, never half of one. A corrupt file is moved aside, not trusted.
 """
@@ -19,13 +20,34 @@ from pathlib import Path
 
 from pydantic import Field, ValidationError
 
-from roost_api.autopilot import CommandResult, FailoverRecord, RedundantAutopilotSpec
+from roost_api.autopilot import (
+    CommandResult,
+    FailoverRecord,
+    FinalAction,
+    RedundantAutopilotSpec,
+)
 from roost_api.meta import ApiModel
 
 log = logging.getLogger(__name__)
 
 STATE_FILE_NAME = "agent-state.json"
 MAX_REMEMBERED_COMMANDS = 64
+
+
+class SafetyProgress(ApiModel):
+    """How far the safety routine (or a landing order) got; resumed after a restart."""
+
+    autopilot: str = Field(description="Autopilot the routine runs on.")
+    phase: str = Field(description="Last phase reached (safety.Phase value).")
+    final_action: FinalAction = Field(description="The final action it is heading for.")
+    hold_seconds: float = Field(default=0.0, description="Hold length asked for.")
+    hold_started: float | None = Field(
+        default=None, description="Unix time the hold mode was confirmed."
+    )
+    land_started: float | None = Field(
+        default=None, description="Unix time the land mode was confirmed."
+    )
+    holds: bool = Field(default=True, description="False for a landing order (no hold).")
 
 
 class PersistedState(ApiModel):
@@ -42,6 +64,9 @@ class PersistedState(ApiModel):
     last_failover: FailoverRecord | None = Field(default=None, description="The last switch.")
     commands: list[CommandResult] = Field(
         default_factory=list, description="Recently executed commands, oldest first."
+    )
+    safety: SafetyProgress | None = Field(
+        default=None, description="The safety routine in progress, or its last phase."
     )
     saved_at: datetime = Field(description="When this was written.")
 

@@ -7,7 +7,12 @@ autopilot never reports. Everything here is pure and keyed by :class:`roost_api.
 
 PX4 packs ``custom_mode = (sub_mode << 24) | (main_mode << 16)`` (``px4_custom_mode.h``);
 mode names follow PX4/QGroundControl spelling (``AUTO.LOITER`` is what PX4 calls "Hold").
-ArduCopter's ``custom_mode`` is the plain mode number (``mode.h``).
+The PX4 table is complete for v1.16: main modes 1-10 (9 SIMPLE is reserved, 10 is flight
+termination), the AUTO sub modes up to the external (ROS 2) modes and the POSCTL sub
+modes. ArduCopter's ``custom_mode`` is the plain mode number (``mode.h``), complete for
+ArduCopter 4.x (numbers 8, 10 and 12 are retired). A value outside the tables is named by
+its numbers (``UNKNOWN(main=11,sub=0)``, ``UNKNOWN(42)``) so an operator can still look
+it up, and it is never mistaken for a known mode.
 
 ``MAV_CMD_DO_SET_MODE`` (176) carries param1 = ``MAV_MODE_FLAG_CUSTOM_MODE_ENABLED`` (1);
 PX4 reads param2 = main mode and param3 = sub mode; ArduPilot reads param2 = mode number.
@@ -46,7 +51,9 @@ class Px4MainMode:
     ACRO = 5
     OFFBOARD = 6
     STABILIZED = 7
-    RATTITUDE = 8
+    RATTITUDE = 8  # RATTITUDE_LEGACY: removed from the firmware, kept so old logs decode
+    SIMPLE = 9  # reserved by PX4, never flown
+    TERMINATION = 10  # flight termination: motors off, parachute if fitted
 
 
 class Px4AutoSubMode:
@@ -60,6 +67,19 @@ class Px4AutoSubMode:
     LAND = 6
     FOLLOW_TARGET = 8
     PRECLAND = 9
+    VTOL_TAKEOFF = 10
+    EXTERNAL1 = 11  # EXTERNAL1..EXTERNAL8 (11-18): modes registered by ROS 2 components
+
+
+class Px4PosctlSubMode:
+    """PX4 ``PX4_CUSTOM_SUB_MODE_POSCTL_*`` numbers (sub modes of main mode POSCTL)."""
+
+    POSCTL = 0
+    ORBIT = 1
+    SLOW = 2
+
+
+PX4_EXTERNAL_MODES = 8
 
 
 # PX4 name -> custom_mode. Non-AUTO main modes have sub mode 0 on the wire.
@@ -71,6 +91,10 @@ PX4_MODES: dict[str, int] = {
     "OFFBOARD": px4_custom_mode(Px4MainMode.OFFBOARD),
     "STABILIZED": px4_custom_mode(Px4MainMode.STABILIZED),
     "RATTITUDE": px4_custom_mode(Px4MainMode.RATTITUDE),
+    "SIMPLE": px4_custom_mode(Px4MainMode.SIMPLE),
+    "TERMINATION": px4_custom_mode(Px4MainMode.TERMINATION),
+    "POSCTL.ORBIT": px4_custom_mode(Px4MainMode.POSCTL, Px4PosctlSubMode.ORBIT),
+    "POSCTL.SLOW": px4_custom_mode(Px4MainMode.POSCTL, Px4PosctlSubMode.SLOW),
     "AUTO.READY": px4_custom_mode(Px4MainMode.AUTO, Px4AutoSubMode.READY),
     "AUTO.TAKEOFF": px4_custom_mode(Px4MainMode.AUTO, Px4AutoSubMode.TAKEOFF),
     "AUTO.LOITER": px4_custom_mode(Px4MainMode.AUTO, Px4AutoSubMode.LOITER),
@@ -79,6 +103,11 @@ PX4_MODES: dict[str, int] = {
     "AUTO.LAND": px4_custom_mode(Px4MainMode.AUTO, Px4AutoSubMode.LAND),
     "AUTO.FOLLOW_TARGET": px4_custom_mode(Px4MainMode.AUTO, Px4AutoSubMode.FOLLOW_TARGET),
     "AUTO.PRECLAND": px4_custom_mode(Px4MainMode.AUTO, Px4AutoSubMode.PRECLAND),
+    "AUTO.VTOL_TAKEOFF": px4_custom_mode(Px4MainMode.AUTO, Px4AutoSubMode.VTOL_TAKEOFF),
+    **{
+        f"AUTO.EXTERNAL{i + 1}": px4_custom_mode(Px4MainMode.AUTO, Px4AutoSubMode.EXTERNAL1 + i)
+        for i in range(PX4_EXTERNAL_MODES)
+    },
 }
 
 # ArduCopter mode name -> number (custom_mode).
@@ -118,10 +147,22 @@ _NAMES: dict[Stack, dict[int, str]] = {
 
 # Modes in which a pilot flies the vehicle through the sticks. After a failover the thesis
 # switched the bridge but left such a pilot in control (no hold/land). ArduCopter LOITER is
-# stick-steerable too, but it is also Roost's autonomous hold, so it is NOT listed: an
-# autopilot already holding must still get the rest of the safety routine.
+# stick-steerable too, but it is NOT listed: without a radio its throttle rests low and it
+# descends, so an autopilot found in LOITER must get the safety routine (whose hold is
+# BRAKE), not be left to a pilot who may not exist.
 _MANUAL_MODES: dict[Stack, frozenset[str]] = {
-    Stack.PX4: frozenset({"MANUAL", "ALTCTL", "POSCTL", "ACRO", "STABILIZED", "RATTITUDE"}),
+    Stack.PX4: frozenset(
+        {
+            "MANUAL",
+            "ALTCTL",
+            "POSCTL",
+            "POSCTL.SLOW",
+            "POSCTL.ORBIT",
+            "ACRO",
+            "STABILIZED",
+            "RATTITUDE",
+        }
+    ),
     Stack.ARDUPILOT: frozenset(
         {"STABILIZE", "ACRO", "ALT_HOLD", "DRIFT", "SPORT", "FLIP", "POSHOLD", "FLOWHOLD"}
     ),
@@ -137,7 +178,10 @@ class ModeIntent(StrEnum):
     TAKEOFF = "takeoff"
 
 
-# ArduCopter takes off in GUIDED (NAV_TAKEOFF); LOITER needs a position estimate, LAND not.
+# ArduCopter takes off in GUIDED (NAV_TAKEOFF). Its hold is BRAKE (stops and holds
+# position and altitude with no pilot input), never LOITER (follows the throttle stick,
+# which rests low without a radio: measured 2.45 m/s down into the ground). PX4's
+# AUTO.LOITER holds position and altitude on its own.
 _INTENT_MODES: dict[Stack, dict[ModeIntent, str]] = {
     Stack.PX4: {
         ModeIntent.HOLD: "AUTO.LOITER",
@@ -146,7 +190,7 @@ _INTENT_MODES: dict[Stack, dict[ModeIntent, str]] = {
         ModeIntent.TAKEOFF: "AUTO.TAKEOFF",
     },
     Stack.ARDUPILOT: {
-        ModeIntent.HOLD: "LOITER",
+        ModeIntent.HOLD: "BRAKE",
         ModeIntent.LAND: "LAND",
         ModeIntent.RETURN_TO_LAUNCH: "RTL",
         ModeIntent.TAKEOFF: "GUIDED",
@@ -171,24 +215,32 @@ def custom_mode(stack: Stack, name: str) -> int:
 
 
 def mode_name(stack: Stack, custom_mode_value: int) -> str:
-    """Name of a heartbeat ``custom_mode``; unknown values read as ``UNKNOWN(0x...)``.
+    """Name of a heartbeat ``custom_mode``; unknown values are named by their numbers.
 
-    PX4 non-AUTO modes may carry a non-zero sub mode (e.g. POSCTL.ORBIT); they are named
-    by their main mode so the agent still recognises a pilot-flown mode.
+    PX4: ``UNKNOWN(main=M,sub=S)``, or ``UNKNOWN(0x...)`` when bits outside the main/sub
+    bytes are set; ArduCopter: ``UNKNOWN(N)``.
     """
     stack = Stack(stack)
     names = _NAMES[stack]
     if custom_mode_value in names:
         return names[custom_mode_value]
     if stack is Stack.PX4:
-        main, _sub = px4_split_custom_mode(custom_mode_value)
-        if main != Px4MainMode.AUTO and px4_custom_mode(main) in names:
-            return names[px4_custom_mode(main)]
-    return f"UNKNOWN(0x{custom_mode_value:08x})"
+        if custom_mode_value & ~0xFFFF0000:
+            return f"UNKNOWN(0x{custom_mode_value:08x})"
+        main, sub = px4_split_custom_mode(custom_mode_value)
+        return f"UNKNOWN(main={main},sub={sub})"
+    return f"UNKNOWN({custom_mode_value})"
+
+
+def hold_modes(stack: Stack) -> tuple[str, ...]:
+    """Hold modes that need no pilot input, best first (ArduCopter: BRAKE, then GUIDED)."""
+    if Stack(stack) is Stack.ARDUPILOT:
+        return ("BRAKE", "GUIDED")
+    return (intent_mode(stack, ModeIntent.HOLD),)
 
 
 def intent_mode(stack: Stack, intent: ModeIntent) -> str:
-    """The mode name that carries out ``intent`` on ``stack`` (hold -> AUTO.LOITER/LOITER)."""
+    """The mode name that carries out ``intent`` on ``stack`` (hold -> AUTO.LOITER/BRAKE)."""
     return _INTENT_MODES[Stack(stack)][ModeIntent(intent)]
 
 
@@ -225,7 +277,8 @@ def custom_mode_from_set_mode(stack: Stack, param1: float, param2: float, param3
     stack = Stack(stack)
     if stack is Stack.PX4:
         main, sub = int(param2), int(param3)
-        value = px4_custom_mode(main, sub if main == Px4MainMode.AUTO else 0)
+        keeps_sub = main in (Px4MainMode.AUTO, Px4MainMode.POSCTL)
+        value = px4_custom_mode(main, sub if keeps_sub else 0)
     else:
         value = int(param2)
     if value not in _NAMES[stack]:

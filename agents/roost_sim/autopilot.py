@@ -5,12 +5,15 @@ each stream when due; a receive thread parses MAVLink 2 and answers commands; th
 owns a delay line for jitter. State is guarded by one lock; frames are encoded and sent
 under a second so the MAVLink sequence number stays consistent.
 
-Besides the streams every autopilot sends (HEARTBEAT 1 Hz, SYS_STATUS and EXTENDED_SYS_STATE 5 Hz,
-ATTITUDE 50 Hz, GLOBAL_POSITION_INT 10 Hz, SYSTEM_TIME 1 Hz) it sends GPS_RAW_INT and
-HOME_POSITION at 1 Hz: a ground station (MAVSDK) judges "global position ok" and "home
-position ok" from them. Everything a client may ask for is answered honestly: commands
-the sim does not implement get MAV_RESULT_UNSUPPORTED, messages it cannot produce
-MAV_RESULT_DENIED, parameters it does not have no PARAM_VALUE (as real stacks do).
+What goes on the wire follows the real firmware (:mod:`roost_sim.streams`): the PX4
+flavour streams PX4's onboard-link set at its rates from boot, with HEARTBEAT at 1 Hz
+only; the ArduPilot flavour sends HEARTBEAT (at once on a mode change, too) and streams
+the rest only once asked (SET_MESSAGE_INTERVAL, REQUEST_DATA_STREAM), sends STATUSTEXT
+only after it has heard MAVLink on the link, and routes a ground station's heartbeat
+onto the link (``SimConfig.gcs_heartbeat``, :meth:`SimulatedAutopilot.route`).
+Everything a client may ask for is answered honestly: commands the sim does not
+implement get MAV_RESULT_UNSUPPORTED, messages it cannot produce DENIED (PX4) or FAILED
+(ArduPilot), parameters it does not have no PARAM_VALUE (as real stacks do).
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import struct
 import threading
 import time
 from collections import Counter
@@ -26,7 +30,7 @@ from dataclasses import asdict, dataclass, field
 from types import TracebackType
 from typing import Any, Self
 
-from pymavlink.dialects.v20 import common as mavlink
+from pymavlink.dialects.v20 import all as mavlink
 
 from roost_api.meta import Stack
 from roost_mavlink import (
@@ -38,23 +42,21 @@ from roost_mavlink import (
     MAV_CMD_NAV_TAKEOFF,
     MAV_CMD_REQUEST_MESSAGE,
     MAV_CMD_SET_MESSAGE_INTERVAL,
-    MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
-    MAV_MODE_FLAG_SAFETY_ARMED,
     MavResult,
     heartbeat_autopilot,
     landed_state_name,
     mav_state_name,
 )
-from roost_mavlink.modes import custom_mode_from_set_mode
+from roost_mavlink.modes import custom_mode, custom_mode_from_set_mode
 from roost_mavlink.status import (
     MAV_AUTOPILOT_INVALID,
     MAV_TYPE_QUADROTOR,
-    LandedState,
     MavState,
     SensorBit,
     sensor_bits,
     sensor_name,
 )
+from roost_sim.battery import Battery
 from roost_sim.faults import (
     DEFAULT_GARBAGE_BYTES_PER_S,
     SPOOF_SYSID_OFFSET,
@@ -63,10 +65,20 @@ from roost_sim.faults import (
     parse_number,
     parse_sensor,
     parse_state,
+    parse_sysid,
 )
 from roost_sim.link import Link, PtyLink, UdpLink
-from roost_sim.model import AutopilotModel, ModeChange, Sensors, SimConfig
+from roost_sim.model import AutopilotModel, ModeChange, SimConfig, Touchdown
 from roost_sim.params import ParamStore
+from roost_sim.streams import (
+    ARDUPILOT_STREAM_GROUPS,
+    ARDUPILOT_TIMESYNC_START_S,
+    Gate,
+    default_rates,
+    gate_of,
+    streamable,
+)
+from roost_sim.telemetry import Telemetry, View
 
 _log = logging.getLogger(__name__)
 
@@ -76,26 +88,19 @@ MAV_CMD_GET_HOME_POSITION = 410
 MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN = 246
 MAV_COMP_ID_GIMBAL = 154
 MAV_TYPE_GIMBAL = 26
+GCS_SYSID = 255
+GCS_COMPONENT_ID = 190
 
-# Message id -> default rate in Hz (0 = only on request).
-DEFAULT_RATES: dict[int, float] = {
-    mavlink.MAVLINK_MSG_ID_HEARTBEAT: 1.0,
-    mavlink.MAVLINK_MSG_ID_SYS_STATUS: 5.0,
-    mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 5.0,
-    mavlink.MAVLINK_MSG_ID_ATTITUDE: 50.0,
-    mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 10.0,
-    mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: 1.0,
-    mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: 1.0,
-    mavlink.MAVLINK_MSG_ID_HOME_POSITION: 1.0,
-    mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: 0.0,
-}
+_HEARTBEAT = mavlink.MAVLINK_MSG_ID_HEARTBEAT
 _NOISE_PERIOD_S = 0.05
 _SPOOF_PERIOD_S = 0.1
+_GCS_PERIOD_S = 1.0
 _RX_POLL_S = 0.2
 _MAX_SLEEP_S = 0.01
+_RC_RELEASE = (0, 65535)  # RC_CHANNELS_OVERRIDE: hand the channel back / ignore it
 
 # Version each flavour claims in AUTOPILOT_VERSION: (major, minor, patch), official build.
-_FIRMWARE: dict[Stack, tuple[int, int, int]] = {Stack.PX4: (1, 15, 0), Stack.ARDUPILOT: (4, 5, 0)}
+_FIRMWARE: dict[Stack, tuple[int, int, int]] = {Stack.PX4: (1, 16, 0), Stack.ARDUPILOT: (4, 7, 0)}
 _FIRMWARE_VERSION_TYPE_OFFICIAL = 255
 _CAPABILITIES = (
     mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
@@ -143,31 +148,19 @@ class SimSnapshot:
     mode: str
     landed_state: str
     altitude_m: float
+    climb_mps: float
     system_status: str
+    ready: bool  # start-up done: it would arm now (booted, position estimate)
     time_boot_ms: int
     last_mode_change_at: float
+    battery_percent: int
+    last_touchdown_mps: float | None
     faults: dict[str, str]
     unhealthy_sensors: list[str]
 
     def to_json(self) -> dict[str, Any]:
         """Plain dict for the control socket and the CLI."""
         return asdict(self)
-
-
-@dataclass(frozen=True)
-class _View:
-    """The values that go into telemetry at one instant (repeated verbatim when frozen)."""
-
-    time_boot_ms: int
-    unix_usec: int
-    armed: bool
-    custom_mode: int
-    system_status: int
-    landed_state: int
-    altitude_m: float
-    climb_mps: float
-    sensors: Sensors
-    gps_ok: bool
 
 
 class _LinkWriter:
@@ -188,6 +181,13 @@ class _Streams:
     def reset(self, now: float) -> None:
         self.due = {msg_id: now for msg_id, rate in self.rates.items() if rate > 0}
 
+    def set(self, msg_id: int, hz: float, now: float) -> None:
+        self.rates[msg_id] = hz
+        if hz > 0:
+            self.due.setdefault(msg_id, now)
+        else:
+            self.due.pop(msg_id, None)
+
 
 class SimulatedAutopilot:
     """A PX4 or ArduPilot flavoured autopilot on one link (UDP or pseudo-terminal)."""
@@ -202,6 +202,7 @@ class SimulatedAutopilot:
         component_id: int = AUTOPILOT_COMPONENT_ID,
         config: SimConfig | None = None,
         rates: dict[int, float] | None = None,
+        battery: Battery | None = None,
     ) -> None:
         self.stack = Stack(stack)
         self.sysid = sysid
@@ -209,34 +210,34 @@ class SimulatedAutopilot:
         self.name = name or f"{self.stack.value}-{sysid}"
         self.link = link
         self.config = config or SimConfig()
+        self.battery = battery or Battery()
         self._lock = threading.RLock()
         self._tx_lock = threading.Lock()
-        self._model = AutopilotModel(self.stack, self.config)
+        self._model = AutopilotModel(self.stack, self.config, battery=self.battery)
         self.params = ParamStore(self.stack, sysid=sysid, config=self.config)
-        self._streams = _Streams(rates={**DEFAULT_RATES, **(rates or {})})
+        self._rate_overrides = dict(rates or {})
+        self._streams = _Streams(rates=self._initial_rates())
         self._mav = mavlink.MAVLink(_LinkWriter(link), srcSystem=sysid, srcComponent=component_id)
+        self._telemetry = Telemetry(self._mav, self.stack, sysid, self.config)
         self._commands: list[CommandRecord] = []
         self._unhandled: Counter[str] = Counter()
         self._silent = False
-        self._frozen: _View | None = None
+        self._frozen: View | None = None
         self._reboot_at: float | None = None
         self._garbage_bytes_per_s = 0.0
         self._spoof_sysid: int | None = None
         self._next_noise = 0.0
         self._next_spoof = 0.0
+        self._next_gcs = 0.0
+        self._heard = False  # ArduPilot sends STATUSTEXT only on a link it has heard on
+        self._heartbeat_mode: int | None = None
+        self._origin_sent = False
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
-        self._builders: dict[int, Callable[[_View], Any]] = {
-            mavlink.MAVLINK_MSG_ID_HEARTBEAT: self._heartbeat,
-            mavlink.MAVLINK_MSG_ID_SYS_STATUS: self._sys_status,
-            mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: self._extended_sys_state,
-            mavlink.MAVLINK_MSG_ID_ATTITUDE: self._attitude,
-            mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: self._global_position,
-            mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: self._system_time,
-            mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: self._gps_raw,
-            mavlink.MAVLINK_MSG_ID_HOME_POSITION: self._home_position,
-            mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self._autopilot_version,
-        }
+
+    def _initial_rates(self) -> dict[int, float]:
+        rates = default_rates(self.stack, preset=self.config.preset_streams)
+        return {**rates, **self._rate_overrides}
 
     # ---- construction helpers --------------------------------------------------------
 
@@ -269,8 +270,7 @@ class SimulatedAutopilot:
         self._stop.clear()
         self.link.open()
         with self._lock:
-            self._model.reboot()
-            self._streams.reset(time.monotonic())
+            self._reboot(time.monotonic())
         self._threads = [
             threading.Thread(target=self._run_tick, name=f"sim-{self.name}-tick", daemon=True),
             threading.Thread(target=self._run_rx, name=f"sim-{self.name}-rx", daemon=True),
@@ -315,6 +315,7 @@ class SimulatedAutopilot:
         """Current observable state."""
         with self._lock:
             model = self._model
+            touchdown = model.touchdowns[-1].speed_mps if model.touchdowns else None
             return SimSnapshot(
                 name=self.name,
                 stack=self.stack.value,
@@ -324,9 +325,13 @@ class SimulatedAutopilot:
                 mode=model.mode,
                 landed_state=landed_state_name(model.landed_state),
                 altitude_m=round(model.altitude_m, 3),
+                climb_mps=round(model.climb_mps, 3),
                 system_status=mav_state_name(model.system_status()),
+                ready=model.ready_to_arm,
                 time_boot_ms=model.time_boot_ms(),
                 last_mode_change_at=model.mode_history[-1].at,
+                battery_percent=model.battery_reading().remaining_percent,
+                last_touchdown_mps=touchdown,
                 faults=self._fault_values(),
                 unhealthy_sensors=[sensor_name(b) for b in sensor_bits(model.sensor_faults)],
             )
@@ -342,6 +347,18 @@ class SimulatedAutopilot:
         """Every mode entered since start, oldest first (reboots included)."""
         with self._lock:
             return list(self._model.mode_history)
+
+    @property
+    def touchdowns(self) -> list[Touchdown]:
+        """Every ground contact since start with its vertical speed (a crash is a fast one)."""
+        with self._lock:
+            return list(self._model.touchdowns)
+
+    @property
+    def stream_rates(self) -> dict[int, float]:
+        """Current stream rates in Hz by message id (requested or the flavour's default)."""
+        with self._lock:
+            return {k: v for k, v in self._streams.rates.items() if v > 0}
 
     @property
     def unhandled_messages(self) -> dict[str, int]:
@@ -362,43 +379,77 @@ class SimulatedAutopilot:
                 raise TimeoutError(f"{self.name}: condition not met within {timeout}s: {snap}")
             time.sleep(0.02)
 
+    def wait_ready(self, timeout: float = 10.0) -> SimSnapshot:
+        """Wait until start-up is done and the autopilot would arm (see ``SimConfig``)."""
+        return self.wait_until(lambda snap: snap.ready, timeout=timeout)
+
     # ---- local control (tests, benchmarks) -------------------------------------------
 
     def fly(self, altitude_m: float | None = None) -> None:
         """Arm and take off through the same rules as commands (logged with source 0/0).
 
-        Raises RuntimeError when a step is refused, e.g. during the BOOT phase right after
-        start: wait with ``wait_until(lambda s: s.system_status != "BOOT")`` first.
+        Raises RuntimeError when a step is refused, e.g. before start-up is done: wait
+        with :meth:`wait_ready` first. ArduPilot is put in GUIDED first.
         """
         alt = altitude_m if altitude_m is not None else self.config.takeoff_alt_m
         with self._lock:
             if self.stack is Stack.ARDUPILOT:
-                self._local(MAV_CMD_DO_SET_MODE, (1.0, 4.0, 0, 0, 0, 0, 0))  # GUIDED
+                guided = float(custom_mode(self.stack, "GUIDED"))
+                self._local(MAV_CMD_DO_SET_MODE, (1.0, guided, 0, 0, 0, 0, 0))
             self._local(MAV_CMD_COMPONENT_ARM_DISARM, (1.0, 0, 0, 0, 0, 0, 0))
             param7 = alt + self.config.home_amsl_m if self.stack is Stack.PX4 else alt
             self._local(MAV_CMD_NAV_TAKEOFF, (0, 0, 0, math.nan, math.nan, math.nan, param7))
 
     def _local(self, command: int, params: tuple[float, ...]) -> int:
+        reasons = self._model.arming_refusals() if command == MAV_CMD_COMPONENT_ARM_DISARM else []
         result, _ = self._execute(command, params, (0, 0))
         if result != MavResult.ACCEPTED:
-            raise RuntimeError(f"{self.name}: {command_name(command)} refused ({result})")
+            why = f": {', '.join(reasons)}" if reasons else ""
+            raise RuntimeError(f"{self.name}: {command_name(command)} refused ({result}){why}")
         return result
 
     def set_rate(self, message_id: int, hz: float) -> None:
-        """Stream ``message_id`` at ``hz`` (0 stops it)."""
+        """Stream ``message_id`` at ``hz`` (0 stops it), whatever the flavour would do."""
         with self._lock:
-            self._streams.rates[message_id] = hz
-            if hz > 0:
-                self._streams.due.setdefault(message_id, time.monotonic())
-            else:
-                self._streams.due.pop(message_id, None)
+            self._rate_overrides[message_id] = hz
+            self._streams.set(message_id, hz, time.monotonic())
+
+    def request_streams(self, rates: dict[int, float]) -> None:
+        """What a client's SET_MESSAGE_INTERVAL requests do, without a client (tests).
+
+        Raises ValueError for a message this flavour cannot stream.
+        """
+        with self._lock:
+            for msg_id, hz in rates.items():
+                result = self._set_interval(msg_id, 1e6 / hz if hz > 0 else -1.0)
+                if result != MavResult.ACCEPTED:
+                    raise ValueError(f"{self.name}: cannot stream message {msg_id} ({result})")
+
+    def set_throttle(self, stick: float | None) -> None:
+        """The pilot's throttle stick, 0 (low) to 1 (high); None: no RC (reads low)."""
+        if stick is not None and not (math.isfinite(stick) and 0.0 <= stick <= 1.0):
+            raise ValueError(f"throttle must be between 0 and 1, not {stick!r}")
+        with self._lock:
+            self.config.throttle = stick
+
+    def route(self, frame: bytes) -> None:
+        """Put a frame from another system/component on this link, as ArduPilot routes it.
+
+        Only the ArduPilot flavour routes; PX4's onboard link (without forwarding to it)
+        does not, so the frame is dropped there.
+        """
+        if self.stack is Stack.ARDUPILOT:
+            with self._lock:
+                sending = self._sending()
+            if sending:
+                self.link.send(bytes(frame))
 
     # ---- fault injection -------------------------------------------------------------
 
     def inject(self, kind: FaultKind | str, value: str | float | None = None) -> None:
         """Start a fault (see :mod:`roost_sim.faults` for kinds and values).
 
-        An invalid value raises ValueError before anything changes.
+        Raises ValueError for an unknown kind or an invalid value; nothing changes then.
         """
         kind = FaultKind(kind)
         check_value(kind, value)
@@ -409,13 +460,9 @@ class SimulatedAutopilot:
             elif kind is FaultKind.FREEZE:
                 self._frozen = self._frozen or self._view()
             elif kind is FaultKind.SENSOR:
-                self._model.sensor_faults |= parse_sensor(
-                    value if not isinstance(value, float) else int(value)
-                )
+                self._model.sensor_faults |= parse_sensor(value)
             elif kind is FaultKind.STATE:
-                self._model.state_override = parse_state(
-                    value if not isinstance(value, float) else int(value)
-                )
+                self._model.state_override = parse_state(value)
             elif kind is FaultKind.REBOOT:
                 self._reboot_at = now + parse_number(kind, value, 0.0)
             elif kind is FaultKind.GARBAGE:
@@ -426,7 +473,9 @@ class SimulatedAutopilot:
                 self.link.impairment.jitter_ms = parse_number(kind, value, 50.0)
             elif kind is FaultKind.SPOOF:
                 default = (self.sysid + SPOOF_SYSID_OFFSET - 1) % 255 + 1
-                self._spoof_sysid = int(parse_number(kind, value, default)) or default
+                self._spoof_sysid = parse_sysid(value, default)
+            elif kind is FaultKind.BATTERY:
+                self.battery.fail()
 
     def clear(self, kind: FaultKind | str | None = None) -> None:
         """End one fault kind, or every fault when ``kind`` is None."""
@@ -447,8 +496,11 @@ class SimulatedAutopilot:
                     self.link.impairment.loss_percent = 0.0
                 elif k is FaultKind.JITTER:
                     self.link.impairment.jitter_ms = 0.0
+                    self.link.flush_delayed()
                 elif k is FaultKind.SPOOF:
                     self._spoof_sysid = None
+                elif k is FaultKind.BATTERY and self.battery.failed:
+                    self.battery.replace()
 
     def _fault_values(self) -> dict[str, str]:
         model, imp = self._model, self.link.impairment
@@ -463,6 +515,7 @@ class SimulatedAutopilot:
             FaultKind.LOSS: imp.loss_percent or None,
             FaultKind.JITTER: imp.jitter_ms or None,
             FaultKind.SPOOF: self._spoof_sysid,
+            FaultKind.BATTERY: self.battery.failed or None,
         }
         return {k.value: str(v) for k, v in active.items() if v is not None}
 
@@ -474,25 +527,80 @@ class SimulatedAutopilot:
     def _run_tick(self) -> None:
         while not self._stop.is_set():
             now = time.monotonic()
-            with self._lock:
-                if self._reboot_at is not None and now >= self._reboot_at:
-                    self._reboot(now)
-                if self._frozen is None:
-                    self._model.step()
-                due = [m for m, t in self._streams.due.items() if t <= now]
-                for msg_id in due:
-                    self._streams.due[msg_id] = self._next_due(msg_id, now)
-                messages = []
-                if due and self._sending():
-                    view = self._frozen or self._view()
-                    messages = [self._builders[m](view) for m in due]
-                noise = self._noise(now) if self._sending() else []
-                next_due = min(self._streams.due.values(), default=now + _MAX_SLEEP_S)
+            try:
+                messages, noise, next_due = self._tick(now)
+            except Exception:  # a bug in one message must not silence the autopilot
+                _log.exception("%s: tick failed", self.name)
+                messages, noise, next_due = [], [], now + _MAX_SLEEP_S
             for message in messages:
                 self._send(message)
             for frame in noise:
                 self.link.write_noise(frame)
             self._stop.wait(min(max(next_due - time.monotonic(), 0.0), _MAX_SLEEP_S))
+
+    def _tick(self, now: float) -> tuple[list[Any], list[bytes], float]:
+        with self._lock:
+            if self._reboot_at is not None and now >= self._reboot_at:
+                self._reboot(now)
+            if self._frozen is None:
+                self._model.step()
+            view = self._frozen or self._view()
+            # A stream whose start-up step is not reached stays due: it starts on time.
+            due = [m for m, t in self._streams.due.items() if t <= now and self._gate_open(m)]
+            for msg_id in due:
+                self._streams.due[msg_id] = self._next_due(msg_id, now)
+            texts, self._model.texts = self._model.texts, []
+            messages: list[Any] = []
+            if self._sending():
+                messages = [self._telemetry.builders[m](view) for m in due]
+                messages += self._events(view, texts)
+            noise = self._noise(now) if self._sending() else []
+            next_due = min(
+                (t for t in self._streams.due.values() if t > now), default=now + _MAX_SLEEP_S
+            )
+        return messages, noise, next_due
+
+    def _gate_open(self, msg_id: int) -> bool:
+        model = self._model
+        gate = gate_of(self.stack, msg_id)
+        if self._frozen is not None:
+            return True  # a hung main loop repeats whatever it was sending
+        if gate is Gate.POWER_ON:
+            return True
+        if gate is Gate.POSITION:
+            # PX4 publishes a global position shortly before its estimator reports one.
+            lead = 0.82 if self.stack is Stack.PX4 else 1.0
+            return model.uptime() >= model.boot_times.position_s * lead
+        if gate is Gate.SETPOINT:
+            return model.armed or not model.on_ground
+        times = model.boot_times
+        if self.stack is Stack.ARDUPILOT:  # only its unrequested TIMESYNC is gated
+            return model.uptime() >= min(ARDUPILOT_TIMESYNC_START_S, times.position_s)
+        start = {
+            Gate.HEARTBEAT: times.first_heartbeat_s,
+            Gate.ATTITUDE: times.standby_s * 0.35,
+            Gate.ESTIMATOR: times.attitude_s,
+        }[gate]
+        return model.uptime() >= start
+
+    def _events(self, view: View, texts: list[tuple[int, str]]) -> list[Any]:
+        """Messages sent on an event rather than a schedule."""
+        out: list[Any] = []
+        model = self._model
+        if self.stack is Stack.ARDUPILOT and self._heartbeat_mode != view.custom_mode:
+            # ArduPilot sends a heartbeat at once on a mode change; PX4 waits for its 1 Hz.
+            if self._heartbeat_mode is not None and self._streams.rates.get(_HEARTBEAT, 0) > 0:
+                out.append(self._telemetry.heartbeat(view))
+            self._heartbeat_mode = view.custom_mode
+        if not self._origin_sent and model.uptime() >= model.boot_times.origin_s:
+            self._origin_sent = True
+            out.append(self._telemetry.gps_global_origin(view))
+            if self.stack is Stack.ARDUPILOT:
+                out.append(self._telemetry.home_position(view))
+        if self.stack is Stack.ARDUPILOT and self._heard:
+            for severity, text in texts:
+                out.append(self._mav.statustext_encode(severity, text.encode()[:50], 0, 0))
+        return out
 
     def _next_due(self, msg_id: int, now: float) -> float:
         period = 1.0 / self._streams.rates[msg_id]
@@ -503,143 +611,30 @@ class SimulatedAutopilot:
         self._reboot_at = None
         self._frozen = None
         self._model.reboot()
+        self._model.texts.clear()
+        self._heard = False
+        self._heartbeat_mode = None
+        self._origin_sent = False
+        self._streams = _Streams(rates=self._initial_rates())  # requests do not survive
         self._streams.reset(now)
 
-    def _view(self) -> _View:
+    def _view(self) -> View:
         model = self._model
-        return _View(
+        return View(
             time_boot_ms=model.time_boot_ms(),
             unix_usec=time.time_ns() // 1000,
             armed=model.armed,
             custom_mode=model.custom_mode,
+            mode=model.mode,
             system_status=int(model.system_status()),
             landed_state=int(model.landed_state),
             altitude_m=model.altitude_m,
             climb_mps=model.climb_mps,
             sensors=model.sensors(),
             gps_ok=not model.sensor_faults & SensorBit.GPS,
-        )
-
-    def _build(self, msg_id: int) -> Any:
-        return self._builders[msg_id](self._frozen or self._view())
-
-    def _extended_sys_state(self, v: _View) -> Any:
-        return self._mav.extended_sys_state_encode(0, v.landed_state)
-
-    def _system_time(self, v: _View) -> Any:
-        return self._mav.system_time_encode(v.unix_usec, v.time_boot_ms)
-
-    def _heartbeat(self, v: _View) -> Any:
-        base_mode = MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (
-            MAV_MODE_FLAG_SAFETY_ARMED if v.armed else 0
-        )
-        return self._mav.heartbeat_encode(
-            MAV_TYPE_QUADROTOR,
-            heartbeat_autopilot(self.stack),
-            base_mode,
-            v.custom_mode,
-            v.system_status,
-        )
-
-    def _sys_status(self, v: _View) -> Any:
-        flying = v.landed_state != LandedState.ON_GROUND
-        return self._mav.sys_status_encode(
-            v.sensors.present,
-            v.sensors.enabled,
-            v.sensors.health,
-            250,  # load 25.0 %
-            16200,  # mV
-            1500 if flying else 50,  # cA
-            80,  # %
-            0,
-            0,
-            0,
-            0,
-            0,
-            0,
-        )
-
-    @staticmethod
-    def _angles(v: _View) -> tuple[float, float, float, float, float, float]:
-        # A gentle deterministic wobble: values change every sample unless frozen.
-        t = v.time_boot_ms / 1000.0
-        amp = 0.03 if v.landed_state != LandedState.ON_GROUND else 0.002
-        roll, pitch = amp * math.sin(1.3 * t), amp * math.sin(0.9 * t + 1.0)
-        yaw = 1.5708 + 0.01 * math.sin(0.2 * t)
-        return (
-            roll,
-            pitch,
-            yaw,
-            amp * 1.3 * math.cos(1.3 * t),
-            amp * 0.9 * math.cos(0.9 * t + 1.0),
-            0.002 * math.cos(0.2 * t),
-        )
-
-    def _attitude(self, v: _View) -> Any:
-        return self._mav.attitude_encode(v.time_boot_ms, *self._angles(v))
-
-    def _global_position(self, v: _View) -> Any:
-        cfg = self.config
-        yaw_cdeg = int(math.degrees(self._angles(v)[2]) * 100) % 36000
-        return self._mav.global_position_int_encode(
-            v.time_boot_ms,
-            int(cfg.home_lat_deg * 1e7),
-            int(cfg.home_lon_deg * 1e7),
-            int((cfg.home_amsl_m + v.altitude_m) * 1000),
-            int(v.altitude_m * 1000),
-            0,
-            0,
-            int(-v.climb_mps * 100),
-            yaw_cdeg,
-        )
-
-    def _gps_raw(self, v: _View) -> Any:
-        cfg = self.config
-        fix = mavlink.GPS_FIX_TYPE_3D_FIX if v.gps_ok else mavlink.GPS_FIX_TYPE_NO_FIX
-        return self._mav.gps_raw_int_encode(
-            v.time_boot_ms * 1000,
-            fix,
-            int(cfg.home_lat_deg * 1e7),
-            int(cfg.home_lon_deg * 1e7),
-            int((cfg.home_amsl_m + v.altitude_m) * 1000),
-            80,
-            120,
-            0,
-            65535,
-            12 if v.gps_ok else 0,
-        )
-
-    def _home_position(self, v: _View) -> Any:
-        cfg = self.config
-        return self._mav.home_position_encode(
-            int(cfg.home_lat_deg * 1e7),
-            int(cfg.home_lon_deg * 1e7),
-            int(cfg.home_amsl_m * 1000),
-            0.0,
-            0.0,
-            0.0,
-            [1.0, 0.0, 0.0, 0.0],
-            0.0,
-            0.0,
-            0.0,
-            v.time_boot_ms * 1000,
-        )
-
-    def _autopilot_version(self, _v: _View) -> Any:
-        major, minor, patch = _FIRMWARE[self.stack]
-        version = (major << 24) | (minor << 16) | (patch << 8) | _FIRMWARE_VERSION_TYPE_OFFICIAL
-        return self._mav.autopilot_version_encode(
-            _CAPABILITIES | _PARAM_ENCODING[self.stack],
-            version,
-            0,
-            0,
-            0,
-            list(b"roostsim"),
-            [0] * 8,
-            [0] * 8,
-            0,
-            0,
-            0x524F4F5354000000 | self.sysid,  # "ROOST" + sysid: unique per sim
+            estimator_flags=model.estimator_flags(),
+            battery=model.battery_reading(),
+            has_position=model.has_position,
         )
 
     def _noise(self, now: float) -> list[bytes]:
@@ -647,12 +642,21 @@ class SimulatedAutopilot:
         if self._garbage_bytes_per_s > 0 and now >= self._next_noise:
             self._next_noise = now + _NOISE_PERIOD_S
             size = max(1, int(self._garbage_bytes_per_s * _NOISE_PERIOD_S))
-            corrupted = bytearray(self._heartbeat(self._view()).pack(mavlink.MAVLink(None)))
+            heartbeat = self._telemetry.heartbeat(self._view())
+            corrupted = bytearray(heartbeat.pack(mavlink.MAVLink(None)))
             corrupted[len(corrupted) // 2] ^= 0xFF  # a real-looking frame failing its CRC
             frames.append(os.urandom(size) + bytes(corrupted))
         if self._spoof_sysid is not None and now >= self._next_spoof:
             self._next_spoof = now + _SPOOF_PERIOD_S
             frames.extend(self._spoof_frames())
+        if self.config.gcs_heartbeat and self.stack is Stack.ARDUPILOT and now >= self._next_gcs:
+            self._next_gcs = now + _GCS_PERIOD_S
+            gcs = mavlink.MAVLink(None, srcSystem=GCS_SYSID, srcComponent=GCS_COMPONENT_ID)
+            frames.append(
+                gcs.heartbeat_encode(
+                    mavlink.MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, 0, 0, int(MavState.ACTIVE)
+                ).pack(gcs)
+            )
         return frames
 
     def _spoof_frames(self) -> list[bytes]:
@@ -674,7 +678,10 @@ class SimulatedAutopilot:
 
     def _send(self, message: Any) -> None:
         with self._tx_lock:
-            self._mav.send(message)
+            try:
+                self._mav.send(message)
+            except (struct.error, TypeError, ValueError):  # a bad field must not stop the link
+                _log.exception("%s: cannot encode %s", self.name, message.get_type())
 
     # ---- receive thread: commands and protocol handshakes ----------------------------
 
@@ -704,6 +711,7 @@ class SimulatedAutopilot:
             return
         replies: list[Any] = []
         with self._lock:
+            self._heard = True
             if self._frozen is not None:
                 return  # a hung main loop answers nothing
             if kind in ("COMMAND_LONG", "COMMAND_INT"):
@@ -727,6 +735,14 @@ class SimulatedAutopilot:
                         msg.get_srcSystem(), msg.get_srcComponent(), 0, msg.mission_type
                     )
                 ]
+            elif kind == "REQUEST_DATA_STREAM" and self._for_us(msg):
+                self._request_data_stream(msg.req_stream_id, msg.req_message_rate, msg.start_stop)
+            elif kind == "RC_CHANNELS_OVERRIDE" and self._for_us(msg):
+                raw = msg.chan3_raw
+                if raw not in _RC_RELEASE:
+                    self.config.throttle = min(1.0, max(0.0, (raw - 1000) / 1000.0))
+                elif raw == 0:
+                    self.config.throttle = None
             elif kind != "HEARTBEAT":
                 self._unhandled[kind] += 1
         for reply in replies:
@@ -801,30 +817,67 @@ class SimulatedAutopilot:
         return result, after
 
     def _set_interval(self, msg_id: int, interval_us: float) -> int:
-        if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
-            return MavResult.DENIED  # HEARTBEAT stays at 1 Hz on both stacks
-        if not math.isfinite(interval_us) or msg_id not in DEFAULT_RATES:
-            return MavResult.DENIED
+        if msg_id == _HEARTBEAT and self.stack is Stack.PX4:
+            return MavResult.DENIED  # PX4 keeps HEARTBEAT at 1 Hz
+        if not math.isfinite(interval_us) or not streamable(self.stack, msg_id):
+            return self._model.invalid_result()
         if interval_us < 0:
             hz = 0.0
         elif interval_us == 0:
-            hz = DEFAULT_RATES[msg_id]
+            hz = default_rates(self.stack).get(msg_id, 0.0)
         else:
             hz = 1e6 / interval_us
-        self.set_rate(msg_id, hz)
+        self._streams.set(msg_id, hz, time.monotonic())
         return MavResult.ACCEPTED
 
+    def _request_data_stream(self, stream_id: int, rate_hz: int, start: int) -> None:
+        """REQUEST_DATA_STREAM: ArduPilot sets a whole group's rate (PX4 ignores it)."""
+        if self.stack is not Stack.ARDUPILOT:
+            self._unhandled["REQUEST_DATA_STREAM"] += 1
+            return
+        groups = (
+            list(ARDUPILOT_STREAM_GROUPS)
+            if stream_id == mavlink.MAV_DATA_STREAM_ALL
+            else [stream_id]
+            if stream_id in ARDUPILOT_STREAM_GROUPS
+            else []
+        )
+        hz = float(rate_hz) if start else 0.0
+        now = time.monotonic()
+        for group in groups:
+            for msg_id in ARDUPILOT_STREAM_GROUPS[group]:
+                self._streams.set(msg_id, hz, now)
+
     def _get_interval(self, msg_id: int) -> tuple[int, list[Any]]:
-        if msg_id not in DEFAULT_RATES:
-            return MavResult.DENIED, []
+        if msg_id not in self._telemetry.builders:
+            return self._model.invalid_result(), []
         hz = self._streams.rates.get(msg_id, 0.0)
         interval = int(1e6 / hz) if hz > 0 else -1
         return MavResult.ACCEPTED, [self._mav.message_interval_encode(msg_id, interval)]
 
     def _request(self, msg_id: int) -> tuple[int, list[Any]]:
-        if msg_id not in DEFAULT_RATES:
-            return MavResult.DENIED, []
-        return MavResult.ACCEPTED, [self._build(msg_id)]
+        if msg_id == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
+            return MavResult.ACCEPTED, [self._autopilot_version()]
+        if msg_id not in self._telemetry.builders:
+            return self._model.invalid_result(), []
+        return MavResult.ACCEPTED, [self._telemetry.builders[msg_id](self._frozen or self._view())]
+
+    def _autopilot_version(self) -> Any:
+        major, minor, patch = _FIRMWARE[self.stack]
+        version = (major << 24) | (minor << 16) | (patch << 8) | _FIRMWARE_VERSION_TYPE_OFFICIAL
+        return self._mav.autopilot_version_encode(
+            _CAPABILITIES | _PARAM_ENCODING[self.stack],
+            version,
+            0,
+            0,
+            0,
+            list(b"roostsim"),
+            [0] * 8,
+            [0] * 8,
+            0,
+            0,
+            0x524F4F5354000000 | self.sysid,  # "ROOST" + sysid: unique per sim
+        )
 
 
 def message_id(message_name: str) -> int:

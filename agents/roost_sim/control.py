@@ -10,9 +10,11 @@ Protocol: the client sends one JSON object on one line and reads one line back.
 - ``{"op": "fault", "kind": "sensor", "value": "gyro"}``
 - ``{"op": "clear", "kind": null}`` (null = every fault)
 - ``{"op": "status"}``
-- ``{"op": "fly", "value": 10}`` (arm and take off to ``value`` metres, default the
-  configured takeoff altitude, once the autopilot has booted: what a mission's controller
-  would do; the sandbox uses it)
+- ``{"op": "fly", "value": 10, "timeout": 5}`` (arm and take off to ``value`` metres,
+  default the configured takeoff altitude, once the autopilot has finished starting up --
+  waiting at most ``timeout`` seconds, default 5: what a mission's controller would do;
+  the sandbox uses it)
+- ``{"op": "throttle", "value": 0.5}`` (the pilot's throttle stick 0..1; null: no RC)
 
 Every answer is ``{"ok": true, "state": <SimSnapshot>}`` or ``{"ok": false, "error": ...}``.
 """
@@ -21,6 +23,8 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
+import math
 import os
 import socket
 import threading
@@ -30,7 +34,10 @@ from typing import Any
 from roost_sim.autopilot import SimulatedAutopilot
 from roost_sim.faults import FaultKind
 
+_log = logging.getLogger(__name__)
+
 _MAX_REQUEST_BYTES = 4096
+DEFAULT_FLY_WAIT_S = 5.0
 
 
 def state_dir() -> Path:
@@ -46,7 +53,11 @@ def socket_path(name: str, directory: Path | None = None) -> Path:
 
 
 def handle_request(sim: SimulatedAutopilot, request: dict[str, Any]) -> dict[str, Any]:
-    """Apply one control request to ``sim``; the answer to send back."""
+    """Apply one control request to ``sim``; the answer to send back.
+
+    A refused or invalid request is answered ``{"ok": false, "error": ...}``; it never
+    raises, so one bad request cannot take the control socket down.
+    """
     try:
         op = request.get("op")
         if op == "fault":
@@ -55,16 +66,44 @@ def handle_request(sim: SimulatedAutopilot, request: dict[str, Any]) -> dict[str
             kind = request.get("kind")
             sim.clear(FaultKind(kind) if kind else None)
         elif op == "fly":
+            _fly(sim, request)
+        elif op == "throttle":
             value = request.get("value")
-            # Like a mission controller, wait for the autopilot to finish booting: right
-            # after start it refuses to arm, which made an early request fail at random.
-            sim.wait_until(lambda snap: snap.system_status != "BOOT", timeout=5.0)
-            sim.fly(float(value) if value is not None else None)
+            sim.set_throttle(None if value is None else _number(value, "throttle"))
         elif op != "status":
             raise ValueError(f"unknown op {op!r}")
-    except (KeyError, ValueError) as exc:
+    except KeyError as exc:
+        return {"ok": False, "error": f"missing field {exc}"}
+    except (ValueError, TypeError, RuntimeError) as exc:
         return {"ok": False, "error": str(exc)}
     return {"ok": True, "state": sim.snapshot().to_json()}
+
+
+def _number(value: Any, what: str) -> float:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be a number, not {value!r}") from None
+    if not math.isfinite(number):
+        raise ValueError(f"{what} must be finite, not {value!r}")
+    return number
+
+
+def _fly(sim: SimulatedAutopilot, request: dict[str, Any]) -> None:
+    """Like a mission controller: wait for start-up to finish, then arm and take off."""
+    value = request.get("value")
+    altitude = None if value is None else _number(value, "altitude")
+    timeout = _number(request.get("timeout", DEFAULT_FLY_WAIT_S), "timeout")
+    try:
+        sim.wait_ready(timeout=timeout)
+    except TimeoutError:
+        snap = sim.snapshot()
+        raise RuntimeError(
+            f"{sim.name} is still starting up ({snap.system_status}, "
+            f"{snap.time_boot_ms / 1000:.1f} s after boot) and refuses to arm; "
+            f"try again later or start it with --fast-boot"
+        ) from None
+    sim.fly(altitude)
 
 
 class ControlServer:
@@ -121,6 +160,9 @@ class ControlServer:
                     answer = handle_request(self.sim, request)
                 except (OSError, ValueError) as exc:
                     answer = {"ok": False, "error": str(exc)}
+                except Exception as exc:  # the socket must outlive any one request
+                    _log.exception("control request failed")
+                    answer = {"ok": False, "error": f"internal error: {exc}"}
                 with contextlib.suppress(OSError):
                     conn.sendall(json.dumps(answer).encode() + b"\n")
 
@@ -134,7 +176,7 @@ def _alive(path: Path) -> bool:
         return True
 
 
-def request(path: Path, message: dict[str, Any], timeout: float = 5.0) -> dict[str, Any]:
+def request(path: Path, message: dict[str, Any], timeout: float = 10.0) -> dict[str, Any]:
     """Send one request to a control socket and return the decoded answer."""
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
         sock.settimeout(timeout)

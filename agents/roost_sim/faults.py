@@ -24,14 +24,19 @@ jitter    milliseconds       each outgoing frame delayed uniformly 0..J ms, orde
 spoof     foreign sysid      10 Hz HEARTBEAT (EMERGENCY) + ATTITUDE from another sysid,
           (default sysid+100) and EMERGENCY heartbeats from a non-autopilot component
                              (gimbal, autopilot=INVALID) of our own sysid
+battery   --                 the battery fails: voltage drops, charge reads empty within
+                             5 s, health bit clears, CRITICAL; PX4 then holds 5 s and
+                             lands (see :mod:`roost_sim.battery`; a shared battery
+                             fails for every autopilot on it)
 ========  =================  ==========================================================
 
-``clear`` removes one kind or all of them (a pending reboot is not undone).
-
-Numeric values must be finite and within :data:`NUMERIC_RANGES`: an infinite jitter
-would delay every frame forever, which no ``clear`` could undo. :func:`check_value` is
-the one judge of a value, used by :meth:`SimulatedAutopilot.inject` and, before anything
-is sent, by the ``roost fault`` and ``roost-sim fault`` command lines.
+``clear`` removes one kind or all of them (a pending reboot is not undone; a cleared
+battery fault is a fresh pack). Values are validated: a non-finite or out-of-range
+number is refused with ValueError and nothing changes: each kind's range is in
+:data:`NUMERIC_RANGES`, and an infinite jitter, for one, would delay every frame forever,
+which no ``clear`` could undo. :func:`check_value` is the one judge of a value, used by
+:meth:`SimulatedAutopilot.inject` and, before anything is sent, by the ``roost fault`` and
+``roost-sim fault`` command lines.
 """
 
 from __future__ import annotations
@@ -54,16 +59,25 @@ class FaultKind(StrEnum):
     LOSS = "loss"
     JITTER = "jitter"
     SPOOF = "spoof"
+    BATTERY = "battery"
 
 
 DEFAULT_GARBAGE_BYTES_PER_S = 2000.0
 SPOOF_SYSID_OFFSET = 100
 
 
-def parse_sensor(value: str | int | None) -> SensorBit:
+def _whole_number(value: float) -> int:
+    if not math.isfinite(value) or not value.is_integer():
+        raise ValueError(f"{value!r} is not a whole number")
+    return int(value)
+
+
+def parse_sensor(value: str | float | None) -> SensorBit:
     """A sensor given by name (``gyro``) or bit value; gyro when omitted."""
     if value is None or value == "":
         return SensorBit.GYRO
+    if isinstance(value, float):
+        value = _whole_number(value)
     if isinstance(value, int) or str(value).isdigit() or str(value).startswith("0x"):
         bit = SensorBit(int(str(value), 0))
         if bin(int(bit)).count("1") != 1:
@@ -72,10 +86,12 @@ def parse_sensor(value: str | int | None) -> SensorBit:
     return sensor_from_name(str(value))
 
 
-def parse_state(value: str | int | None) -> MavState:
+def parse_state(value: str | float | None) -> MavState:
     """A MAV_STATE given by name (``EMERGENCY``) or number; CRITICAL when omitted."""
     if value is None or value == "":
         return MavState.CRITICAL
+    if isinstance(value, float):
+        value = _whole_number(value)
     if isinstance(value, int) or str(value).isdigit():
         return MavState(int(value))
     try:
@@ -91,7 +107,7 @@ NUMERIC_RANGES: dict[FaultKind, tuple[float, float, str]] = {
     FaultKind.JITTER: (0, 10_000, "milliseconds"),
     FaultKind.SPOOF: (1, 255, "a system id"),
 }
-VALUELESS = frozenset({FaultKind.SILENCE, FaultKind.FREEZE})
+VALUELESS = frozenset({FaultKind.SILENCE, FaultKind.FREEZE, FaultKind.BATTERY})
 
 
 def parse_number(kind: FaultKind, value: str | float | None, default: float) -> float:
@@ -102,12 +118,17 @@ def parse_number(kind: FaultKind, value: str | float | None, default: float) -> 
     try:
         number = float(value)
     except (TypeError, ValueError):
-        raise ValueError(f"{kind} takes a number ({unit}), not {value!r}") from None
+        raise ValueError(f"{kind} value {value!r} is not a number ({unit})") from None
     if not math.isfinite(number) or not low <= number <= high:
         raise ValueError(f"{kind} value {value!r} out of range: {unit} from {low:g} to {high:g}")
     if kind is FaultKind.SPOOF and not number.is_integer():
         raise ValueError(f"spoof takes a whole system id, not {value!r}")
     return number
+
+
+def parse_sysid(value: str | float | None, default: int) -> int:
+    """A MAVLink system id 1..255 for ``spoof``."""
+    return int(parse_number(FaultKind.SPOOF, value, default))
 
 
 def check_value(kind: FaultKind | str, value: str | float | None) -> None:
@@ -118,9 +139,9 @@ def check_value(kind: FaultKind | str, value: str | float | None) -> None:
             if value is not None and value != "":
                 raise ValueError(f"{kind} takes no value")
         elif kind is FaultKind.SENSOR:
-            parse_sensor(value if not isinstance(value, float) else int(value))
+            parse_sensor(value)
         elif kind is FaultKind.STATE:
-            parse_state(value if not isinstance(value, float) else int(value))
+            parse_state(value)
         else:
             parse_number(kind, value, 0.0)
     except KeyError as error:

@@ -204,6 +204,13 @@ class Link(ABC):
                 self._queue.popleft()
                 self._deliver(frame)
 
+    def flush_delayed(self) -> None:
+        """Deliver every frame still held by the jitter delay line now (jitter cleared)."""
+        with self._queue_ready:
+            while self._queue:
+                self._deliver(self._queue.popleft()[1])
+            self._last_due = 0.0
+
     def write_noise(self, data: bytes) -> None:
         """Put raw bytes on the line immediately (garbage injection)."""
         if not self._closed.is_set():

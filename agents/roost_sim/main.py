@@ -4,12 +4,23 @@
     roost-sim run --stack ardupilot --sysid 2 --pty
     roost-sim run --vehicle px4,ardupilot          # free ports, names fc1, fc2
     roost-sim run --config sims.yaml               # autopilots: [{name, stack, sysid,
-                                                   #   udp_out, udp_bind, pty}, ...]
+                                                   #   udp_out, udp_bind, pty}, ...],
+                                                   # fast_boot, preset_streams, battery
+    roost-sim run --vehicle px4,px4 --fast-boot    # boots in <1 s (default: as the
+                                                   #   firmware: PX4 4 s, ArduCopter 41 s)
+    roost-sim run --stack ardupilot --preset-streams --gcs-heartbeat
+    roost-sim throttle fc1 0.5                     # pilot's stick; "none": no RC
     roost-sim fault fc1 sensor --value gyro
     roost-sim clear fc1 [sensor]                   # "all" as target: every autopilot
     roost-sim fly fc1 [--altitude 10]
     roost-sim status fc1
     roost-sim list
+
+Timing options of ``run`` (also keys of the YAML file): ``--fast-boot``, ``--boot-s``,
+``--position-wait-s``; ``--preset-streams`` makes ArduPilot stream without being asked
+(as with its SRn_* parameters set); ``--gcs-heartbeat`` routes a ground station's
+heartbeat onto ArduPilot links; ``--battery shared|per-autopilot`` for ``--vehicle`` and
+config files (default shared).
 
 ``run`` prints one JSON line per autopilot (name, stack, sysid, connection, device,
 control socket) and runs until SIGINT or SIGTERM. The other commands talk to the
@@ -30,9 +41,11 @@ import yaml
 
 from roost_api.meta import Stack
 from roost_sim.autopilot import SimulatedAutopilot
+from roost_sim.battery import Battery
 from roost_sim.control import ControlServer, request, socket_path, state_dir
 from roost_sim.faults import FaultKind
-from roost_sim.vehicle import start_vehicle_sims, stop_sims
+from roost_sim.model import SimConfig
+from roost_sim.vehicle import BATTERY_LAYOUTS, start_vehicle_sims, stop_sims
 
 ALL_TARGETS = "all"  # target name meaning every autopilot with a control socket
 
@@ -44,26 +57,53 @@ def _address(text: str) -> tuple[str, int]:
     return host or "127.0.0.1", int(port)
 
 
-def _sim_from_entry(entry: dict[str, Any]) -> SimulatedAutopilot:
+def sim_config(options: dict[str, Any]) -> SimConfig:
+    """The ``SimConfig`` for ``run`` options (command line or YAML keys)."""
+    config = SimConfig.fast() if options.get("fast_boot") else SimConfig()
+    for key in ("boot_s", "position_wait_s"):
+        if options.get(key) is not None:
+            setattr(config, key, float(options[key]))
+    config.preset_streams = bool(options.get("preset_streams"))
+    config.gcs_heartbeat = bool(options.get("gcs_heartbeat"))
+    return config
+
+
+def _sim_from_entry(
+    entry: dict[str, Any], defaults: dict[str, Any], battery: Battery
+) -> SimulatedAutopilot:
     stack = Stack(entry.get("stack", "px4"))
     sysid = int(entry.get("sysid", 1))
     name = entry.get("name")
+    config = sim_config({**defaults, **entry})
     if entry.get("pty"):
-        return SimulatedAutopilot.pty(stack, sysid, name=name)
+        return SimulatedAutopilot.pty(stack, sysid, name=name, config=config, battery=battery)
     out = _address(entry["udp_out"]) if entry.get("udp_out") else None
     host, port = _address(entry["udp_bind"]) if entry.get("udp_bind") else ("127.0.0.1", 0)
     return SimulatedAutopilot.udp(
         stack, sysid, target_port=out[1] if out else None, host=out[0] if out else host,
-        bind_port=port, name=name,
+        bind_port=port, name=name, config=config, battery=battery,
     )  # fmt: skip
+
+
+_OPTION_KEYS = ("fast_boot", "boot_s", "position_wait_s", "preset_streams", "gcs_heartbeat")
 
 
 def build_sims(args: argparse.Namespace) -> list[SimulatedAutopilot]:
     """Start the autopilots a ``run`` command line (or its YAML config) describes."""
+    options = {key: getattr(args, key) for key in _OPTION_KEYS}
+    layout = args.battery
     if args.vehicle:
-        return start_vehicle_sims(args.vehicle.split(","), transport="pty" if args.pty else "udp")
+        return start_vehicle_sims(
+            args.vehicle.split(","),
+            transport="pty" if args.pty else "udp",
+            config=sim_config(options),
+            battery=layout or "shared",
+        )
     if args.config:
-        entries = yaml.safe_load(Path(args.config).read_text()).get("autopilots", [])
+        document = yaml.safe_load(Path(args.config).read_text()) or {}
+        entries = document.get("autopilots", [])
+        options.update({k: document[k] for k in _OPTION_KEYS if document.get(k) is not None})
+        layout = layout or document.get("battery")
     else:
         entries = [
             {
@@ -75,7 +115,14 @@ def build_sims(args: argparse.Namespace) -> list[SimulatedAutopilot]:
                 "pty": args.pty,
             }
         ]
-    sims = [_sim_from_entry(entry) for entry in entries]
+    layout = layout or "shared"
+    if layout not in BATTERY_LAYOUTS:
+        raise SystemExit(f"battery must be one of {', '.join(BATTERY_LAYOUTS)}, not {layout!r}")
+    shared = Battery()
+    sims = [
+        _sim_from_entry(entry, options, shared if layout == "shared" else Battery())
+        for entry in entries
+    ]
     names = [s.name for s in sims]
     if len(set(names)) != len(names) or len({s.sysid for s in sims}) != len(sims):
         raise SystemExit(f"autopilot names and sysids must be unique: {names}")
@@ -121,6 +168,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _control(args: argparse.Namespace, message: dict[str, Any]) -> int:
+    wait = float(message.get("timeout") or 0.0)
     directory = Path(args.state_dir) if args.state_dir else state_dir()
     if args.target == ALL_TARGETS:
         targets = sorted(p.stem for p in directory.glob("*.sock"))
@@ -130,7 +178,7 @@ def _control(args: argparse.Namespace, message: dict[str, Any]) -> int:
     for target in targets:
         path = socket_path(target, directory)
         try:
-            answer = request(path, message)
+            answer = request(path, message, timeout=wait + 5.0)
         except OSError as exc:
             print(f"roost-sim: cannot reach {target} at {path}: {exc}", file=sys.stderr)
             worst = 2
@@ -162,6 +210,18 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--pty", action="store_true", help="use a pseudo-terminal instead of UDP")
     run.add_argument("--vehicle", help="comma-separated stacks: one vehicle on free ports")
     run.add_argument("--config", help="YAML file with an 'autopilots' list")
+    run.add_argument(
+        "--fast-boot", action="store_true", help="boot in under a second (tests, sandbox)"
+    )
+    run.add_argument("--boot-s", type=float, help="seconds until STANDBY")
+    run.add_argument("--position-wait-s", type=float, help="seconds until a position estimate")
+    run.add_argument(
+        "--preset-streams", action="store_true", help="ArduPilot streams without being asked"
+    )
+    run.add_argument(
+        "--gcs-heartbeat", action="store_true", help="ArduPilot routes a GCS heartbeat here"
+    )
+    run.add_argument("--battery", choices=BATTERY_LAYOUTS, help="one shared battery (default)")
     run.set_defaults(func=_run)
 
     fault = sub.add_parser("fault", help="inject a fault into a running autopilot")
@@ -180,7 +240,21 @@ def build_parser() -> argparse.ArgumentParser:
     fly = sub.add_parser("fly", help="arm a running autopilot and take off")
     fly.add_argument("target", help="autopilot name")
     fly.add_argument("--altitude", type=float, help="metres (default: takeoff altitude)")
-    fly.set_defaults(func=lambda a: _control(a, {"op": "fly", "value": a.altitude}))
+    fly.add_argument(
+        "--wait", type=float, default=5.0, help="seconds to wait for start-up (default 5)"
+    )
+    fly.set_defaults(
+        func=lambda a: _control(a, {"op": "fly", "value": a.altitude, "timeout": a.wait})
+    )
+
+    throttle = sub.add_parser("throttle", help="set the pilot's throttle stick")
+    throttle.add_argument("target", help="autopilot name, or 'all'")
+    throttle.add_argument("stick", help="0 (low) .. 1 (high), or 'none' for no RC")
+    throttle.set_defaults(
+        func=lambda a: _control(
+            a, {"op": "throttle", "value": None if a.stick == "none" else a.stick}
+        )
+    )
 
     status = sub.add_parser("status", help="print an autopilot's state")
     status.add_argument("target", help="autopilot name, or 'all'")

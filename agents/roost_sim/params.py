@@ -52,12 +52,15 @@ class ParamStore:
                 Param("MAV_SYS_ID", INT32, lambda: float(sysid), None),
                 Param("MIS_TAKEOFF_ALT", REAL32, lambda: c.takeoff_alt_m, setter("takeoff_alt_m")),
                 Param(
-                    "MPC_LAND_SPEED", REAL32, lambda: c.descent_rate_mps, setter("descent_rate_mps")
+                    "MPC_LAND_SPEED",
+                    REAL32,
+                    lambda: c.landing(Stack.PX4).descent_mps,
+                    setter("descent_rate_mps"),
                 ),
                 Param(
                     "COM_DISARM_LAND",
                     REAL32,
-                    lambda: c.auto_disarm_after_land_s,
+                    lambda: c.landing(Stack.PX4).disarm_s,
                     setter("auto_disarm_after_land_s"),
                 ),
                 Param("COM_DISARM_PRFLT", REAL32, lambda: c.idle_disarm_s, setter("idle_disarm_s")),
@@ -73,7 +76,7 @@ class ParamStore:
             Param(
                 "LAND_SPEED",
                 INT32,
-                lambda: round(c.descent_rate_mps * 100),
+                lambda: round(c.landing(Stack.ARDUPILOT).descent_mps * 100),
                 setter("descent_rate_mps", 0.01),
             ),
             Param("DISARM_DELAY", INT32, lambda: round(c.idle_disarm_s), setter("idle_disarm_s")),

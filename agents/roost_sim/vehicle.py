@@ -4,6 +4,11 @@ Each autopilot gets a unique sysid (two with one sysid behind one socket get mer
 pymavlink) and its own agent port, picked by binding port 0. The agent listens on that
 port later, so another process could take it in between; on a test machine that window
 is a few milliseconds and the kernel hands out ephemeral ports round-robin.
+
+``battery`` says how the vehicle is powered: ``shared`` (one flight battery; every
+autopilot measures the same pack, so a battery fault shows on all of them) or
+``per-autopilot`` (each has its own supply). :mod:`roost_sim.battery` explains what a
+battery failsafe should do in each case.
 """
 
 from __future__ import annotations
@@ -14,7 +19,10 @@ from collections.abc import Sequence
 from roost_api.autopilot import AutopilotSpec
 from roost_api.meta import Stack
 from roost_sim.autopilot import SimulatedAutopilot
+from roost_sim.battery import Battery
 from roost_sim.model import SimConfig
+
+BATTERY_LAYOUTS = ("shared", "per-autopilot")
 
 
 def free_udp_port(host: str = "127.0.0.1") -> int:
@@ -32,25 +40,32 @@ def start_vehicle_sims(
     config: SimConfig | None = None,
     rates: dict[int, float] | None = None,
     name_prefix: str = "fc",
+    battery: str = "shared",
 ) -> list[SimulatedAutopilot]:
     """Start one sim per stack: names fc1..fcN, sysids 1..N unless given.
 
     ``transport`` is ``udp`` (each sim streams to its own free agent port; its
     ``connection`` is ``udp://127.0.0.1:PORT``) or ``pty`` (``serial:///dev/pts/N:57600``).
     Each sim gets its own copy of ``config``; ``rates`` overrides stream rates by message
-    id (e.g. ``{message_id("ATTITUDE"): 0}`` for heartbeats and slow streams only). Stop
-    them with :func:`stop_sims`.
+    id (e.g. ``{message_id("ATTITUDE"): 0}`` for heartbeats and slow streams only).
+    ``config`` defaults to the firmware's own timing (PX4 arms after ~4 s, ArduCopter
+    after ~41 s): tests pass ``SimConfig.fast()``. ``battery`` is ``shared`` or
+    ``per-autopilot``. Stop them with :func:`stop_sims`.
     """
     ids = list(sysids) if sysids is not None else list(range(1, len(stacks) + 1))
     if len(ids) != len(stacks) or len(set(ids)) != len(ids):
         raise ValueError(f"need {len(stacks)} unique sysids, got {ids}")
     if transport not in ("udp", "pty"):
         raise ValueError(f"transport must be udp or pty, not {transport!r}")
+    if battery not in BATTERY_LAYOUTS:
+        raise ValueError(f"battery must be one of {BATTERY_LAYOUTS}, not {battery!r}")
+    shared = Battery() if battery == "shared" else None
     sims: list[SimulatedAutopilot] = []
     try:
         for index, (stack, sysid) in enumerate(zip(stacks, ids, strict=True)):
             name = f"{name_prefix}{index + 1}"
             own_config = SimConfig(**vars(config)) if config else None
+            pack = shared or Battery()
             sim = (
                 SimulatedAutopilot.udp(
                     stack,
@@ -59,9 +74,12 @@ def start_vehicle_sims(
                     name=name,
                     config=own_config,
                     rates=rates,
+                    battery=pack,
                 )
                 if transport == "udp"
-                else SimulatedAutopilot.pty(stack, sysid, name=name, config=own_config, rates=rates)
+                else SimulatedAutopilot.pty(
+                    stack, sysid, name=name, config=own_config, rates=rates, battery=pack
+                )
             )
             sims.append(sim.start())
     except BaseException:

@@ -354,7 +354,10 @@ class AutopilotHealth(ApiModel):
     """One autopilot's health as the agent last judged it."""
 
     name: str = Field(max_length=63, description="Autopilot name.")
-    level: HealthLevel = Field(description="OK, WARN, ERROR or STALE (no data).")
+    level: HealthLevel = Field(
+        description="OK, WARN, STARTING (booting, estimator or GPS start-up), ERROR or STALE "
+        "(no data)."
+    )
     reasons: list[str] = Field(default_factory=list, description="Why it is not OK.")
     heartbeat_age_ms: int | None = Field(default=None, description="Age of the last heartbeat.")
     message_age_ms: int | None = Field(default=None, description="Age of the last message.")

@@ -61,16 +61,23 @@ class HealthLevel(StrEnum):
 
     OK = "OK"
     WARN = "WARN"
+    STARTING = "STARTING"  # booting, estimator or GPS start-up: not failed, not usable yet
     ERROR = "ERROR"
     STALE = "STALE"
 
     @property
     def rank(self) -> int:
-        """0 for OK up to 3 for STALE, for comparisons."""
+        """0 for OK up to 4 for STALE, for comparisons."""
         return _HEALTH_RANK[self]
 
 
-_HEALTH_RANK = {HealthLevel.OK: 0, HealthLevel.WARN: 1, HealthLevel.ERROR: 2, HealthLevel.STALE: 3}
+_HEALTH_RANK = {
+    HealthLevel.OK: 0,
+    HealthLevel.WARN: 1,
+    HealthLevel.STARTING: 2,
+    HealthLevel.ERROR: 3,
+    HealthLevel.STALE: 4,
+}
 
 # Conditions are a list map keyed by type, as in every built-in Kubernetes status.
 CONDITIONS_SCHEMA: JsonDict = {

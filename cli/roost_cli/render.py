@@ -14,7 +14,13 @@ from rich.text import Text
 
 from roost_cli.tables import EventRow, FleetRow, MissionRow
 
-LEVEL_STYLES = {"OK": "green", "WARN": "yellow", "ERROR": "bold red", "STALE": "magenta"}
+LEVEL_STYLES = {
+    "OK": "green",
+    "WARN": "yellow",
+    "STARTING": "cyan",
+    "ERROR": "bold red",
+    "STALE": "magenta",
+}
 READY_STYLES = {"True": "green", "False": "red", "Unknown": "yellow"}
 PHASE_STYLES = {
     "Pending": "dim",

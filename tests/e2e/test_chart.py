@@ -28,7 +28,7 @@ from roost_api.wellknown import LABEL_NODE, LABEL_VEHICLE, TAINT_VEHICLE
 from roost_localcluster.binaries import REPO_ROOT
 from roost_localcluster.cluster import Cluster, FakeNodes
 from roost_localcluster.processes import ManagedProcess
-from roost_sim import autopilot_specs, start_vehicle_sims, stop_sims
+from roost_sim import SimConfig, autopilot_specs, start_vehicle_sims, stop_sims
 from tests.support.agent import AgentProcess
 from tests.support.chart import install_args
 from tests.support.operator import OperatorProcess
@@ -473,7 +473,7 @@ def test_agent_with_its_pod_bound_token_reports_its_autopilots(
     RedundantAutopilot and writes their health from simulated autopilots over UDP."""
     taint = {"key": TAINT_VEHICLE, "value": "x", "effect": "NoSchedule"}
     fake_nodes_module(NODE_AGENT, labels={LABEL_VEHICLE: AGENT_VEHICLE}, taints=[taint])
-    sims = start_vehicle_sims(["px4", "px4"])
+    sims = start_vehicle_sims(["px4", "px4"], config=SimConfig.fast())
     agent: AgentProcess | None = None
     try:
         autopilot = _autopilot(AGENT_VEHICLE, NODE_AGENT)

@@ -33,7 +33,7 @@ from roost_localcluster.cluster import Cluster
 from roost_operator.autopilots.plan import mavros_follows
 from roost_operator.vehicles.config import config_map_name
 from roost_operator.vehicles.desired import workload_name
-from roost_sim import SimulatedAutopilot, autopilot_specs, start_vehicle_sims, stop_sims
+from roost_sim import SimConfig, SimulatedAutopilot, autopilot_specs, start_vehicle_sims, stop_sims
 from tests.support.agent import AgentProcess
 from tests.support.apiwrites import write_requests
 from tests.support.operator import OperatorProcess
@@ -143,11 +143,11 @@ def rig(
     name = unique("fo")
     node = f"{name}-node"
     fake_nodes(node)
-    sims = start_vehicle_sims(["px4", "px4"])
+    sims = start_vehicle_sims(["px4", "px4"], config=SimConfig.fast())
     agent = AgentProcess(roost_crds, node, tmp_path, report_interval_s=REPORT_INTERVAL_S)
     try:
         for sim in sims:
-            sim.wait_until(lambda s: s.system_status != "BOOT")
+            sim.wait_ready()
             sim.fly(altitude_m=5)
         for sim in sims:
             sim.wait_until(lambda s: s.landed_state == "InAir", timeout=30)

@@ -41,17 +41,28 @@ from roost_mavlink import (
     AGENT_COMPONENT_ID,
     MAV_CMD_DO_SET_MODE,
     MAV_CMD_NAV_LAND,
+    MAV_CMD_SET_MESSAGE_INTERVAL,
     ModeIntent,
     custom_mode,
     intent_mode,
     set_mode_params,
 )
 from roost_mavlink.modes import custom_mode_from_set_mode
-from roost_sim import FaultKind, SimulatedAutopilot, autopilot_specs, start_vehicle_sims, stop_sims
+from roost_sim import (
+    FaultKind,
+    SimConfig,
+    SimulatedAutopilot,
+    autopilot_specs,
+    start_vehicle_sims,
+    stop_sims,
+)
 from tests.support.flight import take_off
 from tests.support.waiting import wait_until
 
 pytestmark = pytest.mark.slow
+
+# Sub-second start-up; ArduPilot streams only what the agent requests, as the firmware.
+SIM_CONFIG = SimConfig.fast()
 
 HOLD_S = 1.0
 CLEAR_S = 1.0  # Thresholds.clear_ms default: a standby must be OK this long
@@ -70,11 +81,14 @@ class Flight:
         return next(s for s in self.sims if s.name == name)
 
     def agent_commands(self, name: str, since: float = 0.0) -> list[Any]:
-        """Commands the agent (component 191) sent to autopilot ``name``."""
+        """Commands the agent (component 191) sent to autopilot ``name``, except its
+        telemetry requests (SET_MESSAGE_INTERVAL), which it sends to every autopilot."""
         return [
             c
             for c in self.sim(name).commands
-            if c.source[1] == AGENT_COMPONENT_ID and c.at >= since
+            if c.source[1] == AGENT_COMPONENT_ID
+            and c.at >= since
+            and c.command != MAV_CMD_SET_MESSAGE_INTERVAL
         ]
 
 
@@ -111,11 +125,11 @@ def flying(
     """
     if transport == "udpout":
         sims = [
-            SimulatedAutopilot.udp(stack, i + 1, name=f"fc{i + 1}").start()
+            SimulatedAutopilot.udp(stack, i + 1, name=f"fc{i + 1}", config=SIM_CONFIG).start()
             for i, stack in enumerate(stacks)
         ]
     else:
-        sims = start_vehicle_sims(stacks, transport=transport)
+        sims = start_vehicle_sims(stacks, transport=transport, config=SIM_CONFIG)
     agent: Agent | None = None
     try:
         spec = make_spec(sims, final_action)
@@ -412,7 +426,7 @@ class AgentProcess:
 
 
 def test_console_script_fails_over_and_restarts_from_its_state_dir(tmp_path: Path) -> None:
-    sims = start_vehicle_sims(["px4", "px4"])
+    sims = start_vehicle_sims(["px4", "px4"], config=SIM_CONFIG)
     state_dir = tmp_path / "state"
     config = tmp_path / "ra.yaml"
     spec = make_spec(sims, FinalAction.HOLD)

@@ -12,10 +12,14 @@ AIRBORNE_M = 2.0
 
 
 def take_off(sims: Sequence[SimulatedAutopilot]) -> None:
-    """Wait for every sim to finish booting, order all to fly, wait until all are airborne
-    (in the air and above :data:`AIRBORNE_M`)."""
+    """Wait for every sim to finish start-up (booted, position estimate, armable), order
+    all to fly, wait until all are airborne (in the air and above :data:`AIRBORNE_M`).
+
+    The sims should run with ``SimConfig.fast()``: a realistic ArduCopter waits ~40 s for
+    its position estimate before it arms.
+    """
     for sim in sims:
-        sim.wait_until(lambda s: s.system_status != "BOOT", timeout=BOOT_TIMEOUT_S)
+        sim.wait_ready(timeout=BOOT_TIMEOUT_S)
     for sim in sims:
         sim.fly()
     for sim in sims:

@@ -19,9 +19,9 @@ from roost_api import shapes
 from roost_api.autopilot import RedundantAutopilotSpec
 from roost_api.meta import Stack
 from roost_api.vehicle import MAX_SIM_INSTANCE, VehicleSpec
+from roost_kube.events import event_manifest
 from roost_mavlink import pymavlink_device
 from roost_mavlink.sitl import DEFAULT_SLOTS_PER_VEHICLE, MAX_SITL_INSTANCES, sitl_endpoint
-from roost_operator.kube import event_manifest
 from roost_operator.missions.workloads import offboard_job_name, onboard_job_name
 from roost_operator.vehicles.config import config_map_name, vehicle_config, vehicle_config_map
 from roost_operator.vehicles.desired import (
@@ -276,7 +276,13 @@ def test_event_and_job_names_of_the_longest_mission_and_vehicle_are_valid() -> N
             "kind": kind,
             "metadata": {"name": name, "namespace": "default", "uid": "u"},
         }
-        event = event_manifest(regarding, reason="Why", message="m", at="2026-01-01T00:00:00Z")
+        event = event_manifest(
+            regarding,
+            reason="Why",
+            message="m",
+            at="2026-01-01T00:00:00Z",
+            component="roost-operator",
+        )
         assert len(event["metadata"]["name"]) <= 253
         assert DNS_SUBDOMAIN.fullmatch(event["metadata"]["name"])
 

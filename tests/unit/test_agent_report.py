@@ -19,6 +19,7 @@ from roost_api.meta import HealthLevel, find_condition
 
 NOW = datetime(2026, 5, 1, 12, 0, 0, tzinfo=UTC)
 OK, WARN, ERROR, STALE = HealthLevel.OK, HealthLevel.WARN, HealthLevel.ERROR, HealthLevel.STALE
+STARTING = HealthLevel.STARTING
 
 SPEC = RedundantAutopilotSpec.model_validate(
     {
@@ -38,8 +39,16 @@ SPEC = RedundantAutopilotSpec.model_validate(
 )
 
 
-def health(name: str, level: HealthLevel, *reasons: str) -> AutopilotHealth:
-    return AutopilotHealth(name=name, level=level, reasons=list(reasons))
+def health(
+    name: str,
+    level: HealthLevel,
+    *reasons: str,
+    armed: bool | None = False,
+    landed: str | None = "OnGround",
+) -> AutopilotHealth:
+    return AutopilotHealth(
+        name=name, level=level, reasons=list(reasons), armed=armed, landed_state=landed
+    )
 
 
 def switch(frm: str, to: str, trigger: str = "Automatic") -> FailoverRecord:
@@ -108,6 +117,39 @@ def summary(
             observed(None, health("fc1", OK)),
             ("Unknown", "NoActiveAutopilot"),
             ("Unknown", "NoActiveAutopilot"),
+        ),
+        # a standby whose armed or landed state is unknown can never be switched to
+        (
+            observed("fc1", health("fc1", OK), health("fc2", OK, armed=None, landed=None)),
+            ("True", "Healthy"),
+            ("False", "StandbyStateUnknown"),
+        ),
+        (
+            observed("fc1", health("fc1", OK), health("fc2", OK, landed="Undefined")),
+            ("True", "Healthy"),
+            ("False", "StandbyStateUnknown"),
+        ),
+        (
+            observed("fc1", health("fc1", OK), health("fc2", OK, landed=None)),
+            ("True", "Healthy"),
+            ("False", "StandbyStateUnknown"),
+        ),
+        # ... one that is known beside it still counts
+        (
+            observed(
+                "fc1",
+                health("fc1", OK),
+                health("fc2", OK, armed=None, landed=None),
+                health("fc3", OK, armed=True, landed="InAir"),
+            ),
+            ("True", "Healthy"),
+            ("True", "StandbyAvailable"),
+        ),
+        # start-up is neither healthy nor failed
+        (
+            observed("fc1", health("fc1", STARTING, "booting"), health("fc2", STARTING)),
+            ("False", "Starting"),
+            ("False", "NoHealthyStandby"),
         ),
         # after a failover the agent never returns on its own to the autopilot it left
         (

@@ -417,3 +417,142 @@ def test_a_second_fatal_heartbeat_confirms_when_sequence_numbers_say_nothing() -
     v.observe(mav.MAVLink_heartbeat_message(2, MAV_AUTOPILOT_PX4, ARMED, LOITER, 6, 3), seq=7)
     v.observe(mav.MAVLink_heartbeat_message(2, MAV_AUTOPILOT_PX4, ARMED, LOITER, 6, 3), seq=7)
     assert "mav-state" in failing_codes(v.at(0.0))
+
+
+# -- no health without evidence: start-up is STARTING, not OK and not failed -----------
+
+STARTING = HealthLevel.STARTING
+DISARMED = 1 | 28  # custom mode enabled + PX4's usual bits, not armed
+
+
+def estimator(v: Vehicle, flags: int, kind: str = "ESTIMATOR_STATUS") -> None:
+    if kind == "ESTIMATOR_STATUS":
+        msg = mav.MAVLink_estimator_status_message(0, flags, 0, 0, 0, 0, 0, 0, 0, 0)
+    else:
+        msg = mav.MAVLink_ekf_status_report_message(flags, 0, 0, 0, 0, 0)
+    v.tracker.observe(msg, v.t)
+
+
+def test_messages_before_the_first_heartbeat_are_starting_not_ok() -> None:
+    v = Vehicle()
+    v.attitude()
+    a = v.at(0.01)
+    assert a.level == STARTING and codes(a) == {"starting"} and not a.failing
+    assert a.reasons == ("no heartbeat yet",)
+
+
+@pytest.mark.parametrize(
+    ("stack", "state", "level"),
+    [
+        (Stack.PX4, MavState.UNINIT, STARTING),  # PX4 v1.16 reports UNINIT for ~4 s
+        (Stack.PX4, MavState.BOOT, STARTING),
+        (Stack.ARDUPILOT, MavState.BOOT, STARTING),
+        (Stack.PX4, MavState.STANDBY, OK),
+        (Stack.ARDUPILOT, MavState.STANDBY, OK),
+    ],
+)
+def test_booting_on_the_ground_is_starting(stack: Stack, state: int, level: HealthLevel) -> None:
+    v = Vehicle(stack)
+    autopilot = MAV_AUTOPILOT_PX4 if stack == Stack.PX4 else MAV_AUTOPILOT_ARDUPILOTMEGA
+    mode = custom_mode(stack, "AUTO.LOITER" if stack == Stack.PX4 else "STABILIZE")
+    v.heartbeat(state=state, base_mode=DISARMED, mode=mode, autopilot=autopilot)
+    v.landed(LandedState.ON_GROUND)
+    a = v.at(0.01)
+    assert a.level == level and not a.failing
+
+
+def test_booting_state_in_the_air_is_still_an_error() -> None:
+    v = Vehicle()
+    v.fly(1.0)
+    v.heartbeat(state=MavState.UNINIT)
+    a = v.at(0.0)
+    assert a.level == ERROR and a.failing
+
+
+@pytest.mark.parametrize(
+    ("kind", "flags"),
+    [("ESTIMATOR_STATUS", 0x480), ("EKF_STATUS_REPORT", 0x400)],  # seen at boot
+)
+def test_estimator_start_up_is_starting_then_a_later_loss_is_an_error(
+    kind: str, flags: int
+) -> None:
+    v = Vehicle()
+    v.heartbeat(state=MavState.STANDBY, base_mode=DISARMED)
+    v.landed(LandedState.ON_GROUND)
+    estimator(v, flags, kind)
+    v.t += 5.0  # far beyond sensor_persist_ms: still only starting
+    v.heartbeat(state=MavState.STANDBY, base_mode=DISARMED)
+    a = v.at(0.0)
+    assert a.level == STARTING and "estimator-starting" in codes(a) and not a.failing
+    estimator(v, 0x1 | 0x2 | 0x4 | 0x8 | 0x10 | 0x20, kind)  # attitude and position good
+    assert v.at(0.0).level == OK
+    estimator(v, flags, kind)  # lost after it worked
+    v.t += 1.0
+    v.heartbeat(state=MavState.STANDBY, base_mode=DISARMED)
+    a = v.at(0.0)
+    assert a.level == ERROR and "estimator" in codes(a)
+
+
+def test_gps_wait_is_starting_and_losing_position_later_only_warns() -> None:
+    v = Vehicle(Stack.ARDUPILOT)
+    v.heartbeat(
+        state=MavState.STANDBY,
+        base_mode=DISARMED,
+        mode=custom_mode(Stack.ARDUPILOT, "STABILIZE"),
+        autopilot=MAV_AUTOPILOT_ARDUPILOTMEGA,
+    )
+    v.landed(LandedState.ON_GROUND)
+    estimator(v, 0x1 | 0x2 | 0x4, "EKF_STATUS_REPORT")  # attitude, no absolute position
+    a = v.at(0.0)
+    assert a.level == STARTING and a.reasons == ("waiting for an absolute position estimate (GPS)",)
+    estimator(v, 0x1 | 0x2 | 0x4 | 0x10, "EKF_STATUS_REPORT")
+    assert v.at(0.0).level == OK
+    estimator(v, 0x1 | 0x2 | 0x4, "EKF_STATUS_REPORT")
+    assert v.at(0.0).level == WARN
+
+
+def test_px4_uninit_after_a_failsafe_landing_is_not_a_reboot() -> None:
+    """PX4 v1.16 reports UNINIT once disarmed after a battery-failsafe landing."""
+    v = Vehicle()
+    v.fly(1.0)
+    v.landed(LandedState.ON_GROUND)
+    v.heartbeat(state=MavState.UNINIT, base_mode=DISARMED)
+    a = v.at(0.0)
+    assert "reboot" not in codes(a) and v.tracker.stream_facts().reboots == 0
+    assert a.level == STARTING and not a.failing
+
+
+def test_boot_after_being_up_is_a_reboot_and_counted() -> None:
+    v = Vehicle()
+    v.fly(1.0)
+    v.heartbeat(state=MavState.BOOT)
+    assert v.tracker.stream_facts().reboots == 0  # one message is a claim, not evidence
+    v.heartbeat(state=MavState.BOOT)  # the next heartbeat in sequence corroborates it
+    a = v.at(0.0)
+    assert "reboot" in codes(a) and a.failing
+    assert v.tracker.stream_facts().reboots == 1
+
+
+def test_motion_and_per_type_counts_are_kept() -> None:
+    v = Vehicle()
+    assert v.tracker.motion() is None
+    v.fly(1.0)
+    v.tracker.observe(
+        mav.MAVLink_global_position_int_message(0, 0, 0, 600_000, 4_800, 0, 0, 245, 0), v.t
+    )
+    motion = v.tracker.motion()
+    assert motion is not None and motion.altitude_m == 4.8 and motion.climb_mps == -2.45
+    facts = v.tracker.stream_facts()
+    assert facts.counts["ATTITUDE"] == 50 and facts.counts["GLOBAL_POSITION_INT"] == 1
+
+
+def test_liveness_follows_the_verified_requested_streams() -> None:
+    v = Vehicle()
+    for _ in range(3):  # heartbeats only: a slow link, silence is judged by heartbeat age
+        v.heartbeat()
+        v.t += 1.0
+    assert "silent" not in codes(v.at(0.6))
+    v.tracker.expect_streams(72.0)  # the keeper verified 72 msg/s of requested streams
+    assert "silent" in codes(v.at(0.6))
+    v.tracker.expect_streams(None)
+    assert "silent" not in codes(v.at(0.6))

@@ -24,6 +24,7 @@ from roost_mavlink import (
     custom_mode,
     custom_mode_from_set_mode,
     heartbeat_autopilot,
+    hold_modes,
     intent_mode,
     is_manual_mode,
     landed_state_name,
@@ -54,6 +55,14 @@ from roost_mavlink.status import (
         ("MANUAL", 0x00010000),
         ("POSCTL", 0x00030000),
         ("OFFBOARD", 0x00060000),
+        # PX4 v1.16 px4_custom_mode.h: main 9 SIMPLE (reserved), 10 TERMINATION
+        ("SIMPLE", 0x00090000),
+        ("TERMINATION", 0x000A0000),
+        ("POSCTL.ORBIT", 0x01030000),
+        ("POSCTL.SLOW", 0x02030000),
+        ("AUTO.VTOL_TAKEOFF", 0x0A040000),
+        ("AUTO.EXTERNAL1", 0x0B040000),
+        ("AUTO.EXTERNAL8", 0x12040000),
     ],
 )
 def test_px4_custom_mode_matches_px4_encoding(name: str, value: int) -> None:
@@ -73,6 +82,10 @@ def test_px4_custom_mode_matches_px4_encoding(name: str, value: int) -> None:
         ("LAND", 9),
         ("POSHOLD", 16),
         ("BRAKE", 17),
+        ("THROW", 18),
+        ("SMART_RTL", 21),
+        ("AUTO_RTL", 27),
+        ("TURTLE", 28),
     ],
 )
 def test_arducopter_mode_numbers(name: str, number: int) -> None:
@@ -101,9 +114,12 @@ def test_do_set_mode_rejects_missing_flag_and_unknown_modes() -> None:
         custom_mode_from_set_mode(Stack.PX4, 1, 4, 0)  # AUTO without a sub mode
 
 
-def test_unknown_custom_mode_is_named_unknown_and_px4_submodes_fold_to_main() -> None:
-    assert mode_name(Stack.ARDUPILOT, 99) == "UNKNOWN(0x00000063)"
-    assert mode_name(Stack.PX4, 0x01030000) == "POSCTL"  # POSCTL.ORBIT
+def test_unknown_custom_mode_is_named_by_its_numbers() -> None:
+    assert mode_name(Stack.ARDUPILOT, 99) == "UNKNOWN(99)"
+    assert mode_name(Stack.ARDUPILOT, 8) == "UNKNOWN(8)"  # retired number
+    assert mode_name(Stack.PX4, 0x000B0000) == "UNKNOWN(main=11,sub=0)"
+    assert mode_name(Stack.PX4, 0x13040000) == "UNKNOWN(main=4,sub=19)"
+    assert mode_name(Stack.PX4, 0x00040001) == "UNKNOWN(0x00040001)"  # low bits set
     with pytest.raises(KeyError):
         custom_mode(Stack.PX4, "LOITER")
 
@@ -112,7 +128,11 @@ def test_intents_pick_the_stack_specific_modes() -> None:
     assert intent_mode(Stack.PX4, ModeIntent.HOLD) == "AUTO.LOITER"
     assert intent_mode(Stack.PX4, ModeIntent.LAND) == "AUTO.LAND"
     assert intent_mode(Stack.PX4, ModeIntent.RETURN_TO_LAUNCH) == "AUTO.RTL"
-    assert intent_mode(Stack.ARDUPILOT, ModeIntent.HOLD) == "LOITER"
+    # ArduCopter's LOITER follows the throttle stick (down without a radio): BRAKE holds
+    assert intent_mode(Stack.ARDUPILOT, ModeIntent.HOLD) == "BRAKE"
+    assert hold_modes(Stack.ARDUPILOT) == ("BRAKE", "GUIDED")
+    assert "LOITER" not in hold_modes(Stack.ARDUPILOT)
+    assert hold_modes(Stack.PX4) == ("AUTO.LOITER",)
     assert intent_mode(Stack.ARDUPILOT, ModeIntent.LAND) == "LAND"
     assert intent_mode(Stack.ARDUPILOT, ModeIntent.RETURN_TO_LAUNCH) == "RTL"
 

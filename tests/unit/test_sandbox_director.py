@@ -84,10 +84,12 @@ def test_latency_reads_well_at_every_scale(ms: float, text: str) -> None:
 def test_each_sim_binds_a_port_of_its_own_choosing() -> None:
     [vehicle] = plan.plan_fleet(1)
     assert sims.sim_config(vehicle) == {
+        "fast_boot": True,
+        "preset_streams": True,
         "autopilots": [
             {"name": "px4-a", "stack": "px4", "sysid": 1, "udp_bind": "127.0.0.1:0"},
             {"name": "px4-b", "stack": "px4", "sysid": 2, "udp_bind": "127.0.0.1:0"},
-        ]
+        ],
     }
 
 

@@ -38,8 +38,8 @@ class FakeClock:
 
 def make(stack: Stack, **config: Any) -> tuple[AutopilotModel, FakeClock]:
     clock = FakeClock()
-    model = AutopilotModel(stack, SimConfig(**config), clock=clock)
-    clock.now += 1.0  # past the BOOT phase
+    model = AutopilotModel(stack, SimConfig.fast(**config), clock=clock)
+    clock.now += 1.0  # past the fast start-up (boot and position estimate)
     return model, clock
 
 
@@ -63,16 +63,79 @@ def airborne(stack: Stack) -> tuple[AutopilotModel, FakeClock]:
 REFUSED = {Stack.PX4: MavResult.TEMPORARILY_REJECTED, Stack.ARDUPILOT: MavResult.FAILED}
 
 
+# Realistic start-up, as measured on the firmware: (seconds after boot, MAV_STATE,
+# estimator flags, arm result).
+BOOT_TIMELINE = {
+    Stack.PX4: [
+        (0.5, MavState.UNINIT, 0x400, MavResult.TEMPORARILY_REJECTED),
+        (2.5, MavState.UNINIT, 0xE5, MavResult.TEMPORARILY_REJECTED),
+        (3.5, MavState.UNINIT, 0x3FF, MavResult.TEMPORARILY_REJECTED),
+        (4.1, MavState.STANDBY, 0x3FF, MavResult.ACCEPTED),
+    ],
+    Stack.ARDUPILOT: [
+        (1.0, MavState.BOOT, 0x400, MavResult.FAILED),
+        (3.0, MavState.STANDBY, 0x400, MavResult.FAILED),
+        (10.0, MavState.STANDBY, 0xA7, MavResult.FAILED),
+        (30.0, MavState.STANDBY, 0xA7, MavResult.FAILED),
+        (40.7, MavState.STANDBY, 0x33F, MavResult.ACCEPTED),
+    ],
+}
+
+
 @pytest.mark.parametrize("stack", list(Stack))
-def test_boot_state_defaults(stack: Stack) -> None:
-    clock = FakeClock()
-    model = AutopilotModel(stack, clock=clock)
-    assert model.system_status() is MavState.BOOT
-    assert model.arm(arm=True) == REFUSED[stack]
-    clock.now += 1.0
-    assert model.system_status() is MavState.STANDBY
+def test_realistic_boot_timeline(stack: Stack) -> None:
+    for at, state, flags, arm in BOOT_TIMELINE[stack]:
+        clock = FakeClock()
+        model = AutopilotModel(stack, clock=clock)
+        clock.now += at
+        model.step()
+        assert (model.system_status(), model.estimator_flags()) == (state, flags), at
+        assert model.arm(arm=True) == arm, at
     assert model.mode == {Stack.PX4: "AUTO.LOITER", Stack.ARDUPILOT: "STABILIZE"}[stack]
-    assert model.time_boot_ms() == 1000
+
+
+def test_ardupilot_refuses_to_arm_with_its_own_texts_until_it_has_a_position() -> None:
+    clock = FakeClock()
+    model = AutopilotModel(Stack.ARDUPILOT, clock=clock)
+    texts = []
+    for at in (1.0, 10.0, 25.0):
+        clock.now = 100.0 + at
+        model.step()
+        model.texts.clear()
+        assert model.arm(arm=True) == MavResult.FAILED
+        texts.append([text for _, text in model.texts])
+    assert texts == [
+        ["Arm: System not initialised"],
+        ["Arm: AHRS: waiting for home"],
+        ["Arm: Need Position Estimate"],
+    ]
+
+
+def test_ardupilot_mode_set_during_boot_is_overwritten_with_stabilize() -> None:
+    clock = FakeClock()
+    model = AutopilotModel(Stack.ARDUPILOT, clock=clock)
+    clock.now += 0.5
+    assert model.set_mode(custom_mode(Stack.ARDUPILOT, "GUIDED")) == MavResult.ACCEPTED
+    clock.now += 2.0
+    model.step()
+    assert model.mode == "STABILIZE"
+    assert model.set_mode(custom_mode(Stack.ARDUPILOT, "GUIDED")) == MavResult.ACCEPTED
+    clock.now += 1.0
+    model.step()
+    assert model.mode == "GUIDED"
+
+
+@pytest.mark.parametrize("stack", list(Stack))
+def test_fast_boot_keeps_the_order_of_the_start_up_steps(stack: Stack) -> None:
+    times = SimConfig.fast().boot_times(stack)
+    real = SimConfig().boot_times(stack)
+    assert times.standby_s < 1.0 and times.position_s < 1.0
+    if stack is Stack.PX4:
+        assert times.first_heartbeat_s < times.attitude_s < times.position_s < times.standby_s
+        assert real.first_heartbeat_s < real.attitude_s < real.position_s < real.standby_s
+    else:
+        assert times.standby_s <= times.attitude_s < times.position_s
+        assert real.standby_s < real.attitude_s < real.origin_s < real.position_s
 
 
 @pytest.mark.parametrize("stack", list(Stack))
@@ -122,7 +185,7 @@ def test_takeoff_hold_land_and_auto_disarm(stack: Stack) -> None:
     model, clock = airborne(stack)
     assert model.altitude_m == pytest.approx(2.5)
     assert model.system_status() is MavState.ACTIVE
-    hold = {Stack.PX4: "AUTO.LOITER", Stack.ARDUPILOT: "LOITER"}[stack]
+    hold = {Stack.PX4: "AUTO.LOITER", Stack.ARDUPILOT: "BRAKE"}[stack]
     assert model.set_mode(custom_mode(stack, hold)) == MavResult.ACCEPTED
     run(model, clock, 1.0)
     assert model.altitude_m == pytest.approx(2.5)
@@ -253,7 +316,8 @@ def test_reboot_forgets_the_flight(stack: Stack) -> None:
     model.state_override = MavState.CRITICAL
     model.reboot()
     assert (model.armed, model.altitude_m, model.time_boot_ms()) == (False, 0.0, 0)
-    assert model.system_status() is MavState.BOOT
+    booting = {Stack.PX4: MavState.UNINIT, Stack.ARDUPILOT: MavState.BOOT}[stack]
+    assert model.system_status() is booting
     clock.now += 1.0
     assert model.system_status() is MavState.STANDBY
 
@@ -291,9 +355,12 @@ def test_a_disarmed_vehicle_never_climbs_and_the_landed_state_matches_altitude(
         if not model.armed:
             assert model.altitude_m <= before
         assert not model.on_ground or model.altitude_m == 0.0
+        # On the ground it is ON_GROUND, TAKEOFF (spooling up) or LANDING: touched down,
+        # and the landing detector has not confirmed it yet (PX4 ~7 s, ArduCopter ~2 s).
         assert model.altitude_m > 0.0 or model.landed_state in (
             LandedState.ON_GROUND,
             LandedState.TAKEOFF,
+            LandedState.LANDING,
         )
 
 

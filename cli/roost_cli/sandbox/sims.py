@@ -33,6 +33,10 @@ BIND_HOST = "127.0.0.1"
 def sim_config(vehicle: plan.VehiclePlan) -> dict[str, Any]:
     """``roost-sim run --config`` for one vehicle: its autopilots, each on a port it picks."""
     return {
+        # A demo should not wait for GPS: sub-second start-up. ArduPilot streams as with
+        # its SRn_* stream-rate parameters set, for agents that do not request streams.
+        "fast_boot": True,
+        "preset_streams": True,
         "autopilots": [
             {
                 "name": autopilot.name,
@@ -41,7 +45,7 @@ def sim_config(vehicle: plan.VehiclePlan) -> dict[str, Any]:
                 "udp_bind": f"{BIND_HOST}:0",
             }
             for autopilot in vehicle.autopilots
-        ]
+        ],
     }
 
 

@@ -1,0 +1,280 @@
+"""Recorded real-firmware traffic replayed into the agent's health model and hold check.
+
+The recordings (.tlog: PX4 v1.16 SIH and ArduCopter SITL, one autopilot link each) live
+in a ``captures`` directory outside the repository: ``$ROOST_CAPTURES_DIR``, else
+``shared/captures`` beside the repository root. They are read where they are, never
+copied in; without them these tests skip and say where they looked.
+
+Each replay feeds every frame from the autopilot (system 1, component 1: the link's own
+filter; frames of other systems and components are dropped as the link drops them) into
+a :class:`HealthTracker` at its recorded time and assesses every 50 ms, as the decision
+loop would, then asserts the judgements over time: OK only after the first heartbeat,
+no ERROR while the autopilot boots (PX4 UNINIT and estimator start-up, ArduCopter BOOT
+and its ~40 s GPS wait), ERROR within the message threshold of a kill, and the battery
+failsafe's MAV_STATE CRITICAL reported and corroborated into an ERROR. The hold check
+(:func:`roost_agent.safety.judge_hold`) is replayed on ArduCopter's LOITER without RC
+(caught long before the ground) and BRAKE (a hold).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+os.environ.setdefault("MAVLINK20", "1")
+
+import pytest
+from pymavlink import mavutil
+
+from roost_agent.health import Assessment, HealthTracker, Motion
+from roost_agent.report import conditions
+from roost_agent.safety import DEFAULT_TIMING, judge_hold
+from roost_api.autopilot import (
+    AutopilotHealth,
+    RedundantAutopilotSpec,
+    RedundantAutopilotStatus,
+    Thresholds,
+)
+from roost_api.meta import HealthLevel, Stack
+from roost_mavlink import MavState, custom_mode
+
+REPO = Path(__file__).resolve().parents[2]
+CAPTURES = Path(os.environ.get("ROOST_CAPTURES_DIR") or REPO.parent / "shared" / "captures")
+STEP_S = 0.05
+TH = Thresholds()
+OK, STARTING, ERROR = HealthLevel.OK, HealthLevel.STARTING, HealthLevel.ERROR
+
+
+def capture(name: str) -> Path:
+    path = CAPTURES / name
+    if not path.is_file():
+        pytest.skip(f"capture {name} not found in {CAPTURES} (set ROOST_CAPTURES_DIR)")
+    return path
+
+
+@dataclass
+class Replay:
+    """Messages of one recording (autopilot's own only) and the judgements over time."""
+
+    messages: list[tuple[float, Any]]
+    timeline: list[Assessment]
+    foreign: int
+
+    @property
+    def last_at(self) -> float:
+        return self.messages[-1][0]
+
+    def first(self, kind: str, **fields: int) -> float:
+        return next(
+            t
+            for t, m in self.messages
+            if m.get_type() == kind and all(getattr(m, k) == v for k, v in fields.items())
+        )
+
+    def up(self) -> float:
+        """The first heartbeat out of boot (STANDBY, or ACTIVE when armed at once)."""
+        return next(
+            t
+            for t, m in self.messages
+            if m.get_type() == "HEARTBEAT"
+            and m.system_status in (MavState.STANDBY, MavState.ACTIVE)
+        )
+
+    def during(self, start: float, end: float) -> list[Assessment]:
+        return [a for a in self.timeline if start <= a.at < end]
+
+    def at(self, t: float) -> Assessment:
+        return next(a for a in self.timeline if a.at >= t)
+
+
+def replay(name: str, stack: Stack, tail_s: float = 4.0) -> Replay:
+    conn: Any = mavutil.mavlink_connection(str(capture(name)), dialect="ardupilotmega")
+    tracker = HealthTracker("fc1", stack, TH)
+    messages: list[tuple[float, Any]] = []
+    timeline: list[Assessment] = []
+    start: float | None = None
+    next_at = 0.0
+    foreign = 0
+    while (msg := conn.recv_match()) is not None:
+        start = msg._timestamp if start is None else start
+        t = msg._timestamp - start
+        while next_at < t:
+            timeline.append(tracker.assess(next_at))
+            next_at += STEP_S
+        if msg.get_type() == "BAD_DATA" or (msg.get_srcSystem(), msg.get_srcComponent()) != (1, 1):
+            foreign += 1
+            continue
+        tracker.observe(msg, t)
+        messages.append((t, msg))
+    end = next_at + tail_s
+    while next_at < end:
+        timeline.append(tracker.assess(next_at))
+        next_at += STEP_S
+    return Replay(messages, timeline, foreign)
+
+
+def levels(assessments: list[Assessment]) -> set[HealthLevel]:
+    return {a.level for a in assessments}
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        "px4-v1.16-sih-boot-arm-takeoff-loiter-land.tlog",
+        "px4-v1.16-sih-killed-in-flight.tlog",
+        "px4-v1.16-sih-battery-failsafe.tlog",
+    ],
+)
+def test_px4_boot_is_starting_and_ok_comes_only_after_the_first_heartbeat(name: str) -> None:
+    r = replay(name, Stack.PX4)
+    first_beat = r.first("HEARTBEAT")
+    standby = r.up()
+    assert r.foreign > 0  # the file has frames the link would not take as the autopilot's
+    assert OK not in levels(r.during(0, first_beat))
+    assert levels(r.during(0, standby)) == {STARTING}  # UNINIT, estimator start-up, GPS
+    reasons = {x for a in r.during(0, standby) for x in a.reasons}
+    assert "booting (MAV_STATE UNINIT)" in reasons
+    assert any(x.startswith("estimator starting (ESTIMATOR_STATUS flags") for x in reasons)
+    armed = r.first("HEARTBEAT", system_status=MavState.ACTIVE)
+    assert levels(r.during(standby + STEP_S, armed + 5)) == {OK}
+
+
+def test_px4_flight_is_ok_throughout_until_the_recording_ends() -> None:
+    r = replay("px4-v1.16-sih-boot-arm-takeoff-loiter-land.tlog", Stack.PX4)
+    standby = r.up()
+    assert levels(r.during(standby + STEP_S, r.last_at)) == {OK}
+
+
+def test_px4_killed_in_flight_is_an_error_within_the_message_threshold() -> None:
+    r = replay("px4-v1.16-sih-killed-in-flight.tlog", Stack.PX4)
+    killed = r.last_at
+    standby = r.up()
+    assert levels(r.during(standby + STEP_S, killed)) == {OK}
+    failing = next(a for a in r.timeline if a.at > killed and a.failing)
+    assert failing.at - killed <= TH.message_error_ms / 1000 + STEP_S
+    assert failing.level == ERROR and failing.onset == killed
+    assert "silent" in failing.failure_reason  # the stream, not the 3 s heartbeat age
+    assert failing.in_air is True and failing.armed is True  # a failover target's state
+
+
+def test_px4_battery_failsafe_reports_critical_and_an_error() -> None:
+    r = replay("px4-v1.16-sih-battery-failsafe.tlog", Stack.PX4)
+    critical = r.first("HEARTBEAT", system_status=MavState.CRITICAL)
+    standby = r.up()
+    assert ERROR not in levels(r.during(0, critical))
+    assert STARTING not in levels(r.during(standby + STEP_S, critical))
+    judged = r.at(critical)
+    assert judged.to_api().system_status == "CRITICAL"
+    assert judged.level == ERROR and judged.failing
+    assert "MAV_STATE CRITICAL, corroborated by battery unhealthy" in judged.failure_reason
+    landing = r.first("HEARTBEAT", custom_mode=custom_mode(Stack.PX4, "AUTO.LAND"))
+    assert all(a.failing for a in r.during(critical, landing))
+
+
+def test_arducopter_heartbeat_only_is_never_a_usable_standby() -> None:
+    """Nobody requested streams: BOOT is starting, then only heartbeats — the armed
+    state is known, the landed state never, and Redundant says so."""
+    r = replay("arducopter-boot-unrequested.tlog", Stack.ARDUPILOT)
+    standby = r.up()
+    assert levels(r.during(0, standby)) == {STARTING}
+    assert ERROR not in levels(r.during(0, r.last_at))
+    seen = r.at(r.last_at - 1)
+    assert seen.armed is False and seen.landed_state is None
+    spec = RedundantAutopilotSpec.model_validate(
+        {
+            "vehicleName": "v1",
+            "primary": "fc1",
+            "autopilots": [
+                {
+                    "name": f"fc{i}",
+                    "stack": "ardupilot",
+                    "connection": f"tcp://127.0.0.1:576{i}",
+                    "sysid": 1,
+                    "bridgeChannel": i,
+                }
+                for i in (1, 2)
+            ],
+        }
+    )
+    active = AutopilotHealth(name="fc1", level=OK, armed=True, landed_state="InAir")
+    standby_health = seen.to_api().model_copy(update={"name": "fc2"})
+    status = RedundantAutopilotStatus(active_autopilot="fc1", autopilots=[active, standby_health])
+    (redundant,) = [
+        c
+        for c in conditions(
+            [], spec=spec, status=status, generation=1, now=datetime(2026, 1, 1, tzinfo=UTC)
+        )
+        if c.type == "Redundant"
+    ]
+    assert (redundant.status, redundant.reason) == ("False", "StandbyStateUnknown")
+
+
+@pytest.mark.parametrize(
+    "name", ["arducopter-streams-arm-takeoff-brake-land.tlog", "arducopter-loiter-no-rc.tlog"]
+)
+def test_arducopter_boot_and_gps_wait_are_starting_never_errors(name: str) -> None:
+    r = replay(name, Stack.ARDUPILOT)
+    armed = next(t for t, m in r.messages if m.get_type() == "HEARTBEAT" and m.base_mode & 128)
+    assert ERROR not in levels(r.during(0, armed))
+    starting = {x for a in r.during(0, armed) if a.level == STARTING for x in a.reasons}
+    assert "booting (MAV_STATE BOOT)" in starting
+    assert "waiting for an absolute position estimate (GPS)" in starting
+    assert any(x.startswith("estimator starting (EKF_STATUS_REPORT flags 0x400") for x in starting)
+    assert r.at(armed).level == OK
+
+
+def test_arducopter_brake_flight_and_landing_are_never_errors() -> None:
+    r = replay("arducopter-streams-arm-takeoff-brake-land.tlog", Stack.ARDUPILOT)
+    assert ERROR not in levels(r.during(0, r.last_at))
+
+
+def _hold_verdicts(r: Replay, mode: str) -> tuple[float, list[tuple[float, str, float]]]:
+    """Replay judge_hold from the heartbeat showing ``mode``: (entered, failing verdicts
+    as (time, reason, altitude lost))."""
+    entered = r.first("HEARTBEAT", custom_mode=custom_mode(Stack.ARDUPILOT, mode))
+    samples: list[Motion] = []
+    failures: list[tuple[float, str, float]] = []
+    reference: float | None = None
+    left = next(
+        (
+            t
+            for t, m in r.messages
+            if t > entered
+            and m.get_type() == "HEARTBEAT"
+            and m.custom_mode != custom_mode(Stack.ARDUPILOT, mode)
+        ),
+        r.last_at,
+    )
+    for t, m in r.messages:
+        if not entered <= t < left or m.get_type() != "GLOBAL_POSITION_INT":
+            continue
+        sample = Motion(m.relative_alt / 1000, -m.vz / 100, t)
+        reference = sample.altitude_m if reference is None else reference
+        samples.append(sample)
+        verdict = judge_hold(samples, reference, t, DEFAULT_TIMING)
+        if verdict is not None:
+            failures.append((t, verdict.reason, reference - sample.altitude_m))
+    return entered, failures
+
+
+def test_loiter_without_rc_is_caught_long_before_the_ground() -> None:
+    r = replay("arducopter-loiter-no-rc.tlog", Stack.ARDUPILOT)
+    entered, failures = _hold_verdicts(r, "LOITER")
+    assert failures, "the sink into the ground was never judged as not holding"
+    caught_at, reason, lost = failures[0]
+    ground = next(
+        t
+        for t, m in r.messages
+        if t > entered and m.get_type() == "GLOBAL_POSITION_INT" and m.relative_alt < 100
+    )
+    assert caught_at < ground - 1.0  # more than a second of altitude still left
+    assert lost <= DEFAULT_TIMING.hold_band_m + 0.3, reason
+
+
+def test_brake_is_a_hold() -> None:
+    r = replay("arducopter-streams-arm-takeoff-brake-land.tlog", Stack.ARDUPILOT)
+    _, failures = _hold_verdicts(r, "BRAKE")
+    assert failures == []
