@@ -92,6 +92,7 @@ REDUNDANT_AUTOPILOTS: Final = Resource(
     GROUP, VERSION, "redundantautopilots", "RedundantAutopilot", namespaced=False
 )
 MISSIONS: Final = Resource(GROUP, VERSION, "missions", "Mission", namespaced=True)
+LEASES: Final = Resource("coordination.k8s.io", "v1", "leases", "Lease", namespaced=True)
 
 _BY_KIND: Final = {
     (r.api_version, r.kind): r
@@ -106,6 +107,7 @@ _BY_KIND: Final = {
         VEHICLES,
         REDUNDANT_AUTOPILOTS,
         MISSIONS,
+        LEASES,
     )
 }
 

@@ -38,6 +38,7 @@ import threading
 import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from typing import Any
 
 import pytest
@@ -46,8 +47,10 @@ from roost_api.wellknown import ANNOTATION_PAUSE_FAILOVER_ACTIONS, LABEL_MISSION
 from roost_harness.cluster import Cluster
 from roost_harness.fakeagents import FakeAgents, redundant_autopilot
 from roost_harness.operator import OperatorProcess, wait_for
+from roost_operator.claims import claim_of, lease_name, release_options
 from roost_operator.kube import (
     JOBS,
+    LEASES,
     MISSIONS,
     PODS,
     REDUNDANT_AUTOPILOTS,
@@ -56,7 +59,7 @@ from roost_operator.kube import (
     Kube,
     Obj,
 )
-from roost_operator.missions.cluster import claim_vehicle
+from roost_operator.missions.cluster import claim_vehicle, release_vehicle
 from roost_operator.missions.observed import MissionRef, VehicleView
 from roost_operator.missions.workloads import ENV_MISSION_VEHICLES, bounded_name
 
@@ -267,8 +270,9 @@ def pods_of(kube: Kube, mission: str) -> list[Obj]:
 
 
 def claimed_by(kube: Kube, vehicle: str) -> str | None:
-    claim = ((kube.get(VEHICLES, vehicle) or {}).get("status") or {}).get("claimedBy")
-    return f"{claim['namespace']}/{claim['name']}" if claim else None
+    """``namespace/name`` of the Mission whose claim Lease holds ``vehicle``, if any."""
+    claim = claim_of(kube.get(LEASES, lease_name(vehicle), OPERATOR_NAMESPACE) or {})
+    return claim.holder_key if claim else None
 
 
 def command_of(kube: Kube, vehicle: str) -> Obj | None:
@@ -593,15 +597,17 @@ def test_competing_missions_never_share_a_vehicle(
 
 
 def test_a_claim_written_from_a_stale_read_loses(fleet: Fleet, kube: Kube) -> None:
-    """The optimistic concurrency itself: two claims computed from one read, one wins."""
+    """The claim's exclusivity itself: two claims computed from one read, one wins; a
+    takeover and a release computed from a stale read of the claim are refused too."""
     (name,) = fleet.add(1)
     view = VehicleView.from_body(kube.get(VEHICLES, name) or {})
     alpha = MissionRef(namespace=FLIGHTS, name=unique("alpha"), uid="uid-alpha")
     beta = MissionRef(namespace=FLIGHTS, name=unique("beta"), uid="uid-beta")
     results: list[VehicleView | None] = [None, None]
+    now = datetime.now(UTC)
 
     def claim(index: int, mission: MissionRef) -> None:
-        results[index] = claim_vehicle(kube, view, mission)
+        results[index] = claim_vehicle(kube, OPERATOR_NAMESPACE, view, mission, at=now)
 
     threads = [threading.Thread(target=claim, args=(i, m)) for i, m in enumerate((alpha, beta))]
     for thread in threads:
@@ -610,16 +616,30 @@ def test_a_claim_written_from_a_stale_read_loses(fleet: Fleet, kube: Kube) -> No
         thread.join()
     winners = [r for r in results if r is not None]
     assert len(winners) == 1
+    winner = winners[0]
+    assert winner.claim is not None
     holder = claimed_by(kube, name)
-    assert holder in {alpha.key, beta.key}
+    assert holder == winner.claim.holder_key
+    loser = beta if holder == alpha.key else alpha
+    assert not release_vehicle(kube, OPERATOR_NAMESPACE, name, loser), "not the loser's claim"
+
+    # Two takeovers of the same claim judged orphaned at one version: exactly one wins.
+    gamma = MissionRef(namespace=FLIGHTS, name=unique("gamma"), uid="uid-gamma")
+    first = claim_vehicle(kube, OPERATOR_NAMESPACE, winner, gamma, at=now)
+    second = claim_vehicle(kube, OPERATOR_NAMESPACE, winner, loser, at=now)
+    assert first is not None and second is None
+    assert claimed_by(kube, name) == gamma.key
+
+    # A release carrying a stale resourceVersion is refused by the API server.
+    assert winner.claim is not None
     with pytest.raises(ConflictError):
-        kube.merge_patch(
-            VEHICLES,
-            name,
-            {"metadata": {"resourceVersion": view.resource_version}, "status": {"claimedBy": None}},
-            subresource="status",
+        kube.request(
+            "DELETE",
+            LEASES.object_path(lease_name(name), OPERATOR_NAMESPACE),
+            body=release_options(winner.claim),
         )
-    kube.merge_patch(VEHICLES, name, {"status": {"claimedBy": None}}, subresource="status")
+    assert release_vehicle(kube, OPERATOR_NAMESPACE, name, gamma)
+    assert claimed_by(kube, name) is None
 
 
 def test_a_restarted_operator_resumes_without_duplicating_workloads(

@@ -40,6 +40,7 @@ from roost_api.wellknown import (
 )
 from roost_harness.fakeagents import redundant_autopilot
 from roost_operator.autopilots.guards import FleetGuards
+from roost_operator.claims import Claim
 from roost_operator.missions.machine import (
     ABORT_COMMAND_DEADLINE_SECONDS,
     Observation,
@@ -112,11 +113,19 @@ def vehicle(
         name=name,
         labels=labels if labels is not None else {"fleet": "a"},
         spec=VehicleSpec.model_validate({"nodeName": f"node-{name}", "sysid": 10}),
-        status=VehicleStatus(conditions=conditions, claimed_by=claimed_by, failover=failover),
+        status=VehicleStatus(conditions=conditions, failover=failover),
         resource_version="1",
         uid=f"uid-{name}",
         deleting=deleting,
         annotations=annotations or {},
+        claim=claim_on(name, claimed_by) if claimed_by is not None else None,
+    )
+
+
+def claim_on(name: str, holder: ObjectReference) -> Claim:
+    """The claim Lease on vehicle ``name`` held by ``holder``, as the observer parses it."""
+    return Claim(
+        vehicle=name, holder=holder, mission_uid="", resource_version="7", uid=f"lease-{name}"
     )
 
 
@@ -357,11 +366,7 @@ def test_a_vehicle_without_redundancy_may_fly_a_mission_that_does_not_require_it
     strict = replace(obs, spec=mission_spec(vehicles={"names": ["a"], "count": 1}))
     held = replace(
         strict,
-        vehicles={
-            "a": replace(
-                single, status=single.status.model_copy(update={"claimed_by": ME.reference})
-            )
-        },
+        vehicles={"a": replace(single, claim=claim_on("a", ME.reference))},
     )
     plan = plan_mission(held)
     assert plan.status.phase == MissionPhase.PREFLIGHT

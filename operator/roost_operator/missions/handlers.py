@@ -13,7 +13,13 @@ finished and holds nothing.
 
 Deletion: kopf stops the loop, then :func:`mission_deleted` (behind Roost's finalizer)
 aborts what still flies for the mission and releases its vehicles; its Jobs go by
-owner reference.
+owner reference. A cleanup that meets a permanent error still lets the Mission go,
+with a Warning Event naming what was left.
+
+Errors: a reconcile that fails is retried with a doubling backoff
+(:class:`~roost_operator.settings.MissionTimings`); its log line names the Mission.
+Handlers are registered by :func:`register`; timings are read from the settings in
+the operator's memo.
 """
 
 from __future__ import annotations
@@ -24,36 +30,42 @@ from typing import Any, Final
 
 import kopf
 
-from roost_api.meta import GROUP, VERSION
-from roost_api.wellknown import LABEL_MISSION
-from roost_operator.autopilots.handlers import GUARDS
+from roost_api.meta import GROUP, VERSION, now
+from roost_api.wellknown import LABEL_COMPONENT, LABEL_MISSION
+from roost_operator.claims import CLAIM_COMPONENT, claim_of
+from roost_operator.edge import at_the_edge
+from roost_operator.errors import is_temporary
 from roost_operator.missions.cluster import reconcile_mission, release_deleted_mission
 from roost_operator.missions.wakeups import Wakeups, sleep_until_woken
 from roost_operator.runtime import runtime
+from roost_operator.settings import MissionTimings, Settings
 
 MISSIONS: Final = (GROUP, VERSION, "missions")
 VEHICLES: Final = (GROUP, VERSION, "vehicles")
 AUTOPILOTS: Final = (GROUP, VERSION, "redundantautopilots")
-
-RESYNC_S: Final = 10.0
-"""Reconcile a mission at least this often (Jobs and agents also wake it)."""
-ERROR_BACKOFF_S: Final = 5.0
-COALESCE_S: Final = 0.5
-"""After a wake-up, wait this long so a burst of events costs one reconcile."""
+DELETE_BACKOFF_S: Final = 2.0
+"""kopf's backoff before retrying a Mission's deletion handler after a temporary error."""
 
 WAKEUPS: Final = Wakeups()
 log = logging.getLogger(__name__)
 
 
-@kopf.daemon(*MISSIONS, id="mission", cancellation_timeout=30.0)
+def backoff(timings: MissionTimings, failures: int) -> float:
+    """Wait before the next try after ``failures`` failed reconciles in a row (doubling)."""
+    delay = timings.error_backoff_seconds * 2 ** max(failures - 1, 0)
+    return float(min(delay, timings.max_backoff_seconds))
+
+
 async def mission_daemon(
     *, name: str, namespace: str | None, stopped: kopf.DaemonStopped, memo: Any, **_: Any
 ) -> None:
     """Reconcile the Mission until it is finished and holds nothing."""
     assert namespace is not None, "Missions are namespaced"
     rt = runtime(memo)
+    timings = rt.settings.missions
     key = f"{namespace}/{name}"
     wakeup = WAKEUPS.register(key)
+    failures = 0
     try:
         while not stopped:
             wakeup.clear()
@@ -64,38 +76,61 @@ async def mission_daemon(
                     namespace=namespace,
                     name=name,
                     operator_namespace=rt.settings.namespace,
-                    guards=GUARDS,
+                    guards=rt.settings.guards,
                 )
-            except Exception:
-                log.exception("reconciling mission %s failed; retrying", key)
-                delay = ERROR_BACKOFF_S
+            except Exception as error:
+                failures += 1
+                delay = backoff(timings, failures)
+                if is_temporary(error):
+                    log.warning("Mission %s: %s; retrying in %.1f s", key, error, delay)
+                else:
+                    log.exception("Mission %s: reconcile failed; retrying in %.1f s", key, delay)
             else:
+                failures = 0
                 if outcome is None or outcome.finished:
                     return
                 WAKEUPS.track(key, vehicles=outcome.assigned, waiting=outcome.waiting_for_vehicles)
-                delay = RESYNC_S if outcome.requeue_after is None else outcome.requeue_after
+                delay = (
+                    timings.resync_seconds
+                    if outcome.requeue_after is None
+                    else outcome.requeue_after
+                )
             if await sleep_until_woken(wakeup, stopped.wait(), delay):
-                await asyncio.sleep(COALESCE_S)
+                await asyncio.sleep(timings.coalesce_seconds)
     finally:
         WAKEUPS.forget(key)
 
 
-@kopf.on.delete(*MISSIONS, backoff=2.0)
-async def mission_deleted(*, name: str, namespace: str | None, memo: Any, **_: Any) -> None:
-    """Abort what still flies for the mission and release its vehicles."""
+async def mission_deleted(
+    *, name: str, namespace: str | None, body: kopf.Body, memo: Any, **_: Any
+) -> None:
+    """Abort what still flies for the mission and release its vehicles.
+
+    What cannot be done (a permanent error) is named in a Warning Event and the
+    deletion goes on; temporary errors are retried by kopf.
+    """
     assert namespace is not None, "Missions are namespaced"
     rt = runtime(memo)
-    await asyncio.to_thread(
-        release_deleted_mission,
-        rt.kube,
-        namespace=namespace,
-        name=name,
-        operator_namespace=rt.settings.namespace,
-        guards=GUARDS,
-    )
+    with at_the_edge("Mission", name, DELETE_BACKOFF_S, namespace=namespace):
+        leftovers = await asyncio.to_thread(
+            release_deleted_mission,
+            rt.kube,
+            namespace=namespace,
+            name=name,
+            operator_namespace=rt.settings.namespace,
+            guards=rt.settings.guards,
+        )
+    if leftovers:
+        log.warning("Mission %s/%s: deleted, but: %s", namespace, name, "; ".join(leftovers))
+        rt.kube.post_event(
+            body,
+            reason="CleanupIncomplete",
+            message="deleted, but: " + "; ".join(leftovers),
+            type="Warning",
+            at=now().isoformat().replace("+00:00", "Z"),
+        )
 
 
-@kopf.on.event(*MISSIONS)
 async def mission_event(
     *, name: str, namespace: str | None, meta: kopf.Meta, status: kopf.Status, **_: Any
 ) -> None:
@@ -105,7 +140,6 @@ async def mission_event(
         WAKEUPS.wake(f"{namespace}/{name}")
 
 
-@kopf.on.event(*VEHICLES)
 async def vehicle_event(*, name: str, status: kopf.Status, **_: Any) -> None:
     """A Vehicle changed (Ready, claim): wake its mission and the waiting missions."""
     claim = status.get("claimedBy") or {}
@@ -113,7 +147,14 @@ async def vehicle_event(*, name: str, status: kopf.Status, **_: Any) -> None:
     WAKEUPS.wake_for_vehicle(name, claimant)
 
 
-@kopf.on.event(*AUTOPILOTS)
+async def claim_event(*, body: kopf.Body, **_: Any) -> None:
+    """A vehicle was claimed or released: wake its holder and the waiting missions."""
+    claim = claim_of(body)
+    if claim is None:
+        return
+    WAKEUPS.wake_for_vehicle(claim.vehicle, claim.holder_key)
+
+
 async def autopilots_event(*, spec: kopf.Spec, **_: Any) -> None:
     """An agent reported (health, failover, landed, command result): wake the mission."""
     vehicle = spec.get("vehicleName")
@@ -121,9 +162,30 @@ async def autopilots_event(*, spec: kopf.Spec, **_: Any) -> None:
         WAKEUPS.wake_holder(vehicle)
 
 
-@kopf.on.event("batch", "v1", "jobs", labels={LABEL_MISSION: kopf.PRESENT})
 async def job_event(*, namespace: str | None, meta: kopf.Meta, **_: Any) -> None:
     """A mission's Job progressed: wake the Mission that owns it."""
     for ref in meta.get("ownerReferences") or []:
         if ref.get("kind") == "Mission":
             WAKEUPS.wake(f"{namespace}/{ref['name']}")
+
+
+def register(registry: kopf.OperatorRegistry, settings: Settings) -> None:
+    """Register the Mission controller's handlers (timings are read from the memo)."""
+    del settings  # nothing here is decided at registration
+    kopf.daemon(*MISSIONS, id="mission", cancellation_timeout=30.0, registry=registry)(
+        mission_daemon
+    )
+    kopf.on.delete(*MISSIONS, backoff=DELETE_BACKOFF_S, registry=registry)(mission_deleted)
+    kopf.on.event(*MISSIONS, registry=registry)(mission_event)
+    kopf.on.event(*VEHICLES, registry=registry)(vehicle_event)
+    kopf.on.event(
+        "coordination.k8s.io",
+        "v1",
+        "leases",
+        labels={LABEL_COMPONENT: CLAIM_COMPONENT},
+        registry=registry,
+    )(claim_event)
+    kopf.on.event(*AUTOPILOTS, registry=registry)(autopilots_event)
+    kopf.on.event("batch", "v1", "jobs", labels={LABEL_MISSION: kopf.PRESENT}, registry=registry)(
+        job_event
+    )
