@@ -1030,3 +1030,93 @@ def test_claims_of_finished_missions_count_only_while_a_vehicle_is_landing() -> 
         body("aborted", {"phase": "Aborted"}),
     ]
     assert holding_missions(missions) == {"ns/new", "ns/running", "ns/failed-landing"}
+
+
+# -- a Vehicle deleted mid-mission ----------------------------------------------------------
+
+
+def _deleted_mid_mission(
+    policy: str, *, gone: bool = False, with_autopilots: bool = True
+) -> Observation:
+    """Mission on a and b running; Vehicle a is being deleted (or already gone)."""
+    spec = mission_spec(vehicles={"names": ["a", "b"], "count": 2}, onFailover=policy)
+    status, _ = started(["a", "b"], spec=spec)
+    vehicles = [*([] if gone else claimed("a", deleting=True)), *claimed("b")]
+    aps = [autopilots("b"), *([autopilots("a")] if with_autopilots else [])]
+    return observe(
+        vehicles,
+        spec=spec,
+        status=status,
+        aps=aps,
+        jobs=[job("a"), job("b")],
+        now=T0 + timedelta(seconds=30),
+    )
+
+
+@pytest.mark.parametrize(
+    ("policy", "gone", "with_autopilots", "mission_phase", "vehicle_phase", "commanded"),
+    [
+        # policy        Vehicle    its RA  → mission    vehicle a    safety routine to
+        ("Continue", False, True, "Running", "Aborting", ["a"]),
+        ("Continue", True, True, "Running", "Aborting", ["a"]),
+        ("Continue", True, False, "Running", "Aborted", []),
+        ("AbortVehicle", False, True, "Running", "Aborting", ["a"]),
+        ("AbortMission", False, True, "Aborting", "Aborting", ["a", "b"]),
+        ("AbortMission", True, False, "Aborting", "Aborted", ["b"]),
+    ],
+)
+def test_a_vehicle_deleted_mid_mission_leaves_it_at_once(
+    policy: str,
+    *,
+    gone: bool,
+    with_autopilots: bool,
+    mission_phase: str,
+    vehicle_phase: str,
+    commanded: list[str],
+) -> None:
+    plan = plan_mission(_deleted_mid_mission(policy, gone=gone, with_autopilots=with_autopilots))
+    assert plan.status.phase == mission_phase
+    a = vehicle_status(plan, "a")
+    assert a.phase == vehicle_phase
+    if mission_phase != "Aborting":  # an aborting mission words every vehicle's reason
+        assert a.reason == "VehicleDeleted"
+    assert onboard_job_name("survey", "a") in plan.jobs_to_delete, "its Job stops at once"
+    assert "a" in plan.config_maps_to_delete, "its config copy goes with it"
+    assert sorted(plan.commands) == commanded
+    assert condition_is_true(plan.status.conditions, "Degraded") or mission_phase == "Aborting"
+    assert "VehicleDeleted" in [e.reason for e in plan.events]
+
+
+def test_a_deleted_vehicle_is_reported_once_and_the_mission_goes_on_without_it() -> None:
+    obs = _deleted_mid_mission("Continue", gone=True, with_autopilots=False)
+    first = plan_mission(obs)
+    degraded = find_condition(first.status.conditions, "Degraded")
+    assert degraded is not None and degraded.reason == "VehicleDeleted"
+    again = plan_mission(replace(obs, status=first.status))
+    assert "VehicleDeleted" not in [e.reason for e in again.events], "one Event per deletion"
+    assert onboard_job_name("survey", "b") not in again.jobs_to_delete
+    done = plan_mission(
+        replace(
+            obs,
+            status=again.status,
+            jobs={onboard_job_name("survey", "b"): job("b", JobPhase.SUCCEEDED)},
+        )
+    )
+    assert done.status.phase == MissionPhase.SUCCEEDED
+    assert "1 aborted after a failover or the Vehicle's deletion" in (done.status.message or "")
+    assert sorted(done.config_maps_to_delete) == ["a", "b"], "a finished mission keeps no copy"
+
+
+def test_a_deleted_vehicle_still_landing_is_followed_until_it_is_down() -> None:
+    obs = _deleted_mid_mission("AbortVehicle", gone=True)
+    first = plan_mission(obs)
+    command = first.commands["a"]
+    landed = autopilots(
+        "a", landed="OnGround", command=command, reported_at=T0 + timedelta(seconds=40)
+    )
+    later = plan_mission(
+        replace(obs, status=first.status, autopilots={**obs.autopilots, "a": landed})
+    )
+    a = vehicle_status(later, "a")
+    assert (a.phase, a.reason) == (MissionVehiclePhase.ABORTED, "VehicleDeleted")
+    assert later.commands == {}, "the command is written once"

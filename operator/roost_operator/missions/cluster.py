@@ -76,7 +76,7 @@ from roost_operator.missions.machine import (
 from roost_operator.missions.observed import AutopilotView, JobView, MissionRef, VehicleView
 from roost_operator.missions.selection import holding_missions
 from roost_operator.missions.workloads import bounded_name
-from roost_operator.vehicles.config import CONFIG_COMPONENT, config_values_of
+from roost_operator.vehicles.config import CONFIG_COMPONENT, config_map_name, config_values_of
 
 log = logging.getLogger(__name__)
 
@@ -338,6 +338,32 @@ def _config_maps_to_apply(
     ]
 
 
+def _delete_config_copies(
+    kube: Kube, obs: Observation, vehicles: Sequence[str], operator_namespace: str
+) -> None:
+    """Delete this mission's config copies of ``vehicles`` (one list request first).
+
+    Only copies whose sole owner is this Mission: a copy another Mission in the same
+    namespace has applied since (it owns it now) stays for that Mission's pods.
+    """
+    if not vehicles or obs.mission.namespace == operator_namespace:
+        return
+    wanted = {config_map_name(name) for name in vehicles}
+    copies = kube.list_objects(
+        CONFIGMAPS,
+        namespace=obs.mission.namespace,
+        labels={LABEL_MANAGED_BY: MANAGED_BY, LABEL_COMPONENT: CONFIG_COMPONENT},
+    )
+    ours = [
+        cm
+        for cm in copies
+        if cm["metadata"]["name"] in wanted
+        and [ref.get("uid") for ref in cm["metadata"].get("ownerReferences") or []]
+        == [obs.mission.uid]
+    ]
+    _each(lambda cm: kube.delete(CONFIGMAPS, cm["metadata"]["name"], obs.mission.namespace), ours)
+
+
 class JobRejectedError(ApiError):
     """The API server refused a Job as invalid (422): retrying cannot help."""
 
@@ -403,6 +429,7 @@ def carry_out(kube: Kube, obs: Observation, plan: Plan, operator_namespace: str)
         return
     _write_commands(kube, obs, plan.commands)
     _each(lambda job_name: kube.delete(JOBS, job_name, obs.mission.namespace), plan.jobs_to_delete)
+    _delete_config_copies(kube, obs, plan.config_maps_to_delete, operator_namespace)
     _each(
         lambda vehicle_name: release_vehicle(kube, operator_namespace, vehicle_name, obs.mission),
         plan.releases,
