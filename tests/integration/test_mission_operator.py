@@ -49,6 +49,7 @@ from roost_harness.fakeagents import FakeAgents, redundant_autopilot
 from roost_harness.operator import OperatorProcess, wait_for
 from roost_operator.claims import claim_of, lease_name, release_options
 from roost_operator.kube import (
+    CONFIGMAPS,
     JOBS,
     LEASES,
     MISSIONS,
@@ -61,7 +62,11 @@ from roost_operator.kube import (
 )
 from roost_operator.missions.cluster import claim_vehicle, release_vehicle
 from roost_operator.missions.observed import MissionRef, VehicleView
-from roost_operator.missions.workloads import ENV_MISSION_VEHICLES, bounded_name
+from roost_operator.missions.workloads import (
+    ENV_MISSION_VEHICLES,
+    bounded_name,
+    onboard_job_name,
+)
 
 pytestmark = pytest.mark.cluster
 
@@ -220,10 +225,15 @@ def mission_manifest(
     }
 
 
-def vehicle_ready(kube: Kube, name: str) -> bool:
+def vehicle_condition(kube: Kube, name: str, type_: str) -> str | None:
+    """The status of the Vehicle's condition ``type_`` (None when it has none)."""
     body = kube.get(VEHICLES, name) or {}
     conditions = (body.get("status") or {}).get("conditions") or []
-    return any(c["type"] == "Ready" and c["status"] == "True" for c in conditions)
+    return next((c["status"] for c in conditions if c["type"] == type_), None)
+
+
+def vehicle_ready(kube: Kube, name: str) -> bool:
+    return vehicle_condition(kube, name, "Ready") == "True"
 
 
 def mission_status(kube: Kube, name: str) -> Obj:
@@ -384,6 +394,16 @@ def test_preflight_holds_the_mission_until_the_autopilot_is_healthy(
 ) -> None:
     good, bad = fleet.add(2)
     agents.set(f"{bad}-autopilots", healthy=False)
+    # The unhealthy report must have reached the Vehicle (agent connected, autopilots
+    # unhealthy) before the mission looks, or preflight may name an earlier state.
+    wait_for(
+        "the unhealthy report on the Vehicle",
+        lambda: (
+            vehicle_condition(kube, bad, "AgentConnected") == "True"
+            and vehicle_condition(kube, bad, "AutopilotsHealthy") == "False"
+        ),
+        WAIT_S,
+    )
     name = fleet.mission(unique("preflight"), selector={"fleet": fleet.label}, count=2)
 
     status = wait_phase(kube, name, "Preflight")
@@ -683,6 +703,58 @@ def test_deleting_a_running_mission_lands_and_releases_its_vehicles(
     for vehicle in vehicles:
         assert claimed_by(kube, vehicle) is None
         assert (command_of(kube, vehicle) or {})["action"] == "SafetyRoutine"
+
+
+def test_a_template_the_job_api_refuses_fails_the_mission_before_it_claims(
+    fleet: Fleet, kube: Kube
+) -> None:
+    vehicles = fleet.add(1)
+    manifest = mission_manifest(unique("badtemplate"), selector={"fleet": fleet.label}, count=1)
+    manifest["spec"]["onboard"]["spec"]["containers"][0]["name"] = "Not_A_Valid_Name"
+    fleet.missions.append(manifest["metadata"]["name"])
+    fleet.apply(manifest)
+    status = wait_phase(kube, manifest["metadata"]["name"], "Failed")
+    assert status["reason"] == "InvalidTemplate"
+    message = status["message"]
+    assert message.startswith("spec.onboard is refused by the Job API: ")
+    assert "Not_A_Valid_Name" in message and "{" not in message, "the API's words, not JSON"
+    assert claimed_by(kube, vehicles[0]) is None, "nothing was claimed"
+    assert jobs_of(kube, manifest["metadata"]["name"]) == {}
+
+
+def test_a_vehicle_deleted_mid_mission_leaves_it_at_once(
+    fleet: Fleet, kube: Kube, roost_crds: Cluster
+) -> None:
+    doomed, staying = fleet.add(2)
+    name = fleet.mission(unique("vdel"), names=[doomed, staying], count=2)
+    wait_phase(kube, name, "Running")
+    wait_for("both Jobs", lambda: len(jobs_of(kube, name)) == 2, WAIT_S)
+    copy = f"roost-vehicle-{doomed}"
+    assert kube.get(CONFIGMAPS, copy, FLIGHTS) is not None
+
+    roost_crds.kubectl("delete", "vehicle", doomed, "--wait=false")
+
+    def left() -> Obj | None:
+        status = mission_status(kube, name)
+        by_name = {v["name"]: v for v in status.get("vehicles") or []}
+        return status if by_name[doomed].get("reason") == "VehicleDeleted" else None
+
+    status = wait_for("the vehicle to leave the mission", left, WAIT_S)
+    assert status["phase"] == "Running"
+    degraded = condition_of(status, "Degraded") or {}
+    assert (degraded.get("status"), degraded.get("reason")) == ("True", "VehicleDeleted")
+    wait_for(
+        "its Job stopped and its config copy gone",
+        lambda: (
+            onboard_job_name(name, doomed) not in jobs_of(kube, name)
+            and kube.get(CONFIGMAPS, copy, FLIGHTS) is None
+        ),
+        WAIT_S,
+    )
+    assert (command_of(kube, doomed) or {}).get("action") == "SafetyRoutine"
+    assert "VehicleDeleted" in events_for(roost_crds, name)
+    release_holds(kube, name, staying)
+    wait_phase(kube, name, "Succeeded")
 
 
 def test_invalid_missions_are_rejected_with_a_clear_message(roost_crds: Cluster) -> None:

@@ -75,7 +75,7 @@ from roost_operator.missions.machine import (
 )
 from roost_operator.missions.observed import AutopilotView, JobView, MissionRef, VehicleView
 from roost_operator.missions.selection import holding_missions
-from roost_operator.missions.workloads import bounded_name
+from roost_operator.missions.workloads import bounded_name, template_probes
 from roost_operator.vehicles.config import CONFIG_COMPONENT, config_map_name, config_values_of
 
 log = logging.getLogger(__name__)
@@ -83,7 +83,6 @@ log = logging.getLogger(__name__)
 RELEASE_RETRIES: Final = 5
 CLAIM_ROUNDS: Final = 3
 """Claim rounds per reconcile; after that the mission waits a jittered moment."""
-UNPROCESSABLE: Final = 422
 WRITE_CONCURRENCY: Final = 8
 """Independent writes of one reconcile in flight at once (Jobs, ConfigMaps, Events)."""
 
@@ -365,7 +364,47 @@ def _delete_config_copies(
 
 
 class JobRejectedError(ApiError):
-    """The API server refused a Job as invalid (422): retrying cannot help."""
+    """The API server refused a Job (400, 422, …): retrying the same Job cannot help."""
+
+
+DRY_RUN: Final = {"dryRun": "All"}
+
+
+def check_templates(kube: Kube, obs: Observation, vehicles: Sequence[str]) -> Plan | None:
+    """Dry-run the mission's Jobs; the plan that fails the mission if one is refused.
+
+    Runs before any claim, so a template the Job API would refuse never holds a
+    vehicle. The message is the API server's own words (its Status ``message``), not
+    its JSON. Temporary errors are raised (the reconcile is retried).
+    """
+    probes = template_probes(
+        mission=obs.mission, spec=obs.spec, vehicles=vehicles, config_values=obs.config_values
+    )
+    for field_path, manifest in probes:
+        try:
+            kube.request(
+                "POST",
+                JOBS.collection_path(obs.mission.namespace),
+                query={**DRY_RUN, "fieldManager": kube.field_manager},
+                body=manifest,
+            )
+        except ConflictError:
+            continue  # a Job of that name exists: the template was accepted before
+        except ApiError as error:
+            if is_temporary(error):
+                raise
+            log.warning(
+                "Mission %s: %s refused by the Job API: %s",
+                obs.mission.key,
+                field_path,
+                error.message,
+            )
+            return fail_mission(
+                obs,
+                "InvalidTemplate",
+                f"{field_path} is refused by the Job API: {error.message}",
+            )
+    return None
 
 
 def _create(kube: Kube, manifest: Obj) -> None:
@@ -378,7 +417,7 @@ def _create(kube: Kube, manifest: Obj) -> None:
     except ConflictError:
         log.debug("job %s already exists", manifest["metadata"]["name"])
     except ApiError as error:
-        if error.status == UNPROCESSABLE:
+        if not is_temporary(error):
             raise JobRejectedError(error.status, "POST", "jobs", error.body) from error
         raise
 
@@ -424,7 +463,9 @@ def carry_out(kube: Kube, obs: Observation, plan: Plan, operator_namespace: str)
         # A pod waits for its ConfigMap to appear, so both go out together.
         _each(lambda manifest: _create(kube, manifest), [*config_maps, *plan.jobs_to_create])
     except JobRejectedError as error:
-        rejected = fail_mission(obs, "JobRejected", f"the API server rejected a Job: {error.body}")
+        rejected = fail_mission(
+            obs, "JobRejected", f"the API server rejected a Job: {error.message}"
+        )
         carry_out(kube, obs, rejected, operator_namespace)
         return
     _write_commands(kube, obs, plan.commands)
@@ -447,6 +488,11 @@ def reconcile_mission(
     if obs is None:
         return None
     plan = plan_mission(obs)
+    if plan.claims:
+        refused = check_templates(kube, obs, plan.claims)
+        if refused is not None:
+            carry_out(kube, obs, refused, operator_namespace)
+            return Outcome(refused, None, True, (), False)
     rounds = 0
     while plan.claims:
         rounds += 1
