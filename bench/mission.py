@@ -8,7 +8,7 @@
   stages complete a Job's pod as soon as it runs, so a pod counts once it has reached
   Running or Succeeded. Polled every 100 ms.
 
-The fleet's node agents are :class:`~roost_harness.fakeagents.FakeAgents` reporting every
+The fleet's node agents are :class:`~tests.support.fakeagents.FakeAgents` reporting every
 few seconds (the real agent reports every 10 s), so the operator's ``AgentConnected`` and
 the preflight checks see live reports as they would in a fleet.
 """
@@ -24,13 +24,14 @@ from pathlib import Path
 
 from bench.core import Figure
 from roost_api.wellknown import LABEL_MISSION, LABEL_VEHICLE
-from roost_harness import binaries
-from roost_harness.cluster import Cluster
-from roost_harness.controlplane import ControlPlane
-from roost_harness.fakeagents import FakeAgents, redundant_autopilot
-from roost_harness.operator import OperatorProcess, wait_for
-from roost_operator.kube import MISSIONS, PODS, VEHICLES, Kube
+from roost_kube.client import Kube
+from roost_kube.resources import MISSIONS, PODS, VEHICLES
+from roost_localcluster import binaries
+from roost_localcluster.cluster import Cluster
+from roost_localcluster.controlplane import ControlPlane
 from roost_operator.missions.workloads import bounded_name
+from tests.support.fakeagents import FakeAgents, redundant_autopilot
+from tests.support.operator import OperatorProcess, wait_for
 
 COMMAND = "python -m bench mission"
 FLEET = 100
@@ -157,7 +158,7 @@ def run() -> list[Figure]:
         operator.start()
         try:
             with cluster.api_client() as api, FakeAgents(cluster, AGENT_PERIOD_S) as agents:
-                kube = Kube(api=api)
+                kube = Kube(api, "roost-bench")
                 _fleet(cluster, kube, agents)
                 times = {count: _rollout(cluster, kube, count) for count in SIZES}
                 load = os.getloadavg()[0]

@@ -21,12 +21,13 @@ import time
 from pathlib import Path
 
 from bench.core import Figure
-from roost_harness import binaries
-from roost_harness.apiwrites import VEHICLE_WRITE_TARGETS, write_requests
-from roost_harness.cluster import Cluster
-from roost_harness.controlplane import ControlPlane
-from roost_harness.operator import OperatorProcess, wait_for
-from roost_operator.kube import VEHICLES, Kube
+from roost_kube.client import Kube
+from roost_kube.resources import VEHICLES
+from roost_localcluster import binaries
+from roost_localcluster.cluster import Cluster
+from roost_localcluster.controlplane import ControlPlane
+from tests.support.apiwrites import VEHICLE_WRITE_TARGETS, write_requests
+from tests.support.operator import OperatorProcess, wait_for
 
 COMMAND = "python -m bench vehicle"
 VEHICLE_COUNT = 5
@@ -74,7 +75,7 @@ def run() -> list[Figure]:
         operator.start()
         try:
             with cluster.api_client() as api:
-                kube = Kube(api=api)
+                kube = Kube(api, "roost-bench")
                 times = [
                     _apply_to_ready(cluster, kube, f"bench-vehicle-{i}", 10 + i)
                     for i in range(VEHICLE_COUNT)

@@ -6,9 +6,9 @@ from collections.abc import Iterator
 
 import pytest
 
-from roost_harness.cluster import Cluster, FakeNodes
-from roost_harness.controlplane import ControlPlane
-from roost_operator.kube import Kube
+from roost_kube.client import Kube
+from roost_localcluster.cluster import Cluster, FakeNodes
+from roost_localcluster.controlplane import ControlPlane
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
@@ -22,7 +22,7 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
 def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
     """A real control plane (etcd, API server, controller manager, scheduler, kwok) for the
     whole session; builds the binaries first if they are missing. Component logs are in the
-    session's temp dir under ``control-plane*/logs``. See tests/harness/README.md."""
+    session's temp dir under ``control-plane*/logs``. See localcluster/README.md."""
     with ControlPlane(tmp_path_factory.mktemp("control-plane")) as plane:
         yield Cluster.of(plane)
 
@@ -46,7 +46,7 @@ def fake_nodes(cluster: Cluster) -> Iterator[FakeNodes]:
 
 @pytest.fixture(scope="session")
 def kube(roost_crds: Cluster) -> Iterator[Kube]:
-    """Roost's own API access layer (:class:`roost_operator.kube.Kube`) as the cluster's
+    """Roost's own API access layer (:class:`roost_kube.client.Kube`) as the cluster's
     admin, for tests that read and write objects the way the operator does."""
     with roost_crds.api_client() as api:
-        yield Kube(api=api)
+        yield Kube(api, "roost-tests")

@@ -54,11 +54,10 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from kubernetes.client.exceptions import ApiException
 from pydantic import ValidationError
 
 from roost_agent.agent import AgentEvent, EventKind
-from roost_agent.kube import AgentKube, ApiUnavailableError, Obj, event_manifest
+from roost_agent.kube import AgentKube
 from roost_agent.report import change_class, write_delay
 from roost_agent.state import StateFile
 from roost_api.autopilot import (
@@ -69,6 +68,8 @@ from roost_api.autopilot import (
 )
 from roost_api.meta import Condition, set_condition
 from roost_api.wellknown import LABEL_NODE
+from roost_kube.errors import ApiError, ApiUnavailableError
+from roost_kube.patches import Obj, merge_patch_fields
 
 log = logging.getLogger(__name__)
 
@@ -232,12 +233,10 @@ def merge_patch_body(status: RedundantAutopilotStatus) -> dict[str, Any]:
 
     A missing key means "keep" in a merge patch, so emptied fields go as explicit nulls,
     and so do emptied members of object fields (``lastFailover.safetyRoutine``); lists
-    are replaced whole and go without nulls (the rule of the operator's Vehicle status
-    writes, :func:`roost_operator.vehicles.status.status_patch`).
+    are replaced whole and go without nulls (:func:`roost_kube.patches.merge_patch_fields`,
+    the rule of every Roost status write).
     """
-    compact = status.to_api()
-    full = status.model_dump(by_alias=True, mode="json")
-    return {k: v if isinstance(v, dict) else compact.get(k) for k, v in full.items()}
+    return merge_patch_fields(status)
 
 
 class Publisher:
@@ -387,7 +386,7 @@ class Publisher:
                 self._kube.patch_autopilot_status(target.name, merge_patch_body(status))
             except ApiUnavailableError as exc:
                 return self._failed("status write", exc)
-            except ApiException as exc:
+            except ApiError as exc:
                 if exc.status == 404:
                     log.warning("RedundantAutopilot %s is gone; looking again", target.name)
                     self._target = None
@@ -409,17 +408,16 @@ class Publisher:
                 if not self._events:
                     return True
                 event = self._events[0]
-            manifest = event_manifest(
-                target.autopilot,
-                reason=event.reason,
-                message=event.message,
-                warning=event.warning,
-                time=event.time,
-                node_name=self._node_name,
-            )
             try:
-                self._kube.post_event(manifest)
-            except (ApiUnavailableError, ApiException) as exc:
+                self._kube.post_event(
+                    target.autopilot,
+                    reason=event.reason,
+                    message=event.message,
+                    warning=event.warning,
+                    at=event.time,
+                    node_name=self._node_name,
+                )
+            except ApiError as exc:
                 self._failed(f"event {event.reason}", exc)
                 return False
             with self._cond:
@@ -448,7 +446,7 @@ class Publisher:
                         self._follow(obj)
                     if self._target is None:
                         break
-            except (ApiUnavailableError, ApiException) as exc:
+            except ApiError as exc:
                 backoff = min(max(backoff * 2, settings.retry_min_s), settings.retry_max_s)
                 log.warning("watch of %s failed (%s); again in %.1f s", target.name, exc, backoff)
                 self._stop.wait(backoff)

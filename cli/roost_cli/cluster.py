@@ -1,33 +1,38 @@
 """Finding the cluster and reading or patching Roost objects in it.
 
-Which cluster: ``--kubeconfig`` first, then ``$KUBECONFIG`` (what kubectl uses), then a
-running sandbox's kubeconfig, then ``~/.kube/config``. The sandbox comes after
-``$KUBECONFIG`` so a user who exported a kubeconfig always gets the cluster they named.
+Which kubeconfig, as kubectl picks it with one addition: ``--kubeconfig`` first, then
+``$KUBECONFIG`` (a ``:``-separated list, merged as kubectl merges it), then a running
+sandbox's kubeconfig, then ``~/.kube/config``. The sandbox comes after ``$KUBECONFIG`` so
+a user who exported a kubeconfig always gets the cluster they named. Loading, merging
+and ``--context`` are :mod:`roost_kube.kubeconfig`; the requests go through
+:class:`roost_kube.client.Kube`.
 
-Every API failure is turned into a :class:`~roost_cli.errors.CliError` that names the
-cluster and says what to do: an unreachable server, missing CRDs, a missing object.
+Every failure is turned into a :class:`~roost_cli.errors.CliError` that names the
+cluster and says what to do: an unusable kubeconfig, an unreachable server, a TLS
+failure, missing CRDs, a missing object.
 """
 
 from __future__ import annotations
 
-import json
-from collections.abc import Mapping
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
-
-import urllib3
-from kubernetes import client, config
-from kubernetes.client.exceptions import ApiException
+from typing import Any, Final, TypeVar
 
 from roost_api.resources import MISSION, REDUNDANT_AUTOPILOT, VEHICLE, ResourceKind
 from roost_cli.errors import CliError
+from roost_kube import kubeconfig
+from roost_kube.errors import ApiError, ApiUnavailableError
+from roost_kube.resources import EVENTS, Resource
 
-REQUEST_TIMEOUT_S = 10.0
+FIELD_MANAGER: Final = "roost-cli"
+REQUEST_TIMEOUT_S: Final = 10.0
 NO_CLUSTER = (
     "no cluster: run `roost sandbox up` (a local fleet) or set KUBECONFIG "
     "(or pass --kubeconfig) to use an existing cluster"
 )
+
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -35,8 +40,21 @@ class Target:
     """The kubeconfig to use and where it came from (shown to the user)."""
 
     kubeconfig: Path
+    """The first file (the one shown in messages)."""
     source: str
     """``--kubeconfig``, ``$KUBECONFIG``, ``sandbox`` or ``~/.kube/config``."""
+    files: tuple[Path, ...] = field(default=())
+    """Every file to merge, in order (just :attr:`kubeconfig` when empty)."""
+    context: str | None = None
+    """The context to use instead of the merged ``current-context``."""
+
+    @property
+    def all_files(self) -> tuple[Path, ...]:
+        return self.files or (self.kubeconfig,)
+
+    @property
+    def shown(self) -> str:
+        return ":".join(str(path) for path in self.all_files)
 
 
 def resolve_kubeconfig(
@@ -44,26 +62,28 @@ def resolve_kubeconfig(
     environ: Mapping[str, str],
     sandbox_kubeconfig: Path | None,
     home: Path,
+    context: str | None = None,
 ) -> Target:
     """Pick the kubeconfig as described in the module docstring (pure: no I/O but stat)."""
     if explicit is not None:
-        if not explicit.is_file():
+        if not explicit.exists():
             raise CliError(f"--kubeconfig {explicit} does not exist")
-        return Target(explicit, "--kubeconfig")
+        return Target(explicit, "--kubeconfig", context=context)
     from_env = environ.get("KUBECONFIG", "")
-    if from_env:
-        first = Path(from_env.split(":")[0])
-        if not first.is_file():
+    listed = kubeconfig.split_list(from_env)
+    if listed:
+        found = kubeconfig.existing(listed)
+        if not found:
             raise CliError(
                 f"KUBECONFIG={from_env} does not exist: unset it to use the sandbox, or "
                 "point it at a kubeconfig file"
             )
-        return Target(first, "$KUBECONFIG")
+        return Target(found[0], "$KUBECONFIG", tuple(found), context)
     if sandbox_kubeconfig is not None and sandbox_kubeconfig.is_file():
-        return Target(sandbox_kubeconfig, "sandbox")
+        return Target(sandbox_kubeconfig, "sandbox", context=context)
     default = home / ".kube" / "config"
-    if default.is_file():
-        return Target(default, "~/.kube/config")
+    if default.exists():
+        return Target(default, "~/.kube/config", context=context)
     raise CliError(NO_CLUSTER)
 
 
@@ -71,61 +91,42 @@ class Fleet:
     """Roost's custom objects in one cluster, with errors a user can act on."""
 
     def __init__(self, target: Target) -> None:
+        from kubernetes import client  # noqa: PLC0415 - only commands that talk to a cluster
+
+        from roost_kube.client import Kube  # noqa: PLC0415 - imports the client
+
         self.target = target
-        configuration = client.Configuration()
         try:
-            config.load_kube_config(  # type: ignore[no-untyped-call]
-                config_file=str(target.kubeconfig), client_configuration=configuration
-            )
-        except (config.ConfigException, OSError, ValueError) as error:
-            raise CliError(
-                f"cannot read kubeconfig {target.kubeconfig} ({target.source}): {error}"
-            ) from error
+            configuration = kubeconfig.load(target.all_files, target.context)
+        except kubeconfig.KubeconfigError as error:
+            raise CliError(f"kubeconfig ({target.source}): {error}") from None
         # Fail fast on a dead server: one retry, not urllib3's default three with backoff.
         configuration.retries = 1
+        self.kube = Kube(
+            client.ApiClient(configuration),
+            FIELD_MANAGER,
+            timeout=(REQUEST_TIMEOUT_S, REQUEST_TIMEOUT_S),
+        )
         self.server: str = configuration.host
-        self._client = client.ApiClient(configuration)
-        self._api = client.CustomObjectsApi(self._client)
-        self._core = client.CoreV1Api(self._client)
 
-    def _call(
-        self, what: str, kind: ResourceKind | None, fn: Any, *args: Any, **kwargs: Any
-    ) -> Any:
-        """``fn(*args)`` with a timeout; ``kind`` (None for core objects) shapes the errors."""
+    def _call(self, what: str, kind: ResourceKind | None, fn: Callable[[], T]) -> T:
+        """``fn()``; ``kind`` (None for core objects) shapes the errors."""
         try:
-            return fn(*args, _request_timeout=REQUEST_TIMEOUT_S, **kwargs)
-        except urllib3.exceptions.HTTPError as error:
-            raise CliError(
-                f"cannot reach the API server at {self.server} (kubeconfig from "
-                f"{self.target.source}: {self.target.kubeconfig}). Is the cluster running? "
-                "Start the sandbox with `roost sandbox up`, or set KUBECONFIG to a running "
-                "cluster."
-            ) from error
-        except ApiException as error:
-            raise api_error(what, kind, error) from error
+            return fn()
+        except ApiUnavailableError as error:
+            raise unavailable_error(error, self.server, self.target) from None
+        except ApiError as error:
+            raise api_error(what, kind, error) from None
 
     def _list(self, kind: ResourceKind, namespace: str | None = None) -> list[dict[str, Any]]:
-        if kind.namespaced and namespace:
-            result = self._call(
-                f"list {kind.plural}",
-                kind,
-                self._api.list_namespaced_custom_object,
-                kind.group,
-                kind.version,
-                namespace,
-                kind.plural,
-            )
-        else:
-            result = self._call(
-                f"list {kind.plural}",
-                kind,
-                self._api.list_cluster_custom_object,
-                kind.group,
-                kind.version,
-                kind.plural,
-            )
-        items: list[dict[str, Any]] = result.get("items", [])
-        return items
+        resource = Resource.of(kind)
+        return self._call(
+            f"list {kind.plural}",
+            kind,
+            lambda: self.kube.list_objects(
+                resource, namespace=namespace if kind.namespaced and namespace else None
+            ),
+        )
 
     def vehicles(self) -> list[dict[str, Any]]:
         return self._list(VEHICLE)
@@ -137,66 +138,75 @@ class Fleet:
         return self._list(MISSION, namespace)
 
     def events(self) -> list[dict[str, Any]]:
-        """Every Event in the cluster, as API dicts (camelCase), for the Roost event feed."""
-        result = self._call(
-            "list events", None, self._core.list_event_for_all_namespaces, limit=500
-        )
-        raw = self._client.sanitize_for_serialization(result)  # type: ignore[no-untyped-call]
-        items: list[dict[str, Any]] = raw["items"]
-        return items
+        """Every Event in the cluster (the latest 500), for the Roost event feed."""
+        return self._call("list events", None, lambda: self.kube.list_objects(EVENTS, limit=500))
 
     def autopilot(self, name: str) -> dict[str, Any]:
-        obj: dict[str, Any] = self._call(
-            f"get RedundantAutopilot {name}",
-            REDUNDANT_AUTOPILOT,
-            self._api.get_cluster_custom_object,
-            REDUNDANT_AUTOPILOT.group,
-            REDUNDANT_AUTOPILOT.version,
-            REDUNDANT_AUTOPILOT.plural,
-            name,
+        what = f"get RedundantAutopilot {name}"
+        obj = self._call(
+            what, REDUNDANT_AUTOPILOT, lambda: self.kube.get(Resource.of(REDUNDANT_AUTOPILOT), name)
         )
+        if obj is None:
+            raise not_found(what, REDUNDANT_AUTOPILOT)
         return obj
 
     def patch_autopilot(self, name: str, body: Mapping[str, Any]) -> dict[str, Any]:
         """Merge-patch one RedundantAutopilot (spec only: status belongs to the agent)."""
-        obj: dict[str, Any] = self._call(
+        return self._call(
             f"patch RedundantAutopilot {name}",
             REDUNDANT_AUTOPILOT,
-            self._api.patch_cluster_custom_object,
-            REDUNDANT_AUTOPILOT.group,
-            REDUNDANT_AUTOPILOT.version,
-            REDUNDANT_AUTOPILOT.plural,
-            name,
-            dict(body),
+            lambda: self.kube.merge_patch(Resource.of(REDUNDANT_AUTOPILOT), name, body),
         )
-        return obj
 
     def patch_mission(self, namespace: str, name: str, body: Mapping[str, Any]) -> dict[str, Any]:
-        obj: dict[str, Any] = self._call(
+        return self._call(
             f"patch Mission {namespace}/{name}",
             MISSION,
-            self._api.patch_namespaced_custom_object,
-            MISSION.group,
-            MISSION.version,
-            namespace,
-            MISSION.plural,
-            name,
-            dict(body),
+            lambda: self.kube.merge_patch(Resource.of(MISSION), name, body, namespace=namespace),
         )
-        return obj
 
 
-def api_error(what: str, kind: ResourceKind | None, error: ApiException) -> CliError:
+def not_found(what: str, kind: ResourceKind) -> CliError:
+    listing = "roost missions" if kind is MISSION else "roost status"
+    return CliError(f"cannot {what}: not found. `{listing}` lists what exists")
+
+
+def unavailable_error(error: ApiUnavailableError, server: str, target: Target) -> CliError:
+    """A message for a server that gave no usable answer, by why it did not."""
+    origin = f"kubeconfig from {target.source}: {target.shown}"
+    if error.transport == "tls":
+        return CliError(
+            f"TLS with the API server at {server} failed ({origin}): {_short(error.body)}. "
+            "The server's certificate does not match the kubeconfig's certificate-authority "
+            "data (or the client certificate was refused): fix the kubeconfig"
+        )
+    if error.transport == "timeout":
+        return CliError(
+            f"the API server at {server} did not answer within {REQUEST_TIMEOUT_S:g} s "
+            f"({origin}). Is it overloaded or behind a slow link?"
+        )
+    if error.transport is not None:
+        return CliError(
+            f"cannot reach the API server at {server} ({origin}). Is the cluster running? "
+            "Start the sandbox with `roost sandbox up`, or set KUBECONFIG to a running "
+            "cluster."
+        )
+    return CliError(
+        f"the API server at {server} cannot serve the request now (HTTP {error.status}: "
+        f"{error.message}); try again"
+    )
+
+
+def api_error(what: str, kind: ResourceKind | None, error: ApiError) -> CliError:
     """A message for an API error that says what to do about it."""
-    reason = _server_message(error)
+    reason = error.message
     if kind is not None and error.status == 404 and what.startswith("list "):
         return CliError(
             f"the {kind.kind} API is not installed in this cluster: "
             "`kubectl apply -f crds/` (the sandbox installs it for you)"
         )
     if kind is not None and error.status == 404:
-        listing = "roost missions" if kind is MISSION else "roost status"
-        return CliError(f"cannot {what}: not found. `{listing}` lists what exists")
+        return not_found(what, kind)
     if error.status in (401, 403):
         return CliError(f"cannot {what}: {reason}. Use a kubeconfig with the rights to do it")
     if error.status == 422:
@@ -204,11 +214,11 @@ def api_error(what: str, kind: ResourceKind | None, error: ApiException) -> CliE
     return CliError(f"cannot {what}: HTTP {error.status} {reason}")
 
 
-def _server_message(error: ApiException) -> str:
-    """The Status message the API server sent, else the HTTP reason."""
-    try:
-        body = json.loads(error.body or "{}")
-    except (TypeError, ValueError):
-        body = {}
-    message = body.get("message") if isinstance(body, dict) else None
-    return str(message or error.reason or "")
+def _short(text: str) -> str:
+    """The last, most specific part of a urllib3/ssl error chain, on one line."""
+    flat = " ".join(text.split())
+    for marker in ("certificate verify failed", "SSLError", "SSL:"):
+        at = flat.find(marker)
+        if at >= 0:
+            return flat[at : at + 160].rstrip(")'\"")
+    return flat[:160]

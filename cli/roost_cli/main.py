@@ -65,14 +65,19 @@ class Output(StrEnum):
 class Context:
     """Options common to every command (set by the callback)."""
 
-    def __init__(self, kubeconfig: Path | None, sandbox_dir: Path) -> None:
+    def __init__(
+        self, kubeconfig: Path | None, sandbox_dir: Path, context: str | None = None
+    ) -> None:
         self.kubeconfig = kubeconfig
         self.sandbox_dir = sandbox_dir
+        self.context = context
 
     def fleet(self) -> Fleet:
         running = sandbox_state.running(self.sandbox_dir)
         kubeconfig = Path(running.kubeconfig) if running and running.kubeconfig else None
-        return Fleet(resolve_kubeconfig(self.kubeconfig, os.environ, kubeconfig, Path.home()))
+        return Fleet(
+            resolve_kubeconfig(self.kubeconfig, os.environ, kubeconfig, Path.home(), self.context)
+        )
 
 
 @app.callback()
@@ -82,6 +87,10 @@ def main(
         Path | None,
         typer.Option(help="Kubeconfig to use (default: $KUBECONFIG, a running sandbox, ~/.kube)."),
     ] = None,
+    context: Annotated[
+        str | None,
+        typer.Option(help="Kubeconfig context to use (default: its current-context)."),
+    ] = None,
     sandbox_dir: Annotated[
         Path | None,
         typer.Option(
@@ -90,7 +99,7 @@ def main(
     ] = None,
 ) -> None:
     """Roost: a Kubernetes operator for drone fleets with redundant autopilots."""
-    ctx.obj = Context(kubeconfig, sandbox_state.sandbox_dir(sandbox_dir))
+    ctx.obj = Context(kubeconfig, sandbox_state.sandbox_dir(sandbox_dir), context)
 
 
 def _context(ctx: typer.Context) -> Context:

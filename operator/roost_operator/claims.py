@@ -36,7 +36,8 @@ from typing import Any, Final
 from roost_api.meta import API_VERSION, ObjectReference
 from roost_api.resources import VEHICLE
 from roost_api.wellknown import LABEL_COMPONENT, LABEL_MANAGED_BY, MANAGED_BY, PREFIX
-from roost_operator.kube import LEASES, Obj
+from roost_kube.patches import Obj
+from roost_kube.resources import LEASES
 
 CLAIM_COMPONENT: Final = "claim"
 """``roost.dev/component`` of claim Leases (what the controllers list and watch)."""

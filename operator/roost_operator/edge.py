@@ -1,43 +1,96 @@
-"""Where Roost's errors meet kopf's: temporary ones are retried, permanent ones are not.
+"""Where the Kubernetes layer's errors meet kopf: temporary → retry, permanent → stop.
 
-The controllers below the handlers raise the Kubernetes layer's errors; the kopf
-handlers wrap their work in :func:`at_the_edge`, which turns them into kopf's two
-kinds, with a message that names the object (``Kind namespace/name: …``), because a
-handler of one object (a Node event) often works on another (a Vehicle):
+:mod:`roost_kube.errors` splits every API failure into temporary (conflict, timeout,
+5xx, 429: the same request may succeed later) and permanent (400/422/403/404-on-write:
+it will fail the same way again). kopf has the same split —
+``kopf.TemporaryError(delay=…)`` retries the handler after the delay,
+``kopf.PermanentError`` marks it failed and never retries — so the mapping is one
+function, :func:`kopf_error`, applied at the edge of a handler by :func:`handler_edge`.
+The layer itself never imports kopf (the agent and the CLI use it too).
 
-* **temporary** — a conflict (409), throttling (429), a server error (5xx), a timeout or
-  a lost connection: the same request may succeed later, so kopf retries after a
-  backoff (:class:`kopf.TemporaryError`);
-* **permanent** — anything else the API server refused (400, 403, 404 on a write, 422):
-  retrying the same request cannot succeed, so kopf stops retrying
-  (:class:`kopf.PermanentError`). The controllers report what the user must change in a
-  condition or an Event before it gets here, so a permanent error is reported once,
-  never in a traceback loop.
-
-:func:`roost_operator.errors.is_temporary` is the one classification every controller
-uses (the mission controller backs off on temporary errors and reports permanent ones).
+Every message names the object (kind namespace/name), so an operator log line says
+which object failed.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import functools
+import inspect
+from collections.abc import Awaitable, Callable, Iterator, Mapping
 from contextlib import contextmanager
+from typing import Any, Final, TypeVar, cast
 
 import kopf
 
-from roost_operator.errors import TRANSPORT_ERRORS, describe, is_temporary
-from roost_operator.kube import ApiError
+from roost_kube.errors import ApiError, ApiUnavailableError, ConflictError
+
+FIELD_MANAGER: Final = "roost-operator"
+"""Who the operator's writes are from (server-side apply field manager, Event source)."""
+
+CONFLICT_DELAY_S: Final = 1.0
+"""Retry delay after a 409: someone wrote in between; re-read and retry soon."""
+UNAVAILABLE_DELAY_S: Final = 10.0
+"""Retry delay when the API server gave no usable answer (timeout, 5xx, 429)."""
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def object_name(kwargs: Mapping[str, Any]) -> str:
+    """``Kind namespace/name`` of the object a kopf handler was called for."""
+    resource = kwargs.get("resource")
+    kind = getattr(resource, "kind", None) or getattr(resource, "plural", None) or "object"
+    name = kwargs.get("name") or "?"
+    namespace = kwargs.get("namespace")
+    return f"{kind} {namespace}/{name}" if namespace else f"{kind} {name}"
+
+
+def kopf_error(error: ApiError, what: str) -> kopf.TemporaryError | kopf.PermanentError:
+    """The kopf error for an API error met while handling ``what``."""
+    message = f"{what}: {error}"
+    if isinstance(error, ConflictError):
+        return kopf.TemporaryError(message, delay=CONFLICT_DELAY_S)
+    if isinstance(error, ApiUnavailableError) or error.temporary:
+        return kopf.TemporaryError(message, delay=UNAVAILABLE_DELAY_S)
+    return kopf.PermanentError(message)
+
+
+def describe(kind: str, name: str, namespace: str | None = None) -> str:
+    """``Kind namespace/name`` (or ``Kind name`` for a cluster-scoped object)."""
+    return f"{kind} {namespace}/{name}" if namespace else f"{kind} {name}"
 
 
 @contextmanager
-def at_the_edge(
-    kind: str, name: str, delay: float, *, namespace: str | None = None
-) -> Iterator[None]:
-    """Map errors of the block to kopf's temporary/permanent errors, naming the object."""
+def at_the_edge(kind: str, name: str, *, namespace: str | None = None) -> Iterator[None]:
+    """Map API errors of the block to kopf's, naming the object the work was about.
+
+    For handlers that work on another object than their own (a Node event reconciling a
+    Vehicle): the message must name the object that failed, not the one that triggered.
+    """
     try:
         yield
-    except (ApiError, *TRANSPORT_ERRORS) as error:
-        what = describe(kind, name, namespace)
-        if is_temporary(error):
-            raise kopf.TemporaryError(f"{what}: {error}", delay=delay) from error
-        raise kopf.PermanentError(f"{what}: {error}") from error
+    except ApiError as error:
+        raise kopf_error(error, describe(kind, name, namespace)) from error
+
+
+def handler_edge(fn: F) -> F:
+    """Wrap a kopf handler (sync or async) so API errors leave it as kopf errors."""
+    if inspect.iscoroutinefunction(fn):
+        coroutine = cast(Callable[..., Awaitable[Any]], fn)
+
+        @functools.wraps(fn)
+        async def async_edge(*args: Any, **kwargs: Any) -> Any:
+            try:
+                return await coroutine(*args, **kwargs)
+            except ApiError as error:
+                raise kopf_error(error, object_name(kwargs)) from error
+
+        return cast(F, async_edge)
+
+    @functools.wraps(fn)
+    def edge(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except ApiError as error:
+            raise kopf_error(error, object_name(kwargs)) from error
+
+    return cast(F, edge)

@@ -34,7 +34,9 @@ from typing import Any
 import kopf
 
 from roost_api.wellknown import FINALIZER, PREFIX
-from roost_operator.kube import NAMESPACES, Kube
+from roost_kube.client import Kube
+from roost_kube.resources import NAMESPACES
+from roost_operator.edge import FIELD_MANAGER
 from roost_operator.missions import handlers as mission_handlers
 from roost_operator.runtime import Runtime, settings_of
 from roost_operator.settings import Settings, load_settings
@@ -79,7 +81,7 @@ def startup(settings: kopf.OperatorSettings, memo: kopf.Memo, **_: Any) -> None:
     """Configure kopf, connect to the API and make sure the operator's namespace exists."""
     roost = settings_of(memo)
     configure(settings, roost)
-    kube = Kube.from_environment()
+    kube = Kube.from_environment(FIELD_MANAGER)
     # Only when missing: under the chart the namespace exists and the operator may only
     # read it (a right to patch it would let the operator relax its own Pod Security
     # labels). The sandbox, with admin rights, gets it created.

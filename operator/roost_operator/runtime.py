@@ -4,7 +4,7 @@
 and hands them to kopf in the operator's ``memo``; the startup handler adds the API
 client and the controllers that keep per-process state (locks, the failover ledger).
 Handlers call :func:`runtime` to get it typed. Nothing here talks to kopf's own API
-client: all of Roost's reads and writes go through :class:`roost_operator.kube.Kube`.
+client: all of Roost's reads and writes go through :class:`roost_kube.client.Kube`.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, cast
 
-from roost_operator.kube import Kube
+from roost_kube.client import Kube
 from roost_operator.settings import Settings
 from roost_operator.vehicles.controller import VehicleController
 

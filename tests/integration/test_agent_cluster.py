@@ -26,23 +26,17 @@ import pytest
 
 from roost_api.autopilot import CommandAction
 from roost_api.commands import command_patch, new_command
-from roost_harness.agent import AgentProcess
-from roost_harness.apiwrites import write_requests
-from roost_harness.cluster import Cluster
-from roost_harness.operator import OperatorProcess, wait_for
+from roost_kube.client import Kube
+from roost_kube.patches import Obj
+from roost_kube.resources import CONFIGMAPS, DEPLOYMENTS, EVENTS, REDUNDANT_AUTOPILOTS, VEHICLES
+from roost_localcluster.cluster import Cluster
 from roost_operator.autopilots.plan import mavros_follows
-from roost_operator.kube import (
-    CONFIGMAPS,
-    DEPLOYMENTS,
-    EVENTS,
-    REDUNDANT_AUTOPILOTS,
-    VEHICLES,
-    Kube,
-    Obj,
-)
 from roost_operator.vehicles.config import config_map_name
 from roost_operator.vehicles.desired import workload_name
 from roost_sim import SimulatedAutopilot, autopilot_specs, start_vehicle_sims, stop_sims
+from tests.support.agent import AgentProcess
+from tests.support.apiwrites import write_requests
+from tests.support.operator import OperatorProcess, wait_for
 
 pytestmark = pytest.mark.cluster
 

@@ -7,7 +7,7 @@ the nodes and writes each vehicle's config, exactly as in production.
 
 Two stand-ins, both because the real part is not wired up here yet:
 
-* **The node agent.** :class:`~roost_harness.fakeagents.FakeAgents` writes each
+* **The node agent.** :class:`~tests.support.fakeagents.FakeAgents` writes each
   RedundantAutopilot's status the way the agent does (conditions
   ActiveHealthy/Redundant/FailedOver/Ready, per-autopilot health with landed state and
   armed flag, lastFailover, reportedAt, nodeName) and executes commands from
@@ -44,11 +44,10 @@ from typing import Any
 import pytest
 
 from roost_api.wellknown import ANNOTATION_PAUSE_FAILOVER_ACTIONS, LABEL_MISSION, LABEL_VEHICLE
-from roost_harness.cluster import Cluster
-from roost_harness.fakeagents import FakeAgents, redundant_autopilot
-from roost_harness.operator import OperatorProcess, wait_for
-from roost_operator.claims import claim_of, lease_name, release_options
-from roost_operator.kube import (
+from roost_kube.client import Kube
+from roost_kube.errors import ConflictError
+from roost_kube.patches import Obj
+from roost_kube.resources import (
     CONFIGMAPS,
     JOBS,
     LEASES,
@@ -56,10 +55,9 @@ from roost_operator.kube import (
     PODS,
     REDUNDANT_AUTOPILOTS,
     VEHICLES,
-    ConflictError,
-    Kube,
-    Obj,
 )
+from roost_localcluster.cluster import Cluster
+from roost_operator.claims import claim_of, lease_name, release_options
 from roost_operator.missions.cluster import claim_vehicle, release_vehicle
 from roost_operator.missions.observed import MissionRef, VehicleView
 from roost_operator.missions.workloads import (
@@ -67,6 +65,8 @@ from roost_operator.missions.workloads import (
     bounded_name,
     onboard_job_name,
 )
+from tests.support.fakeagents import FakeAgents, redundant_autopilot
+from tests.support.operator import OperatorProcess, wait_for
 
 pytestmark = pytest.mark.cluster
 

@@ -1,5 +1,5 @@
 """The Vehicle operator, running as a real ``roost-operator`` process, on the real control
-plane (tests/harness): kube-apiserver and etcd store the objects, kube-controller-manager
+plane (localcluster/): kube-apiserver and etcd store the objects, kube-controller-manager
 runs the Deployments, kube-scheduler places their pods and kwok's fake kubelets run them on
 fake vehicle nodes.
 
@@ -28,20 +28,14 @@ from roost_api.wellknown import (
     STARLING_LABEL_TYPE,
     TAINT_VEHICLE,
 )
-from roost_harness.apiwrites import VEHICLE_WRITE_TARGETS, write_requests
-from roost_harness.cluster import Cluster
-from roost_harness.controlplane import KWOK_NODE_ANNOTATION
-from roost_harness.nodes import fake_node
-from roost_harness.operator import OperatorProcess, wait_for
-from roost_operator.kube import (
-    CONFIGMAPS,
-    DEPLOYMENTS,
-    NODES,
-    PODS,
-    VEHICLES,
-    Kube,
-    Obj,
-)
+from roost_kube.client import Kube
+from roost_kube.patches import Obj
+from roost_kube.resources import CONFIGMAPS, DEPLOYMENTS, NODES, PODS, VEHICLES
+from roost_localcluster.cluster import Cluster
+from roost_localcluster.controlplane import KWOK_NODE_ANNOTATION
+from roost_localcluster.nodes import fake_node
+from tests.support.apiwrites import VEHICLE_WRITE_TARGETS, write_requests
+from tests.support.operator import OperatorProcess, wait_for
 
 pytestmark = pytest.mark.cluster
 

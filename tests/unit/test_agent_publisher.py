@@ -6,7 +6,6 @@ from __future__ import annotations
 from datetime import UTC, datetime, timedelta
 
 from roost_agent.agent import EventKind
-from roost_agent.kube import event_manifest
 from roost_agent.publisher import POSTED_KINDS, carry_transitions, merge_patch_body
 from roost_api.autopilot import AutopilotHealth, FailoverRecord, RedundantAutopilotStatus
 from roost_api.meta import Condition, HealthLevel
@@ -31,18 +30,6 @@ def test_a_restarted_agent_keeps_the_transition_times_already_in_the_api() -> No
     assert set(merged) == {"Ready", "Redundant"}  # types the agent no longer sets go
     assert merged["Ready"].last_transition_time == T0 and merged["Ready"].reason == "Ready"
     assert merged["Redundant"].last_transition_time == LATER
-
-
-def test_event_names_are_deterministic_so_a_retried_post_is_a_duplicate() -> None:
-    ra = {"metadata": {"name": "v1", "uid": "u-1"}}
-    one = event_manifest(ra, reason="FailedOver", message="m", warning=True, time=T0, node_name="n")
-    two = event_manifest(ra, reason="FailedOver", message="m", warning=True, time=T0, node_name="n")
-    other = event_manifest(
-        ra, reason="FailedOver", message="m", warning=True, time=LATER, node_name="n"
-    )
-    assert one["metadata"]["name"] == two["metadata"]["name"] != other["metadata"]["name"]
-    assert one["type"] == "Warning" and one["involvedObject"]["name"] == "v1"
-    assert one["metadata"]["namespace"] == "default"
 
 
 def test_health_changes_are_never_posted_as_events() -> None:

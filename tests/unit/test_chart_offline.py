@@ -21,8 +21,8 @@ import pytest
 import yaml
 
 from roost_api.wellknown import LABEL_NODE, LABEL_VEHICLE, TAINT_VEHICLE
-from roost_harness.binaries import REPO_ROOT
-from roost_harness.chart import (
+from roost_localcluster.binaries import REPO_ROOT
+from tests.support.chart import (
     CHART_CRDS_DIR,
     CHART_DIR,
     HARDWARE_VALUES,

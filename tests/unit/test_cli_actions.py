@@ -15,7 +15,6 @@ from typing import Any
 
 import pytest
 import yaml
-from kubernetes.client.exceptions import ApiException
 
 from roost_api.autopilot import AutopilotCommand, CommandAction, RedundantAutopilotSpec
 from roost_api.commands import command_patch, new_command
@@ -23,6 +22,7 @@ from roost_api.resources import MISSION, REDUNDANT_AUTOPILOT, VEHICLE, ResourceK
 from roost_cli import actions
 from roost_cli.cluster import NO_CLUSTER, Fleet, Target, api_error, resolve_kubeconfig
 from roost_cli.errors import CliError
+from roost_kube.errors import error_for_status
 
 AT = datetime(2026, 5, 1, 12, 0, 0, tzinfo=UTC)
 
@@ -234,8 +234,8 @@ def test_a_named_kubeconfig_that_does_not_exist_is_an_error_not_a_fallback(
 def test_api_errors_say_what_to_do(
     what: str, kind: ResourceKind | None, status: int, expected: str
 ) -> None:
-    error = ApiException(status=status, reason="Reason")
-    error.body = json.dumps({"kind": "Status", "message": "forbidden thing"})
+    body = json.dumps({"kind": "Status", "message": "forbidden thing"})
+    error = error_for_status(status, "GET", "/apis/roost.dev", body)
     assert expected in str(api_error(what, kind, error))
 
 

@@ -48,10 +48,10 @@ from roost_cli.sandbox import kwok, plan, sims, state
 from roost_cli.sandbox.director import Cue, Director, Script
 from roost_cli.sandbox.processes import Launcher, console_script
 from roost_cli.sandbox.progress import build_control_plane, start_control_plane
-from roost_harness import nodes
-from roost_harness.cluster import Cluster
-from roost_harness.controlplane import ControlPlane, Settings
-from roost_harness.processes import ManagedProcess
+from roost_localcluster import nodes
+from roost_localcluster.cluster import Cluster
+from roost_localcluster.controlplane import ControlPlane, Settings
+from roost_localcluster.processes import ManagedProcess
 
 DEFAULT_VEHICLES = 3
 DEFAULT_FAULT_AFTER_S = 15.0

@@ -12,7 +12,7 @@ it current. It records
 so ``roost status`` finds the cluster, ``roost fault`` finds a simulator's control port,
 and ``roost sandbox down`` (another terminal) stops exactly those processes. Pids alone
 are not identities (they are reused), hence the start times, compared by the harness's
-:class:`~roost_harness.processes.ManagedProcess`.
+:class:`~roost_localcluster.processes.ManagedProcess`.
 """
 
 from __future__ import annotations

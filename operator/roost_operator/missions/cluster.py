@@ -1,6 +1,6 @@
 """A mission's reads and writes: build an Observation, carry out a Plan. No decisions.
 
-Everything goes through :class:`~roost_operator.kube.Kube`. The parts that need care:
+Everything goes through :class:`~roost_kube.client.Kube`. The parts that need care:
 
 * **Claims** are Leases in the operator's namespace (:mod:`roost_operator.claims`),
   written by this module only: created to claim, taken over from an orphan with the
@@ -47,24 +47,13 @@ from roost_api.wellknown import (
     LABEL_VEHICLE,
     MANAGED_BY,
 )
+from roost_kube.client import Kube
+from roost_kube.errors import ApiError, ConflictError, TemporaryApiError
+from roost_kube.patches import Obj, needs_apply, with_applied_hash
+from roost_kube.resources import CONFIGMAPS, JOBS, LEASES, MISSIONS, REDUNDANT_AUTOPILOTS, VEHICLES
 from roost_operator import claims
 from roost_operator.autopilots.guards import FleetGuards
 from roost_operator.claims import Claim
-from roost_operator.errors import is_temporary
-from roost_operator.kube import (
-    CONFIGMAPS,
-    JOBS,
-    LEASES,
-    MISSIONS,
-    REDUNDANT_AUTOPILOTS,
-    VEHICLES,
-    ApiError,
-    ConflictError,
-    Kube,
-    Obj,
-    needs_apply,
-    with_applied_hash,
-)
 from roost_operator.missions.machine import (
     MissionEvent,
     Observation,
@@ -391,7 +380,7 @@ def check_templates(kube: Kube, obs: Observation, vehicles: Sequence[str]) -> Pl
         except ConflictError:
             continue  # a Job of that name exists: the template was accepted before
         except ApiError as error:
-            if is_temporary(error):
+            if isinstance(error, TemporaryApiError):
                 raise
             log.warning(
                 "Mission %s: %s refused by the Job API: %s",
@@ -417,7 +406,7 @@ def _create(kube: Kube, manifest: Obj) -> None:
     except ConflictError:
         log.debug("job %s already exists", manifest["metadata"]["name"])
     except ApiError as error:
-        if not is_temporary(error):
+        if not isinstance(error, TemporaryApiError):
             raise JobRejectedError(error.status, "POST", "jobs", error.body) from error
         raise
 
@@ -547,7 +536,7 @@ def release_deleted_mission(
         try:
             step()
         except ApiError as error:
-            if is_temporary(error):
+            if isinstance(error, TemporaryApiError):
                 raise
             left.append(f"{what}: {error.message}")
 

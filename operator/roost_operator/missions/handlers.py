@@ -32,9 +32,9 @@ import kopf
 
 from roost_api.meta import GROUP, VERSION, now
 from roost_api.wellknown import LABEL_COMPONENT, LABEL_MISSION
+from roost_kube.errors import TemporaryApiError
 from roost_operator.claims import CLAIM_COMPONENT, claim_of
 from roost_operator.edge import at_the_edge
-from roost_operator.errors import is_temporary
 from roost_operator.missions.cluster import reconcile_mission, release_deleted_mission
 from roost_operator.missions.wakeups import Wakeups, sleep_until_woken
 from roost_operator.runtime import runtime
@@ -81,7 +81,7 @@ async def mission_daemon(
             except Exception as error:
                 failures += 1
                 delay = backoff(timings, failures)
-                if is_temporary(error):
+                if isinstance(error, TemporaryApiError):
                     log.warning("Mission %s: %s; retrying in %.1f s", key, error, delay)
                 else:
                     log.exception("Mission %s: reconcile failed; retrying in %.1f s", key, delay)
@@ -111,7 +111,7 @@ async def mission_deleted(
     """
     assert namespace is not None, "Missions are namespaced"
     rt = runtime(memo)
-    with at_the_edge("Mission", name, DELETE_BACKOFF_S, namespace=namespace):
+    with at_the_edge("Mission", name, namespace=namespace):
         leftovers = await asyncio.to_thread(
             release_deleted_mission,
             rt.kube,

@@ -91,9 +91,9 @@ from roost_api.mission import (
     WorkloadPhase,
 )
 from roost_api.wellknown import ANNOTATION_CLEAR_FAILOVER_LATCH, ANNOTATION_PAUSE_FAILOVER_ACTIONS
+from roost_kube.patches import Obj
 from roost_mavlink.status import LandedState, landed_state_name
 from roost_operator.autopilots.guards import FleetGuards, Verdict, consequence_verdict
-from roost_operator.kube import Obj
 from roost_operator.missions.observed import (
     AutopilotView,
     JobPhase,

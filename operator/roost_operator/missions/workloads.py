@@ -40,7 +40,7 @@ from roost_api.wellknown import (
     LABEL_VEHICLE,
     MANAGED_BY,
 )
-from roost_operator.kube import Obj, owner_reference
+from roost_kube.patches import Obj, owner_reference
 from roost_operator.missions.observed import MissionRef
 from roost_operator.vehicles.config import mount_vehicle_config, vehicle_config_map
 from roost_operator.vehicles.placement import place_on_vehicle

@@ -45,7 +45,7 @@ from roost_api.wellknown import (
     VEHICLE_CONFIG_FILE,
     VEHICLE_CONFIG_MOUNTS,
 )
-from roost_operator.kube import Obj, content_hash
+from roost_kube.patches import Obj, content_hash
 
 CONFIG_COMPONENT: Final = "config"
 VOLUME_NAME: Final = "roost-vehicle-config"

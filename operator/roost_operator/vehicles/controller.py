@@ -14,7 +14,7 @@ Why it is safe to run at any time, any number of times, and to be killed half-wa
   fresh from the API on every run, never from a watch cache;
 * everything is computed from what was just read and written only where it differs
   (node patch planned by :func:`~roost_operator.vehicles.placement.plan_node`, objects
-  through :meth:`~roost_operator.kube.Kube.apply`, status compared before patching);
+  through :meth:`~roost_kube.client.Kube.apply`, status compared before patching);
 * writes that replace lists (node taints, status conditions) carry the
   ``resourceVersion`` they were computed from; a concurrent writer (a human, kopf's own
   annotations) causes a retry from a fresh read, never a lost update;
@@ -46,24 +46,21 @@ from roost_api.wellknown import (
     LABEL_VEHICLE,
     MANAGED_BY,
 )
-from roost_operator import claims
-from roost_operator.autopilots.conditions import DEFAULT_AGENT_STALE_AFTER
-from roost_operator.autopilots.guards import FleetGuards
-from roost_operator.autopilots.plan import PlannedEvent, mavros_follows
-from roost_operator.errors import is_temporary
-from roost_operator.kube import (
+from roost_kube.client import Kube
+from roost_kube.errors import ApiError, ConflictError, TemporaryApiError
+from roost_kube.patches import Obj, owner_reference
+from roost_kube.resources import (
     CONFIGMAPS,
     DEPLOYMENTS,
     LEASES,
     NODES,
     REDUNDANT_AUTOPILOTS,
     VEHICLES,
-    ApiError,
-    ConflictError,
-    Kube,
-    Obj,
-    owner_reference,
 )
+from roost_operator import claims
+from roost_operator.autopilots.conditions import DEFAULT_AGENT_STALE_AFTER
+from roost_operator.autopilots.guards import FleetGuards
+from roost_operator.autopilots.plan import PlannedEvent, mavros_follows
 from roost_operator.vehicles.config import config_map_name
 from roost_operator.vehicles.desired import workload_name
 from roost_operator.vehicles.placement import NodeClaim, NodeState, plan_node
@@ -280,7 +277,7 @@ class VehicleController:
             )
         # Every refusal is in ComponentsReady; a temporary one is also raised so the
         # handler retries it, a permanent one waits for the user to change the spec.
-        temporary = [error for error in refused.values() if is_temporary(error)]
+        temporary = [error for error in refused.values() if isinstance(error, TemporaryApiError)]
         if temporary:
             raise temporary[0]
         failover = plan.failover

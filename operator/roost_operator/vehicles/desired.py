@@ -44,8 +44,8 @@ from roost_api.wellknown import (
     MANAGED_BY,
     PREFIX,
 )
+from roost_kube.patches import Obj
 from roost_mavlink.sitl import sitl_endpoint
-from roost_operator.kube import Obj
 from roost_operator.vehicles.config import config_hash, mount_vehicle_config
 from roost_operator.vehicles.placement import place_on_vehicle
 

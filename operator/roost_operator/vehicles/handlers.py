@@ -42,9 +42,9 @@ import kopf
 
 from roost_api.meta import GROUP, VERSION, now
 from roost_api.wellknown import LABEL_COMPONENT, LABEL_MANAGED_BY, LABEL_VEHICLE, MANAGED_BY
+from roost_kube.patches import content_hash
 from roost_operator.claims import CLAIM_COMPONENT, claim_of
 from roost_operator.edge import at_the_edge
-from roost_operator.kube import content_hash
 from roost_operator.runtime import runtime
 from roost_operator.settings import Settings
 from roost_operator.vehicles.controller import Peers
@@ -129,7 +129,7 @@ def peers_from(indexes: Mapping[str, Any]) -> Peers:
 def reconcile_now(memo: Any, vehicle: str, indexes: Mapping[str, Any]) -> None:
     """Reconcile one Vehicle (it may not exist: then nothing happens)."""
     rt = runtime(memo)
-    with at_the_edge("Vehicle", vehicle, rt.settings.retry_backoff_seconds):
+    with at_the_edge("Vehicle", vehicle):
         outcome = rt.vehicles.reconcile(vehicle, peers_from(indexes))
     if outcome is None:
         _connected.pop(vehicle, None)
@@ -170,7 +170,7 @@ def vehicle_deleted(
     Vehicle that cannot be deleted is worse than a leftover a human can remove.
     """
     rt = runtime(memo)
-    with at_the_edge("Vehicle", name, rt.settings.retry_backoff_seconds):
+    with at_the_edge("Vehicle", name):
         leftovers = rt.vehicles.release(name)
     if not leftovers.clean:
         log.warning("Vehicle %s: deleted, but left behind: %s", name, leftovers.problems)

@@ -42,7 +42,7 @@ from roost_api.wellknown import (
     STARLING_LABEL_VEHICLE_TYPE,
     TAINT_VEHICLE,
 )
-from roost_operator.kube import Obj
+from roost_kube.patches import Obj
 
 TAINT_EFFECT: Final = "NoSchedule"
 TAINT_RECORD: Final = f"taint:{TAINT_VEHICLE}"

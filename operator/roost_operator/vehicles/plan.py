@@ -33,11 +33,12 @@ from typing import Any
 from roost_api.autopilot import RedundantAutopilotSpec, RedundantAutopilotStatus
 from roost_api.meta import Condition, ObjectReference, Stack, set_condition
 from roost_api.vehicle import VehicleConditionType, VehicleSpec, VehicleStatus
+from roost_kube.errors import ApiError
+from roost_kube.patches import Obj
 from roost_operator.autopilots.conditions import DEFAULT_AGENT_STALE_AFTER
 from roost_operator.autopilots.guards import FleetGuards, vehicle_paused
 from roost_operator.autopilots.plan import FailoverPlan, PlannedEvent
 from roost_operator.autopilots.plan import plan as plan_failover
-from roost_operator.kube import ApiError, Obj
 from roost_operator.vehicles.config import vehicle_config, vehicle_config_map
 from roost_operator.vehicles.desired import (
     DEFAULT_FCU_URL,

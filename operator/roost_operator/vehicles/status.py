@@ -18,7 +18,9 @@ from typing import Any
 
 from roost_api.meta import now
 from roost_api.vehicle import VehicleStatus
-from roost_operator.kube import VEHICLES, Kube
+from roost_kube.client import Kube
+from roost_kube.patches import merge_patch_fields
+from roost_kube.resources import VEHICLES
 from roost_operator.vehicles.desired import transitions
 
 
@@ -32,14 +34,7 @@ def status_patch(
     merge recursively). Lists are replaced whole and sent without nulls, which the
     schema would reject inside list items.
     """
-    old_api, new_api = old.to_api(), new.to_api()
-    with_nulls = new.model_dump(by_alias=True, mode="json")
-    changed = {
-        f: with_nulls[f] if isinstance(with_nulls.get(f), dict) else new_api.get(f)
-        for f in fields
-        if old_api.get(f) != new_api.get(f)
-    }
-    return changed or None
+    return merge_patch_fields(new, old=old, fields=fields) or None
 
 
 def write_vehicle_status(
@@ -53,7 +48,7 @@ def write_vehicle_status(
 ) -> bool:
     """Patch the owned ``fields`` of ``vehicle``'s status if they changed; True if sent.
 
-    Raises :class:`~roost_operator.kube.ConflictError` when the Vehicle changed since
+    Raises :class:`~roost_kube.errors.ConflictError` when the Vehicle changed since
     ``vehicle`` was read: recompute from a fresh read and call again.
     """
     patch = status_patch(old, new, fields)

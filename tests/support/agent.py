@@ -19,9 +19,9 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from roost_harness.binaries import REPO_ROOT
-from roost_harness.cluster import Cluster
-from roost_harness.processes import ManagedProcess
+from roost_localcluster.binaries import REPO_ROOT
+from roost_localcluster.cluster import Cluster
+from roost_localcluster.processes import ManagedProcess
 
 
 class AgentProcess:

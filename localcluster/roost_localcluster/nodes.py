@@ -15,7 +15,7 @@ from typing import Any
 
 from kubernetes import client
 
-from roost_harness.controlplane import KWOK_NODE_ANNOTATION, KWOK_NODE_ANNOTATION_VALUE
+from roost_localcluster.controlplane import KWOK_NODE_ANNOTATION, KWOK_NODE_ANNOTATION_VALUE
 
 # Taints the node lifecycle controller keeps on a node until it is Ready and reachable.
 _LIFECYCLE_TAINTS = frozenset({"node.kubernetes.io/not-ready", "node.kubernetes.io/unreachable"})

@@ -19,7 +19,7 @@ kwok                   plays the kubelet of every Node annotated ``kwok.x-k8s.io
 
 Everything listens on 127.0.0.1 on ports chosen free at start, so several control planes
 (other engineers' test runs) coexist. :class:`ControlPlane` is a context manager for tests;
-``roost-cluster up`` (:mod:`roost_harness.cli`) starts one detached and records the pids in
+``roost-cluster up`` (:mod:`roost_localcluster.cli`) starts one detached and records the pids in
 ``state.json`` so ``roost-cluster down`` stops exactly those.
 """
 
@@ -41,8 +41,8 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, Self
 
-from roost_harness import binaries, pki
-from roost_harness.processes import ManagedProcess
+from roost_localcluster import binaries, pki
+from roost_localcluster.processes import ManagedProcess
 
 KWOK_NODE_ANNOTATION = "kwok.x-k8s.io/node"
 KWOK_NODE_ANNOTATION_VALUE = "fake"

@@ -1,7 +1,7 @@
 """What a test (or the sandbox) holds on to: a kubeconfig plus helpers around it.
 
 :class:`Cluster` works with any kubeconfig, whether the control plane was started by this
-process (:class:`~roost_harness.controlplane.ControlPlane`, then reachable as
+process (:class:`~roost_localcluster.controlplane.ControlPlane`, then reachable as
 ``cluster.control_plane`` for things like :meth:`~ControlPlane.stop_apiserver`) or by
 ``roost-cluster up`` in the background.
 """
@@ -18,10 +18,10 @@ from typing import Any
 import yaml
 from kubernetes import client, config
 
-from roost_harness import nodes
-from roost_harness.binaries import REPO_ROOT
-from roost_harness.clients import tool_path
-from roost_harness.controlplane import ControlPlane
+from roost_localcluster import nodes
+from roost_localcluster.binaries import REPO_ROOT
+from roost_localcluster.clients import tool_path
+from roost_localcluster.controlplane import ControlPlane
 
 
 @dataclass
@@ -140,7 +140,7 @@ class Cluster:
         wait: bool = True,
         timeout_s: float = 60.0,
     ) -> dict[str, Any]:
-        """Create a kwok-managed fake node (see :func:`roost_harness.nodes.fake_node`).
+        """Create a kwok-managed fake node (see :func:`roost_localcluster.nodes.fake_node`).
 
         With ``wait`` (the default) return only once the node is Ready and schedulable.
         Returns the manifest that was created.

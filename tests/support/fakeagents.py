@@ -26,7 +26,7 @@ from kubernetes.client.exceptions import ApiException
 
 from roost_api.autopilot import CommandAction
 from roost_api.meta import GROUP, VERSION, Condition, set_condition
-from roost_harness.cluster import Cluster
+from roost_localcluster.cluster import Cluster
 
 PLURAL = "redundantautopilots"
 NOT_FOUND = 404

@@ -17,10 +17,10 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TypeVar
 
-from roost_harness.binaries import REPO_ROOT
-from roost_harness.cluster import Cluster
-from roost_harness.controlplane import free_port
-from roost_harness.processes import ManagedProcess
+from roost_localcluster.binaries import REPO_ROOT
+from roost_localcluster.cluster import Cluster
+from roost_localcluster.controlplane import free_port
+from roost_localcluster.processes import ManagedProcess
 
 T = TypeVar("T")
 

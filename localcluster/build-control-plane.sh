@@ -1,13 +1,13 @@
 #!/usr/bin/env bash
 # Build the real Kubernetes control-plane binaries (kube-apiserver, kube-controller-manager,
-# kube-scheduler, etcd) and kwok from the wrapper Go modules in tests/harness/gomod/, and
+# kube-scheduler, etcd) and kwok from the wrapper Go modules in localcluster/gomod/, and
 # cache them under ~/.cache/roost/control-plane/<versions>/bin.
 #
 # A warm run (all binaries present) returns at once. A cold run takes 15-30 minutes on
 # two cores; progress is printed per binary. Nothing is written into the repository.
 #
-#   tests/harness/build-control-plane.sh            build if missing, print the bin dir
-#   tests/harness/build-control-plane.sh --print    print the bin dir only
+#   localcluster/build-control-plane.sh            build if missing, print the bin dir
+#   localcluster/build-control-plane.sh --print    print the bin dir only
 set -euo pipefail
 
 here=$(cd "$(dirname "$0")" && pwd)

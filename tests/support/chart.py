@@ -4,7 +4,7 @@ One place that knows where the chart lives and how values reach helm (always thr
 values file, never ``--set``, so nested keys and lists need no escaping), for the
 offline chart tests (``tests/unit/test_chart_offline.py``) and the control-plane ones
 (``tests/e2e/test_chart.py``). Rendering uses the real ``helm`` binary from
-:mod:`roost_harness.clients`, not a template engine of our own.
+:mod:`roost_localcluster.clients`, not a template engine of our own.
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ from typing import Any
 
 import yaml
 
-from roost_harness.binaries import REPO_ROOT
-from roost_harness.clients import tool_path
+from roost_localcluster.binaries import REPO_ROOT
+from roost_localcluster.clients import tool_path
 
 CHART_DIR = REPO_ROOT / "charts" / "roost"
 CHART_CRDS_DIR = CHART_DIR / "crds"

@@ -1,7 +1,7 @@
 """Where the control-plane binaries live, and building them when they are missing.
 
-The binaries are built from the wrapper Go modules in ``tests/harness/gomod`` by
-``tests/harness/build-control-plane.sh`` and cached under ``~/.cache/roost`` keyed by version.
+The binaries are built from the wrapper Go modules in ``localcluster/gomod`` by
+``localcluster/build-control-plane.sh`` and cached under ``~/.cache/roost`` keyed by version.
 That script is the one place that knows the versions and the cache layout; Python asks it
 (``--print``) instead of repeating either.
 """
@@ -12,9 +12,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-HARNESS_DIR = Path(__file__).resolve().parent.parent
-REPO_ROOT = HARNESS_DIR.parent.parent
-BUILD_SCRIPT = HARNESS_DIR / "build-control-plane.sh"
+PACKAGE_HOME = Path(__file__).resolve().parent.parent
+REPO_ROOT = PACKAGE_HOME.parent
+BUILD_SCRIPT = PACKAGE_HOME / "build-control-plane.sh"
 COMPONENTS = ("etcd", "kube-apiserver", "kube-controller-manager", "kube-scheduler", "kwok")
 
 

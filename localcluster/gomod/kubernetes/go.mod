@@ -1,7 +1,7 @@
 // Wrapper module that pins the Kubernetes control-plane binaries Roost tests against.
 // k8s.io/kubernetes replaces its staging modules with local paths, so it cannot be
 // 'go install'ed directly; this module re-points each staging module at its published
-// v0.<minor>.<patch> release. Regenerate the replace block with tests/harness/build-control-plane.sh --regen.
+// v0.<minor>.<patch> release. Regenerate the replace block with localcluster/build-control-plane.sh --regen.
 module roost.dev/tests/controlplane
 
 go 1.25.0

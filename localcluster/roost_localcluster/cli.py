@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 from types import FrameType
 
-from roost_harness.controlplane import ControlPlane, ControlPlaneError
+from roost_localcluster.controlplane import ControlPlane, ControlPlaneError
 
 
 def _raise_interrupt(signum: int, frame: FrameType | None) -> None:

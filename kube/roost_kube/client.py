@@ -1,0 +1,333 @@
+"""The REST client every Roost process talks to the API server through.
+
+Why our own thin client instead of the generated ``kubernetes.client`` API classes: the
+operator, the agent and the CLI need the same few moves on many kinds — get, list by
+label, server-side apply, merge patch (with a ``resourceVersion`` precondition when
+written whole), create, delete, watch one object, post an Event — and the same error
+semantics for all of them. Objects stay plain dicts (the JSON the server speaks), so
+the pure planning functions and the wire share one shape.
+
+* **Timeouts are the caller's**: ``timeout=(connect, read)`` at construction (the agent
+  on a drone uses 2 s/5 s, the operator 5 s/30 s, the CLI 10 s), overridable per call.
+* **Retries are the caller's**: :meth:`Kube.from_environment` sets urllib3's retries
+  (the agent 0, since its publisher backs off itself).
+* **Errors** are :mod:`roost_kube.errors` classes, transport failures included; GET and
+  DELETE of a missing object return None instead of raising.
+* Every write is counted in :attr:`Kube.writes` so tests and benchmarks see what a
+  reconcile did.
+
+Authentication and TLS come from the ``kubernetes`` client's own config loaders.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from collections import Counter
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlencode
+
+from kubernetes import client as k8s_client
+from kubernetes import config as k8s_config
+
+from roost_kube.errors import ApiUnavailableError, ConflictError, error_for_status, transport_of
+from roost_kube.events import EventType, event_manifest
+from roost_kube.patches import Obj, needs_apply, with_applied_hash
+from roost_kube.resources import Resource, resource_of
+
+Timeout = tuple[float, float]
+"""``(connect, read)`` seconds."""
+
+
+@dataclass
+class Kube:
+    """Thin synchronous client for the Kubernetes REST API (thread-safe)."""
+
+    api: k8s_client.ApiClient
+    field_manager: str
+    timeout: Timeout = (5.0, 30.0)
+    writes: Counter[str] = field(default_factory=Counter)
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    @classmethod
+    def from_environment(
+        cls,
+        field_manager: str,
+        *,
+        kubeconfig: Path | str | None = None,
+        context: str | None = None,
+        timeout: Timeout = (5.0, 30.0),
+        retries: int | None = None,
+    ) -> Kube:
+        """A client configured like kubectl.
+
+        With no ``kubeconfig``: the in-cluster service account, else ``$KUBECONFIG`` (a
+        list is merged) or ``~/.kube/config``. ``retries`` replaces urllib3's default.
+        """
+        configuration = k8s_client.Configuration()
+        if kubeconfig is None:
+            try:
+                k8s_config.load_incluster_config(client_configuration=configuration)  # type: ignore[no-untyped-call]
+            except k8s_config.ConfigException:
+                k8s_config.load_kube_config(  # type: ignore[no-untyped-call]
+                    context=context, client_configuration=configuration
+                )
+        else:
+            k8s_config.load_kube_config(  # type: ignore[no-untyped-call]
+                config_file=str(kubeconfig), context=context, client_configuration=configuration
+            )
+        if retries is not None:
+            configuration.retries = retries
+        return cls(k8s_client.ApiClient(configuration), field_manager, timeout)
+
+    @property
+    def server(self) -> str:
+        """The API server's URL."""
+        return str(self.api.configuration.host)
+
+    # -- raw request -------------------------------------------------------------
+
+    def _send(
+        self,
+        method: str,
+        path: str,
+        *,
+        query: Mapping[str, str] | None,
+        body: Any,
+        content_type: str,
+        timeout: Timeout | None,
+    ) -> Any:
+        headers = {"Accept": "application/json", "Content-Type": content_type}
+        _, url, headers, _, _ = self.api.param_serialize(
+            method, path, header_params=headers, auth_settings=["BearerToken"]
+        )
+        if query:
+            url = f"{url}?{urlencode(query)}"
+        try:
+            return self.api.call_api(
+                method, url, header_params=headers, body=body, _request_timeout=timeout
+            )
+        except Exception as exc:
+            transport = transport_of(exc)
+            if transport is None:
+                raise
+            raise ApiUnavailableError(
+                None, method, path, f"{type(exc).__name__}: {exc}", transport=transport
+            ) from exc
+
+    def request(
+        self,
+        method: str,
+        path: str,
+        *,
+        query: Mapping[str, str] | None = None,
+        body: Any = None,
+        content_type: str = "application/json",
+        timeout: Timeout | None = None,
+    ) -> Obj | None:
+        """Send one request; JSON response as a dict, None on 404 for GET/DELETE."""
+        response = self._send(
+            method,
+            path,
+            query=query,
+            body=body,
+            content_type=content_type,
+            timeout=timeout or self.timeout,
+        )
+        raw: bytes = response.read() or b"{}"
+        if method != "GET":
+            with self._lock:
+                self.writes[method] += 1
+        if response.status == 404 and method in ("GET", "DELETE"):
+            return None
+        if response.status >= 400:
+            raise error_for_status(response.status, method, path, raw.decode(errors="replace"))
+        decoded: Obj = json.loads(raw)
+        return decoded
+
+    # -- reads -------------------------------------------------------------------
+
+    def get(self, resource: Resource, name: str, namespace: str | None = None) -> Obj | None:
+        """The object, or None when it does not exist."""
+        return self.request("GET", resource.object_path(name, namespace))
+
+    def list_objects(
+        self,
+        resource: Resource,
+        *,
+        namespace: str | None = None,
+        labels: Mapping[str, str] | None = None,
+        field_selector: str | None = None,
+        limit: int | None = None,
+    ) -> list[Obj]:
+        """Objects of a kind (optionally in one namespace, matching labels exactly)."""
+        query: dict[str, str] = {}
+        if labels:
+            query["labelSelector"] = ",".join(f"{k}={v}" for k, v in sorted(labels.items()))
+        if field_selector:
+            query["fieldSelector"] = field_selector
+        if limit:
+            query["limit"] = str(limit)
+        result = self.request("GET", resource.collection_path(namespace), query=query)
+        items: list[Obj] = (result or {}).get("items", [])
+        for item in items:  # list items carry no apiVersion/kind; restore them
+            item.setdefault("apiVersion", resource.api_version)
+            item.setdefault("kind", resource.kind)
+        return items
+
+    def watch(
+        self, resource: Resource, name: str, *, namespace: str | None = None, timeout_s: int
+    ) -> Iterator[tuple[str, Obj]]:
+        """Watch events for one object, starting with its current state (ADDED).
+
+        Ends after ``timeout_s`` (server side); raises :class:`ApiUnavailableError` when
+        the connection fails. The caller simply watches again: each watch begins with
+        the object as it is, so nothing missed in between is lost.
+        """
+        path = resource.collection_path(namespace)
+        query = {
+            "watch": "true",
+            "fieldSelector": f"metadata.name={name}",
+            "timeoutSeconds": str(timeout_s),
+        }
+        response = self._send(
+            "GET",
+            path,
+            query=query,
+            body=None,
+            content_type="application/json",
+            timeout=(self.timeout[0], timeout_s + self.timeout[1]),
+        )
+        if response.status >= 400:
+            raw: bytes = response.read() or b"{}"
+            raise error_for_status(response.status, "GET", path, raw.decode(errors="replace"))
+        try:
+            for line in response.response:
+                if not line.strip():
+                    continue
+                event = json.loads(line)
+                if event.get("type") == "ERROR":
+                    status = event.get("object", {})
+                    raise error_for_status(
+                        int(status.get("code") or 500), "WATCH", path, json.dumps(status)
+                    )
+                yield str(event["type"]), event["object"]
+        except Exception as exc:
+            transport = transport_of(exc)
+            if transport is None:
+                raise
+            raise ApiUnavailableError(
+                None,
+                "WATCH",
+                path,
+                f"watch of {name}: {type(exc).__name__}: {exc}",
+                transport=transport,
+            ) from exc
+        finally:
+            response.response.release_conn()
+
+    # -- writes ------------------------------------------------------------------
+
+    def apply(self, manifest: Mapping[str, Any]) -> tuple[Obj, bool]:
+        """Server-side apply ``manifest`` unless the live object already matches.
+
+        Returns the live object and whether a write was sent.
+        """
+        resource = resource_of(manifest)
+        desired = with_applied_hash(manifest)
+        meta = desired["metadata"]
+        actual = self.get(resource, meta["name"], meta.get("namespace"))
+        if actual is not None and not needs_apply(desired, actual):
+            return actual, False
+        applied = self.request(
+            "PATCH",
+            resource.object_path(meta["name"], meta.get("namespace")),
+            query={"fieldManager": self.field_manager, "force": "true"},
+            body=desired,
+            content_type="application/apply-patch+yaml",
+        )
+        assert applied is not None
+        return applied, True
+
+    def merge_patch(
+        self,
+        resource: Resource,
+        name: str,
+        patch: Mapping[str, Any],
+        *,
+        namespace: str | None = None,
+        subresource: str | None = None,
+    ) -> Obj:
+        """JSON merge patch (see :mod:`roost_kube.patches` for nulls and preconditions)."""
+        path = resource.object_path(name, namespace)
+        if subresource:
+            path = f"{path}/{subresource}"
+        patched = self.request(
+            "PATCH",
+            path,
+            query={"fieldManager": self.field_manager},
+            body=dict(patch),
+            content_type="application/merge-patch+json",
+        )
+        assert patched is not None
+        return patched
+
+    def create(self, manifest: Mapping[str, Any]) -> Obj:
+        """Create an object (raises :class:`ConflictError` if it exists)."""
+        resource = resource_of(manifest)
+        created = self.request(
+            "POST",
+            resource.collection_path(manifest["metadata"].get("namespace")),
+            query={"fieldManager": self.field_manager},
+            body=dict(manifest),
+        )
+        assert created is not None
+        return created
+
+    def delete(self, resource: Resource, name: str, namespace: str | None = None) -> bool:
+        """Delete an object in the background; False when it was already gone."""
+        gone = self.request(
+            "DELETE",
+            resource.object_path(name, namespace),
+            body={"propagationPolicy": "Background"},
+        )
+        return gone is not None
+
+    def delete_all(self, resource: Resource, objects: Sequence[Mapping[str, Any]]) -> list[str]:
+        """Delete each listed object; the names actually deleted."""
+        deleted = []
+        for obj in objects:
+            meta = obj["metadata"]
+            if self.delete(resource, meta["name"], meta.get("namespace")):
+                deleted.append(meta["name"])
+        return deleted
+
+    def post_event(
+        self,
+        regarding: Mapping[str, Any],
+        *,
+        reason: str,
+        message: str,
+        at: datetime | str,
+        type: EventType = "Normal",
+        instance: str | None = None,
+    ) -> bool:
+        """Record an Event about ``regarding``; False when it was already recorded."""
+        manifest = event_manifest(
+            regarding,
+            reason=reason,
+            message=message,
+            at=at,
+            component=self.field_manager,
+            type=type,
+            instance=instance,
+        )
+        try:
+            self.create(manifest)
+        except ConflictError:
+            return False
+        return True
