@@ -93,6 +93,9 @@ def startup(settings: kopf.OperatorSettings, memo: kopf.Memo, **_: Any) -> None:
 def build_registry(settings: Settings) -> kopf.OperatorRegistry:
     """A kopf registry with the startup hook and every controller's handlers."""
     registry = kopf.OperatorRegistry()
+    # kopf authenticates like Roost's own client does: from the kubernetes client's config
+    # (a fresh registry has none of the default registry's login handlers).
+    kopf.on.login(registry=registry)(kopf.login_via_client)
     kopf.on.startup(registry=registry)(startup)
     for module in HANDLER_MODULES:
         module.register(registry, settings)
