@@ -720,6 +720,9 @@ def test_a_template_the_job_api_refuses_fails_the_mission_before_it_claims(
     assert "Not_A_Valid_Name" in message and "{" not in message, "the API's words, not JSON"
     assert claimed_by(kube, vehicles[0]) is None, "nothing was claimed"
     assert jobs_of(kube, manifest["metadata"]["name"]) == {}
+    # The broken Mission is deleted like any other.
+    fleet.cluster.kubectl("delete", "mission", manifest["metadata"]["name"], "-n", FLIGHTS)
+    assert kube.get(MISSIONS, manifest["metadata"]["name"], FLIGHTS) is None
 
 
 def test_a_vehicle_deleted_mid_mission_leaves_it_at_once(

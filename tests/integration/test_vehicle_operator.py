@@ -30,7 +30,14 @@ from roost_api.wellknown import (
 )
 from roost_kube.client import Kube
 from roost_kube.patches import Obj
-from roost_kube.resources import CONFIGMAPS, DEPLOYMENTS, NODES, PODS, VEHICLES
+from roost_kube.resources import (
+    CONFIGMAPS,
+    DEPLOYMENTS,
+    NODES,
+    PODS,
+    REDUNDANT_AUTOPILOTS,
+    VEHICLES,
+)
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import KWOK_NODE_ANNOTATION
 from roost_localcluster.nodes import fake_node
@@ -615,3 +622,46 @@ def test_an_operator_killed_mid_reconcile_converges_after_restart(
     vehicle = kube.get(VEHICLES, name)
     assert vehicle is not None
     assert vehicle["status"]["observedGeneration"] == vehicle["metadata"]["generation"]
+
+
+# ---- bad input: reported once, and deletion always finishes --------------------------------
+
+
+def vehicle_events(cluster: Cluster, vehicle: str) -> list[str]:
+    """Reasons of the Events about Vehicle ``vehicle`` (cluster-scoped: in ``default``)."""
+    out = cluster.kubectl(
+        "get",
+        "events",
+        "-n",
+        "default",
+        "--field-selector",
+        f"involvedObject.name={vehicle}",
+        "-o",
+        "jsonpath={range .items[*]}{.reason}{'\\n'}{end}",
+    ).stdout
+    return out.split()
+
+
+def test_a_write_the_api_server_refuses_is_reported_once_and_deletion_still_finishes(
+    roost_crds: Cluster, vehicles: Callable[..., str], kube: Kube
+) -> None:
+    """A node name that fits the Vehicle but not the RedundantAutopilot's node label:
+    the operator reports it in NodeBound with what to change (no retry loop), and both
+    broken objects can be deleted."""
+    name = f"vlong-{uuid.uuid4().hex[:6]}"
+    node = f"{'n' * 64}-{uuid.uuid4().hex[:6]}"  # a valid node name, too long for a label
+    rap = f"{name}-autopilots"
+    roost_crds.kubectl("apply", "-f", "-", input_text=json.dumps(redundant_autopilot(rap, name)))
+    vehicles(name, node)
+    cond = wait_condition(kube, name, "NodeBound", "False", "AutopilotLabelRefused")
+    assert "at most 63 characters" in cond["message"]
+    wait_until("the Refused Event", lambda: "Refused" in vehicle_events(roost_crds, name))
+    # "Nothing happens" for three resync periods: the refusal is not retried into a storm.
+    time.sleep(3 * RESYNC_S)
+    assert vehicle_events(roost_crds, name).count("Refused") == 1
+    roost_crds.kubectl("delete", "redundantautopilot", rap, "--wait=false")
+    roost_crds.kubectl("delete", "vehicle", name, "--wait=false")
+    wait_until(
+        "the broken Vehicle and RedundantAutopilot to be gone",
+        lambda: kube.get(VEHICLES, name) is None and kube.get(REDUNDANT_AUTOPILOTS, rap) is None,
+    )

@@ -47,7 +47,7 @@ from roost_api.wellknown import (
     MANAGED_BY,
 )
 from roost_kube.client import Kube
-from roost_kube.errors import ApiError, ConflictError, TemporaryApiError
+from roost_kube.errors import ApiError, ConflictError, PermanentApiError, TemporaryApiError
 from roost_kube.patches import Obj, owner_reference
 from roost_kube.resources import (
     CONFIGMAPS,
@@ -66,11 +66,15 @@ from roost_operator.vehicles.desired import workload_name
 from roost_operator.vehicles.placement import NodeClaim, NodeState, plan_node
 from roost_operator.vehicles.plan import (
     EVENT_CONDITIONS,
+    REFUSED_AUTOPILOT_LABEL,
+    REFUSED_CONFIG,
+    REFUSED_NODE,
     Context,
     Observed,
     VehiclePlan,
     acting,
     plan_vehicle,
+    refusal_time,
     report,
 )
 from roost_operator.vehicles.status import write_vehicle_status
@@ -269,11 +273,15 @@ class VehicleController:
             with self.ledger.lock:  # nothing was stored: the index/status stay the truth
                 self.ledger.record(name, was_acting)
             raise
-        if written and refused:  # logged when it first shows in the status, not per retry
-            log.warning(
-                "Vehicle %s: component Deployments refused: %s",
-                name,
-                "; ".join(f"{c}: {error.message}" for c, error in refused.items()),
+        if written and refused:  # reported when the status shows it, never per retry
+            summary = "; ".join(f"{what}: {error.message}" for what, error in refused.items())
+            log.warning("Vehicle %s: the API server refused: %s", name, summary)
+            kube.post_event(
+                vehicle,
+                reason="Refused",
+                message=f"the API server refused what Roost built from the spec: {summary}",
+                type="Warning",
+                at=refusal_time(status, refused) or obs.now,
             )
         # Every refusal is in ComponentsReady; a temporary one is also raised so the
         # handler retries it, a permanent one waits for the user to change the spec.
@@ -292,17 +300,28 @@ class VehicleController:
     ) -> tuple[dict[str, Obj | None], dict[str, ApiError]]:
         """Carry out ``plan``; the live Deployments and those the API server refused."""
         kube = self.kube
+        refused: dict[str, ApiError] = {}
+
+        def attempt(key: str, write: Callable[[], object]) -> None:
+            try:
+                write()
+            except PermanentApiError as error:  # reported in the status, not retried
+                refused[key] = error
+
         target = obs.spec.node_name if plan.node_state is not None else None
         for node in kube.list_objects(NODES, labels={LABEL_VEHICLE: obs.name}):
             if node["metadata"]["name"] != target:
                 self._converge_node(node, NodeState.released())
-        if plan.node_state is not None and obs.node is not None:
-            self._converge_node(obs.node, plan.node_state)
+        bound, state = obs.node, plan.node_state
+        if state is not None and bound is not None:
+            attempt(REFUSED_NODE, lambda: self._converge_node(bound, state))
         if autopilot is not None:
-            self._label_autopilot(autopilot, obs.spec.node_name)
-        kube.apply(plan.config_map)
+            attempt(
+                REFUSED_AUTOPILOT_LABEL,
+                lambda: self._label_autopilot(autopilot, obs.spec.node_name),
+            )
+        attempt(REFUSED_CONFIG, lambda: kube.apply(plan.config_map))
         live: dict[str, Obj | None] = {}
-        refused: dict[str, ApiError] = {}
         for component, manifest in plan.deployments.items():
             try:
                 live[component], _ = kube.apply(manifest)
@@ -362,22 +381,23 @@ class VehicleController:
     def release(self, name: str) -> Leftovers:
         """Remove what Roost made for Vehicle ``name`` (labels, taint, config, workloads).
 
-        Every part is attempted even when another fails; what could not be removed is
-        returned, so deletion finishes and an Event can say what was left.
+        Every part is attempted even when another is refused for good; what could not be
+        removed is returned, so deletion finishes and an Event can say what was left. A
+        temporary error is raised: the deletion is retried.
         """
         problems: list[str] = []
         with self.lock(name):
             for node in self.kube.list_objects(NODES, labels={LABEL_VEHICLE: name}):
                 try:
                     self._converge_node(node, NodeState.released())
-                except ApiError as error:
+                except PermanentApiError as error:
                     problems.append(f"node {node['metadata']['name']}: {error.message}")
             owned = {LABEL_MANAGED_BY: MANAGED_BY, LABEL_VEHICLE: name}
             for resource in (DEPLOYMENTS, CONFIGMAPS):
                 for obj in self.kube.list_objects(resource, namespace=self.namespace, labels=owned):
                     try:
                         self.kube.delete(resource, obj["metadata"]["name"], self.namespace)
-                    except ApiError as error:
+                    except PermanentApiError as error:
                         problems.append(
                             f"{resource.kind} {self.namespace}/{obj['metadata']['name']}: "
                             f"{error.message}"

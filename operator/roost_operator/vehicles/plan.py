@@ -33,6 +33,7 @@ from typing import Any
 from roost_api.autopilot import RedundantAutopilotSpec, RedundantAutopilotStatus
 from roost_api.meta import Condition, ObjectReference, Stack, set_condition
 from roost_api.vehicle import VehicleConditionType, VehicleSpec, VehicleStatus
+from roost_api.wellknown import LABEL_NODE
 from roost_kube.errors import ApiError
 from roost_kube.patches import Obj
 from roost_operator.autopilots.conditions import DEFAULT_AGENT_STALE_AFTER
@@ -263,6 +264,32 @@ def plan_vehicle(obs: Observed, ctx: Context) -> VehiclePlan:
     )
 
 
+REFUSED_NODE = "node"
+REFUSED_AUTOPILOT_LABEL = "autopilot-label"
+REFUSED_CONFIG = "config"
+"""Keys of :func:`report`'s ``refused`` for writes other than component Deployments."""
+
+
+def _binding_after(plan: VehiclePlan, refused: Mapping[str, ApiError]) -> NodeBinding:
+    """NodeBound, unless the API server refused a write the binding needs."""
+    if REFUSED_NODE in refused:
+        return NodeBinding(
+            False,
+            "NodeRefused",
+            f"labelling node {plan.status.node_name or '?'} was refused: "
+            f"{refused[REFUSED_NODE].message}; check spec.nodeName and spec.labels",
+        )
+    if REFUSED_AUTOPILOT_LABEL in refused:
+        return NodeBinding(
+            False,
+            "AutopilotLabelRefused",
+            f"the RedundantAutopilot's {LABEL_NODE} label was refused: "
+            f"{refused[REFUSED_AUTOPILOT_LABEL].message}; with a RedundantAutopilot "
+            "spec.nodeName must also be a label value (at most 63 characters)",
+        )
+    return plan.binding
+
+
 def report(
     plan: VehiclePlan,
     *,
@@ -274,7 +301,8 @@ def report(
     """The status to write once the plan is applied: NodeBound, ComponentsReady, Ready.
 
     ``live`` maps each desired component to its Deployment as the apply left it,
-    ``refused`` those the API server refused (with its reason).
+    ``refused`` the writes the API server refused, by component or by one of the
+    ``REFUSED_*`` keys, with its answer: each shows in a condition with what to change.
     """
     states = [
         ComponentState(c, False, f"its Deployment was refused: {refused[c].message}")
@@ -285,14 +313,35 @@ def report(
     components = components_condition(
         states, blocked=None if plan.runs_workloads else plan.binding.message
     )
+    if REFUSED_CONFIG in refused:
+        components = (
+            "False",
+            "ConfigRefused",
+            f"the vehicle's config ConfigMap was refused: {refused[REFUSED_CONFIG].message}; "
+            "make spec.config smaller",
+        )
     conditions = vehicle_conditions(
         plan.status.conditions,
-        binding=plan.binding,
+        binding=_binding_after(plan, refused),
         components=components,
         generation=generation,
         agent_expected=agent_expected,
     )
     return plan.status.model_copy(update={"conditions": conditions})
+
+
+def refusal_time(status: VehicleStatus, refused: Mapping[str, ApiError]) -> datetime | None:
+    """When the conditions that report ``refused`` last changed (None: no such condition).
+
+    The refusal's Event is stamped with it, never with the clock: the same refusal seen
+    again by a later reconcile names the same Event and the API refuses the repeat.
+    """
+    on_node = REFUSED_NODE in refused or REFUSED_AUTOPILOT_LABEL in refused
+    kinds = [VehicleConditionType.NODE_BOUND] if on_node else []
+    if any(key not in (REFUSED_NODE, REFUSED_AUTOPILOT_LABEL) for key in refused):
+        kinds.append(VehicleConditionType.COMPONENTS_READY)
+    times = [c.last_transition_time for c in status.conditions if c.type in kinds]
+    return min(times, default=None)
 
 
 def acting(plan: VehiclePlan) -> bool:
