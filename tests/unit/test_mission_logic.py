@@ -72,6 +72,7 @@ from roost_operator.missions.workloads import (
     bounded_name,
     offboard_job_name,
     onboard_job_name,
+    template_probes,
 )
 from tests.support.fakeagents import redundant_autopilot
 
@@ -478,6 +479,27 @@ def test_the_offboard_job_is_kept_off_vehicle_nodes() -> None:
     assert terms == [{"matchExpressions": [{"key": LABEL_VEHICLE, "operator": "DoesNotExist"}]}]
     assert "tolerations" not in pod and "nodeSelector" not in pod
     assert {"name": ENV_MISSION_VEHICLES, "value": "a,b"} in pod["containers"][0]["env"]
+
+
+def test_the_template_probes_are_the_jobs_the_mission_would_create() -> None:
+    """What is dry-run before claiming is exactly what would be created after it."""
+    spec = mission_spec(
+        vehicles={"names": ["a", "b"], "count": 2},
+        offboard={"spec": {"containers": [{"name": "m", "image": "monitor"}]}},
+    )
+    obs = observe(claimed("a", "b"), spec=spec)
+    probes = template_probes(
+        mission=ME, spec=spec, vehicles=["a", "b"], config_values=obs.config_values
+    )
+    assert [field for field, _ in probes] == ["spec.onboard", "spec.offboard"]
+    created = {j["metadata"]["name"]: j for j in plan_mission(obs).jobs_to_create}
+    for _, probe in probes:
+        assert probe == created[probe["metadata"]["name"]]
+    onboard_only = template_probes(
+        mission=ME, spec=mission_spec(), vehicles=["a"], config_values={}
+    )
+    assert [field for field, _ in onboard_only] == ["spec.onboard"]
+    assert template_probes(mission=ME, spec=spec, vehicles=[], config_values={}) == []
 
 
 def test_long_names_are_bounded_and_stay_distinct() -> None:
