@@ -106,7 +106,7 @@ def _parse_all(items: Iterable[Obj], parse: Callable[[Obj], T], what: str) -> li
             parsed.append(parse(item))
         except (ValidationError, KeyError) as error:
             name = item.get("metadata", {}).get("name")
-            log.warning("skipping malformed %s %s: %s", what, name, error)
+            log.warning("%s %s: malformed, skipped: %s", what, name, error)
     return parsed
 
 
@@ -261,7 +261,7 @@ def _claim_all(
     for name in names:
         view = claim_vehicle(kube, namespace, obs.vehicles[name], obs.mission, at=obs.now)
         if view is None:
-            log.info("mission %s lost the race for vehicle %s", obs.mission.key, name)
+            log.info("Mission %s: lost the race for Vehicle %s", obs.mission.key, name)
             for taken in claimed:
                 release_vehicle(kube, namespace, taken, obs.mission)
             return None
@@ -404,7 +404,8 @@ def _create(kube: Kube, manifest: Obj) -> None:
     try:
         kube.create(manifest)
     except ConflictError:
-        log.debug("job %s already exists", manifest["metadata"]["name"])
+        meta = manifest["metadata"]
+        log.debug("Job %s/%s: already exists", meta.get("namespace"), meta["name"])
     except ApiError as error:
         if not isinstance(error, TemporaryApiError):
             raise JobRejectedError(error.status, "POST", "jobs", error.body) from error

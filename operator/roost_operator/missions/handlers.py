@@ -32,7 +32,8 @@ import kopf
 
 from roost_api.meta import GROUP, VERSION, now
 from roost_api.wellknown import LABEL_COMPONENT, LABEL_MISSION
-from roost_kube.errors import TemporaryApiError
+from roost_kube.client import Kube
+from roost_kube.errors import ApiError, TemporaryApiError
 from roost_operator.claims import CLAIM_COMPONENT, claim_of
 from roost_operator.edge import at_the_edge
 from roost_operator.missions.cluster import reconcile_mission, release_deleted_mission
@@ -56,8 +57,34 @@ def backoff(timings: MissionTimings, failures: int) -> float:
     return float(min(delay, timings.max_backoff_seconds))
 
 
+def report_refusal(kube: Kube, body: kopf.Body, key: str, error: ApiError) -> None:
+    """A write the API server refuses for good: one log line and one Warning Event.
+
+    The reconcile is still retried with the longest backoff (a human may fix what the
+    refusal names, e.g. a quota or a policy), but the refusal is not reported again
+    until it changes.
+    """
+    log.error("Mission %s: the API server refused a write: %s", key, error)
+    try:
+        kube.post_event(
+            body,
+            reason="WriteRefused",
+            message=f"the API server refused a write for this mission: {error.message}",
+            type="Warning",
+            at=now(),
+        )
+    except ApiError as failed:
+        log.warning("Mission %s: could not post the Event: %s", key, failed)
+
+
 async def mission_daemon(
-    *, name: str, namespace: str | None, stopped: kopf.DaemonStopped, memo: Any, **_: Any
+    *,
+    name: str,
+    namespace: str | None,
+    body: kopf.Body,
+    stopped: kopf.DaemonStopped,
+    memo: Any,
+    **_: Any,
 ) -> None:
     """Reconcile the Mission until it is finished and holds nothing."""
     assert namespace is not None, "Missions are namespaced"
@@ -66,6 +93,7 @@ async def mission_daemon(
     key = f"{namespace}/{name}"
     wakeup = WAKEUPS.register(key)
     failures = 0
+    reported: str | None = None
     try:
         while not stopped:
             wakeup.clear()
@@ -78,15 +106,21 @@ async def mission_daemon(
                     operator_namespace=rt.settings.namespace,
                     guards=rt.settings.guards,
                 )
-            except Exception as error:
+            except ApiError as error:
                 failures += 1
                 delay = backoff(timings, failures)
                 if isinstance(error, TemporaryApiError):
                     log.warning("Mission %s: %s; retrying in %.1f s", key, error, delay)
-                else:
-                    log.exception("Mission %s: reconcile failed; retrying in %.1f s", key, delay)
+                elif str(error) != reported:  # once per distinct refusal, no traceback
+                    reported = str(error)
+                    await asyncio.to_thread(report_refusal, rt.kube, body, key, error)
+            except Exception:
+                failures += 1
+                delay = backoff(timings, failures)
+                log.exception("Mission %s: reconcile failed; retrying in %.1f s", key, delay)
             else:
                 failures = 0
+                reported = None
                 if outcome is None or outcome.finished:
                     return
                 WAKEUPS.track(key, vehicles=outcome.assigned, waiting=outcome.waiting_for_vehicles)
