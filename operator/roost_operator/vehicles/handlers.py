@@ -17,6 +17,8 @@ Triggers, and why each exists:
   is then exactly the news that the agent is back);
 * a RedundantAutopilot timer that fires only once the object has been *idle* for the
   staleness window — the agent went silent: ``AgentConnected`` becomes Unknown;
+* the Vehicle's guard annotations (pause, clear the latch), by watch event: kopf's
+  update handlers do not see annotations under Roost's own prefix;
 * a Vehicle timer while a failover action runs or a guard holds one back — timeouts,
   and the moment a guard lifts;
 * its claim Lease — the mission claim mirrored into ``status.claimedBy``.
@@ -41,7 +43,14 @@ from typing import Any, Final
 import kopf
 
 from roost_api.meta import GROUP, VERSION, now
-from roost_api.wellknown import LABEL_COMPONENT, LABEL_MANAGED_BY, LABEL_VEHICLE, MANAGED_BY
+from roost_api.wellknown import (
+    ANNOTATION_CLEAR_FAILOVER_LATCH,
+    ANNOTATION_PAUSE_FAILOVER_ACTIONS,
+    LABEL_COMPONENT,
+    LABEL_MANAGED_BY,
+    LABEL_VEHICLE,
+    MANAGED_BY,
+)
 from roost_kube.patches import content_hash
 from roost_operator.claims import CLAIM_COMPONENT, claim_of
 from roost_operator.edge import at_the_edge
@@ -83,6 +92,7 @@ class Fingerprints:
 log = logging.getLogger(__name__)
 _node_prints = Fingerprints()
 _autopilot_prints = Fingerprints()
+_annotation_prints = Fingerprints()
 _connected: dict[str, str | None] = {}
 
 
@@ -141,9 +151,28 @@ def reconcile_now(memo: Any, vehicle: str, indexes: Mapping[str, Any]) -> None:
 
 
 def vehicle_changed(*, name: str, memo: Any, **indexes: Any) -> None:
-    """The Vehicle was created or its spec/labels/annotations changed (or the operator
-    started): guard annotations (pause, clear the latch) are among the changes."""
+    """The Vehicle was created or its spec/labels changed (or the operator started)."""
     reconcile_now(memo, name, indexes)
+
+
+def guard_annotations(
+    *, type: str | None, name: str, meta: kopf.Meta, memo: Any, **indexes: Any
+) -> None:
+    """A human paused, resumed or cleared the latch of this vehicle's failover actions.
+
+    A watch-event handler because kopf's update handlers do not see annotations under
+    the operator's own ``roost.dev/`` prefix (its progress storage lives there).
+    """
+    if type == "DELETED":
+        _annotation_prints.forget(name)
+        return
+    annotations = meta.get("annotations") or {}
+    relevant = [
+        annotations.get(ANNOTATION_PAUSE_FAILOVER_ACTIONS),
+        annotations.get(ANNOTATION_CLEAR_FAILOVER_LATCH),
+    ]
+    if _annotation_prints.changed(name, relevant):
+        reconcile_now(memo, name, indexes)
 
 
 def vehicle_resync(*, name: str, memo: Any, **indexes: Any) -> None:
@@ -282,6 +311,7 @@ def register(registry: kopf.OperatorRegistry, settings: Settings) -> None:
         backoff=backoff,
         registry=registry,
     )(failover_pending)
+    kopf.on.event(*VEHICLES, registry=registry)(guard_annotations)
     kopf.on.delete(*VEHICLES, backoff=backoff, registry=registry)(vehicle_deleted)
     kopf.on.event("", "v1", "nodes", registry=registry)(node_event)
     kopf.on.event(
