@@ -37,9 +37,13 @@ class MissionTimings:
     coalesce_seconds: float = 0.5
     """After a wake-up, wait this long so a burst of events costs one reconcile."""
 
-    claim_rounds: int = 3
-    """Claim rounds per reconcile before a Mission that keeps losing races waits a
-    jittered moment (all-or-nothing claims give partial sets back between rounds)."""
+    delete_backoff_seconds: float = 2.0
+    """kopf's backoff before retrying a Mission's deletion handler after a temporary
+    error (the Mission keeps its finalizer meanwhile)."""
+
+    stop_timeout_seconds: float = 30.0
+    """How long a Mission's reconcile loop may take to stop when the Mission is deleted
+    or the operator shuts down (kopf's daemon cancellation timeout)."""
 
 
 @dataclass(frozen=True)

@@ -30,8 +30,9 @@ from typing import Any, Final
 
 import kopf
 
-from roost_api.meta import GROUP, VERSION, now
+from roost_api.meta import now
 from roost_api.wellknown import LABEL_COMPONENT, LABEL_MISSION
+from roost_kube import resources
 from roost_kube.client import Kube
 from roost_kube.errors import ApiError, TemporaryApiError
 from roost_operator.claims import CLAIM_COMPONENT, claim_of
@@ -41,11 +42,10 @@ from roost_operator.missions.wakeups import Wakeups, sleep_until_woken
 from roost_operator.runtime import runtime
 from roost_operator.settings import MissionTimings, Settings
 
-MISSIONS: Final = (GROUP, VERSION, "missions")
-VEHICLES: Final = (GROUP, VERSION, "vehicles")
-AUTOPILOTS: Final = (GROUP, VERSION, "redundantautopilots")
-DELETE_BACKOFF_S: Final = 2.0
-"""kopf's backoff before retrying a Mission's deletion handler after a temporary error."""
+MISSIONS: Final = resources.MISSIONS.kopf
+VEHICLES: Final = resources.VEHICLES.kopf
+AUTOPILOTS: Final = resources.REDUNDANT_AUTOPILOTS.kopf
+LEASES: Final = resources.LEASES.kopf
 
 WAKEUPS: Final = Wakeups()
 log = logging.getLogger(__name__)
@@ -204,18 +204,21 @@ async def job_event(*, namespace: str | None, meta: kopf.Meta, **_: Any) -> None
 
 
 def register(registry: kopf.OperatorRegistry, settings: Settings) -> None:
-    """Register the Mission controller's handlers (timings are read from the memo)."""
-    del settings  # nothing here is decided at registration
-    kopf.daemon(*MISSIONS, id="mission", cancellation_timeout=30.0, registry=registry)(
-        mission_daemon
+    """Register the Mission controller's handlers with the operator's settings."""
+    timings = settings.missions
+    kopf.daemon(
+        *MISSIONS,
+        id="mission",
+        cancellation_timeout=timings.stop_timeout_seconds,
+        registry=registry,
+    )(mission_daemon)
+    kopf.on.delete(*MISSIONS, backoff=timings.delete_backoff_seconds, registry=registry)(
+        mission_deleted
     )
-    kopf.on.delete(*MISSIONS, backoff=DELETE_BACKOFF_S, registry=registry)(mission_deleted)
     kopf.on.event(*MISSIONS, registry=registry)(mission_event)
     kopf.on.event(*VEHICLES, registry=registry)(vehicle_event)
     kopf.on.event(
-        "coordination.k8s.io",
-        "v1",
-        "leases",
+        *LEASES,
         labels={LABEL_COMPONENT: CLAIM_COMPONENT},
         registry=registry,
     )(claim_event)

@@ -42,7 +42,7 @@ from typing import Any, Final
 
 import kopf
 
-from roost_api.meta import GROUP, VERSION, now
+from roost_api.meta import now
 from roost_api.wellknown import (
     ANNOTATION_CLEAR_FAILOVER_LATCH,
     ANNOTATION_PAUSE_FAILOVER_ACTIONS,
@@ -51,6 +51,7 @@ from roost_api.wellknown import (
     LABEL_VEHICLE,
     MANAGED_BY,
 )
+from roost_kube import resources
 from roost_kube.patches import content_hash
 from roost_operator.claims import CLAIM_COMPONENT, claim_of
 from roost_operator.edge import at_the_edge
@@ -60,9 +61,9 @@ from roost_operator.vehicles.controller import Peers
 from roost_operator.vehicles.placement import NodeClaim
 from roost_operator.vehicles.plan import relevant_autopilot
 
-VEHICLES: Final = (GROUP, VERSION, "vehicles")
-AUTOPILOTS: Final = (GROUP, VERSION, "redundantautopilots")
-LEASES: Final = ("coordination.k8s.io", "v1", "leases")
+VEHICLES: Final = resources.VEHICLES.kopf
+AUTOPILOTS: Final = resources.REDUNDANT_AUTOPILOTS.kopf
+LEASES: Final = resources.LEASES.kopf
 
 NodeClaims = kopf.Index[str, NodeClaim]
 AutopilotsByVehicle = kopf.Index[str, str]
