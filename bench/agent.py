@@ -54,6 +54,7 @@ from roost_sim import (
     start_vehicle_sims,
     stop_sims,
 )
+from tests.support.flight import take_off
 
 FAILOVERS = int(os.environ.get("ROOST_BENCH_FAILOVERS", "100"))
 HEARTBEAT_FAILOVERS = int(os.environ.get("ROOST_BENCH_HEARTBEAT_FAILOVERS", "12"))
@@ -203,15 +204,6 @@ class AgentProcess:
                 self.proc.kill()
                 self.proc.wait()
         self._stderr.close()
-
-
-def take_off(sims: list[SimulatedAutopilot]) -> None:
-    for sim in sims:
-        sim.wait_until(lambda s: s.system_status != "BOOT", timeout=5)
-    for sim in sims:
-        sim.fly()
-    for sim in sims:
-        sim.wait_until(lambda s: s.landed_state == "InAir" and s.altitude_m > 2.0, timeout=15)
 
 
 @contextmanager

@@ -1,6 +1,6 @@
 """Agent ↔ cluster figures: how fast a local switch shows in the API and reaches mavros.
 
-One simulated vehicle on the harness control plane: two PX4 sims flying (in this
+One simulated vehicle on the local control plane: two PX4 sims flying (in this
 process, real UDP), ``roost-agent`` as a process with the chart's defaults (no config,
 ``NODE_NAME``, 10 s report period), ``roost-operator`` as a process. The vehicle is
 switched back and forth by ``Switch`` commands written to the RedundantAutopilot's spec;
@@ -47,7 +47,8 @@ from roost_operator.vehicles.config import config_map_name
 from roost_operator.vehicles.desired import workload_name
 from roost_sim import SimulatedAutopilot, autopilot_specs, start_vehicle_sims, stop_sims
 from tests.support.agent import AgentProcess
-from tests.support.operator import OperatorProcess, wait_for
+from tests.support.operator import OperatorProcess
+from tests.support.waiting import wait_until
 
 COMMAND = "python -m bench cluster"
 NAMESPACE = "roost-bench-failover"
@@ -157,9 +158,11 @@ def _switch_once(
     before = len(agent.events("Failover"))
     command = new_command(CommandAction.SWITCH, target=target.name)
     kube.merge_patch(REDUNDANT_AUTOPILOTS, VEHICLE, command_patch(command))
-    switched = wait_for("the switch", lambda: _new_switch(agent, before), WAIT_S, 0.01)
-    seen = wait_for("the status", lambda: statuses.first_after(switched, target.name), WAIT_S, 0.01)
-    wait_for("mavros", lambda: _mavros_on(kube, target.connection), WAIT_S, 0.05)
+    switched = wait_until("the switch", lambda: _new_switch(agent, before), WAIT_S, 0.01)
+    seen = wait_until(
+        "the status", lambda: statuses.first_after(switched, target.name), WAIT_S, 0.01
+    )
+    wait_until("mavros", lambda: _mavros_on(kube, target.connection), WAIT_S, 0.05)
     return (seen - switched) * 1000, (time.time() - switched) * 1000
 
 
@@ -200,7 +203,7 @@ def run() -> list[Figure]:
             agent.start()
             with cluster.api_client() as api, StatusWatch(cluster) as statuses:
                 kube = Kube(api, "roost-bench")
-                wait_for("the vehicle Ready", lambda: _ready(kube), WAIT_S)
+                wait_until("the vehicle Ready", lambda: _ready(kube), WAIT_S)
                 to_status, to_mavros = _measure(kube, agent, sims, statuses)
         finally:
             agent.stop()

@@ -1,4 +1,4 @@
-"""Mission figures, on the harness control plane with ``roost-operator`` running.
+"""Mission figures, on the local control plane with ``roost-operator`` running.
 
 - ``mission.rollout_10_s`` / ``mission.rollout_100_s``: from ``kubectl apply`` of a
   Mission needing 10 (then 100) vehicles of an idle, Ready fleet of 100 fake vehicles
@@ -31,7 +31,8 @@ from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import ControlPlane
 from roost_operator.missions.workloads import bounded_name
 from tests.support.fakeagents import FakeAgents, redundant_autopilot
-from tests.support.operator import OperatorProcess, wait_for
+from tests.support.operator import OperatorProcess
+from tests.support.waiting import wait_until
 
 COMMAND = "python -m bench mission"
 FLEET = 100
@@ -84,7 +85,7 @@ def _fleet(cluster: Cluster, kube: Kube, agents: FakeAgents) -> None:
     cluster.kubectl("apply", "-f", "-", input_text=_documents(vehicles))
     for name in names:
         agents.add(f"{name}-autopilots", name, f"{name}-node")
-    wait_for("the fleet Ready", lambda: _ready(kube), SETUP_TIMEOUT_S, poll_s=1.0)
+    wait_until("the fleet Ready", lambda: _ready(kube), SETUP_TIMEOUT_S, poll_s=1.0)
 
 
 def _workloads_started(kube: Kube, mission: str) -> int:
@@ -117,14 +118,14 @@ def _rollout(cluster: Cluster, kube: Kube, count: int) -> float:
     }
     started = time.monotonic()
     cluster.kubectl("apply", "-f", "-", input_text=json.dumps(manifest))
-    wait_for(
+    wait_until(
         f"{count} onboard workloads running",
         lambda: _workloads_started(kube, name) >= count,
         ROLLOUT_TIMEOUT_S,
         poll_s=0.1,
     )
     elapsed = time.monotonic() - started
-    wait_for(
+    wait_until(
         f"mission {name} Succeeded",
         lambda: (
             ((kube.get(MISSIONS, name, FLIGHTS) or {}).get("status") or {}).get("phase")
@@ -132,7 +133,7 @@ def _rollout(cluster: Cluster, kube: Kube, count: int) -> float:
         ),
         ROLLOUT_TIMEOUT_S,
     )
-    wait_for(
+    wait_until(
         "the fleet released",
         lambda: (
             not any(

@@ -1,4 +1,4 @@
-"""Vehicle operator figures, on the harness control plane with ``roost-operator`` running.
+"""Vehicle operator figures, on the local control plane with ``roost-operator`` running.
 
 - ``vehicle.apply_to_ready_s``: from ``kubectl apply`` of a simulated Vehicle (mavros and
   one SITL) on a fresh fake node until its ``Ready`` condition is True: node labelled and
@@ -27,7 +27,8 @@ from roost_localcluster import binaries
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import ControlPlane
 from tests.support.apiwrites import VEHICLE_WRITE_TARGETS, write_requests
-from tests.support.operator import OperatorProcess, wait_for
+from tests.support.operator import OperatorProcess
+from tests.support.waiting import wait_until
 
 COMMAND = "python -m bench vehicle"
 VEHICLE_COUNT = 5
@@ -54,7 +55,7 @@ def _apply_to_ready(cluster: Cluster, kube: Kube, name: str, sysid: int) -> floa
     }
     started = time.monotonic()
     cluster.kubectl("apply", "-f", "-", input_text=json.dumps(manifest))
-    wait_for(f"{name} Ready", lambda: _is_ready(kube, name), READY_TIMEOUT_S, poll_s=0.05)
+    wait_until(f"{name} Ready", lambda: _is_ready(kube, name), READY_TIMEOUT_S, poll_s=0.05)
     return time.monotonic() - started
 
 

@@ -9,6 +9,7 @@ import pytest
 from roost_kube.client import Kube
 from roost_localcluster.cluster import Cluster, FakeNodes
 from roost_localcluster.controlplane import ControlPlane
+from tests.support.operator import OperatorProcess
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
@@ -50,3 +51,23 @@ def kube(roost_crds: Cluster) -> Iterator[Kube]:
     admin, for tests that read and write objects the way the operator does."""
     with roost_crds.api_client() as api:
         yield Kube(api, "roost-tests")
+
+
+@pytest.fixture(scope="module")
+def operator(
+    request: pytest.FixtureRequest, roost_crds: Cluster, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[OperatorProcess]:
+    """One ``roost-operator`` per test module, watching the session cluster.
+
+    The module sets ``OPERATOR_NAMESPACE`` (the operator's own namespace, so modules do
+    not share one) and optionally ``OPERATOR_ENV`` (more settings, as environment
+    variables). Its log is in the session's temp dir under ``operator*/``.
+    """
+    module = request.module
+    with OperatorProcess(
+        roost_crds,
+        tmp_path_factory.mktemp(f"operator-{module.__name__.rsplit('.', 1)[-1]}") / "operator.log",
+        namespace=module.OPERATOR_NAMESPACE,
+        environment=getattr(module, "OPERATOR_ENV", None),
+    ) as proc:
+        yield proc

@@ -21,8 +21,9 @@ onset-to-switch when the health findings know the onset. Durable state goes to d
 (:mod:`roost_agent.state`) right after the switch, so a restarted agent keeps the
 autopilot it chose and its latch.
 
-For the publisher (issue 9) the public surface is: :meth:`Agent.status` (a complete
-``RedundantAutopilotStatus``, conditions from :mod:`roost_agent.report`),
+For the publisher (:mod:`roost_agent.publisher`) the public surface is:
+:meth:`Agent.status` (a complete ``RedundantAutopilotStatus``, conditions from
+:mod:`roost_agent.report`),
 :meth:`Agent.subscribe` (events: failovers, health changes, safety-routine progress,
 command results), :meth:`Agent.submit` (execute an ``AutopilotCommand`` at most once per
 id, also across restarts) and :meth:`Agent.apply_spec` (a new spec from the cluster).
@@ -47,7 +48,6 @@ from roost_agent.arbiter import (
     ArbiterState,
     AutopilotView,
     CommandDone,
-    CommandResultKind,
     Decision,
     ForceDisarm,
     LandInPlace,
@@ -71,6 +71,7 @@ from roost_api.autopilot import (
     AutopilotHealth,
     AutopilotSpec,
     CommandResult,
+    CommandResultKind,
     FailoverRecord,
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,

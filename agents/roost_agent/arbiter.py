@@ -7,7 +7,7 @@ a list of actions. The agent executes the actions (bridge write first). That mak
 whole decision table and its safety properties (never to a worse autopilot, never on the
 ground, no flapping, the latch holds) testable exhaustively and by property tests.
 
-Rules (see ``shared/reference/mavlink-health.md`` and the thesis in ``shared/seeds``):
+Rules (``docs/failover.md`` has the decision table and its sources):
 
 - The active autopilot counts as failing only on findings that trigger failover (never a
   warning), and only after it failed continuously for ``confirm`` seconds (T_on).
@@ -41,9 +41,12 @@ from enum import StrEnum
 from roost_api.autopilot import (
     AutopilotCommand,
     CommandAction,
+    CommandResultKind,
     Failback,
     FailoverMode,
+    FailoverTrigger,
     RedundantAutopilotSpec,
+    SafetyRoutinePhase,
 )
 from roost_api.meta import HealthLevel
 
@@ -116,20 +119,17 @@ class ArbiterState:
     landing_ordered: bool = False
 
 
-class Trigger(StrEnum):
-    """Why the bridge switched (FailoverRecord.trigger)."""
-
-    AUTOMATIC = "Automatic"
-    COMMAND = "Command"
-    FAILBACK = "Failback"
+Trigger = FailoverTrigger
+"""Why the bridge switched (FailoverRecord.trigger); the value set is the API's."""
 
 
 class SafetyPlan(StrEnum):
     """What happens on the new active autopilot after a switch."""
 
-    RUN = "Run"
-    SKIPPED_PILOT = "Skipped: pilot in manual mode"
+    RUN = SafetyRoutinePhase.RUN.value
+    SKIPPED_PILOT = SafetyRoutinePhase.SKIPPED_PILOT.value
     NONE = "None"
+    """No routine: nothing is written to ``lastFailover.safetyRoutine``."""
 
 
 @dataclass(frozen=True)
@@ -175,14 +175,6 @@ class ForceDisarm:
 
     autopilots: tuple[str, ...]
     reason: str
-
-
-class CommandResultKind(StrEnum):
-    """CommandResult.result values."""
-
-    EXECUTED = "Executed"
-    REJECTED = "Rejected"
-    EXPIRED = "Expired"
 
 
 @dataclass(frozen=True)

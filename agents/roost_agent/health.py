@@ -6,7 +6,7 @@ decision loop calls :meth:`HealthTracker.assess` with the current time. Time is 
 parameter (a monotonic clock reading in seconds), never read inside, so every threshold
 is unit-testable without sleeping and the same code serves the live agent and replays.
 
-The rules follow the health table in ``shared/reference/mavlink-health.md``:
+The rules follow the health model in ``docs/health-model.md`` (with its sources):
 
 - liveness: age of any message (only where the link streams fast enough for that to mean
   something, see :data:`FAST_STREAM_FACTOR`) and age of the heartbeat;

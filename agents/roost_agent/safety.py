@@ -25,10 +25,9 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from enum import StrEnum
 from typing import Protocol
 
-from roost_api.autopilot import FinalAction, SafetyRoutine
+from roost_api.autopilot import FinalAction, SafetyRoutine, SafetyRoutinePhase
 from roost_api.meta import Stack
 from roost_mavlink import (
     FORCE_DISARM_MAGIC,
@@ -81,18 +80,8 @@ class Timing:
     poll_s: float = 0.02
 
 
-class Phase(StrEnum):
-    """Progress of a routine, as FailoverRecord.safetyRoutine shows it."""
-
-    HOLDING = "Holding"
-    HOLD_REFUSED = "HoldRefused"
-    LANDING = "Landing"
-    LANDED = "Landed"
-    RETURNING = "ReturningToLaunch"
-    HELD = "Held"
-    CANCELLED = "Cancelled"
-    FAILED = "Failed"
-    DISARMED = "Disarmed"
+Phase = SafetyRoutinePhase
+"""Progress of a routine, as FailoverRecord.safetyRoutine shows it (the API's value set)."""
 
 
 @dataclass(frozen=True)

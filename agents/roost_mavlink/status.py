@@ -1,8 +1,8 @@
 """Status vocabulary of an autopilot: MAV_STATE, landed state, SYS_STATUS sensor bits.
 
 The numbers are MAVLink's (common.xml / minimal.xml); the classification of sensor bits
-into failover-critical, warn-only and ignored follows the health table in
-``shared/reference/mavlink-health.md``. The sim sets bits the way each stack does and the
+into failover-critical, warn-only and ignored follows the health model in
+``docs/health-model.md``. The sim sets bits the way each stack does and the
 agent judges them with :func:`classify_sensors`, so both read the same table.
 
 Landed-state names are the strings ``roost_api.autopilot.AutopilotHealth.landed_state``

@@ -5,7 +5,7 @@ each stream when due; a receive thread parses MAVLink 2 and answers commands; th
 owns a delay line for jitter. State is guarded by one lock; frames are encoded and sent
 under a second so the MAVLink sequence number stays consistent.
 
-Besides the brief's streams (HEARTBEAT 1 Hz, SYS_STATUS and EXTENDED_SYS_STATE 5 Hz,
+Besides the streams every autopilot sends (HEARTBEAT 1 Hz, SYS_STATUS and EXTENDED_SYS_STATE 5 Hz,
 ATTITUDE 50 Hz, GLOBAL_POSITION_INT 10 Hz, SYSTEM_TIME 1 Hz) it sends GPS_RAW_INT and
 HOME_POSITION at 1 Hz: a ground station (MAVSDK) judges "global position ok" and "home
 position ok" from them. Everything a client may ask for is answered honestly: commands

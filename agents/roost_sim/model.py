@@ -5,7 +5,7 @@ lives here and is unit-tested as a decision table with a fake clock, while
 :mod:`roost_sim.autopilot` only turns MAVLink bytes into these calls and this state back
 into messages.
 
-What is modelled, per stack (facts from ``shared/reference/mavlink-health.md``):
+What is modelled, per stack (the facts and their sources are in ``docs/health-model.md``):
 
 - Modes and their vertical behaviour. Climb while a takeoff target is set, hold
   otherwise; descend in land and return modes. The vehicle never moves horizontally, so

@@ -71,6 +71,74 @@ class CommandAction(StrEnum):
     CLEAR_LATCH = "ClearLatch"
 
 
+class FailoverTrigger(StrEnum):
+    """Why the bridge switched (``lastFailover.trigger``)."""
+
+    AUTOMATIC = "Automatic"
+    COMMAND = "Command"
+    FAILBACK = "Failback"
+
+
+class SafetyRoutinePhase(StrEnum):
+    """The safety routine after a switch, as ``lastFailover.safetyRoutine`` shows it.
+
+    ``Run`` and ``Skipped: pilot in manual mode`` are the plan written with the switch;
+    the others are the routine's progress on the new active autopilot (hold, then the
+    final action). No value is written when a switch plans no routine (a command or a
+    failback).
+    """
+
+    RUN = "Run"
+    SKIPPED_PILOT = "Skipped: pilot in manual mode"
+    STARTED = "Started"
+    CONFIRMING_HOLD = "ConfirmingHold"
+    HOLDING = "Holding"
+    HOLD_REFUSED = "HoldRefused"
+    HOLD_FAILED = "HoldFailed"
+    LANDING = "Landing"
+    LAND_TIMED_OUT = "LandTimedOut"
+    LANDED = "Landed"
+    RETURNING = "ReturningToLaunch"
+    HELD = "Held"
+    CANCELLED = "Cancelled"
+    FAILED = "Failed"
+    DISARMED = "Disarmed"
+
+    @property
+    def final(self) -> bool:
+        """No further phase follows (Cancelled is not final: another routine replaced it)."""
+        return self in _FINAL_SAFETY_PHASES
+
+
+_FINAL_SAFETY_PHASES = frozenset(
+    {
+        SafetyRoutinePhase.SKIPPED_PILOT,
+        SafetyRoutinePhase.LANDED,
+        SafetyRoutinePhase.HELD,
+        SafetyRoutinePhase.FAILED,
+        SafetyRoutinePhase.DISARMED,
+    }
+)
+
+
+class CommandResultKind(StrEnum):
+    """What the agent did with a command (``lastCommand.result``)."""
+
+    EXECUTED = "Executed"
+    REJECTED = "Rejected"
+    EXPIRED = "Expired"
+
+
+class LandedState(StrEnum):
+    """MAV_LANDED_STATE from EXTENDED_SYS_STATE, as ``autopilots[].landedState`` shows it."""
+
+    UNDEFINED = "Undefined"
+    ON_GROUND = "OnGround"
+    IN_AIR = "InAir"
+    TAKEOFF = "Takeoff"
+    LANDING = "Landing"
+
+
 class AutopilotSpec(ApiModel):
     """One flight controller of the vehicle."""
 
@@ -265,7 +333,7 @@ class AutopilotHealth(ApiModel):
     message_age_ms: int | None = Field(default=None, description="Age of the last message.")
     mode: str | None = Field(default=None, description="Flight mode from the heartbeat.")
     armed: bool | None = Field(default=None, description="Armed flag from the heartbeat.")
-    landed_state: str | None = Field(
+    landed_state: LandedState | None = Field(
         default=None, description="OnGround, InAir, Takeoff or Landing (EXTENDED_SYS_STATE)."
     )
     system_status: str | None = Field(default=None, description="MAV_STATE from the heartbeat.")
@@ -282,9 +350,11 @@ class FailoverRecord(ApiModel):
     to_autopilot: str = Field(alias="to", description="Autopilot that became active.")
     reason: str = Field(description="Why, e.g. heartbeat lost on fc1.")
     latency_ms: float = Field(description="Detection to bridge switched, measured on-vehicle.")
-    trigger: str = Field(description="Automatic, Command or Failback.")
-    safety_routine: str | None = Field(
-        default=None, description="Outcome of the safety routine: Running, Landed, Skipped…"
+    trigger: FailoverTrigger = Field(description="Automatic, Command or Failback.")
+    safety_routine: SafetyRoutinePhase | None = Field(
+        default=None,
+        description="The safety routine after the switch: its plan (Run, or Skipped when a "
+        "pilot flies manually) then its progress (Holding, Landing, Landed, Held…).",
     )
 
 
@@ -292,7 +362,7 @@ class CommandResult(ApiModel):
     """The last command the agent processed."""
 
     id: str = Field(description="The command's id.")
-    result: str = Field(description="Executed, Rejected or Expired.")
+    result: CommandResultKind = Field(description="Executed, Rejected or Expired.")
     message: str = Field(default="", description="Details.")
     time: datetime = Field(description="When the agent processed it.")
 

@@ -79,15 +79,12 @@ def command_outcome(
 ) -> CommandOutcome:
     """The outcome of ``command`` given the object's ``spec.command`` and ``status.lastCommand``.
 
-    An agent result other than Executed or Expired counts as Rejected. Expired and
-    Superseded requests never ran: a caller that still wants the effect issues a new
-    command (with a new id).
+    The agent's result (:class:`~roost_api.autopilot.CommandResultKind`, an enum the CRD
+    enforces) is the outcome. Expired and Superseded requests never ran: a caller that
+    still wants the effect issues a new command (with a new id).
     """
     if last_command is not None and last_command.id == command.id:
-        try:
-            return CommandOutcome(last_command.result)
-        except ValueError:
-            return CommandOutcome.REJECTED
+        return CommandOutcome(last_command.result)
     if spec_command is not None and spec_command.id == command.id:
         return CommandOutcome.PENDING
     return CommandOutcome.SUPERSEDED

@@ -21,6 +21,7 @@ from pydantic.config import JsonDict
 
 from roost_api.autopilot import AutopilotCommand
 from roost_api.meta import CONDITIONS_SCHEMA, DNS_SUBDOMAIN_PATTERN, ApiModel, Condition
+from roost_api.vehicle import FailoverGuard
 
 # Marker the CRD generator replaces with the Kubernetes PodTemplateSpec schema.
 EMBED_POD_TEMPLATE: JsonDict = {"x-roost-embed": "io.k8s.api.core.v1.PodTemplateSpec"}
@@ -235,7 +236,7 @@ class MissionVehicleStatus(ApiModel):
         "has taken into account: its spec.onFailover consequence is applied, or held back "
         "as failoverActionHeld says.",
     )
-    failover_action_held: str | None = Field(
+    failover_action_held: FailoverGuard | None = Field(
         default=None,
         description="The fleet guard (Paused or Latched) holding back the spec.onFailover "
         "consequence of the failover at failedOverAt; unset once it is applied. The "

@@ -34,6 +34,21 @@ class VehicleConditionType(StrEnum):
     AGENT_CONNECTED = "AgentConnected"
 
 
+class FailoverGuard(StrEnum):
+    """Whether a cluster-side failover action may start now, and if not, which guard holds it."""
+
+    ALLOWED = "Allowed"
+    PAUSED = "Paused"
+    LATCHED = "Latched"
+    CONCURRENCY_LIMIT = "ConcurrencyLimit"
+
+
+class FailoverActionKind(StrEnum):
+    """A cluster-side failover action (``failover.action.kind``)."""
+
+    REPOINT_MAVROS = "RepointMavros"
+
+
 class ComponentSpec(ApiModel):
     """One component workload the operator runs on the vehicle's node."""
 
@@ -148,7 +163,7 @@ class VehicleSpec(ApiModel):
 class FailoverAction(ApiModel):
     """A cluster-side failover action in progress; counted by the fleet-wide cap."""
 
-    kind: str = Field(max_length=63, description="What is being done, e.g. RepointMavros.")
+    kind: FailoverActionKind = Field(description="What is being done, e.g. RepointMavros.")
     autopilot: str = Field(max_length=63, description="Autopilot the action moves to.")
     started_at: datetime = Field(description="When the operator started the action.")
 
@@ -192,9 +207,8 @@ class VehicleFailover(ApiModel):
     action: FailoverAction | None = Field(
         default=None, description="Cluster-side action in progress, if any."
     )
-    blocked: str | None = Field(
+    blocked: FailoverGuard | None = Field(
         default=None,
-        max_length=63,
         description="Guard holding back a pending action: Paused, Latched or ConcurrencyLimit.",
     )
 

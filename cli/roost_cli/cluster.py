@@ -22,8 +22,8 @@ from typing import Any, Final, TypeVar
 from roost_api.resources import MISSION, REDUNDANT_AUTOPILOT, VEHICLE, ResourceKind
 from roost_cli.errors import CliError
 from roost_kube import kubeconfig
-from roost_kube.errors import ApiError, ApiUnavailableError
-from roost_kube.resources import EVENTS, Resource
+from roost_kube.errors import ApiError, ApiUnavailableError, ForbiddenError
+from roost_kube.resources import EVENTS, NAMESPACES, Resource
 
 FIELD_MANAGER: Final = "roost-cli"
 REQUEST_TIMEOUT_S: Final = 10.0
@@ -136,6 +136,25 @@ class Fleet:
 
     def missions(self, namespace: str | None = None) -> list[dict[str, Any]]:
         return self._list(MISSION, namespace)
+
+    def require_namespace(self, namespace: str) -> None:
+        """Refuse a namespace that does not exist (a list there would just be empty).
+
+        A user allowed to list Missions but not to read namespaces is not refused here.
+        """
+        try:
+            found = self.kube.get(NAMESPACES, namespace)
+        except ForbiddenError:
+            return
+        except ApiUnavailableError as error:
+            raise unavailable_error(error, self.server, self.target) from None
+        except ApiError as error:
+            raise api_error(f"read namespace {namespace}", None, error) from None
+        if found is None:
+            raise CliError(
+                f"namespace {namespace!r} does not exist in the cluster at {self.server}: "
+                "`kubectl get namespaces` lists them"
+            )
 
     def events(self) -> list[dict[str, Any]]:
         """Every Event in the cluster (the latest 500), for the Roost event feed."""

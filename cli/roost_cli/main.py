@@ -20,6 +20,7 @@ from typing import Annotated, Any
 import typer
 from rich.console import Console
 from rich.table import Table
+from rich.text import Text
 
 from roost_api.autopilot import CommandAction
 from roost_cli import actions, render, tables, view
@@ -36,7 +37,8 @@ class RoostApp(typer.Typer):
         try:
             return super().__call__(*args, **kwargs)
         except CliError as error:
-            Console(stderr=True).print(f"[bold red]error:[/] {error}", highlight=False)
+            message = Text.assemble(("error:", "bold red"), " ", str(error))
+            Console(stderr=True).print(message, highlight=False, soft_wrap=True)
             raise SystemExit(1) from None
 
 

@@ -1,4 +1,4 @@
-"""``roost-cluster``: the harness control plane from the command line.
+"""``roost-cluster``: the local control plane from the command line.
 
 - ``roost-cluster up --dir .cluster`` builds the binaries if needed, starts the control plane
   detached (the processes outlive the command), waits until healthy, records the pids in

@@ -1,6 +1,6 @@
 """Fake vehicle nodes: Node objects that kwok keeps Ready and whose pods it runs.
 
-A vehicle in Roost is a Kubernetes node (its companion computer). In the harness the node
+A vehicle in Roost is a Kubernetes node (its companion computer). In the local cluster the node
 is an ordinary Node object carrying kwok's annotation; kwok then plays its kubelet (status,
 leases, pod phases). Everything else about the node (labels, annotations, allocatable
 resources, taints) is whatever the test asks for, so the operator sees what it would see on

@@ -112,6 +112,12 @@ class ManagedProcess:
         self.pid = None
         self.create_time = None
 
+    def crash(self) -> None:
+        """SIGKILL the process group at once (no shutdown handlers, like a power loss)."""
+        if self._process() is not None:
+            self._signal_group(signal.SIGKILL)
+        self.stop()
+
     def _signal_group(self, sig: signal.Signals) -> None:
         assert self.pid is not None
         with contextlib.suppress(ProcessLookupError):

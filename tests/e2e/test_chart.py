@@ -9,7 +9,7 @@ chart's service-account token, which is what proves the RBAC is sufficient.
 Minimality is checked two ways, both against the real API server: ``kubectl auth
 can-i`` with impersonation for RBAC, and real writes for the node-restriction
 admission policy, once with impersonation (``--as-user-extra`` carrying the node name,
-as the brief of the policy says) and once with a real pod-bound token of an agent pod,
+where the policy's CEL rule reads it) and once with a real pod-bound token of an agent pod,
 which is where the node name comes from in production.
 """
 
@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import json
 import subprocess
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -31,7 +31,8 @@ from roost_localcluster.processes import ManagedProcess
 from roost_sim import autopilot_specs, start_vehicle_sims, stop_sims
 from tests.support.agent import AgentProcess
 from tests.support.chart import install_args
-from tests.support.operator import OperatorProcess, wait_for
+from tests.support.operator import OperatorProcess
+from tests.support.waiting import wait_until
 
 RELEASE = "chart-e2e"
 NAMESPACE = "roost-chart-e2e"
@@ -91,10 +92,6 @@ def _autopilot(name: str, node: str | None) -> dict[str, Any]:
 def _apply(cluster: Cluster, *manifests: dict[str, Any]) -> None:
     text = "\n---\n".join(yaml.safe_dump(m) for m in manifests)
     cluster.kubectl("apply", "-f", "-", input_text=text)
-
-
-def _wait_for(what: str, check: Callable[[], object], timeout_s: float = WAIT_S) -> None:
-    wait_for(what, check, timeout_s)
 
 
 def _get(cluster: Cluster, *args: str) -> dict[str, Any]:
@@ -233,7 +230,7 @@ def test_helm_install_runs_the_operator_and_an_agent_on_every_vehicle_node_only(
 ) -> None:
     deployment = _get(installed, "deployment", "-n", NAMESPACE, f"{FULLNAME}-operator")
     assert deployment["status"].get("availableReplicas") == 1
-    _wait_for(
+    wait_until(
         "agent pods on both vehicle nodes", lambda: {NODE_A, NODE_B} <= set(_agent_pods(installed))
     )
     assert NODE_PLAIN not in _agent_pods(installed)
@@ -364,7 +361,7 @@ def agent_over_granted(installed: Cluster) -> Iterator[Cluster]:
         "subjects": [{"kind": "ServiceAccount", "name": AGENT_SA, "namespace": NAMESPACE}],
     }
     _apply(installed, role, binding)
-    _wait_for(
+    wait_until(
         "the extra grant",
         lambda: _can(installed, AGENT_USER, "patch", "vehicles.roost.dev", "--subresource=status"),
     )
@@ -455,7 +452,7 @@ def _bound_token_kubeconfig(cluster: Cluster, pod: dict[str, Any], path: Path) -
 def test_real_pod_bound_agent_token_carries_its_node_and_is_scoped_to_it(
     installed: Cluster, tmp_path: Path
 ) -> None:
-    _wait_for("agent pod on node A", lambda: NODE_A in _agent_pods(installed))
+    wait_until("agent pod on node A", lambda: NODE_A in _agent_pods(installed))
     agent = _bound_token_kubeconfig(installed, _agent_pods(installed)[NODE_A], tmp_path / "kc")
     whoami = json.loads(agent.kubectl("auth", "whoami", "-o", "json").stdout)
     assert whoami["status"]["userInfo"]["username"] == AGENT_USER
@@ -488,7 +485,7 @@ def test_agent_with_its_pod_bound_token_reports_its_autopilots(
         autopilot["spec"]["autopilots"] = [spec.to_api() for spec in autopilot_specs(sims)]
         autopilot["spec"]["primary"] = sims[0].name
         _apply(installed, _vehicle(AGENT_VEHICLE, NODE_AGENT, 105), autopilot)
-        _wait_for("the agent pod on its node", lambda: NODE_AGENT in _agent_pods(installed))
+        wait_until("the agent pod on its node", lambda: NODE_AGENT in _agent_pods(installed))
         token_cluster = _bound_token_kubeconfig(
             installed, _agent_pods(installed)[NODE_AGENT], tmp_path / "agent.kubeconfig"
         )
@@ -500,7 +497,7 @@ def test_agent_with_its_pod_bound_token_reports_its_autopilots(
             levels = {a.get("level") for a in status.get("autopilots", [])}
             return levels == {"OK"} and status.get("nodeName") == NODE_AGENT
 
-        _wait_for("the agent's healthy report", reported_healthy)
+        wait_until("the agent's healthy report", reported_healthy)
         log = agent.log.read_text()
         assert f'User "{AGENT_USER}" cannot' not in log, log[-3000:]
         assert "denied request" not in log, log[-3000:]
@@ -549,21 +546,21 @@ def test_operator_with_the_chart_service_account_reconciles_a_vehicle(
     fake_nodes_module(NODE_OPERATED)
     _apply(installed, _vehicle(OPERATED_VEHICLE, NODE_OPERATED, 103))
     try:
-        _wait_for(
+        wait_until(
             "the node to be labelled by the operator",
             lambda: (
                 LABEL_VEHICLE
                 in _get(installed, "node", NODE_OPERATED)["metadata"].get("labels", {})
             ),
         )
-        _wait_for(
+        wait_until(
             "Vehicle NodeBound=True",
             lambda: _condition(_get(installed, "vehicle", OPERATED_VEHICLE), "NodeBound") == "True",
         )
         _operator_log_is_clean(process)
     finally:
         installed.kubectl("delete", "vehicle", OPERATED_VEHICLE, "--wait=false")
-    _wait_for(
+    wait_until(
         "the finalizer to release the deleted Vehicle",
         lambda: installed.kubectl("get", "vehicle", OPERATED_VEHICLE, check=False).returncode != 0,
     )
@@ -614,7 +611,7 @@ def test_operator_with_the_chart_service_account_labels_the_autopilot_and_flies_
         mission,
     )
     try:
-        _wait_for(
+        wait_until(
             "the operator to label the RedundantAutopilot with its node",
             lambda: (
                 _get(installed, "redundantautopilot", MISSION_VEHICLE)["metadata"]
@@ -623,7 +620,7 @@ def test_operator_with_the_chart_service_account_labels_the_autopilot_and_flies_
                 == NODE_MISSION
             ),
         )
-        _wait_for(
+        wait_until(
             "the mission's onboard Job",
             lambda: bool(
                 _get(installed, "jobs", "-n", MISSION_NAMESPACE, "-l", "roost.dev/mission")["items"]
@@ -636,7 +633,7 @@ def test_operator_with_the_chart_service_account_labels_the_autopilot_and_flies_
     finally:
         installed.kubectl("delete", "namespace", MISSION_NAMESPACE, "--wait=false")
         installed.kubectl("delete", "redundantautopilot,vehicle", MISSION_VEHICLE, "--wait=false")
-    _wait_for(
+    wait_until(
         "the vehicle's finalizer to finish",
         lambda: installed.kubectl("get", "vehicle", MISSION_VEHICLE, check=False).returncode != 0,
         timeout_s=120,

@@ -36,38 +36,30 @@ from roost_operator.vehicles.desired import workload_name
 from roost_sim import SimulatedAutopilot, autopilot_specs, start_vehicle_sims, stop_sims
 from tests.support.agent import AgentProcess
 from tests.support.apiwrites import write_requests
-from tests.support.operator import OperatorProcess, wait_for
+from tests.support.operator import OperatorProcess
+from tests.support.waiting import unique, wait_until
 
 pytestmark = pytest.mark.cluster
 
 NAMESPACE = "roost-it-failover"
 REPORT_INTERVAL_S = 2.0
 STALE_S = 6.0
+OPERATOR_NAMESPACE = NAMESPACE
+OPERATOR_ENV = {"ROOST_AGENT_STALE_SECONDS": str(STALE_S)}
 WAIT_S = 60.0
 FakeNodes = Callable[..., dict[str, Any]]
 
 
-def unique(prefix: str) -> str:
-    return f"{prefix}-{uuid.uuid4().hex[:6]}"
-
-
 def until(what: str, check: Callable[[], Any], timeout_s: float = WAIT_S) -> Any:
-    return wait_for(what, check, timeout_s, poll_s=0.1)
+    return wait_until(what, check, timeout_s, poll_s=0.1)
 
 
-@pytest.fixture(scope="module")
-def operator(
-    roost_crds: Cluster, tmp_path_factory: pytest.TempPathFactory
-) -> Iterator[OperatorProcess]:
-    proc = OperatorProcess(
-        roost_crds,
-        tmp_path_factory.mktemp("failover-operator") / "operator.log",
-        namespace=NAMESPACE,
-        environment={"ROOST_AGENT_STALE_SECONDS": str(STALE_S)},
-    )
-    proc.start()
-    yield proc
-    proc.stop()
+def spec_observed(rig: Rig) -> bool:
+    """The agent reported on the RedundantAutopilot's current generation (it read it)."""
+    obj = rig.kube.get(REDUNDANT_AUTOPILOTS, rig.name) or {}
+    generation = obj.get("metadata", {}).get("generation")
+    conditions = (obj.get("status") or {}).get("conditions") or []
+    return bool(conditions) and all(c.get("observedGeneration") == generation for c in conditions)
 
 
 @dataclass
@@ -291,7 +283,8 @@ def test_a_command_issued_before_a_partition_expires_instead_of_running_late(
     try:
         rig.agent.start()  # API down: it flies on with the spec saved on disk
         until("the agent running on its saved spec", lambda: rig.agent.events("Started"))
-        time.sleep(3)  # past the command's deadline
+        issued = time.time()  # the command was issued before this instant
+        wait_until("the command's 2 s deadline to pass", lambda: time.time() > issued + 2.5)
     finally:
         plane.start_apiserver()
 
@@ -327,7 +320,7 @@ def test_an_operator_restarted_mid_failover_acts_once(
         "mavros on fc2 and the action finished",
         lambda: rig.mavros_on(1) and not (rig.vehicle_status()["failover"].get("action")),
     )
-    time.sleep(REPORT_INTERVAL_S * 2)  # a few more reports and reconciles
+    time.sleep(REPORT_INTERVAL_S * 2)  # nothing more happens over two reports and reconciles
     after = rig.mavros()
     assert after is not None and after["metadata"]["generation"] == generation + 1
     failover = rig.vehicle_status()["failover"]
@@ -363,12 +356,12 @@ def test_manual_switch_and_safety_routine_run_once_even_when_replayed(rig: Rig) 
     # replay both requests (same ids, fresh issuedAt), then restart the agent on top
     rig.command(CommandAction.SWITCH, target="fc2", command_id=switch_id)
     rig.command(CommandAction.SAFETY_ROUTINE, command_id=routine_id)
-    time.sleep(REPORT_INTERVAL_S * 2)
+    until("the agent to have read the replayed requests", lambda: spec_observed(rig))
     rig.agent.crash()
     rig.agent.start()
     stamp = rig.ra_status()["reportedAt"]
     until("a report from the restarted agent", lambda: rig.ra_status()["reportedAt"] != stamp)
-    time.sleep(REPORT_INTERVAL_S)
+    time.sleep(REPORT_INTERVAL_S)  # nothing happens over one more report: nothing re-run
     status = rig.ra_status()
     assert status["activeAutopilot"] == "fc2"
     assert {k: status["lastFailover"][k] for k in switched} == switched
@@ -384,7 +377,7 @@ def test_a_flapping_autopilot_does_not_cause_a_storm(
     until("the failover", lambda: failed_over(rig))
     rig.sims[1].wait_until(lambda s: s.landed_state == "OnGround", timeout=30)
     until("mavros on fc2", lambda: rig.mavros_on(1))
-    time.sleep(REPORT_INTERVAL_S)
+    time.sleep(REPORT_INTERVAL_S)  # a settled baseline: the failover's last writes land
     mavros = rig.mavros()
     assert mavros is not None
     generation = mavros["metadata"]["generation"]

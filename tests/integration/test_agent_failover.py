@@ -48,22 +48,14 @@ from roost_mavlink import (
 )
 from roost_mavlink.modes import custom_mode_from_set_mode
 from roost_sim import FaultKind, SimulatedAutopilot, autopilot_specs, start_vehicle_sims, stop_sims
+from tests.support.flight import take_off
+from tests.support.waiting import wait_until
 
 pytestmark = pytest.mark.slow
 
 HOLD_S = 1.0
 CLEAR_S = 1.0  # Thresholds.clear_ms default: a standby must be OK this long
-
-
-def wait_for(predicate: Callable[[], Any], timeout: float = 10.0, what: str = "") -> Any:
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout}s waiting for {what or predicate}")
-        time.sleep(0.02)
+POLL_S = 0.02  # failovers take tens of milliseconds: look often
 
 
 @dataclass
@@ -97,15 +89,6 @@ def make_spec(
             safety_routine=SafetyRoutine(hold_seconds=HOLD_S, final_action=final_action)
         ),
     )
-
-
-def take_off(sims: list[SimulatedAutopilot]) -> None:
-    for sim in sims:
-        sim.wait_until(lambda s: s.system_status != "BOOT", timeout=5)
-    for sim in sims:
-        sim.fly()
-    for sim in sims:
-        sim.wait_until(lambda s: s.landed_state == "InAir" and s.altitude_m > 2.0, timeout=15)
 
 
 def all_ok(agent: Agent, names: list[str]) -> bool:
@@ -142,8 +125,10 @@ def flying(
         agent.start()
         take_off(sims)
         names = [s.name for s in sims]
-        wait_for(lambda: all_ok(agent, names), 10, "every autopilot OK")
-        time.sleep(CLEAR_S + 0.2)  # T_off: standbys become failover targets
+        wait_until("every autopilot OK", lambda: all_ok(agent, names), 10, POLL_S)
+        # Not a wait for a condition: T_off is a required duration (a standby becomes a
+        # failover target only after CLEAR_S without a failure), and nothing may go wrong in it.
+        time.sleep(CLEAR_S + 0.2)
         assert all_ok(agent, names), agent.assessments()
         yield Flight(sims, agent, bridge, spec, state_path)
     finally:
@@ -181,7 +166,7 @@ def assert_held_then_landed(flight: Flight, name: str, since: float) -> None:
         record = flight.agent.status().last_failover
         return record.safety_routine if record else None
 
-    wait_for(lambda: routine_outcome() == "Landed", 5, "safety routine reported Landed")
+    wait_until("safety routine reported Landed", lambda: routine_outcome() == "Landed", 5, POLL_S)
 
 
 FAULTS = [
@@ -201,7 +186,7 @@ def test_fault_on_active_switches_bridge_and_runs_safety_routine(
     with flying([stack, stack], tmp_path) as flight:
         injected = time.monotonic()
         flight.sim("fc1").inject(fault, value)
-        (event,) = wait_for(flight.agent.failovers, 10, "a failover")
+        (event,) = wait_until("a failover", flight.agent.failovers, 10, POLL_S)
         record = event.record
         assert (record.from_autopilot, record.to_autopilot, record.trigger) == (
             "fc1",
@@ -221,12 +206,13 @@ def test_fault_on_active_switches_bridge_and_runs_safety_routine(
 def test_three_autopilots_fail_over_in_turn_and_never_back(tmp_path: Path) -> None:
     with flying(["px4", "ardupilot", "px4"], tmp_path, final_action=FinalAction.HOLD) as flight:
         flight.sim("fc1").inject(FaultKind.SILENCE)
-        wait_for(lambda: len(flight.agent.failovers()) == 1, 10, "first failover")
+        wait_until("first failover", lambda: len(flight.agent.failovers()) == 1, 10, POLL_S)
         flight.sim("fc1").clear()  # fc1 recovers, but it was left this flight
-        time.sleep(CLEAR_S + 0.5)
+        wait_until("fc1 OK again", lambda: all_ok(flight.agent, ["fc1"]), 10, POLL_S)
+        time.sleep(CLEAR_S + 0.5)  # its T_off passes: it would now be a target, were it not left
         flight.sim("fc2").inject(FaultKind.SENSOR, "gyro")
-        wait_for(lambda: len(flight.agent.failovers()) == 2, 10, "second failover")
-        time.sleep(1.0)
+        wait_until("second failover", lambda: len(flight.agent.failovers()) == 2, 10, POLL_S)
+        time.sleep(1.0)  # nothing happens for 1 s: no third switch, no return to fc1
         moves = [(e.record.from_autopilot, e.record.to_autopilot) for e in flight.agent.failovers()]
         assert moves == [("fc1", "fc2"), ("fc2", "fc3")]
         assert [s.channel for s in flight.bridge.history] == [0, 1, 2]
@@ -236,7 +222,7 @@ def test_three_autopilots_fail_over_in_turn_and_never_back(tmp_path: Path) -> No
 def test_both_bad_keeps_the_active_and_lands_it(tmp_path: Path) -> None:
     with flying(["px4", "px4"], tmp_path) as flight:
         flight.sim("fc2").inject(FaultKind.SENSOR, "gyro")
-        wait_for(lambda: flight.agent.assessments()["fc2"].failing, 5, "fc2 failing")
+        wait_until("fc2 failing", lambda: flight.agent.assessments()["fc2"].failing, 5, POLL_S)
         started = time.monotonic()
         flight.sim("fc1").inject(FaultKind.STATE, "EMERGENCY")
         flight.sim("fc1").wait_until(lambda s: s.landed_state == "OnGround", timeout=20)
@@ -253,7 +239,13 @@ def test_garbage_and_spoofed_traffic_never_cause_a_failover(tmp_path: Path, stac
         for sim in flight.sims:
             sim.inject(FaultKind.GARBAGE, 8000)
             sim.inject(FaultKind.SPOOF)
-        time.sleep(4.0)
+
+        def hostile_traffic_seen() -> bool:
+            links = flight.agent.links.values()
+            return all(link.counters.foreign > 0 and link.counters.bad > 0 for link in links)
+
+        wait_until("garbage and spoofed frames at every link", hostile_traffic_seen, 10, POLL_S)
+        time.sleep(4.0)  # nothing happens for 4 s under that traffic: no failover
         assert flight.agent.failovers() == []
         assert [s.channel for s in flight.bridge.history] == [0]
         for name, link in flight.agent.links.items():
@@ -262,7 +254,7 @@ def test_garbage_and_spoofed_traffic_never_cause_a_failover(tmp_path: Path, stac
             assert not flight.agent.assessments()[name].failing
         for sim in flight.sims:
             sim.clear()
-        wait_for(lambda: all_ok(flight.agent, ["fc1", "fc2"]), 3, "both OK")
+        wait_until("both OK", lambda: all_ok(flight.agent, ["fc1", "fc2"]), 3, POLL_S)
 
 
 def test_serial_link_over_a_pseudo_terminal(tmp_path: Path) -> None:
@@ -270,7 +262,7 @@ def test_serial_link_over_a_pseudo_terminal(tmp_path: Path) -> None:
         assert all(s.connection.startswith("serial://") for s in flight.spec.autopilots)
         injected = time.monotonic()
         flight.sim("fc1").inject(FaultKind.SILENCE)
-        wait_for(flight.agent.failovers, 10, "a failover over serial")
+        wait_until("a failover over serial", flight.agent.failovers, 10, POLL_S)
         assert flight.bridge.selected == 1
         assert_held_then_landed(flight, "fc2", injected)
 
@@ -279,7 +271,7 @@ def test_udpout_link_where_the_agent_sends_first(tmp_path: Path) -> None:
     with flying(["ardupilot", "px4"], tmp_path, transport="udpout") as flight:
         assert all(s.connection.startswith("udpout://") for s in flight.spec.autopilots)
         flight.sim("fc1").inject(FaultKind.SENSOR, "gyro")
-        (event,) = wait_for(flight.agent.failovers, 10, "a failover over udpout")
+        (event,) = wait_until("a failover over udpout", flight.agent.failovers, 10, POLL_S)
         assert event.record.to_autopilot == "fc2" and flight.bridge.selected == 1
 
 
@@ -305,13 +297,18 @@ def test_pilot_in_manual_mode_gets_the_switch_but_no_safety_routine(tmp_path: Pa
     with flying(["px4", "px4"], tmp_path) as flight:
         for sim in flight.sims:
             _gcs_set_mode(sim, "POSCTL")
-        time.sleep(0.3)
+        wait_until(
+            "the agent to see both in POSCTL",
+            lambda: all(a.mode == "POSCTL" for a in flight.agent.status().autopilots),
+            5,
+            POLL_S,
+        )
         injected = time.monotonic()
         flight.sim("fc1").inject(FaultKind.SILENCE)
-        (event,) = wait_for(flight.agent.failovers, 10, "a failover")
+        (event,) = wait_until("a failover", flight.agent.failovers, 10, POLL_S)
         assert event.record.safety_routine == "Skipped: pilot in manual mode"
         assert flight.bridge.selected == 1
-        time.sleep(HOLD_S + 1.0)
+        time.sleep(HOLD_S + 1.0)  # nothing happens for longer than a hold: no routine
         assert flight.agent_commands("fc2", injected) == []
         assert flight.sim("fc2").snapshot().mode == "POSCTL"
 
@@ -319,7 +316,7 @@ def test_pilot_in_manual_mode_gets_the_switch_but_no_safety_routine(tmp_path: Pa
 def test_restart_mid_flight_keeps_the_failed_over_autopilot(tmp_path: Path) -> None:
     with flying(["px4", "px4"], tmp_path, final_action=FinalAction.HOLD) as flight:
         flight.sim("fc1").inject(FaultKind.STATE, "EMERGENCY")
-        wait_for(flight.agent.failovers, 10, "a failover")
+        wait_until("a failover", flight.agent.failovers, 10, POLL_S)
         flight.agent.stop()
         flight.sim("fc1").clear()  # the old primary looks perfect again
         bridge = SimulatedBridge([0, 1])
@@ -328,8 +325,8 @@ def test_restart_mid_flight_keeps_the_failed_over_autopilot(tmp_path: Path) -> N
         try:
             assert bridge.selected == 1  # asserted at start, before any telemetry
             assert again.active == "fc2" and again.latched
-            wait_for(lambda: all_ok(again, ["fc1", "fc2"]), 5, "both OK after restart")
-            time.sleep(CLEAR_S + 1.0)
+            wait_until("both OK after restart", lambda: all_ok(again, ["fc1", "fc2"]), 5, POLL_S)
+            time.sleep(CLEAR_S + 1.0)  # nothing happens past T_off: no switch back to fc1
             assert again.failovers() == []
             assert [s.channel for s in bridge.history] == [1]
             status = again.status()
@@ -441,7 +438,7 @@ def test_console_script_fails_over_and_restarts_from_its_state_dir(tmp_path: Pat
             return len(aps) == 2 and all(a["level"] == "OK" for a in aps)
 
         agent.wait_line(both_ok, 10)
-        time.sleep(CLEAR_S + 0.3)
+        time.sleep(CLEAR_S + 0.3)  # T_off, a required duration: standbys become targets
         sims[0].inject(FaultKind.SILENCE)
         event = agent.wait_line(lambda d: d.get("event") == "Failover", 10)
         assert event["failover"]["from"] == "fc1" and event["failover"]["to"] == "fc2"
@@ -459,7 +456,7 @@ def test_console_script_fails_over_and_restarts_from_its_state_dir(tmp_path: Pat
             assert "fc2 (restored from the state file, latched)" in started["message"]
             status = restarted.wait_line(both_ok, 10)["status"]
             assert status["activeAutopilot"] == "fc2" and status["latched"]
-            time.sleep(CLEAR_S + 0.5)
+            time.sleep(CLEAR_S + 0.5)  # nothing happens past T_off: no switch back to fc1
             restarted.wait_line(lambda d: "status" in d, 5)
             assert not [d for d in restarted.seen if d.get("event") == "Failover"]
         finally:

@@ -13,9 +13,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
-import uuid
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +27,7 @@ from roost_localcluster.binaries import REPO_ROOT
 from roost_localcluster.cluster import Cluster, FakeNodes
 from roost_localcluster.controlplane import START_ORDER, ControlPlane
 from roost_localcluster.processes import ManagedProcess
+from tests.support.waiting import unique, wait_until
 
 pytestmark = pytest.mark.cluster
 
@@ -38,20 +36,8 @@ EXAMPLES = REPO_ROOT / "examples"
 EXPECT_PREFIX = "# expect: "
 
 
-def unique(prefix: str) -> str:
-    return f"{prefix}-{uuid.uuid4().hex[:6]}"
-
-
 def get_json(cluster: Cluster, *args: str) -> Any:
     return json.loads(cluster.kubectl("get", *args, "-o", "json").stdout)
-
-
-def wait_until(what: str, check: Callable[[], bool], timeout_s: float = 60.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not check():
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout_s:.0f} s waiting for {what}")
-        time.sleep(0.5)
 
 
 # ---- CRDs ------------------------------------------------------------------------------

@@ -35,7 +35,6 @@ from __future__ import annotations
 import json
 import subprocess
 import threading
-import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -66,7 +65,8 @@ from roost_operator.missions.workloads import (
     onboard_job_name,
 )
 from tests.support.fakeagents import FakeAgents, redundant_autopilot
-from tests.support.operator import OperatorProcess, wait_for
+from tests.support.operator import OperatorProcess
+from tests.support.waiting import unique, wait_until
 
 pytestmark = pytest.mark.cluster
 
@@ -77,26 +77,13 @@ HOLD_GATE = "roost.dev/test-hold"
 AddNode = Callable[..., dict[str, Any]]
 
 
-def unique(prefix: str) -> str:
-    return f"{prefix}-{uuid.uuid4().hex[:6]}"
-
-
 # -- fixtures ------------------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def operator(
-    roost_crds: Cluster, tmp_path_factory: pytest.TempPathFactory
-) -> Iterator[OperatorProcess]:
+@pytest.fixture(scope="module", autouse=True)
+def flights_namespace(roost_crds: Cluster) -> None:
+    """The namespace the module's Missions live in (the operator's own is another)."""
     roost_crds.kubectl("create", "namespace", FLIGHTS, check=False)
-    proc = OperatorProcess(
-        roost_crds,
-        tmp_path_factory.mktemp("mission-operator") / "operator.log",
-        namespace=OPERATOR_NAMESPACE,
-    )
-    proc.start()
-    yield proc
-    proc.stop()
 
 
 @pytest.fixture
@@ -139,7 +126,7 @@ class Fleet:
             self.agents.add(f"{name}-autopilots", name, node, **agent_state)
             self.vehicles.append(name)
             names.append(name)
-        wait_for(
+        wait_until(
             "the Vehicles Ready", lambda: all(vehicle_ready(self.kube, n) for n in names), WAIT_S
         )
         return names
@@ -159,7 +146,7 @@ class Fleet:
             self.agents.forget(f"{name}-autopilots")
             self.cluster.kubectl("delete", "redundantautopilot", f"{name}-autopilots", check=False)
             self.cluster.kubectl("delete", "vehicle", name, "--ignore-not-found", "--wait=false")
-        wait_for(
+        wait_until(
             "the test's Vehicles to be gone",
             lambda: all(self.kube.get(VEHICLES, n) is None for n in self.vehicles),
             WAIT_S,
@@ -248,7 +235,7 @@ def wait_phase(kube: Kube, name: str, phase: str, timeout_s: float = WAIT_S) -> 
         return status if status.get("phase") == phase else None
 
     try:
-        result: Obj = wait_for(f"mission {name} phase {phase}", reached, timeout_s)
+        result: Obj = wait_until(f"mission {name} phase {phase}", reached, timeout_s)
     except TimeoutError as error:
         status = json.dumps(mission_status(kube, name))
         raise AssertionError(f"{error}; status now: {status}") from error
@@ -355,7 +342,7 @@ def test_three_vehicles_fly_to_succeeded_with_an_offboard_monitor(
     (monitor,) = [p for p in pods if not p["metadata"]["labels"].get(LABEL_VEHICLE)]
     assert monitor["spec"]["nodeName"] not in {f"{v}-node" for v in vehicles}
 
-    wait_for(
+    wait_until(
         "vehicles released", lambda: all(claimed_by(kube, v) is None for v in vehicles), WAIT_S
     )
     columns = roost_crds.kubectl("get", "missions", name, "-n", FLIGHTS).stdout
@@ -373,7 +360,7 @@ def test_a_mission_waits_for_vehicles_and_starts_when_they_are_freed(
     second = fleet.mission(unique("second"), selector={"fleet": fleet.label}, count=2)
 
     status = wait_phase(kube, second, "Pending")
-    wait_for(
+    wait_until(
         "the shortage message",
         lambda: "1 missing" in (mission_status(kube, second).get("message") or ""),
         WAIT_S,
@@ -396,7 +383,7 @@ def test_preflight_holds_the_mission_until_the_autopilot_is_healthy(
     agents.set(f"{bad}-autopilots", healthy=False)
     # The unhealthy report must have reached the Vehicle (agent connected, autopilots
     # unhealthy) before the mission looks, or preflight may name an earlier state.
-    wait_for(
+    wait_until(
         "the unhealthy report on the Vehicle",
         lambda: (
             vehicle_condition(kube, bad, "AgentConnected") == "True"
@@ -416,7 +403,7 @@ def test_preflight_holds_the_mission_until_the_autopilot_is_healthy(
 
     agents.set(f"{bad}-autopilots", healthy=True)
     wait_phase(kube, name, "Running")
-    wait_for("both Jobs", lambda: len(jobs_of(kube, name)) == 2, WAIT_S)
+    wait_until("both Jobs", lambda: len(jobs_of(kube, name)) == 2, WAIT_S)
 
 
 @pytest.mark.parametrize("action", ["SafetyRoutine", "EmergencyStop"])
@@ -428,7 +415,7 @@ def test_abort_lands_every_vehicle_and_stops_the_workloads(
         unique("abort"), selector={"fleet": fleet.label}, count=2, abortAction=action
     )
     wait_phase(kube, name, "Running")
-    wait_for("both Jobs", lambda: len(jobs_of(kube, name)) == 2, WAIT_S)
+    wait_until("both Jobs", lambda: len(jobs_of(kube, name)) == 2, WAIT_S)
 
     roost_crds.kubectl(
         "patch", "mission", name, "-n", FLIGHTS, "--type=merge", "-p", '{"spec":{"abort":true}}'
@@ -440,10 +427,10 @@ def test_abort_lands_every_vehicle_and_stops_the_workloads(
         found = [command_of(kube, v) for v in vehicles]
         return [c for c in found if c is not None] if all(found) else None
 
-    commands = wait_for("commands on every vehicle", all_commanded, WAIT_S)
+    commands = wait_until("commands on every vehicle", all_commanded, WAIT_S)
     assert {c["action"] for c in commands} == {action}
     assert len({c["id"] for c in commands}) == 2
-    wait_for("the Jobs to be stopped", lambda: jobs_of(kube, name) == {}, WAIT_S)
+    wait_until("the Jobs to be stopped", lambda: jobs_of(kube, name) == {}, WAIT_S)
     assert mission_status(kube, name)["phase"] == "Aborting", "not Aborted before they land"
     assert all(claimed_by(kube, v) == f"{FLIGHTS}/{name}" for v in vehicles)
 
@@ -456,7 +443,7 @@ def test_abort_lands_every_vehicle_and_stops_the_workloads(
     for vehicle in vehicles:
         body = kube.get(REDUNDANT_AUTOPILOTS, f"{vehicle}-autopilots") or {}
         assert body["status"]["lastCommand"]["result"] == "Executed"
-    wait_for(
+    wait_until(
         "vehicles released", lambda: all(claimed_by(kube, v) is None for v in vehicles), WAIT_S
     )
     assert jobs_of(kube, name) == {}, "nothing is started after an abort"
@@ -492,7 +479,7 @@ def test_a_failover_mid_mission_follows_the_policy(
         assert status["reason"] == "VehicleFailedOver"
         assert all(v["phase"] == "Aborted" for v in status["vehicles"])
         return
-    degraded = wait_for(
+    degraded = wait_until(
         "Degraded=True",
         lambda: (
             (c := condition_of(mission_status(kube, name), "Degraded")) and c["status"] == "True"
@@ -501,7 +488,7 @@ def test_a_failover_mid_mission_follows_the_policy(
     )
     assert degraded
     if policy == "AbortVehicle":
-        wait_for(
+        wait_until(
             f"{hit} aborted",
             lambda: (
                 {v["name"]: v["phase"] for v in mission_status(kube, name)["vehicles"]}[hit]
@@ -511,7 +498,7 @@ def test_a_failover_mid_mission_follows_the_policy(
         )
         assert (command_of(kube, hit) or {})["action"] == "SafetyRoutine"
         assert command_of(kube, other) is None
-        wait_for(f"{hit}'s Job stopped", lambda: len(jobs_of(kube, name)) == 1, WAIT_S)
+        wait_until(f"{hit}'s Job stopped", lambda: len(jobs_of(kube, name)) == 1, WAIT_S)
     else:
         assert len(jobs_of(kube, name)) == 2
     assert mission_status(kube, name)["phase"] == "Running"
@@ -541,19 +528,19 @@ def test_a_paused_failover_consequence_is_applied_once_the_pause_is_lifted(
         entry = entry_of(hit)
         return entry if entry.get("failoverActionHeld") == "Paused" else None
 
-    held = wait_for(f"{hit}'s consequence held back", held_back, WAIT_S)
+    held = wait_until(f"{hit}'s consequence held back", held_back, WAIT_S)
     assert held["phase"] == "Running" and held["reason"] == "FailoverActionPaused"
     assert command_of(kube, hit) is None and len(jobs_of(kube, name)) == 2
     degraded = condition_of(mission_status(kube, name), "Degraded")
     assert degraded is not None and degraded["reason"] == "FailoverActionPaused"
-    wait_for(
+    wait_until(
         "the FailoverActionPaused Event",
         lambda: "FailoverActionPaused" in events_for(roost_crds, name),
         WAIT_S,
     )
 
     roost_crds.kubectl("annotate", "vehicle", hit, f"{ANNOTATION_PAUSE_FAILOVER_ACTIONS}-")
-    wait_for(f"{hit} aborted", lambda: entry_of(hit)["phase"] == "Aborted", WAIT_S)
+    wait_until(f"{hit} aborted", lambda: entry_of(hit)["phase"] == "Aborted", WAIT_S)
     assert (command_of(kube, hit) or {})["action"] == "SafetyRoutine"
     assert command_of(kube, other) is None
     assert entry_of(hit).get("failoverActionHeld") is None
@@ -564,7 +551,7 @@ def test_a_failed_workload_fails_the_mission_and_stops_the_others(fleet: Fleet, 
     name = fleet.mission(unique("fails"), selector={"fleet": fleet.label}, count=2, backoffLimit=0)
     status = wait_phase(kube, name, "Running")
     broken = assigned(status)[0]
-    wait_for("both pods", lambda: len(pods_of(kube, name)) == 2, WAIT_S)
+    wait_until("both pods", lambda: len(pods_of(kube, name)) == 2, WAIT_S)
     (pod,) = [p for p in pods_of(kube, name) if p["metadata"]["labels"][LABEL_VEHICLE] == broken]
     kube.merge_patch(
         PODS,
@@ -576,14 +563,14 @@ def test_a_failed_workload_fails_the_mission_and_stops_the_others(fleet: Fleet, 
     status = wait_phase(kube, name, "Failed")
     assert status["reason"] == "VehicleWorkloadFailed"
     assert status["message"].startswith(f"{broken}: onboard Job")
-    wait_for(
+    wait_until(
         "the other Job stopped",
         lambda: (
             jobs_of(kube, name) == {k: v for k, v in jobs_of(kube, name).items() if broken in k}
         ),
         WAIT_S,
     )
-    wait_for(
+    wait_until(
         "vehicles released", lambda: all(claimed_by(kube, v) is None for v in vehicles), WAIT_S
     )
 
@@ -605,7 +592,7 @@ def test_competing_missions_never_share_a_vehicle(
         pending = [s for s in statuses.values() if s.get("reason") == "InsufficientVehicles"]
         return statuses if len(running) == 2 and len(pending) == 2 else None
 
-    statuses = wait_for("two missions running and two waiting", settled, WAIT_S)
+    statuses = wait_until("two missions running and two waiting", settled, WAIT_S)
     flying = [assigned(s) for s in statuses.values() if s["phase"] == "Running"]
     taken = [v for group in flying for v in group]
     assert len(taken) == len(set(taken)) == 4, f"a vehicle was shared: {flying}"
@@ -668,7 +655,7 @@ def test_a_restarted_operator_resumes_without_duplicating_workloads(
     vehicles = fleet.add(3)
     name = fleet.mission(unique("restart"), selector={"fleet": fleet.label}, count=3)
     wait_phase(kube, name, "Running")
-    wait_for("three Jobs", lambda: len(jobs_of(kube, name)) == 3, WAIT_S)
+    wait_until("three Jobs", lambda: len(jobs_of(kube, name)) == 3, WAIT_S)
     before = {n: j["metadata"]["uid"] for n, j in jobs_of(kube, name).items()}
     pods_before = {p["metadata"]["uid"] for p in pods_of(kube, name)}
 
@@ -677,7 +664,7 @@ def test_a_restarted_operator_resumes_without_duplicating_workloads(
     kube.delete(JOBS, lost, FLIGHTS)
     operator.start()
 
-    wait_for("the lost Job to be back", lambda: lost in jobs_of(kube, name), WAIT_S)
+    wait_until("the lost Job to be back", lambda: lost in jobs_of(kube, name), WAIT_S)
     after = {n: j["metadata"]["uid"] for n, j in jobs_of(kube, name).items()}
     assert set(after) == set(before)
     assert {n: u for n, u in after.items() if n != lost} == {
@@ -731,7 +718,7 @@ def test_a_vehicle_deleted_mid_mission_leaves_it_at_once(
     doomed, staying = fleet.add(2)
     name = fleet.mission(unique("vdel"), names=[doomed, staying], count=2)
     wait_phase(kube, name, "Running")
-    wait_for("both Jobs", lambda: len(jobs_of(kube, name)) == 2, WAIT_S)
+    wait_until("both Jobs", lambda: len(jobs_of(kube, name)) == 2, WAIT_S)
     copy = f"roost-vehicle-{doomed}"
     assert kube.get(CONFIGMAPS, copy, FLIGHTS) is not None
 
@@ -742,11 +729,11 @@ def test_a_vehicle_deleted_mid_mission_leaves_it_at_once(
         by_name = {v["name"]: v for v in status.get("vehicles") or []}
         return status if by_name[doomed].get("reason") == "VehicleDeleted" else None
 
-    status = wait_for("the vehicle to leave the mission", left, WAIT_S)
+    status = wait_until("the vehicle to leave the mission", left, WAIT_S)
     assert status["phase"] == "Running"
     degraded = condition_of(status, "Degraded") or {}
     assert (degraded.get("status"), degraded.get("reason")) == ("True", "VehicleDeleted")
-    wait_for(
+    wait_until(
         "its Job stopped and its config copy gone",
         lambda: (
             onboard_job_name(name, doomed) not in jobs_of(kube, name)

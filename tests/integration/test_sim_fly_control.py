@@ -13,13 +13,14 @@ import json
 import socket
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 import yaml
+
+from tests.support.waiting import wait_until
 
 BIN = Path(sys.executable).parent
 
@@ -77,13 +78,11 @@ def test_fly_arms_and_takes_off_only_the_named_autopilot(running_sims: Path) -> 
 
     assert _sim(running_sims, "fly", "fc-a", "--altitude", "5")["ok"] is True
 
-    deadline = time.monotonic() + 20
-    state = before
-    while time.monotonic() < deadline:
-        state = _sim(running_sims, "status", "fc-a")["state"]
-        if state["landed_state"] == "InAir" and state["altitude_m"] > 4:
-            break
-        time.sleep(0.2)
+    def airborne() -> dict[str, Any] | None:
+        state: dict[str, Any] = _sim(running_sims, "status", "fc-a")["state"]
+        return state if state["landed_state"] == "InAir" and state["altitude_m"] > 4 else None
+
+    state = wait_until("fc-a airborne above 4 m", airborne, 20.0)
     assert state["armed"] is True
     assert state["landed_state"] == "InAir"
     other = _sim(running_sims, "status", "fc-b")["state"]

@@ -56,6 +56,7 @@ from roost_sim import (
 from roost_sim.autopilot import DEFAULT_RATES
 from roost_sim.main import build_parser, build_sims
 from roost_sim.main import main as sim_cli
+from tests.support.waiting import wait_until
 
 os.environ.setdefault("MAVLINK20", "1")  # before mavutil is imported: the sims speak MAVLink 2
 from pymavlink import mavutil
@@ -264,7 +265,7 @@ def test_message_interval_and_request_message(udp_sim: tuple[SimulatedAutopilot,
     counts = by_type(client.collect(2.0), sim.sysid)
     assert 10 <= counts["ATTITUDE"] <= 30  # 10 Hz now
     assert client.command(sim.sysid, MAV_CMD_SET_MESSAGE_INTERVAL, attitude, -1) == 0
-    time.sleep(0.1)
+    time.sleep(0.1)  # frames already on the way; then nothing arrives for 1 s
     assert by_type(client.collect(1.0), sim.sysid)["ATTITUDE"] == 0
     heartbeat = message_id("HEARTBEAT")
     assert client.command(sim.sysid, MAV_CMD_SET_MESSAGE_INTERVAL, heartbeat, 1e5) == 2
@@ -289,7 +290,7 @@ def test_commands_for_another_system_are_ignored(
 def test_fault_silence(udp_sim: tuple[SimulatedAutopilot, Client]) -> None:
     sim, client = udp_sim
     sim.inject(FaultKind.SILENCE)
-    time.sleep(0.05)
+    time.sleep(0.05)  # frames already on the way; then nothing arrives for 1 s
     client.drain()
     assert by_type(client.collect(1.0), sim.sysid) == Counter()
     assert client.command_unanswered(sim.sysid, MAV_CMD_COMPONENT_ARM_DISARM, wait=0.5)
@@ -300,7 +301,7 @@ def test_fault_silence(udp_sim: tuple[SimulatedAutopilot, Client]) -> None:
 def test_fault_freeze_repeats_values(udp_sim: tuple[SimulatedAutopilot, Client]) -> None:
     sim, client = udp_sim
     sim.inject(FaultKind.FREEZE)
-    time.sleep(0.05)
+    time.sleep(0.05)  # frames sent before the freeze are drained, not counted
     client.drain()
     received = client.collect(1.0)
     attitudes = [m for _, m in received if m.get_type() == "ATTITUDE"]
@@ -379,7 +380,7 @@ def test_fault_jitter_delays_frames_in_order(udp_sim: tuple[SimulatedAutopilot, 
 
     base = lateness(1.0)
     sim.inject(FaultKind.JITTER, 200)
-    time.sleep(0.3)
+    time.sleep(0.3)  # frames sent before the fault drain first; a measurement window, not a wait
     jittery = lateness(1.5)
     assert max(jittery) - min(jittery) > 0.1 > max(base) - min(base)
     in_order = [m.time_boot_ms for _, m in client.collect(0.5) if m.get_type() == "ATTITUDE"]
@@ -513,11 +514,8 @@ def test_mavsdk_connects_reads_telemetry_arms_takes_off_and_lands(stack: Stack) 
         assert system is not None and system.get_system_id() == 1
         telemetry, action = Telemetry(system), Action(system)
 
-        def eventually(check: Callable[[], bool], timeout: float = 10.0) -> None:
-            deadline = time.monotonic() + timeout
-            while not check():
-                assert time.monotonic() < deadline, "MAVSDK never saw the expected state"
-                time.sleep(0.1)
+        def eventually(check: Callable[[], bool]) -> None:
+            wait_until("MAVSDK to see the expected state", check, 10.0, 0.1)
 
         # MAVSDK reads "armable" from SYS_STATUS PREARM_CHECK: false while the sim boots.
         eventually(lambda: telemetry.health().is_armable)
@@ -550,9 +548,11 @@ def test_mavsdk_over_the_serial_pseudo_terminal() -> None:
             system = mavsdk.first_autopilot(10.0)
             assert system is not None and system.get_system_id() == 2
             telemetry = Telemetry(system)
-            deadline = time.monotonic() + 10
-            while math.isnan(telemetry.position().latitude_deg):
-                assert time.monotonic() < deadline
-                time.sleep(0.1)
+            wait_until(
+                "a position over the serial link",
+                lambda: not math.isnan(telemetry.position().latitude_deg),
+                10.0,
+                0.1,
+            )
         finally:
             mavsdk.destroy()

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import json
 import time
-import uuid
 from collections.abc import Callable, Iterator
+from datetime import UTC, datetime, timedelta
 from typing import Any
 
 import pytest
@@ -42,38 +42,17 @@ from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import KWOK_NODE_ANNOTATION
 from roost_localcluster.nodes import fake_node
 from tests.support.apiwrites import VEHICLE_WRITE_TARGETS, write_requests
-from tests.support.operator import OperatorProcess, wait_for
+from tests.support.operator import OperatorProcess
+from tests.support.waiting import unique, wait_until
 
 pytestmark = pytest.mark.cluster
 
 NAMESPACE = "roost-it-vehicles"
 RESYNC_S = 2
+OPERATOR_NAMESPACE = NAMESPACE
+OPERATOR_ENV = {"ROOST_RESYNC_SECONDS": str(RESYNC_S)}
 WAIT_S = 60.0
 AddNode = Callable[..., dict[str, Any]]
-
-
-def unique(prefix: str) -> str:
-    return f"{prefix}-{uuid.uuid4().hex[:6]}"
-
-
-def wait_until(what: str, check: Callable[[], Any], timeout_s: float = WAIT_S) -> Any:
-    """Poll ``check`` until it returns something truthy; return that."""
-    return wait_for(what, check, timeout_s)
-
-
-@pytest.fixture(scope="module")
-def operator(
-    roost_crds: Cluster, tmp_path_factory: pytest.TempPathFactory
-) -> Iterator[OperatorProcess]:
-    proc = OperatorProcess(
-        roost_crds,
-        tmp_path_factory.mktemp("operator") / "operator.log",
-        namespace=NAMESPACE,
-        environment={"ROOST_RESYNC_SECONDS": str(RESYNC_S)},
-    )
-    proc.start()
-    yield proc
-    proc.stop()
 
 
 @pytest.fixture
@@ -298,7 +277,7 @@ def test_an_idle_vehicle_costs_no_api_writes(
     fake_nodes(node)
     name = vehicles(unique("idle"), node, simulation={"stack": "ardupilot"})
     wait_ready(kube, name)
-    time.sleep(RESYNC_S * 2)  # let the rollout's last status updates settle
+    time.sleep(RESYNC_S * 2)  # a settled baseline: the rollout's last status updates land
 
     def versions() -> list[str]:
         objs = [kube.get(VEHICLES, name), kube.get(CONFIGMAPS, f"roost-vehicle-{name}", NAMESPACE)]
@@ -311,7 +290,7 @@ def test_an_idle_vehicle_costs_no_api_writes(
 
     writes_before = write_requests(roost_crds, VEHICLE_WRITE_TARGETS)
     versions_before, node_before = versions(), node_state()
-    time.sleep(RESYNC_S * 4)  # four resyncs, plus node heartbeats and Deployment events
+    time.sleep(RESYNC_S * 4)  # nothing happens over four resyncs, node heartbeats, Deployments
     assert write_requests(roost_crds, VEHICLE_WRITE_TARGETS) == writes_before
     assert versions() == versions_before
     assert node_state() == node_before
@@ -547,7 +526,12 @@ def test_two_vehicles_on_one_node_the_older_keeps_it_without_a_fight(
     fake_nodes(node)
     first = vehicles(unique("first"), node)
     wait_ready(kube, first)
-    time.sleep(1.1)  # creationTimestamps have one-second resolution
+    stamp = (kube.get(VEHICLES, first) or {})["metadata"]["creationTimestamp"]
+    created = datetime.fromisoformat(stamp.replace("Z", "+00:00"))
+    wait_until(  # creationTimestamps have one-second resolution: the second must be later
+        "the clock to pass the first Vehicle's creation second",
+        lambda: datetime.now(UTC) >= created + timedelta(seconds=1),
+    )
     second = vehicles(unique("second"), node)
 
     cond = wait_condition(kube, second, "NodeBound", "False", "NodeClaimedByOtherVehicle")
@@ -556,7 +540,7 @@ def test_two_vehicles_on_one_node_the_older_keeps_it_without_a_fight(
     assert node_labels(kube, node)[LABEL_VEHICLE] == first
 
     node_writes = write_requests(roost_crds, [("nodes", "")])
-    time.sleep(RESYNC_S * 3)
+    time.sleep(RESYNC_S * 3)  # nothing happens over three resyncs: no fight over the node
     assert write_requests(roost_crds, [("nodes", "")]) == node_writes, "the two vehicles fight"
     assert node_labels(kube, node)[LABEL_VEHICLE] == first
     assert condition(kube, first, "Ready")["status"] == "True"  # type: ignore[index]
@@ -648,8 +632,8 @@ def test_a_write_the_api_server_refuses_is_reported_once_and_deletion_still_fini
     """A node name that fits the Vehicle but not the RedundantAutopilot's node label:
     the operator reports it in NodeBound with what to change (no retry loop), and both
     broken objects can be deleted."""
-    name = f"vlong-{uuid.uuid4().hex[:6]}"
-    node = f"{'n' * 64}-{uuid.uuid4().hex[:6]}"  # a valid node name, too long for a label
+    name = unique("vlong")
+    node = unique("n" * 64)  # a valid node name, too long for a label value
     rap = f"{name}-autopilots"
     roost_crds.kubectl("apply", "-f", "-", input_text=json.dumps(redundant_autopilot(rap, name)))
     vehicles(name, node)

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -70,9 +69,7 @@ class AgentProcess:
 
     def crash(self) -> None:
         """SIGKILL, like a companion computer losing power."""
-        assert self.process.pid is not None
-        os.killpg(self.process.pid, signal.SIGKILL)
-        self.process.stop()
+        self.process.crash()
 
     def stop(self) -> None:
         """SIGTERM, then SIGKILL after a grace period."""

@@ -16,6 +16,7 @@ import re
 from collections import Counter
 from collections.abc import Iterable
 
+from roost_kube.resources import CONFIGMAPS, DEPLOYMENTS, EVENTS, NODES, VEHICLES
 from roost_localcluster.cluster import Cluster
 
 WRITE_VERBS = frozenset({"POST", "PUT", "PATCH", "APPLY", "DELETE", "DELETECOLLECTION"})
@@ -30,12 +31,12 @@ Target = tuple[str, str]
 # idle: kwok's node heartbeats go to nodes/status, leader election to leases, and the
 # Deployment controller writes deployments/status only when a rollout moves.
 VEHICLE_WRITE_TARGETS: tuple[Target, ...] = (
-    ("vehicles", ""),
-    ("vehicles", "status"),
-    ("nodes", ""),
-    ("configmaps", ""),
-    ("deployments", ""),
-    ("events", ""),
+    (VEHICLES.plural, ""),
+    (VEHICLES.plural, "status"),
+    (NODES.plural, ""),
+    (CONFIGMAPS.plural, ""),
+    (DEPLOYMENTS.plural, ""),
+    (EVENTS.plural, ""),
 )
 
 

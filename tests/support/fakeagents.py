@@ -19,17 +19,14 @@ from __future__ import annotations
 import threading
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
-from typing import Any, cast
-
-from kubernetes import client
-from kubernetes.client.exceptions import ApiException
+from typing import Any
 
 from roost_api.autopilot import CommandAction
 from roost_api.meta import GROUP, VERSION, Condition, set_condition
+from roost_kube.client import Kube
+from roost_kube.errors import NotFoundError
+from roost_kube.resources import REDUNDANT_AUTOPILOTS
 from roost_localcluster.cluster import Cluster
-
-PLURAL = "redundantautopilots"
-NOT_FOUND = 404
 
 
 def rfc3339(at: datetime) -> str:
@@ -143,7 +140,7 @@ class FakeAgents:
     def __init__(self, cluster: Cluster, period_s: float = 1.0) -> None:
         self.period_s = period_s
         self._api = cluster.api_client()
-        self._objects = client.CustomObjectsApi(self._api)
+        self._kube = Kube(self._api, "roost-agent", timeout=(5.0, 30.0))
         self._states: dict[str, AgentState] = {}
         self._lock = threading.Lock()
         self._stopping = threading.Event()
@@ -191,17 +188,18 @@ class FakeAgents:
             if state is None:
                 return
             try:
-                body = cast(
-                    dict[str, Any],
-                    self._objects.get_cluster_custom_object(GROUP, VERSION, PLURAL, autopilots),
-                )
+                body = self._kube.get(REDUNDANT_AUTOPILOTS, autopilots)
+                if body is None:
+                    return
                 _execute(state, (body.get("spec") or {}).get("command"))
-                self._objects.patch_cluster_custom_object_status(
-                    GROUP, VERSION, PLURAL, autopilots, {"status": agent_status(state)}
+                self._kube.merge_patch(
+                    REDUNDANT_AUTOPILOTS,
+                    autopilots,
+                    {"status": agent_status(state)},
+                    subresource="status",
                 )
-            except ApiException as error:
-                if error.status != NOT_FOUND:
-                    raise
+            except NotFoundError:
+                return  # deleted between the read and the write
 
     def _run(self) -> None:
         while not self._stopping.wait(self.period_s):

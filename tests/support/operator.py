@@ -1,4 +1,4 @@
-"""``roost-operator`` as a child process against a harness cluster, for tests and benchmarks.
+"""``roost-operator`` as a child process against a local cluster, for tests and benchmarks.
 
 The operator runs exactly as a user would run it (``roost-operator --standalone``, the
 console script of the editable install), with its kopf liveness endpoint on a free
@@ -10,34 +10,16 @@ test module can give its operator a namespace of its own.
 from __future__ import annotations
 
 import os
-import signal
-import time
 import urllib.request
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
-from typing import TypeVar
+from types import TracebackType
 
 from roost_localcluster.binaries import REPO_ROOT
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import free_port
 from roost_localcluster.processes import ManagedProcess
-
-T = TypeVar("T")
-
-
-def wait_for(what: str, check: Callable[[], T | None], timeout_s: float, poll_s: float = 0.3) -> T:
-    """Poll ``check`` until it returns something truthy and return it.
-
-    Raises :class:`TimeoutError` naming ``what`` when ``timeout_s`` passes first.
-    """
-    deadline = time.monotonic() + timeout_s
-    while True:
-        result = check()
-        if result:
-            return result
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"timed out after {timeout_s:.0f} s waiting for {what}")
-        time.sleep(poll_s)
+from tests.support.waiting import wait_until
 
 
 class OperatorProcess:
@@ -84,14 +66,24 @@ class OperatorProcess:
     def start(self, timeout_s: float = 60.0) -> None:
         """Launch and wait until the liveness endpoint answers."""
         self.process.launch(self.env, die_with_parent=True)
-        wait_for("the operator's liveness endpoint", self.healthy, timeout_s)
+        wait_until("the operator's liveness endpoint", self.healthy, timeout_s)
 
     def crash(self) -> None:
         """SIGKILL: no shutdown handlers, no finalisation, like a node losing power."""
-        assert self.process.pid is not None
-        os.killpg(self.process.pid, signal.SIGKILL)
-        self.process.stop()
+        self.process.crash()
 
     def stop(self) -> None:
         """SIGTERM, then SIGKILL after a grace period."""
         self.process.stop()
+
+    def __enter__(self) -> OperatorProcess:
+        self.start()
+        return self
+
+    def __exit__(
+        self,
+        kind: type[BaseException] | None,
+        error: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        self.stop()

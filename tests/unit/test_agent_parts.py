@@ -8,7 +8,6 @@ import os
 import socket
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
@@ -25,6 +24,7 @@ from roost_api.autopilot import CommandResult, RedundantAutopilotSpec, Threshold
 from roost_api.meta import Stack
 from roost_mavlink import AGENT_COMPONENT_ID
 from roost_sim import free_udp_port
+from tests.support.waiting import wait_until
 
 SPEC = RedundantAutopilotSpec.model_validate(
     {
@@ -200,18 +200,21 @@ def test_udp_listener_replies_only_to_the_confirmed_autopilot_address() -> None:
     try:
         spoofer.send(b"spoof")
         autopilot.send(b"real")
-        time.sleep(0.05)
-        senders = []
-        for _ in range(2):
+        senders: list[tuple[bytes, object]] = []
+
+        def both_arrived() -> bool:
             data, sender = listener.receive()
-            senders.append((data, sender))
+            if data:
+                senders.append((data, sender))
+            return len(senders) == 2
+
+        wait_until("both datagrams", both_arrived, 5.0, 0.01)
         real = next(s for d, s in senders if d == b"real")
         listener.send(b"dropped: no confirmed peer yet")
         assert real is not None
         listener.confirm_peer(real)
         listener.send(b"reply")
-        time.sleep(0.05)
-        assert autopilot.receive()[0] == b"reply"
+        assert wait_until("the reply", lambda: autopilot.receive()[0], 5.0, 0.01) == b"reply"
         assert spoofer.receive()[0] == b""
     finally:
         for t in (listener, autopilot, spoofer):
@@ -246,10 +249,12 @@ def test_tcp_link_reads_only_its_autopilot_answers_as_191_and_reconnects() -> No
         foreign = common.MAVLink(None, srcSystem=99, srcComponent=1)
         for mav in (autopilot, foreign):
             conn.sendall(mav.heartbeat_encode(2, 12, 129, 0x03040000, 4).pack(mav))
-        deadline = time.monotonic() + 5
-        while link.counters.accepted < 1 or link.counters.foreign < 1:
-            assert time.monotonic() < deadline, link.counters
-            time.sleep(0.01)
+        wait_until(
+            "one accepted and one foreign frame",
+            lambda: link.counters.accepted >= 1 and link.counters.foreign >= 1,
+            5.0,
+            0.01,
+        )
         assert link.heartbeat() is not None and link.heartbeat()[0] == 0x03040000  # type: ignore[index]
         assert link.send_heartbeat()
         parser = common.MAVLink(None)

@@ -8,23 +8,18 @@ from datetime import UTC, datetime, timedelta
 from roost_agent.agent import EventKind
 from roost_agent.publisher import POSTED_KINDS, carry_transitions, merge_patch_body
 from roost_api.autopilot import AutopilotHealth, FailoverRecord, RedundantAutopilotStatus
-from roost_api.meta import Condition, HealthLevel
+from roost_api.meta import HealthLevel
+from tests.support.conditions import cond
 
 T0 = datetime(2026, 5, 1, 12, 0, 0, tzinfo=UTC)
 LATER = T0 + timedelta(minutes=5)
 
 
-def cond(type_: str, status: str, at: datetime, reason: str = "R") -> Condition:
-    return Condition.model_validate(
-        {"type": type_, "status": status, "reason": reason, "lastTransitionTime": at}
-    )
-
-
 def test_a_restarted_agent_keeps_the_transition_times_already_in_the_api() -> None:
-    written = [cond("Ready", "True", T0), cond("Redundant", "True", T0), cond("Old", "True", T0)]
+    written = [cond("Ready", at=T0), cond("Redundant", at=T0), cond("Old", at=T0)]
     current = [
-        cond("Ready", "True", LATER, reason="Ready"),  # unchanged status: keeps T0
-        cond("Redundant", "False", LATER, reason="NoHealthyStandby"),  # changed: LATER
+        cond("Ready", "True", "Ready", at=LATER),  # unchanged status: keeps T0
+        cond("Redundant", "False", "NoHealthyStandby", at=LATER),  # changed: LATER
     ]
     merged = {c.type: c for c in carry_transitions(written, current)}
     assert set(merged) == {"Ready", "Redundant"}  # types the agent no longer sets go

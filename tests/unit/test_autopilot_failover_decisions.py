@@ -8,6 +8,7 @@ restarts, and the whole per-vehicle plan (re-point mavros, Events).
 from __future__ import annotations
 
 from datetime import UTC, datetime, timedelta
+from functools import partial
 from typing import Any
 
 import pytest
@@ -18,7 +19,6 @@ from roost_api.autopilot import (
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
 )
-from roost_api.meta import Condition
 from roost_api.vehicle import FailoverAction, VehicleFailover, VehicleSpec, VehicleStatus
 from roost_api.wellknown import ANNOTATION_CLEAR_FAILOVER_LATCH, ANNOTATION_PAUSE_FAILOVER_ACTIONS
 from roost_operator.autopilots.conditions import (
@@ -39,6 +39,7 @@ from roost_operator.autopilots.plan import FailoverPlan, mavros_follows, plan
 from roost_operator.vehicles.config import config_hash
 from roost_operator.vehicles.controller import ActionLedger
 from roost_operator.vehicles.desired import ready_condition
+from tests.support.conditions import cond as support_cond
 
 NOW = datetime(2026, 5, 1, 12, 0, 0, tzinfo=UTC)
 NODE = "drone-1"
@@ -46,16 +47,7 @@ URL1 = "udp://127.0.0.1:14541"
 URL2 = "udp://127.0.0.1:14542"
 
 
-def cond(type_: str, status: str, reason: str = "R", message: str = "m") -> Condition:
-    return Condition.model_validate(
-        {
-            "type": type_,
-            "status": status,
-            "reason": reason,
-            "message": message,
-            "lastTransitionTime": NOW,
-        }
-    )
+cond = partial(support_cond, at=NOW)
 
 
 def ra_spec(**policy: Any) -> RedundantAutopilotSpec:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from datetime import UTC, datetime
 
 import pytest
+from pydantic import ValidationError
 
 from roost_api.autopilot import CommandAction, CommandResult
 from roost_api.commands import CommandOutcome, command_outcome, new_command
@@ -37,7 +38,6 @@ def test_a_command_still_in_spec_and_not_reported_is_pending() -> None:
         ("Executed", CommandOutcome.EXECUTED),
         ("Rejected", CommandOutcome.REJECTED),
         ("Expired", CommandOutcome.EXPIRED),
-        ("SomethingNew", CommandOutcome.REJECTED),
     ],
 )
 def test_the_agents_result_for_this_id_decides(result: str, outcome: CommandOutcome) -> None:
@@ -51,3 +51,9 @@ def test_a_command_replaced_before_the_agent_saw_it_is_superseded() -> None:
     other = new_command(CommandAction.SWITCH, target="fc2", issued_at=T0)
     assert command_outcome(cmd, other, None) is CommandOutcome.SUPERSEDED
     assert command_outcome(cmd, None, _result(other.id, "Executed")) is CommandOutcome.SUPERSEDED
+
+
+def test_a_result_outside_the_contract_is_refused() -> None:
+    """The value set is an enum in the API (and in the CRD): no agent can report another."""
+    with pytest.raises(ValidationError, match="Executed"):
+        _result("e-1", "SomethingNew")

@@ -13,6 +13,8 @@ import json
 import os
 import socket
 import ssl
+import subprocess
+import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -186,3 +188,24 @@ def test_a_certificate_failure_is_told_apart_from_a_dead_server(
     refused = pki.write_kubeconfig(tmp_path / "refused", server_pki, dead, pki.ADMIN)
     with pytest.raises(CliError, match="Is the cluster running"):
         Fleet(Target(refused, "--kubeconfig")).vehicles()
+
+
+@pytest.mark.parametrize("kind", ["list", "directory", "merged"])
+def test_roost_prints_one_line_and_exits_1(tmp_path: Path, kind: str) -> None:
+    """The real ``roost`` command, in a narrow terminal: one line on stderr, no traceback."""
+    bad = tmp_path / "bad"
+    bad.write_text("- not\n- a mapping\n")
+    args, env = [], {**os.environ, "COLUMNS": "40"}
+    if kind == "list":
+        args = ["--kubeconfig", str(bad)]
+    elif kind == "directory":
+        args = ["--kubeconfig", str(tmp_path)]
+    else:
+        env["KUBECONFIG"] = os.pathsep.join([str(tmp_path / "gone"), str(bad)])
+    roost = Path(sys.executable).parent / "roost"
+    result = subprocess.run(
+        [str(roost), *args, "status"], capture_output=True, text=True, env=env, check=False
+    )
+    assert result.returncode == 1
+    assert result.stderr.count("\n") == 1 and "Traceback" not in result.stderr
+    assert result.stderr.startswith("error: kubeconfig (")

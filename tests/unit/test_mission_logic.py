@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 from dataclasses import replace
 from datetime import UTC, datetime, timedelta
+from functools import partial
 from typing import Any
 
 import pytest
@@ -21,7 +22,7 @@ from roost_api.autopilot import (
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
 )
-from roost_api.meta import Condition, ObjectReference, condition_is_true, find_condition
+from roost_api.meta import ObjectReference, condition_is_true, find_condition
 from roost_api.mission import (
     LabelSelector,
     MissionPhase,
@@ -74,6 +75,7 @@ from roost_operator.missions.workloads import (
     onboard_job_name,
     template_probes,
 )
+from tests.support.conditions import cond as support_cond
 from tests.support.fakeagents import redundant_autopilot
 
 T0 = datetime(2026, 3, 1, 12, 0, tzinfo=UTC)
@@ -84,10 +86,7 @@ OTHER = ObjectReference(namespace="default", name="rival")
 # -- builders ------------------------------------------------------------------------------
 
 
-def cond(type_: str, status: str = "True", reason: str = "Because", at: datetime = T0) -> Condition:
-    return Condition.model_validate(
-        {"type": type_, "status": status, "reason": reason, "lastTransitionTime": at}
-    )
+cond = partial(support_cond, at=T0)
 
 
 def vehicle(
@@ -163,7 +162,7 @@ def autopilots(
             "latencyMs": 20.0,
             "trigger": "Automatic",
         }
-        status["conditions"].append(cond("FailedOver", "True", "Switched", failover_at).to_api())
+        status["conditions"].append(cond("FailedOver", "True", "Switched", at=failover_at).to_api())
     if last_command is not None:
         status["lastCommand"] = last_command.to_api()
     spec = redundant_autopilot(vehicle_name)["spec"]

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 from datetime import UTC, datetime
+from functools import partial
 from typing import Any
 
 import pytest
 
 from roost_api.autopilot import RedundantAutopilotSpec
-from roost_api.meta import Condition, ConditionStatus, Stack, find_condition, set_condition
+from roost_api.meta import Stack, find_condition, set_condition
 from roost_api.vehicle import VehicleSpec, VehicleStatus
 from roost_api.wellknown import ANNOTATION_CONFIG_HASH, LABEL_VEHICLE, TAINT_VEHICLE
 from roost_operator.vehicles.config import vehicle_config
@@ -28,6 +29,7 @@ from roost_operator.vehicles.desired import (
     vehicle_conditions,
 )
 from roost_operator.vehicles.status import status_patch
+from tests.support.conditions import cond as support_cond
 
 
 def spec(**overrides: object) -> VehicleSpec:
@@ -257,14 +259,7 @@ def test_components_condition_names_each_component_that_is_not_ready() -> None:
 AT = datetime(2024, 1, 1, tzinfo=UTC)
 
 
-def cond(type_: str, status: ConditionStatus, reason: str = "R", message: str = "m") -> Condition:
-    return Condition(
-        type=type_,
-        status=status,
-        reason=reason,
-        message=message,
-        last_transition_time=AT,
-    )
+cond = partial(support_cond, at=AT)
 
 
 def test_ready_reports_the_first_false_detail_before_unknowns() -> None:

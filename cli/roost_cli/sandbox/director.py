@@ -27,9 +27,7 @@ from pydantic import ValidationError
 from rich.console import Group, RenderableType
 from rich.text import Text
 
-from roost_agent.arbiter import SafetyPlan
-from roost_agent.safety import Phase as SafetyPhase
-from roost_api.autopilot import FailoverRecord, RedundantAutopilotStatus
+from roost_api.autopilot import FailoverRecord, RedundantAutopilotStatus, SafetyRoutinePhase
 from roost_api.meta import now
 from roost_api.mission import MissionPhase, MissionStatus
 from roost_cli.cluster import Fleet
@@ -41,17 +39,6 @@ TAKEOFF_WAIT_S = 90.0
 AGENT_WAIT_S = 60.0
 FAILOVER_WAIT_S = 60.0
 SAFETY_ROUTINE_WAIT_S = 60.0
-SAFETY_ROUTINE_DONE = frozenset(
-    phase.value
-    for phase in (
-        SafetyPhase.LANDED,
-        SafetyPhase.HELD,
-        SafetyPhase.FAILED,
-        SafetyPhase.DISARMED,
-    )
-)
-"""The agent's safety-routine phases after which it no longer changes. Not Cancelled: a
-routine is cancelled when another replaces it (a mission's abort asking for one again)."""
 POLL_S = 0.5
 DEFAULT_FAULT = "silence"
 FAULT_STORY = {
@@ -119,7 +106,10 @@ def active_autopilot(obj: Mapping[str, Any]) -> str | None:
 
 def routine_done(phase: str | None) -> bool:
     """True once the safety routine has finished or was skipped (a pilot in manual mode)."""
-    return phase in SAFETY_ROUTINE_DONE or phase == SafetyPlan.SKIPPED_PILOT.value
+    return phase in _FINAL_PHASES
+
+
+_FINAL_PHASES = frozenset(p.value for p in SafetyRoutinePhase if p.final)
 
 
 def mission_phase(obj: Mapping[str, Any]) -> str:

@@ -37,10 +37,9 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 from datetime import datetime, timedelta
-from enum import StrEnum
 
 from roost_api.autopilot import RedundantAutopilotStatus
-from roost_api.vehicle import VehicleFailover
+from roost_api.vehicle import FailoverGuard, VehicleFailover
 from roost_api.wellknown import ANNOTATION_CLEAR_FAILOVER_LATCH, ANNOTATION_PAUSE_FAILOVER_ACTIONS
 
 MAX_RECENT = 64
@@ -74,13 +73,8 @@ class FleetGuards:
     """Fleet-wide pause of every cluster-side action (``ROOST_FAILOVER_PAUSED``)."""
 
 
-class Verdict(StrEnum):
-    """Whether a cluster-side action may start now, and if not, which guard holds it."""
-
-    ALLOWED = "Allowed"
-    PAUSED = "Paused"
-    LATCHED = "Latched"
-    CONCURRENCY_LIMIT = "ConcurrencyLimit"
+Verdict = FailoverGuard
+"""Whether a cluster-side action may start now, and if not, which guard holds it."""
 
 
 def vehicle_paused(annotations: Mapping[str, str]) -> bool:

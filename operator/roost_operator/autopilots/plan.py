@@ -40,7 +40,13 @@ from roost_api.autopilot import (
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
 )
-from roost_api.vehicle import FailoverAction, VehicleFailover, VehicleSpec, VehicleStatus
+from roost_api.vehicle import (
+    FailoverAction,
+    FailoverActionKind,
+    VehicleFailover,
+    VehicleSpec,
+    VehicleStatus,
+)
 from roost_api.wellknown import ANNOTATION_CLEAR_FAILOVER_LATCH, ANNOTATION_CONFIG_HASH
 from roost_operator.autopilots.conditions import (
     DEFAULT_AGENT_STALE_AFTER,
@@ -58,7 +64,7 @@ from roost_operator.autopilots.guards import (
 from roost_operator.vehicles.config import config_hash, config_values_of
 from roost_operator.vehicles.desired import autopilots_of, deployment_state
 
-REPOINT_MAVROS = "RepointMavros"
+REPOINT_MAVROS = FailoverActionKind.REPOINT_MAVROS
 
 
 @dataclass(frozen=True)

@@ -630,7 +630,7 @@ def _hold(
     held_before: str | None,
 ) -> None:
     """Record that a guard holds the vehicle's failover consequence; an Event when new."""
-    vehicle.failover_action_held = verdict.value
+    vehicle.failover_action_held = verdict
     if held_before != verdict.value:
         policy = OnFailover(obs.spec.on_failover)
         plan.events.append(

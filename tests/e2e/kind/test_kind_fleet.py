@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import json
 import os
-import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +19,7 @@ import yaml
 
 from roost_api.wellknown import LABEL_VEHICLE, TAINT_VEHICLE
 from roost_localcluster.cluster import Cluster
+from tests.support.waiting import wait_until
 
 KUBECONFIG = os.environ.get("ROOST_KIND_KUBECONFIG")
 NAMESPACE = os.environ.get("ROOST_KIND_NAMESPACE", "roost-system")
@@ -32,6 +31,7 @@ FLEET = [
 AGENT_SELECTOR = "app.kubernetes.io/component=agent,app.kubernetes.io/instance=roost"
 # SITL images are pulled on first use: allow minutes, not seconds.
 SLOW_S = 600.0
+POLL_S = 2.0
 
 pytestmark = pytest.mark.skipif(
     not KUBECONFIG, reason="KinD end-to-end: run `make e2e-kind` (needs a container engine)"
@@ -42,14 +42,6 @@ pytestmark = pytest.mark.skipif(
 def kind() -> Cluster:
     assert KUBECONFIG is not None
     return Cluster(Path(KUBECONFIG))
-
-
-def _wait_for(what: str, check: Callable[[], bool], timeout_s: float = SLOW_S) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not check():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s:.0f}s waiting for {what}")
-        time.sleep(2.0)
 
 
 def _get(kind: Cluster, *args: str) -> dict[str, Any]:
@@ -85,12 +77,14 @@ def test_operator_labels_and_taints_every_vehicle_worker(kind: Cluster) -> None:
                 t["key"] == TAINT_VEHICLE for t in taints
             )
 
-        _wait_for(f"node {node} labelled and tainted for its vehicle", labelled, 120)
+        wait_until(f"node {node} labelled and tainted for its vehicle", labelled, 120, POLL_S)
 
 
 def test_agent_runs_on_every_vehicle_worker_and_nowhere_else(kind: Cluster) -> None:
     workers = {vehicle["spec"]["nodeName"] for vehicle in FLEET}
-    _wait_for("agents on all vehicle workers", lambda: workers <= set(_agent_pods(kind)))
+    wait_until(
+        "agents on all vehicle workers", lambda: workers <= set(_agent_pods(kind)), SLOW_S, POLL_S
+    )
     assert set(_agent_pods(kind)) == workers
 
 
@@ -103,7 +97,7 @@ def test_agents_report_every_px4_sitl_autopilot_healthy(kind: Cluster) -> None:
             levels = [a.get("level") for a in status.get("autopilots", [])]
             return len(levels) == 2 and set(levels) == {"OK"}
 
-        _wait_for(f"{name}: both PX4 SITL autopilots OK", healthy)
+        wait_until(f"{name}: both PX4 SITL autopilots OK", healthy, SLOW_S, POLL_S)
         status = _get(kind, "redundantautopilot", name)["status"]
         assert status["activeAutopilot"] == "px4-a"
 
