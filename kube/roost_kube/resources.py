@@ -63,6 +63,7 @@ JOBS: Final = Resource("batch", "v1", "jobs", "Job", namespaced=True)
 VEHICLES: Final = Resource.of(VEHICLE)
 REDUNDANT_AUTOPILOTS: Final = Resource.of(REDUNDANT_AUTOPILOT)
 MISSIONS: Final = Resource.of(MISSION)
+LEASES: Final = Resource("coordination.k8s.io", "v1", "leases", "Lease", namespaced=True)
 
 ALL: Final = (
     NODES,
@@ -75,6 +76,7 @@ ALL: Final = (
     VEHICLES,
     REDUNDANT_AUTOPILOTS,
     MISSIONS,
+    LEASES,
 )
 _BY_KIND: Final = {(r.api_version, r.kind): r for r in ALL}
 

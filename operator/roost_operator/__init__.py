@@ -1,31 +1,30 @@
 """Roost's Kubernetes operator (kopf): Vehicles, Missions and redundant autopilots.
 
-Layout — thin kopf handlers over pure functions, one place per concept:
+Layout — one controller per resource, each the only writer of its status (the node
+agent is the only writer of RedundantAutopilot status); thin kopf handlers over pure
+decisions:
 
 ``main``
-    kopf settings (finalizer/annotation prefixes under roost.dev, peering, posting
-    level, timeouts), the startup hook, ``main()`` for the ``roost-operator`` script.
-    Importing it registers every handler module listed in ``HANDLER_MODULES``.
+    kopf settings, the registry every controller registers its handlers in, ``main()``
+    for the ``roost-operator`` script. Nothing registers on import.
 ``settings``
-    Environment-driven settings (operator namespace, resync period, peering name).
+    Every setting, documented per field, built once from the environment and flags and
+    passed to kopf in the memo.
 ``runtime``
-    The :class:`~roost_operator.runtime.Runtime` (API client + settings) that startup
-    stores in kopf's ``memo``; handlers get it with ``runtime(memo)``.
-``kube``
-    The only Kubernetes API access layer: get/list_objects/apply/merge_patch/delete/post_event
-    on plain dicts. ``Kube.apply`` is server-side apply (field manager
-    ``roost-operator``) that first compares and writes only on change; every write is
-    counted. Resource kinds are declared there.
+    What startup adds to the memo: the API client (:mod:`roost_kube`), the settings and
+    the controllers with per-process state.
+``edge``
+    The Kubernetes layer's temporary/permanent errors mapped to kopf's, naming the object.
+``claims``
+    A Mission's claim on a Vehicle: one Lease per claimed vehicle (pure).
 ``vehicles/``
-    ``config``: a vehicle's ``vehicle.config`` values, its ConfigMap, and
-    ``mount_vehicle_config`` — the function every Roost pod on a vehicle goes through
-    (component workloads here, onboard Mission pods too).
-    ``placement``: node labels, the vehicle taint, the managed-labels annotation
-    (NFD-style bookkeeping), node claims, and ``place_on_vehicle`` for pod specs.
-    ``desired``: Vehicle (+ node, + RedundantAutopilot) → desired ConfigMap, component
-    Deployments and SITL Deployments as plain dicts; status conditions and Ready.
-    ``handlers``: the kopf handlers and the one level-based ``reconcile`` they call.
-
-Further handler packages (``missions/``, ``autopilots/``) follow the same split:
-``desired``/pure modules plus a thin ``handlers`` module added to ``HANDLER_MODULES``.
+    The Vehicle controller: desired state (``config``, ``placement``, ``desired``), the
+    whole decision (``plan``, failover side included), observe → plan → apply → status
+    (``controller``), kopf triggers (``handlers``).
+``autopilots/``
+    Pure failover decisions the Vehicle controller applies: conditions, fleet guards,
+    the failover plan (which autopilot the workloads follow).
+``missions/``
+    The Mission controller: selection, preflight, workloads, the state machine (pure),
+    ``cluster`` (reads, claims, writes) and ``handlers``.
 """

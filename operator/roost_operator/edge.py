@@ -16,7 +16,8 @@ from __future__ import annotations
 
 import functools
 import inspect
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable, Iterator, Mapping
+from contextlib import contextmanager
 from typing import Any, Final, TypeVar, cast
 
 import kopf
@@ -51,6 +52,24 @@ def kopf_error(error: ApiError, what: str) -> kopf.TemporaryError | kopf.Permane
     if isinstance(error, ApiUnavailableError) or error.temporary:
         return kopf.TemporaryError(message, delay=UNAVAILABLE_DELAY_S)
     return kopf.PermanentError(message)
+
+
+def describe(kind: str, name: str, namespace: str | None = None) -> str:
+    """``Kind namespace/name`` (or ``Kind name`` for a cluster-scoped object)."""
+    return f"{kind} {namespace}/{name}" if namespace else f"{kind} {name}"
+
+
+@contextmanager
+def at_the_edge(kind: str, name: str, *, namespace: str | None = None) -> Iterator[None]:
+    """Map API errors of the block to kopf's, naming the object the work was about.
+
+    For handlers that work on another object than their own (a Node event reconciling a
+    Vehicle): the message must name the object that failed, not the one that triggered.
+    """
+    try:
+        yield
+    except ApiError as error:
+        raise kopf_error(error, describe(kind, name, namespace)) from error
 
 
 def handler_edge(fn: F) -> F:

@@ -6,7 +6,7 @@ Settings are explicit rather than kopf's defaults, following operator practice:
   ``kopf.zalando.org`` into users' objects); progress and the last handled
   configuration are kept in annotations only, never in ``status`` (the Vehicle status
   schema would prune them, and status is ours);
-* a named peering (``ROOST_PEERING``, default ``roost``) so two Roost deployments never
+* a named peering (``Settings.peering``, default ``roost``) so two Roost deployments never
   pause each other, and peering is optional: without the peering CRD the operator runs
   standalone (the chart runs one replica with ``strategy: Recreate``);
 * posting level WARNING: kopf would otherwise post a Kubernetes Event for every
@@ -17,14 +17,18 @@ Settings are explicit rather than kopf's defaults, following operator practice:
 * a short ``background.cancellation_polling``: a deleted Vehicle whose (sync) resync
   timer happens to be running would otherwise keep its finalizer for a minute.
 
-Importing :mod:`roost_operator.vehicles.handlers` (and the other handler modules)
-registers their handlers with kopf.
+Nothing is registered on import: :func:`main` reads the settings (environment, then
+flags) once, builds a kopf registry with every controller's handlers registered with
+those settings (:func:`build_registry`), and passes the settings to kopf in the memo.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import os
+from collections.abc import Mapping
+from dataclasses import replace
 from typing import Any
 
 import kopf
@@ -32,14 +36,14 @@ import kopf
 from roost_api.wellknown import FINALIZER, PREFIX
 from roost_kube.client import Kube
 from roost_kube.resources import NAMESPACES
-from roost_operator import runtime as runtime_module
-from roost_operator.autopilots import handlers as autopilot_handlers
 from roost_operator.edge import FIELD_MANAGER
 from roost_operator.missions import handlers as mission_handlers
-from roost_operator.settings import SETTINGS
+from roost_operator.runtime import Runtime, settings_of
+from roost_operator.settings import Settings, load_settings
 from roost_operator.vehicles import handlers as vehicle_handlers
 
-HANDLER_MODULES = (vehicle_handlers, mission_handlers, autopilot_handlers)
+HANDLER_MODULES = (vehicle_handlers, mission_handlers)
+"""Each has ``register(registry, settings)``: one controller per resource."""
 ANNOTATION_PREFIX = PREFIX.rstrip("/")
 
 WATCH_SERVER_TIMEOUT_S = 290  # seconds; the API server wants an integer
@@ -51,7 +55,7 @@ REQUEST_TIMEOUT_S = 60.0
 CANCELLATION_POLLING_S = 1.0
 
 
-def configure(settings: kopf.OperatorSettings) -> None:
+def configure(settings: kopf.OperatorSettings, roost: Settings) -> None:
     """Apply Roost's kopf settings (see the module docstring for why each)."""
     settings.persistence.finalizer = FINALIZER
     settings.persistence.progress_storage = kopf.AnnotationsProgressStorage(
@@ -60,7 +64,7 @@ def configure(settings: kopf.OperatorSettings) -> None:
     settings.persistence.diffbase_storage = kopf.AnnotationsDiffBaseStorage(
         prefix=ANNOTATION_PREFIX, key="last-handled-configuration"
     )
-    settings.peering.name = SETTINGS.peering
+    settings.peering.name = roost.peering
     settings.peering.clusterwide = True
     settings.peering.mandatory = False
     settings.peering.stealth = True
@@ -73,23 +77,33 @@ def configure(settings: kopf.OperatorSettings) -> None:
     settings.background.cancellation_polling = CANCELLATION_POLLING_S
 
 
-@kopf.on.startup()
 def startup(settings: kopf.OperatorSettings, memo: kopf.Memo, **_: Any) -> None:
     """Configure kopf, connect to the API and make sure the operator's namespace exists."""
-    configure(settings)
+    roost = settings_of(memo)
+    configure(settings, roost)
     kube = Kube.from_environment(FIELD_MANAGER)
     # Only when missing: under the chart the namespace exists and the operator may only
     # read it (a right to patch it would let the operator relax its own Pod Security
     # labels). The sandbox, with admin rights, gets it created.
-    if kube.get(NAMESPACES, SETTINGS.namespace) is None:
-        kube.apply(
-            {"apiVersion": "v1", "kind": "Namespace", "metadata": {"name": SETTINGS.namespace}}
-        )
-    memo.runtime = runtime_module.Runtime(kube=kube, settings=SETTINGS)
+    if kube.get(NAMESPACES, roost.namespace) is None:
+        kube.apply({"apiVersion": "v1", "kind": "Namespace", "metadata": {"name": roost.namespace}})
+    memo.runtime = Runtime.start(kube, roost)
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Run the operator in the foreground until interrupted."""
+def build_registry(settings: Settings) -> kopf.OperatorRegistry:
+    """A kopf registry with the startup hook and every controller's handlers."""
+    registry = kopf.OperatorRegistry()
+    # kopf authenticates like Roost's own client does: from the kubernetes client's config
+    # (a fresh registry has none of the default registry's login handlers).
+    kopf.on.login(registry=registry)(kopf.login_via_client)
+    kopf.on.startup(registry=registry)(startup)
+    for module in HANDLER_MODULES:
+        module.register(registry, settings)
+    return registry
+
+
+def parse_args(argv: list[str] | None, environ: Mapping[str, str]) -> tuple[Any, Settings]:
+    """Flags, and the settings from ``environ`` with the flags' overrides."""
     parser = argparse.ArgumentParser(prog="roost-operator", description=__doc__.splitlines()[0])
     parser.add_argument(
         "--standalone", action="store_true", help="run without peering even if it exists"
@@ -100,16 +114,33 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="serve kopf's health endpoint, e.g. http://0.0.0.0:8080/healthz",
     )
+    parser.add_argument("--namespace", help="operator namespace (overrides ROOST_NAMESPACE)")
+    parser.add_argument(
+        "--resync-seconds", type=float, help="Vehicle resync period (ROOST_RESYNC_SECONDS)"
+    )
     parser.add_argument("--verbose", action="store_true", help="debug logging")
     args = parser.parse_args(argv)
+    settings = load_settings(environ)
+    if args.namespace:
+        settings = replace(settings, namespace=args.namespace)
+    if args.resync_seconds is not None:
+        settings = replace(settings, resync_seconds=args.resync_seconds)
+    return args, settings
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the operator in the foreground until interrupted."""
+    args, settings = parse_args(argv, os.environ)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
     kopf.run(
+        registry=build_registry(settings),
+        memo=kopf.Memo(settings=settings),
         clusterwide=True,
         standalone=args.standalone or None,
-        peering_name=SETTINGS.peering,
+        peering_name=settings.peering,
         liveness_endpoint=args.liveness,
     )
     return 0

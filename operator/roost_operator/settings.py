@@ -1,42 +1,130 @@
-"""Operator settings read once from the environment, so the chart can set them.
+"""Every setting of the operator, in one object built once at start.
 
-Environment variables (all optional):
-
-``ROOST_NAMESPACE``
-    Namespace of the objects the operator owns for vehicles (ConfigMaps, component
-    Deployments). Default ``roost-system``; created at startup when missing.
-``ROOST_RESYNC_SECONDS``
-    Period of the level-based resync of every Vehicle (puts back hand edits of Roost's
-    node labels, converges after missed events). Default 60. A resync that finds
-    nothing to change makes no API writes, so a short period costs reads only.
-``ROOST_PEERING``
-    Name of the kopf peering object (one per operator deployment). Default ``roost``.
+Modelled on kopf's own ``OperatorSettings``: a frozen dataclass whose fields each carry
+a docstring saying what they do, their unit and the environment variable or flag that
+sets them. :func:`load_settings` builds it from the environment (which is how the chart
+configures the operator) and command-line flags override it. :func:`roost_operator.main`
+builds it before any handler is registered and hands it to kopf in the operator's
+``memo``; handlers and their registration read it from there. No module reads the
+environment on import and no handler module keeps a timing of its own.
 """
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from datetime import timedelta
+
+from roost_operator.autopilots.conditions import DEFAULT_AGENT_STALE_AFTER
+from roost_operator.autopilots.guards import TRUE_VALUES, FleetGuards
+
+
+@dataclass(frozen=True)
+class MissionTimings:
+    """How often the mission controller looks at a Mission, and how it backs off."""
+
+    resync_seconds: float = 10.0
+    """Reconcile every Mission at least this often, even without an event: Jobs, agents
+    and Vehicles wake it sooner (``ROOST_MISSION_RESYNC_SECONDS``)."""
+
+    error_backoff_seconds: float = 5.0
+    """First wait after a reconcile failed on a temporary error; doubles on each further
+    failure up to :attr:`max_backoff_seconds` (``ROOST_MISSION_ERROR_BACKOFF_SECONDS``)."""
+
+    max_backoff_seconds: float = 60.0
+    """Longest wait between retries of a failing Mission reconcile."""
+
+    coalesce_seconds: float = 0.5
+    """After a wake-up, wait this long so a burst of events costs one reconcile."""
+
+    delete_backoff_seconds: float = 2.0
+    """kopf's backoff before retrying a Mission's deletion handler after a temporary
+    error (the Mission keeps its finalizer meanwhile)."""
+
+    stop_timeout_seconds: float = 30.0
+    """How long a Mission's reconcile loop may take to stop when the Mission is deleted
+    or the operator shuts down (kopf's daemon cancellation timeout)."""
 
 
 @dataclass(frozen=True)
 class Settings:
-    """What the environment configures; see the module docstring."""
+    """What the operator is configured with; see the module docstring."""
 
     namespace: str = "roost-system"
-    resync_seconds: float = 60.0
+    """Namespace of the objects the operator owns for vehicles: config ConfigMaps,
+    component Deployments, mission claim Leases (``ROOST_NAMESPACE``). Created at
+    startup when missing."""
+
     peering: str = "roost"
+    """Name of the kopf peering object, one per operator deployment (``ROOST_PEERING``)."""
+
+    resync_seconds: float = 60.0
+    """Period of the level-based resync of every Vehicle: puts back hand edits of Roost's
+    node labels, converges after missed events (``ROOST_RESYNC_SECONDS``). A resync that
+    finds nothing to change writes nothing."""
+
+    retry_backoff_seconds: float = 2.0
+    """kopf's backoff before retrying a Vehicle or RedundantAutopilot handler that failed
+    on a temporary error."""
+
+    agent_stale_after: timedelta = DEFAULT_AGENT_STALE_AFTER
+    """Age of an agent's last report after which its Vehicle's ``AgentConnected`` turns
+    Unknown (``ROOST_AGENT_STALE_SECONDS``); keep it at least three times the agents'
+    report interval."""
+
+    failover_poll_seconds: float = 2.0
+    """Re-check period of a vehicle while a cluster-side failover action runs or a fleet
+    guard holds one back (end of the mavros rollout, timeout, guard lifting)."""
+
+    guards: FleetGuards = field(default_factory=FleetGuards)
+    """Fleet guards on cluster-side failover actions (``ROOST_FAILOVER_*``, see
+    :class:`~roost_operator.autopilots.guards.FleetGuards`)."""
+
+    missions: MissionTimings = field(default_factory=MissionTimings)
+    """Timings of the mission controller (``ROOST_MISSION_*``)."""
+
+
+def _seconds(environ: Mapping[str, str], key: str, default: timedelta) -> timedelta:
+    value = environ.get(key)
+    return timedelta(seconds=float(value)) if value else default
+
+
+def load_guards(environ: Mapping[str, str]) -> FleetGuards:
+    """:class:`FleetGuards` from ``ROOST_FAILOVER_*``, defaults for what is unset."""
+    defaults = FleetGuards()
+    return FleetGuards(
+        max_concurrent_actions=int(
+            environ.get("ROOST_FAILOVER_MAX_CONCURRENT", defaults.max_concurrent_actions)
+        ),
+        latch_after=int(environ.get("ROOST_FAILOVER_LATCH_AFTER", defaults.latch_after)),
+        latch_window=_seconds(
+            environ, "ROOST_FAILOVER_LATCH_WINDOW_SECONDS", defaults.latch_window
+        ),
+        action_timeout=_seconds(
+            environ, "ROOST_FAILOVER_ACTION_TIMEOUT_SECONDS", defaults.action_timeout
+        ),
+        paused=environ.get("ROOST_FAILOVER_PAUSED", "false").strip().lower() in TRUE_VALUES,
+    )
 
 
 def load_settings(environ: Mapping[str, str]) -> Settings:
     """Settings from ``environ`` with defaults for what is unset."""
     defaults = Settings()
+    timings = MissionTimings()
     return Settings(
         namespace=environ.get("ROOST_NAMESPACE", defaults.namespace),
-        resync_seconds=float(environ.get("ROOST_RESYNC_SECONDS", defaults.resync_seconds)),
         peering=environ.get("ROOST_PEERING", defaults.peering),
+        resync_seconds=float(environ.get("ROOST_RESYNC_SECONDS", defaults.resync_seconds)),
+        agent_stale_after=_seconds(
+            environ, "ROOST_AGENT_STALE_SECONDS", defaults.agent_stale_after
+        ),
+        guards=load_guards(environ),
+        missions=MissionTimings(
+            resync_seconds=float(
+                environ.get("ROOST_MISSION_RESYNC_SECONDS", timings.resync_seconds)
+            ),
+            error_backoff_seconds=float(
+                environ.get("ROOST_MISSION_ERROR_BACKOFF_SECONDS", timings.error_backoff_seconds)
+            ),
+        ),
     )
-
-
-SETTINGS = load_settings(os.environ)

@@ -261,6 +261,8 @@ def test_helm_install_runs_the_operator_and_an_agent_on_every_vehicle_node_only(
         ("create", "events.events.k8s.io", "-n", "default"),
         ("patch", "namespaces/default"),
         ("get", "namespaces/kube-system"),
+        ("create", "leases.coordination.k8s.io", "-n", "default"),
+        ("delete", "leases.coordination.k8s.io", "-n", "kube-node-lease"),
     ],
     ids=" ".join,
 )
@@ -280,6 +282,9 @@ def test_operator_may_not(installed: Cluster, args: tuple[str, ...]) -> None:
         ("delete", "jobs.batch", "-n", "default"),
         ("create", "events", "-n", "default"),
         ("patch", f"clusterkopfpeerings.kopf.dev/{FULLNAME}"),
+        ("create", "leases.coordination.k8s.io", "-n", NAMESPACE),
+        ("delete", "leases.coordination.k8s.io", "-n", NAMESPACE),
+        ("watch", "leases.coordination.k8s.io", "--all-namespaces"),
     ],
     ids=" ".join,
 )

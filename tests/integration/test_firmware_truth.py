@@ -31,11 +31,10 @@ import pytest
 import yaml
 from test_agent_failover import (
     CLEAR_S,
+    POLL_S,
     AgentProcess,
     Flight,
     make_spec,
-    take_off,
-    wait_for,
 )
 
 from roost_agent import Agent
@@ -69,6 +68,8 @@ from roost_sim import (
     start_vehicle_sims,
     stop_sims,
 )
+from tests.support.flight import take_off
+from tests.support.waiting import wait_until
 
 pytestmark = pytest.mark.slow
 
@@ -154,7 +155,7 @@ def test_ardupilot_streaming_only_on_request_fails_over_unaided(tmp_path: Path) 
     # link; taken as the autopilot's, they would make the standby look disarmed.
     with ardupilot_flight(tmp_path, config=SimConfig.fast(gcs_heartbeat=True)) as (flight, log):
         agent = flight.agent
-        wait_for(lambda: log.reasons[-1:] == ["StandbyAvailable"], 15, "a usable standby")
+        wait_until("a usable standby", lambda: log.reasons[-1:] == ["StandbyAvailable"], 15, POLL_S)
         # heard but not yet streaming: never a healthy standby (then the streams came)
         assert "StandbyStateUnknown" in log.reasons, log.reasons
         fc2 = agent.assessments()["fc2"]
@@ -173,7 +174,7 @@ def test_ardupilot_streaming_only_on_request_fails_over_unaided(tmp_path: Path) 
         assert {message_id("ATTITUDE"), message_id("EXTENDED_SYS_STATE")} <= asked
         time.sleep(CLEAR_S + 0.2)  # T_off: the standby becomes a failover target
         flight.sim("fc1").inject(FaultKind.SILENCE)
-        wait_for(agent.failovers, 10, "a failover")
+        wait_until("a failover", agent.failovers, 10, POLL_S)
         (event,) = agent.failovers()
         assert (event.record.from_autopilot, event.record.to_autopilot) == ("fc1", "fc2")
         # judged on the requested 50 Hz stream, not on the 3 s heartbeat age
@@ -192,10 +193,11 @@ def test_streams_are_requested_again_after_the_autopilot_reboots() -> None:
         def attitudes() -> int:
             return tracker.stream_facts().counts.get("ATTITUDE", 0)
 
-        wait_for(lambda: attitudes() > 100, 15, "ATTITUDE requested and streaming")
+        wait_until("ATTITUDE requested and streaming", lambda: attitudes() > 100, 15, POLL_S)
         rebooted_at = time.monotonic()
         sims[1].inject(FaultKind.REBOOT, 0.0)
-        wait_for(
+        wait_until(
+            "ATTITUDE requested again after the reboot",
             lambda: [
                 c
                 for c in sims[1].commands
@@ -205,10 +207,10 @@ def test_streams_are_requested_again_after_the_autopilot_reboots() -> None:
                 and int(c.params[0]) == message_id("ATTITUDE")
             ],
             20,
-            "ATTITUDE requested again after the reboot",
+            POLL_S,
         )
         after = attitudes()
-        wait_for(lambda: attitudes() > after + 100, 10, "ATTITUDE streaming again")
+        wait_until("ATTITUDE streaming again", lambda: attitudes() > after + 100, 10, POLL_S)
     finally:
         agent.stop()
         stop_sims(sims)
@@ -218,7 +220,7 @@ def test_ardupilot_hold_is_brake_and_keeps_altitude_where_loiter_would_sink(
     tmp_path: Path,
 ) -> None:
     with ardupilot_flight(tmp_path, config=LOITER_NO_RC) as (flight, _):
-        wait_for(lambda: standby_usable(flight.agent), 15, "fc2 a known, healthy standby")
+        wait_until("fc2 a known, healthy standby", lambda: standby_usable(flight.agent), 15, POLL_S)
         time.sleep(CLEAR_S + 0.2)
         watch = AltitudeWatch(flight.sim("fc2"))
         try:
@@ -230,13 +232,14 @@ def test_ardupilot_hold_is_brake_and_keeps_altitude_where_loiter_would_sink(
         assert "BRAKE" in modes and "LOITER" not in modes, modes
         assert modes[-1] == "LAND"
         assert watch.lost_in("BRAKE") <= 0.5
-        wait_for(
+        wait_until(
+            "the safety routine reported Landed",
             lambda: (
                 (r := flight.agent.status().last_failover) is not None
                 and r.safety_routine == "Landed"
             ),
             10,
-            "the safety routine reported Landed",
+            POLL_S,
         )
 
 
@@ -244,11 +247,11 @@ def _link_to(sim: SimulatedAutopilot) -> AutopilotLink:
     (spec,) = autopilot_specs([sim])
     link = AutopilotLink(spec, HealthTracker(sim.name, Stack(sim.stack), Thresholds()))
     link.start()
-    wait_for(link.heartbeat, 5, "a heartbeat on the link")
+    wait_until("a heartbeat on the link", link.heartbeat, 5, POLL_S)
     # what the agent's stream keeper would ask for (ArduPilot sends nothing unasked)
     wanted = WANTED[Stack(sim.stack)]
     send_requests(link, [Request(name, hz, Method.INTERVAL) for name, hz in wanted.items()])
-    wait_for(link.motion, 5, "altitude telemetry on the link")
+    wait_until("altitude telemetry on the link", link.motion, 5, POLL_S)
     return link
 
 

@@ -37,6 +37,7 @@ import subprocess
 import threading
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from typing import Any
 
 import pytest
@@ -45,11 +46,24 @@ from roost_api.wellknown import ANNOTATION_PAUSE_FAILOVER_ACTIONS, LABEL_MISSION
 from roost_kube.client import Kube
 from roost_kube.errors import ConflictError
 from roost_kube.patches import Obj
-from roost_kube.resources import JOBS, MISSIONS, PODS, REDUNDANT_AUTOPILOTS, VEHICLES
+from roost_kube.resources import (
+    CONFIGMAPS,
+    JOBS,
+    LEASES,
+    MISSIONS,
+    PODS,
+    REDUNDANT_AUTOPILOTS,
+    VEHICLES,
+)
 from roost_localcluster.cluster import Cluster
-from roost_operator.missions.cluster import claim_vehicle
+from roost_operator.claims import claim_of, lease_name, release_options
+from roost_operator.missions.cluster import claim_vehicle, release_vehicle
 from roost_operator.missions.observed import MissionRef, VehicleView
-from roost_operator.missions.workloads import ENV_MISSION_VEHICLES, bounded_name
+from roost_operator.missions.workloads import (
+    ENV_MISSION_VEHICLES,
+    bounded_name,
+    onboard_job_name,
+)
 from tests.support.fakeagents import FakeAgents, redundant_autopilot
 from tests.support.operator import OperatorProcess
 from tests.support.waiting import unique, wait_until
@@ -198,10 +212,15 @@ def mission_manifest(
     }
 
 
-def vehicle_ready(kube: Kube, name: str) -> bool:
+def vehicle_condition(kube: Kube, name: str, type_: str) -> str | None:
+    """The status of the Vehicle's condition ``type_`` (None when it has none)."""
     body = kube.get(VEHICLES, name) or {}
     conditions = (body.get("status") or {}).get("conditions") or []
-    return any(c["type"] == "Ready" and c["status"] == "True" for c in conditions)
+    return next((c["status"] for c in conditions if c["type"] == type_), None)
+
+
+def vehicle_ready(kube: Kube, name: str) -> bool:
+    return vehicle_condition(kube, name, "Ready") == "True"
 
 
 def mission_status(kube: Kube, name: str) -> Obj:
@@ -248,8 +267,9 @@ def pods_of(kube: Kube, mission: str) -> list[Obj]:
 
 
 def claimed_by(kube: Kube, vehicle: str) -> str | None:
-    claim = ((kube.get(VEHICLES, vehicle) or {}).get("status") or {}).get("claimedBy")
-    return f"{claim['namespace']}/{claim['name']}" if claim else None
+    """``namespace/name`` of the Mission whose claim Lease holds ``vehicle``, if any."""
+    claim = claim_of(kube.get(LEASES, lease_name(vehicle), OPERATOR_NAMESPACE) or {})
+    return claim.holder_key if claim else None
 
 
 def command_of(kube: Kube, vehicle: str) -> Obj | None:
@@ -361,6 +381,16 @@ def test_preflight_holds_the_mission_until_the_autopilot_is_healthy(
 ) -> None:
     good, bad = fleet.add(2)
     agents.set(bad, healthy=False)
+    # The unhealthy report must have reached the Vehicle (agent connected, autopilots
+    # unhealthy) before the mission looks, or preflight may name an earlier state.
+    wait_until(
+        "the unhealthy report on the Vehicle",
+        lambda: (
+            vehicle_condition(kube, bad, "AgentConnected") == "True"
+            and vehicle_condition(kube, bad, "AutopilotsHealthy") == "False"
+        ),
+        WAIT_S,
+    )
     name = fleet.mission(unique("preflight"), selector={"fleet": fleet.label}, count=2)
 
     status = wait_phase(kube, name, "Preflight")
@@ -574,15 +604,17 @@ def test_competing_missions_never_share_a_vehicle(
 
 
 def test_a_claim_written_from_a_stale_read_loses(fleet: Fleet, kube: Kube) -> None:
-    """The optimistic concurrency itself: two claims computed from one read, one wins."""
+    """The claim's exclusivity itself: two claims computed from one read, one wins; a
+    takeover and a release computed from a stale read of the claim are refused too."""
     (name,) = fleet.add(1)
     view = VehicleView.from_body(kube.get(VEHICLES, name) or {})
     alpha = MissionRef(namespace=FLIGHTS, name=unique("alpha"), uid="uid-alpha")
     beta = MissionRef(namespace=FLIGHTS, name=unique("beta"), uid="uid-beta")
     results: list[VehicleView | None] = [None, None]
+    now = datetime.now(UTC)
 
     def claim(index: int, mission: MissionRef) -> None:
-        results[index] = claim_vehicle(kube, view, mission)
+        results[index] = claim_vehicle(kube, OPERATOR_NAMESPACE, view, mission, at=now)
 
     threads = [threading.Thread(target=claim, args=(i, m)) for i, m in enumerate((alpha, beta))]
     for thread in threads:
@@ -591,16 +623,30 @@ def test_a_claim_written_from_a_stale_read_loses(fleet: Fleet, kube: Kube) -> No
         thread.join()
     winners = [r for r in results if r is not None]
     assert len(winners) == 1
+    winner = winners[0]
+    assert winner.claim is not None
     holder = claimed_by(kube, name)
-    assert holder in {alpha.key, beta.key}
+    assert holder == winner.claim.holder_key
+    loser = beta if holder == alpha.key else alpha
+    assert not release_vehicle(kube, OPERATOR_NAMESPACE, name, loser), "not the loser's claim"
+
+    # Two takeovers of the same claim judged orphaned at one version: exactly one wins.
+    gamma = MissionRef(namespace=FLIGHTS, name=unique("gamma"), uid="uid-gamma")
+    first = claim_vehicle(kube, OPERATOR_NAMESPACE, winner, gamma, at=now)
+    second = claim_vehicle(kube, OPERATOR_NAMESPACE, winner, loser, at=now)
+    assert first is not None and second is None
+    assert claimed_by(kube, name) == gamma.key
+
+    # A release carrying a stale resourceVersion is refused by the API server.
+    assert winner.claim is not None
     with pytest.raises(ConflictError):
-        kube.merge_patch(
-            VEHICLES,
-            name,
-            {"metadata": {"resourceVersion": view.resource_version}, "status": {"claimedBy": None}},
-            subresource="status",
+        kube.request(
+            "DELETE",
+            LEASES.object_path(lease_name(name), OPERATOR_NAMESPACE),
+            body=release_options(winner.claim),
         )
-    kube.merge_patch(VEHICLES, name, {"status": {"claimedBy": None}}, subresource="status")
+    assert release_vehicle(kube, OPERATOR_NAMESPACE, name, gamma)
+    assert claimed_by(kube, name) is None
 
 
 def test_a_restarted_operator_resumes_without_duplicating_workloads(
@@ -644,6 +690,61 @@ def test_deleting_a_running_mission_lands_and_releases_its_vehicles(
     for vehicle in vehicles:
         assert claimed_by(kube, vehicle) is None
         assert (command_of(kube, vehicle) or {})["action"] == "SafetyRoutine"
+
+
+def test_a_template_the_job_api_refuses_fails_the_mission_before_it_claims(
+    fleet: Fleet, kube: Kube
+) -> None:
+    vehicles = fleet.add(1)
+    manifest = mission_manifest(unique("badtemplate"), selector={"fleet": fleet.label}, count=1)
+    manifest["spec"]["onboard"]["spec"]["containers"][0]["name"] = "Not_A_Valid_Name"
+    fleet.missions.append(manifest["metadata"]["name"])
+    fleet.apply(manifest)
+    status = wait_phase(kube, manifest["metadata"]["name"], "Failed")
+    assert status["reason"] == "InvalidTemplate"
+    message = status["message"]
+    assert message.startswith("spec.onboard is refused by the Job API: ")
+    assert "Not_A_Valid_Name" in message and "{" not in message, "the API's words, not JSON"
+    assert claimed_by(kube, vehicles[0]) is None, "nothing was claimed"
+    assert jobs_of(kube, manifest["metadata"]["name"]) == {}
+    # The broken Mission is deleted like any other.
+    fleet.cluster.kubectl("delete", "mission", manifest["metadata"]["name"], "-n", FLIGHTS)
+    assert kube.get(MISSIONS, manifest["metadata"]["name"], FLIGHTS) is None
+
+
+def test_a_vehicle_deleted_mid_mission_leaves_it_at_once(
+    fleet: Fleet, kube: Kube, roost_crds: Cluster
+) -> None:
+    doomed, staying = fleet.add(2)
+    name = fleet.mission(unique("vdel"), names=[doomed, staying], count=2)
+    wait_phase(kube, name, "Running")
+    wait_until("both Jobs", lambda: len(jobs_of(kube, name)) == 2, WAIT_S)
+    copy = f"roost-vehicle-{doomed}"
+    assert kube.get(CONFIGMAPS, copy, FLIGHTS) is not None
+
+    roost_crds.kubectl("delete", "vehicle", doomed, "--wait=false")
+
+    def left() -> Obj | None:
+        status = mission_status(kube, name)
+        by_name = {v["name"]: v for v in status.get("vehicles") or []}
+        return status if by_name[doomed].get("reason") == "VehicleDeleted" else None
+
+    status = wait_until("the vehicle to leave the mission", left, WAIT_S)
+    assert status["phase"] == "Running"
+    degraded = condition_of(status, "Degraded") or {}
+    assert (degraded.get("status"), degraded.get("reason")) == ("True", "VehicleDeleted")
+    wait_until(
+        "its Job stopped and its config copy gone",
+        lambda: (
+            onboard_job_name(name, doomed) not in jobs_of(kube, name)
+            and kube.get(CONFIGMAPS, copy, FLIGHTS) is None
+        ),
+        WAIT_S,
+    )
+    assert (command_of(kube, doomed) or {}).get("action") == "SafetyRoutine"
+    assert "VehicleDeleted" in events_for(roost_crds, name)
+    release_holds(kube, name, staying)
+    wait_phase(kube, name, "Succeeded")
 
 
 def test_invalid_missions_are_rejected_with_a_clear_message(roost_crds: Cluster) -> None:

@@ -22,6 +22,7 @@ import pytest
 from roost_api.wellknown import (
     ANNOTATION_CONFIG_HASH,
     ANNOTATION_MANAGED_LABELS,
+    LABEL_NODE,
     LABEL_VEHICLE,
     LABEL_VEHICLE_CLASS,
     LABEL_VEHICLE_TYPE,
@@ -30,7 +31,14 @@ from roost_api.wellknown import (
 )
 from roost_kube.client import Kube
 from roost_kube.patches import Obj
-from roost_kube.resources import CONFIGMAPS, DEPLOYMENTS, NODES, PODS, VEHICLES
+from roost_kube.resources import (
+    CONFIGMAPS,
+    DEPLOYMENTS,
+    NODES,
+    PODS,
+    REDUNDANT_AUTOPILOTS,
+    VEHICLES,
+)
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import KWOK_NODE_ANNOTATION
 from roost_localcluster.nodes import fake_node
@@ -598,3 +606,116 @@ def test_an_operator_killed_mid_reconcile_converges_after_restart(
     vehicle = kube.get(VEHICLES, name)
     assert vehicle is not None
     assert vehicle["status"]["observedGeneration"] == vehicle["metadata"]["generation"]
+
+
+# ---- bad input: reported once, and deletion always finishes --------------------------------
+
+
+def vehicle_events(cluster: Cluster, vehicle: str) -> list[str]:
+    """Reasons of the Events about Vehicle ``vehicle`` (cluster-scoped: in ``default``)."""
+    out = cluster.kubectl(
+        "get",
+        "events",
+        "-n",
+        "default",
+        "--field-selector",
+        f"involvedObject.name={vehicle}",
+        "-o",
+        "jsonpath={range .items[*]}{.reason}{'\\n'}{end}",
+    ).stdout
+    return out.split()
+
+
+def label_refusing_policy(rap: str) -> list[dict[str, Any]]:
+    """A site admission policy (as Kyverno or Gatekeeper would be) that refuses the
+    roost.dev/node label on one RedundantAutopilot: a write Roost must make, refused for
+    good by the API server (422) although the Vehicle passed admission."""
+    name = f"it-refuse-{rap}"
+    return [
+        {
+            "apiVersion": "admissionregistration.k8s.io/v1",
+            "kind": "ValidatingAdmissionPolicy",
+            "metadata": {"name": name},
+            "spec": {
+                "failurePolicy": "Fail",
+                "matchConstraints": {
+                    "resourceRules": [
+                        {
+                            "apiGroups": ["roost.dev"],
+                            "apiVersions": ["*"],
+                            "operations": ["CREATE", "UPDATE"],
+                            "resources": ["redundantautopilots"],
+                        }
+                    ]
+                },
+                "validations": [
+                    {
+                        "expression": (
+                            f"object.metadata.name != '{rap}' || "
+                            "!has(object.metadata.labels) || "
+                            f"!('{LABEL_NODE}' in object.metadata.labels)"
+                        ),
+                        "message": "site policy: this autopilot set may not be bound to a node",
+                    }
+                ],
+            },
+        },
+        {
+            "apiVersion": "admissionregistration.k8s.io/v1",
+            "kind": "ValidatingAdmissionPolicyBinding",
+            "metadata": {"name": name},
+            "spec": {"policyName": name, "validationActions": ["Deny"]},
+        },
+    ]
+
+
+def test_a_write_the_api_server_refuses_is_reported_once_and_deletion_still_finishes(
+    roost_crds: Cluster, vehicles: Callable[..., str], kube: Kube
+) -> None:
+    """A write the API server refuses for good (a site policy refusing the RedundantAutopilot's
+    roost.dev/node label): the operator reports it in NodeBound with the API's words (no
+    retry loop), and both objects can still be deleted."""
+    name = unique("vrefused")
+    rap = name
+    policy = label_refusing_policy(rap)
+    roost_crds.kubectl("apply", "-f", "-", input_text=json.dumps(redundant_autopilot(name)))
+    roost_crds.kubectl(
+        "apply",
+        "-f",
+        "-",
+        input_text=json.dumps({"kind": "List", "apiVersion": "v1", "items": policy}),
+    )
+    try:
+
+        def policy_in_force() -> bool:
+            trial = roost_crds.kubectl(
+                "label",
+                "redundantautopilot",
+                rap,
+                f"{LABEL_NODE}=x",
+                "--dry-run=server",
+                check=False,
+            )
+            return trial.returncode != 0 and "site policy" in trial.stderr
+
+        wait_until("the site policy in force", policy_in_force)
+        vehicles(name, unique("node"))
+        cond = wait_condition(kube, name, "NodeBound", "False", "AutopilotLabelRefused")
+        assert "site policy" in cond["message"]
+        wait_until("the Refused Event", lambda: "Refused" in vehicle_events(roost_crds, name))
+        # "Nothing happens" for three resync periods: the refusal is not retried into a storm.
+        time.sleep(3 * RESYNC_S)
+        assert vehicle_events(roost_crds, name).count("Refused") == 1
+        roost_crds.kubectl("delete", "redundantautopilot", rap, "--wait=false")
+        roost_crds.kubectl("delete", "vehicle", name, "--wait=false")
+        wait_until(
+            "the broken Vehicle and RedundantAutopilot to be gone",
+            lambda: (
+                kube.get(VEHICLES, name) is None and kube.get(REDUNDANT_AUTOPILOTS, rap) is None
+            ),
+        )
+    finally:
+        for obj in policy:
+            roost_crds.kubectl(
+                "delete", obj["kind"].lower(), obj["metadata"]["name"], "--ignore-not-found"
+            )

@@ -24,7 +24,6 @@ from roost_api.wellknown import ANNOTATION_CLEAR_FAILOVER_LATCH, ANNOTATION_PAUS
 from roost_operator.autopilots.conditions import (
     agent_connected,
     autopilots_healthy,
-    load_stale_after,
 )
 from roost_operator.autopilots.guards import (
     FleetGuards,
@@ -32,14 +31,13 @@ from roost_operator.autopilots.guards import (
     check,
     clear_latch,
     consequence_verdict,
-    load_fleet_guards,
     new_failovers,
     observe_failovers,
     vehicle_paused,
 )
 from roost_operator.autopilots.plan import FailoverPlan, mavros_follows, plan
-from roost_operator.autopilots.reconcile import ActionLedger
 from roost_operator.vehicles.config import config_hash
+from roost_operator.vehicles.controller import ActionLedger
 from roost_operator.vehicles.desired import ready_condition
 from tests.support.conditions import cond as support_cond
 
@@ -207,26 +205,6 @@ def test_guard_decision_table(
 def test_pause_annotation(value: str, paused: bool) -> None:
     assert vehicle_paused({ANNOTATION_PAUSE_FAILOVER_ACTIONS: value}) is paused
     assert vehicle_paused({}) is False
-
-
-def test_fleet_guards_come_from_the_environment() -> None:
-    guards = load_fleet_guards(
-        {
-            "ROOST_FAILOVER_MAX_CONCURRENT": "2",
-            "ROOST_FAILOVER_LATCH_AFTER": "4",
-            "ROOST_FAILOVER_LATCH_WINDOW_SECONDS": "60",
-            "ROOST_FAILOVER_ACTION_TIMEOUT_SECONDS": "15",
-            "ROOST_FAILOVER_PAUSED": "yes",
-        }
-    )
-    assert guards == FleetGuards(
-        max_concurrent_actions=2,
-        latch_after=4,
-        latch_window=timedelta(seconds=60),
-        action_timeout=timedelta(seconds=15),
-        paused=True,
-    )
-    assert load_fleet_guards({}) == FleetGuards()
 
 
 # -- failover accounting --------------------------------------------------------------
@@ -569,11 +547,6 @@ def test_the_ledger_counts_actions_elsewhere_preferring_this_processs_own_writes
         ledger.record("v4", True)  # started here; not in the index yet
         assert ledger.others("v1", ["v1", "v2", "v3"]) == 2  # v3 and v4
         assert ledger.others("v4", ["v3"]) == 1
-
-
-def test_staleness_window_setting() -> None:
-    assert load_stale_after({}) == timedelta(seconds=30)
-    assert load_stale_after({"ROOST_AGENT_STALE_SECONDS": "4.5"}) == timedelta(seconds=4.5)
 
 
 def test_the_same_decision_made_later_names_the_same_events() -> None:

@@ -40,6 +40,7 @@ from roost_api.wellknown import (
     TAINT_VEHICLE,
 )
 from roost_operator.autopilots.guards import FleetGuards
+from roost_operator.claims import Claim
 from roost_operator.missions.machine import (
     ABORT_COMMAND_DEADLINE_SECONDS,
     Observation,
@@ -72,6 +73,7 @@ from roost_operator.missions.workloads import (
     bounded_name,
     offboard_job_name,
     onboard_job_name,
+    template_probes,
 )
 from tests.support.conditions import cond as support_cond
 from tests.support.fakeagents import redundant_autopilot
@@ -111,11 +113,19 @@ def vehicle(
         name=name,
         labels=labels if labels is not None else {"fleet": "a"},
         spec=VehicleSpec.model_validate({"nodeName": f"node-{name}", "sysid": 10}),
-        status=VehicleStatus(conditions=conditions, claimed_by=claimed_by, failover=failover),
+        status=VehicleStatus(conditions=conditions, failover=failover),
         resource_version="1",
         uid=f"uid-{name}",
         deleting=deleting,
         annotations=annotations or {},
+        claim=claim_on(name, claimed_by) if claimed_by is not None else None,
+    )
+
+
+def claim_on(name: str, holder: ObjectReference) -> Claim:
+    """The claim Lease on vehicle ``name`` held by ``holder``, as the observer parses it."""
+    return Claim(
+        vehicle=name, holder=holder, mission_uid="", resource_version="7", uid=f"lease-{name}"
     )
 
 
@@ -159,7 +169,7 @@ def autopilots(
     if command is not None:
         spec["command"] = command.to_api()
     return AutopilotView(
-        name=f"{vehicle_name}-autopilots",
+        name=vehicle_name,
         spec=RedundantAutopilotSpec.model_validate(spec),
         status=RedundantAutopilotStatus.model_validate(status),
     )
@@ -356,11 +366,7 @@ def test_a_vehicle_without_redundancy_may_fly_a_mission_that_does_not_require_it
     strict = replace(obs, spec=mission_spec(vehicles={"names": ["a"], "count": 1}))
     held = replace(
         strict,
-        vehicles={
-            "a": replace(
-                single, status=single.status.model_copy(update={"claimed_by": ME.reference})
-            )
-        },
+        vehicles={"a": replace(single, claim=claim_on("a", ME.reference))},
     )
     plan = plan_mission(held)
     assert plan.status.phase == MissionPhase.PREFLIGHT
@@ -472,6 +478,27 @@ def test_the_offboard_job_is_kept_off_vehicle_nodes() -> None:
     assert terms == [{"matchExpressions": [{"key": LABEL_VEHICLE, "operator": "DoesNotExist"}]}]
     assert "tolerations" not in pod and "nodeSelector" not in pod
     assert {"name": ENV_MISSION_VEHICLES, "value": "a,b"} in pod["containers"][0]["env"]
+
+
+def test_the_template_probes_are_the_jobs_the_mission_would_create() -> None:
+    """What is dry-run before claiming is exactly what would be created after it."""
+    spec = mission_spec(
+        vehicles={"names": ["a", "b"], "count": 2},
+        offboard={"spec": {"containers": [{"name": "m", "image": "monitor"}]}},
+    )
+    obs = observe(claimed("a", "b"), spec=spec)
+    probes = template_probes(
+        mission=ME, spec=spec, vehicles=["a", "b"], config_values=obs.config_values
+    )
+    assert [field for field, _ in probes] == ["spec.onboard", "spec.offboard"]
+    created = {j["metadata"]["name"]: j for j in plan_mission(obs).jobs_to_create}
+    for _, probe in probes:
+        assert probe == created[probe["metadata"]["name"]]
+    onboard_only = template_probes(
+        mission=ME, spec=mission_spec(), vehicles=["a"], config_values={}
+    )
+    assert [field for field, _ in onboard_only] == ["spec.onboard"]
+    assert template_probes(mission=ME, spec=spec, vehicles=[], config_values={}) == []
 
 
 def test_long_names_are_bounded_and_stay_distinct() -> None:
@@ -1024,3 +1051,93 @@ def test_claims_of_finished_missions_count_only_while_a_vehicle_is_landing() -> 
         body("aborted", {"phase": "Aborted"}),
     ]
     assert holding_missions(missions) == {"ns/new", "ns/running", "ns/failed-landing"}
+
+
+# -- a Vehicle deleted mid-mission ----------------------------------------------------------
+
+
+def _deleted_mid_mission(
+    policy: str, *, gone: bool = False, with_autopilots: bool = True
+) -> Observation:
+    """Mission on a and b running; Vehicle a is being deleted (or already gone)."""
+    spec = mission_spec(vehicles={"names": ["a", "b"], "count": 2}, onFailover=policy)
+    status, _ = started(["a", "b"], spec=spec)
+    vehicles = [*([] if gone else claimed("a", deleting=True)), *claimed("b")]
+    aps = [autopilots("b"), *([autopilots("a")] if with_autopilots else [])]
+    return observe(
+        vehicles,
+        spec=spec,
+        status=status,
+        aps=aps,
+        jobs=[job("a"), job("b")],
+        now=T0 + timedelta(seconds=30),
+    )
+
+
+@pytest.mark.parametrize(
+    ("policy", "gone", "with_autopilots", "mission_phase", "vehicle_phase", "commanded"),
+    [
+        # policy        Vehicle    its RA  → mission    vehicle a    safety routine to
+        ("Continue", False, True, "Running", "Aborting", ["a"]),
+        ("Continue", True, True, "Running", "Aborting", ["a"]),
+        ("Continue", True, False, "Running", "Aborted", []),
+        ("AbortVehicle", False, True, "Running", "Aborting", ["a"]),
+        ("AbortMission", False, True, "Aborting", "Aborting", ["a", "b"]),
+        ("AbortMission", True, False, "Aborting", "Aborted", ["b"]),
+    ],
+)
+def test_a_vehicle_deleted_mid_mission_leaves_it_at_once(
+    policy: str,
+    *,
+    gone: bool,
+    with_autopilots: bool,
+    mission_phase: str,
+    vehicle_phase: str,
+    commanded: list[str],
+) -> None:
+    plan = plan_mission(_deleted_mid_mission(policy, gone=gone, with_autopilots=with_autopilots))
+    assert plan.status.phase == mission_phase
+    a = vehicle_status(plan, "a")
+    assert a.phase == vehicle_phase
+    if mission_phase != "Aborting":  # an aborting mission words every vehicle's reason
+        assert a.reason == "VehicleDeleted"
+    assert onboard_job_name("survey", "a") in plan.jobs_to_delete, "its Job stops at once"
+    assert "a" in plan.config_maps_to_delete, "its config copy goes with it"
+    assert sorted(plan.commands) == commanded
+    assert condition_is_true(plan.status.conditions, "Degraded") or mission_phase == "Aborting"
+    assert "VehicleDeleted" in [e.reason for e in plan.events]
+
+
+def test_a_deleted_vehicle_is_reported_once_and_the_mission_goes_on_without_it() -> None:
+    obs = _deleted_mid_mission("Continue", gone=True, with_autopilots=False)
+    first = plan_mission(obs)
+    degraded = find_condition(first.status.conditions, "Degraded")
+    assert degraded is not None and degraded.reason == "VehicleDeleted"
+    again = plan_mission(replace(obs, status=first.status))
+    assert "VehicleDeleted" not in [e.reason for e in again.events], "one Event per deletion"
+    assert onboard_job_name("survey", "b") not in again.jobs_to_delete
+    done = plan_mission(
+        replace(
+            obs,
+            status=again.status,
+            jobs={onboard_job_name("survey", "b"): job("b", JobPhase.SUCCEEDED)},
+        )
+    )
+    assert done.status.phase == MissionPhase.SUCCEEDED
+    assert "1 aborted after a failover or the Vehicle's deletion" in (done.status.message or "")
+    assert sorted(done.config_maps_to_delete) == ["a", "b"], "a finished mission keeps no copy"
+
+
+def test_a_deleted_vehicle_still_landing_is_followed_until_it_is_down() -> None:
+    obs = _deleted_mid_mission("AbortVehicle", gone=True)
+    first = plan_mission(obs)
+    command = first.commands["a"]
+    landed = autopilots(
+        "a", landed="OnGround", command=command, reported_at=T0 + timedelta(seconds=40)
+    )
+    later = plan_mission(
+        replace(obs, status=first.status, autopilots={**obs.autopilots, "a": landed})
+    )
+    a = vehicle_status(later, "a")
+    assert (a.phase, a.reason) == (MissionVehiclePhase.ABORTED, "VehicleDeleted")
+    assert later.commands == {}, "the command is written once"

@@ -13,6 +13,8 @@ from roost_kube.errors import ApiUnavailableError, error_for_status
 from roost_operator.edge import (
     CONFLICT_DELAY_S,
     UNAVAILABLE_DELAY_S,
+    at_the_edge,
+    describe,
     handler_edge,
     kopf_error,
     object_name,
@@ -83,3 +85,20 @@ def test_other_exceptions_pass_through_untouched() -> None:
 
     with pytest.raises(KeyError):
         buggy()
+
+
+def test_work_on_another_object_is_named_after_that_object() -> None:
+    """A Node event reconciling a Vehicle: the message names the Vehicle."""
+    with pytest.raises(kopf.PermanentError) as caught, at_the_edge("Vehicle", "drone-1"):
+        raise error_for_status(422, "PATCH", "/deployments/x", '{"message":"too long"}')
+    assert str(caught.value).startswith("Vehicle drone-1: ")
+    edge = at_the_edge("Mission", "survey", namespace="flights")
+    with pytest.raises(kopf.TemporaryError) as temporary, edge:
+        raise error_for_status(409, "PATCH", "/x", "{}")
+    assert str(temporary.value).startswith("Mission flights/survey: ")
+    assert describe("Mission", "survey", "flights") == "Mission flights/survey"
+
+
+def test_other_exceptions_pass_the_edge_unchanged() -> None:
+    with pytest.raises(KeyError), at_the_edge("Vehicle", "drone-1"):
+        raise KeyError("a bug")

@@ -1,11 +1,13 @@
-"""The operator's side of redundant-autopilot failover.
+"""The operator's side of redundant-autopilot failover, as pure decisions.
 
 The node agent switches autopilots on its own and reports in the RedundantAutopilot's
-status; this package turns those reports into the Vehicle's ``AgentConnected`` and
-``AutopilotsHealthy`` conditions, re-points the vehicle's mavros at the new active
-autopilot (also after an automatic failback, which the agent decides on the vehicle),
-and applies the fleet guards (pause, latch, concurrency cap) to those cluster-side
-actions — never to the on-vehicle switch.
+status (it is that status's only writer); this package decides what those reports mean
+for the Vehicle: its ``AgentConnected`` and ``AutopilotsHealthy`` conditions, which
+autopilot the vehicle's mavros follows (also after an automatic failback, which the
+agent decides on the vehicle), and the fleet guards (pause, latch, concurrency cap) on
+those cluster-side actions — never on the on-vehicle switch. The Vehicle controller
+(:mod:`roost_operator.vehicles.controller`) applies the decisions and writes them, as
+the one writer of ``Vehicle.status``.
 
 ``conditions``
     AgentConnected / AutopilotsHealthy from the agent's report (pure).
@@ -14,9 +16,4 @@ actions — never to the on-vehicle switch.
     machine asks them too before applying ``spec.onFailover``.
 ``plan``
     One vehicle's cluster side of failover, as one pure decision.
-``reconcile``
-    One vehicle's run: fresh reads, :func:`plan.plan`, Events, the status write, the
-    fleet-wide action ledger (no kopf).
-``handlers``
-    The kopf triggers (agent reports, silence, guard annotations, mavros rollout).
 """

@@ -29,7 +29,6 @@ Pure functions: no API calls, ``now`` is a parameter.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 
@@ -41,16 +40,8 @@ AGENT_REPORT_PERIOD = timedelta(seconds=10)
 """How often the agent re-reports when nothing changes (its publisher's default)."""
 
 DEFAULT_AGENT_STALE_AFTER = 3 * AGENT_REPORT_PERIOD
-"""Age of the last report after which ``AgentConnected`` turns ``Unknown``."""
-
-
-def load_stale_after(environ: Mapping[str, str]) -> timedelta:
-    """The staleness window from ``ROOST_AGENT_STALE_SECONDS`` (default 30 s).
-
-    Keep it at least three times the agents' ``--report-interval``.
-    """
-    seconds = environ.get("ROOST_AGENT_STALE_SECONDS")
-    return timedelta(seconds=float(seconds)) if seconds else DEFAULT_AGENT_STALE_AFTER
+"""Age of the last report after which ``AgentConnected`` turns ``Unknown`` (the
+operator's ``Settings.agent_stale_after`` defaults to it)."""
 
 
 @dataclass(frozen=True)

@@ -34,7 +34,6 @@ Pure functions: no API calls, ``now`` is a parameter.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 from datetime import datetime, timedelta
@@ -53,7 +52,8 @@ TRUE_VALUES = frozenset({"true", "1", "yes", "on"})
 class FleetGuards:
     """Limits on cluster-side failover actions; see the module docstring.
 
-    Environment variables (read by :func:`load_fleet_guards`) in brackets.
+    Environment variables (read by :func:`roost_operator.settings.load_guards`) in
+    brackets.
     """
 
     max_concurrent_actions: int = 5
@@ -71,33 +71,6 @@ class FleetGuards:
 
     paused: bool = False
     """Fleet-wide pause of every cluster-side action (``ROOST_FAILOVER_PAUSED``)."""
-
-
-def load_fleet_guards(environ: Mapping[str, str] = os.environ) -> FleetGuards:
-    """:class:`FleetGuards` from the environment, defaults for what is unset."""
-    defaults = FleetGuards()
-    return FleetGuards(
-        max_concurrent_actions=int(
-            environ.get("ROOST_FAILOVER_MAX_CONCURRENT", defaults.max_concurrent_actions)
-        ),
-        latch_after=int(environ.get("ROOST_FAILOVER_LATCH_AFTER", defaults.latch_after)),
-        latch_window=timedelta(
-            seconds=float(
-                environ.get(
-                    "ROOST_FAILOVER_LATCH_WINDOW_SECONDS", defaults.latch_window.total_seconds()
-                )
-            )
-        ),
-        action_timeout=timedelta(
-            seconds=float(
-                environ.get(
-                    "ROOST_FAILOVER_ACTION_TIMEOUT_SECONDS",
-                    defaults.action_timeout.total_seconds(),
-                )
-            )
-        ),
-        paused=environ.get("ROOST_FAILOVER_PAUSED", "false").strip().lower() in TRUE_VALUES,
-    )
 
 
 Verdict = FailoverGuard

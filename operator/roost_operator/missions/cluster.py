@@ -2,14 +2,14 @@
 
 Everything goes through :class:`~roost_kube.client.Kube`. The parts that need care:
 
-* **Claims** are a JSON merge patch of ``status.claimedBy`` alone, carrying the
-  ``resourceVersion`` the decision was made on. Of two missions claiming one vehicle,
-  the API server accepts exactly one patch; the other gets 409. A 409 is not always a
-  lost race — the vehicle operator also writes Vehicle status (its own fields only) —
-  so the loser re-reads the vehicle and retries only while it is still unclaimed and
-  claimable. Claims are all-or-nothing: when one fails, the vehicles claimed in the same
-  round are given back and the mission plans again from a fresh read.
-* **Order**: Vehicles are listed before Missions, so an orphaned claim is never
+* **Claims** are Leases in the operator's namespace (:mod:`roost_operator.claims`),
+  written by this module only: created to claim, taken over from an orphan with the
+  ``resourceVersion`` it was judged at, deleted with preconditions to release. Of two
+  missions claiming one vehicle, the API server accepts exactly one write; the other
+  gets 409 and has lost (nobody else writes claims). Claims are all-or-nothing: when
+  one fails, the vehicles claimed in the same round are given back and the mission
+  plans again from a fresh read.
+* **Order**: Vehicles and claims are listed before Missions, so an orphaned claim is never
   confused with a claim by a Mission created in between (see
   :mod:`~roost_operator.missions.selection`). The status is written before Jobs are
   created, so ``startTime`` precedes every workload; commands before releases, so a
@@ -30,13 +30,14 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
+from functools import partial
 from typing import Any, Final, TypeVar
 
 from pydantic import ValidationError
 
 from roost_api.autopilot import AutopilotCommand
 from roost_api.commands import command_patch
-from roost_api.meta import API_VERSION, ObjectReference
+from roost_api.meta import API_VERSION
 from roost_api.mission import MissionPhase, MissionSpec, MissionStatus
 from roost_api.resources import MISSION, VEHICLE
 from roost_api.wellknown import (
@@ -47,10 +48,12 @@ from roost_api.wellknown import (
     MANAGED_BY,
 )
 from roost_kube.client import Kube
-from roost_kube.errors import ApiError, ConflictError
+from roost_kube.errors import ApiError, ConflictError, TemporaryApiError
 from roost_kube.patches import Obj, needs_apply, with_applied_hash
-from roost_kube.resources import CONFIGMAPS, JOBS, MISSIONS, REDUNDANT_AUTOPILOTS, VEHICLES
+from roost_kube.resources import CONFIGMAPS, JOBS, LEASES, MISSIONS, REDUNDANT_AUTOPILOTS, VEHICLES
+from roost_operator import claims
 from roost_operator.autopilots.guards import FleetGuards
+from roost_operator.claims import Claim
 from roost_operator.missions.machine import (
     MissionEvent,
     Observation,
@@ -60,19 +63,15 @@ from roost_operator.missions.machine import (
     plan_mission,
 )
 from roost_operator.missions.observed import AutopilotView, JobView, MissionRef, VehicleView
-from roost_operator.missions.selection import holding_missions, is_claimable
-from roost_operator.missions.workloads import bounded_name
-from roost_operator.vehicles.config import CONFIG_COMPONENT, config_values_of
-from roost_operator.vehicles.status import write_vehicle_status
+from roost_operator.missions.selection import holding_missions
+from roost_operator.missions.workloads import bounded_name, template_probes
+from roost_operator.vehicles.config import CONFIG_COMPONENT, config_map_name, config_values_of
 
 log = logging.getLogger(__name__)
 
-CLAIM_RETRIES: Final = 3
-"""Re-reads of one vehicle after a 409 before giving up on claiming it."""
 RELEASE_RETRIES: Final = 5
 CLAIM_ROUNDS: Final = 3
 """Claim rounds per reconcile; after that the mission waits a jittered moment."""
-UNPROCESSABLE: Final = 422
 WRITE_CONCURRENCY: Final = 8
 """Independent writes of one reconcile in flight at once (Jobs, ConfigMaps, Events)."""
 
@@ -107,7 +106,7 @@ def _parse_all(items: Iterable[Obj], parse: Callable[[Obj], T], what: str) -> li
             parsed.append(parse(item))
         except (ValidationError, KeyError) as error:
             name = item.get("metadata", {}).get("name")
-            log.warning("skipping malformed %s %s: %s", what, name, error)
+            log.warning("%s %s: malformed, skipped: %s", what, name, error)
     return parsed
 
 
@@ -144,7 +143,15 @@ def observe(
     meta = body["metadata"]
     mission = MissionRef(namespace=namespace, name=name, uid=meta["uid"])
     status = MissionStatus.model_validate(body.get("status") or {})
-    vehicles = _parse_all(kube.list_objects(VEHICLES), VehicleView.from_body, "Vehicle")
+    vehicle_bodies = kube.list_objects(VEHICLES)
+    held = claims.claims_by_vehicle(
+        kube.list_objects(LEASES, namespace=operator_namespace, labels=claims.CLAIM_LABELS)
+    )
+    vehicles = _parse_all(
+        vehicle_bodies,
+        lambda body: VehicleView.from_body(body, held.get(body["metadata"]["name"])),
+        "Vehicle",
+    )
     autopilots = _parse_all(
         kube.list_objects(REDUNDANT_AUTOPILOTS), AutopilotView.from_body, "RedundantAutopilot"
     )
@@ -184,75 +191,79 @@ def observe(
 # -- claims ---------------------------------------------------------------------------
 
 
-CLAIM_FIELDS: Final = ("claimedBy",)
-"""The only Vehicle status field the mission controller writes."""
+def _claim_view(kube: Kube, namespace: str, vehicle: str) -> Claim | None:
+    return claims.claim_of(kube.get(LEASES, claims.lease_name(vehicle), namespace) or {})
 
 
-def _patch_claim(kube: Kube, vehicle: VehicleView, claim: ObjectReference | None) -> VehicleView:
-    """Write ``claimedBy`` alone, conditional on the resourceVersion ``vehicle`` was read at."""
-    claimed = vehicle.status.model_copy(update={"claimed_by": claim})
-    read_at = {"metadata": {"name": vehicle.name, "resourceVersion": vehicle.resource_version}}
-    write_vehicle_status(
-        kube, read_at, vehicle.status, claimed, fields=CLAIM_FIELDS, event_types=()
-    )
-    return replace(vehicle, status=claimed)
+def claim_vehicle(
+    kube: Kube, namespace: str, vehicle: VehicleView, mission: MissionRef, *, at: datetime
+) -> VehicleView | None:
+    """Claim ``vehicle`` for ``mission`` in the operator's ``namespace``; the claimed view.
 
-
-def claim_vehicle(kube: Kube, vehicle: VehicleView, mission: MissionRef) -> VehicleView | None:
-    """Claim ``vehicle`` for ``mission`` unless someone else holds it; the claimed view.
-
-    The first attempt may take over an orphaned claim (decided by the caller from the
-    same read); retries after a 409 only claim a vehicle that is unclaimed and claimable.
+    ``vehicle.claim`` is the claim as the caller read it: None means "create the claim",
+    an orphan's claim means "take it over at the version read". A 409 means another
+    mission was faster, unless the fresh claim turns out to be this mission's own.
     """
-    claim = mission.reference
-    current = vehicle
-    for _ in range(CLAIM_RETRIES):
-        try:
-            return _patch_claim(kube, current, claim)
-        except ConflictError:
-            fresh = kube.get(VEHICLES, vehicle.name)
-            if fresh is None:
-                return None
-            current = VehicleView.from_body(fresh)
-            if mission.owns(current.status.claimed_by):
-                return current
-            if current.status.claimed_by is not None or not is_claimable(current):
-                return None
-    return None
+    try:
+        if vehicle.claim is None:
+            manifest = claims.claim_lease(
+                vehicle=vehicle.name,
+                vehicle_uid=vehicle.uid,
+                holder=mission.reference,
+                mission_uid=mission.uid,
+                namespace=namespace,
+                at=at,
+            )
+            lease = kube.create(manifest)
+        else:
+            lease = kube.merge_patch(
+                LEASES,
+                claims.lease_name(vehicle.name),
+                claims.takeover_patch(vehicle.claim, mission.reference, mission.uid, at),
+                namespace=namespace,
+            )
+    except ConflictError:
+        fresh = _claim_view(kube, namespace, vehicle.name)
+        if fresh is not None and mission.owns(fresh.holder):
+            return replace(vehicle, claim=fresh)
+        return None
+    return replace(vehicle, claim=claims.claim_of(lease))
 
 
-def release_vehicle(kube: Kube, name: str, mission: MissionRef) -> bool:
-    """Clear ``claimedBy`` on ``name`` if ``mission`` holds it; True when released."""
+def release_vehicle(kube: Kube, namespace: str, name: str, mission: MissionRef) -> bool:
+    """Delete the claim on vehicle ``name`` if ``mission`` holds it; True when released."""
     for _ in range(RELEASE_RETRIES):
-        fresh = kube.get(VEHICLES, name)
-        if fresh is None:
+        claim = _claim_view(kube, namespace, name)
+        if claim is None or not mission.owns(claim.holder):
             return False
-        vehicle = VehicleView.from_body(fresh)
-        if not mission.owns(vehicle.status.claimed_by):
-            return False
+        path = LEASES.object_path(claims.lease_name(name), namespace)
         try:
-            _patch_claim(kube, vehicle, None)
+            kube.request("DELETE", path, body=claims.release_options(claim))
         except ConflictError:
             continue
-        kube.post_event(
-            vehicle_body(vehicle),
-            reason="Released",
-            message=f"released by mission {mission.key}",
-            at=_timestamp(datetime.now(UTC)),
-        )
+        vehicle = kube.get(VEHICLES, name)
+        if vehicle is not None:
+            kube.post_event(
+                vehicle,
+                reason="Released",
+                message=f"released by mission {mission.key}",
+                at=_timestamp(datetime.now(UTC)),
+            )
         return True
-    raise ConflictError(409, "PATCH", f"vehicles/{name}/status", "release kept conflicting")
+    raise ConflictError(409, "DELETE", f"leases/{name}", "release kept conflicting")
 
 
-def _claim_all(kube: Kube, obs: Observation, names: list[str]) -> Observation | None:
+def _claim_all(
+    kube: Kube, namespace: str, obs: Observation, names: list[str]
+) -> Observation | None:
     """Claim every vehicle in ``names`` or none; the observation with the claims."""
     claimed: dict[str, VehicleView] = {}
     for name in names:
-        view = claim_vehicle(kube, obs.vehicles[name], obs.mission)
+        view = claim_vehicle(kube, namespace, obs.vehicles[name], obs.mission, at=obs.now)
         if view is None:
-            log.info("mission %s lost the race for vehicle %s", obs.mission.key, name)
+            log.info("Mission %s: lost the race for Vehicle %s", obs.mission.key, name)
             for taken in claimed:
-                release_vehicle(kube, taken, obs.mission)
+                release_vehicle(kube, namespace, taken, obs.mission)
             return None
         claimed[name] = view
     _each(
@@ -315,8 +326,74 @@ def _config_maps_to_apply(
     ]
 
 
+def _delete_config_copies(
+    kube: Kube, obs: Observation, vehicles: Sequence[str], operator_namespace: str
+) -> None:
+    """Delete this mission's config copies of ``vehicles`` (one list request first).
+
+    Only copies whose sole owner is this Mission: a copy another Mission in the same
+    namespace has applied since (it owns it now) stays for that Mission's pods.
+    """
+    if not vehicles or obs.mission.namespace == operator_namespace:
+        return
+    wanted = {config_map_name(name) for name in vehicles}
+    copies = kube.list_objects(
+        CONFIGMAPS,
+        namespace=obs.mission.namespace,
+        labels={LABEL_MANAGED_BY: MANAGED_BY, LABEL_COMPONENT: CONFIG_COMPONENT},
+    )
+    ours = [
+        cm
+        for cm in copies
+        if cm["metadata"]["name"] in wanted
+        and [ref.get("uid") for ref in cm["metadata"].get("ownerReferences") or []]
+        == [obs.mission.uid]
+    ]
+    _each(lambda cm: kube.delete(CONFIGMAPS, cm["metadata"]["name"], obs.mission.namespace), ours)
+
+
 class JobRejectedError(ApiError):
-    """The API server refused a Job as invalid (422): retrying cannot help."""
+    """The API server refused a Job (400, 422, …): retrying the same Job cannot help."""
+
+
+DRY_RUN: Final = {"dryRun": "All"}
+
+
+def check_templates(kube: Kube, obs: Observation, vehicles: Sequence[str]) -> Plan | None:
+    """Dry-run the mission's Jobs; the plan that fails the mission if one is refused.
+
+    Runs before any claim, so a template the Job API would refuse never holds a
+    vehicle. The message is the API server's own words (its Status ``message``), not
+    its JSON. Temporary errors are raised (the reconcile is retried).
+    """
+    probes = template_probes(
+        mission=obs.mission, spec=obs.spec, vehicles=vehicles, config_values=obs.config_values
+    )
+    for field_path, manifest in probes:
+        try:
+            kube.request(
+                "POST",
+                JOBS.collection_path(obs.mission.namespace),
+                query={**DRY_RUN, "fieldManager": kube.field_manager},
+                body=manifest,
+            )
+        except ConflictError:
+            continue  # a Job of that name exists: the template was accepted before
+        except ApiError as error:
+            if isinstance(error, TemporaryApiError):
+                raise
+            log.warning(
+                "Mission %s: %s refused by the Job API: %s",
+                obs.mission.key,
+                field_path,
+                error.message,
+            )
+            return fail_mission(
+                obs,
+                "InvalidTemplate",
+                f"{field_path} is refused by the Job API: {error.message}",
+            )
+    return None
 
 
 def _create(kube: Kube, manifest: Obj) -> None:
@@ -327,9 +404,10 @@ def _create(kube: Kube, manifest: Obj) -> None:
     try:
         kube.create(manifest)
     except ConflictError:
-        log.debug("job %s already exists", manifest["metadata"]["name"])
+        meta = manifest["metadata"]
+        log.debug("Job %s/%s: already exists", meta.get("namespace"), meta["name"])
     except ApiError as error:
-        if error.status == UNPROCESSABLE:
+        if not isinstance(error, TemporaryApiError):
             raise JobRejectedError(error.status, "POST", "jobs", error.body) from error
         raise
 
@@ -375,12 +453,18 @@ def carry_out(kube: Kube, obs: Observation, plan: Plan, operator_namespace: str)
         # A pod waits for its ConfigMap to appear, so both go out together.
         _each(lambda manifest: _create(kube, manifest), [*config_maps, *plan.jobs_to_create])
     except JobRejectedError as error:
-        rejected = fail_mission(obs, "JobRejected", f"the API server rejected a Job: {error.body}")
+        rejected = fail_mission(
+            obs, "JobRejected", f"the API server rejected a Job: {error.message}"
+        )
         carry_out(kube, obs, rejected, operator_namespace)
         return
     _write_commands(kube, obs, plan.commands)
     _each(lambda job_name: kube.delete(JOBS, job_name, obs.mission.namespace), plan.jobs_to_delete)
-    _each(lambda vehicle_name: release_vehicle(kube, vehicle_name, obs.mission), plan.releases)
+    _delete_config_copies(kube, obs, plan.config_maps_to_delete, operator_namespace)
+    _each(
+        lambda vehicle_name: release_vehicle(kube, operator_namespace, vehicle_name, obs.mission),
+        plan.releases,
+    )
     _post(kube, obs, plan.events)
 
 
@@ -394,10 +478,15 @@ def reconcile_mission(
     if obs is None:
         return None
     plan = plan_mission(obs)
+    if plan.claims:
+        refused = check_templates(kube, obs, plan.claims)
+        if refused is not None:
+            carry_out(kube, obs, refused, operator_namespace)
+            return Outcome(refused, None, True, (), False)
     rounds = 0
     while plan.claims:
         rounds += 1
-        claimed = _claim_all(kube, obs, plan.claims)
+        claimed = _claim_all(kube, operator_namespace, obs, plan.claims)
         if claimed is not None:
             obs = claimed
         elif rounds >= CLAIM_ROUNDS:
@@ -429,14 +518,38 @@ def reconcile_mission(
 
 def release_deleted_mission(
     kube: Kube, *, namespace: str, name: str, operator_namespace: str, guards: FleetGuards
-) -> None:
-    """The Mission is being deleted: abort what still flies for it, release its vehicles."""
+) -> list[str]:
+    """The Mission is being deleted: abort what still flies for it, release its vehicles.
+
+    Every step is tried even when another fails. Temporary errors are raised (the
+    deletion is retried); permanent ones are returned as what was left, so the
+    Mission's finalizer is released anyway.
+    """
     obs = observe(
         kube, namespace=namespace, name=name, operator_namespace=operator_namespace, guards=guards
     )
     if obs is None:
-        return
+        return []
     plan = plan_deletion(obs)
-    _write_commands(kube, obs, plan.commands)
-    _each(lambda vehicle_name: release_vehicle(kube, vehicle_name, obs.mission), plan.releases)
-    _post(kube, obs, plan.events)
+    left: list[str] = []
+
+    def attempt(what: str, step: Callable[[], object]) -> None:
+        try:
+            step()
+        except ApiError as error:
+            if isinstance(error, TemporaryApiError):
+                raise
+            left.append(f"{what}: {error.message}")
+
+    for vehicle_name, command in plan.commands.items():
+        attempt(
+            f"abort command to {vehicle_name}",
+            partial(_write_commands, kube, obs, {vehicle_name: command}),
+        )
+    for vehicle_name in plan.releases:
+        attempt(
+            f"claim on {vehicle_name}",
+            partial(release_vehicle, kube, operator_namespace, vehicle_name, obs.mission),
+        )
+    attempt("Events", lambda: _post(kube, obs, plan.events))
+    return left

@@ -13,7 +13,13 @@ finished and holds nothing.
 
 Deletion: kopf stops the loop, then :func:`mission_deleted` (behind Roost's finalizer)
 aborts what still flies for the mission and releases its vehicles; its Jobs go by
-owner reference.
+owner reference. A cleanup that meets a permanent error still lets the Mission go,
+with a Warning Event naming what was left.
+
+Errors: a reconcile that fails is retried with a doubling backoff
+(:class:`~roost_operator.settings.MissionTimings`); its log line names the Mission.
+Handlers are registered by :func:`register`; timings are read from the settings in
+the operator's memo.
 """
 
 from __future__ import annotations
@@ -24,36 +30,70 @@ from typing import Any, Final
 
 import kopf
 
-from roost_api.wellknown import LABEL_MISSION
+from roost_api.meta import now
+from roost_api.wellknown import LABEL_COMPONENT, LABEL_MISSION
 from roost_kube import resources
-from roost_operator.autopilots.handlers import GUARDS
+from roost_kube.client import Kube
+from roost_kube.errors import ApiError, TemporaryApiError
+from roost_operator.claims import CLAIM_COMPONENT, claim_of
+from roost_operator.edge import at_the_edge
 from roost_operator.missions.cluster import reconcile_mission, release_deleted_mission
 from roost_operator.missions.wakeups import Wakeups, sleep_until_woken
 from roost_operator.runtime import runtime
+from roost_operator.settings import MissionTimings, Settings
 
 MISSIONS: Final = resources.MISSIONS.kopf
 VEHICLES: Final = resources.VEHICLES.kopf
 AUTOPILOTS: Final = resources.REDUNDANT_AUTOPILOTS.kopf
-
-RESYNC_S: Final = 10.0
-"""Reconcile a mission at least this often (Jobs and agents also wake it)."""
-ERROR_BACKOFF_S: Final = 5.0
-COALESCE_S: Final = 0.5
-"""After a wake-up, wait this long so a burst of events costs one reconcile."""
+LEASES: Final = resources.LEASES.kopf
 
 WAKEUPS: Final = Wakeups()
 log = logging.getLogger(__name__)
 
 
-@kopf.daemon(*MISSIONS, id="mission", cancellation_timeout=30.0)
+def backoff(timings: MissionTimings, failures: int) -> float:
+    """Wait before the next try after ``failures`` failed reconciles in a row (doubling)."""
+    delay = timings.error_backoff_seconds * 2 ** max(failures - 1, 0)
+    return float(min(delay, timings.max_backoff_seconds))
+
+
+def report_refusal(kube: Kube, body: kopf.Body, key: str, error: ApiError) -> None:
+    """A write the API server refuses for good: one log line and one Warning Event.
+
+    The reconcile is still retried with the longest backoff (a human may fix what the
+    refusal names, e.g. a quota or a policy), but the refusal is not reported again
+    until it changes.
+    """
+    log.error("Mission %s: the API server refused a write: %s", key, error)
+    try:
+        kube.post_event(
+            body,
+            reason="WriteRefused",
+            message=f"the API server refused a write for this mission: {error.message}",
+            type="Warning",
+            at=now(),
+        )
+    except ApiError as failed:
+        log.warning("Mission %s: could not post the Event: %s", key, failed)
+
+
 async def mission_daemon(
-    *, name: str, namespace: str | None, stopped: kopf.DaemonStopped, memo: Any, **_: Any
+    *,
+    name: str,
+    namespace: str | None,
+    body: kopf.Body,
+    stopped: kopf.DaemonStopped,
+    memo: Any,
+    **_: Any,
 ) -> None:
     """Reconcile the Mission until it is finished and holds nothing."""
     assert namespace is not None, "Missions are namespaced"
     rt = runtime(memo)
+    timings = rt.settings.missions
     key = f"{namespace}/{name}"
     wakeup = WAKEUPS.register(key)
+    failures = 0
+    reported: str | None = None
     try:
         while not stopped:
             wakeup.clear()
@@ -64,38 +104,67 @@ async def mission_daemon(
                     namespace=namespace,
                     name=name,
                     operator_namespace=rt.settings.namespace,
-                    guards=GUARDS,
+                    guards=rt.settings.guards,
                 )
+            except ApiError as error:
+                failures += 1
+                delay = backoff(timings, failures)
+                if isinstance(error, TemporaryApiError):
+                    log.warning("Mission %s: %s; retrying in %.1f s", key, error, delay)
+                elif str(error) != reported:  # once per distinct refusal, no traceback
+                    reported = str(error)
+                    await asyncio.to_thread(report_refusal, rt.kube, body, key, error)
             except Exception:
-                log.exception("reconciling mission %s failed; retrying", key)
-                delay = ERROR_BACKOFF_S
+                failures += 1
+                delay = backoff(timings, failures)
+                log.exception("Mission %s: reconcile failed; retrying in %.1f s", key, delay)
             else:
+                failures = 0
+                reported = None
                 if outcome is None or outcome.finished:
                     return
                 WAKEUPS.track(key, vehicles=outcome.assigned, waiting=outcome.waiting_for_vehicles)
-                delay = RESYNC_S if outcome.requeue_after is None else outcome.requeue_after
+                delay = (
+                    timings.resync_seconds
+                    if outcome.requeue_after is None
+                    else outcome.requeue_after
+                )
             if await sleep_until_woken(wakeup, stopped.wait(), delay):
-                await asyncio.sleep(COALESCE_S)
+                await asyncio.sleep(timings.coalesce_seconds)
     finally:
         WAKEUPS.forget(key)
 
 
-@kopf.on.delete(*MISSIONS, backoff=2.0)
-async def mission_deleted(*, name: str, namespace: str | None, memo: Any, **_: Any) -> None:
-    """Abort what still flies for the mission and release its vehicles."""
+async def mission_deleted(
+    *, name: str, namespace: str | None, body: kopf.Body, memo: Any, **_: Any
+) -> None:
+    """Abort what still flies for the mission and release its vehicles.
+
+    What cannot be done (a permanent error) is named in a Warning Event and the
+    deletion goes on; temporary errors are retried by kopf.
+    """
     assert namespace is not None, "Missions are namespaced"
     rt = runtime(memo)
-    await asyncio.to_thread(
-        release_deleted_mission,
-        rt.kube,
-        namespace=namespace,
-        name=name,
-        operator_namespace=rt.settings.namespace,
-        guards=GUARDS,
-    )
+    with at_the_edge("Mission", name, namespace=namespace):
+        leftovers = await asyncio.to_thread(
+            release_deleted_mission,
+            rt.kube,
+            namespace=namespace,
+            name=name,
+            operator_namespace=rt.settings.namespace,
+            guards=rt.settings.guards,
+        )
+    if leftovers:
+        log.warning("Mission %s/%s: deleted, but: %s", namespace, name, "; ".join(leftovers))
+        rt.kube.post_event(
+            body,
+            reason="CleanupIncomplete",
+            message="deleted, but: " + "; ".join(leftovers),
+            type="Warning",
+            at=now().isoformat().replace("+00:00", "Z"),
+        )
 
 
-@kopf.on.event(*MISSIONS)
 async def mission_event(
     *, name: str, namespace: str | None, meta: kopf.Meta, status: kopf.Status, **_: Any
 ) -> None:
@@ -105,7 +174,6 @@ async def mission_event(
         WAKEUPS.wake(f"{namespace}/{name}")
 
 
-@kopf.on.event(*VEHICLES)
 async def vehicle_event(*, name: str, status: kopf.Status, **_: Any) -> None:
     """A Vehicle changed (Ready, claim): wake its mission and the waiting missions."""
     claim = status.get("claimedBy") or {}
@@ -113,7 +181,14 @@ async def vehicle_event(*, name: str, status: kopf.Status, **_: Any) -> None:
     WAKEUPS.wake_for_vehicle(name, claimant)
 
 
-@kopf.on.event(*AUTOPILOTS)
+async def claim_event(*, body: kopf.Body, **_: Any) -> None:
+    """A vehicle was claimed or released: wake its holder and the waiting missions."""
+    claim = claim_of(body)
+    if claim is None:
+        return
+    WAKEUPS.wake_for_vehicle(claim.vehicle, claim.holder_key)
+
+
 async def autopilots_event(*, spec: kopf.Spec, **_: Any) -> None:
     """An agent reported (health, failover, landed, command result): wake the mission."""
     vehicle = spec.get("vehicleName")
@@ -121,9 +196,33 @@ async def autopilots_event(*, spec: kopf.Spec, **_: Any) -> None:
         WAKEUPS.wake_holder(vehicle)
 
 
-@kopf.on.event("batch", "v1", "jobs", labels={LABEL_MISSION: kopf.PRESENT})
 async def job_event(*, namespace: str | None, meta: kopf.Meta, **_: Any) -> None:
     """A mission's Job progressed: wake the Mission that owns it."""
     for ref in meta.get("ownerReferences") or []:
         if ref.get("kind") == "Mission":
             WAKEUPS.wake(f"{namespace}/{ref['name']}")
+
+
+def register(registry: kopf.OperatorRegistry, settings: Settings) -> None:
+    """Register the Mission controller's handlers with the operator's settings."""
+    timings = settings.missions
+    kopf.daemon(
+        *MISSIONS,
+        id="mission",
+        cancellation_timeout=timings.stop_timeout_seconds,
+        registry=registry,
+    )(mission_daemon)
+    kopf.on.delete(*MISSIONS, backoff=timings.delete_backoff_seconds, registry=registry)(
+        mission_deleted
+    )
+    kopf.on.event(*MISSIONS, registry=registry)(mission_event)
+    kopf.on.event(*VEHICLES, registry=registry)(vehicle_event)
+    kopf.on.event(
+        *LEASES,
+        labels={LABEL_COMPONENT: CLAIM_COMPONENT},
+        registry=registry,
+    )(claim_event)
+    kopf.on.event(*AUTOPILOTS, registry=registry)(autopilots_event)
+    kopf.on.event("batch", "v1", "jobs", labels={LABEL_MISSION: kopf.PRESENT}, registry=registry)(
+        job_event
+    )

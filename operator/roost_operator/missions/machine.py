@@ -52,6 +52,13 @@ Phases::
   after an AbortVehicle: it stays claimed and followed until it is down.
 * A Mission deleted while it runs (:func:`plan_deletion`) sends the abort command to its
   vehicles and releases them without waiting for the landing.
+* A **Vehicle deleted** while the mission runs leaves it at once: its Job is stopped,
+  its config copy removed, its agent (if its RedundantAutopilot is still there) asked
+  for the safety routine, and the mission goes on Degraded (``VehicleDeleted``) — or
+  aborts, when ``spec.onFailover`` is AbortMission. No fleet guard applies: the
+  deletion was a human's decision.
+* Once the mission has finished, its config copies are removed (a copy another Mission
+  has taken over since is left alone).
 """
 
 from __future__ import annotations
@@ -118,6 +125,7 @@ ON_GROUND = landed_state_name(LandedState.ON_GROUND)
 Severity = Literal["Normal", "Warning"]
 
 _VEHICLE_DONE = (MissionVehiclePhase.SUCCEEDED, MissionVehiclePhase.ABORTED)
+_VEHICLE_FINAL = (*_VEHICLE_DONE, MissionVehiclePhase.FAILED)
 _WARNING_VEHICLE_PHASES = (
     MissionVehiclePhase.PREFLIGHT,
     MissionVehiclePhase.FAILED,
@@ -173,6 +181,8 @@ class Plan:
     commands: dict[str, AutopilotCommand] = field(default_factory=dict)
     """New commands to write, by vehicle name."""
     jobs_to_delete: list[str] = field(default_factory=list)
+    config_maps_to_delete: list[str] = field(default_factory=list)
+    """Vehicles whose config copy in the Mission's namespace goes (if this Mission owns it)."""
     releases: list[str] = field(default_factory=list)
     events: list[MissionEvent] = field(default_factory=list)
     requeue_after: float | None = None
@@ -199,6 +209,9 @@ def plan_mission(obs: Observation) -> Plan:
         _run(obs, plan)
     plan.status.observed_generation = obs.generation
     plan.events = [*transition_events(obs.status, plan.status), *plan.events]
+    if MissionPhase(plan.status.phase).finished:
+        # Nothing of a finished mission keeps running, so nothing needs its config copies.
+        plan.config_maps_to_delete = [v.name for v in plan.status.vehicles]
     return plan
 
 
@@ -475,6 +488,15 @@ def _run(obs: Observation, plan: Plan) -> None:
         job = obs.jobs.get(job_name)
         autopilots = obs.autopilots.get(vehicle.name)
         phase = MissionVehiclePhase(vehicle.phase)
+        if phase not in _VEHICLE_FINAL and vehicle_lost(obs, vehicle.name):
+            if _leave(obs, plan, vehicle, job) and OnFailover(obs.spec.on_failover) is (
+                OnFailover.ABORT_MISSION
+            ):
+                abort_mission_because = (
+                    f"{vehicle.name}: the Vehicle was deleted (onFailover=AbortMission)"
+                )
+            updated.append(vehicle)
+            continue
         if phase in (MissionVehiclePhase.ABORTING, MissionVehiclePhase.ABORTED):
             _stop_job(plan, job)
             if phase is MissionVehiclePhase.ABORTING:
@@ -484,8 +506,8 @@ def _run(obs: Observation, plan: Plan) -> None:
         if phase in (MissionVehiclePhase.SUCCEEDED, MissionVehiclePhase.FAILED):
             updated.append(vehicle)
             continue
-        failed_over = _new_failover(vehicle, autopilots, start)
         policy = OnFailover(obs.spec.on_failover)
+        failed_over = _new_failover(vehicle, autopilots, start)
         pending = vehicle.failover_action_held is not None
         if failed_over is not None and autopilots is not None:
             vehicle.failed_over_at = failed_over
@@ -533,6 +555,45 @@ def _run(obs: Observation, plan: Plan) -> None:
         _abort(obs, plan)
         return
     _aggregate(obs, plan)
+
+
+def vehicle_lost(obs: Observation, name: str) -> bool:
+    """Whether the Vehicle ``name`` is gone or being deleted (it left the fleet)."""
+    view = obs.vehicles.get(name)
+    return view is None or view.deleting
+
+
+def _leave(
+    obs: Observation, plan: Plan, vehicle: MissionVehicleStatus, job: JobView | None
+) -> bool:
+    """The Vehicle was deleted mid-mission: it leaves the mission now.
+
+    Its Job is stopped at once (its node is released, nothing must keep running there
+    for the mission) and its copy of the vehicle config is removed. Its agent, if its
+    RedundantAutopilot is still there, is asked to run the safety routine — the same
+    reasoning as for a deleted Mission: the vehicle must not stay in the air without its
+    controllers. No fleet guard applies: deleting the Vehicle was a human's decision.
+    True the first time (the mission then applies ``spec.onFailover``: AbortMission
+    aborts it, otherwise it goes on Degraded).
+    """
+    _stop_job(plan, job)
+    plan.config_maps_to_delete.append(vehicle.name)
+    first = vehicle.reason != "VehicleDeleted"
+    vehicle.failover_action_held = None  # nothing is left to hold back
+    _abort_vehicle(obs, plan, vehicle, CommandAction.SAFETY_ROUTINE)
+    vehicle.reason = "VehicleDeleted"
+    vehicle.message = f"the Vehicle was deleted during the mission; {vehicle.message}"
+    if first:
+        plan.events.append(
+            MissionEvent(
+                "Warning",
+                "VehicleDeleted",
+                f"{vehicle.name}: the Vehicle was deleted; its Job is stopped and it leaves "
+                f"the mission (onFailover={obs.spec.on_failover})",
+                vehicle=vehicle.name,
+            )
+        )
+    return first
 
 
 def _consequence_verdict(obs: Observation, name: str, autopilots: AutopilotView) -> Verdict:
@@ -677,7 +738,22 @@ def _follow_offboard(obs: Observation, plan: Plan, assigned: Sequence[str]) -> N
 
 
 def _degraded(obs: Observation, status: MissionStatus) -> None:
+    lost = [
+        v.name
+        for v in status.vehicles
+        if v.phase != MissionVehiclePhase.SUCCEEDED and vehicle_lost(obs, v.name)
+    ]
     failed_over = [v for v in status.vehicles if v.failed_over_at is not None]
+    if lost and not failed_over:
+        _condition(
+            obs,
+            status,
+            MissionConditionType.DEGRADED,
+            "True",
+            reason="VehicleDeleted",
+            message=f"Vehicle deleted during the mission: {', '.join(lost)}",
+        )
+        return
     if not failed_over:
         return
     names = ", ".join(v.name for v in failed_over)
@@ -728,7 +804,12 @@ def _aggregate(obs: Observation, plan: Plan) -> None:
     aborted = [v for v in vehicles if v.phase == MissionVehiclePhase.ABORTED]
     if vehicles and all(MissionVehiclePhase(v.phase) in _VEHICLE_DONE for v in vehicles):
         if succeeded:
-            extra = f"; {len(aborted)} aborted after a failover" if aborted else ""
+            why = (
+                "a failover or the Vehicle's deletion"
+                if any(v.reason == "VehicleDeleted" for v in aborted)
+                else "a failover"
+            )
+            extra = f"; {len(aborted)} aborted after {why}" if aborted else ""
             _finish(
                 obs,
                 plan,

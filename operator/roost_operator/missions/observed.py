@@ -16,11 +16,12 @@ from typing import Any
 from roost_api.autopilot import RedundantAutopilotSpec, RedundantAutopilotStatus
 from roost_api.meta import ObjectReference
 from roost_api.vehicle import VehicleSpec, VehicleStatus
+from roost_operator.claims import Claim
 
 
 @dataclass(frozen=True)
 class MissionRef:
-    """Identity of a Mission: what a Vehicle's ``status.claimedBy`` points at."""
+    """Identity of a Mission: what a vehicle's claim (:mod:`roost_operator.claims`) names."""
 
     namespace: str
     name: str
@@ -35,7 +36,7 @@ class MissionRef:
         return ObjectReference(namespace=self.namespace, name=self.name)
 
     def owns(self, claim: ObjectReference | None) -> bool:
-        """True when ``claim`` (a Vehicle's claimedBy) is this mission."""
+        """True when ``claim`` (the holder of a vehicle's claim) is this mission."""
         return claim is not None and claim.namespace == self.namespace and claim.name == self.name
 
 
@@ -57,6 +58,13 @@ class VehicleView:
     deleting: bool = False
     annotations: Mapping[str, str] = field(default_factory=dict)
     """Its annotations (the fleet guards' pause switch and latch clear live there)."""
+    claim: Claim | None = None
+    """The mission claim on it (its claim Lease), if any."""
+
+    @property
+    def claimed_by(self) -> ObjectReference | None:
+        """The Mission holding the vehicle, if any."""
+        return self.claim.holder if self.claim is not None else None
 
     @property
     def node_name(self) -> str:
@@ -64,7 +72,7 @@ class VehicleView:
         return self.status.node_name or self.spec.node_name
 
     @classmethod
-    def from_body(cls, body: Mapping[str, Any]) -> VehicleView:
+    def from_body(cls, body: Mapping[str, Any], claim: Claim | None = None) -> VehicleView:
         meta = body["metadata"]
         return cls(
             name=meta["name"],
@@ -75,6 +83,7 @@ class VehicleView:
             uid=meta.get("uid", ""),
             deleting=bool(meta.get("deletionTimestamp")),
             annotations=dict(meta.get("annotations") or {}),
+            claim=claim,
         )
 
 

@@ -7,9 +7,9 @@ retry at worst. Candidates are ordered deterministically (named vehicles in the 
 given, then selector matches by name) so two competing missions collide on the same
 first vehicle, and the loser of that collision gives up early.
 
-Exclusivity itself is not decided here: the write of ``status.claimedBy`` carries the
-Vehicle's resourceVersion, so of two missions claiming one vehicle exactly one write
-succeeds (see :mod:`roost_operator.missions.cluster`).
+Exclusivity itself is not decided here: a claim is a Lease created per vehicle (see
+:mod:`roost_operator.claims`), so of two missions claiming one vehicle the API server
+accepts exactly one (see :mod:`roost_operator.missions.cluster`).
 
 Which vehicles may be claimed: those whose *vehicle-side* readiness holds — the vehicle
 operator's ``NodeBound`` and ``ComponentsReady`` are True — rather than the summary
@@ -23,8 +23,9 @@ pass it, so a fit vehicle is claimed before one that would hold the mission in P
 A claim naming a Mission that no longer exists (its finalizer was removed by hand), or
 one that has finished and is not still landing that vehicle (its release did not get
 through), is an orphan and counts as free (:func:`holding_missions`). The observer lists
-Missions *after* Vehicles, so a claim by a Mission created in between is never mistaken
-for one, and the claim itself carries the resourceVersion it was read at.
+Missions *after* Vehicles and claims, so a claim by a Mission created in between is
+never mistaken for an orphan, and taking an orphan over carries the resourceVersion the
+claim was read at.
 """
 
 from __future__ import annotations
@@ -126,7 +127,7 @@ def availability(
     result = Availability(unknown_names=[n for n in selection.names if n not in vehicles])
     for name in candidates(selection, vehicles):
         vehicle = vehicles[name]
-        claim = vehicle.status.claimed_by
+        claim = vehicle.claimed_by
         if mission.owns(claim):
             continue
         if claim is not None and reference_key(claim) in live_missions:
@@ -155,8 +156,8 @@ def holding_missions(missions: Iterable[Mapping[str, Any]]) -> frozenset[str]:
 
 
 def held_by(mission: MissionRef, vehicles: Mapping[str, VehicleView]) -> list[str]:
-    """Vehicles whose claimedBy is ``mission``, by name."""
-    return sorted(name for name, v in vehicles.items() if mission.owns(v.status.claimed_by))
+    """Vehicles claimed by ``mission``, by name."""
+    return sorted(name for name, v in vehicles.items() if mission.owns(v.claimed_by))
 
 
 def shortage_message(*, required: int, held: int, available: Availability) -> str:

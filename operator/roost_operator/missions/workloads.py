@@ -233,3 +233,39 @@ def config_map_copy(
         namespace=mission.namespace,
         owners=[mission_owner(mission, controller=False)],
     )
+
+
+def template_probes(
+    *,
+    mission: MissionRef,
+    spec: MissionSpec,
+    vehicles: Sequence[str],
+    config_values: Mapping[str, Mapping[str, str]],
+) -> list[tuple[str, Obj]]:
+    """The Jobs to send as a server-side dry run before the mission claims ``vehicles``.
+
+    One onboard Job (on the first vehicle: the template is the same on all, only the
+    placement and env differ) and the offboard Job, each with the name of the template
+    it checks. The API server validates them exactly as it would the real ones, so a
+    template it would refuse fails the mission before any vehicle is claimed.
+    """
+    if not vehicles:
+        return []
+    first = vehicles[0]
+    probes = [
+        (
+            "spec.onboard",
+            onboard_job(
+                mission=mission,
+                spec=spec,
+                vehicle_name=first,
+                assigned=vehicles,
+                config_values=config_values.get(first, {}),
+            ),
+        )
+    ]
+    if spec.offboard is not None:
+        probes.append(
+            ("spec.offboard", offboard_job(mission=mission, spec=spec, assigned=vehicles))
+        )
+    return probes

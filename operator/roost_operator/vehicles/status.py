@@ -1,11 +1,10 @@
-"""Writing a Vehicle's status: only the fields a writer owns, only when they changed.
+"""Writing a Vehicle's status: only the fields that changed, never over a newer status.
 
-Several parts of the operator write ``Vehicle.status`` (the vehicle reconcile writes
-NodeBound/ComponentsReady/Ready and the binding fields; the autopilot side writes
-AutopilotsHealthy/AgentConnected and the failover fields). Each names the fields it
-owns; :func:`write_vehicle_status` sends a JSON merge patch of just those, carrying the
-``resourceVersion`` the new status was computed from, so two writers never overwrite
-each other's conditions (the list is written whole) without a 409 and a fresh read.
+The Vehicle controller (:mod:`.controller`) is the only writer of ``Vehicle.status``.
+:func:`write_vehicle_status` sends a JSON merge patch of the fields that changed,
+carrying the ``resourceVersion`` the new status was computed from: a write in between
+(a human, kopf's own annotations) causes a 409 and a decision from a fresh read, never a
+lost update of a list written whole (the conditions).
 
 Nothing is sent when nothing changed, which keeps idle reconciles free of writes.
 Transitions of the chosen condition types are recorded as Events.

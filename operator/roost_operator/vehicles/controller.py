@@ -1,0 +1,406 @@
+"""The Vehicle controller: observe → :func:`~.plan.plan_vehicle` → apply → one status write.
+
+Every kopf trigger that concerns a Vehicle (its own events, its node's, its component
+Deployments', its RedundantAutopilot's reports and silences, its claim Lease, the
+guard annotations, the periodic resync) ends in :meth:`VehicleController.reconcile`,
+so there is exactly one path from "what the cluster looks like" to "what it should look
+like", and exactly one writer of ``Vehicle.status``. It does not import kopf.
+
+Why it is safe to run at any time, any number of times, and to be killed half-way:
+
+* **one lock per vehicle** serialises every reconcile of one vehicle in the process
+  (kopf runs handlers of different objects concurrently);
+* **read your own write**: the Vehicle, its RedundantAutopilot and its claim are read
+  fresh from the API on every run, never from a watch cache;
+* everything is computed from what was just read and written only where it differs
+  (node patch planned by :func:`~roost_operator.vehicles.placement.plan_node`, objects
+  through :meth:`~roost_kube.client.Kube.apply`, status compared before patching);
+* writes that replace lists (node taints, status conditions) carry the
+  ``resourceVersion`` they were computed from; a concurrent writer (a human, kopf's own
+  annotations) causes a retry from a fresh read, never a lost update;
+* failover Events carry deterministic names and are posted before the status write,
+  condition transitions after it (see :mod:`roost_operator.autopilots.plan`);
+* the fleet-wide cap on failover actions is race-free within the operator: counting
+  other vehicles' actions and recording this one's happen under the ledger's lock.
+
+Deletion (:meth:`VehicleController.release`) removes what Roost made for the vehicle
+and reports what it could not remove instead of failing for ever.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field, replace
+from datetime import timedelta
+from typing import Final
+
+from roost_api.autopilot import RedundantAutopilotSpec, RedundantAutopilotStatus
+from roost_api.meta import now
+from roost_api.vehicle import VehicleSpec, VehicleStatus
+from roost_api.wellknown import (
+    LABEL_COMPONENT,
+    LABEL_MANAGED_BY,
+    LABEL_NODE,
+    LABEL_VEHICLE,
+    MANAGED_BY,
+)
+from roost_kube.client import Kube
+from roost_kube.errors import ApiError, ConflictError, PermanentApiError, TemporaryApiError
+from roost_kube.patches import Obj, owner_reference
+from roost_kube.resources import (
+    CONFIGMAPS,
+    DEPLOYMENTS,
+    LEASES,
+    NODES,
+    REDUNDANT_AUTOPILOTS,
+    VEHICLES,
+)
+from roost_operator import claims
+from roost_operator.autopilots.conditions import DEFAULT_AGENT_STALE_AFTER
+from roost_operator.autopilots.guards import FleetGuards
+from roost_operator.autopilots.plan import PlannedEvent, mavros_follows
+from roost_operator.vehicles.config import config_map_name
+from roost_operator.vehicles.desired import workload_name
+from roost_operator.vehicles.placement import NodeClaim, NodeState, plan_node
+from roost_operator.vehicles.plan import (
+    EVENT_CONDITIONS,
+    REFUSED_AUTOPILOT_LABEL,
+    REFUSED_CONFIG,
+    REFUSED_NODE,
+    Context,
+    Observed,
+    VehiclePlan,
+    acting,
+    plan_vehicle,
+    refusal_time,
+    report,
+)
+from roost_operator.vehicles.status import write_vehicle_status
+
+log = logging.getLogger(__name__)
+
+CONFLICT_RETRIES: Final = 5
+STATUS_FIELDS: Final = (
+    "observedGeneration",
+    "conditions",
+    "nodeName",
+    "managedLabels",
+    "fcuUrl",
+    "activeAutopilot",
+    "failover",
+    "claimedBy",
+)
+"""Every field of ``Vehicle.status``: this controller is its only writer."""
+
+
+@dataclass(frozen=True)
+class Peers:
+    """What other objects say about a vehicle (kopf indexes in the operator).
+
+    ``claims_on(node)``: every Vehicle naming ``node`` in its spec.
+    ``autopilots_of(vehicle)``: name of the vehicle's RedundantAutopilot, if any.
+    ``actions``: vehicles with a failover action running, as the index last saw them.
+    """
+
+    claims_on: Callable[[str], Sequence[NodeClaim]]
+    autopilots_of: Callable[[str], str | None]
+    actions: Callable[[], Iterable[str]] = lambda: ()
+
+
+class ActionLedger:
+    """Which vehicles have a cluster-side action running, for the fleet-wide cap.
+
+    The kopf index of Vehicles lags this process's own writes by a watch round trip, so
+    what this process wrote last for a vehicle overrides the index for that vehicle.
+    """
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self._written: dict[str, bool] = {}
+
+    def others(self, vehicle: str, indexed: Iterable[str]) -> int:
+        """Actions running on vehicles other than ``vehicle`` (call under :attr:`lock`)."""
+        running = {name for name in indexed if self._written.get(name, True)}
+        running |= {name for name, acting in self._written.items() if acting}
+        running.discard(vehicle)
+        return len(running)
+
+    def record(self, vehicle: str, acting: bool) -> None:
+        """What was (or is about to be) written for ``vehicle`` (call under :attr:`lock`)."""
+        self._written[vehicle] = acting
+
+    def forget(self, vehicle: str) -> None:
+        """The vehicle is gone."""
+        with self.lock:
+            self._written.pop(vehicle, None)
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What a reconcile did, for the handlers."""
+
+    agent_connected: str | None
+    acting: bool
+    blocked: str | None
+
+
+@dataclass(frozen=True)
+class Leftovers:
+    """What a release could not remove, and why (for the Event that says so)."""
+
+    problems: tuple[str, ...] = ()
+
+    @property
+    def clean(self) -> bool:
+        return not self.problems
+
+
+@dataclass
+class VehicleController:
+    """The one writer of Vehicle status; see the module docstring."""
+
+    kube: Kube
+    namespace: str
+    guards: FleetGuards = field(default_factory=FleetGuards)
+    stale_after: timedelta = DEFAULT_AGENT_STALE_AFTER
+    ledger: ActionLedger = field(default_factory=ActionLedger)
+    _locks: dict[str, threading.Lock] = field(default_factory=dict, repr=False)
+    _guard: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def lock(self, name: str) -> threading.Lock:
+        """The lock of vehicle ``name`` (one per vehicle, for every path that writes)."""
+        with self._guard:
+            return self._locks.setdefault(name, threading.Lock())
+
+    # -- reconcile -------------------------------------------------------------------
+
+    def reconcile(self, name: str, peers: Peers) -> Outcome | None:
+        """Converge everything Roost owns for Vehicle ``name``; None when it is gone."""
+        with self.lock(name):
+            for attempt in range(CONFLICT_RETRIES):
+                try:
+                    return self._reconcile_once(name, peers)
+                except ConflictError:
+                    if attempt == CONFLICT_RETRIES - 1:
+                        raise
+                    log.info("Vehicle %s: concurrent write, reconciling again", name)
+        return None
+
+    def _observe(self, vehicle: Obj, peers: Peers) -> tuple[Observed, Obj | None]:
+        kube = self.kube
+        meta = vehicle["metadata"]
+        name = meta["name"]
+        spec = VehicleSpec.model_validate(vehicle["spec"])
+        status = VehicleStatus.model_validate(vehicle.get("status") or {})
+        autopilots_name = peers.autopilots_of(name)
+        autopilot = kube.get(REDUNDANT_AUTOPILOTS, autopilots_name) if autopilots_name else None
+        book = status.failover
+        rollout_done = True
+        if autopilot is not None and book is not None and book.action is not None:
+            rollout_done = self._mavros_rolled_out(name, spec, status.fcu_url)
+        claim = claims.claim_of(kube.get(LEASES, claims.lease_name(name), self.namespace) or {})
+        observed = Observed(
+            name=name,
+            uid=meta.get("uid", ""),
+            generation=meta.get("generation"),
+            created=str(meta.get("creationTimestamp", "")),
+            annotations=dict(meta.get("annotations") or {}),
+            spec=spec,
+            status=status,
+            autopilot_spec=(
+                RedundantAutopilotSpec.model_validate(autopilot["spec"]) if autopilot else None
+            ),
+            autopilot_status=(
+                RedundantAutopilotStatus.model_validate(autopilot.get("status") or {})
+                if autopilot
+                else None
+            ),
+            node=kube.get(NODES, spec.node_name),
+            node_claims=[c for c in peers.claims_on(spec.node_name) if c.vehicle != name],
+            claimed_by=claim.holder if claim else None,
+            rollout_done=rollout_done,
+            actions_elsewhere=0,  # counted under the ledger's lock, see _reconcile_once
+            now=now(),
+        )
+        return observed, autopilot
+
+    def _mavros_rolled_out(self, vehicle: str, spec: VehicleSpec, fcu_url: str | None) -> bool:
+        if not spec.components.mavros.enabled:
+            return True
+        config_map = self.kube.get(CONFIGMAPS, config_map_name(vehicle), self.namespace)
+        mavros = self.kube.get(DEPLOYMENTS, workload_name(vehicle, "mavros"), self.namespace)
+        return mavros_follows(fcu_url, config_map, mavros)
+
+    def _reconcile_once(self, name: str, peers: Peers) -> Outcome | None:
+        kube = self.kube
+        vehicle = kube.get(VEHICLES, name)
+        if vehicle is None or vehicle["metadata"].get("deletionTimestamp"):
+            self.ledger.forget(name)
+            return None
+        obs, autopilot = self._observe(vehicle, peers)
+        ctx = Context(
+            namespace=self.namespace,
+            owners=[owner_reference(vehicle)],
+            guards=self.guards,
+            stale_after=self.stale_after,
+        )
+        was_acting = obs.status.failover is not None and obs.status.failover.action is not None
+        with self.ledger.lock:  # count the others and reserve this one in one step
+            obs = replace(obs, actions_elsewhere=self.ledger.others(name, peers.actions()))
+            plan = plan_vehicle(obs, ctx)
+            self.ledger.record(name, acting(plan))
+        try:
+            live, refused = self._apply(obs, plan, autopilot)
+            status = report(
+                plan,
+                live=live,
+                refused=refused,
+                generation=obs.generation,
+                agent_expected=autopilot is not None,
+            )
+            self._post(vehicle, plan.events)
+            written = write_vehicle_status(
+                kube,
+                vehicle,
+                obs.status,
+                status,
+                fields=STATUS_FIELDS,
+                event_types=EVENT_CONDITIONS,
+            )
+        except Exception:
+            with self.ledger.lock:  # nothing was stored: the index/status stay the truth
+                self.ledger.record(name, was_acting)
+            raise
+        if written and refused:  # reported when the status shows it, never per retry
+            summary = "; ".join(f"{what}: {error.message}" for what, error in refused.items())
+            log.warning("Vehicle %s: the API server refused: %s", name, summary)
+            kube.post_event(
+                vehicle,
+                reason="Refused",
+                message=f"the API server refused what Roost built from the spec: {summary}",
+                type="Warning",
+                at=refusal_time(status, refused) or obs.now,
+            )
+        # Every refusal is in ComponentsReady; a temporary one is also raised so the
+        # handler retries it, a permanent one waits for the user to change the spec.
+        temporary = [error for error in refused.values() if isinstance(error, TemporaryApiError)]
+        if temporary:
+            raise temporary[0]
+        failover = plan.failover
+        return Outcome(
+            agent_connected=failover.conditions[0].status if failover else None,
+            acting=acting(plan),
+            blocked=failover.failover.blocked if failover else None,
+        )
+
+    def _apply(
+        self, obs: Observed, plan: VehiclePlan, autopilot: Obj | None
+    ) -> tuple[dict[str, Obj | None], dict[str, ApiError]]:
+        """Carry out ``plan``; the live Deployments and those the API server refused."""
+        kube = self.kube
+        refused: dict[str, ApiError] = {}
+
+        def attempt(key: str, write: Callable[[], object]) -> None:
+            try:
+                write()
+            except PermanentApiError as error:  # reported in the status, not retried
+                refused[key] = error
+
+        target = obs.spec.node_name if plan.node_state is not None else None
+        for node in kube.list_objects(NODES, labels={LABEL_VEHICLE: obs.name}):
+            if node["metadata"]["name"] != target:
+                self._converge_node(node, NodeState.released())
+        bound, state = obs.node, plan.node_state
+        if state is not None and bound is not None:
+            attempt(REFUSED_NODE, lambda: self._converge_node(bound, state))
+        if autopilot is not None:
+            attempt(
+                REFUSED_AUTOPILOT_LABEL,
+                lambda: self._label_autopilot(autopilot, obs.spec.node_name),
+            )
+        attempt(REFUSED_CONFIG, lambda: kube.apply(plan.config_map))
+        live: dict[str, Obj | None] = {}
+        for component, manifest in plan.deployments.items():
+            try:
+                live[component], _ = kube.apply(manifest)
+            except ConflictError:
+                raise
+            except ApiError as err:
+                refused[component] = err
+        owned = {LABEL_MANAGED_BY: MANAGED_BY, LABEL_VEHICLE: obs.name}
+        stale = [
+            d
+            for d in kube.list_objects(DEPLOYMENTS, namespace=self.namespace, labels=owned)
+            if d["metadata"].get("labels", {}).get(LABEL_COMPONENT) not in plan.deployments
+        ]
+        kube.delete_all(DEPLOYMENTS, stale)
+        return live, refused
+
+    def _label_autopilot(self, autopilot: Obj, node_name: str) -> None:
+        """Keep the RedundantAutopilot's ``roost.dev/node`` label on the vehicle's node:
+        the chart's admission policy compares it with the node in the agent's token."""
+        labels = autopilot["metadata"].get("labels") or {}
+        if labels.get(LABEL_NODE) != node_name:
+            self.kube.merge_patch(
+                REDUNDANT_AUTOPILOTS,
+                autopilot["metadata"]["name"],
+                {"metadata": {"labels": {LABEL_NODE: node_name}}},
+            )
+
+    def _converge_node(self, node: Obj, want: NodeState) -> Obj:
+        """Patch ``node`` until it carries ``want``; re-read and re-plan on conflicts."""
+        name = node["metadata"]["name"]
+        for _ in range(CONFLICT_RETRIES):
+            patch = plan_node(node, want)
+            if patch is None:
+                return node
+            try:
+                return self.kube.merge_patch(NODES, name, patch)
+            except ConflictError:
+                fresh = self.kube.get(NODES, name)
+                if fresh is None:
+                    return node
+                node = fresh
+        raise ConflictError(409, "PATCH", f"nodes/{name}", "node kept changing under us")
+
+    def _post(self, vehicle: Obj, events: Iterable[PlannedEvent]) -> None:
+        """Post the plan's Events (deterministic names: a repeat is refused as a duplicate)."""
+        for event in events:
+            self.kube.post_event(
+                vehicle,
+                reason=event.reason,
+                message=event.message,
+                type=event.type,
+                at=event.at.isoformat().replace("+00:00", "Z"),
+            )
+
+    # -- deletion ----------------------------------------------------------------------
+
+    def release(self, name: str) -> Leftovers:
+        """Remove what Roost made for Vehicle ``name`` (labels, taint, config, workloads).
+
+        Every part is attempted even when another is refused for good; what could not be
+        removed is returned, so deletion finishes and an Event can say what was left. A
+        temporary error is raised: the deletion is retried.
+        """
+        problems: list[str] = []
+        with self.lock(name):
+            for node in self.kube.list_objects(NODES, labels={LABEL_VEHICLE: name}):
+                try:
+                    self._converge_node(node, NodeState.released())
+                except PermanentApiError as error:
+                    problems.append(f"node {node['metadata']['name']}: {error.message}")
+            owned = {LABEL_MANAGED_BY: MANAGED_BY, LABEL_VEHICLE: name}
+            for resource in (DEPLOYMENTS, CONFIGMAPS):
+                for obj in self.kube.list_objects(resource, namespace=self.namespace, labels=owned):
+                    try:
+                        self.kube.delete(resource, obj["metadata"]["name"], self.namespace)
+                    except PermanentApiError as error:
+                        problems.append(
+                            f"{resource.kind} {self.namespace}/{obj['metadata']['name']}: "
+                            f"{error.message}"
+                        )
+        self.ledger.forget(name)
+        return Leftovers(tuple(problems))

@@ -1,0 +1,366 @@
+"""One Vehicle's whole decision, as pure functions: what it should look like, and its status.
+
+The vehicle controller (:mod:`.controller`) is the only writer of ``Vehicle.status``.
+It observes, calls :func:`plan_vehicle`, applies the plan, then calls :func:`report`
+on what the apply left (the live Deployments) for the one status write. Both functions
+take everything as arguments, ``now`` included, so the same observation always gives
+the same plan.
+
+What :func:`plan_vehicle` decides, in order:
+
+1. The cluster side of failover when the vehicle has a RedundantAutopilot
+   (:func:`roost_operator.autopilots.plan.plan`): ``AgentConnected``,
+   ``AutopilotsHealthy``, the failover bookkeeping and its Events, and **which autopilot
+   the vehicle's workloads follow**. That choice is made there and only there: a new
+   active autopilot is followed unless a fleet guard holds the re-point back. Without a
+   RedundantAutopilot the vehicle follows its primary autopilot (or the first, or a
+   real vehicle's default serial link).
+2. The node binding: the node named in the spec, unless the name cannot be a label
+   value, an older Vehicle claims the node, the node does not exist or is not Ready.
+3. The vehicle's config values, its ConfigMap and its component Deployments (none while
+   the node is claimed by another Vehicle or the name is invalid).
+4. The mission claim mirrored into ``status.claimedBy`` (the claim itself is a Lease
+   the mission controller writes, see :mod:`roost_operator.claims`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from datetime import datetime, timedelta
+from typing import Any
+
+from roost_api.autopilot import RedundantAutopilotSpec, RedundantAutopilotStatus
+from roost_api.meta import Condition, ObjectReference, Stack, set_condition
+from roost_api.vehicle import VehicleConditionType, VehicleSpec, VehicleStatus
+from roost_api.wellknown import LABEL_NODE
+from roost_kube.errors import ApiError
+from roost_kube.patches import Obj
+from roost_operator.autopilots.conditions import DEFAULT_AGENT_STALE_AFTER
+from roost_operator.autopilots.guards import FleetGuards, vehicle_paused
+from roost_operator.autopilots.plan import FailoverPlan, PlannedEvent
+from roost_operator.autopilots.plan import plan as plan_failover
+from roost_operator.vehicles.config import vehicle_config, vehicle_config_map
+from roost_operator.vehicles.desired import (
+    DEFAULT_FCU_URL,
+    Autopilot,
+    ComponentState,
+    NodeBinding,
+    Workload,
+    active_autopilot,
+    autopilots_of,
+    component_workloads,
+    components_condition,
+    deployment,
+    deployment_state,
+    vehicle_conditions,
+)
+from roost_operator.vehicles.placement import (
+    NodeClaim,
+    NodeState,
+    claim_winner,
+    node_readiness,
+    vehicle_name_problem,
+)
+
+FAILOVER_CONDITIONS = (
+    VehicleConditionType.AGENT_CONNECTED,
+    VehicleConditionType.AUTOPILOTS_HEALTHY,
+)
+"""The conditions that exist only while the vehicle has a RedundantAutopilot."""
+
+EVENT_CONDITIONS = (
+    VehicleConditionType.READY,
+    VehicleConditionType.NODE_BOUND,
+    *FAILOVER_CONDITIONS,
+)
+"""Condition types whose transitions are recorded as Events. ComponentsReady is not:
+its problems reach Ready's message, and a rollout would otherwise post one per step."""
+
+
+@dataclass(frozen=True)
+class Observed:
+    """Everything one decision about a Vehicle reads (fresh from the API)."""
+
+    name: str
+    uid: str
+    generation: int | None
+    created: str
+    annotations: Mapping[str, str]
+    spec: VehicleSpec
+    status: VehicleStatus
+    autopilot_spec: RedundantAutopilotSpec | None
+    autopilot_status: RedundantAutopilotStatus | None
+    node: Obj | None
+    """The node ``spec.nodeName`` names, as read (None when it does not exist)."""
+    node_claims: Sequence[NodeClaim]
+    """Every other Vehicle naming the same node."""
+    claimed_by: ObjectReference | None
+    """The Mission holding the vehicle's claim Lease, if any."""
+    rollout_done: bool
+    """Whether mavros runs with ``status.fcuUrl`` (ends a re-point; True without mavros)."""
+    actions_elsewhere: int
+    """Cluster-side failover actions running on other vehicles (the fleet's cap)."""
+    now: datetime
+
+
+@dataclass(frozen=True)
+class VehiclePlan:
+    """What the vehicle should look like now; the controller applies it in field order."""
+
+    binding: NodeBinding
+    node_state: NodeState | None
+    """What to put on the target node; None: the vehicle labels no node."""
+    config_map: Obj
+    deployments: dict[str, Obj]
+    """Desired component Deployments by component."""
+    failover: FailoverPlan | None
+    events: tuple[PlannedEvent, ...]
+    followed: Autopilot | None
+    fcu_url: str
+    status: VehicleStatus
+    """The status before the component states are known (see :func:`report`)."""
+    runs_workloads: bool = field(default=True)
+
+
+@dataclass(frozen=True)
+class Context:
+    """Settings the decision depends on (from the operator's settings)."""
+
+    namespace: str
+    owners: Sequence[Obj]
+    guards: FleetGuards
+    stale_after: timedelta = DEFAULT_AGENT_STALE_AFTER
+
+
+def node_binding(obs: Observed) -> NodeBinding:
+    """NodeBound from the name, the other claims on the node and the node as read."""
+    node_name = obs.spec.node_name
+    problem = vehicle_name_problem(obs.name)
+    if problem is not None:
+        return NodeBinding(False, "InvalidVehicleName", problem)
+    winner = claim_winner([*obs.node_claims, NodeClaim(obs.name, obs.created)])
+    if winner is not None and winner.vehicle != obs.name:
+        return NodeBinding(
+            False,
+            "NodeClaimedByOtherVehicle",
+            f"node {node_name} already belongs to Vehicle {winner.vehicle}, which was created "
+            f"first; set spec.nodeName to a free node or delete Vehicle {winner.vehicle}",
+        )
+    if obs.node is None:
+        return NodeBinding(
+            False,
+            "NodeNotFound",
+            f"node {node_name} does not exist; join the vehicle's computer to the cluster "
+            "as that node, or correct spec.nodeName",
+        )
+    ready, detail = node_readiness(obs.node)
+    if not ready:
+        return NodeBinding(
+            False,
+            "NodeNotReady",
+            f"node {node_name} is labelled but not Ready ({detail}); check the vehicle's "
+            "computer, its network and its kubelet",
+        )
+    return NodeBinding(True, "NodeLabeled", f"node {node_name} is labelled, tainted and Ready")
+
+
+def _failover(obs: Observed, ctx: Context) -> FailoverPlan | None:
+    if obs.autopilot_spec is None:
+        return None
+    return plan_failover(
+        vehicle_name=obs.name,
+        vehicle_spec=obs.spec,
+        vehicle_status=obs.status,
+        annotations=obs.annotations,
+        autopilot_spec=obs.autopilot_spec,
+        autopilot_status=obs.autopilot_status or RedundantAutopilotStatus(),
+        guards=ctx.guards,
+        paused_here=vehicle_paused(obs.annotations),
+        actions_elsewhere=obs.actions_elsewhere,
+        rollout_done=obs.rollout_done,
+        now=obs.now,
+        stale_after=ctx.stale_after,
+    )
+
+
+def _conditions(obs: Observed, failover: FailoverPlan | None, at: datetime) -> list[Condition]:
+    """The failover conditions set (or removed without a RedundantAutopilot)."""
+    if failover is None:
+        return [c for c in obs.status.conditions if c.type not in FAILOVER_CONDITIONS]
+    conditions = list(obs.status.conditions)
+    for update in failover.conditions:
+        conditions = set_condition(
+            conditions,
+            type=update.type,
+            status=update.status,
+            reason=update.reason,
+            message=update.message,
+            observed_generation=obs.generation,
+            at=at,
+        )
+    return conditions
+
+
+def plan_vehicle(obs: Observed, ctx: Context) -> VehiclePlan:
+    """Decide the vehicle; see the module docstring."""
+    failover = _failover(obs, ctx)
+    autopilots = autopilots_of(obs.spec, obs.autopilot_spec)
+    followed = active_autopilot(
+        autopilots,
+        reported_active=failover.failover.followed_autopilot if failover else None,
+        primary=obs.autopilot_spec.primary if obs.autopilot_spec else None,
+    )
+    fcu_url = followed.fcu_url if followed else DEFAULT_FCU_URL
+    values = vehicle_config(
+        name=obs.name,
+        spec=obs.spec,
+        fcu_url=fcu_url,
+        firmware=Stack(followed.stack) if followed else None,
+        active_autopilot=followed.name if followed else None,
+    )
+    binding = node_binding(obs)
+    labels_node = binding.bound or binding.reason in ("NodeNotFound", "NodeNotReady")
+    wanted: list[Workload] = component_workloads(obs.spec, autopilots) if labels_node else []
+    deployments = {
+        w.component: deployment(
+            obs.name,
+            obs.spec.node_name,
+            w,
+            values,
+            namespace=ctx.namespace,
+            owners=list(ctx.owners),
+        )
+        for w in wanted
+    }
+    node_state = (
+        NodeState.of_vehicle(obs.name, obs.spec) if labels_node and obs.node is not None else None
+    )
+    status = obs.status.model_copy(
+        update={
+            "observed_generation": obs.generation,
+            "conditions": _conditions(obs, failover, obs.now),
+            "node_name": obs.spec.node_name if node_state is not None else None,
+            "managed_labels": sorted(node_state.labels) if node_state is not None else [],
+            "fcu_url": fcu_url,
+            "active_autopilot": failover.active_autopilot if failover else None,
+            "failover": failover.failover if failover else obs.status.failover,
+            "claimed_by": obs.claimed_by,
+        }
+    )
+    return VehiclePlan(
+        binding=binding,
+        node_state=node_state,
+        config_map=vehicle_config_map(
+            obs.name, values, namespace=ctx.namespace, owners=list(ctx.owners)
+        ),
+        deployments=deployments,
+        failover=failover,
+        events=failover.events if failover else (),
+        followed=followed,
+        fcu_url=fcu_url,
+        status=status,
+        runs_workloads=labels_node,
+    )
+
+
+REFUSED_NODE = "node"
+REFUSED_AUTOPILOT_LABEL = "autopilot-label"
+REFUSED_CONFIG = "config"
+"""Keys of :func:`report`'s ``refused`` for writes other than component Deployments."""
+
+
+def _binding_after(plan: VehiclePlan, refused: Mapping[str, ApiError]) -> NodeBinding:
+    """NodeBound, unless the API server refused a write the binding needs."""
+    if REFUSED_NODE in refused:
+        return NodeBinding(
+            False,
+            "NodeRefused",
+            f"labelling node {plan.status.node_name or '?'} was refused: "
+            f"{refused[REFUSED_NODE].message}; check spec.nodeName and spec.labels",
+        )
+    if REFUSED_AUTOPILOT_LABEL in refused:
+        return NodeBinding(
+            False,
+            "AutopilotLabelRefused",
+            f"the RedundantAutopilot's {LABEL_NODE} label was refused: "
+            f"{refused[REFUSED_AUTOPILOT_LABEL].message}; with a RedundantAutopilot "
+            "spec.nodeName must also be a label value (at most 63 characters)",
+        )
+    return plan.binding
+
+
+def report(
+    plan: VehiclePlan,
+    *,
+    live: Mapping[str, Obj | None],
+    refused: Mapping[str, ApiError],
+    generation: int | None,
+    agent_expected: bool,
+) -> VehicleStatus:
+    """The status to write once the plan is applied: NodeBound, ComponentsReady, Ready.
+
+    ``live`` maps each desired component to its Deployment as the apply left it,
+    ``refused`` the writes the API server refused, by component or by one of the
+    ``REFUSED_*`` keys, with its answer: each shows in a condition with what to change.
+    """
+    states = [
+        ComponentState(c, False, f"its Deployment was refused: {refused[c].message}")
+        if c in refused
+        else deployment_state(c, live.get(c))
+        for c in plan.deployments
+    ]
+    components = components_condition(
+        states, blocked=None if plan.runs_workloads else plan.binding.message
+    )
+    if REFUSED_CONFIG in refused:
+        components = (
+            "False",
+            "ConfigRefused",
+            f"the vehicle's config ConfigMap was refused: {refused[REFUSED_CONFIG].message}; "
+            "make spec.config smaller",
+        )
+    conditions = vehicle_conditions(
+        plan.status.conditions,
+        binding=_binding_after(plan, refused),
+        components=components,
+        generation=generation,
+        agent_expected=agent_expected,
+    )
+    return plan.status.model_copy(update={"conditions": conditions})
+
+
+def refusal_time(status: VehicleStatus, refused: Mapping[str, ApiError]) -> datetime | None:
+    """When the conditions that report ``refused`` last changed (None: no such condition).
+
+    The refusal's Event is stamped with it, never with the clock: the same refusal seen
+    again by a later reconcile names the same Event and the API refuses the repeat.
+    """
+    on_node = REFUSED_NODE in refused or REFUSED_AUTOPILOT_LABEL in refused
+    kinds = [VehicleConditionType.NODE_BOUND] if on_node else []
+    if any(key not in (REFUSED_NODE, REFUSED_AUTOPILOT_LABEL) for key in refused):
+        kinds.append(VehicleConditionType.COMPONENTS_READY)
+    times = [c.last_transition_time for c in status.conditions if c.type in kinds]
+    return min(times, default=None)
+
+
+def acting(plan: VehiclePlan) -> bool:
+    """Whether a cluster-side failover action runs after this plan (counts for the cap)."""
+    return plan.failover is not None and plan.failover.acting
+
+
+def relevant_autopilot(body: Mapping[str, Any] | None) -> Any:
+    """What the vehicle decision reads from its RedundantAutopilot, minus the numbers
+    that tick with every report (``reportedAt``, heartbeat ages): a fingerprint of this
+    changes only when a decision may change."""
+    if body is None:
+        return None
+    status = dict(body.get("status") or {})
+    status.pop("reportedAt", None)
+    healths = status.pop("autopilots", None) or []
+    return [
+        body.get("spec"),
+        (body.get("metadata") or {}).get("labels"),
+        status,
+        [(h.get("name"), h.get("level"), h.get("landedState"), h.get("armed")) for h in healths],
+    ]

@@ -1,0 +1,226 @@
+"""The Vehicle controller's whole decision (roost_operator.vehicles.plan), without a cluster.
+
+Covers what the controller decides in one place: the node binding, which autopilot the
+vehicle's workloads follow (with and without a RedundantAutopilot, with a fleet guard
+holding a re-point back), the claim mirrored into status, and how refusals of the API
+server become conditions.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from datetime import UTC, datetime, timedelta
+from typing import Any
+
+import pytest
+
+from roost_api.autopilot import RedundantAutopilotSpec, RedundantAutopilotStatus
+from roost_api.meta import ObjectReference, find_condition
+from roost_api.vehicle import VehicleFailover, VehicleSpec, VehicleStatus
+from roost_kube.errors import error_for_status
+from roost_operator.autopilots.guards import FleetGuards
+from roost_operator.vehicles.desired import DEFAULT_FCU_URL
+from roost_operator.vehicles.placement import NodeClaim
+from roost_operator.vehicles.plan import (
+    REFUSED_AUTOPILOT_LABEL,
+    REFUSED_CONFIG,
+    Context,
+    Observed,
+    node_binding,
+    plan_vehicle,
+    refusal_time,
+    relevant_autopilot,
+    report,
+)
+
+NOW = datetime(2026, 5, 1, 12, 0, tzinfo=UTC)
+URL1, URL2 = "udp://127.0.0.1:14540", "udp://127.0.0.1:14641@"
+CTX = Context(namespace="roost-system", owners=[], guards=FleetGuards())
+
+
+def node(ready: bool = True) -> dict[str, Any]:
+    return {
+        "metadata": {"name": "node-a", "resourceVersion": "1"},
+        "status": {"conditions": [{"type": "Ready", "status": "True" if ready else "False"}]},
+    }
+
+
+def ra_spec() -> RedundantAutopilotSpec:
+    return RedundantAutopilotSpec.model_validate(
+        {
+            "vehicleName": "drone1",
+            "primary": "fc1",
+            "autopilots": [
+                {"name": "fc1", "stack": "px4", "connection": URL1, "sysid": 1, "bridgeChannel": 0},
+                {
+                    "name": "fc2",
+                    "stack": "px4",
+                    "connection": "udp://127.0.0.1:14541",
+                    "fcuUrl": URL2,
+                    "sysid": 2,
+                    "bridgeChannel": 1,
+                },
+            ],
+        }
+    )
+
+
+def observed(**overrides: Any) -> Observed:
+    base = Observed(
+        name="drone1",
+        uid="uid-1",
+        generation=3,
+        created="2026-05-01T10:00:00Z",
+        annotations={},
+        spec=VehicleSpec.model_validate({"nodeName": "node-a", "sysid": 12}),
+        status=VehicleStatus(),
+        autopilot_spec=None,
+        autopilot_status=None,
+        node=node(),
+        node_claims=[],
+        claimed_by=None,
+        rollout_done=True,
+        actions_elsewhere=0,
+        now=NOW,
+    )
+    return replace(base, **overrides)
+
+
+def with_agent(active: str, **status: Any) -> dict[str, Any]:
+    return {
+        "autopilot_spec": ra_spec(),
+        "autopilot_status": RedundantAutopilotStatus.model_validate(
+            {"activeAutopilot": active, "reportedAt": NOW, "nodeName": "node-a", **status}
+        ),
+    }
+
+
+# -- node binding ------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("overrides", "reason", "bound"),
+    [
+        ({}, "NodeLabeled", True),
+        ({"node": None}, "NodeNotFound", False),
+        ({"node": node(ready=False)}, "NodeNotReady", False),
+        ({"name": "d" * 64}, "InvalidVehicleName", False),
+        (
+            {"node_claims": [NodeClaim("older", "2026-05-01T09:00:00Z")]},
+            "NodeClaimedByOtherVehicle",
+            False,
+        ),
+        ({"node_claims": [NodeClaim("younger", "2026-05-01T11:00:00Z")]}, "NodeLabeled", True),
+    ],
+)
+def test_node_binding_decision_table(
+    overrides: dict[str, Any], reason: str, *, bound: bool
+) -> None:
+    binding = node_binding(observed(**overrides))
+    assert (binding.reason, binding.bound) == (reason, bound)
+
+
+def test_a_vehicle_that_cannot_have_its_node_labels_nothing_and_runs_nothing() -> None:
+    plan = plan_vehicle(observed(node_claims=[NodeClaim("older", "2026-05-01T09:00:00Z")]), CTX)
+    assert plan.node_state is None and plan.deployments == {}
+    assert plan.status.node_name is None and plan.status.managed_labels == []
+
+
+def test_a_missing_node_still_gets_its_workloads_declared() -> None:
+    plan = plan_vehicle(observed(node=None), CTX)
+    assert plan.runs_workloads and "mavros" in plan.deployments
+    assert plan.node_state is None, "no node to label"
+
+
+# -- which autopilot mavros follows ------------------------------------------------------
+
+
+def test_without_a_redundant_autopilot_a_real_vehicle_follows_its_serial_link() -> None:
+    plan = plan_vehicle(observed(), CTX)
+    assert plan.fcu_url == DEFAULT_FCU_URL
+    assert plan.failover is None and plan.status.active_autopilot is None
+
+
+def test_the_first_pointing_follows_the_agents_active_autopilot() -> None:
+    plan = plan_vehicle(observed(**with_agent("fc2")), CTX)
+    assert plan.followed is not None and plan.followed.name == "fc2"
+    assert plan.fcu_url == URL2 == plan.status.fcu_url
+    assert plan.config_map["data"]["VEHICLE_FCU_URL"] == URL2
+
+
+def test_a_failover_repoints_mavros_unless_a_guard_holds_it_back() -> None:
+    followed_fc1 = VehicleStatus(fcu_url=URL1, failover=VehicleFailover(followed_autopilot="fc1"))
+    moved = plan_vehicle(observed(status=followed_fc1, **with_agent("fc2")), CTX)
+    assert moved.fcu_url == URL2 and moved.failover is not None and moved.failover.acting
+    paused = replace(CTX, guards=FleetGuards(paused=True))
+    held = plan_vehicle(observed(status=followed_fc1, **with_agent("fc2")), paused)
+    assert held.fcu_url == URL1, "the workloads keep following fc1"
+    assert held.status.failover is not None and held.status.failover.blocked == "Paused"
+    assert held.config_map["data"]["VEHICLE_FCU_URL"] == URL1
+
+
+def test_the_agents_conditions_go_when_the_redundant_autopilot_goes() -> None:
+    with_ra = plan_vehicle(observed(**with_agent("fc1")), CTX)
+    kinds = {c.type for c in with_ra.status.conditions}
+    assert {"AgentConnected", "AutopilotsHealthy"} <= kinds
+    without = plan_vehicle(observed(status=with_ra.status), CTX)
+    assert not {"AgentConnected", "AutopilotsHealthy"} & {c.type for c in without.status.conditions}
+
+
+# -- claim mirror and the status written -------------------------------------------------
+
+
+def test_the_mission_claim_is_mirrored_into_status() -> None:
+    survey = ObjectReference(namespace="flights", name="survey")
+    assert plan_vehicle(observed(claimed_by=survey), CTX).status.claimed_by == survey
+    released = VehicleStatus(claimed_by=survey)
+    assert plan_vehicle(observed(status=released), CTX).status.claimed_by is None
+
+
+def test_report_folds_component_states_and_readiness_into_the_status() -> None:
+    plan = plan_vehicle(observed(), CTX)
+    status = report(plan, live={}, refused={}, generation=3, agent_expected=False)
+    components = find_condition(status.conditions, "ComponentsReady")
+    assert components is not None and components.status == "False"
+    ready = find_condition(status.conditions, "Ready")
+    assert ready is not None and ready.status == "False"
+    assert status.observed_generation == 3
+
+
+def test_refusals_become_conditions_that_say_what_to_change() -> None:
+    plan = plan_vehicle(observed(**with_agent("fc1")), CTX)
+    too_long = error_for_status(
+        422, "PATCH", "/x", '{"message":"metadata.labels: must be no more than 63 bytes"}'
+    )
+    status = report(
+        plan,
+        live={},
+        refused={REFUSED_AUTOPILOT_LABEL: too_long, REFUSED_CONFIG: too_long},
+        generation=3,
+        agent_expected=True,
+    )
+    bound = find_condition(status.conditions, "NodeBound")
+    assert bound is not None and bound.reason == "AutopilotLabelRefused"
+    assert "at most 63 characters" in bound.message
+    components = find_condition(status.conditions, "ComponentsReady")
+    assert components is not None and components.reason == "ConfigRefused"
+    assert "spec.config" in components.message
+    when = refusal_time(status, {REFUSED_AUTOPILOT_LABEL: too_long})
+    assert when == bound.last_transition_time, "the same refusal names the same Event"
+    later = replace(observed(**with_agent("fc1")), now=NOW + timedelta(minutes=5))
+    again = report(
+        plan_vehicle(replace(later, status=status), CTX),
+        live={},
+        refused={REFUSED_AUTOPILOT_LABEL: too_long},
+        generation=3,
+        agent_expected=True,
+    )
+    assert refusal_time(again, {REFUSED_AUTOPILOT_LABEL: too_long}) == when
+
+
+def test_agent_reports_that_only_tick_do_not_change_the_fingerprint() -> None:
+    body = {"spec": {"vehicleName": "d"}, "status": {"reportedAt": "t1", "activeAutopilot": "fc1"}}
+    later = {"spec": {"vehicleName": "d"}, "status": {"reportedAt": "t2", "activeAutopilot": "fc1"}}
+    switched = {"spec": {"vehicleName": "d"}, "status": {"activeAutopilot": "fc2"}}
+    assert relevant_autopilot(body) == relevant_autopilot(later)
+    assert relevant_autopilot(body) != relevant_autopilot(switched)
