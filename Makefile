@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml
 	@$(PYTHON) -m venv $(VENV)
 	@{ $(PY) -m pip install --upgrade pip && $(PY) -m pip install -e '.[dev]'; } > $(VENV)/pip.log 2>&1 \
 	  || { tail -n 40 $(VENV)/pip.log; echo "setup: pip failed; the whole log is $(VENV)/pip.log"; exit 1; }
-	$(PY) -m roost_harness.clients install
+	$(PY) -m roost_localcluster.clients install
 	touch $@
 
 .PHONY: setup
@@ -46,7 +46,7 @@ typecheck: $(STAMP) ## mypy --strict on every Roost package
 
 .PHONY: cluster-build
 cluster-build: ## build (or reuse) the control-plane binaries cached under ~/.cache/roost
-	tests/harness/build-control-plane.sh
+	localcluster/build-control-plane.sh
 
 .PHONY: cluster-up
 cluster-up: $(STAMP) cluster-build ## start the control plane in the background; prints the kubeconfig

@@ -13,7 +13,7 @@ import sys
 
 from bench.core import RESULTS, Figure, update_readme, write_results
 
-MODULES: tuple[str, ...] = ("controlplane", "mission", "cluster", "agent", "vehicle")
+MODULES: tuple[str, ...] = ("controlplane", "mission", "cluster", "agent", "link", "vehicle")
 
 
 def main(argv: list[str] | None = None) -> int:

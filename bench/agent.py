@@ -40,6 +40,7 @@ import yaml
 from bench.core import Figure
 from roost_api.autopilot import (
     AutopilotCommand,
+    FailoverMode,
     FailoverPolicy,
     FinalAction,
     RedundantAutopilotSpec,
@@ -211,9 +212,13 @@ def take_off(sims: list[SimulatedAutopilot]) -> None:
 
 @contextmanager
 def vehicle(
-    thresholds: Thresholds, rates: dict[int, float] | None = None, status_interval_s: float = 0.25
+    thresholds: Thresholds,
+    rates: dict[int, float] | None = None,
+    status_interval_s: float = 0.25,
+    mode: FailoverMode = FailoverMode.AUTOMATIC,
 ) -> Iterator[tuple[list[SimulatedAutopilot], AgentProcess]]:
-    """Two flying PX4 sims and an agent watching them, standbys ready."""
+    """Two flying PX4 sims and an agent watching them, standbys ready (``mode`` Manual:
+    the agent judges but never switches on its own)."""
     sims = start_vehicle_sims(["px4", "px4"], rates=rates, config=SimConfig.fast())
     agent: AgentProcess | None = None
     with tempfile.TemporaryDirectory(prefix="roost-bench-agent-") as tmp:
@@ -223,6 +228,7 @@ def vehicle(
                 autopilots=autopilot_specs(sims),
                 primary="fc1",
                 failover_policy=FailoverPolicy(
+                    mode=mode,
                     thresholds=thresholds,
                     safety_routine=SafetyRoutine(hold_seconds=0, final_action=FinalAction.HOLD),
                 ),

@@ -37,16 +37,16 @@ from kubernetes import client, watch
 from bench.core import Figure
 from roost_api.autopilot import CommandAction
 from roost_api.commands import command_patch, new_command
-from roost_harness import binaries
-from roost_harness.agent import AgentProcess
-from roost_harness.cluster import Cluster
-from roost_harness.controlplane import ControlPlane
-from roost_harness.operator import OperatorProcess, wait_for
+from roost_localcluster import binaries
+from roost_localcluster.cluster import Cluster
+from roost_localcluster.controlplane import ControlPlane
 from roost_operator.autopilots.plan import mavros_follows
 from roost_operator.kube import CONFIGMAPS, DEPLOYMENTS, REDUNDANT_AUTOPILOTS, VEHICLES, Kube
 from roost_operator.vehicles.config import config_map_name
 from roost_operator.vehicles.desired import workload_name
 from roost_sim import SimConfig, SimulatedAutopilot, autopilot_specs, start_vehicle_sims, stop_sims
+from tests.support.agent import AgentProcess
+from tests.support.operator import OperatorProcess, wait_for
 
 COMMAND = "python -m bench cluster"
 NAMESPACE = "roost-bench-failover"

@@ -25,9 +25,9 @@ from pathlib import Path
 from kubernetes import client
 
 from bench.core import Figure
-from roost_harness import binaries, nodes
-from roost_harness.cluster import Cluster
-from roost_harness.controlplane import ControlPlane, Settings
+from roost_localcluster import binaries, nodes
+from roost_localcluster.cluster import Cluster
+from roost_localcluster.controlplane import ControlPlane, Settings
 
 COMMAND = "python -m bench controlplane"
 SETTLE_S = 10.0
@@ -58,7 +58,7 @@ def cold_build() -> list[Figure]:
             float(sum(latest.values())),
             "s",
             "informational",
-            "tests/harness/build-control-plane.sh (empty cache)",
+            "localcluster/build-control-plane.sh (empty cache)",
             note=f"per binary {latest} ({record.name}); downloading the Go modules first "
             "is not included (about 20 s here)",
         )

@@ -8,7 +8,7 @@
   stages complete a Job's pod as soon as it runs, so a pod counts once it has reached
   Running or Succeeded. Polled every 100 ms.
 
-The fleet's node agents are :class:`~roost_harness.fakeagents.FakeAgents` reporting every
+The fleet's node agents are :class:`~tests.support.fakeagents.FakeAgents` reporting every
 few seconds (the real agent reports every 10 s), so the operator's ``AgentConnected`` and
 the preflight checks see live reports as they would in a fleet.
 """
@@ -24,13 +24,13 @@ from pathlib import Path
 
 from bench.core import Figure
 from roost_api.wellknown import LABEL_MISSION, LABEL_VEHICLE
-from roost_harness import binaries
-from roost_harness.cluster import Cluster
-from roost_harness.controlplane import ControlPlane
-from roost_harness.fakeagents import FakeAgents, redundant_autopilot
-from roost_harness.operator import OperatorProcess, wait_for
+from roost_localcluster import binaries
+from roost_localcluster.cluster import Cluster
+from roost_localcluster.controlplane import ControlPlane
 from roost_operator.kube import MISSIONS, PODS, VEHICLES, Kube
 from roost_operator.missions.workloads import bounded_name
+from tests.support.fakeagents import FakeAgents, redundant_autopilot
+from tests.support.operator import OperatorProcess, wait_for
 
 COMMAND = "python -m bench mission"
 FLEET = 100
@@ -82,7 +82,7 @@ def _fleet(cluster: Cluster, kube: Kube, agents: FakeAgents) -> None:
     )
     cluster.kubectl("apply", "-f", "-", input_text=_documents(vehicles))
     for name in names:
-        agents.add(f"{name}-autopilots", name, f"{name}-node")
+        agents.add(name, name, f"{name}-node")
     wait_for("the fleet Ready", lambda: _ready(kube), SETUP_TIMEOUT_S, poll_s=1.0)
 
 

@@ -21,12 +21,12 @@ import time
 from pathlib import Path
 
 from bench.core import Figure
-from roost_harness import binaries
-from roost_harness.apiwrites import VEHICLE_WRITE_TARGETS, write_requests
-from roost_harness.cluster import Cluster
-from roost_harness.controlplane import ControlPlane
-from roost_harness.operator import OperatorProcess, wait_for
+from roost_localcluster import binaries
+from roost_localcluster.cluster import Cluster
+from roost_localcluster.controlplane import ControlPlane
 from roost_operator.kube import VEHICLES, Kube
+from tests.support.apiwrites import VEHICLE_WRITE_TARGETS, write_requests
+from tests.support.operator import OperatorProcess, wait_for
 
 COMMAND = "python -m bench vehicle"
 VEHICLE_COUNT = 5

@@ -6,8 +6,8 @@ from collections.abc import Iterator
 
 import pytest
 
-from roost_harness.cluster import Cluster, FakeNodes
-from roost_harness.controlplane import ControlPlane
+from roost_localcluster.cluster import Cluster, FakeNodes
+from roost_localcluster.controlplane import ControlPlane
 from roost_operator.kube import Kube
 
 
@@ -22,7 +22,7 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
 def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
     """A real control plane (etcd, API server, controller manager, scheduler, kwok) for the
     whole session; builds the binaries first if they are missing. Component logs are in the
-    session's temp dir under ``control-plane*/logs``. See tests/harness/README.md."""
+    session's temp dir under ``control-plane*/logs``. See localcluster/README.md."""
     with ControlPlane(tmp_path_factory.mktemp("control-plane")) as plane:
         yield Cluster.of(plane)
 

@@ -65,6 +65,7 @@ from roost_agent.health import Assessment, HealthTracker
 from roost_agent.links import AutopilotLink
 from roost_agent.report import report
 from roost_agent.safety import DEFAULT_TIMING, Phase, SafetyRunner, Timing
+from roost_agent.signing import LinkSigning
 from roost_agent.state import MAX_REMEMBERED_COMMANDS, PersistedState, StateFile
 from roost_api.autopilot import (
     AutopilotCommand,
@@ -76,6 +77,7 @@ from roost_api.autopilot import (
     RedundantAutopilotStatus,
 )
 from roost_api.meta import HealthLevel
+from roost_mavlink import pymavlink_device
 
 log = logging.getLogger(__name__)
 
@@ -101,6 +103,7 @@ class EventKind(StrEnum):
     EMERGENCY_STOP = "EmergencyStop"
     SPEC = "Spec"
     BRIDGE_ERROR = "BridgeError"
+    LINK = "Link"
 
 
 @dataclass(frozen=True)
@@ -275,6 +278,24 @@ def _view(a: Assessment) -> AutopilotView:
     )
 
 
+def connection_problems(spec: RedundantAutopilotSpec) -> list[str]:
+    """One line per autopilot whose connection URL the agent could not open."""
+    problems = []
+    for autopilot in spec.autopilots:
+        try:
+            pymavlink_device(autopilot.connection)
+        except ValueError as exc:
+            problems.append(f"autopilot {autopilot.name}: {exc}")
+    return problems
+
+
+def _with_link_error(health: AutopilotHealth, error: str | None) -> AutopilotHealth:
+    """The health entry with a failing link's last error first among its reasons."""
+    if error is None:
+        return health
+    return health.model_copy(update={"reasons": [f"link error: {error}", *health.reasons]})
+
+
 class Agent:
     """Watches the autopilots of one vehicle and keeps a healthy one on the motors."""
 
@@ -290,8 +311,10 @@ class Agent:
         clock: Callable[[], float] = time.monotonic,
         wall_clock: Callable[[], datetime] = _utc_now,
         timing: Timing = DEFAULT_TIMING,
+        signing: LinkSigning | None = None,
     ) -> None:
         self._bridge = bridge
+        self._signing = signing
         self._state_file = state_file
         self._node_name = node_name
         self._tick_s = tick_s
@@ -467,7 +490,7 @@ class Agent:
             cfg = self._cfg
             state = self._state
             healths = [
-                self._assessments[a.name].to_api()
+                _with_link_error(self._assessments[a.name].to_api(), cfg.links[a.name].error)
                 for a in cfg.spec.autopilots
                 if a.name in self._assessments
             ]
@@ -722,7 +745,19 @@ class Agent:
 
     def _new_link(self, spec_ap: AutopilotSpec, spec: RedundantAutopilotSpec) -> AutopilotLink:
         tracker = HealthTracker(spec_ap.name, spec_ap.stack, spec.failover_policy.thresholds)
-        return AutopilotLink(spec_ap, tracker, on_change=self._wake.set, clock=self._clock)
+        name = spec_ap.name
+
+        def link_event(reason: str, message: str, warning: bool) -> None:
+            self._emit(EventKind.LINK, reason, message, warning=warning, autopilot=name)
+
+        return AutopilotLink(
+            spec_ap,
+            tracker,
+            on_change=self._wake.set,
+            clock=self._clock,
+            signing=self._signing,
+            on_event=link_event,
+        )
 
     def _apply_spec(self, spec: RedundantAutopilotSpec, generation: int | None) -> str | None:
         with self._spec_lock:
@@ -732,6 +767,9 @@ class Agent:
             channels = {a.name: a.bridge_channel for a in spec.autopilots}
             if set(old) != set(new) or channels != dict(cfg.channels):
                 return "the autopilots or their bridge channels changed; restart the agent"
+            unusable = connection_problems(spec)
+            if unusable:
+                return "; ".join(unusable)
             changed = [n for n in new if new[n] != old[n]]
             in_flight = self._state.in_flight is True or any(
                 a.in_air is True for a in self.assessments().values()

@@ -20,6 +20,23 @@ The rules follow the health table in ``shared/reference/mavlink-health.md``:
   accelerometer error persisting is an error, position lost a warning;
 - disarmed while in the air; attitude beyond the tilt envelope.
 
+Corroboration: a reboot (``time_boot_ms`` back-step, MAV_STATE BOOT after it was up) or a
+fatal MAV_STATE claimed by one message is a *claim*, acted on only once the following
+message(s) of the autopilot corroborate it, so one forged, replayed or corrupted frame
+that passed its CRC cannot trigger a switch. The next message settles the claim:
+
+- it contradicts the claim (``time_boot_ms`` back on the old timeline; a heartbeat with a
+  non-fatal, non-BOOT state): refuted, counted in :attr:`HealthTracker.refuted`;
+- its MAVLink sequence number continues from the claim's (1..:data:`SEQ_WINDOW` ahead, so
+  a few lost frames do not matter): confirmed, with the claim's time as the onset;
+- it continues the sequence from before the claim instead: refuted (the claim did not
+  come from the stream the autopilot is sending);
+- it repeats the claim (a second fatal heartbeat, a second sample on the new timeline):
+  confirmed. Otherwise the claim waits for the next message.
+
+At 50 Hz telemetry that costs one message interval (20 ms) of the real-reboot and
+EMERGENCY detection; with heartbeats only, one message of whatever streams.
+
 Only findings marked ``triggers_failover`` can make the arbiter switch; warnings never
 do. The arbiter adds the hysteresis (confirm/clear times); here a finding is reported as
 soon as its own definition holds.
@@ -63,6 +80,9 @@ REBOOT_BACKSTEP_MS = 1000
 # A reboot stays an error this long: an autopilot that restarted mid-flight is not a
 # failover target again until it has proven itself for a while.
 REBOOT_REMEMBERED_S = 10.0
+
+# How far ahead of a claim's sequence number the corroborating message may be (lost frames).
+SEQ_WINDOW = 8
 
 TILT_WARN_DEG = 35.0
 TILT_PERSIST_S = 0.3
@@ -182,6 +202,22 @@ def tilt_degrees(roll: float, pitch: float) -> float:
     return math.degrees(math.acos(max(-1.0, min(1.0, cos_tilt))))
 
 
+@dataclass(frozen=True)
+class _Claim:
+    """A reboot or fatal state one message asserted, waiting for corroboration."""
+
+    at: float
+    seq: int | None
+    prev_seq: int | None
+    reason: str  # the reboot reason; "" for a fatal state
+    status: int | None = None  # the claimed MAV_STATE (heartbeat claims)
+    boot_ms: int | None = None  # the new time_boot_ms (back-step claims)
+
+
+def _follows(seq: int | None, after: int | None) -> bool:
+    return seq is not None and after is not None and 1 <= (seq - after) % 256 <= SEQ_WINDOW
+
+
 @dataclass
 class _Observed:
     """Everything the tracker remembers; mutated only under the tracker's lock."""
@@ -214,6 +250,9 @@ class _Observed:
     estimator_kind: str = ""
     estimator_bad_since: float | None = None
     disarmed_in_air_at: float | None = None
+    last_seq: int | None = None
+    claim: _Claim | None = None
+    refuted: int = 0
 
 
 class HealthTracker:
@@ -253,10 +292,13 @@ class HealthTracker:
             if now - o.window_start >= RATE_WINDOW_S:
                 o.stream_rate = o.window_count / (now - o.window_start)
                 o.window_start, o.window_count = now, 0
-            changed = False
             boot_ms = getattr(msg, "time_boot_ms", None)
-            if isinstance(boot_ms, int):
-                changed = self._observe_boot_time(boot_ms, now)
+            boot_ms = boot_ms if isinstance(boot_ms, int) else None
+            seq = _seq(msg)
+            changed = o.claim is not None and self._settle(msg, kind, boot_ms, seq)
+            if boot_ms is not None and (o.claim is None or o.claim.status is not None):
+                changed = self._observe_boot_time(boot_ms, now, seq) or changed
+            o.last_seq = seq
             if kind == "HEARTBEAT":
                 changed = self._observe_heartbeat(msg, now) or changed
             elif kind == "SYS_STATUS":
@@ -269,20 +311,55 @@ class HealthTracker:
                 self._observe_estimator(kind, int(msg.flags), now)
             return changed
 
-    def _observe_boot_time(self, boot_ms: int, now: float) -> bool:
+    def _observe_boot_time(self, boot_ms: int, now: float, seq: int | None) -> bool:
         o = self._o
         if o.boot_ms_max is None or boot_ms > o.boot_ms_max:
             o.boot_ms_max = boot_ms
             o.boot_advanced_at = now
             return False
-        if boot_ms < o.boot_ms_max - REBOOT_BACKSTEP_MS:
-            self._note_reboot(
-                now, f"rebooted: time_boot_ms went back from {o.boot_ms_max} to {boot_ms}"
-            )
-            o.boot_ms_max = boot_ms
-            o.boot_advanced_at = now
-            return True
+        if boot_ms < o.boot_ms_max - REBOOT_BACKSTEP_MS and o.claim is None:
+            reason = f"rebooted: time_boot_ms went back from {o.boot_ms_max} to {boot_ms}"
+            o.claim = _Claim(now, seq, o.last_seq, reason, boot_ms=boot_ms)
         return False
+
+    def _settle(self, msg: Any, kind: str, boot_ms: int | None, seq: int | None) -> bool:
+        """Let the message after a claim confirm or refute it (module docstring)."""
+        o = self._o
+        claim = o.claim
+        assert claim is not None
+        status = int(msg.system_status) if kind == "HEARTBEAT" else None
+        if claim.boot_ms is not None and boot_ms is not None:
+            assert o.boot_ms_max is not None
+            new_timeline = boot_ms < o.boot_ms_max - REBOOT_BACKSTEP_MS
+            contradicts, repeats = not new_timeline, new_timeline
+        elif status is not None and int(msg.autopilot) != MAV_AUTOPILOT_INVALID:
+            contradicts = status not in _FATAL_STATES and status != MavState.BOOT
+            repeats = status == claim.status or (
+                claim.status in _FATAL_STATES and status in _FATAL_STATES
+            )
+        else:
+            contradicts = repeats = False
+        if contradicts:
+            verdict: bool | None = False
+        elif _follows(seq, claim.seq):
+            verdict = True
+        elif _follows(seq, claim.prev_seq):
+            verdict = False
+        else:
+            verdict = True if repeats else None
+        if verdict is None:
+            return False
+        o.claim = None
+        if not verdict:
+            o.refuted += 1
+            return False
+        if claim.status is not None:
+            o.system_status, o.system_status_since = claim.status, claim.at
+        if claim.reason:
+            self._note_reboot(claim.at, claim.reason)
+        if claim.boot_ms is not None:
+            o.boot_ms_max, o.boot_advanced_at = claim.boot_ms, claim.at
+        return True
 
     def _note_reboot(self, now: float, reason: str) -> None:
         o = self._o
@@ -305,13 +382,16 @@ class HealthTracker:
         o.base_mode = int(msg.base_mode)
         o.custom_mode = int(msg.custom_mode)
         status = int(msg.system_status)
-        if status != o.system_status:
-            o.system_status_since = now
-        o.system_status = status
-        if status == MavState.BOOT and o.was_up:
-            self._note_reboot(now, "rebooted: MAV_STATE BOOT after it was up")
-        elif status in _UP_STATES:
-            o.was_up = True
+        rebooting = status == MavState.BOOT and o.was_up
+        if o.claim is None and (rebooting or _newly_fatal(status, o.system_status)):
+            reason = "rebooted: MAV_STATE BOOT after it was up" if rebooting else ""
+            o.claim = _Claim(now, _seq(msg), o.last_seq, reason, status=status)
+        elif o.claim is None:
+            if status != o.system_status:
+                o.system_status_since = now
+            o.system_status = status
+            if status in _UP_STATES:
+                o.was_up = True
         armed = bool(o.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
         if was_armed and not armed and o.landed_state is not None and is_airborne(o.landed_state):
             o.disarmed_in_air_at = now
@@ -384,6 +464,12 @@ class HealthTracker:
                 unhealthy_sensors=o.unhealthy_names,
             )
 
+    @property
+    def refuted(self) -> int:
+        """Claims (reboot, fatal state) the following messages contradicted."""
+        with self._lock:
+            return self._o.refuted
+
     def heartbeat(self) -> tuple[int, int, float] | None:
         """(custom_mode, base_mode, received_at) of the last heartbeat, for confirmations."""
         with self._lock:
@@ -396,6 +482,15 @@ class HealthTracker:
         """Last EXTENDED_SYS_STATE landed_state."""
         with self._lock:
             return self._o.landed_state
+
+
+def _seq(msg: Any) -> int | None:
+    get_seq = getattr(msg, "get_seq", None)
+    return int(get_seq()) if get_seq is not None else None
+
+
+def _newly_fatal(status: int, previous: int | None) -> bool:
+    return status in _FATAL_STATES and previous not in _FATAL_STATES
 
 
 def _estimator_attitude_bad(kind: str, flags: int) -> bool:

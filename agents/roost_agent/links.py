@@ -9,15 +9,42 @@ sequence numbers in order.
 
 Why our own transports instead of ``pymavlink.mavutil`` connections: mavutil imports
 numpy and a MAVLink 1 dialect (about 30 MB of the agent's memory, on a companion
-computer), prints to stdout, and its UDP listener sends every reply to every address
-that ever sent it a datagram, spoofers included. Here the pymavlink dialect does the
-parsing and encoding; a UDP listener replies only to the address this autopilot's
-messages come from; a UDP sender accepts datagrams only from its destination.
+computer), prints to stdout, parses every sender's bytes with one parser and sends every
+reply to every address that ever sent it a datagram, spoofers included.
 
-Only messages whose source is this autopilot's system id and component id count. A
-spoofed or foreign sysid on the same port, a non-autopilot component sharing the sysid,
-and bytes that do not parse are counted and otherwise ignored; a reader never dies on
-bad input (it reopens the connection after a run of errors).
+Trust, on UDP, where anyone who can reach the port can send:
+
+- **One parser per sender.** Each datagram is parsed by the parser of the address it came
+  from (at most :data:`MAX_SENDERS`, least recently used dropped), and whatever a
+  datagram leaves unfinished is discarded with it (MAVLink over UDP never splits a frame
+  across datagrams). Garbage, truncated or bad-CRC frames therefore cost only their own
+  sender; the autopilot's next frame always starts on a clean parser.
+- **Source lock.** A link hears one address: the autopilot's. ``udpout://`` is locked to
+  its destination, ``udp://HOST:PORT@PEER:PORT`` to the configured peer (``@PEER`` alone:
+  any port of that host may prove itself). Otherwise the lock goes to the first address
+  that proves itself: :data:`PROOF_HEARTBEATS` autopilot HEARTBEATs of the configured
+  system and component id (``autopilot`` not INVALID; signed when signing is required),
+  each no more than the heartbeat-error threshold after the previous one. Re-lock: when
+  the locked address has sent nothing acceptable for the heartbeat-error threshold (the
+  autopilot rebooted onto another port, or was replaced), the next address to prove itself
+  takes the lock, with a warning Event. While the autopilot is alive nothing can take its
+  lock. Until the first lock nothing reaches the health tracker, so a link counts as
+  silent (not healthy) until its autopilot proved itself.
+- **Foreign traffic** (datagrams from any other address while locked) is dropped unparsed
+  and counted (``foreign``); more than :data:`FOREIGN_ALERT_PER_S` per second over
+  :data:`ALERT_WINDOW_S` raises a warning Event (at most one per
+  :data:`ALERT_QUIET_S`): a second sender is misconfigured or someone injects MAVLink.
+- **Replies** go to the locked address only; before a lock a UDP listener sends nothing.
+- **Signing** (:mod:`roost_agent.signing`): every frame sent is signed; while signing is
+  required, unsigned, badly signed and replayed frames are dropped and counted, and
+  repeated ones raise a warning Event the same way.
+
+Without signing, the lock keeps off-path senders out but cannot stop a host that forges
+the autopilot's own address and port; signing can.
+
+A reader never dies: any exception is counted, reported (``error``, shown in the status,
+and a warning Event) and the link reopened with exponential backoff
+(:data:`REOPEN_DELAY_S` doubling to :data:`REOPEN_MAX_S`).
 
 The agent talks as component 191 (onboard computer) with the autopilot's own system id,
 as a companion computer does, and addresses commands to the autopilot's component
@@ -32,43 +59,64 @@ import select
 import socket
 import threading
 import time
+from collections import OrderedDict, deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from roost_agent.health import HealthTracker
+from roost_agent.signing import LinkSigning
 from roost_api.autopilot import AutopilotSpec
 from roost_api.meta import Stack
 from roost_mavlink import AGENT_COMPONENT_ID, MavResult, pymavlink_device
+from roost_mavlink.signing import Signer, Verdict, Verifier
 from roost_mavlink.status import MAV_AUTOPILOT_INVALID, MAV_TYPE_ONBOARD_CONTROLLER, MavState
 
 log = logging.getLogger(__name__)
 
 Params = tuple[float, float, float, float, float, float, float]
 Address = tuple[str, int]
+EventSink = Callable[[str, str, bool], None]  # (reason, message, warning)
 
 READ_WAIT_S = 0.1  # how long the reader blocks in select() before checking for stop
+DRAIN_MAX = 256  # datagrams read per wake-up before checking for stop again
 REOPEN_DELAY_S = 0.5
+REOPEN_MAX_S = 30.0
 CONNECT_TIMEOUT_S = 2.0
-MAX_CONSECUTIVE_ERRORS = 50
 UDP_MAX = 65535
+RECEIVE_BUFFER_BYTES = 1 << 20  # absorbs a burst of foreign datagrams
+
+MAX_SENDERS = 16
+PROOF_HEARTBEATS = 2
+ALERT_WINDOW_S = 10.0
+FOREIGN_ALERT_PER_S = 1.0
+ALERT_QUIET_S = 60.0
 
 
 @dataclass
 class LinkCounters:
-    """What the reader saw; exposed for diagnostics and the benchmarks."""
+    """What the reader saw; exposed for diagnostics, the status line and the benchmarks."""
 
-    accepted: int = 0  # from this autopilot's sysid/component
-    foreign: int = 0  # parsed, but from another sysid or component
-    bad: int = 0  # bytes that did not parse (BAD_DATA)
+    accepted: int = 0  # from the locked address, this autopilot's sysid/component
+    foreign: int = 0  # datagrams from another address while locked (not parsed)
+    unlocked: int = 0  # parsed before any address proved itself (not used)
+    other: int = 0  # from the locked address but another sysid or component
+    bad: int = 0  # bytes that did not parse or failed their CRC (BAD_DATA)
+    truncated: int = 0  # datagrams that ended inside a frame
+    unsigned: int = 0  # dropped while signing is required: no signature
+    bad_signature: int = 0  # dropped while signing is required: wrong or replayed
     errors: int = 0  # exceptions from the parser or the transport
     reopened: int = 0
+    relocked: int = 0
 
 
 class Transport:
     """A byte pipe to one autopilot. ``receive`` never blocks (the reader selects first)."""
+
+    datagrams = False  # True: each receive is one datagram holding whole frames
+    fixed_peer: Address | None = None  # the one address datagrams are accepted from
 
     def fileno(self) -> int:
         raise NotImplementedError
@@ -80,18 +128,25 @@ class Transport:
     def send(self, data: bytes) -> None:
         raise NotImplementedError
 
-    def confirm_peer(self, address: Address) -> None:
-        """The autopilot itself sent from ``address`` (only UDP listeners care)."""
+    def lock_to(self, address: Address) -> None:
+        """Replies go to ``address`` from now on (only UDP listeners care)."""
 
     def close(self) -> None:
         raise NotImplementedError
 
 
 class _Udp(Transport):
+    datagrams = True
+
     def __init__(self, bind: Address | None) -> None:
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        if bind is not None:
-            self._sock.bind(bind)
+        try:
+            self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER_BYTES)
+            if bind is not None:
+                self._sock.bind(bind)
+        except BaseException:
+            self._sock.close()
+            raise
         self._sock.setblocking(False)
 
     def fileno(self) -> int:
@@ -109,33 +164,30 @@ class _Udp(Transport):
 
 
 class UdpListen(_Udp):
-    """``udp://HOST:PORT``: listen; reply to where this autopilot's messages come from."""
+    """``udp://HOST:PORT``: listen; reply only to the locked autopilot address."""
 
     def __init__(self, host: str, port: int) -> None:
         super().__init__((host, port))
         self._peer: Address | None = None
 
-    def confirm_peer(self, address: Address) -> None:
+    def lock_to(self, address: Address) -> None:
         self._peer = address
 
     def send(self, data: bytes) -> None:
-        if self._peer is not None:  # nothing heard from the autopilot yet: nowhere to send
+        if self._peer is not None:  # no autopilot proved itself yet: nowhere to send
             self._sock.sendto(data, self._peer)
 
 
 class UdpOut(_Udp):
-    """``udpout://HOST:PORT``: send there; accept datagrams only from there."""
+    """``udpout://HOST:PORT``: send there; datagrams from elsewhere are foreign."""
 
     def __init__(self, host: str, port: int) -> None:
         super().__init__(None)
-        self._dest: Address = (socket.gethostbyname(host), port)
-
-    def receive(self) -> tuple[bytes, Address | None]:
-        data, address = super().receive()
-        return (data, address) if address == self._dest else (b"", None)
+        self.fixed_peer = (socket.gethostbyname(host), port)
 
     def send(self, data: bytes) -> None:
-        self._sock.sendto(data, self._dest)
+        assert self.fixed_peer is not None
+        self._sock.sendto(data, self.fixed_peer)
 
 
 class TcpClient(Transport):
@@ -241,14 +293,120 @@ def open_transport(connection: str) -> Transport:
     return SerialPort(device.device, device.baud)
 
 
-class _Writer:
-    """The file object the pymavlink encoder writes finished frames to."""
+def configured_peer(connection: str) -> tuple[str, int | None] | None:
+    """The ``@PEER[:PORT]`` of a UDP listener URL, its host resolved to an address."""
+    peer = pymavlink_device(connection).peer
+    if peer is None:
+        return None
+    return socket.gethostbyname(peer[0]), peer[1]
 
-    def __init__(self, transport: Transport) -> None:
+
+class SourceLock:
+    """Which sender address a link believes is its autopilot (rules: module docstring).
+
+    Pure bookkeeping with explicit times, so the rule is unit-tested without sockets.
+    """
+
+    def __init__(
+        self,
+        *,
+        relock_after_s: float,
+        fixed: Address | None = None,
+        host: str | None = None,
+        proof_heartbeats: int = PROOF_HEARTBEATS,
+    ) -> None:
+        self.relock_after_s = relock_after_s
+        self.fixed = fixed
+        self.host = host
+        self.proof_heartbeats = proof_heartbeats
+        self.locked: Address | None = fixed
+        self.last_seen: float | None = None
+        self._candidates: OrderedDict[Address, tuple[int, float]] = OrderedDict()
+
+    def open_to_candidates(self, now: float) -> bool:
+        """Whether another address may prove itself now."""
+        if self.fixed is not None:
+            return False
+        if self.locked is None:
+            return True
+        return self.last_seen is None or now - self.last_seen >= self.relock_after_s
+
+    def hears(self, address: Address, now: float) -> bool:
+        """Whether frames from ``address`` are parsed at all."""
+        if address == self.locked:
+            return True
+        if self.host is not None and address[0] != self.host:
+            return False
+        return self.open_to_candidates(now)
+
+    def seen(self, now: float) -> None:
+        """The locked address delivered an acceptable message."""
+        self.last_seen = now
+
+    def prove(self, address: Address, now: float) -> bool:
+        """A valid autopilot heartbeat from a candidate; True when it takes the lock now."""
+        if not self.hears(address, now) or address == self.locked:
+            return False
+        count, last = self._candidates.pop(address, (0, now))
+        count = count + 1 if now - last <= self.relock_after_s else 1
+        if count < self.proof_heartbeats:
+            self._candidates[address] = (count, now)
+            while len(self._candidates) > MAX_SENDERS:
+                self._candidates.popitem(last=False)
+            return False
+        self._candidates.clear()
+        self.locked, self.last_seen = address, now
+        return True
+
+
+class _RateAlarm:
+    """Counts events in a window; fires when the rate passes a bound, then stays quiet."""
+
+    def __init__(self, per_s: float, window_s: float = ALERT_WINDOW_S) -> None:
+        self.threshold = max(1, round(per_s * window_s))
+        self.window_s = window_s
+        self._times: deque[float] = deque()
+        self._quiet_until = 0.0
+        self.sources: OrderedDict[str, int] = OrderedDict()
+
+    def note(self, now: float, source: str) -> str | None:
+        """Record one; "N in S s" when the alarm fires, else None."""
+        times = self._times
+        times.append(now)
+        while times and now - times[0] > self.window_s:
+            times.popleft()
+        self.sources[source] = self.sources.pop(source, 0) + 1
+        while len(self.sources) > 4:
+            self.sources.popitem(last=False)
+        if len(times) < self.threshold or now < self._quiet_until:
+            return None
+        self._quiet_until = now + ALERT_QUIET_S
+        text = f"{len(times)} in {max(now - times[0], 0.001):.2f} s"
+        times.clear()
+        return text
+
+    def describe(self) -> str:
+        text = ", ".join(self.sources)
+        self.sources.clear()
+        return text
+
+
+def _address_text(address: Address | None) -> str:
+    return "the serial/TCP peer" if address is None else f"{address[0]}:{address[1]}"
+
+
+class _Writer:
+    """The file object the pymavlink encoder writes finished frames to (signing them)."""
+
+    def __init__(self, transport: Transport, signer: Signer | None) -> None:
         self.transport = transport
+        self.signer = signer
 
     def write(self, data: bytes) -> None:
-        self.transport.send(bytes(data))
+        frame = bytes(data)
+        if self.signer is not None:
+            frame = self.signer.sign(frame)
+        self.transport.send(frame)
 
 
 class AckMailbox:
@@ -284,6 +442,23 @@ class AckMailbox:
                     return result if serial > after_serial else None
 
 
+def _new_parser() -> Any:
+    parser = mavlink.MAVLink(None)
+    parser.robust_parsing = True
+    return parser
+
+
+@dataclass
+class _Session:
+    """What one opened transport needs while it reads."""
+
+    transport: Transport
+    lock: SourceLock
+    verifier: Verifier | None
+    parsers: OrderedDict[Address | None, Any] = field(default_factory=OrderedDict)
+    accepted_at_open: int = 0
+
+
 class AutopilotLink:
     """The agent's connection to one autopilot."""
 
@@ -293,6 +468,9 @@ class AutopilotLink:
         tracker: HealthTracker,
         on_change: Callable[[], None] = lambda: None,
         clock: Callable[[], float] = time.monotonic,
+        *,
+        signing: LinkSigning | None = None,
+        on_event: EventSink = lambda reason, message, warning: None,
     ) -> None:
         self.spec = spec
         self.name = spec.name
@@ -300,13 +478,24 @@ class AutopilotLink:
         self.tracker = tracker
         self.counters = LinkCounters()
         self.acks = AckMailbox()
+        self.signing = signing
+        self.error: str | None = None  # the last failure while the link is down
         self._on_change = on_change
+        self._on_event = on_event
         self._clock = clock
         self._write_lock = threading.Lock()
         self._transport: Transport | None = None
         self._mav: Any = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._foreign_alarm = _RateAlarm(FOREIGN_ALERT_PER_S)
+        self._signature_alarm = _RateAlarm(FOREIGN_ALERT_PER_S)
+        self._locked: Address | None = None
+
+    @property
+    def locked_address(self) -> Address | None:
+        """The address this link hears (None: not locked yet, or a serial/TCP link)."""
+        return self._locked
 
     # -- lifecycle -------------------------------------------------------------------
 
@@ -332,70 +521,145 @@ class AutopilotLink:
             except OSError:
                 log.debug("closing %s failed", self.name, exc_info=True)
 
+    def _event(self, reason: str, message: str, warning: bool) -> None:
+        try:
+            self._on_event(reason, f"{self.name}: {message}", warning)
+        except Exception:  # a reporting bug must not stop the reader
+            log.exception("%s: reporting %s failed", self.name, reason)
+
     # -- reading ---------------------------------------------------------------------
 
     def _run(self) -> None:
+        delay = REOPEN_DELAY_S
         while not self._stop.is_set():
+            session: _Session | None = None
             try:
-                transport = open_transport(self.spec.connection)
-            except (OSError, ValueError, ImportError) as exc:
-                log.warning("%s: cannot open %s: %s", self.name, self.spec.connection, exc)
-                self._stop.wait(REOPEN_DELAY_S)
-                continue
-            mav = mavlink.MAVLink(
-                _Writer(transport), srcSystem=self.spec.sysid, srcComponent=AGENT_COMPONENT_ID
-            )
-            mav.robust_parsing = True
-            with self._write_lock:
-                self._transport, self._mav = transport, mav
-            self._read_until_broken(transport, mav)
-            self._close()
-            if not self._stop.is_set():
-                self.counters.reopened += 1
-                self._stop.wait(REOPEN_DELAY_S)
+                session = self._open()
+                self._read_until_stopped(session)
+            except Exception as exc:  # every failure: report, back off, reopen
+                self.counters.errors += 1
+                text = " ".join(f"{type(exc).__name__}: {exc}".split())
+                if text != self.error:
+                    log.warning("%s: link failed (%s); retrying", self.name, text)
+                    self._event("LinkError", f"link failed: {text}; retrying", True)
+                self.error = text
+            finally:
+                self._close()
+            if self._stop.is_set():
+                return
+            if session is not None and self.counters.accepted > session.accepted_at_open:
+                delay = REOPEN_DELAY_S  # it worked for a while: retry soon
+            self.counters.reopened += 1
+            self._stop.wait(delay)
+            delay = min(delay * 2, REOPEN_MAX_S)
 
-    def _read_until_broken(self, transport: Transport, mav: Any) -> None:
-        """Read and dispatch until stopped or the transport is beyond repair."""
-        errors = 0
+    def _open(self) -> _Session:
+        transport = open_transport(self.spec.connection)
+        try:
+            peer = configured_peer(self.spec.connection)
+            relock_s = self.tracker.thresholds.heartbeat_error_ms / 1000
+            if transport.fixed_peer is not None:
+                lock = SourceLock(relock_after_s=relock_s, fixed=transport.fixed_peer)
+            elif peer is not None and peer[1] is not None:
+                lock = SourceLock(relock_after_s=relock_s, fixed=(peer[0], peer[1]))
+            else:
+                host = None if peer is None else peer[0]
+                lock = SourceLock(relock_after_s=relock_s, host=host)
+            if lock.locked is not None:
+                transport.lock_to(lock.locked)
+            self._locked = lock.locked
+            signing = self.signing
+            signer = signing.signer(self.spec.bridge_channel) if signing is not None else None
+            verifier = signing.verifier() if signing is not None and signing.require else None
+            mav = mavlink.MAVLink(
+                _Writer(transport, signer),
+                srcSystem=self.spec.sysid,
+                srcComponent=AGENT_COMPONENT_ID,
+            )
+        except BaseException:
+            transport.close()
+            raise
+        with self._write_lock:
+            self._transport, self._mav = transport, mav
+        return _Session(transport, lock, verifier, accepted_at_open=self.counters.accepted)
+
+    def _read_until_stopped(self, session: _Session) -> None:
+        """Read and dispatch until stopped; transport failures propagate."""
+        transport = session.transport
         while not self._stop.is_set():
-            try:
-                readable, _, _ = select.select([transport.fileno()], [], [], READ_WAIT_S)
-                if not readable:
-                    continue
+            readable, _, _ = select.select([transport.fileno()], [], [], READ_WAIT_S)
+            if not readable:
+                continue
+            for _ in range(DRAIN_MAX):
                 data, sender = transport.receive()
                 if not data:
-                    continue
-                msg = mav.parse_char(data)
-                while msg is not None:
-                    if self._dispatch(msg) and sender is not None:
-                        transport.confirm_peer(sender)
-                    msg = mav.parse_char(b"")
-            except OSError as exc:  # socket or serial failure (ConnectionError included)
-                log.warning("%s: transport failed (%s); reopening", self.name, exc)
-                return
-            except Exception:  # the parser choked on something: count it and go on
-                self.counters.errors += 1
-                errors += 1
-                if errors >= MAX_CONSECUTIVE_ERRORS:
-                    log.warning("%s: %d parse errors in a row; reopening", self.name, errors)
-                    return
-                continue
-            errors = 0
+                    break
+                self._datagram(session, data, sender)
 
-    def _dispatch(self, msg: Any) -> bool:
-        """Handle one parsed message; True when it came from this autopilot."""
+    def _datagram(self, session: _Session, data: bytes, sender: Address | None) -> None:
+        now = self._clock()
+        lock = session.lock
+        if sender is not None and sender != lock.locked and not lock.hears(sender, now):
+            self.counters.foreign += 1
+            fired = self._foreign_alarm.note(now, _address_text(sender))
+            if fired is not None:
+                self._event(
+                    "ForeignMavlinkTraffic",
+                    f"ignored datagrams ({fired}) from "
+                    f"{self._foreign_alarm.describe()}; only the autopilot at "
+                    f"{_address_text(lock.locked)} is heard (a misconfigured second sender, "
+                    "or MAVLink injection)",
+                    True,
+                )
+            return
+        parser = session.parsers.pop(sender, None)
+        if parser is None:
+            parser = _new_parser()
+            while len(session.parsers) >= MAX_SENDERS:
+                session.parsers.popitem(last=False)
+        session.parsers[sender] = parser
+        try:
+            msg = parser.parse_char(data)
+            while msg is not None:
+                self._message(session, msg, sender, now)
+                msg = parser.parse_char(b"")
+        except Exception:  # the parser choked: this sender's parser starts over
+            self.counters.errors += 1
+            session.parsers.pop(sender, None)
+            return
+        if session.transport.datagrams and parser.buf_len() > 0:
+            self.counters.truncated += 1
+            session.parsers.pop(sender, None)  # a frame never continues in the next datagram
+
+    def _message(self, session: _Session, msg: Any, sender: Address | None, now: float) -> None:
         kind = msg.get_type()
+        locked = sender is None or sender == session.lock.locked
         if kind == "BAD_DATA":
             self.counters.bad += 1
-            return False
+            return
         if (
             msg.get_srcSystem() != self.spec.sysid
             or msg.get_srcComponent() != self.spec.component_id
         ):
-            self.counters.foreign += 1
-            return False
+            if locked:
+                self.counters.other += 1
+            else:
+                self.counters.unlocked += 1
+            return
+        if session.verifier is not None and not self._signed(session.verifier, msg, sender, now):
+            return
+        if not locked:
+            assert sender is not None
+            proof = kind == "HEARTBEAT" and int(msg.autopilot) != MAV_AUTOPILOT_INVALID
+            if not (proof and session.lock.prove(sender, now)):
+                self.counters.unlocked += 1
+                return
+            self._took_lock(session, sender)
+        session.lock.seen(now)
         self.counters.accepted += 1
-        now = self._clock()
+        if self.error is not None:
+            self.error = None
+            self._event("LinkRecovered", "receiving again", False)
         if kind == "COMMAND_ACK":
             target_system = getattr(msg, "target_system", 0)
             target_component = getattr(msg, "target_component", 0)
@@ -406,7 +670,38 @@ class AutopilotLink:
                 self.acks.put(int(msg.command), int(msg.result))
         if self.tracker.observe(msg, now):
             self._on_change()
-        return True
+
+    def _signed(self, verifier: Verifier, msg: Any, sender: Address | None, now: float) -> bool:
+        verdict = verifier.check(msg.get_msgbuf())
+        if verdict is Verdict.GOOD:
+            return True
+        if verdict is Verdict.UNSIGNED:
+            self.counters.unsigned += 1
+        else:
+            self.counters.bad_signature += 1
+        fired = self._signature_alarm.note(now, f"{_address_text(sender)} ({verdict.value})")
+        if fired is not None:
+            self._event(
+                "UnsignedMavlink",
+                f"dropped frames ({fired}) that carry the autopilot's ids without a valid "
+                f"signature, from {self._signature_alarm.describe()}",
+                True,
+            )
+        return False
+
+    def _took_lock(self, session: _Session, sender: Address) -> None:
+        previous, self._locked = self._locked, sender
+        session.transport.lock_to(sender)
+        if previous is None:
+            self._event("AutopilotLocked", f"listening to {_address_text(sender)} only", False)
+        else:
+            self.counters.relocked += 1
+            self._event(
+                "AutopilotAddressChanged",
+                f"{_address_text(previous)} fell silent and {_address_text(sender)} proved "
+                "itself with the autopilot's heartbeats: listening there now",
+                True,
+            )
 
     # -- writing ---------------------------------------------------------------------
 

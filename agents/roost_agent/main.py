@@ -17,6 +17,11 @@ Output: one JSON object per line on stdout, ``{"event": ...}`` for every event a
 ``--status-interval`` seconds. Logs go to stderr (so does
 anything pymavlink prints). SIGHUP re-reads the config file (thresholds, policy,
 primary, and a ``command`` executed once per id); SIGTERM/SIGINT stop the agent.
+
+A configuration the agent cannot fly with (an autopilot connection URL it could not
+open, a signing key it cannot use) is refused at start with one line on stderr and exit
+status 2, never a traceback. MAVLink signing: ``--signing`` and ``--signing-keys`` (see
+:mod:`roost_agent.signing`).
 """
 
 from __future__ import annotations
@@ -36,8 +41,9 @@ from typing import TYPE_CHECKING, Any, TextIO
 import yaml
 from pydantic import ValidationError
 
-from roost_agent.agent import Agent, restore_state
+from roost_agent.agent import Agent, connection_problems, restore_state
 from roost_agent.bridge import Bridge, GpioBridge, SimulatedBridge
+from roost_agent.signing import DEFAULT_KEY_DIR, SigningError, SigningMode, load_signing
 from roost_agent.state import STATE_FILE_NAME, StateFile
 from roost_api.autopilot import AutopilotSpec, RedundantAutopilotSpec
 
@@ -129,8 +135,28 @@ def build_parser() -> argparse.ArgumentParser:
         help="longest wait between API retries while the API is unreachable (cluster; "
         "default: PublisherSettings.retry_max_s)",
     )
+    parser.add_argument(
+        "--signing",
+        type=SigningMode,
+        choices=list(SigningMode),
+        default=SigningMode(os.environ.get("ROOST_AGENT_SIGNING", "auto")),
+        help="MAVLink 2 signing: require (sign, and drop unsigned frames), sign (sign, accept "
+        "unsigned), off, or auto (require when the vehicle has a key, else off)",
+    )
+    parser.add_argument(
+        "--signing-keys",
+        type=Path,
+        default=Path(os.environ.get("ROOST_AGENT_SIGNING_KEYS", DEFAULT_KEY_DIR)),
+        help="directory with one signing key file per Vehicle, named after it (64 hex digits)",
+    )
     parser.add_argument("--log-level", default="INFO")
     return parser
+
+
+def refuse(message: str) -> SystemExit:
+    """A one-line refusal on stderr and exit status 2 (what argparse does for bad flags)."""
+    print(f"roost-agent: {message}", file=sys.stderr)
+    return SystemExit(2)
 
 
 def cluster_client(args: argparse.Namespace) -> AgentKube | None:
@@ -206,16 +232,35 @@ def main(argv: list[str] | None = None) -> int:
     state = StateFile(args.state_dir / STATE_FILE_NAME)
     kube = cluster_client(args)
     if kube is None:
-        spec, generation = resolve_spec(args, state)
+        try:
+            spec, generation = resolve_spec(args, state)
+        except (OSError, ValueError) as exc:  # pydantic's ValidationError is a ValueError
+            raise refuse(" ".join(str(exc).split())) from None
         target = None
     else:
         from roost_agent.publisher import startup_spec  # noqa: PLC0415 - cluster mode only
 
         spec, generation, target = startup_spec(kube, args.node_name, state)
+    problems = connection_problems(spec)
+    if problems:
+        raise refuse("; ".join(problems))
+    try:
+        signing = load_signing(args.signing, args.signing_keys, spec.vehicle_name, args.state_dir)
+    except SigningError as exc:
+        raise refuse(str(exc)) from None
+    if signing is None:
+        log.info("MAVLink signing is off: any host that reaches a link can talk to it")
     restored = restore_state(spec, state.load())
     channel = next(a.bridge_channel for a in spec.autopilots if a.name == restored.active)
     bridge = make_bridge(args, spec, channel)
-    agent = Agent(spec, bridge, state_file=state, generation=generation, node_name=args.node_name)
+    agent = Agent(
+        spec,
+        bridge,
+        state_file=state,
+        generation=generation,
+        node_name=args.node_name,
+        signing=signing,
+    )
     agent.subscribe(lambda event: out.write(event.to_json()))
     stop = threading.Event()
 

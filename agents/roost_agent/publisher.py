@@ -83,6 +83,7 @@ POSTED_KINDS = frozenset(
         EventKind.NO_HEALTHY_STANDBY,
         EventKind.EMERGENCY_STOP,
         EventKind.BRIDGE_ERROR,
+        EventKind.LINK,
     }
 )
 URGENT_KINDS = frozenset({EventKind.FAILOVER, EventKind.COMMAND, EventKind.EMERGENCY_STOP})

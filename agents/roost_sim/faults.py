@@ -25,16 +25,18 @@ spoof     foreign sysid      10 Hz HEARTBEAT (EMERGENCY) + ATTITUDE from another
           (default sysid+100) and EMERGENCY heartbeats from a non-autopilot component
                              (gimbal, autopilot=INVALID) of our own sysid
 battery   --                 the battery fails: voltage drops, charge reads empty within
-                             5 s, health bit clears, CRITICAL; PX4 then holds 5 s and
+                             4 s, health bit clears, CRITICAL; PX4 then holds 5 s and
                              lands (see :mod:`roost_sim.battery`; a shared battery
                              fails for every autopilot on it)
 ========  =================  ==========================================================
 
 ``clear`` removes one kind or all of them (a pending reboot is not undone; a cleared
-battery fault is a fresh pack). Values are validated: a non-finite or out-of-range
-number is refused with ValueError and nothing changes (``jitter`` at most
-:data:`MAX_JITTER_MS`, ``garbage`` at most :data:`MAX_GARBAGE_BYTES_PER_S`, ``reboot`` at
-most :data:`MAX_REBOOT_S`, ``loss`` 0..100, ``spoof`` a sysid 1..255).
+battery fault is a fresh pack).
+
+Numeric values must be finite and within :data:`NUMERIC_RANGES`: an infinite jitter
+would delay every frame forever, which no ``clear`` could undo. :func:`check_value` is
+the one judge of a value, used by :meth:`SimulatedAutopilot.inject` and, before anything
+is sent, by the ``roost fault`` and ``roost-sim fault`` command lines.
 """
 
 from __future__ import annotations
@@ -62,15 +64,6 @@ class FaultKind(StrEnum):
 
 DEFAULT_GARBAGE_BYTES_PER_S = 2000.0
 SPOOF_SYSID_OFFSET = 100
-MAX_JITTER_MS = 10_000.0
-MAX_GARBAGE_BYTES_PER_S = 1_000_000.0
-MAX_REBOOT_S = 3600.0
-_MAXIMUM: dict[str, float] = {
-    "loss": 100.0,
-    "jitter": MAX_JITTER_MS,
-    "garbage": MAX_GARBAGE_BYTES_PER_S,
-    "reboot": MAX_REBOOT_S,
-}
 
 
 def _whole_number(value: float) -> int:
@@ -107,28 +100,44 @@ def parse_state(value: str | float | None) -> MavState:
         raise ValueError(f"unknown MAV_STATE {value!r}") from None
 
 
+NUMERIC_RANGES: dict[FaultKind, tuple[float, float, str]] = {
+    FaultKind.REBOOT: (0, 3600, "seconds silent"),
+    FaultKind.GARBAGE: (0, 100_000, "bytes per second"),
+    FaultKind.LOSS: (0, 100, "percent"),
+    FaultKind.JITTER: (0, 10_000, "milliseconds"),
+    FaultKind.SPOOF: (1, 255, "a system id"),
+}
+VALUELESS = frozenset({FaultKind.SILENCE, FaultKind.FREEZE, FaultKind.BATTERY})
+
+
 def parse_number(kind: FaultKind, value: str | float | None, default: float) -> float:
-    """A finite, non-negative number within the kind's maximum (loss, jitter, garbage, reboot)."""
+    """The number for reboot, garbage, loss, jitter or spoof: finite and in range."""
     if value is None or value == "":
         return default
+    low, high, unit = NUMERIC_RANGES[kind]
     try:
         number = float(value)
     except (TypeError, ValueError):
-        raise ValueError(f"{kind} value {value!r} is not a number") from None
-    maximum = _MAXIMUM.get(str(kind), math.inf)
-    if not math.isfinite(number) or number < 0 or number > maximum:
-        raise ValueError(f"{kind} value {value!r} out of range (0 to {maximum:g})")
+        raise ValueError(f"{kind} takes a number ({unit}), not {value!r}") from None
+    if not math.isfinite(number) or not low <= number <= high:
+        raise ValueError(f"{kind} value {value!r} out of range: {unit} from {low:g} to {high:g}")
+    if kind is FaultKind.SPOOF and not number.is_integer():
+        raise ValueError(f"spoof takes a whole system id, not {value!r}")
     return number
 
 
-def parse_sysid(value: str | float | None, default: int) -> int:
-    """A MAVLink system id 1..255 for ``spoof``."""
-    if value is None or value == "":
-        return default
+def check_value(kind: FaultKind | str, value: str | float | None) -> None:
+    """Raise ValueError (with the reason) unless ``value`` is valid for ``kind``."""
+    kind = FaultKind(kind)
     try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"spoof value {value!r} is not a system id") from None
-    if not number.is_integer() or not 1 <= number <= 255:
-        raise ValueError(f"spoof value {value!r} out of range (a system id 1 to 255)")
-    return int(number)
+        if kind in VALUELESS:
+            if value is not None and value != "":
+                raise ValueError(f"{kind} takes no value")
+        elif kind is FaultKind.SENSOR:
+            parse_sensor(value)
+        elif kind is FaultKind.STATE:
+            parse_state(value)
+        else:
+            parse_number(kind, value, 0.0)
+    except KeyError as error:
+        raise ValueError(error.args[0] if error.args else str(error)) from None

@@ -14,6 +14,14 @@ Two transports:
 - :class:`PtyLink`: the master side of a pseudo-terminal in raw mode; the slave path is
   what a serial client opens. Writes never block: with nobody reading, bytes beyond the
   kernel buffer are dropped, like a UART transmitting into an unplugged cable.
+
+MAVLink 2 signing (:meth:`Link.enable_signing`) acts where a flight stack's MAVLink layer
+does, on whole frames: every frame sent is signed, and incoming frames are checked and,
+when signing is required, dropped unless their signature is good (counted in
+:class:`SigningCounters`). Injected noise and spoofed frames stay unsigned, as an
+attacker's would be. Incoming frames are checked per received chunk, which is exact on
+UDP (whole frames per datagram); on a pseudo-terminal a frame split across two reads is
+dropped, so signing tests use UDP.
 """
 
 from __future__ import annotations
@@ -28,7 +36,9 @@ import time
 import tty
 from abc import ABC, abstractmethod
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+
+from roost_mavlink.signing import Signer, Timestamps, Verdict, Verifier, split_frames
 
 Address = tuple[str, int]
 _MAX_PEERS = 8
@@ -43,6 +53,37 @@ class Impairment:
     jitter_ms: float = 0.0
 
 
+@dataclass
+class SigningCounters:
+    """Incoming frames by signature verdict."""
+
+    good: int = 0
+    unsigned: int = 0
+    bad: int = 0
+
+
+@dataclass
+class _Signing:
+    signer: Signer
+    verifier: Verifier
+    require: bool
+    counters: SigningCounters = field(default_factory=SigningCounters)
+
+    def filter(self, data: bytes) -> bytes:
+        kept: list[bytes] = []
+        for frame in split_frames(data):
+            verdict = self.verifier.check(frame)
+            if verdict is Verdict.GOOD:
+                self.counters.good += 1
+            elif verdict is Verdict.UNSIGNED:
+                self.counters.unsigned += 1
+            else:
+                self.counters.bad += 1
+            if verdict is Verdict.GOOD or not self.require:
+                kept.append(frame)
+        return b"".join(kept)
+
+
 class Link(ABC):
     """A bidirectional byte link with impairments; thread-safe sending."""
 
@@ -55,6 +96,8 @@ class Link(ABC):
         self._last_due = 0.0
         self._closed = threading.Event()
         self._delayer: threading.Thread | None = None
+        self._signing: _Signing | None = None
+        self.frames_sent = 0  # frames handed to the transport (after loss)
 
     # ---- implemented by transports ---------------------------------------------------
 
@@ -98,10 +141,24 @@ class Link(ABC):
             self._delayer.join(timeout=2)
         self._close()
 
+    def enable_signing(self, key: bytes, *, link_id: int = 0, require: bool = True) -> None:
+        """Sign every frame from now on; with ``require`` hear only well-signed frames."""
+        clock = Timestamps()
+        self._signing = _Signing(Signer(key, link_id, clock), Verifier(key, clock), require)
+
+    @property
+    def signing_counters(self) -> SigningCounters | None:
+        """Incoming frames by verdict while signing is enabled."""
+        return None if self._signing is None else self._signing.counters
+
     def send(self, frame: bytes) -> None:
         """Send one frame, subject to loss and jitter."""
+        signing = self._signing
+        if signing is not None:
+            frame = signing.signer.sign(frame)
         if self._closed.is_set() or self._lost():
             return
+        self.frames_sent += 1
         jitter = self.impairment.jitter_ms
         with self._queue_ready:
             if jitter <= 0 and not self._queue:
@@ -117,6 +174,9 @@ class Link(ABC):
         data = self._read(timeout)
         if data and self._lost():
             return b""
+        signing = self._signing
+        if data and signing is not None:
+            return signing.filter(data)
         return data
 
     def _lost(self) -> bool:

@@ -17,9 +17,11 @@ from enum import StrEnum
 
 from pydantic import Field
 
+from roost_api import shapes
 from roost_api.meta import (
     CONDITIONS_SCHEMA,
     DNS_LABEL_PATTERN,
+    DNS_SUBDOMAIN_PATTERN,
     ApiModel,
     Condition,
     HealthLevel,
@@ -27,7 +29,6 @@ from roost_api.meta import (
 )
 
 MAX_AUTOPILOTS = 8
-CONNECTION_PATTERN = r"^(serial://|udp://|udpin://|udpout://|tcp://|tcpin://)\S+$"
 
 
 class AutopilotConditionType(StrEnum):
@@ -75,21 +76,28 @@ class AutopilotSpec(ApiModel):
     """One flight controller of the vehicle."""
 
     name: str = Field(
-        min_length=1, max_length=63, pattern=DNS_LABEL_PATTERN, description="Unique name."
+        min_length=1,
+        max_length=shapes.AUTOPILOT_NAME_MAX,
+        pattern=DNS_LABEL_PATTERN,
+        description="Unique name, at most 58 characters: a simulated vehicle runs it as "
+        "container and component sitl-<name>.",
     )
     stack: Stack = Field(description="Flight stack: px4 or ardupilot.")
     connection: str = Field(
-        max_length=256,
-        pattern=CONNECTION_PATTERN,
-        description="How the agent reaches it, e.g. serial:///dev/ttyUSB0:921600 or "
-        "udp://127.0.0.1:14541 (listen) or udpout://127.0.0.1:14541 (send).",
+        max_length=shapes.URL_MAX,
+        description="How the agent reaches it: serial:///dev/DEVICE:BAUD (e.g. "
+        "serial:///dev/ttyUSB0:921600), udp://HOST:PORT or udpin://HOST:PORT (the agent "
+        "listens), udpout://HOST:PORT (the agent sends), tcp://HOST:PORT (connects) or "
+        "tcpin://HOST:PORT (accepts); HOST is an IPv4 address or a host name, PORT 1-65535.",
+        json_schema_extra=shapes.validations(shapes.CONNECTION_RULES),
     )
     fcu_url: str | None = Field(
         default=None,
-        max_length=256,
+        max_length=shapes.URL_MAX,
         description="URL mavros uses for this autopilot when it is active; defaults to the "
         "connection. A serial port cannot be opened twice, so on hardware route it through "
         "a MAVLink router and give the router's UDP endpoint here.",
+        json_schema_extra=shapes.validations(shapes.FCU_URL_RULES),
     )
     sysid: int = Field(ge=1, le=255, description="MAVLink system id; unique per vehicle.")
     component_id: int = Field(
@@ -172,12 +180,19 @@ class FailoverPolicy(ApiModel):
 class AutopilotCommand(ApiModel):
     """A request to the node agent; executed at most once, identified by ``id``."""
 
-    id: str = Field(min_length=1, max_length=64, description="Unique id of this request.")
+    id: str = Field(
+        min_length=1,
+        max_length=shapes.COMMAND_ID_MAX,
+        pattern=shapes.COMMAND_ID_PATTERN,
+        description="Unique id of this request: letters, digits, '-', '_', '.' or ':'.",
+    )
     action: CommandAction = Field(
         description="Switch, SafetyRoutine, EmergencyStop (force disarm) or ClearLatch."
     )
     target: str | None = Field(
-        default=None, max_length=63, description="Autopilot to switch to (Switch only)."
+        default=None,
+        max_length=shapes.AUTOPILOT_NAME_MAX,
+        description="Autopilot to switch to (Switch only).",
     )
     issued_at: datetime = Field(description="When the request was made.")
     deadline_seconds: int = Field(
@@ -194,8 +209,10 @@ class RedundantAutopilotSpec(ApiModel):
 
     vehicle_name: str = Field(
         min_length=1,
-        max_length=253,
-        description="The Vehicle these autopilots fly. Immutable.",
+        max_length=shapes.VEHICLE_NAME_MAX,
+        pattern=DNS_SUBDOMAIN_PATTERN,
+        description="The Vehicle these autopilots fly; the RedundantAutopilot has the same "
+        "name, so a vehicle has exactly one. Immutable.",
         json_schema_extra={
             "x-kubernetes-validations": [
                 {"rule": "self == oldSelf", "message": "vehicleName is immutable"}
@@ -208,7 +225,8 @@ class RedundantAutopilotSpec(ApiModel):
         description="The vehicle's flight controllers (two or more).",
     )
     primary: str = Field(
-        max_length=63, description="Name of the autopilot that flies when all are healthy."
+        max_length=shapes.AUTOPILOT_NAME_MAX,
+        description="Name of the autopilot that flies when all are healthy.",
     )
     failover_policy: FailoverPolicy = Field(
         default_factory=FailoverPolicy, description="How and when to fail over."
@@ -217,6 +235,15 @@ class RedundantAutopilotSpec(ApiModel):
         default=None, description="Latest request to the agent; see status.lastCommand."
     )
 
+
+# On the whole object: metadata.name is only visible to CEL from the root.
+REDUNDANT_AUTOPILOT_ROOT_RULES = [
+    shapes.rule(
+        "self.metadata.name == self.spec.vehicleName",
+        "metadata.name must equal spec.vehicleName: a vehicle has one RedundantAutopilot, "
+        "named after it",
+    )
+]
 
 REDUNDANT_AUTOPILOT_RULES = [
     {

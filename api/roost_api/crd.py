@@ -203,6 +203,20 @@ def build_crd(kind: ResourceKind, k8s_defs: dict[str, Any] | None = None) -> dic
         ]
     status = model_schema(kind.status_model, k8s_defs)
     status["description"] = f"Observed state of the {kind.kind}."
+    root: dict[str, Any] = {
+        "type": "object",
+        "description": kind.description,
+        "required": ["spec"],
+        "properties": {
+            "apiVersion": {"type": "string"},
+            "kind": {"type": "string"},
+            "metadata": {"type": "object"},
+            "spec": spec,
+            "status": status,
+        },
+    }
+    if kind.root_rules:
+        root["x-kubernetes-validations"] = list(kind.root_rules)
     return {
         "apiVersion": "apiextensions.k8s.io/v1",
         "kind": "CustomResourceDefinition",
@@ -228,20 +242,7 @@ def build_crd(kind: ResourceKind, k8s_defs: dict[str, Any] | None = None) -> dic
                     "storage": True,
                     "subresources": {"status": {}},
                     "additionalPrinterColumns": [c.to_crd() for c in kind.columns],
-                    "schema": {
-                        "openAPIV3Schema": {
-                            "type": "object",
-                            "description": kind.description,
-                            "required": ["spec"],
-                            "properties": {
-                                "apiVersion": {"type": "string"},
-                                "kind": {"type": "string"},
-                                "metadata": {"type": "object"},
-                                "spec": spec,
-                                "status": status,
-                            },
-                        }
-                    },
+                    "schema": {"openAPIV3Schema": root},
                 }
             ],
         },

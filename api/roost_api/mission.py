@@ -14,17 +14,31 @@ from __future__ import annotations
 
 from datetime import datetime
 from enum import StrEnum
-from typing import Any
+from typing import Annotated, Any
 
 from pydantic import Field
 from pydantic.config import JsonDict
 
+from roost_api import shapes
 from roost_api.autopilot import AutopilotCommand
 from roost_api.meta import CONDITIONS_SCHEMA, DNS_SUBDOMAIN_PATTERN, ApiModel, Condition
 
 # Marker the CRD generator replaces with the Kubernetes PodTemplateSpec schema.
 EMBED_POD_TEMPLATE: JsonDict = {"x-roost-embed": "io.k8s.api.core.v1.PodTemplateSpec"}
 MAX_MISSION_VEHICLES = 1000
+MAX_SELECTOR_LABELS = 64
+
+LabelValue = Annotated[
+    str,
+    Field(
+        max_length=shapes.LABEL_VALUE_MAX,
+        json_schema_extra=shapes.validations(shapes.LABEL_VALUE_RULES),
+    ),
+]
+VehicleName = Annotated[
+    str,
+    Field(min_length=1, max_length=shapes.VEHICLE_NAME_MAX, pattern=DNS_SUBDOMAIN_PATTERN),
+]
 
 
 class MissionPhase(StrEnum):
@@ -94,23 +108,32 @@ class LabelSelectorRequirement(ApiModel):
 
     key: str = Field(max_length=317, description="Label key.")
     operator: str = Field(
+        max_length=12,
         pattern=r"^(In|NotIn|Exists|DoesNotExist)$",
         description="In, NotIn, Exists or DoesNotExist.",
     )
-    values: list[str] = Field(
-        default_factory=list, max_length=64, description="Values for In and NotIn."
+    values: list[LabelValue] = Field(
+        default_factory=list,
+        max_length=64,
+        description="Values for In and NotIn (at least one); none for Exists and DoesNotExist.",
     )
 
 
 class LabelSelector(ApiModel):
     """A label query over Vehicles, as in metav1.LabelSelector."""
 
-    match_labels: dict[str, str] = Field(
-        default_factory=dict, description="Labels a Vehicle must carry."
+    match_labels: dict[str, LabelValue] = Field(
+        default_factory=dict,
+        max_length=MAX_SELECTOR_LABELS,
+        description="Labels a Vehicle must carry.",
+        json_schema_extra=shapes.validations(shapes.LABEL_MAP_RULES),
     )
-    match_expressions: list[LabelSelectorRequirement] = Field(
-        default_factory=list, max_length=32, description="Set-based requirements."
-    )
+    match_expressions: list[
+        Annotated[
+            LabelSelectorRequirement,
+            Field(json_schema_extra=shapes.validations(shapes.LABEL_REQUIREMENT_RULES)),
+        ]
+    ] = Field(default_factory=list, max_length=32, description="Set-based requirements.")
 
 
 class VehicleSelection(ApiModel):
@@ -119,10 +142,11 @@ class VehicleSelection(ApiModel):
     selector: LabelSelector | None = Field(
         default=None, description="Vehicles whose labels match; combined with names."
     )
-    names: list[str] = Field(
+    names: list[VehicleName] = Field(
         default_factory=list,
         max_length=MAX_MISSION_VEHICLES,
-        description="Vehicles by name; preferred before selector matches.",
+        description="Vehicles by name, each once; preferred before selector matches.",
+        json_schema_extra={"x-kubernetes-list-type": "set"},
     )
     count: int = Field(
         ge=1, le=MAX_MISSION_VEHICLES, description="How many vehicles the mission needs."
@@ -193,6 +217,15 @@ class MissionSpec(ApiModel):
         description="SafetyRoutine (hold then land) or EmergencyStop (force disarm).",
     )
 
+
+# On the whole object: metadata.name is only visible to CEL from the root.
+MISSION_ROOT_RULES = [
+    shapes.rule(
+        f"size(self.metadata.name) <= {shapes.MISSION_NAME_MAX}",
+        f"metadata.name: a Mission name is at most {shapes.MISSION_NAME_MAX} characters, "
+        "like the Jobs, labels and Events Roost names after it",
+    )
+]
 
 MISSION_SPEC_RULES = [
     {

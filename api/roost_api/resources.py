@@ -12,13 +12,14 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from roost_api.autopilot import (
+    REDUNDANT_AUTOPILOT_ROOT_RULES,
     REDUNDANT_AUTOPILOT_RULES,
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
 )
 from roost_api.meta import CATEGORY, GROUP, VERSION, ApiModel
-from roost_api.mission import MISSION_SPEC_RULES, MissionSpec, MissionStatus
-from roost_api.vehicle import VehicleSpec, VehicleStatus
+from roost_api.mission import MISSION_ROOT_RULES, MISSION_SPEC_RULES, MissionSpec, MissionStatus
+from roost_api.vehicle import VEHICLE_ROOT_RULES, VehicleSpec, VehicleStatus
 
 
 @dataclass(frozen=True)
@@ -60,6 +61,8 @@ class ResourceKind:
     status_model: type[ApiModel]
     columns: tuple[PrinterColumn, ...]
     spec_rules: tuple[dict[str, str], ...] = field(default=())
+    root_rules: tuple[dict[str, str], ...] = field(default=())
+    """Rules on the whole object, the only place CEL sees ``metadata.name``."""
 
     @property
     def singular(self) -> str:
@@ -109,6 +112,7 @@ VEHICLE = ResourceKind(
         PrinterColumn("Reason", '.status.conditions[?(@.type=="Ready")].reason', priority=1),
         AGE,
     ),
+    root_rules=tuple(VEHICLE_ROOT_RULES),
 )
 
 REDUNDANT_AUTOPILOT = ResourceKind(
@@ -134,6 +138,7 @@ REDUNDANT_AUTOPILOT = ResourceKind(
         AGE,
     ),
     spec_rules=tuple(REDUNDANT_AUTOPILOT_RULES),
+    root_rules=tuple(REDUNDANT_AUTOPILOT_ROOT_RULES),
 )
 
 MISSION = ResourceKind(
@@ -154,6 +159,7 @@ MISSION = ResourceKind(
         AGE,
     ),
     spec_rules=tuple(MISSION_SPEC_RULES),
+    root_rules=tuple(MISSION_ROOT_RULES),
 )
 
 KINDS: tuple[ResourceKind, ...] = (VEHICLE, REDUNDANT_AUTOPILOT, MISSION)

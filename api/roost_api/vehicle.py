@@ -9,9 +9,11 @@ from __future__ import annotations
 
 from datetime import datetime
 from enum import StrEnum
+from typing import Annotated
 
 from pydantic import Field
 
+from roost_api import shapes
 from roost_api.meta import (
     CONDITIONS_SCHEMA,
     DNS_SUBDOMAIN_PATTERN,
@@ -21,7 +23,37 @@ from roost_api.meta import (
     Stack,
 )
 
-CONFIG_KEY_PATTERN = r"^[A-Z_][A-Z0-9_]*$"
+# SITL instances per node: each vehicle instance takes DEFAULT_SLOTS_PER_VEHICLE (4)
+# consecutive global instances and PX4's port ranges allow 40 (roost_mavlink.sitl).
+MAX_SIM_INSTANCE = 9
+
+Image = Annotated[
+    str,
+    Field(
+        min_length=1,
+        max_length=shapes.IMAGE_MAX,
+        pattern=shapes.IMAGE_PATTERN,
+        description="A container image reference (no whitespace).",
+    ),
+]
+ConfigValue = Annotated[
+    str,
+    Field(
+        max_length=shapes.CONFIG_VALUE_MAX,
+        json_schema_extra=shapes.validations(shapes.ONE_LINE_RULES),
+    ),
+]
+
+
+# On the whole object: metadata.name is only visible to CEL from the root.
+VEHICLE_ROOT_RULES = [
+    shapes.rule(
+        f"size(self.metadata.name) <= {shapes.VEHICLE_NAME_MAX}",
+        f"metadata.name: a Vehicle name is at most {shapes.VEHICLE_NAME_MAX} characters, "
+        "because Roost writes it as a label value (roost.dev/vehicle) on its node, "
+        "workloads and ConfigMaps",
+    )
+]
 
 
 class VehicleConditionType(StrEnum):
@@ -38,9 +70,8 @@ class ComponentSpec(ApiModel):
     """One component workload the operator runs on the vehicle's node."""
 
     enabled: bool = Field(description="Run this component on the vehicle.")
-    image: str | None = Field(
+    image: Image | None = Field(
         default=None,
-        max_length=512,
         description="Container image overriding Roost's default for this component.",
     )
 
@@ -66,13 +97,11 @@ class Simulation(ApiModel):
     """Present when the vehicle is simulated: the operator runs one SITL per autopilot."""
 
     stack: Stack = Field(description="SITL flight stack to run: px4 or ardupilot.")
-    image: str | None = Field(
-        default=None, max_length=512, description="SITL container image override."
-    )
+    image: Image | None = Field(default=None, description="SITL container image override.")
     instance: int = Field(
         default=0,
         ge=0,
-        le=99,
+        le=MAX_SIM_INSTANCE,
         description="SITL instance offset on the node; ports and sysids derive from it.",
     )
 
@@ -82,10 +111,11 @@ class VehicleSpec(ApiModel):
 
     node_name: str = Field(
         min_length=1,
-        max_length=253,
+        max_length=shapes.NODE_NAME_MAX,
         pattern=DNS_SUBDOMAIN_PATTERN,
         description="Kubernetes node that is this vehicle's companion computer. Changing it "
-        "moves the vehicle's workloads to the new node (hot swap).",
+        "moves the vehicle's workloads to the new node (hot swap). At most 63 characters: "
+        "Roost labels the vehicle's RedundantAutopilot with it (roost.dev/node).",
     )
     sysid: int = Field(
         ge=1,
@@ -119,24 +149,14 @@ class VehicleSpec(ApiModel):
         default_factory=Components,
         description="Component workloads to run on the vehicle and their images.",
     )
-    config: dict[str, str] = Field(
+    config: dict[str, ConfigValue] = Field(
         default_factory=dict,
-        max_length=64,
+        max_length=shapes.CONFIG_MAX_ENTRIES,
         description="Extra KEY=VALUE entries for vehicle.config and the pods' environment. "
-        "Keys are upper-case environment variable names.",
-        json_schema_extra={
-            "x-kubernetes-validations": [
-                {
-                    "rule": "self.all(k, k.matches('" + CONFIG_KEY_PATTERN + "'))",
-                    "message": "config keys must be upper-case environment variable names "
-                    "such as MY_SETTING",
-                },
-                {
-                    "rule": "self.all(k, !k.startsWith('VEHICLE_') && !k.startsWith('ROOST_'))",
-                    "message": "config keys starting with VEHICLE_ or ROOST_ are set by Roost",
-                },
-            ]
-        },
+        "Keys are upper-case environment variable names; values are one line each (line "
+        "breaks and other control characters are refused); at most 8192 characters of "
+        "keys and values in total.",
+        json_schema_extra=shapes.validations(shapes.CONFIG_RULES),
     )
     starling_compatibility: bool = Field(
         default=True,

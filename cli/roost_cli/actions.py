@@ -41,7 +41,11 @@ def split_mission_ref(ref: str, default_namespace: str) -> tuple[str, str]:
 
 
 def autopilots_by_vehicle(autopilots: Iterable[Mapping[str, Any]]) -> dict[str, str]:
-    """Vehicle name → name of its RedundantAutopilot (they are 1:1, names may differ)."""
+    """Vehicle name → name of its RedundantAutopilot.
+
+    Admission makes them 1:1 and equal (``metadata.name == spec.vehicleName``); reading
+    ``spec.vehicleName`` keeps objects created before that rule mapped to their vehicle.
+    """
     result: dict[str, str] = {}
     for ra in autopilots:
         name = str(ra.get("metadata", {}).get("name", ""))

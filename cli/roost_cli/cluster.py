@@ -136,6 +136,24 @@ class Fleet:
     def missions(self, namespace: str | None = None) -> list[dict[str, Any]]:
         return self._list(MISSION, namespace)
 
+    def require_namespace(self, namespace: str) -> None:
+        """Refuse a namespace that does not exist (a list there would just be empty).
+
+        A user allowed to list Missions but not to read namespaces is not refused here.
+        """
+        try:
+            self._call(f"read namespace {namespace}", None, self._core.read_namespace, namespace)
+        except CliError as error:
+            cause = error.__cause__
+            status = cause.status if isinstance(cause, ApiException) else None
+            if status == 404:
+                raise CliError(
+                    f"namespace {namespace!r} does not exist in the cluster at {self.server}: "
+                    "`kubectl get namespaces` lists them"
+                ) from cause
+            if status != 403:
+                raise
+
     def events(self) -> list[dict[str, Any]]:
         """Every Event in the cluster, as API dicts (camelCase), for the Roost event feed."""
         result = self._call(

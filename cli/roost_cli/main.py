@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import sys
+from collections.abc import Callable
 from dataclasses import asdict
 from datetime import UTC, datetime
 from enum import StrEnum
@@ -20,6 +22,7 @@ from typing import Annotated, Any
 import typer
 from rich.console import Console
 from rich.table import Table
+from typer._click.exceptions import NoArgsIsHelpError  # typer >= 0.29 vendors click
 
 from roost_api.autopilot import CommandAction
 from roost_cli import actions, render, tables, view
@@ -29,15 +32,52 @@ from roost_cli.sandbox import plan, runner, sims
 from roost_cli.sandbox import state as sandbox_state
 
 
+def _error(message: str, code: int) -> SystemExit:
+    Console(stderr=True).print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+    return SystemExit(code)
+
+
 class RoostApp(typer.Typer):
-    """The typer app, printing :class:`CliError` as a one-line message instead of a traceback."""
+    """The typer app: every user error is one line on stderr and a non-zero exit.
+
+    :class:`CliError` exits 1; a bad command line (unknown option, a value out of range)
+    exits 2 with the parser's message and where to find help, not a usage panel.
+    """
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        kwargs.setdefault("standalone_mode", False)  # parser errors come back here
         try:
-            return super().__call__(*args, **kwargs)
+            result = super().__call__(*args, **kwargs)
         except CliError as error:
-            Console(stderr=True).print(f"[bold red]error:[/] {error}", highlight=False)
-            raise SystemExit(1) from None
+            raise _error(str(error), 1) from None
+        except NoArgsIsHelpError as error:
+            error.show()
+            raise SystemExit(error.exit_code) from None
+        except typer.TyperException as error:
+            context = getattr(error, "ctx", None)
+            hint = f" (see `{context.command_path} --help`)" if context is not None else ""
+            message = " ".join(error.format_message().split())
+            raise _error(f"{message}{hint}", error.exit_code) from None
+        except typer.Abort:
+            raise _error("aborted", 1) from None
+        if isinstance(result, int):  # typer.Exit(code) and --help, outside standalone mode
+            raise SystemExit(result)
+        return result
+
+
+def finite(low: float, high: float) -> Callable[[str], float]:
+    """A typer parser for a finite number from ``low`` to ``high`` (inf and nan refused)."""
+
+    def parse(text: str) -> float:
+        try:
+            number = float(text)
+        except ValueError:
+            raise typer.BadParameter(f"{text!r} is not a number") from None
+        if not math.isfinite(number) or not low <= number <= high:
+            raise typer.BadParameter(f"{text} is not a number from {low:g} to {high:g}")
+        return number
+
+    return parse
 
 
 app = RoostApp(
@@ -107,8 +147,12 @@ def _print_json(rows: object) -> None:
 def status(
     ctx: typer.Context,
     watch: Annotated[bool, typer.Option("--watch", "-w", help="Refresh until Ctrl-C.")] = False,
-    interval: Annotated[float, typer.Option(min=0.2, help="Seconds between refreshes.")] = 1.0,
-    events: Annotated[int, typer.Option(min=0, help="Recent Roost events to show.")] = 0,
+    interval: Annotated[
+        float, typer.Option(parser=finite(0.2, 3600), help="Seconds between refreshes.")
+    ] = 1.0,
+    events: Annotated[
+        int, typer.Option(min=0, max=view.MAX_EVENTS, help="Recent Roost events to show.")
+    ] = 0,
     output: Annotated[Output, typer.Option("--output", "-o")] = Output.TABLE,
 ) -> None:
     """The fleet: each vehicle's node, active autopilot, health, mission and last failover."""
@@ -135,7 +179,10 @@ def missions(
     output: Annotated[Output, typer.Option("--output", "-o")] = Output.TABLE,
 ) -> None:
     """Missions: phase, assigned vehicles and their state, why."""
-    rows = tables.mission_rows(_context(ctx).fleet().missions(namespace), datetime.now(UTC))
+    fleet = _context(ctx).fleet()
+    if namespace is not None:
+        fleet.require_namespace(namespace)
+    rows = tables.mission_rows(fleet.missions(namespace), datetime.now(UTC))
     if output is Output.JSON:
         _print_json([asdict(row) for row in rows])
         return
@@ -166,7 +213,10 @@ def estop(
     all_vehicles: Annotated[bool, typer.Option("--all", help="Stop every vehicle.")] = False,
     yes: Annotated[bool, typer.Option("--yes", "-y", help="Do not ask for confirmation.")] = False,
     wait: Annotated[
-        float, typer.Option(min=0, help="Seconds to wait for the agents' acknowledgement.")
+        float,
+        typer.Option(
+            parser=finite(0, 3600), help="Seconds to wait for the agents' acknowledgement."
+        ),
     ] = actions.ACK_TIMEOUT_S,
 ) -> None:
     """EMERGENCY STOP: force-disarm the active autopilot. Motors stop, even in flight."""
@@ -219,6 +269,7 @@ def fault(
     ] = None,
 ) -> None:
     """Inject a fault into a sandbox vehicle's simulated autopilot (or clear its faults)."""
+    message = sims.fault_message(kind, value)  # a bad kind or value is refused first
     directory = _context(ctx).sandbox_dir
     recorded = sandbox_state.running(directory)
     if recorded is None:
@@ -226,7 +277,7 @@ def fault(
             f"no sandbox is running in {directory}: `roost fault` works on sandbox vehicles. "
             "Start one with `roost sandbox up` (or pass --sandbox-dir)"
         )
-    answer = sims.control(recorded, vehicle, autopilot, sims.fault_message(kind, value))
+    answer = sims.control(recorded, vehicle, autopilot, message)
     faults = answer.get("state", {}).get("faults") or {}
     shown = ", ".join(f"{k}={v}" if v else k for k, v in faults.items()) or "none"
     console.print(f"{vehicle}/{autopilot}: faults now {shown}. Watch with `roost status -w`.")
@@ -242,7 +293,8 @@ def sandbox_up(
         bool, typer.Option(help="Inject an autopilot fault on one vehicle to show a failover.")
     ] = True,
     fault_after: Annotated[
-        float, typer.Option(min=0, help="Seconds of normal flight before the fault.")
+        float,
+        typer.Option(parser=finite(0, 86400), help="Seconds of normal flight before the fault."),
     ] = runner.DEFAULT_FAULT_AFTER_S,
     live: Annotated[
         bool, typer.Option(help="Show the live fleet view (--no-live prints plain lines).")

@@ -23,6 +23,8 @@ from roost_cli.cluster import Fleet
 from roost_cli.errors import CliError
 
 DEFAULT_EVENTS = 8
+MAX_EVENTS = 500
+"""The most Events ``roost status --events`` shows: what one list call returns."""
 
 
 @dataclass(frozen=True)

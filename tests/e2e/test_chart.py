@@ -25,13 +25,13 @@ import pytest
 import yaml
 
 from roost_api.wellknown import LABEL_NODE, LABEL_VEHICLE, TAINT_VEHICLE
-from roost_harness.agent import AgentProcess
-from roost_harness.binaries import REPO_ROOT
-from roost_harness.chart import install_args
-from roost_harness.cluster import Cluster, FakeNodes
-from roost_harness.operator import OperatorProcess, wait_for
-from roost_harness.processes import ManagedProcess
+from roost_localcluster.binaries import REPO_ROOT
+from roost_localcluster.cluster import Cluster, FakeNodes
+from roost_localcluster.processes import ManagedProcess
 from roost_sim import SimConfig, autopilot_specs, start_vehicle_sims, stop_sims
+from tests.support.agent import AgentProcess
+from tests.support.chart import install_args
+from tests.support.operator import OperatorProcess, wait_for
 
 RELEASE = "chart-e2e"
 NAMESPACE = "roost-chart-e2e"
@@ -79,9 +79,9 @@ def _autopilot(name: str, node: str | None) -> dict[str, Any]:
             "vehicleName": name,
             "primary": "fc-a",
             "autopilots": [
-                {"name": "fc-a", "stack": "px4", "connection": "udp://:14540", "sysid": 1,
+                {"name": "fc-a", "stack": "px4", "connection": "udp://127.0.0.1:14540", "sysid": 1,
                  "bridgeChannel": 0},
-                {"name": "fc-b", "stack": "px4", "connection": "udp://:14541", "sysid": 2,
+                {"name": "fc-b", "stack": "px4", "connection": "udp://127.0.0.1:14541", "sysid": 2,
                  "bridgeChannel": 1},
             ],
         },

@@ -26,10 +26,7 @@ import pytest
 
 from roost_api.autopilot import CommandAction
 from roost_api.commands import command_patch, new_command
-from roost_harness.agent import AgentProcess
-from roost_harness.apiwrites import write_requests
-from roost_harness.cluster import Cluster
-from roost_harness.operator import OperatorProcess, wait_for
+from roost_localcluster.cluster import Cluster
 from roost_operator.autopilots.plan import mavros_follows
 from roost_operator.kube import (
     CONFIGMAPS,
@@ -43,6 +40,9 @@ from roost_operator.kube import (
 from roost_operator.vehicles.config import config_map_name
 from roost_operator.vehicles.desired import workload_name
 from roost_sim import SimConfig, SimulatedAutopilot, autopilot_specs, start_vehicle_sims, stop_sims
+from tests.support.agent import AgentProcess
+from tests.support.apiwrites import write_requests
+from tests.support.operator import OperatorProcess, wait_for
 
 pytestmark = pytest.mark.cluster
 

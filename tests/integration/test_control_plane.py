@@ -1,6 +1,6 @@
 """The harness's control plane behaves like a real cluster, and Roost's API holds up on it.
 
-Everything here runs against real binaries (tests/harness): the CRDs and their CEL rules are
+Everything here runs against real binaries (localcluster/): the CRDs and their CEL rules are
 evaluated by kube-apiserver, workloads are reconciled by kube-controller-manager, bound by
 kube-scheduler and "run" by kwok's fake kubelets. Names are unique per test because the
 cluster is shared by the whole session.
@@ -26,10 +26,10 @@ from roost_api.autopilot import RedundantAutopilotSpec
 from roost_api.mission import MissionSpec
 from roost_api.vehicle import VehicleSpec
 from roost_api.wellknown import LABEL_VEHICLE, LABEL_VEHICLE_CLASS
-from roost_harness.binaries import REPO_ROOT
-from roost_harness.cluster import Cluster, FakeNodes
-from roost_harness.controlplane import START_ORDER, ControlPlane
-from roost_harness.processes import ManagedProcess
+from roost_localcluster.binaries import REPO_ROOT
+from roost_localcluster.cluster import Cluster, FakeNodes
+from roost_localcluster.controlplane import START_ORDER, ControlPlane
+from roost_localcluster.processes import ManagedProcess
 
 pytestmark = pytest.mark.cluster
 
@@ -348,7 +348,7 @@ def _none_alive(processes: list[ManagedProcess]) -> bool:
 
 def test_cli_up_and_down_stop_exactly_their_processes(tmp_path: Path) -> None:
     state = tmp_path / "cluster"
-    cli = [sys.executable, "-m", "roost_harness.cli"]
+    cli = [sys.executable, "-m", "roost_localcluster.cli"]
     up = subprocess.run(
         [*cli, "up", "--dir", str(state)], capture_output=True, text=True, timeout=180, check=False
     )
@@ -380,7 +380,7 @@ def test_killed_owner_takes_its_control_plane_with_it(tmp_path: Path) -> None:
     script = (
         "import json, sys, time\n"
         "from pathlib import Path\n"
-        "from roost_harness.controlplane import ControlPlane\n"
+        "from roost_localcluster.controlplane import ControlPlane\n"
         "plane = ControlPlane(Path(sys.argv[1]))\n"
         "plane.start()\n"
         "print(json.dumps([p.to_state() for p in plane.processes.values()]), flush=True)\n"

@@ -7,7 +7,7 @@ the nodes and writes each vehicle's config, exactly as in production.
 
 Two stand-ins, both because the real part is not wired up here yet:
 
-* **The node agent.** :class:`~roost_harness.fakeagents.FakeAgents` writes each
+* **The node agent.** :class:`~tests.support.fakeagents.FakeAgents` writes each
   RedundantAutopilot's status the way the agent does (conditions
   ActiveHealthy/Redundant/FailedOver/Ready, per-autopilot health with landed state and
   armed flag, lastFailover, reportedAt, nodeName) and executes commands from
@@ -43,9 +43,7 @@ from typing import Any
 import pytest
 
 from roost_api.wellknown import ANNOTATION_PAUSE_FAILOVER_ACTIONS, LABEL_MISSION, LABEL_VEHICLE
-from roost_harness.cluster import Cluster
-from roost_harness.fakeagents import FakeAgents, redundant_autopilot
-from roost_harness.operator import OperatorProcess, wait_for
+from roost_localcluster.cluster import Cluster
 from roost_operator.kube import (
     JOBS,
     MISSIONS,
@@ -59,6 +57,8 @@ from roost_operator.kube import (
 from roost_operator.missions.cluster import claim_vehicle
 from roost_operator.missions.observed import MissionRef, VehicleView
 from roost_operator.missions.workloads import ENV_MISSION_VEHICLES, bounded_name
+from tests.support.fakeagents import FakeAgents, redundant_autopilot
+from tests.support.operator import OperatorProcess, wait_for
 
 pytestmark = pytest.mark.cluster
 
@@ -128,7 +128,7 @@ class Fleet:
                 }
             )
             self.apply(redundant_autopilot(name))
-            self.agents.add(f"{name}-autopilots", name, node, **agent_state)
+            self.agents.add(name, name, node, **agent_state)
             self.vehicles.append(name)
             names.append(name)
         wait_for(
@@ -148,8 +148,8 @@ class Fleet:
         for name in self.missions:
             self.cluster.kubectl("delete", "mission", name, "-n", FLIGHTS, "--ignore-not-found")
         for name in self.vehicles:
-            self.agents.forget(f"{name}-autopilots")
-            self.cluster.kubectl("delete", "redundantautopilot", f"{name}-autopilots", check=False)
+            self.agents.forget(name)
+            self.cluster.kubectl("delete", "redundantautopilot", name, check=False)
             self.cluster.kubectl("delete", "vehicle", name, "--ignore-not-found", "--wait=false")
         wait_for(
             "the test's Vehicles to be gone",
@@ -273,7 +273,7 @@ def claimed_by(kube: Kube, vehicle: str) -> str | None:
 
 def command_of(kube: Kube, vehicle: str) -> Obj | None:
     """The command on the vehicle's RedundantAutopilot (spec.command), if any."""
-    body = kube.get(REDUNDANT_AUTOPILOTS, f"{vehicle}-autopilots") or {}
+    body = kube.get(REDUNDANT_AUTOPILOTS, vehicle) or {}
     command: Obj | None = (body.get("spec") or {}).get("command")
     return command
 
@@ -379,7 +379,7 @@ def test_preflight_holds_the_mission_until_the_autopilot_is_healthy(
     fleet: Fleet, kube: Kube, agents: FakeAgents
 ) -> None:
     good, bad = fleet.add(2)
-    agents.set(f"{bad}-autopilots", healthy=False)
+    agents.set(bad, healthy=False)
     name = fleet.mission(unique("preflight"), selector={"fleet": fleet.label}, count=2)
 
     status = wait_phase(kube, name, "Preflight")
@@ -390,7 +390,7 @@ def test_preflight_holds_the_mission_until_the_autopilot_is_healthy(
     assert condition_of(status, "PreflightPassed")["status"] == "False"  # type: ignore[index]
     assert jobs_of(kube, name) == {}, "nothing starts before every vehicle passes"
 
-    agents.set(f"{bad}-autopilots", healthy=True)
+    agents.set(bad, healthy=True)
     wait_phase(kube, name, "Running")
     wait_for("both Jobs", lambda: len(jobs_of(kube, name)) == 2, WAIT_S)
 
@@ -424,13 +424,13 @@ def test_abort_lands_every_vehicle_and_stops_the_workloads(
     assert all(claimed_by(kube, v) == f"{FLIGHTS}/{name}" for v in vehicles)
 
     for vehicle in vehicles:
-        agents.set(f"{vehicle}-autopilots", execute_commands=True)
+        agents.set(vehicle, execute_commands=True)
     status = wait_phase(kube, name, "Aborted")
     assert {v["reason"] for v in status["vehicles"]} == {
         "Disarmed" if action == "EmergencyStop" else "Landed"
     }
     for vehicle in vehicles:
-        body = kube.get(REDUNDANT_AUTOPILOTS, f"{vehicle}-autopilots") or {}
+        body = kube.get(REDUNDANT_AUTOPILOTS, vehicle) or {}
         assert body["status"]["lastCommand"]["result"] == "Executed"
     wait_for(
         "vehicles released", lambda: all(claimed_by(kube, v) is None for v in vehicles), WAIT_S
@@ -461,7 +461,7 @@ def test_a_failover_mid_mission_follows_the_policy(
     status = wait_phase(kube, name, "Running")
     hit, other = assigned(status)
 
-    agents.fail_over(f"{hit}-autopilots")
+    agents.fail_over(hit)
 
     if policy == "AbortMission":
         status = wait_phase(kube, name, "Aborted")
@@ -506,7 +506,7 @@ def test_a_paused_failover_consequence_is_applied_once_the_pause_is_lifted(
     hit, other = assigned(wait_phase(kube, name, "Running"))
     roost_crds.kubectl("annotate", "vehicle", hit, f"{ANNOTATION_PAUSE_FAILOVER_ACTIONS}=true")
 
-    agents.fail_over(f"{hit}-autopilots")
+    agents.fail_over(hit)
 
     def entry_of(vehicle: str) -> Obj:
         vehicles = mission_status(kube, name).get("vehicles") or []

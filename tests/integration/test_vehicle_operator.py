@@ -1,5 +1,5 @@
 """The Vehicle operator, running as a real ``roost-operator`` process, on the real control
-plane (tests/harness): kube-apiserver and etcd store the objects, kube-controller-manager
+plane (localcluster/): kube-apiserver and etcd store the objects, kube-controller-manager
 runs the Deployments, kube-scheduler places their pods and kwok's fake kubelets run them on
 fake vehicle nodes.
 
@@ -28,11 +28,9 @@ from roost_api.wellknown import (
     STARLING_LABEL_TYPE,
     TAINT_VEHICLE,
 )
-from roost_harness.apiwrites import VEHICLE_WRITE_TARGETS, write_requests
-from roost_harness.cluster import Cluster
-from roost_harness.controlplane import KWOK_NODE_ANNOTATION
-from roost_harness.nodes import fake_node
-from roost_harness.operator import OperatorProcess, wait_for
+from roost_localcluster.cluster import Cluster
+from roost_localcluster.controlplane import KWOK_NODE_ANNOTATION
+from roost_localcluster.nodes import fake_node
 from roost_operator.kube import (
     CONFIGMAPS,
     DEPLOYMENTS,
@@ -42,6 +40,8 @@ from roost_operator.kube import (
     Kube,
     Obj,
 )
+from tests.support.apiwrites import VEHICLE_WRITE_TARGETS, write_requests
+from tests.support.operator import OperatorProcess, wait_for
 
 pytestmark = pytest.mark.cluster
 
@@ -172,11 +172,12 @@ def roost_taints(kube: Kube, node: str) -> list[Obj]:
     return [t for t in taints if t["key"] == TAINT_VEHICLE]
 
 
-def redundant_autopilot(name: str, vehicle: str) -> dict[str, Any]:
+def redundant_autopilot(vehicle: str) -> dict[str, Any]:
+    """The vehicle's RedundantAutopilot, named after it as admission requires."""
     return {
         "apiVersion": "roost.dev/v1alpha1",
         "kind": "RedundantAutopilot",
-        "metadata": {"name": name},
+        "metadata": {"name": vehicle},
         "spec": {
             "vehicleName": vehicle,
             "primary": "fc-a",
@@ -210,8 +211,7 @@ def test_a_simulated_vehicle_gets_its_node_config_and_components(
     node = unique("veh-node")
     fake_nodes(node)
     name = unique("sim")
-    rap = unique("rap")
-    roost_crds.kubectl("apply", "-f", "-", input_text=json.dumps(redundant_autopilot(rap, name)))
+    roost_crds.kubectl("apply", "-f", "-", input_text=json.dumps(redundant_autopilot(name)))
     try:
         vehicles(
             name,
@@ -287,7 +287,7 @@ def test_a_simulated_vehicle_gets_its_node_config_and_components(
         )["items"]
         assert "NodeLabeled" in {e["reason"] for e in events}
     finally:
-        roost_crds.kubectl("delete", "redundantautopilot", rap, "--ignore-not-found")
+        roost_crds.kubectl("delete", "redundantautopilot", name, "--ignore-not-found")
 
 
 def test_an_idle_vehicle_costs_no_api_writes(
@@ -363,8 +363,7 @@ def test_config_changes_roll_pods_and_a_new_active_autopilot_repoints_only_mavro
     node = unique("veh-node")
     fake_nodes(node)
     name = unique("roll")
-    rap = unique("rap")
-    roost_crds.kubectl("apply", "-f", "-", input_text=json.dumps(redundant_autopilot(rap, name)))
+    roost_crds.kubectl("apply", "-f", "-", input_text=json.dumps(redundant_autopilot(name)))
     try:
         vehicles(name, node, simulation={"stack": "px4"})
         wait_components_ready(kube, name)
@@ -411,7 +410,7 @@ def test_config_changes_roll_pods_and_a_new_active_autopilot_repoints_only_mavro
         roost_crds.kubectl(
             "patch",
             "redundantautopilot",
-            rap,
+            name,
             "--subresource=status",
             "--type=merge",
             "-p",
@@ -435,7 +434,7 @@ def test_config_changes_roll_pods_and_a_new_active_autopilot_repoints_only_mavro
         }
         assert sitl_after == sitl_before
     finally:
-        roost_crds.kubectl("delete", "redundantautopilot", rap, "--ignore-not-found")
+        roost_crds.kubectl("delete", "redundantautopilot", name, "--ignore-not-found")
 
 
 def test_deleted_pods_come_back_and_disabled_components_go_away(

@@ -192,7 +192,7 @@ def test_ack_mailbox_returns_only_acks_newer_than_the_request() -> None:
     assert box.wait(176, serial, 0.01) == 0
 
 
-def test_udp_listener_replies_only_to_the_confirmed_autopilot_address() -> None:
+def test_udp_listener_replies_only_to_the_locked_autopilot_address() -> None:
     port = free_udp_port()
     listener = open_transport(f"udp://127.0.0.1:{port}")
     assert isinstance(listener, UdpListen)
@@ -206,9 +206,9 @@ def test_udp_listener_replies_only_to_the_confirmed_autopilot_address() -> None:
             data, sender = listener.receive()
             senders.append((data, sender))
         real = next(s for d, s in senders if d == b"real")
-        listener.send(b"dropped: no confirmed peer yet")
+        listener.send(b"dropped: no locked peer yet")
         assert real is not None
-        listener.confirm_peer(real)
+        listener.lock_to(real)
         listener.send(b"reply")
         time.sleep(0.05)
         assert autopilot.receive()[0] == b"reply"
@@ -247,7 +247,7 @@ def test_tcp_link_reads_only_its_autopilot_answers_as_191_and_reconnects() -> No
         for mav in (autopilot, foreign):
             conn.sendall(mav.heartbeat_encode(2, 12, 129, 0x03040000, 4).pack(mav))
         deadline = time.monotonic() + 5
-        while link.counters.accepted < 1 or link.counters.foreign < 1:
+        while link.counters.accepted < 1 or link.counters.other < 1:
             assert time.monotonic() < deadline, link.counters
             time.sleep(0.01)
         assert link.heartbeat() is not None and link.heartbeat()[0] == 0x03040000  # type: ignore[index]

@@ -49,6 +49,9 @@ def test_health_changes_are_never_posted_as_events() -> None:
     """Under a flapping link they would be a storm; conditions carry them instead."""
     assert EventKind.HEALTH not in POSTED_KINDS
     assert EventKind.FAILOVER in POSTED_KINDS and EventKind.COMMAND in POSTED_KINDS
+    # Link failures, foreign senders and bad signatures are posted; the links rate-limit
+    # them at the source (one per error text, one per alarm quiet time).
+    assert EventKind.LINK in POSTED_KINDS
 
 
 def test_the_status_patch_removes_what_the_agent_no_longer_reports() -> None:

@@ -101,7 +101,7 @@ def test_examples_cover_a_real_and_two_simulated_vehicles_and_a_mission() -> Non
 
 
 def test_invalid_examples_say_what_error_a_user_sees() -> None:
-    assert len(INVALID) >= 10
+    assert len(INVALID) >= 40
     for path in INVALID:
         first = path.read_text().splitlines()[0]
         assert first.startswith("# expect: "), f"{path.name} lacks its expected error"

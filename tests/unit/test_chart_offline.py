@@ -21,8 +21,8 @@ import pytest
 import yaml
 
 from roost_api.wellknown import LABEL_NODE, LABEL_VEHICLE, TAINT_VEHICLE
-from roost_harness.binaries import REPO_ROOT
-from roost_harness.chart import (
+from roost_localcluster.binaries import REPO_ROOT
+from tests.support.chart import (
     CHART_CRDS_DIR,
     CHART_DIR,
     HARDWARE_VALUES,
@@ -48,6 +48,7 @@ VALUE_SETS: dict[str, tuple[dict[str, Any], tuple[Path, ...]]] = {
         (),
     ),
     "no-node-restriction": ({"agent": {"nodeRestriction": {"enabled": False}}}, ()),
+    "signing": ({"agent": {"signing": {"mode": "require", "secretName": "fleet-keys"}}}, ()),
     "operator-only": ({"agent": {"enabled": False}}, ()),
 }
 
@@ -266,6 +267,26 @@ def test_agent_with_a_device_plugin_requests_the_devices_and_is_not_privileged()
     assert container["resources"]["requests"]["squat.ai/serial"] == 2
     assert container["resources"]["limits"]["squat.ai/serial"] == 2
     assert "privileged" not in container["securityContext"]
+
+
+def test_agent_reads_signing_keys_from_a_read_only_secret_and_nowhere_else() -> None:
+    pod = _agent_pod("signing")
+    container = pod["containers"][0]
+    assert "--signing=require" in container["args"]
+    assert "--signing-keys=/etc/roost/signing" in container["args"]
+    mount = next(m for m in container["volumeMounts"] if m["name"] == "signing-keys")
+    assert mount == {"name": "signing-keys", "mountPath": "/etc/roost/signing", "readOnly": True}
+    volume = next(v for v in pod["volumes"] if v["name"] == "signing-keys")
+    assert volume["secret"] == {"secretName": "fleet-keys", "defaultMode": 0o444}
+    assert "fleet-keys" not in str(container.get("env", []))  # not an env var, not an arg
+    defaults = _agent_pod("defaults")
+    assert "--signing=auto" in defaults["containers"][0]["args"]
+    assert not [v for v in defaults["volumes"] if v["name"] == "signing-keys"]
+
+
+def test_signing_without_its_secret_is_refused() -> None:
+    with pytest.raises(ChartError, match=r"needs agent\.signing\.secretName"):
+        render({"agent": {"signing": {"mode": "require"}}})
 
 
 def test_privileged_agent_without_a_device_list_is_refused() -> None:

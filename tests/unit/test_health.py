@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+from typing import Any
 
 os.environ.setdefault("MAVLINK20", "1")
 
@@ -33,7 +34,11 @@ LOITER = custom_mode(Stack.PX4, "AUTO.LOITER")
 
 
 class Vehicle:
-    """Feeds one tracker the messages of a PX4-like autopilot at chosen times."""
+    """Feeds one tracker the messages of a PX4-like autopilot at chosen times.
+
+    Every message goes through a real encode and decode, so it carries the next MAVLink
+    sequence number of the autopilot's stream (the corroboration rules read it).
+    """
 
     def __init__(self, stack: Stack = Stack.PX4, thresholds: Thresholds | None = None) -> None:
         self.tracker = HealthTracker("fc1", stack, thresholds or Thresholds())
@@ -41,6 +46,19 @@ class Vehicle:
         self.t = 0.0
         self.sensors_health = SENSORS
         self.sensors_enabled = SENSORS
+        self.encoder = mav.MAVLink(None, srcSystem=1, srcComponent=1)
+        self.decoder = mav.MAVLink(None)
+
+    def observe(self, msg: Any, *, seq: int | None = None) -> bool:
+        """Deliver ``msg`` as the stream's next frame (or with a forged ``seq``)."""
+        if seq is not None:
+            saved, self.encoder.seq = self.encoder.seq, seq
+        frame = msg.pack(self.encoder)
+        if seq is None:
+            self.encoder.seq = (self.encoder.seq + 1) % 256
+        else:
+            self.encoder.seq = saved
+        return self.tracker.observe(self.decoder.decode(bytearray(frame)), self.t)
 
     def heartbeat(
         self,
@@ -51,10 +69,10 @@ class Vehicle:
         autopilot: int = MAV_AUTOPILOT_PX4,
     ) -> bool:
         msg = mav.MAVLink_heartbeat_message(2, autopilot, base_mode, mode, state, 3)
-        return self.tracker.observe(msg, self.t)
+        return self.observe(msg)
 
     def landed(self, state: int = LandedState.IN_AIR) -> bool:
-        return self.tracker.observe(mav.MAVLink_extended_sys_state_message(0, state), self.t)
+        return self.observe(mav.MAVLink_extended_sys_state_message(0, state))
 
     def sys_status(self, health: int | None = None, enabled: int | None = None) -> bool:
         if health is not None:
@@ -65,13 +83,18 @@ class Vehicle:
         msg = mav.MAVLink_sys_status_message(
             enabled, enabled, health, 100, 12000, -1, -1, 0, 0, 0, 0, 0, 0
         )
-        return self.tracker.observe(msg, self.t)
+        return self.observe(msg)
 
     def attitude(self, roll: float = 0.0, pitch: float = 0.0, *, advance: bool = True) -> None:
         if advance:
             self.boot_ms = 100_000 + round(self.t * 1000)
         msg = mav.MAVLink_attitude_message(self.boot_ms, roll, pitch, 0.0, 0.0, 0.0, 0.0)
-        self.tracker.observe(msg, self.t)
+        self.observe(msg)
+
+    def attitude_changes(self) -> bool:
+        """One ATTITUDE on the current timeline; whether the tracker reported a change."""
+        self.boot_ms = 100_000 + round(self.t * 1000)
+        return self.observe(mav.MAVLink_attitude_message(self.boot_ms, 0, 0, 0, 0, 0, 0))
 
     def fly(self, seconds: float, *, rate_hz: float = 50.0, **attitude: float) -> None:
         """Stream ATTITUDE at ``rate_hz`` plus 1 Hz heartbeats and 5 Hz status for ``seconds``."""
@@ -169,8 +192,13 @@ def test_frozen_telemetry_is_an_error_although_messages_keep_coming() -> None:
 def test_reboot_from_time_boot_going_back_is_remembered_for_a_while() -> None:
     v = Vehicle()
     v.fly(1.0)
-    assert v.tracker.observe(mav.MAVLink_attitude_message(1200, 0, 0, 0, 0, 0, 0), v.t) is True
-    assert "reboot" in failing_codes(v.at(0.0))
+    claimed_at = v.t
+    assert v.observe(mav.MAVLink_attitude_message(1200, 0, 0, 0, 0, 0, 0)) is False
+    assert "reboot" not in codes(v.at(0.0))  # one message is a claim, not yet evidence
+    v.t += 0.02
+    assert v.observe(mav.MAVLink_attitude_message(1220, 0, 0, 0, 0, 0, 0)) is True
+    reboot = [f for f in v.at(0.0).findings if f.code == "reboot"]
+    assert reboot and reboot[0].triggers_failover and reboot[0].onset == claimed_at
     v.t += REBOOT_REMEMBERED_S + 0.1
     v.fly(1.0)
     assert "reboot" not in codes(v.at(0.0))
@@ -180,7 +208,7 @@ def test_reordered_packets_are_not_a_reboot() -> None:
     v = Vehicle()
     v.fly(1.0)
     late = mav.MAVLink_attitude_message(v.boot_ms - 60, 0, 0, 0, 0, 0, 0)
-    assert v.tracker.observe(late, v.t) is False
+    assert v.observe(late) is False
     assert v.at(0.0).level == OK
 
 
@@ -188,8 +216,9 @@ def test_boot_state_after_being_up_is_a_reboot() -> None:
     v = Vehicle()
     v.fly(1.0)
     v.heartbeat(state=MavState.BOOT, base_mode=1)
-    a = v.at(0.0)
-    assert "reboot" in failing_codes(a)
+    assert "reboot" not in codes(v.at(0.0))
+    v.sys_status()  # the next frame of the same stream corroborates it
+    assert "reboot" in failing_codes(v.at(0.0))
 
 
 @pytest.mark.parametrize(
@@ -198,10 +227,14 @@ def test_boot_state_after_being_up_is_a_reboot() -> None:
 def test_fatal_mav_states_are_errors(state: MavState) -> None:
     v = Vehicle()
     v.fly(1.0)
-    assert v.heartbeat(state=state) is True  # a change wakes the arbiter
+    claimed_at = v.t
+    assert v.heartbeat(state=state) is False  # a claim, not yet evidence
+    assert v.at(0.0).level == OK
+    v.t += 0.02
+    assert v.attitude_changes() is True  # corroborated: a change wakes the arbiter
     a = v.at(0.0)
     assert a.level == ERROR and "mav-state" in failing_codes(a)
-    assert a.onset == v.t
+    assert a.onset == claimed_at
 
 
 def test_critical_alone_warns_but_corroborated_is_an_error() -> None:
@@ -285,10 +318,10 @@ def test_estimator_attitude_loss_persisting_is_an_error() -> None:
     v.fly(1.0)
     good = 0x1 | 0x2 | 0x4 | 0x8 | 0x10 | 0x20
     status = mav.MAVLink_estimator_status_message(0, good, 0, 0, 0, 0, 0, 0, 0, 0)
-    v.tracker.observe(status, v.t)
+    v.observe(status)
     assert v.at(0.0).level == OK
     lost = mav.MAVLink_estimator_status_message(0, good & ~0x1 & ~0x10, 0, 0, 0, 0, 0, 0, 0, 0)
-    v.tracker.observe(lost, v.t)
+    v.observe(lost)
     assert v.at(0.1).level == WARN and not v.at(0.1).failing
     assert "estimator" in failing_codes(v.at(0.7))
     assert "position" in codes(v.at(0.7))
@@ -342,3 +375,45 @@ def test_thresholds_come_from_the_spec() -> None:
     assert v.at(0.22).level == ERROR
     v.tracker.set_thresholds(Thresholds())
     assert v.at(0.22).level == WARN
+
+
+def test_one_forged_low_time_boot_is_refuted_by_the_stream_that_follows() -> None:
+    v = Vehicle()
+    v.fly(1.0)
+    forged_seq = (v.encoder.seq + 100) % 256  # not the stream's next number
+    v.observe(mav.MAVLink_attitude_message(5, 0, 0, 0, 0, 0, 0), seq=forged_seq)
+    v.fly(0.5)
+    assert "reboot" not in codes(v.at(0.0)) and v.tracker.refuted == 1
+
+
+def test_a_forged_frame_that_guessed_the_sequence_is_refuted_by_the_old_timeline() -> None:
+    v = Vehicle()
+    v.fly(1.0)
+    v.observe(mav.MAVLink_attitude_message(5, 0, 0, 0, 0, 0, 0), seq=v.encoder.seq)
+    v.fly(0.2)  # the genuine frames continue on the old timeline
+    assert "reboot" not in codes(v.at(0.0)) and v.tracker.refuted == 1
+
+
+@pytest.mark.parametrize("follow_up", ["old-sequence", "healthy-heartbeat"])
+def test_a_lone_emergency_heartbeat_is_refuted(follow_up: str) -> None:
+    v = Vehicle()
+    v.fly(1.0)
+    if follow_up == "old-sequence":
+        v.observe(
+            mav.MAVLink_heartbeat_message(2, MAV_AUTOPILOT_PX4, ARMED, LOITER, 6, 3),
+            seq=(v.encoder.seq + 128) % 256,
+        )
+        v.fly(0.3)
+    else:
+        v.heartbeat(state=MavState.EMERGENCY)
+        v.heartbeat()  # the autopilot's next heartbeat says it is fine
+        v.fly(0.3)
+    assert v.at(0.0).level == OK and v.tracker.refuted == 1
+
+
+def test_a_second_fatal_heartbeat_confirms_when_sequence_numbers_say_nothing() -> None:
+    v = Vehicle()
+    v.fly(1.0)
+    v.observe(mav.MAVLink_heartbeat_message(2, MAV_AUTOPILOT_PX4, ARMED, LOITER, 6, 3), seq=7)
+    v.observe(mav.MAVLink_heartbeat_message(2, MAV_AUTOPILOT_PX4, ARMED, LOITER, 6, 3), seq=7)
+    assert "mav-state" in failing_codes(v.at(0.0))

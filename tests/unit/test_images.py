@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from roost_harness.binaries import REPO_ROOT
+from roost_localcluster.binaries import REPO_ROOT
 
 DOCKERFILE = REPO_ROOT / "docker" / "Dockerfile"
 DOCKERIGNORE = REPO_ROOT / "docker" / "Dockerfile.dockerignore"

@@ -26,7 +26,7 @@ import jsonschema
 import pytest
 import yaml
 
-from roost_harness.binaries import REPO_ROOT
+from roost_localcluster.binaries import REPO_ROOT
 
 KIND_DIR = REPO_ROOT / "tests" / "e2e" / "kind"
 CONFIG = REPO_ROOT / "kind-config.yaml"

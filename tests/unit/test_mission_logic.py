@@ -38,7 +38,6 @@ from roost_api.wellknown import (
     LABEL_VEHICLE,
     TAINT_VEHICLE,
 )
-from roost_harness.fakeagents import redundant_autopilot
 from roost_operator.autopilots.guards import FleetGuards
 from roost_operator.missions.machine import (
     ABORT_COMMAND_DEADLINE_SECONDS,
@@ -73,6 +72,7 @@ from roost_operator.missions.workloads import (
     offboard_job_name,
     onboard_job_name,
 )
+from tests.support.fakeagents import redundant_autopilot
 
 T0 = datetime(2026, 3, 1, 12, 0, tzinfo=UTC)
 ME = MissionRef(namespace="default", name="survey", uid="uid-survey")

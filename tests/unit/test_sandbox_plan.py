@@ -1,4 +1,4 @@
-"""The sandbox's fleet on paper: unique identities and ports, manifests the API accepts.
+"""The sandbox's fleet on paper: unique identities, manifests the API accepts.
 
 Manifests are checked against the API models and the generated CRD schemas (offline); the
 e2e sandbox test applies them to a real API server, where the CEL rules run too.
@@ -6,7 +6,6 @@ e2e sandbox test applies them to a real API server, where the CEL rules run too.
 
 from __future__ import annotations
 
-import itertools
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +25,15 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def _fleet(count: int) -> tuple[plan.VehiclePlan, ...]:
-    return plan.plan_fleet(count, itertools.count(40000))
+    return plan.plan_fleet(count)
+
+
+def _connections(vehicle: plan.VehiclePlan) -> dict[str, str]:
+    """What the vehicle's simulators would report: each the port it bound itself."""
+    return {
+        a.name: f"udpout://127.0.0.1:{40000 + 10 * vehicle.index + i}"
+        for i, a in enumerate(vehicle.autopilots)
+    }
 
 
 def _schema(kind: str) -> dict[str, Any]:
@@ -36,14 +43,13 @@ def _schema(kind: str) -> dict[str, Any]:
     return schema
 
 
-def test_vehicles_alternate_stacks_and_never_share_a_sysid_or_port() -> None:
+def test_vehicles_alternate_stacks_and_never_share_a_sysid() -> None:
     fleet = _fleet(plan.MAX_VEHICLES)
     assert [v.name for v in fleet[:3]] == ["drone-1", "drone-2", "drone-3"]
     assert [v.stack.value for v in fleet[:3]] == ["px4", "ardupilot", "px4"]
     autopilots = [a for v in fleet for a in v.autopilots]
     assert len(autopilots) == plan.MAX_VEHICLES * plan.AUTOPILOTS_PER_VEHICLE
     assert len({a.sysid for a in autopilots}) == len(autopilots)
-    assert len({a.agent_port for a in autopilots}) == len(autopilots)
     assert len({v.sysid for v in fleet}) == len(fleet)
     assert all(1 <= a.sysid <= 255 for a in autopilots)
 
@@ -55,7 +61,6 @@ def test_each_vehicle_has_two_autopilots_of_its_stack_on_distinct_bridge_channel
         ("apm-b", "ardupilot", 1),
     ]
     assert drone.primary.name == "apm-a"
-    assert drone.primary.connection == f"udp://127.0.0.1:{drone.primary.agent_port}"
 
 
 @pytest.mark.parametrize("count", [0, plan.MAX_VEHICLES + 1])
@@ -68,15 +73,13 @@ def test_manifests_fit_the_models_and_the_crd_schemas() -> None:
     fleet = _fleet(3)
     for vehicle in fleet:
         v = plan.vehicle_manifest(vehicle)
-        ra = plan.autopilot_manifest(vehicle)
+        ra = plan.autopilot_manifest(vehicle, _connections(vehicle))
         spec = VehicleSpec.model_validate(v["spec"])
         assert spec.node_name == vehicle.node
         ra_spec = RedundantAutopilotSpec.model_validate(ra["spec"])
         assert ra_spec.vehicle_name == vehicle.name
         assert ra_spec.primary == vehicle.primary.name
-        assert [a.connection for a in ra_spec.autopilots] == [
-            a.connection for a in vehicle.autopilots
-        ]
+        assert [a.connection for a in ra_spec.autopilots] == list(_connections(vehicle).values())
         jsonschema.Draft4Validator(_schema("Vehicle")).validate(v)
         jsonschema.Draft4Validator(_schema("RedundantAutopilot")).validate(ra)
     mission = plan.mission_manifest(len(fleet))
@@ -106,7 +109,7 @@ def test_state_round_trips_and_finds_vehicles(tmp_path: Path) -> None:
                         name="px4-a",
                         stack="px4",
                         sysid=1,
-                        agent_port=40000,
+                        connection="udpout://127.0.0.1:40000",
                         control="/tmp/x.sock",
                         bridge_channel=0,
                     )

@@ -413,3 +413,23 @@ def test_control_requests_are_validated() -> None:
     assert not handle_request(sim, {"op": "fault", "kind": "meteor"})["ok"]
     assert not handle_request(sim, {"op": "explode"})["ok"]
     assert not handle_request(sim, {"op": "fault", "kind": "state", "value": "panic"})["ok"]
+
+
+@pytest.mark.parametrize(
+    ("kind", "value"),
+    [
+        ("jitter", "inf"),
+        ("jitter", float("inf")),
+        ("loss", "nan"),
+        ("garbage", 1e12),
+        ("reboot", -1),
+    ],
+)
+def test_a_fault_value_that_could_stall_the_link_is_refused_and_changes_nothing(
+    kind: str, value: object
+) -> None:
+    sim = SimulatedAutopilot.udp(Stack.PX4, 1)  # not started: no socket is opened
+    answer = handle_request(sim, {"op": "fault", "kind": kind, "value": value})
+    assert not answer["ok"] and "out of range" in answer["error"]
+    assert handle_request(sim, {"op": "status"})["state"]["faults"] == {}
+    assert (sim.link.impairment.jitter_ms, sim.link.impairment.loss_percent) == (0.0, 0.0)

@@ -4,16 +4,20 @@ Pure, so what the sandbox applies is unit-tested against the API models without 
 cluster. Vehicles alternate PX4 and ArduPilot so both stacks' conventions are on screen;
 each has two simulated autopilots of its stack behind a simulated bridge.
 
-Every port comes from the caller (free ports picked at start), never from the SITL
-conventions in :mod:`roost_mavlink.sitl` (14540 + i): other people's tests and sandboxes
-run on the same machine, and a fixed port would collide. System ids do follow
+No port is chosen here. Fixed SITL ports (:mod:`roost_mavlink.sitl`, 14540 + i) would
+collide with other people's tests and sandboxes on the same machine, and a port found free
+by binding and closing a socket can be taken by any process before its user binds it (a
+simulator's own ephemeral socket once took an agent's port). So each simulator binds a
+free port itself and reports it as its connection URL (``udpout://127.0.0.1:P``: the agent
+sends to the simulator, which answers whoever writes to it), and the RedundantAutopilot
+is written from those reports (:func:`autopilot_manifest`). System ids do follow
 :func:`roost_mavlink.sitl.sitl_instance` (one global numbering, ``instance + 1``) so no two
 autopilots of the sandbox ever share one.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -46,13 +50,6 @@ class AutopilotPlan:
     stack: Stack
     sysid: int
     bridge_channel: int
-    agent_port: int
-    """UDP port on 127.0.0.1 where the vehicle's agent listens and the simulator sends."""
-
-    @property
-    def connection(self) -> str:
-        """``AutopilotSpec.connection``: the agent listens (``udp://``), the sim sends."""
-        return f"udp://127.0.0.1:{self.agent_port}"
 
 
 @dataclass(frozen=True)
@@ -74,8 +71,8 @@ class VehiclePlan:
         return self.autopilots[0]
 
 
-def plan_fleet(count: int, ports: Iterator[int]) -> tuple[VehiclePlan, ...]:
-    """``count`` vehicles ``drone-1`` … with ports drawn from ``ports`` in order."""
+def plan_fleet(count: int) -> tuple[VehiclePlan, ...]:
+    """``count`` vehicles ``drone-1`` …"""
     if not 1 <= count <= MAX_VEHICLES:
         raise ValueError(f"the sandbox runs 1 to {MAX_VEHICLES} vehicles, not {count}")
     fleet = []
@@ -87,7 +84,6 @@ def plan_fleet(count: int, ports: Iterator[int]) -> tuple[VehiclePlan, ...]:
                 stack=stack,
                 sysid=sitl_instance(index, slot, AUTOPILOTS_PER_VEHICLE) + 1,
                 bridge_channel=slot,
-                agent_port=next(ports),
             )
             for slot in range(AUTOPILOTS_PER_VEHICLE)
         )
@@ -117,8 +113,11 @@ def vehicle_manifest(vehicle: VehiclePlan) -> dict[str, Any]:
     }
 
 
-def autopilot_manifest(vehicle: VehiclePlan) -> dict[str, Any]:
-    """Its RedundantAutopilot: automatic failover, hold then land, manual failback."""
+def autopilot_manifest(vehicle: VehiclePlan, connections: Mapping[str, str]) -> dict[str, Any]:
+    """Its RedundantAutopilot: automatic failover, hold then land, manual failback.
+
+    ``connections``: autopilot name → the connection URL its simulator reported.
+    """
     return {
         "apiVersion": API_VERSION,
         "kind": REDUNDANT_AUTOPILOT.kind,
@@ -130,7 +129,7 @@ def autopilot_manifest(vehicle: VehiclePlan) -> dict[str, Any]:
                 {
                     "name": autopilot.name,
                     "stack": autopilot.stack.value,
-                    "connection": autopilot.connection,
+                    "connection": connections[autopilot.name],
                     "sysid": autopilot.sysid,
                     "bridgeChannel": autopilot.bridge_channel,
                 }

@@ -1,6 +1,6 @@
 """Starting the sandbox's own programs (operator, agents, simulators) and stopping them.
 
-Each is a :class:`roost_harness.processes.ManagedProcess`: its own session, a log file in
+Each is a :class:`roost_localcluster.processes.ManagedProcess`: its own session, a log file in
 ``<dir>/logs``, remembered by pid and start time, tied to ``roost sandbox up`` by the
 parent-death signal (so even a SIGKILLed sandbox leaves nothing behind), and stopped by
 signalling its own process group only. Nothing is ever looked up or killed by name:
@@ -16,7 +16,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 
 from roost_cli.errors import CliError
-from roost_harness.processes import ManagedProcess
+from roost_localcluster.processes import ManagedProcess
 
 STOP_GRACE_S = 5.0
 

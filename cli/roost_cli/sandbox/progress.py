@@ -4,7 +4,7 @@ The build is the harness's script (``build-control-plane.sh``, the one place tha
 versions and the cache); it prints ``[i/n] building NAME`` and ``[i/n] NAME built`` lines,
 which become a bar here. A warm cache prints one line and returns at once.
 
-Starting is :meth:`roost_harness.controlplane.ControlPlane.start`, which blocks until the
+Starting is :meth:`roost_localcluster.controlplane.ControlPlane.start`, which blocks until the
 cluster is usable. It must run on the main thread: the harness ties each component's life
 to the thread that started it (parent-death signal), so a worker thread ending would stop
 the control plane. A small watcher thread reads which components have been launched and
@@ -30,8 +30,8 @@ from rich.progress import (
 )
 
 from roost_cli.errors import CliError
-from roost_harness import binaries
-from roost_harness.controlplane import START_ORDER, ControlPlane, ControlPlaneError
+from roost_localcluster import binaries
+from roost_localcluster.controlplane import START_ORDER, ControlPlane, ControlPlaneError
 
 _BUILDING = re.compile(r"\[\d+/\d+\] building (\S+)")
 _BUILT = re.compile(r"\[\d+/\d+\] \S+ built")

@@ -5,7 +5,8 @@ Up, in order (each step shown as it happens):
 1. build or reuse the control-plane binaries, start the control plane (real kube-apiserver,
    etcd, controller manager, scheduler, kwok) in ``<dir>/cluster``;
 2. install the CRDs and create one fake (kwok) node per vehicle;
-3. start the simulated autopilots (two per vehicle, on free UDP ports);
+3. start the simulated autopilots (two per vehicle, each binding a free UDP port itself and
+   reporting it);
 4. start the operator, then apply the Vehicles, RedundantAutopilots and the Mission;
 5. start one ``roost-agent`` per vehicle, with the simulated bridge;
 6. show the fleet live, and after a pause inject a fault on one vehicle's active autopilot
@@ -24,11 +25,9 @@ import contextlib
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import threading
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
@@ -48,10 +47,10 @@ from roost_cli.sandbox import kwok, plan, sims, state
 from roost_cli.sandbox.director import Cue, Director, Script
 from roost_cli.sandbox.processes import Launcher, console_script
 from roost_cli.sandbox.progress import build_control_plane, start_control_plane
-from roost_harness import nodes
-from roost_harness.cluster import Cluster
-from roost_harness.controlplane import ControlPlane, Settings
-from roost_harness.processes import ManagedProcess
+from roost_localcluster import nodes
+from roost_localcluster.cluster import Cluster
+from roost_localcluster.controlplane import ControlPlane, Settings
+from roost_localcluster.processes import ManagedProcess
 
 DEFAULT_VEHICLES = 3
 DEFAULT_FAULT_AFTER_S = 15.0
@@ -75,14 +74,6 @@ class Options:
 
 def _interrupt(signum: int, frame: FrameType | None) -> None:
     raise KeyboardInterrupt(f"signal {signum}")
-
-
-def free_udp_ports() -> Iterator[int]:
-    """Free UDP ports on 127.0.0.1, one at a time (nobody is bound to them right now)."""
-    while True:
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-            sock.bind(("127.0.0.1", 0))
-            yield int(sock.getsockname()[1])
 
 
 class Sandbox:
@@ -167,7 +158,7 @@ class Sandbox:
             ) from error
 
     def _bring_up(self) -> None:
-        self.fleet_plan = plan.plan_fleet(self.options.vehicles, free_udp_ports())
+        self.fleet_plan = plan.plan_fleet(self.options.vehicles)
         bin_dir = build_control_plane(self.console)
         stages = self.directory / "kwok-stages.yaml"
         stages.write_text(yaml.safe_dump_all(kwok.pod_stages(), sort_keys=False))
@@ -222,8 +213,12 @@ class Sandbox:
 
     def _apply(self, cluster: Cluster) -> None:
         documents: list[dict[str, Any]] = []
-        for vehicle in self.fleet_plan:
-            documents += [plan.vehicle_manifest(vehicle), plan.autopilot_manifest(vehicle)]
+        for vehicle, running in zip(self.fleet_plan, self.state.vehicles, strict=True):
+            connections = {a.name: a.connection for a in running.autopilots}
+            documents += [
+                plan.vehicle_manifest(vehicle),
+                plan.autopilot_manifest(vehicle, connections),
+            ]
         documents.append(plan.mission_manifest(len(self.fleet_plan)))
         manifest = self.directory / "fleet.yaml"
         manifest.write_text(yaml.safe_dump_all(documents, sort_keys=False))
@@ -237,8 +232,9 @@ class Sandbox:
         """One ``roost-agent`` per vehicle, as its node's DaemonSet pod would run.
 
         Cluster mode: it finds its Vehicle and RedundantAutopilot from its node name, flies
-        with that spec (the simulators' UDP ports), drives a simulated bridge and reports
-        status and Events. Its decision state lives in its own directory, as on a vehicle.
+        with that spec (the ports its simulators bound and reported), drives a simulated
+        bridge and reports status and Events. Its decision state lives in its own
+        directory, as on a vehicle.
         """
         for vehicle in self.fleet_plan:
             self.launcher.start(

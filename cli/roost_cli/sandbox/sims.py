@@ -21,15 +21,17 @@ import yaml
 from roost_cli.errors import CliError
 from roost_cli.sandbox import plan, state
 from roost_cli.sandbox.processes import Launcher, console_script
+from roost_localcluster.processes import ManagedProcess
 from roost_sim.control import request, socket_path
-from roost_sim.faults import FaultKind
+from roost_sim.faults import FaultKind, check_value
 
 READY_TIMEOUT_S = 30.0
 CLEAR = "clear"
+BIND_HOST = "127.0.0.1"
 
 
 def sim_config(vehicle: plan.VehiclePlan) -> dict[str, Any]:
-    """``roost-sim run --config`` for one vehicle: its autopilots, streaming to the agent."""
+    """``roost-sim run --config`` for one vehicle: its autopilots, each on a port it picks."""
     return {
         # A demo should not wait for GPS: sub-second start-up. ArduPilot streams as with
         # its SRn_* stream-rate parameters set, for agents that do not request streams.
@@ -40,7 +42,7 @@ def sim_config(vehicle: plan.VehiclePlan) -> dict[str, Any]:
                 "name": autopilot.name,
                 "stack": autopilot.stack.value,
                 "sysid": autopilot.sysid,
-                "udp_out": f"127.0.0.1:{autopilot.agent_port}",
+                "udp_bind": f"{BIND_HOST}:0",
             }
             for autopilot in vehicle.autopilots
         ],
@@ -48,7 +50,7 @@ def sim_config(vehicle: plan.VehiclePlan) -> dict[str, Any]:
 
 
 def start(launcher: Launcher, vehicle: plan.VehiclePlan, directory: Path) -> state.SandboxVehicle:
-    """Start the vehicle's simulators and return once every control socket answers."""
+    """Start the vehicle's simulators; return once each answers with the port it bound."""
     sims_dir = directory / "sims" / vehicle.name
     sims_dir.mkdir(mode=0o700, parents=True, exist_ok=True)
     config = sims_dir / "sims.yaml"
@@ -58,7 +60,13 @@ def start(launcher: Launcher, vehicle: plan.VehiclePlan, directory: Path) -> sta
         [console_script("roost-sim"), "--state-dir", str(sims_dir), "run", "--config", str(config)],
         {},
     )
-    recorded = state.SandboxVehicle(
+    controls = {a.name: socket_path(a.name, sims_dir) for a in vehicle.autopilots}
+    deadline = time.monotonic() + READY_TIMEOUT_S
+    connections = {
+        name: _reported_connection(proc, vehicle.name, name, control, deadline)
+        for name, control in controls.items()
+    }
+    return state.SandboxVehicle(
         name=vehicle.name,
         node=vehicle.node,
         stack=vehicle.stack.value,
@@ -67,32 +75,38 @@ def start(launcher: Launcher, vehicle: plan.VehiclePlan, directory: Path) -> sta
                 name=autopilot.name,
                 stack=autopilot.stack.value,
                 sysid=autopilot.sysid,
-                agent_port=autopilot.agent_port,
+                connection=connections[autopilot.name],
                 bridge_channel=autopilot.bridge_channel,
-                control=str(socket_path(autopilot.name, sims_dir)),
+                control=str(controls[autopilot.name]),
             )
             for autopilot in vehicle.autopilots
         ],
     )
-    deadline = time.monotonic() + READY_TIMEOUT_S
-    for autopilot in recorded.autopilots:
-        while True:
-            try:
-                request(Path(autopilot.control), {"op": "status"}, timeout=1.0)
-                break
-            except OSError:
-                if not proc.alive():
-                    raise CliError(
-                        f"the simulators of {vehicle.name} exited; log {proc.log}:\n"
-                        f"{proc.log_tail()}"
-                    ) from None
-                if time.monotonic() > deadline:
-                    raise CliError(
-                        f"simulator {vehicle.name}/{autopilot.name} did not answer on "
-                        f"{autopilot.control} within {READY_TIMEOUT_S:.0f} s; log {proc.log}"
-                    ) from None
-                time.sleep(0.1)
-    return recorded
+
+
+def _reported_connection(
+    proc: ManagedProcess, vehicle: str, autopilot: str, control: Path, deadline: float
+) -> str:
+    """The connection URL a started simulator reports for the port it bound itself."""
+    while True:
+        try:
+            answer = request(control, {"op": "status"}, timeout=1.0)
+        except OSError:
+            if not proc.alive():
+                raise CliError(
+                    f"the simulators of {vehicle} exited; log {proc.log}:\n{proc.log_tail()}"
+                ) from None
+            if time.monotonic() > deadline:
+                raise CliError(
+                    f"simulator {vehicle}/{autopilot} did not answer on {control} within "
+                    f"{READY_TIMEOUT_S:.0f} s; log {proc.log}"
+                ) from None
+            time.sleep(0.1)
+            continue
+        connection = str(answer.get("state", {}).get("connection") or "")
+        if not connection.startswith(f"udpout://{BIND_HOST}:"):
+            raise CliError(f"simulator {vehicle}/{autopilot} reported no UDP port: {answer}")
+        return connection
 
 
 def _find(recorded: state.SandboxState, vehicle: str, autopilot: str) -> state.SimulatedAutopilot:
@@ -133,6 +147,10 @@ def fault_message(kind: str, value: str | None) -> dict[str, Any]:
     except ValueError:
         kinds = ", ".join([*(k.value for k in FaultKind), CLEAR])
         raise CliError(f"unknown fault {kind!r}: one of {kinds}") from None
+    try:
+        check_value(kind, value)
+    except ValueError as error:
+        raise CliError(f"--value: {error}") from None
     return {"op": "fault", "kind": kind, "value": value}
 
 

@@ -6,13 +6,13 @@ it current. It records
 - the ``roost sandbox up`` process itself (pid and start time),
 - every process it started (operator, agents, simulated autopilots) by pid and start time,
   the control plane's own processes being recorded by the harness in ``<dir>/cluster``,
-- the kubeconfig, and each vehicle's simulated autopilots with their ports and control
-  sockets,
+- the kubeconfig, and each vehicle's simulated autopilots with the connection URL each
+  reported (the port it bound itself) and their control sockets,
 
 so ``roost status`` finds the cluster, ``roost fault`` finds a simulator's control port,
 and ``roost sandbox down`` (another terminal) stops exactly those processes. Pids alone
 are not identities (they are reused), hence the start times, compared by the harness's
-:class:`~roost_harness.processes.ManagedProcess`.
+:class:`~roost_localcluster.processes.ManagedProcess`.
 """
 
 from __future__ import annotations
@@ -45,8 +45,8 @@ class SimulatedAutopilot(BaseModel):
     name: str
     stack: str
     sysid: int
-    agent_port: int
-    """UDP port the agent listens on; the simulator sends its MAVLink stream there."""
+    connection: str
+    """``AutopilotSpec.connection`` the simulator reported for the port it bound itself."""
     bridge_channel: int
     control: str
     """The simulator's control socket (faults, take-off); see :mod:`roost_sim.control`."""

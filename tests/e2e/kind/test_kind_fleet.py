@@ -20,7 +20,7 @@ import pytest
 import yaml
 
 from roost_api.wellknown import LABEL_VEHICLE, TAINT_VEHICLE
-from roost_harness.cluster import Cluster
+from roost_localcluster.cluster import Cluster
 
 KUBECONFIG = os.environ.get("ROOST_KIND_KUBECONFIG")
 NAMESPACE = os.environ.get("ROOST_KIND_NAMESPACE", "roost-system")

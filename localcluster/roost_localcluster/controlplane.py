@@ -1,0 +1,501 @@
+"""A real Kubernetes control plane as local processes, with kwok as the fleet of kubelets.
+
+Why: Roost is an operator, and only a real API server shows whether its CRD schemas and
+CEL rules validate, its RBAC suffices, and its status writes, finalizers, watches and
+garbage collection behave. This machine has no container engine (no KinD), so we run the
+upstream binaries directly (built by ``build-control-plane.sh``):
+
+====================== =====================================================================
+etcd                   storage; ``--unsafe-no-fsync`` because the data is thrown away.
+kube-apiserver         RBAC authorisation, client-certificate authentication, service-account
+                       tokens signed with our key, every GA API (ValidatingAdmissionPolicy).
+kube-controller-manager DaemonSet/Job/ReplicaSet controllers, garbage collector, node
+                       lifecycle, service-account and token controllers; each controller uses
+                       its own service account (``--use-service-account-credentials``).
+kube-scheduler         binds pods to (fake) nodes.
+kwok                   plays the kubelet of every Node annotated ``kwok.x-k8s.io/node=fake``:
+                       keeps it Ready with leases, marks its pods Running, completes Job pods.
+====================== =====================================================================
+
+Everything listens on 127.0.0.1 on ports chosen free at start, so several control planes
+(other engineers' test runs) coexist. :class:`ControlPlane` is a context manager for tests;
+``roost-cluster up`` (:mod:`roost_localcluster.cli`) starts one detached and records the pids in
+``state.json`` so ``roost-cluster down`` stops exactly those.
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import http.client
+import json
+import os
+import shutil
+import socket
+import ssl
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Self
+
+from roost_localcluster import binaries, pki
+from roost_localcluster.processes import ManagedProcess
+
+KWOK_NODE_ANNOTATION = "kwok.x-k8s.io/node"
+KWOK_NODE_ANNOTATION_VALUE = "fake"
+POD_CIDR = "10.244.0.1/16"  # kwok hands pod IPs out of this; nothing ever routes to them
+SERVICE_ACCOUNT_ISSUER = "https://kubernetes.default.svc.cluster.local"
+STATE_FILE = "state.json"
+START_ORDER = ("etcd", "kube-apiserver", "kube-controller-manager", "kube-scheduler", "kwok")
+_PORT_RETRIES = 3
+
+
+class ControlPlaneError(RuntimeError):
+    """A component did not start or become healthy; the message carries its log tail."""
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nobody listens on right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+@dataclass
+class Ports:
+    """The listening ports of one control plane (all on 127.0.0.1)."""
+
+    etcd_client: int
+    etcd_peer: int
+    apiserver: int
+    controller_manager: int
+    scheduler: int
+    kwok: int
+
+    @classmethod
+    def pick(cls) -> Ports:
+        return cls(*(free_port() for _ in range(6)))
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Tunables that change with the size of the simulated fleet.
+
+    The defaults suit tens of nodes. For thousands, lengthen the node lease and the
+    controller manager's node-monitor grace period together (kwok renews leases for all
+    nodes from one process) and give kwok more parallelism.
+    """
+
+    node_lease_duration_s: int = 40
+    node_monitor_grace_period_s: int = 50
+    ready_timeout_s: float = 120.0
+    kube_api_qps: int = 100
+    kwok_config: Path | None = None
+    """Extra kwok configuration (``--config``), e.g. Stage objects replacing kwok's default
+    pod lifecycle; kwok keeps its defaults for any resource kind the file has no stages for."""
+
+
+def _args_etcd(bin_dir: Path, ports: Ports, data_dir: Path) -> list[str]:
+    client = f"http://127.0.0.1:{ports.etcd_client}"
+    peer = f"http://127.0.0.1:{ports.etcd_peer}"
+    return [
+        str(bin_dir / "etcd"),
+        "--name=roost",
+        f"--data-dir={data_dir}",
+        f"--listen-client-urls={client}",
+        f"--advertise-client-urls={client}",
+        f"--listen-peer-urls={peer}",
+        f"--initial-advertise-peer-urls={peer}",
+        f"--initial-cluster=roost={peer}",
+        "--unsafe-no-fsync",
+        "--log-level=warn",
+    ]
+
+
+def _args_apiserver(bin_dir: Path, ports: Ports, keys: pki.Pki) -> list[str]:
+    return [
+        str(bin_dir / "kube-apiserver"),
+        f"--etcd-servers=http://127.0.0.1:{ports.etcd_client}",
+        "--bind-address=127.0.0.1",
+        # Without this the API server advertises the host's default-route address.
+        "--advertise-address=127.0.0.1",
+        f"--secure-port={ports.apiserver}",
+        f"--tls-cert-file={keys.serving_cert}",
+        f"--tls-private-key-file={keys.serving_key}",
+        f"--client-ca-file={keys.ca_cert}",
+        f"--requestheader-client-ca-file={keys.ca_cert}",
+        f"--requestheader-allowed-names={pki.FRONT_PROXY.user}",
+        "--requestheader-username-headers=X-Remote-User",
+        "--requestheader-group-headers=X-Remote-Group",
+        "--requestheader-extra-headers-prefix=X-Remote-Extra-",
+        f"--proxy-client-cert-file={keys.client_cert(pki.FRONT_PROXY)}",
+        f"--proxy-client-key-file={keys.client_key(pki.FRONT_PROXY)}",
+        # Node authorisation would only matter for real kubelets; kwok is one client.
+        "--authorization-mode=RBAC",
+        f"--service-account-issuer={SERVICE_ACCOUNT_ISSUER}",
+        f"--service-account-key-file={keys.service_account_pub}",
+        f"--service-account-signing-key-file={keys.service_account_key}",
+        f"--service-cluster-ip-range={pki.SERVICE_CLUSTER_IP_RANGE}",
+        "--allow-privileged=true",
+        # No other API servers, and 127.0.0.1 is not routable from pods anyway.
+        "--endpoint-reconciler-type=none",
+        "--profiling=false",
+    ]
+
+
+def _args_controller_manager(
+    bin_dir: Path, ports: Ports, keys: pki.Pki, kubeconfig: Path, settings: Settings
+) -> list[str]:
+    return [
+        str(bin_dir / "kube-controller-manager"),
+        f"--kubeconfig={kubeconfig}",
+        f"--authentication-kubeconfig={kubeconfig}",
+        f"--authorization-kubeconfig={kubeconfig}",
+        "--leader-elect=false",
+        "--bind-address=127.0.0.1",
+        f"--secure-port={ports.controller_manager}",
+        f"--tls-cert-file={keys.serving_cert}",
+        f"--tls-private-key-file={keys.serving_key}",
+        f"--service-account-private-key-file={keys.service_account_key}",
+        f"--root-ca-file={keys.ca_cert}",
+        "--use-service-account-credentials=true",
+        f"--service-cluster-ip-range={pki.SERVICE_CLUSTER_IP_RANGE}",
+        f"--node-monitor-grace-period={settings.node_monitor_grace_period_s}s",
+        f"--kube-api-qps={settings.kube_api_qps}",
+        f"--kube-api-burst={settings.kube_api_qps * 2}",
+        "--profiling=false",
+    ]
+
+
+def _args_scheduler(bin_dir: Path, ports: Ports, keys: pki.Pki, kubeconfig: Path) -> list[str]:
+    return [
+        str(bin_dir / "kube-scheduler"),
+        f"--kubeconfig={kubeconfig}",
+        f"--authentication-kubeconfig={kubeconfig}",
+        f"--authorization-kubeconfig={kubeconfig}",
+        "--leader-elect=false",
+        "--bind-address=127.0.0.1",
+        f"--secure-port={ports.scheduler}",
+        f"--tls-cert-file={keys.serving_cert}",
+        f"--tls-private-key-file={keys.serving_key}",
+        "--profiling=false",
+    ]
+
+
+def _args_kwok(bin_dir: Path, ports: Ports, kubeconfig: Path, settings: Settings) -> list[str]:
+    return [
+        str(bin_dir / "kwok"),
+        f"--kubeconfig={kubeconfig}",
+        f"--manage-nodes-with-annotation-selector={KWOK_NODE_ANNOTATION}={KWOK_NODE_ANNOTATION_VALUE}",
+        f"--cidr={POD_CIDR}",
+        # Where the API server would dial a fake kubelet (kubectl logs/exec): stay on loopback.
+        "--node-ip=127.0.0.1",
+        f"--node-lease-duration-seconds={settings.node_lease_duration_s}",
+        f"--server-address=127.0.0.1:{ports.kwok}",
+        *([f"--config={settings.kwok_config}"] if settings.kwok_config else []),
+    ]
+
+
+def _http_status(
+    port: int, path: str, tls: ssl.SSLContext | None = None, timeout_s: float = 2.0
+) -> int:
+    """Status of GET ``path`` on 127.0.0.1, or 0 when nothing answers (no proxies involved)."""
+    conn: http.client.HTTPConnection
+    if tls is None:
+        conn = http.client.HTTPConnection("127.0.0.1", port, timeout=timeout_s)
+    else:
+        conn = http.client.HTTPSConnection("127.0.0.1", port, timeout=timeout_s, context=tls)
+    try:
+        conn.request("GET", path)
+        return conn.getresponse().status
+    except (OSError, http.client.HTTPException):
+        return 0
+    finally:
+        conn.close()
+
+
+class ControlPlane:
+    """etcd, kube-apiserver, kube-controller-manager, kube-scheduler and kwok on 127.0.0.1.
+
+    Use as a context manager (tests) or call :meth:`start` / :meth:`stop`. Everything it
+    writes lives in ``state_dir``: ``kubeconfig`` (admin, ``system:masters``), ``pki/``,
+    ``logs/<component>.log``, ``etcd/`` (removed on stop) and ``state.json`` (ports and pids).
+
+    ``detached=True`` lets the processes outlive this Python process (``roost-cluster up``);
+    otherwise they are tied to it (parent-death signal and an ``atexit`` hook) so an
+    interrupted test session leaves nothing running.
+    """
+
+    def __init__(
+        self,
+        state_dir: Path | None = None,
+        *,
+        bin_dir: Path | None = None,
+        settings: Settings | None = None,
+        detached: bool = False,
+    ) -> None:
+        self.state_dir = Path(state_dir or tempfile.mkdtemp(prefix="roost-cluster-")).resolve()
+        self._bin_dir = bin_dir
+        self.settings = settings or Settings()
+        self.detached = detached
+        self.ports: Ports | None = None
+        self.processes: dict[str, ManagedProcess] = {}
+        self.pki = pki.Pki(self.state_dir / "pki")
+
+    # ---- paths -------------------------------------------------------------------------
+    @property
+    def kubeconfig(self) -> Path:
+        """Admin kubeconfig (user ``roost-admin`` in ``system:masters``)."""
+        return self.state_dir / "kubeconfig"
+
+    @property
+    def server(self) -> str:
+        assert self.ports is not None, "control plane not started"
+        return f"https://127.0.0.1:{self.ports.apiserver}"
+
+    @property
+    def logs_dir(self) -> Path:
+        return self.state_dir / "logs"
+
+    @property
+    def etcd_dir(self) -> Path:
+        return self.state_dir / "etcd"
+
+    def _component_kubeconfig(self, who: pki.ClientIdentity) -> Path:
+        return self.state_dir / "kubeconfigs" / f"{who.file_stem}.kubeconfig"
+
+    # ---- lifecycle ---------------------------------------------------------------------
+    def __enter__(self) -> Self:
+        self.start()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.stop()
+
+    def start(self) -> None:
+        """Start every component in order and return once the cluster is usable.
+
+        Usable means: etcd and the API server report healthy/ready, the controller manager,
+        scheduler and kwok answer their health checks, and the ``default`` service account
+        exists (so pods can be created). On any failure everything started is stopped.
+        """
+        bin_dir = self._bin_dir or binaries.ensure_built()
+        self.state_dir.mkdir(parents=True, exist_ok=True)
+        shutil.rmtree(self.etcd_dir, ignore_errors=True)
+        if not self.detached:
+            atexit.register(self.stop)
+        self.ports = Ports.pick()
+        pki.write_pki(self.pki.directory)
+        pki.write_kubeconfig(self.kubeconfig, self.pki, self.server, pki.ADMIN)
+        try:
+            self._start("etcd", lambda p: _args_etcd(bin_dir, p, self.etcd_dir))
+            self.start_apiserver(bin_dir)
+            self._start_clients(bin_dir)
+            self._wait(
+                "the default service account",
+                lambda: (
+                    self._api_status("/api/v1/namespaces/default/serviceaccounts/default") == 200
+                ),
+                watch=list(self.processes.values()),
+            )
+        except BaseException:
+            self.stop()
+            raise
+        self._write_state()
+
+    def _start_clients(self, bin_dir: Path) -> None:
+        """Controller manager, scheduler and kwok only need the API server: start together."""
+        assert self.ports is not None
+        kcm = self._component_kubeconfig(pki.CONTROLLER_MANAGER)
+        sched = self._component_kubeconfig(pki.SCHEDULER)
+        kwok = self._component_kubeconfig(pki.KWOK)
+        for who, path in ((pki.CONTROLLER_MANAGER, kcm), (pki.SCHEDULER, sched), (pki.KWOK, kwok)):
+            pki.write_kubeconfig(path, self.pki, self.server, who)
+        starters: dict[str, Callable[[Ports], list[str]]] = {
+            "kube-controller-manager": lambda p: _args_controller_manager(
+                bin_dir, p, self.pki, kcm, self.settings
+            ),
+            "kube-scheduler": lambda p: _args_scheduler(bin_dir, p, self.pki, sched),
+            "kwok": lambda p: _args_kwok(bin_dir, p, kwok, self.settings),
+        }
+        for name, args in starters.items():
+            self._launch(name, args(self.ports))
+        for name, args in starters.items():
+            self._await_healthy(name, args)
+
+    def start_apiserver(self, bin_dir: Path | None = None) -> None:
+        """(Re)start the API server on its port with its certificates and wait until ready.
+
+        With :meth:`stop_apiserver` this simulates losing and regaining the control plane
+        while the other components (and clients) keep running.
+        """
+        bin_dir = bin_dir or self._bin_dir or binaries.bin_dir()
+        self._start("kube-apiserver", lambda p: _args_apiserver(bin_dir, p, self.pki))
+        if self.ports is not None and self.kubeconfig.exists():
+            self._write_state()
+
+    def stop_apiserver(self) -> None:
+        """Stop only the API server (its port, certificates and etcd data stay)."""
+        proc = self.processes.get("kube-apiserver")
+        if proc is not None:
+            proc.stop()
+
+    def stop(self) -> None:
+        """Stop every component this object started (reverse order) and drop etcd's data.
+
+        Safe to call more than once; logs and certificates stay in ``state_dir``.
+        """
+        for name in reversed(START_ORDER):
+            proc = self.processes.get(name)
+            if proc is not None:
+                proc.stop()
+        self.processes.clear()
+        shutil.rmtree(self.etcd_dir, ignore_errors=True)
+        with contextlib.suppress(FileNotFoundError):
+            (self.state_dir / STATE_FILE).unlink()
+        if not self.detached:
+            atexit.unregister(self.stop)
+
+    # ---- introspection -----------------------------------------------------------------
+    def pids(self) -> dict[str, int]:
+        return {n: p.pid for n, p in self.processes.items() if p.pid is not None}
+
+    def alive(self) -> dict[str, bool]:
+        return {n: p.alive() for n, p in self.processes.items()}
+
+    def rss_bytes(self) -> int:
+        """Resident memory of all control-plane processes together."""
+        return sum(p.rss_bytes() for p in self.processes.values())
+
+    def ready(self) -> bool:
+        return self._api_status("/readyz") == 200
+
+    # ---- state file (for the detached CLI) --------------------------------------------
+    def _write_state(self) -> None:
+        assert self.ports is not None
+        state = {
+            "ports": asdict(self.ports),
+            "kubeconfig": str(self.kubeconfig),
+            "processes": [p.to_state() for p in self.processes.values()],
+        }
+        path = self.state_dir / STATE_FILE
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(state, indent=2) + "\n")
+        tmp.replace(path)
+
+    @classmethod
+    def attach(cls, state_dir: Path) -> ControlPlane | None:
+        """The control plane recorded in ``state_dir/state.json`` (None if there is none).
+
+        The returned object can report status and :meth:`stop` the recorded processes; it
+        is detached, so it never stops them by itself.
+        """
+        path = Path(state_dir) / STATE_FILE
+        if not path.exists():
+            return None
+        state: dict[str, Any] = json.loads(path.read_text())
+        plane = cls(Path(state_dir), detached=True)
+        plane.ports = Ports(**state["ports"])
+        for entry in state["processes"]:
+            proc = ManagedProcess.from_state(entry)
+            plane.processes[proc.name] = proc
+        return plane
+
+    # ---- internals ---------------------------------------------------------------------
+    def _env(self, name: str) -> dict[str, str]:
+        env = {k: v for k, v in os.environ.items() if k != "KUBECONFIG"}
+        if name == "kwok":
+            # kwok always loads ~/.kwok/kwok.yaml when present: give it an empty home.
+            home = self.state_dir / "kwok-home"
+            home.mkdir(exist_ok=True)
+            env["HOME"] = str(home)
+        return env
+
+    def _launch(self, name: str, argv: list[str]) -> ManagedProcess:
+        proc = ManagedProcess(name, argv, self.logs_dir / f"{name}.log")
+        proc.launch(self._env(name), die_with_parent=not self.detached)
+        self.processes[name] = proc
+        return proc
+
+    def _start(self, name: str, args: Callable[[Ports], list[str]]) -> None:
+        assert self.ports is not None
+        self._launch(name, args(self.ports))
+        self._await_healthy(name, args)
+
+    def _await_healthy(self, name: str, args: Callable[[Ports], list[str]]) -> None:
+        """Wait for ``name``; if it died because its port was taken meanwhile, move it."""
+        assert self.ports is not None
+        for attempt in range(_PORT_RETRIES):
+            proc = self.processes[name]
+            try:
+                self._wait(name, lambda: self._healthy(name), watch=[proc])
+                return
+            except ControlPlaneError:
+                port_taken = "address already in use" in proc.log_tail(50)
+                if not port_taken or attempt == _PORT_RETRIES - 1 or name == "kube-apiserver":
+                    raise
+            self._move(name)
+            self._launch(name, args(self.ports))
+
+    def _move(self, name: str) -> None:
+        assert self.ports is not None
+        if name == "etcd":
+            self.ports.etcd_client, self.ports.etcd_peer = free_port(), free_port()
+        else:
+            field = {
+                "kube-controller-manager": "controller_manager",
+                "kube-scheduler": "scheduler",
+                "kwok": "kwok",
+            }[name]
+            setattr(self.ports, field, free_port())
+
+    def _healthy(self, name: str) -> bool:
+        assert self.ports is not None
+        if name == "etcd":
+            return _http_status(self.ports.etcd_client, "/health") == 200
+        if name == "kube-apiserver":
+            return self.ready()
+        if name == "kube-controller-manager":
+            return _http_status(self.ports.controller_manager, "/healthz", self._tls()) == 200
+        if name == "kube-scheduler":
+            return _http_status(self.ports.scheduler, "/healthz", self._tls()) == 200
+        if name == "kwok":
+            return _http_status(self.ports.kwok, "/healthz") == 200
+        raise KeyError(name)
+
+    def _tls(self, client: pki.ClientIdentity | None = None) -> ssl.SSLContext:
+        context = ssl.create_default_context(cafile=str(self.pki.ca_cert))
+        if client is not None:
+            context.load_cert_chain(self.pki.client_cert(client), self.pki.client_key(client))
+        return context
+
+    def _api_status(self, path: str) -> int:
+        assert self.ports is not None
+        return _http_status(self.ports.apiserver, path, self._tls(pki.ADMIN))
+
+    def _wait(self, what: str, check: Callable[[], bool], watch: list[ManagedProcess]) -> None:
+        deadline = time.monotonic() + self.settings.ready_timeout_s
+        while True:
+            if check():
+                return
+            for proc in watch:
+                if not proc.alive():
+                    raise ControlPlaneError(
+                        f"{proc.name} exited while waiting for {what}; "
+                        f"log {proc.log}:\n{proc.log_tail()}"
+                    )
+            if time.monotonic() > deadline:
+                tails = "\n".join(f"--- {p.name}:\n{p.log_tail(10)}" for p in watch)
+                raise ControlPlaneError(
+                    f"timed out after {self.settings.ready_timeout_s:.0f} s waiting for {what}\n"
+                    f"{tails}"
+                )
+            time.sleep(0.2)
