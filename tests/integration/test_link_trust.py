@@ -18,7 +18,6 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
-from roost_harness.operator import wait_for
 
 from roost_agent import Agent
 from roost_agent.agent import AgentEvent, EventKind
@@ -46,6 +45,7 @@ from roost_sim import (
 )
 from roost_sim.hostile import HostileSender, Target
 from roost_sim.link import UdpLink
+from tests.support.operator import wait_for
 
 # Sub-second start-up; ArduPilot streams as with its SRn_* parameters set, since this
 # agent does not request streams itself.
