@@ -65,7 +65,6 @@ from roost_sim.faults import (
     parse_number,
     parse_sensor,
     parse_state,
-    parse_sysid,
 )
 from roost_sim.link import Link, PtyLink, UdpLink
 from roost_sim.model import AutopilotModel, ModeChange, SimConfig, Touchdown
@@ -442,14 +441,14 @@ class SimulatedAutopilot:
             with self._lock:
                 sending = self._sending()
             if sending:
-                self.link.send(bytes(frame))
+                self.link.write_noise(bytes(frame))  # as received: not re-signed
 
     # ---- fault injection -------------------------------------------------------------
 
     def inject(self, kind: FaultKind | str, value: str | float | None = None) -> None:
         """Start a fault (see :mod:`roost_sim.faults` for kinds and values).
 
-        Raises ValueError for an unknown kind or an invalid value; nothing changes then.
+        An unknown kind or an invalid value raises ValueError before anything changes.
         """
         kind = FaultKind(kind)
         check_value(kind, value)
@@ -473,7 +472,7 @@ class SimulatedAutopilot:
                 self.link.impairment.jitter_ms = parse_number(kind, value, 50.0)
             elif kind is FaultKind.SPOOF:
                 default = (self.sysid + SPOOF_SYSID_OFFSET - 1) % 255 + 1
-                self._spoof_sysid = parse_sysid(value, default)
+                self._spoof_sysid = int(parse_number(kind, value, default))
             elif kind is FaultKind.BATTERY:
                 self.battery.fail()
 

@@ -25,18 +25,18 @@ spoof     foreign sysid      10 Hz HEARTBEAT (EMERGENCY) + ATTITUDE from another
           (default sysid+100) and EMERGENCY heartbeats from a non-autopilot component
                              (gimbal, autopilot=INVALID) of our own sysid
 battery   --                 the battery fails: voltage drops, charge reads empty within
-                             5 s, health bit clears, CRITICAL; PX4 then holds 5 s and
+                             4 s, health bit clears, CRITICAL; PX4 then holds 5 s and
                              lands (see :mod:`roost_sim.battery`; a shared battery
                              fails for every autopilot on it)
 ========  =================  ==========================================================
 
 ``clear`` removes one kind or all of them (a pending reboot is not undone; a cleared
-battery fault is a fresh pack). Values are validated: a non-finite or out-of-range
-number is refused with ValueError and nothing changes: each kind's range is in
-:data:`NUMERIC_RANGES`, and an infinite jitter, for one, would delay every frame forever,
-which no ``clear`` could undo. :func:`check_value` is the one judge of a value, used by
-:meth:`SimulatedAutopilot.inject` and, before anything is sent, by the ``roost fault`` and
-``roost-sim fault`` command lines.
+battery fault is a fresh pack).
+
+Numeric values must be finite and within :data:`NUMERIC_RANGES`: an infinite jitter
+would delay every frame forever, which no ``clear`` could undo. :func:`check_value` is
+the one judge of a value, used by :meth:`SimulatedAutopilot.inject` and, before anything
+is sent, by the ``roost fault`` and ``roost-sim fault`` command lines.
 """
 
 from __future__ import annotations

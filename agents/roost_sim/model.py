@@ -353,6 +353,11 @@ class AutopilotModel:
         return mode_name(self.stack, self.custom_mode)
 
     @property
+    def detecting_landing(self) -> bool:
+        """On the ground, but the landing detector has not said so yet."""
+        return self._contact_at is not None and not self.on_ground
+
+    @property
     def on_ground(self) -> bool:
         """The vehicle rests on the ground (as its landing detector reports it)."""
         return self.landed_state is LandedState.ON_GROUND

@@ -15,9 +15,10 @@ against, and the two stacks differ completely. Measured on the real firmware:
   SET_MESSAGE_INTERVAL per message, or REQUEST_DATA_STREAM per group
   (:data:`ARDUPILOT_STREAM_GROUPS`, ArduCopter's grouping). It answers every request
   and streams at the requested rate; messages it can produce are in
-  :data:`ARDUPILOT_MESSAGES`. ``SimConfig``-independent presets
-  (:data:`ARDUPILOT_PRESET_RATES`) stand in for stream-rate parameters (SRn_*) set in
-  its EEPROM, for setups whose client does not request streams.
+  :data:`ARDUPILOT_MESSAGES`. A reboot forgets every request. With
+  ``SimConfig.preset_streams`` it streams :data:`ARDUPILOT_PRESET_RATES` from boot, as
+  with its stream-rate parameters (SRn_*) set, for clients that do not request streams.
+  The grouping of EXTENDED_SYS_STATE into EXTENDED_STATUS is the simulator's choice.
 """
 
 from __future__ import annotations

@@ -36,6 +36,7 @@ from roost_api.autopilot import (
 from roost_api.meta import HealthLevel
 from roost_sim import (
     FaultKind,
+    SimConfig,
     SimulatedAutopilot,
     autopilot_specs,
     free_udp_port,
@@ -46,6 +47,9 @@ from roost_sim.hostile import HostileSender, Target
 from roost_sim.link import UdpLink
 from tests.support.waiting import wait_until
 
+# Sub-second start-up; ArduPilot streams as with its SRn_* parameters set, since this
+# agent does not request streams itself.
+SIM_CONFIG = SimConfig.fast(preset_streams=True)
 KEY = bytes(range(32))
 WRONG_KEY = bytes(range(100, 132))
 
@@ -124,7 +128,7 @@ def agent_for(
 
 def take_off(sims: list[SimulatedAutopilot]) -> None:
     for sim in sims:
-        sim.wait_until(lambda s: s.system_status != "BOOT", timeout=5)
+        sim.wait_ready(timeout=5)
         sim.fly()
     for sim in sims:
         sim.wait_until(lambda s: s.landed_state == "InAir" and s.altitude_m > 2.0, timeout=15)
@@ -142,7 +146,7 @@ def test_a_hostile_sender_costs_the_autopilots_nothing_and_hears_nothing(tmp_pat
     garbage, truncated, bad-CRC and spoofed frames per autopilot port) must cause no
     failover and no lost autopilot frame; then a real failover and its safety routine run
     with the hostile sender still there, and none of the agent's datagrams reach it."""
-    sims = start_vehicle_sims(["px4", "ardupilot"])
+    sims = start_vehicle_sims(["px4", "ardupilot"], config=SIM_CONFIG)
     try:
         with agent_for(sims, tmp_path) as (agent, events):
             take_off(sims)
@@ -179,7 +183,7 @@ def test_a_hostile_sender_costs_the_autopilots_nothing_and_hears_nothing(tmp_pat
 
 
 def test_signing_required_hears_only_well_signed_autopilots(tmp_path: Path) -> None:
-    sims = start_vehicle_sims(["px4", "px4", "px4"])
+    sims = start_vehicle_sims(["px4", "px4", "px4"], config=SIM_CONFIG)
     good, wrong_key, _unsigned = sims
     good.link.enable_signing(KEY, link_id=1)
     wrong_key.link.enable_signing(WRONG_KEY, link_id=1)
@@ -220,7 +224,9 @@ def test_signing_required_hears_only_well_signed_autopilots(tmp_path: Path) -> N
 
 
 def test_the_link_relocks_when_the_autopilot_comes_back_on_another_port() -> None:
-    first = SimulatedAutopilot.udp("px4", 1, target_port=free_udp_port(), name="fc1").start()
+    first = SimulatedAutopilot.udp(
+        "px4", 1, target_port=free_udp_port(), name="fc1", config=SIM_CONFIG
+    ).start()
     port = agent_port(first)
     spec = AutopilotSpec(
         name="fc1", stack="px4", connection=f"udp://127.0.0.1:{port}", sysid=1, bridge_channel=0
@@ -237,7 +243,9 @@ def test_the_link_relocks_when_the_autopilot_comes_back_on_another_port() -> Non
     try:
         wait_until("first lock", lambda: link.locked_address == udp(first).local_address, 5, 0.02)
         first.stop()  # the autopilot reboots; it comes back sending from another port
-        second = SimulatedAutopilot.udp("px4", 1, target_port=port, name="fc1").start()
+        second = SimulatedAutopilot.udp(
+            "px4", 1, target_port=port, name="fc1", config=SIM_CONFIG
+        ).start()
         wait_until("relock", lambda: link.locked_address == udp(second).local_address, 10, 0.02)
         locks = [r for r, _ in seen if r.startswith("Autopilot")]
         assert locks == ["AutopilotLocked", "AutopilotAddressChanged"]
@@ -260,8 +268,10 @@ def test_a_link_that_cannot_open_reports_retries_and_recovers(tmp_path: Path) ->
     blocker.bind(("127.0.0.1", 0))
     port = blocker.getsockname()[1]
     sims = [
-        SimulatedAutopilot.udp("px4", 1, target_port=port, name="fc1").start(),
-        SimulatedAutopilot.udp("px4", 2, target_port=free_udp_port(), name="fc2").start(),
+        SimulatedAutopilot.udp("px4", 1, target_port=port, name="fc1", config=SIM_CONFIG).start(),
+        SimulatedAutopilot.udp(
+            "px4", 2, target_port=free_udp_port(), name="fc2", config=SIM_CONFIG
+        ).start(),
     ]
     try:
         with agent_for(sims, tmp_path) as (agent, events):

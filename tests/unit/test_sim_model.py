@@ -355,12 +355,10 @@ def test_a_disarmed_vehicle_never_climbs_and_the_landed_state_matches_altitude(
         if not model.armed:
             assert model.altitude_m <= before
         assert not model.on_ground or model.altitude_m == 0.0
-        # On the ground it is ON_GROUND, TAKEOFF (spooling up) or LANDING: touched down,
-        # and the landing detector has not confirmed it yet (PX4 ~7 s, ArduCopter ~2 s).
-        assert model.altitude_m > 0.0 or model.landed_state in (
-            LandedState.ON_GROUND,
-            LandedState.TAKEOFF,
-            LandedState.LANDING,
+        assert (
+            model.altitude_m > 0.0
+            or model.detecting_landing  # still LANDING / IN_AIR, as the firmware reports
+            or model.landed_state in (LandedState.ON_GROUND, LandedState.TAKEOFF)
         )
 
 

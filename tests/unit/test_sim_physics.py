@@ -19,7 +19,7 @@ from roost_mavlink.status import LandedState, MavState, SensorBit
 from roost_sim.autopilot import SimulatedAutopilot
 from roost_sim.battery import Battery, ChargeState
 from roost_sim.control import handle_request
-from roost_sim.faults import FaultKind, parse_number, parse_sensor, parse_state, parse_sysid
+from roost_sim.faults import FaultKind, check_value, parse_number, parse_sensor, parse_state
 from roost_sim.model import AutopilotModel, SimConfig
 
 
@@ -174,7 +174,7 @@ CONTROL_TABLE = [
     ({"op": "fault", "kind": "jitter", "value": "inf"}, "out of range"),
     ({"op": "fault", "kind": "jitter", "value": "nan"}, "out of range"),
     ({"op": "fault", "kind": "jitter", "value": 1e12}, "out of range"),
-    ({"op": "fault", "kind": "loss", "value": "lots"}, "not a number"),
+    ({"op": "fault", "kind": "loss", "value": "lots"}, "takes a number"),
     ({"op": "fault", "kind": "garbage", "value": -5}, "out of range"),
     ({"op": "fault", "kind": "reboot", "value": 1e9}, "out of range"),
     ({"op": "fault", "kind": "spoof", "value": 300}, "system id"),
@@ -211,10 +211,13 @@ def test_fault_value_parsers_refuse_what_would_break_the_link() -> None:
     for bad in ("inf", "-inf", "nan", "1e7"):
         with pytest.raises(ValueError):
             parse_number(FaultKind.JITTER, bad, 50.0)
-    assert parse_sysid("42", 1) == 42 and parse_sysid(None, 7) == 7
+    assert parse_number(FaultKind.SPOOF, "42", 1) == 42
     for bad_id in ("0", "256", "4.5", "x"):
         with pytest.raises(ValueError):
-            parse_sysid(bad_id, 1)
+            parse_number(FaultKind.SPOOF, bad_id, 1)
+    check_value(FaultKind.BATTERY, None)
+    with pytest.raises(ValueError):
+        check_value(FaultKind.BATTERY, "3")  # takes no value
     assert parse_sensor(32.0) is SensorBit.GPS
     with pytest.raises(ValueError):
         parse_sensor(math.nan)
