@@ -435,6 +435,8 @@ class HealthTracker:
         if o.claim is None and (rebooting or _newly_fatal(status, o.system_status)):
             reason = "rebooted: MAV_STATE BOOT after it was up" if rebooting else ""
             o.claim = _Claim(now, _seq(msg), o.last_seq, reason, status=status)
+            if rebooting:  # a reboot disarms: not "disarmed in the air" (judged once settled)
+                return (o.base_mode, o.custom_mode, o.system_status) != previous
         elif o.claim is None:
             if status != o.system_status:
                 o.system_status_since = now

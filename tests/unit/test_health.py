@@ -556,3 +556,15 @@ def test_liveness_follows_the_verified_requested_streams() -> None:
     assert "silent" in codes(v.at(0.6))
     v.tracker.expect_streams(None)
     assert "silent" not in codes(v.at(0.6))
+
+
+def test_a_reboot_in_the_air_is_reported_as_the_reboot_not_as_a_disarm() -> None:
+    """A rebooting autopilot comes back disarmed: the reason is the reboot."""
+    v = Vehicle()
+    v.fly(1.0)
+    v.landed(LandedState.IN_AIR)
+    v.heartbeat(state=MavState.BOOT, base_mode=DISARMED)
+    v.heartbeat(state=MavState.BOOT, base_mode=DISARMED)
+    a = v.at(0.0)
+    assert a.failing and "rebooted" in a.failure_reason
+    assert "disarmed while in the air" not in a.failure_reason
