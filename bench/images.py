@@ -67,7 +67,12 @@ def warm_build() -> Figure:
         subprocess.run([str(BUILD_SCRIPT)], check=True, capture_output=True, timeout=600)
         times.append(time.monotonic() - started)
     cold = _last_cold_build_s(build_images())
-    cold_text = f"; last cold build {cold} s (base, wheels, both images)" if cold else ""
+    cold_text = (
+        f"; last rebuild {cold} s (wheels and both images; a cold cache adds about a minute "
+        "for the Debian base)"
+        if cold
+        else ""
+    )
     return Figure(
         "images.build_warm_s",
         statistics.median(times),
