@@ -33,7 +33,14 @@ python=${PYTHON:-python3}
 # Dockerfile runs pip from) and image.py. Wheels are built here, on the host, so the image
 # build needs no compiler or package index.
 write_context() {
-  local ctx=$1 log
+  local ctx=$1 log host_python
+  # Wheels with compiled parts are per Python minor version: the host's must be the
+  # base's (3.11: Debian bookworm's python3, and the Dockerfile's default base).
+  host_python=$("$python" -c 'import sys; print("%d.%d" % sys.version_info[:2])')
+  if [[ "$host_python" != 3.11 ]]; then
+    echo "images: the image's Python is 3.11 but $python is $host_python; set PYTHON to a Python 3.11" >&2
+    exit 1
+  fi
   rm -rf "$ctx"
   mkdir -p "$ctx/wheels"
   cp "$here/image.py" "$ctx/"
