@@ -15,6 +15,8 @@ from bench.core import RESULTS, Figure, update_readme, write_results
 
 MODULES: tuple[str, ...] = (
     "controlplane",
+    "kine",
+    "images",
     "mission",
     "cluster",
     "agent",

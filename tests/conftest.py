@@ -2,14 +2,29 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 
 import pytest
 
 from roost_kube.client import Kube
 from roost_localcluster.cluster import Cluster, FakeNodes
-from roost_localcluster.controlplane import ControlPlane
+from roost_localcluster.controlplane import DATASTORES, ControlPlane, Settings
 from tests.support.operator import OperatorProcess
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--datastore",
+        choices=DATASTORES,
+        default=os.environ.get("ROOST_DATASTORE", "etcd"),
+        help="the control plane's datastore: etcd, or kine over SQLite as in K3s "
+        "(default: $ROOST_DATASTORE, else etcd)",
+    )
+
+
+def pytest_report_header(config: pytest.Config) -> str:
+    return f"control-plane datastore: {config.getoption('--datastore')}"
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
@@ -20,11 +35,19 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
 
 
 @pytest.fixture(scope="session")
-def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
-    """A real control plane (etcd, API server, controller manager, scheduler, kwok) for the
-    whole session; builds the binaries first if they are missing. Component logs are in the
-    session's temp dir under ``control-plane*/logs``. See localcluster/README.md."""
-    with ControlPlane(tmp_path_factory.mktemp("control-plane")) as plane:
+def datastore(pytestconfig: pytest.Config) -> str:
+    """The datastore control planes of this session run on (``--datastore``)."""
+    return str(pytestconfig.getoption("--datastore"))
+
+
+@pytest.fixture(scope="session")
+def cluster(tmp_path_factory: pytest.TempPathFactory, datastore: str) -> Iterator[Cluster]:
+    """A real control plane (etcd or kine, API server, controller manager, scheduler, kwok)
+    for the whole session (``--datastore`` picks the datastore); builds the binaries first
+    if they are missing. Component logs are in the session's temp dir under
+    ``control-plane*/logs``. See localcluster/README.md."""
+    settings = Settings(datastore=datastore)
+    with ControlPlane(tmp_path_factory.mktemp("control-plane"), settings=settings) as plane:
         yield Cluster.of(plane)
 
 

@@ -16,6 +16,16 @@ PACKAGE_HOME = Path(__file__).resolve().parent.parent
 REPO_ROOT = PACKAGE_HOME.parent
 BUILD_SCRIPT = PACKAGE_HOME / "build-control-plane.sh"
 COMPONENTS = ("etcd", "kube-apiserver", "kube-controller-manager", "kube-scheduler", "kwok")
+KINE_GO_MOD = PACKAGE_HOME / "gomod" / "kine" / "go.mod"
+
+
+def kine_version() -> str:
+    """The kine version pinned in its wrapper module (the build records it in kine.version)."""
+    for line in KINE_GO_MOD.read_text().splitlines():
+        fields = line.split()
+        if len(fields) >= 2 and fields[0] == "github.com/k3s-io/kine":
+            return fields[1]
+    raise RuntimeError(f"no github.com/k3s-io/kine requirement in {KINE_GO_MOD}")
 
 
 def bin_dir() -> Path:
@@ -26,23 +36,28 @@ def bin_dir() -> Path:
     return Path(out.strip())
 
 
-def missing(directory: Path) -> list[str]:
-    """Names of the components not yet built into ``directory``."""
-    return [name for name in COMPONENTS if not (directory / name).is_file()]
+def missing(directory: Path, names: tuple[str, ...] = COMPONENTS) -> list[str]:
+    """Those of ``names`` not yet built into ``directory`` (or, for kine, of another version)."""
+    result = [name for name in names if not (directory / name).is_file()]
+    stamp = directory / "kine.version"
+    stale = not stamp.is_file() or stamp.read_text().strip() != kine_version()
+    if "kine" in names and "kine" not in result and stale:
+        result.append("kine")
+    return result
 
 
-def ensure_built() -> Path:
-    """Return the binary directory, building what is missing first.
+def ensure_built(names: tuple[str, ...] = COMPONENTS) -> Path:
+    """Return the binary directory, building what of ``names`` is missing first.
 
     A warm cache returns at once; a cold build takes minutes and prints its progress to
     stderr (it is inherited, so pytest shows it with ``-s`` and always in its log).
     """
     directory = bin_dir()
-    if missing(directory):
+    if missing(directory, names):
         subprocess.run(
-            [str(BUILD_SCRIPT)], check=True, stdout=subprocess.DEVNULL, stderr=sys.stderr
+            [str(BUILD_SCRIPT), *names], check=True, stdout=subprocess.DEVNULL, stderr=sys.stderr
         )
-    still_missing = missing(directory)
+    still_missing = missing(directory, names)
     if still_missing:
         raise RuntimeError(f"build did not produce {still_missing} in {directory}")
     return directory

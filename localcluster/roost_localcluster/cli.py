@@ -18,14 +18,14 @@ import time
 from pathlib import Path
 from types import FrameType
 
-from roost_localcluster.controlplane import ControlPlane, ControlPlaneError
+from roost_localcluster.controlplane import DATASTORES, ControlPlane, ControlPlaneError, Settings
 
 
 def _raise_interrupt(signum: int, frame: FrameType | None) -> None:
     raise KeyboardInterrupt(f"signal {signum}")
 
 
-def up(state_dir: Path) -> int:
+def up(state_dir: Path, datastore: str = "etcd") -> int:
     existing = ControlPlane.attach(state_dir)
     if existing is not None:
         if all(existing.alive().values()) and existing.ready():
@@ -34,7 +34,7 @@ def up(state_dir: Path) -> int:
             return 0
         print("roost-cluster: stopping the remains of a previous cluster", file=sys.stderr)
         existing.stop()
-    plane = ControlPlane(state_dir, detached=True)
+    plane = ControlPlane(state_dir, settings=Settings(datastore=datastore), detached=True)
     previous = signal.signal(signal.SIGTERM, _raise_interrupt)
     started = time.monotonic()
     try:
@@ -91,9 +91,18 @@ def main(argv: list[str] | None = None) -> int:
     ):
         cmd = sub.add_parser(name, help=help_text)
         cmd.add_argument("--dir", type=Path, default=Path(".cluster"), help="state directory")
+        if name == "up":
+            cmd.add_argument(
+                "--datastore",
+                choices=DATASTORES,
+                default="etcd",
+                help="etcd, or kine over SQLite (the datastore K3s uses)",
+            )
     args = parser.parse_args(argv)
     state_dir: Path = args.dir.resolve()
-    command = {"up": up, "down": down, "status": status}[args.command]
+    if args.command == "up":
+        return up(state_dir, args.datastore)
+    command = {"down": down, "status": status}[args.command]
     return command(state_dir)
 
 

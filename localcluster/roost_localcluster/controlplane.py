@@ -6,7 +6,9 @@ garbage collection behave. This machine has no container engine (no KinD), so we
 upstream binaries directly (built by ``build-control-plane.sh``):
 
 ====================== =====================================================================
-etcd                   storage; ``--unsafe-no-fsync`` because the data is thrown away.
+etcd                   storage; ``--unsafe-no-fsync`` because the data is thrown away. Or
+                       (``Settings(datastore="kine")``) kine over SQLite, the etcd API K3s
+                       stores cluster state with, so Roost is proven on both.
 kube-apiserver         RBAC authorisation, client-certificate authentication, service-account
                        tokens signed with our key, every GA API (ValidatingAdmissionPolicy).
 kube-controller-manager DaemonSet/Job/ReplicaSet controllers, garbage collector, node
@@ -50,6 +52,7 @@ POD_CIDR = "10.244.0.1/16"  # kwok hands pod IPs out of this; nothing ever route
 SERVICE_ACCOUNT_ISSUER = "https://kubernetes.default.svc.cluster.local"
 STATE_FILE = "state.json"
 START_ORDER = ("etcd", "kube-apiserver", "kube-controller-manager", "kube-scheduler", "kwok")
+DATASTORES = ("etcd", "kine")
 _PORT_RETRIES = 3
 
 
@@ -69,7 +72,9 @@ class Ports:
     """The listening ports of one control plane (all on 127.0.0.1)."""
 
     etcd_client: int
+    """The datastore's etcd API (etcd's client port, or kine's listen address)."""
     etcd_peer: int
+    """etcd's peer port, or kine's metrics port (kine's default would be all interfaces)."""
     apiserver: int
     controller_manager: int
     scheduler: int
@@ -96,6 +101,17 @@ class Settings:
     kwok_config: Path | None = None
     """Extra kwok configuration (``--config``), e.g. Stage objects replacing kwok's default
     pod lifecycle; kwok keeps its defaults for any resource kind the file has no stages for."""
+    datastore: str = "etcd"
+    """``etcd``, or ``kine`` (SQLite behind kine's etcd API, as in K3s)."""
+
+    def __post_init__(self) -> None:
+        if self.datastore not in DATASTORES:
+            raise ValueError(f"datastore must be one of {DATASTORES}, not {self.datastore!r}")
+
+    @property
+    def start_order(self) -> tuple[str, ...]:
+        """Component names in start order (the datastore's name first)."""
+        return (self.datastore, *START_ORDER[1:])
 
 
 def _args_etcd(bin_dir: Path, ports: Ports, data_dir: Path) -> list[str]:
@@ -112,6 +128,17 @@ def _args_etcd(bin_dir: Path, ports: Ports, data_dir: Path) -> list[str]:
         f"--initial-cluster=roost={peer}",
         "--unsafe-no-fsync",
         "--log-level=warn",
+    ]
+
+
+def _args_kine(bin_dir: Path, ports: Ports, data_dir: Path) -> list[str]:
+    # SQLite in write-ahead-log mode, as K3s configures it; the file is thrown away on stop.
+    database = data_dir / "state.db"
+    return [
+        str(bin_dir / "kine"),
+        f"--endpoint=sqlite://{database}?_journal=WAL&cache=shared&_busy_timeout=30000",
+        f"--listen-address=127.0.0.1:{ports.etcd_client}",
+        f"--metrics-bind-address=127.0.0.1:{ports.etcd_peer}",
     ]
 
 
@@ -140,7 +167,8 @@ def _args_apiserver(bin_dir: Path, ports: Ports, keys: pki.Pki) -> list[str]:
         f"--service-account-signing-key-file={keys.service_account_key}",
         f"--service-cluster-ip-range={pki.SERVICE_CLUSTER_IP_RANGE}",
         "--allow-privileged=true",
-        # No other API servers, and 127.0.0.1 is not routable from pods anyway.
+        # No other API servers, and 127.0.0.1 is not routable from pods anyway (kine also
+        # needs this: the default reconciler's lease keys break on a loopback address).
         "--endpoint-reconciler-type=none",
         "--profiling=false",
     ]
@@ -222,7 +250,8 @@ class ControlPlane:
 
     Use as a context manager (tests) or call :meth:`start` / :meth:`stop`. Everything it
     writes lives in ``state_dir``: ``kubeconfig`` (admin, ``system:masters``), ``pki/``,
-    ``logs/<component>.log``, ``etcd/`` (removed on stop) and ``state.json`` (ports and pids).
+    ``logs/<component>.log``, ``etcd/`` or ``kine/`` (the datastore's data, removed on stop)
+    and ``state.json`` (ports and pids).
 
     ``detached=True`` lets the processes outlive this Python process (``roost-cluster up``);
     otherwise they are tied to it (parent-death signal and an ``atexit`` hook) so an
@@ -262,7 +291,12 @@ class ControlPlane:
 
     @property
     def etcd_dir(self) -> Path:
-        return self.state_dir / "etcd"
+        """The datastore's data: etcd's data directory, or kine's SQLite database."""
+        return self.state_dir / self.settings.datastore
+
+    @property
+    def start_order(self) -> tuple[str, ...]:
+        return self.settings.start_order
 
     def _component_kubeconfig(self, who: pki.ClientIdentity) -> Path:
         return self.state_dir / "kubeconfigs" / f"{who.file_stem}.kubeconfig"
@@ -287,7 +321,7 @@ class ControlPlane:
         scheduler and kwok answer their health checks, and the ``default`` service account
         exists (so pods can be created). On any failure everything started is stopped.
         """
-        bin_dir = self._bin_dir or binaries.ensure_built()
+        bin_dir = self._bin_dir or binaries.ensure_built(self.start_order)
         self.state_dir.mkdir(parents=True, exist_ok=True)
         shutil.rmtree(self.etcd_dir, ignore_errors=True)
         if not self.detached:
@@ -296,7 +330,7 @@ class ControlPlane:
         pki.write_pki(self.pki.directory)
         pki.write_kubeconfig(self.kubeconfig, self.pki, self.server, pki.ADMIN)
         try:
-            self._start("etcd", lambda p: _args_etcd(bin_dir, p, self.etcd_dir))
+            self._start_datastore(bin_dir)
             self.start_apiserver(bin_dir)
             self._start_clients(bin_dir)
             self._wait(
@@ -310,6 +344,14 @@ class ControlPlane:
             self.stop()
             raise
         self._write_state()
+
+    def _start_datastore(self, bin_dir: Path) -> None:
+        data_dir = self.etcd_dir
+        if self.settings.datastore == "kine":
+            data_dir.mkdir(parents=True)
+            self._start("kine", lambda p: _args_kine(bin_dir, p, data_dir))
+        else:
+            self._start("etcd", lambda p: _args_etcd(bin_dir, p, data_dir))
 
     def _start_clients(self, bin_dir: Path) -> None:
         """Controller manager, scheduler and kwok only need the API server: start together."""
@@ -353,10 +395,8 @@ class ControlPlane:
 
         Safe to call more than once; logs and certificates stay in ``state_dir``.
         """
-        for name in reversed(START_ORDER):
-            proc = self.processes.get(name)
-            if proc is not None:
-                proc.stop()
+        for proc in reversed(list(self.processes.values())):  # start order, reversed
+            proc.stop()
         self.processes.clear()
         shutil.rmtree(self.etcd_dir, ignore_errors=True)
         with contextlib.suppress(FileNotFoundError):
@@ -382,6 +422,7 @@ class ControlPlane:
     def _write_state(self) -> None:
         assert self.ports is not None
         state = {
+            "datastore": self.settings.datastore,
             "ports": asdict(self.ports),
             "kubeconfig": str(self.kubeconfig),
             "processes": [p.to_state() for p in self.processes.values()],
@@ -402,7 +443,8 @@ class ControlPlane:
         if not path.exists():
             return None
         state: dict[str, Any] = json.loads(path.read_text())
-        plane = cls(Path(state_dir), detached=True)
+        settings = Settings(datastore=state.get("datastore", "etcd"))
+        plane = cls(Path(state_dir), settings=settings, detached=True)
         plane.ports = Ports(**state["ports"])
         for entry in state["processes"]:
             proc = ManagedProcess.from_state(entry)
@@ -447,7 +489,7 @@ class ControlPlane:
 
     def _move(self, name: str) -> None:
         assert self.ports is not None
-        if name == "etcd":
+        if name in DATASTORES:
             self.ports.etcd_client, self.ports.etcd_peer = free_port(), free_port()
         else:
             field = {
@@ -461,6 +503,9 @@ class ControlPlane:
         assert self.ports is not None
         if name == "etcd":
             return _http_status(self.ports.etcd_client, "/health") == 200
+        if name == "kine":
+            # kine answers its metrics port once its database is open and it is serving.
+            return _http_status(self.ports.etcd_peer, "/metrics") == 200
         if name == "kube-apiserver":
             return self.ready()
         if name == "kube-controller-manager":

@@ -25,7 +25,7 @@ from roost_api.vehicle import VehicleSpec
 from roost_api.wellknown import LABEL_VEHICLE, LABEL_VEHICLE_CLASS
 from roost_localcluster.binaries import REPO_ROOT
 from roost_localcluster.cluster import Cluster, FakeNodes
-from roost_localcluster.controlplane import START_ORDER, ControlPlane
+from roost_localcluster.controlplane import ControlPlane, Settings
 from roost_localcluster.processes import ManagedProcess
 from tests.support.waiting import unique, wait_until
 
@@ -332,11 +332,15 @@ def _none_alive(processes: list[ManagedProcess]) -> bool:
     return not any(p.alive() for p in processes)
 
 
-def test_cli_up_and_down_stop_exactly_their_processes(tmp_path: Path) -> None:
+def test_cli_up_and_down_stop_exactly_their_processes(tmp_path: Path, datastore: str) -> None:
     state = tmp_path / "cluster"
     cli = [sys.executable, "-m", "roost_localcluster.cli"]
     up = subprocess.run(
-        [*cli, "up", "--dir", str(state)], capture_output=True, text=True, timeout=180, check=False
+        [*cli, "up", "--dir", str(state), "--datastore", datastore],
+        capture_output=True,
+        text=True,
+        timeout=180,
+        check=False,
     )
     assert up.returncode == 0, up.stderr
     assert up.stdout.strip() == str(state / "kubeconfig")
@@ -344,7 +348,7 @@ def test_cli_up_and_down_stop_exactly_their_processes(tmp_path: Path) -> None:
         plane = ControlPlane.attach(state)
         assert plane is not None
         started = list(plane.processes.values())
-        assert sorted(plane.processes) == sorted(START_ORDER)
+        assert sorted(plane.processes) == sorted(Settings(datastore=datastore).start_order)
         assert all(plane.alive().values())  # outlived the `up` command
         status = subprocess.run(
             [*cli, "status", "--dir", str(state)],
@@ -361,24 +365,26 @@ def test_cli_up_and_down_stop_exactly_their_processes(tmp_path: Path) -> None:
     assert not (state / "state.json").exists()
 
 
-def test_killed_owner_takes_its_control_plane_with_it(tmp_path: Path) -> None:
+def test_killed_owner_takes_its_control_plane_with_it(tmp_path: Path, datastore: str) -> None:
     """A test session killed with SIGKILL (no cleanup runs) leaves no component behind."""
     script = (
         "import json, sys, time\n"
         "from pathlib import Path\n"
-        "from roost_localcluster.controlplane import ControlPlane\n"
-        "plane = ControlPlane(Path(sys.argv[1]))\n"
+        "from roost_localcluster.controlplane import ControlPlane, Settings\n"
+        "plane = ControlPlane(Path(sys.argv[1]), settings=Settings(datastore=sys.argv[2]))\n"
         "plane.start()\n"
         "print(json.dumps([p.to_state() for p in plane.processes.values()]), flush=True)\n"
         "time.sleep(600)\n"
     )
     owner = subprocess.Popen(
-        [sys.executable, "-c", script, str(tmp_path / "owned")], stdout=subprocess.PIPE, text=True
+        [sys.executable, "-c", script, str(tmp_path / "owned"), datastore],
+        stdout=subprocess.PIPE,
+        text=True,
     )
     try:
         assert owner.stdout is not None
         started = [ManagedProcess.from_state(p) for p in json.loads(owner.stdout.readline())]
-        assert len(started) == len(START_ORDER)
+        assert len(started) == len(Settings(datastore=datastore).start_order)
         assert all(p.alive() for p in started)
     finally:
         os.kill(owner.pid, signal.SIGKILL)

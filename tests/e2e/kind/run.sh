@@ -92,9 +92,11 @@ else
 fi
 
 # -- 4. images ------------------------------------------------------------------------
+context="$state/image-context"
+docker/build-images.sh --context "$context"
 for target in operator agent; do
   say "building roost-$target:e2e"
-  DOCKER_BUILDKIT=1 docker build -f docker/Dockerfile --target "$target" -t "roost-$target:e2e" .
+  DOCKER_BUILDKIT=1 docker build -f docker/Dockerfile --target "$target" -t "roost-$target:e2e" "$context"
   "$kind" load docker-image "roost-$target:e2e" --name "$cluster"
 done
 

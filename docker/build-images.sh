@@ -1,0 +1,123 @@
+#!/usr/bin/env bash
+# `make images`: build Roost's operator and agent images with buildah (no container
+# engine or daemon needed) and export them as OCI archives:
+#
+#   ~/.cache/roost/images/roost-operator.oci.tar   (image roost-operator:<version>)
+#   ~/.cache/roost/images/roost-agent.oci.tar      (image roost-agent:<version>)
+#
+# Steps: install the Debian tools when missing (buildah, podman, runc, mmdebstrap);
+# build the base (ROOST_IMAGE_BASE, default `local`: Debian's python3 via
+# docker/build-base.sh; any image reference uses that image instead); `pip wheel` Roost
+# and its dependencies on the host; `buildah bud` both targets of docker/Dockerfile;
+# `buildah push` each into an OCI archive.
+#
+# Cached: the archives are rebuilt only when Roost's sources, pyproject.toml, the docker/
+# files or the base change (a key over them is stored beside the archives); a warm run
+# only compares that key. The image store is $cache/images/storage, never the machine's.
+#
+#   docker/build-images.sh                 build when stale; print the archives' directory
+#   docker/build-images.sh --print         print the archives' directory only
+#   docker/build-images.sh --context DIR   only write the build context (wheels/, image.py)
+#                                          into DIR, for `docker build` (make e2e-kind)
+set -euo pipefail
+
+here=$(cd "$(dirname "$0")" && pwd)
+repo=$(cd "$here/.." && pwd)
+cache_root=${ROOST_CACHE_DIR:-${XDG_CACHE_HOME:-$HOME/.cache}/roost}
+out="$cache_root/images"
+storage="$out/storage"
+base_ref=${ROOST_IMAGE_BASE:-local}
+python=${PYTHON:-python3}
+
+# The build context: Roost and its dependencies as wheels (plus pip's own, which the
+# Dockerfile runs pip from) and image.py. Wheels are built here, on the host, so the image
+# build needs no compiler or package index.
+write_context() {
+  local ctx=$1 log host_python
+  # Wheels with compiled parts are per Python minor version: the host's must be the
+  # base's (3.11: Debian bookworm's python3, and the Dockerfile's default base).
+  host_python=$("$python" -c 'import sys; print("%d.%d" % sys.version_info[:2])')
+  if [[ "$host_python" != 3.11 ]]; then
+    echo "images: the image's Python is 3.11 but $python is $host_python; set PYTHON to a Python 3.11" >&2
+    exit 1
+  fi
+  rm -rf "$ctx"
+  mkdir -p "$ctx/wheels"
+  cp "$here/image.py" "$ctx/"
+  echo "images: building wheels of Roost and its dependencies (pip wheel) ..." >&2
+  log="$(dirname "$ctx")/pip-wheel.log"
+  # From a copy of the packaged sources: an in-tree build would leave build/ and
+  # *.egg-info in the checkout, and a stale build/lib can carry deleted modules along.
+  local src="$ctx/source"
+  mkdir -p "$src"
+  (cd "$repo" && cp -r pyproject.toml README.md api kube operator agents cli localcluster "$src/")
+  find "$src" \( -name __pycache__ -o -name '*.egg-info' \) -prune -exec rm -rf {} +
+  if ! { "$python" -m pip wheel --wheel-dir "$ctx/wheels" "$src" \
+         && "$python" -m pip download --no-deps --dest "$ctx/wheels" pip; } >"$log" 2>&1; then
+    tail -n 30 "$log" >&2
+    echo "images: pip wheel failed; its log is $log" >&2
+    exit 1
+  fi
+  rm -rf "$src"
+}
+
+case "${1:-}" in
+  --print) echo "$out"; exit 0 ;;
+  --context) write_context "${2:?--context needs a directory}"; exit 0 ;;
+esac
+
+version=$(sed -nE 's/^version = "([^"]+)"$/\1/p' "$repo/pyproject.toml")
+# What the images are made of: the packaged sources, the packaging and the image files.
+key=$(
+  cd "$repo"
+  {
+    find api kube operator agents cli localcluster -type f \( -name '*.py' -o -name py.typed \) \
+      ! -path '*/__pycache__/*' -print0 | sort -z | xargs -0 sha256sum
+    sha256sum pyproject.toml README.md docker/*
+    echo "base=$base_ref"
+  } | sha256sum | cut -c1-16
+)
+if [[ -s "$out/key" && "$(cat "$out/key")" == "$key" \
+      && -s "$out/roost-operator.oci.tar" && -s "$out/roost-agent.oci.tar" ]]; then
+  echo "images: cached in $out (roost-operator, roost-agent $version)" >&2
+  echo "$out"
+  exit 0
+fi
+
+"$here/debian-packages.sh" buildah=buildah podman=podman runc=runc mmdebstrap=mmdebstrap
+mkdir -p "$out"
+# shellcheck source-path=SCRIPTDIR source=buildah.sh
+source "$here/buildah.sh"
+start=$(date +%s)
+
+if [[ "$base_ref" == local ]]; then
+  base=$("$here/build-base.sh" "$storage")
+else
+  base=$base_ref
+fi
+
+ctx="$out/context"
+write_context "$ctx"
+
+for target in operator agent; do
+  image="roost-$target:$version"
+  echo "images: building $image from $base (buildah) ..." >&2
+  log="$out/build-$target.log"
+  if ! buildah_ bud --layers --target "$target" --build-arg "BASE=$base" \
+      -f "$here/Dockerfile" -t "$image" "$ctx" >"$log" 2>&1; then
+    tail -n 30 "$log" >&2
+    echo "images: building $image failed; its log is $log" >&2
+    exit 1
+  fi
+  rm -f "$out/roost-$target.oci.tar"
+  buildah_ push --quiet "localhost/$image" "oci-archive:$out/roost-$target.oci.tar.partial:$image" >/dev/null
+  mv -f "$out/roost-$target.oci.tar.partial" "$out/roost-$target.oci.tar"
+done
+# Drop what earlier builds left behind (their images and the intermediate stages).
+buildah_ rmi --prune >/dev/null 2>&1 || true
+rm -rf "$ctx"
+echo "$key" >"$out/key"
+secs=$(( $(date +%s) - start ))
+printf 'images\t%s\t%s\n' "$secs" "$(date -u +%Y-%m-%dT%H:%M:%SZ)" >>"$out/build-times.tsv"
+echo "images: built roost-operator and roost-agent $version in $secs s into $out" >&2
+echo "$out"

@@ -1,0 +1,110 @@
+"""The operator and agent images, built by ``make images``, run as the chart runs them.
+
+The OCI archives ``make images`` exports are loaded into a fresh podman image store and
+run with a read-only root filesystem and no network: the agent prints its usage, both
+run as the non-root uid the chart expects, the modules each entry point needs import
+from the image's ahead-of-time bytecode, and no file in the image keeps a setuid or
+setgid bit. Skipped where buildah/podman are not installed (``make images`` installs
+them on Debian; other systems need a container engine for ``make e2e-kind`` instead).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from tests.support.images import Podman, archive, build_images, missing_tools
+
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.timeout(1800),  # the first test builds the images when they are not cached
+    pytest.mark.skipif(
+        bool(missing_tools()),
+        reason=f"image tools not installed: {', '.join(missing_tools())} "
+        "(`make images` installs them on Debian)",
+    ),
+]
+
+UID = 65532
+
+# Walks the image's root filesystem (there is no find(1) in it) for setuid/setgid files.
+SETUID_SCAN = """
+import os, stat
+dev = os.lstat("/").st_dev
+for top, dirs, files in os.walk("/"):
+    dirs[:] = [d for d in dirs if os.lstat(os.path.join(top, d)).st_dev == dev]
+    for name in files:
+        mode = os.lstat(os.path.join(top, name)).st_mode
+        if stat.S_ISREG(mode) and mode & (stat.S_ISUID | stat.S_ISGID):
+            print(os.path.join(top, name))
+"""
+
+
+@pytest.fixture(scope="module")
+def podman(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Podman, dict[str, str]]]:
+    """A private podman store with both archives loaded: (podman, {target: image ID})."""
+    images_dir = build_images()
+    store = Podman(tmp_path_factory.mktemp("podman"))
+    loaded = {target: store.load(archive(images_dir, target)) for target in ("operator", "agent")}
+    yield store, loaded
+    store.call("system", "reset", "--force")
+
+
+def test_agent_image_prints_usage_on_a_read_only_root(
+    podman: tuple[Podman, dict[str, str]],
+) -> None:
+    store, images = podman
+    done = store.run(images["agent"], "--help")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith("usage: roost-agent"), done.stdout
+
+
+def test_operator_image_prints_usage(podman: tuple[Podman, dict[str, str]]) -> None:
+    store, images = podman
+    done = store.run(images["operator"], "--help")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith("usage: roost-operator"), done.stdout
+
+
+@pytest.mark.parametrize("target", ["operator", "agent"])
+def test_image_runs_as_non_root(podman: tuple[Podman, dict[str, str]], target: str) -> None:
+    store, images = podman
+    assert store.inspect(images[target])["Config"]["User"] == f"{UID}:{UID}"
+    probe = "import os, pwd; print(os.getuid(), os.getgid(), pwd.getpwuid(os.getuid()).pw_name)"
+    done = store.run(images[target], "-c", probe, entrypoint="python3")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == [str(UID), str(UID), "roost"]
+
+
+def test_image_modules_import_from_bytecode_on_a_read_only_root(
+    podman: tuple[Podman, dict[str, str]],
+) -> None:
+    """Everything the entry points import is there, and nothing needs writing: the
+    Kubernetes client's watch (which reads return types from docstrings), kopf, the
+    MAVLink dialects the agent and the simulator speak."""
+    store, images = podman
+    probe = (
+        "import sys, roost_agent.main, roost_operator.main, roost_sim.main, kopf;"
+        "from kubernetes import watch, client;"
+        "w = watch.Watch();"
+        "print(w.get_return_type(client.CoreV1Api().list_node).__name__);"
+        "open('/opt/roost/probe', 'w')"
+    )
+    done = store.run(images["agent"], "-c", probe, entrypoint="python3")
+    assert done.stdout.strip() == "V1Node", done.stderr
+    assert "Read-only file system" in done.stderr, done.stderr
+
+
+def test_image_has_no_setuid_files(podman: tuple[Podman, dict[str, str]]) -> None:
+    store, images = podman
+    done = store.run(images["agent"], "-c", SETUID_SCAN, entrypoint="python3")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout == ""
+
+
+def test_archives_exist_for_both_targets() -> None:
+    images_dir = build_images()
+    for target in ("operator", "agent"):
+        assert Path(archive(images_dir, target)).stat().st_size > 0

@@ -1,0 +1,94 @@
+"""Roost's container images as tests and benchmarks use them: build, load, run.
+
+``docker/build-images.sh`` (``make images``) builds the operator and agent images with
+buildah and exports them as OCI archives under ``~/.cache/roost/images``; it is cached,
+so calling :func:`build_images` from a test costs nothing when ``make images`` ran first.
+:class:`Podman` runs those archives in a private, throw-away image store (never the
+machine's default one), with the flags a host without systemd and with low hard limits
+needs: the same ones docker/buildah.sh uses.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from roost_localcluster.binaries import REPO_ROOT
+
+BUILD_SCRIPT = REPO_ROOT / "docker" / "build-images.sh"
+TOOLS = ("buildah", "podman", "runc", "mmdebstrap")
+TARGETS = ("operator", "agent")
+
+
+def missing_tools() -> list[str]:
+    """The image tools not on PATH (``make images`` installs them on Debian)."""
+    return [tool for tool in TOOLS if shutil.which(tool) is None]
+
+
+def build_images() -> Path:
+    """Build both images unless cached; the directory holding ``roost-<target>.oci.tar``."""
+    done = subprocess.run(
+        [str(BUILD_SCRIPT)], check=False, capture_output=True, text=True, timeout=1800
+    )
+    if done.returncode != 0:
+        raise RuntimeError(f"{BUILD_SCRIPT} failed:\n{done.stderr[-3000:]}")
+    return Path(done.stdout.strip().splitlines()[-1])
+
+
+def archive(images_dir: Path, target: str) -> Path:
+    return images_dir / f"roost-{target}.oci.tar"
+
+
+@dataclass(frozen=True)
+class Podman:
+    """podman on an image store under ``root`` (delete the directory to drop it)."""
+
+    root: Path
+
+    def command(self, *args: str) -> list[str]:
+        return [
+            "podman",
+            "--root", str(self.root / "storage"),
+            "--runroot", str(self.root / "run"),
+            "--storage-driver", "vfs",
+            "--runtime", "runc",
+            "--cgroup-manager", "cgroupfs",
+            "--events-backend", "file",
+            *args,
+        ]  # fmt: skip
+
+    def call(self, *args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            self.command(*args), check=False, capture_output=True, text=True, timeout=timeout
+        )
+
+    def load(self, oci_archive: Path) -> str:
+        """Load an OCI archive; the image's ID."""
+        done = self.call("load", "--quiet", "--input", str(oci_archive))
+        if done.returncode != 0:
+            raise RuntimeError(f"podman load {oci_archive} failed: {done.stderr}")
+        # "Loaded image: <name>" (or "Loaded image(s): ..."): resolve it to an ID.
+        name = done.stdout.strip().splitlines()[-1].split(":", 1)[1].strip()
+        return self.inspect(name)["Id"]  # type: ignore[no-any-return]
+
+    def inspect(self, image: str) -> dict[str, Any]:
+        done = self.call("image", "inspect", image)
+        if done.returncode != 0:
+            raise RuntimeError(f"podman image inspect {image} failed: {done.stderr}")
+        return json.loads(done.stdout)[0]  # type: ignore[no-any-return]
+
+    def run(
+        self, image: str, *args: str, entrypoint: str | None = None
+    ) -> subprocess.CompletedProcess[str]:
+        """``podman run`` as the chart runs the pods: read-only root, no network."""
+        options = [
+            "--rm", "--read-only", "--network", "none",
+            "--ulimit", "nofile=20000:20000", "--ulimit", "nproc=30000:30000",
+        ]  # fmt: skip
+        if entrypoint is not None:
+            options += ["--entrypoint", entrypoint]
+        return self.call("run", *options, image, *args)
