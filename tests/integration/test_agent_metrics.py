@@ -12,6 +12,7 @@ from __future__ import annotations
 import socket
 import time
 import urllib.request
+from pathlib import Path
 
 import pytest
 import yaml
@@ -50,7 +51,7 @@ def value(samples: list[Sample], name: str, **labels: str) -> float:
     return matching[0]
 
 
-def test_scraped_agent_counts_a_failover_and_its_latency(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_scraped_agent_counts_a_failover_and_its_latency(tmp_path: Path) -> None:
     sims = start_vehicle_sims(["px4", "px4", "px4"])
     config = tmp_path / "ra.yaml"
     config.write_text(yaml.safe_dump({"spec": make_spec(sims, FinalAction.HOLD).to_api()}))
@@ -153,7 +154,7 @@ def test_scraped_agent_counts_a_failover_and_its_latency(tmp_path) -> None:  # t
         stop_sims(sims)
 
 
-def test_metrics_port_in_use_is_refused(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_metrics_port_in_use_is_refused(tmp_path: Path) -> None:
     sims = start_vehicle_sims(["px4", "px4"])
     config = tmp_path / "ra.yaml"
     config.write_text(yaml.safe_dump({"spec": make_spec(sims).to_api()}))
