@@ -13,7 +13,15 @@ import sys
 
 from bench.core import RESULTS, Figure, update_readme, write_results
 
-MODULES: tuple[str, ...] = ("controlplane", "mission", "cluster", "agent", "link", "vehicle")
+MODULES: tuple[str, ...] = (
+    "controlplane",
+    "mission",
+    "cluster",
+    "agent",
+    "metrics",
+    "link",
+    "vehicle",
+)
 
 
 def main(argv: list[str] | None = None) -> int:
