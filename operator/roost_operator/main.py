@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 from typing import Any
 
 import kopf
@@ -100,12 +101,32 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="serve kopf's health endpoint, e.g. http://0.0.0.0:8080/healthz",
     )
+    parser.add_argument(
+        "--metrics-port",
+        type=int,
+        default=int(os.environ.get("ROOST_OPERATOR_METRICS_PORT", "0")),
+        help="serve Prometheus metrics on this port (0: off; see docs/metrics.md)",
+    )
+    parser.add_argument(
+        "--metrics-address",
+        default=os.environ.get("ROOST_OPERATOR_METRICS_ADDRESS", "127.0.0.1"),
+        help="address the metrics endpoint binds (0.0.0.0 in a pod)",
+    )
     parser.add_argument("--verbose", action="store_true", help="debug logging")
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    if args.metrics_port:
+        from roost_operator.metrics import OperatorMetrics, instrument_handlers  # noqa: PLC0415
+
+        metrics = OperatorMetrics(Kube.from_environment(FIELD_MANAGER))
+        instrument_handlers(metrics.reconciles)
+        port = metrics.serve(args.metrics_address, args.metrics_port)
+        logging.getLogger(__name__).info(
+            "metrics on http://%s:%d/metrics", args.metrics_address, port
+        )
     kopf.run(
         clusterwide=True,
         standalone=args.standalone or None,
