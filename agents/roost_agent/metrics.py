@@ -24,7 +24,13 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Mapping
 from typing import TYPE_CHECKING, Protocol
 
-from prometheus_client import CollectorRegistry, Counter, Histogram, start_http_server
+from prometheus_client import (
+    CollectorRegistry,
+    Counter,
+    Histogram,
+    ProcessCollector,
+    start_http_server,
+)
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from prometheus_client.registry import Collector
 
@@ -270,6 +276,7 @@ def build_registry(
 ) -> tuple[CollectorRegistry, Callable[[], None]]:
     """A registry with the agent's metrics; returns it and the unsubscribe function."""
     registry = CollectorRegistry(auto_describe=False)
+    ProcessCollector(registry=registry)
     registry.register(AgentCollector(agent, publisher))
     events = EventMetrics(registry)
     return registry, agent.subscribe(events.observe)

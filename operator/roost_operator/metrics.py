@@ -31,7 +31,13 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 import kopf
-from prometheus_client import CollectorRegistry, Counter, Histogram, start_http_server
+from prometheus_client import (
+    CollectorRegistry,
+    Counter,
+    Histogram,
+    ProcessCollector,
+    start_http_server,
+)
 from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.registry import Collector
 
@@ -237,6 +243,7 @@ class OperatorMetrics:
 
     def __init__(self, kube: Kube) -> None:
         self.registry = CollectorRegistry(auto_describe=False)
+        ProcessCollector(registry=self.registry)
         self.reconciles = Reconciles(self.registry)
         self.api = ApiRequests(self.registry)
         self.registry.register(FleetCollector(kube))

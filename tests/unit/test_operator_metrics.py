@@ -35,7 +35,7 @@ def render(families: list[Any]) -> Samples:
         def collect(self) -> list[Any]:
             return families
 
-    registry.register(Fixed())  # type: ignore[arg-type]
+    registry.register(Fixed())
     return parse(generate_latest(registry).decode())
 
 
