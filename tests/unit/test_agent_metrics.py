@@ -6,16 +6,19 @@ registry is rendered with prometheus_client's exposition and read back with its 
 
 from __future__ import annotations
 
+import socket
 import subprocess
 import sys
 from dataclasses import fields
 from datetime import UTC, datetime
 
+from kubernetes import client as k8s_client
 from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.parser import text_string_to_metric_families
 
 from roost_agent.agent import Agent, AgentEvent, EventKind, FailoverEvent
 from roost_agent.bridge import SimulatedBridge
+from roost_agent.kube import AgentKube
 from roost_agent.links import LinkCounters
 from roost_agent.metrics import (
     FRAME_RESULTS,
@@ -24,7 +27,10 @@ from roost_agent.metrics import (
     EventMetrics,
     build_registry,
 )
+from roost_agent.publisher import Publisher, PublisherSettings
 from roost_api.autopilot import AutopilotSpec, CommandResult, FailoverRecord, RedundantAutopilotSpec
+from roost_kube.client import Kube
+from tests.support.waiting import wait_until
 
 NOW = datetime(2026, 1, 1, tzinfo=UTC)
 
@@ -92,19 +98,6 @@ def test_collector_reads_health_active_and_link_counters() -> None:
     assert ("roost_agent_publisher_pending_events", ()) not in got  # standalone: no publisher
 
 
-class Publisher:
-    pending_events = 4
-    api_errors = 7
-
-
-def test_collector_reads_the_publisher() -> None:
-    registry, unsubscribe = build_registry(make_agent(), Publisher())
-    got = samples(registry)
-    unsubscribe()
-    assert got[("roost_agent_publisher_pending_events", ())] == 4
-    assert got[("roost_agent_publisher_api_errors_total", ())] == 7
-
-
 def event(kind: EventKind, reason: str, **payload: object) -> AgentEvent:
     return AgentEvent(kind, reason, "message", False, NOW, **payload)  # type: ignore[arg-type]
 
@@ -148,3 +141,37 @@ def test_agent_without_metrics_does_not_import_prometheus_client() -> None:
     code = "import sys, roost_agent.main; print('prometheus_client' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_publisher_queue_and_api_errors_while_the_api_is_unreachable() -> None:
+    """A real Publisher whose API server refuses connections (a closed loopback port)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # closed again when the block ends: connections refused
+    configuration = k8s_client.Configuration()
+    configuration.host = f"http://127.0.0.1:{port}"
+    configuration.retries = 0
+    kube = AgentKube(Kube(k8s_client.ApiClient(configuration), "roost-agent", (1.0, 1.0)))
+    agent = make_agent()
+    publisher = Publisher(
+        agent,
+        kube,
+        node_name="n1",
+        settings=PublisherSettings(retry_min_s=0.05, retry_max_s=0.1),
+    )
+    registry, unsubscribe = build_registry(agent, publisher)
+    publisher.start()
+    agent.start()  # posts AgentStarted: queued, since nothing can be delivered
+    try:
+        wait_until(
+            "discovery failed twice and the Started Event waits",
+            lambda: publisher.api_errors >= 2 and publisher.pending_events >= 1,
+            10,
+        )
+        got = samples(registry)
+        assert got[("roost_agent_publisher_api_errors_total", ())] >= 2
+        assert got[("roost_agent_publisher_pending_events", ())] >= 1
+    finally:
+        unsubscribe()
+        agent.stop()
+        publisher.stop()
