@@ -262,7 +262,9 @@ def _recover(agent: AgentProcess, sim: SimulatedAutopilot, thresholds: Threshold
     time.sleep(thresholds.clear_ms / 1000 + 0.1)
 
 
-def failover_cycles() -> tuple[list[float], list[float]]:
+def failover_cycles(
+    count: int = FAILOVERS, extra_args: Sequence[str] = ()
+) -> tuple[list[float], list[float]]:
     """Alternating faults on whichever autopilot is active: detection->switch for all,
     onset->switch for the silent ones."""
     detect_ms: list[float] = []
@@ -273,9 +275,9 @@ def failover_cycles() -> tuple[list[float], list[float]]:
         (FaultKind.SILENCE, None),
         (FaultKind.SENSOR, "gyro"),
     ]
-    with vehicle(FAST) as (sims, agent):
+    with vehicle(FAST, extra_args=extra_args) as (sims, agent):
         by_name, active = _by_name(sims), "fc1"
-        for i in range(FAILOVERS):
+        for i in range(count):
             kind, value = faults[i % len(faults)]
             onset = time.monotonic()
             by_name[active].inject(kind, value)
