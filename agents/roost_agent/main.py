@@ -310,11 +310,15 @@ def main(argv: list[str] | None = None) -> int:
                 agent, address=args.metrics_address, port=args.metrics_port, publisher=publisher
             )
         except OSError as exc:
-            agent.stop()
-            raise refuse(
-                f"cannot serve metrics on {args.metrics_address}:{args.metrics_port}: {exc}"
-            ) from None
-        log.info("metrics on http://%s:%d/metrics", args.metrics_address, metrics.port)
+            # Supervising the autopilots matters more than being observed: fly on.
+            log.error(
+                "cannot serve metrics on %s:%d (%s); running without metrics",
+                args.metrics_address,
+                args.metrics_port,
+                exc,
+            )
+        else:
+            log.info("metrics on http://%s:%d/metrics", args.metrics_address, metrics.port)
     try:
         while not stop.wait(args.status_interval or None):
             links = {name: asdict(link.counters) for name, link in agent.links.items()}

@@ -295,7 +295,11 @@ class MetricsServer:
     ) -> None:
         self.registry, self._unsubscribe = build_registry(agent, publisher)
         server: WSGIServer
-        server, self._thread = start_http_server(port, address, self.registry)
+        try:
+            server, self._thread = start_http_server(port, address, self.registry)
+        except OSError:
+            self._unsubscribe()
+            raise
         self._server = server
         self.address = address
         self.port = int(server.server_address[1])

@@ -13,6 +13,7 @@ import socket
 import time
 import urllib.request
 from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml
@@ -154,7 +155,8 @@ def test_scraped_agent_counts_a_failover_and_its_latency(tmp_path: Path) -> None
         stop_sims(sims)
 
 
-def test_metrics_port_in_use_is_refused(tmp_path: Path) -> None:
+def test_a_taken_metrics_port_does_not_keep_the_agent_from_flying(tmp_path: Path) -> None:
+    """Supervising the autopilots matters more than metrics: the agent logs and flies on."""
     sims = start_vehicle_sims(["px4", "px4"])
     config = tmp_path / "ra.yaml"
     config.write_text(yaml.safe_dump({"spec": make_spec(sims).to_api()}))
@@ -175,7 +177,15 @@ def test_metrics_port_in_use_is_refused(tmp_path: Path) -> None:
             ]
         )
         try:
-            assert agent.proc.wait(timeout=20) == 2
+            agent.wait_line(lambda d: d.get("reason") == "AgentStarted", 10)
+            take_off(sims)
+
+            def both_ok(doc: dict[str, Any]) -> bool:
+                aps = doc.get("status", {}).get("autopilots", [])
+                return len(aps) == 2 and all(a["level"] == "OK" for a in aps)
+
+            agent.wait_line(both_ok, 10)
+            assert agent.stop() == 0
         finally:
             agent.stop()
             stop_sims(sims)
