@@ -1,6 +1,6 @@
 """The agent's metric collectors on a real Agent, real link counters and real events.
 
-No HTTP here (tests/integration/test_agent_metrics.py scrapes a running agent): the
+No HTTP here (tests/integration/test_agent_metrics_endpoint.py scrapes a running agent): the
 registry is rendered with prometheus_client's exposition and read back with its parser.
 """
 

@@ -2,7 +2,7 @@
 
 The fleet gauges come from Vehicles and Missions shaped as the API returns them; the
 timing wrapper wraps real sync and async functions and real kopf errors. The scraped
-operator process is in tests/integration/test_operator_metrics.py.
+operator process is in tests/integration/test_operator_metrics_endpoint.py.
 """
 
 from __future__ import annotations
