@@ -20,6 +20,7 @@ MODULES: tuple[str, ...] = (
     "mission",
     "cluster",
     "agent",
+    "metrics",
     "link",
     "firmware",
     "vehicle",

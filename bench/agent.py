@@ -28,7 +28,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
@@ -90,7 +90,11 @@ class AgentProcess:
     """``roost-agent`` in its own process; JSON lines are read on a thread."""
 
     def __init__(
-        self, workdir: Path, spec: RedundantAutopilotSpec, status_interval_s: float = 0.25
+        self,
+        workdir: Path,
+        spec: RedundantAutopilotSpec,
+        status_interval_s: float = 0.25,
+        extra_args: Sequence[str] = (),
     ) -> None:
         self.workdir = workdir
         self.config = workdir / "redundantautopilot.yaml"
@@ -111,6 +115,7 @@ class AgentProcess:
                 str(status_interval_s),
                 "--log-level",
                 "WARNING",
+                *extra_args,
             ],
             stdout=subprocess.PIPE,
             stderr=self._stderr,
@@ -208,10 +213,13 @@ def vehicle(
     rates: dict[int, float] | None = None,
     status_interval_s: float = 0.25,
     mode: FailoverMode = FailoverMode.AUTOMATIC,
+    *,
+    stacks: Sequence[str] = ("px4", "px4"),
+    extra_args: Sequence[str] = (),
 ) -> Iterator[tuple[list[SimulatedAutopilot], AgentProcess]]:
     """Two flying PX4 sims and an agent watching them, standbys ready (``mode`` Manual:
     the agent judges but never switches on its own)."""
-    sims = start_vehicle_sims(["px4", "px4"], rates=rates, config=SimConfig.fast())
+    sims = start_vehicle_sims(list(stacks), rates=rates, config=SimConfig.fast())
     agent: AgentProcess | None = None
     with tempfile.TemporaryDirectory(prefix="roost-bench-agent-") as tmp:
         try:
@@ -225,9 +233,9 @@ def vehicle(
                     safety_routine=SafetyRoutine(hold_seconds=0, final_action=FinalAction.HOLD),
                 ),
             )
-            agent = AgentProcess(Path(tmp), spec, status_interval_s)
+            agent = AgentProcess(Path(tmp), spec, status_interval_s, extra_args)
             take_off(sims)
-            agent.wait_ok(["fc1", "fc2"])
+            agent.wait_ok([s.name for s in sims])
             # The any-message age applies once a full rate window has been seen (1 s).
             time.sleep(thresholds.clear_ms / 1000 + 1.5)
             yield sims, agent
@@ -249,7 +257,9 @@ def _recover(agent: AgentProcess, sim: SimulatedAutopilot, thresholds: Threshold
     time.sleep(thresholds.clear_ms / 1000 + 0.1)
 
 
-def failover_cycles() -> tuple[list[float], list[float]]:
+def failover_cycles(
+    count: int = FAILOVERS, extra_args: Sequence[str] = ()
+) -> tuple[list[float], list[float]]:
     """Alternating faults on whichever autopilot is active: detection->switch for all,
     onset->switch for the silent ones."""
     detect_ms: list[float] = []
@@ -260,9 +270,9 @@ def failover_cycles() -> tuple[list[float], list[float]]:
         (FaultKind.SILENCE, None),
         (FaultKind.SENSOR, "gyro"),
     ]
-    with vehicle(FAST) as (sims, agent):
+    with vehicle(FAST, extra_args=extra_args) as (sims, agent):
         by_name, active = _by_name(sims), "fc1"
-        for i in range(FAILOVERS):
+        for i in range(count):
             kind, value = faults[i % len(faults)]
             onset = time.monotonic()
             by_name[active].inject(kind, value)
@@ -371,9 +381,18 @@ def peer_link_lost() -> tuple[list[float], list[float], list[float]]:
     return agent_ms, mavsdk_ms, mavproxy_ms
 
 
-def cpu_and_memory() -> tuple[float, float, float]:
-    """(CPU ms per 10k messages, peak RSS MB, messages/s) at PX4 onboard stream rates."""
-    with vehicle(Thresholds(), PX4_ONBOARD_RATES, status_interval_s=1.0) as (_, agent):
+def cpu_and_memory(
+    stacks: Sequence[str] = ("px4", "px4"),
+    extra_args: Sequence[str] = (),
+    meanwhile: Callable[[], None] = lambda: None,
+    seconds: float = CPU_S,
+) -> tuple[float, float, float]:
+    """(CPU ms per 10k messages, peak RSS MB, messages/s) at PX4 onboard stream rates;
+    ``meanwhile`` runs every half second of the measurement (a scraper, say)."""
+    with vehicle(Thresholds(), PX4_ONBOARD_RATES, 1.0, stacks=stacks, extra_args=extra_args) as (
+        _,
+        agent,
+    ):
         proc = psutil.Process(agent.proc.pid)
         time.sleep(2.0)
 
@@ -382,8 +401,9 @@ def cpu_and_memory() -> tuple[float, float, float]:
 
         cpu0, msgs0, t0 = sum(proc.cpu_times()[:2]), messages(), time.monotonic()
         peak = 0.0
-        while time.monotonic() - t0 < CPU_S:
+        while time.monotonic() - t0 < seconds:
             peak = max(peak, proc.memory_info().rss / 1e6)
+            meanwhile()
             time.sleep(0.5)
         cpu1, msgs1, t1 = sum(proc.cpu_times()[:2]), messages(), time.monotonic()
         count = msgs1 - msgs0

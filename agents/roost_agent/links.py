@@ -99,6 +99,7 @@ ALERT_QUIET_S = 60.0
 class LinkCounters:
     """What the reader saw; exposed for diagnostics, the status line and the benchmarks."""
 
+    bytes: int = 0  # every datagram or read, dropped or not
     accepted: int = 0  # from the locked address, this autopilot's sysid/component
     foreign: int = 0  # datagrams from another address while locked (not parsed)
     unlocked: int = 0  # parsed before any address proved itself (not used)
@@ -604,6 +605,7 @@ class AutopilotLink:
 
     def _datagram(self, session: _Session, data: bytes, sender: Address | None) -> None:
         now = self._clock()
+        self.counters.bytes += len(data)
         lock = session.lock
         if sender is not None and sender != lock.locked and not lock.hears(sender, now):
             self.counters.foreign += 1

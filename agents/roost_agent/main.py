@@ -149,6 +149,18 @@ def build_parser() -> argparse.ArgumentParser:
         default=Path(os.environ.get("ROOST_AGENT_SIGNING_KEYS", DEFAULT_KEY_DIR)),
         help="directory with one signing key file per Vehicle, named after it (64 hex digits)",
     )
+    parser.add_argument(
+        "--metrics-port",
+        type=int,
+        default=int(os.environ.get("ROOST_AGENT_METRICS_PORT", "0")),
+        help="serve Prometheus metrics on this port (0: off, the default; see docs/metrics.md)",
+    )
+    parser.add_argument(
+        "--metrics-address",
+        default=os.environ.get("ROOST_AGENT_METRICS_ADDRESS", "127.0.0.1"),
+        help="address the metrics endpoint binds (the agent runs on the host network: "
+        "127.0.0.1 keeps it on the vehicle; the node's address lets Prometheus scrape it)",
+    )
     parser.add_argument("--log-level", default="INFO")
     return parser
 
@@ -288,11 +300,32 @@ def main(argv: list[str] | None = None) -> int:
             agent, kube, node_name=args.node_name, target=target, settings=settings
         )
         publisher.start()
+    metrics = None
+    if args.metrics_port:
+        # prometheus_client is imported only when metrics are on (resident memory).
+        from roost_agent.metrics import MetricsServer  # noqa: PLC0415
+
+        try:
+            metrics = MetricsServer(
+                agent, address=args.metrics_address, port=args.metrics_port, publisher=publisher
+            )
+        except OSError as exc:
+            # Supervising the autopilots matters more than being observed: fly on.
+            log.error(
+                "cannot serve metrics on %s:%d (%s); running without metrics",
+                args.metrics_address,
+                args.metrics_port,
+                exc,
+            )
+        else:
+            log.info("metrics on http://%s:%d/metrics", args.metrics_address, metrics.port)
     try:
         while not stop.wait(args.status_interval or None):
             links = {name: asdict(link.counters) for name, link in agent.links.items()}
             out.write({"status": agent.status().to_api(), "links": links})
     finally:
+        if metrics is not None:
+            metrics.close()
         if publisher is not None:
             publisher.stop()
         agent.stop()

@@ -268,6 +268,7 @@ class Publisher:
         self._last_write_at = float("-inf")
         self._retry_at = float("-inf")
         self._backoff = 0.0
+        self.api_errors = 0  # failed API calls (a metrics counter)
         self._followed: tuple[str, int | None] | None = None
         self._seen_command: str | None = None
         self._unsubscribe: Callable[[], None] | None = None
@@ -298,6 +299,11 @@ class Publisher:
             self._cond.notify_all()
         for thread in self._threads:
             thread.join(timeout=2)
+
+    @property
+    def pending_events(self) -> int:
+        """Events queued for the API server (the newest ``max_pending_events``)."""
+        return len(self._events)
 
     @property
     def target(self) -> Target | None:
@@ -334,6 +340,7 @@ class Publisher:
                 self._kick = False
 
     def _failed(self, what: str, exc: Exception) -> float:
+        self.api_errors += 1
         settings = self._settings
         self._backoff = min(max(self._backoff * 2, settings.retry_min_s), settings.retry_max_s)
         self._retry_at = self._clock() + self._backoff
@@ -448,6 +455,7 @@ class Publisher:
                     if self._target is None:
                         break
             except ApiError as exc:
+                self.api_errors += 1
                 backoff = min(max(backoff * 2, settings.retry_min_s), settings.retry_max_s)
                 log.warning("watch of %s failed (%s); again in %.1f s", target.name, exc, backoff)
                 self._stop.wait(backoff)

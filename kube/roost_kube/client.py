@@ -15,6 +15,9 @@ the pure planning functions and the wire share one shape.
   DELETE of a missing object return None instead of raising.
 * Every write is counted in :attr:`Kube.writes` so tests and benchmarks see what a
   reconcile did.
+* Every request (watches excepted) is reported to the callbacks registered with
+  :func:`observe_requests` — method, outcome, seconds — which is how the operator's
+  Prometheus metrics count API calls without this layer importing prometheus_client.
 
 Authentication and TLS come from the ``kubernetes`` client's own config loaders.
 """
@@ -23,8 +26,9 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 from collections import Counter
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -41,6 +45,23 @@ from roost_kube.resources import Resource, resource_of
 
 Timeout = tuple[float, float]
 """``(connect, read)`` seconds."""
+
+RequestObserver = Callable[[str, str, float], None]
+"""``(method, result, seconds)``: result is the HTTP status (``"200"``) or ``"unavailable"``."""
+
+_observers: list[RequestObserver] = []
+
+
+def observe_requests(observer: RequestObserver) -> Callable[[], None]:
+    """Report every request of every :class:`Kube` in this process; returns the undo."""
+    _observers.append(observer)
+    return lambda: _observers.remove(observer)
+
+
+def _report(method: str, result: str, started: float) -> None:
+    seconds = time.perf_counter() - started
+    for observer in _observers:
+        observer(method, result, seconds)
 
 
 @dataclass
@@ -130,15 +151,21 @@ class Kube:
         timeout: Timeout | None = None,
     ) -> Obj | None:
         """Send one request; JSON response as a dict, None on 404 for GET/DELETE."""
-        response = self._send(
-            method,
-            path,
-            query=query,
-            body=body,
-            content_type=content_type,
-            timeout=timeout or self.timeout,
-        )
-        raw: bytes = response.read() or b"{}"
+        started = time.perf_counter()
+        try:
+            response = self._send(
+                method,
+                path,
+                query=query,
+                body=body,
+                content_type=content_type,
+                timeout=timeout or self.timeout,
+            )
+            raw: bytes = response.read() or b"{}"
+        except ApiUnavailableError:
+            _report(method, "unavailable", started)
+            raise
+        _report(method, str(response.status), started)
         if method != "GET":
             with self._lock:
                 self.writes[method] += 1

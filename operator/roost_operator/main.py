@@ -118,6 +118,17 @@ def parse_args(argv: list[str] | None, environ: Mapping[str, str]) -> tuple[Any,
     parser.add_argument(
         "--resync-seconds", type=float, help="Vehicle resync period (ROOST_RESYNC_SECONDS)"
     )
+    parser.add_argument(
+        "--metrics-port",
+        type=int,
+        default=int(environ.get("ROOST_OPERATOR_METRICS_PORT", "0")),
+        help="serve Prometheus metrics on this port (0: off; see docs/metrics.md)",
+    )
+    parser.add_argument(
+        "--metrics-address",
+        default=environ.get("ROOST_OPERATOR_METRICS_ADDRESS", "127.0.0.1"),
+        help="address the metrics endpoint binds (0.0.0.0 in a pod)",
+    )
     parser.add_argument("--verbose", action="store_true", help="debug logging")
     args = parser.parse_args(argv)
     settings = load_settings(environ)
@@ -135,8 +146,18 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    registry = build_registry(settings)
+    if args.metrics_port:
+        from roost_operator.metrics import OperatorMetrics, instrument_handlers  # noqa: PLC0415
+
+        metrics = OperatorMetrics(Kube.from_environment(FIELD_MANAGER))
+        instrument_handlers(metrics.reconciles, registry)
+        port = metrics.serve(args.metrics_address, args.metrics_port)
+        logging.getLogger(__name__).info(
+            "metrics on http://%s:%d/metrics", args.metrics_address, port
+        )
     kopf.run(
-        registry=build_registry(settings),
+        registry=registry,
         memo=kopf.Memo(settings=settings),
         clusterwide=True,
         standalone=args.standalone or None,

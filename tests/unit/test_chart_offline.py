@@ -10,6 +10,7 @@ RBAC and the node-restriction policy there.
 from __future__ import annotations
 
 import functools
+import json
 import re
 import tomllib
 from pathlib import Path
@@ -50,7 +51,23 @@ VALUE_SETS: dict[str, tuple[dict[str, Any], tuple[Path, ...]]] = {
     "no-node-restriction": ({"agent": {"nodeRestriction": {"enabled": False}}}, ()),
     "signing": ({"agent": {"signing": {"mode": "require", "secretName": "fleet-keys"}}}, ()),
     "operator-only": ({"agent": {"enabled": False}}, ()),
+    "monitoring": (
+        {
+            "agent": {"metrics": {"bindNodeAddress": True}},
+            "metrics": {
+                "serviceMonitor": {"enabled": True, "labels": {"release": "prom"}},
+                "grafanaDashboard": {"enabled": True},
+            },
+        },
+        (),
+    ),
+    "no-metrics": (
+        {"operator": {"metrics": {"enabled": False}}, "agent": {"metrics": {"enabled": False}}},
+        (),
+    ),
 }
+# Custom resources of the Prometheus operator: no schema here, checked by the tests below.
+PROMETHEUS_OPERATOR_KINDS = {("monitoring.coreos.com/v1", "ServiceMonitor")}
 
 
 @functools.cache
@@ -124,7 +141,7 @@ def test_every_rendered_object_is_valid_for_kubernetes_1_35(value_set: str) -> N
         key = (manifest["apiVersion"], manifest["kind"])
         if key in custom:
             jsonschema.validate(manifest, custom[key])
-        else:
+        elif key not in PROMETHEUS_OPERATOR_KINDS:
             kubernetes_validate.validate(manifest, KUBERNETES_VERSION, strict=True)
 
 
@@ -375,3 +392,96 @@ def test_chart_app_version_is_the_distribution_version() -> None:
     chart = yaml.safe_load((CHART_DIR / "Chart.yaml").read_text())
     project = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())["project"]
     assert chart["appVersion"] == project["version"]
+
+
+# -- metrics ---------------------------------------------------------------------------
+
+
+def _annotations(manifest: Manifest) -> dict[str, str]:
+    return dict(manifest["spec"]["template"]["metadata"].get("annotations") or {})
+
+
+def test_operator_serves_metrics_on_their_own_port_with_scrape_annotations() -> None:
+    deployment = find(_render_set("defaults"), "Deployment", "-operator")
+    container = deployment["spec"]["template"]["spec"]["containers"][0]
+    assert "--metrics-port=9466" in container["args"]
+    assert "--metrics-address=0.0.0.0" in container["args"]
+    ports = {p["name"]: p["containerPort"] for p in container["ports"]}
+    assert ports == {"health": 8080, "metrics": 9466}
+    assert _annotations(deployment) == {
+        "prometheus.io/scrape": "true",
+        "prometheus.io/port": "9466",
+        "prometheus.io/path": "/metrics",
+    }
+
+
+def test_agent_metrics_stay_on_the_vehicle_unless_the_node_address_is_bound() -> None:
+    daemonset = find(_render_set("defaults"), "DaemonSet", "-agent")
+    container = daemonset["spec"]["template"]["spec"]["containers"][0]
+    assert "--metrics-port=9465" in container["args"]
+    names = [e["name"] for e in container["env"]]
+    assert "ROOST_AGENT_METRICS_ADDRESS" not in names  # the agent's default: 127.0.0.1
+    assert "prometheus.io/scrape" not in _annotations(daemonset)  # nothing could reach it
+    assert not [m for m in _render_set("defaults") if m["kind"] == "ServiceMonitor"]
+
+    bound = find(_render_set("monitoring"), "DaemonSet", "-agent")
+    container = bound["spec"]["template"]["spec"]["containers"][0]
+    address = {
+        "name": "ROOST_AGENT_METRICS_ADDRESS",
+        "valueFrom": {"fieldRef": {"fieldPath": "status.hostIP"}},
+    }
+    assert address in container["env"]
+    assert container["ports"] == [
+        {"name": "metrics", "containerPort": 9465, "hostPort": 9465, "protocol": "TCP"}
+    ]
+    assert _annotations(bound)["prometheus.io/port"] == "9465"
+
+
+def test_service_monitors_select_the_metrics_services_of_operator_and_agents() -> None:
+    manifests = _render_set("monitoring")
+    for component, port in (("operator", 9466), ("agent", 9465)):
+        monitor = find(manifests, "ServiceMonitor", f"-{component}")
+        assert monitor["metadata"]["labels"]["release"] == "prom"
+        assert monitor["spec"]["endpoints"] == [
+            {"port": "metrics", "path": "/metrics", "interval": "30s"}
+        ]
+        service = find(manifests, "Service", f"-{component}-metrics")
+        selected = monitor["spec"]["selector"]["matchLabels"]
+        assert selected.items() <= service["metadata"]["labels"].items()
+        assert service["spec"]["ports"][0]["port"] == port
+        pods = find(manifests, "Deployment" if component == "operator" else "DaemonSet")
+        assert (
+            service["spec"]["selector"].items()
+            <= pods["spec"]["template"]["metadata"]["labels"].items()
+        )
+
+
+def test_no_metrics_means_no_flags_ports_or_annotations() -> None:
+    manifests = _render_set("no-metrics")
+    for kind in ("Deployment", "DaemonSet"):
+        pod = find(manifests, kind)["spec"]["template"]
+        container = pod["spec"]["containers"][0]
+        assert not [a for a in container["args"] if a.startswith("--metrics")]
+        assert "prometheus.io/scrape" not in (pod["metadata"].get("annotations") or {})
+    with pytest.raises(ChartError, match="serviceMonitor"):
+        render({"metrics": {"serviceMonitor": {"enabled": True, "interval": "often"}}})
+
+
+def test_grafana_dashboard_ships_valid_json_using_only_documented_metrics() -> None:
+    configmap = find(_render_set("monitoring"), "ConfigMap", "-dashboard")
+    assert configmap["metadata"]["labels"]["grafana_dashboard"] == "1"
+    dashboard = json.loads(configmap["data"]["roost.json"])
+    assert dashboard["uid"] == "roost-fleet"
+    exprs = [t["expr"] for panel in dashboard["panels"] for t in panel.get("targets", [])]
+    used = {
+        re.sub(r"_(bucket|sum|count)$", "", name)
+        for expr in exprs
+        for name in re.findall(r"\b(roost_(?:agent|operator)_[a-z_]+)", expr)
+    }
+    documented = set(
+        re.findall(
+            r"`(roost_(?:agent|operator)_[a-z_]+)`", (REPO_ROOT / "docs" / "metrics.md").read_text()
+        )
+    )
+    assert used and used <= documented, used - documented
+    assert not [m for m in _render_set("defaults") if m["kind"] == "ConfigMap"]

@@ -1,0 +1,119 @@
+"""The operator's metric pieces: handler timing, the API request observer, fleet gauges.
+
+The fleet gauges come from Vehicles and Missions shaped as the API returns them; the
+timing wrapper wraps real sync and async functions and real kopf errors. The scraped
+operator process is in tests/integration/test_operator_metrics_endpoint.py.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any
+
+import kopf
+import pytest
+from prometheus_client import CollectorRegistry, generate_latest
+from prometheus_client.parser import text_string_to_metric_families
+
+from roost_operator.metrics import ApiRequests, Reconciles, fleet_families
+
+Samples = dict[tuple[str, tuple[tuple[str, str], ...]], float]
+
+
+def parse(text: str) -> Samples:
+    return {
+        (s.name, tuple(sorted(s.labels.items()))): s.value
+        for family in text_string_to_metric_families(text)
+        for s in family.samples
+    }
+
+
+def render(families: list[Any]) -> Samples:
+    registry = CollectorRegistry()
+
+    class Fixed:
+        def collect(self) -> list[Any]:
+            return families
+
+    registry.register(Fixed())
+    return parse(generate_latest(registry).decode())
+
+
+def vehicle(conditions: dict[str, str], claimed: bool = False, **failover: Any) -> dict[str, Any]:
+    status: dict[str, Any] = {
+        "conditions": [{"type": t, "status": s} for t, s in conditions.items()],
+        "failover": failover,
+    }
+    if claimed:
+        status["claimedBy"] = {"name": "m1", "namespace": "default"}
+    return {"metadata": {"name": "v"}, "status": status}
+
+
+def test_fleet_gauges_count_conditions_claims_guards_and_phases() -> None:
+    vehicles = [
+        vehicle({"Ready": "True", "NodeBound": "True"}, claimed=True),
+        vehicle({"Ready": "False", "NodeBound": "True"}, blocked="Latched", latched=True),
+        {"metadata": {"name": "new"}},  # not reconciled yet: no status
+    ]
+    missions = [{"status": {"phase": "Running"}}, {"status": {"phase": "Running"}}, {}]
+    got = render(fleet_families(vehicles, missions))
+    assert got[("roost_operator_vehicles", ())] == 3
+    conditions = "roost_operator_vehicle_conditions"
+    assert got[(conditions, (("condition", "Ready"), ("status", "True")))] == 1
+    assert got[(conditions, (("condition", "Ready"), ("status", "False")))] == 1
+    assert got[(conditions, (("condition", "NodeBound"), ("status", "True")))] == 2
+    assert got[("roost_operator_vehicle_claims", (("state", "claimed"),))] == 1
+    assert got[("roost_operator_vehicle_claims", (("state", "unclaimed"),))] == 2
+    guard = "roost_operator_vehicle_failover_guard"
+    assert got[(guard, (("guard", "Latched"),))] == 1
+    assert got[(guard, (("guard", "None"),))] == 2
+    assert got[(guard, (("guard", "ConcurrencyLimit"),))] == 0
+    assert got[("roost_operator_vehicles_failover_latched", ())] == 1
+    assert got[("roost_operator_missions", (("phase", "Running"),))] == 2
+    assert got[("roost_operator_missions", (("phase", "None"),))] == 1
+    assert got[("roost_operator_missions", (("phase", "Aborted"),))] == 0
+
+
+def test_handler_timing_counts_runs_and_errors_by_kind() -> None:
+    registry = CollectorRegistry()
+    reconciles = Reconciles(registry)
+
+    def ok(**_: Any) -> str:
+        return "done"
+
+    def retry(**_: Any) -> None:
+        raise kopf.TemporaryError("later", delay=1)
+
+    async def broken(**_: Any) -> None:
+        raise ValueError("bug")
+
+    assert reconciles.wrap(ok, "vehicles", "vehicle_changed")(body={}) == "done"
+    with pytest.raises(kopf.TemporaryError):
+        reconciles.wrap(retry, "vehicles", "vehicle_changed")()
+    timed_async = reconciles.wrap(broken, "missions", "mission_changed")
+    assert asyncio.iscoroutinefunction(timed_async)  # kopf must still await it
+    with pytest.raises(ValueError, match="bug"):
+        asyncio.run(timed_async())
+    got = parse(generate_latest(registry).decode())
+    count = "roost_operator_reconcile_duration_seconds_count"
+    assert got[(count, (("handler", "vehicle_changed"), ("resource", "vehicles")))] == 2
+    assert got[(count, (("handler", "mission_changed"), ("resource", "missions")))] == 1
+    errors = "roost_operator_reconcile_errors_total"
+    key = (("error", "temporary"), ("handler", "vehicle_changed"), ("resource", "vehicles"))
+    assert got[(errors, key)] == 1
+    key = (("error", "other"), ("handler", "mission_changed"), ("resource", "missions"))
+    assert got[(errors, key)] == 1
+
+
+def test_api_requests_by_verb_and_result() -> None:
+    registry = CollectorRegistry()
+    api = ApiRequests(registry)
+    api.observe("GET", "200", 0.002)
+    api.observe("PATCH", "409", 0.004)
+    api.observe("GET", "unavailable", 5.0)
+    got = parse(generate_latest(registry).decode())
+    assert got[("roost_operator_api_requests_total", (("result", "200"), ("verb", "get")))] == 1
+    assert got[("roost_operator_api_requests_total", (("result", "409"), ("verb", "patch")))] == 1
+    bucket = "roost_operator_api_request_duration_seconds_bucket"
+    assert got[(bucket, (("le", "0.0025"), ("verb", "get")))] == 1
+    assert got[(bucket, (("le", "+Inf"), ("verb", "get")))] == 2
