@@ -67,7 +67,7 @@ DETECTION_BUCKETS = (
 # tens to thousands of milliseconds.
 ONSET_BUCKETS = (0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
 
-LEVEL_VALUES = {level: i for i, level in enumerate(HealthLevel)}
+LEVEL_VALUES = {level: level.rank for level in HealthLevel}
 # Frame outcomes of a link, as LinkCounters counts them; the rest are link events.
 FRAME_RESULTS = (
     "accepted",
@@ -125,7 +125,7 @@ class AgentCollector(Collector):
         active = agent.active
         level = GaugeMetricFamily(
             f"{PREFIX}_autopilot_health_level",
-            "Health level of each autopilot: 0 OK, 1 WARN, 2 ERROR, 3 STALE.",
+            "Health level of each autopilot: 0 OK, 1 WARN, 2 STARTING, 3 ERROR, 4 STALE.",
             labels=["autopilot"],
         )
         state = GaugeMetricFamily(

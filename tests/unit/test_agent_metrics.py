@@ -83,8 +83,8 @@ def test_collector_reads_health_active_and_link_counters() -> None:
     assert got[("roost_agent_active_autopilot", (("autopilot", "fc1"),))] == 1
     assert got[("roost_agent_active_autopilot", (("autopilot", "fc2"),))] == 0
     assert got[("roost_agent_latched", ())] == 0
-    # silent since start: STALE (3), and the state-set agrees
-    assert got[("roost_agent_autopilot_health_level", (("autopilot", "fc2"),))] == 3
+    # silent since start: STALE (4), and the state-set agrees
+    assert got[("roost_agent_autopilot_health_level", (("autopilot", "fc2"),))] == 4
     assert got[("roost_agent_autopilot_health", (("autopilot", "fc2"), ("level", "STALE")))] == 1
     assert got[("roost_agent_autopilot_health", (("autopilot", "fc2"), ("level", "OK")))] == 0
     frames = "roost_agent_link_frames_total"
