@@ -118,7 +118,7 @@ def parse_number(kind: FaultKind, value: str | float | None, default: float) -> 
     try:
         number = float(value)
     except (TypeError, ValueError):
-        raise ValueError(f"{kind} value {value!r} is not a number ({unit})") from None
+        raise ValueError(f"{kind} takes a number ({unit}), not {value!r}") from None
     if not math.isfinite(number) or not low <= number <= high:
         raise ValueError(f"{kind} value {value!r} out of range: {unit} from {low:g} to {high:g}")
     if kind is FaultKind.SPOOF and not number.is_integer():
