@@ -14,8 +14,9 @@ execute; the base needs no pip). Then it is made small and ready for a read-only
    certificate authority's cryptography: 25 MB); ``kubernetes.aio`` (an asyncio copy of the whole
    client, 41 MB; kopf talks to the API with aiohttp), lxml (only pymavlink's code
    generator needs it), pymavlink's generator, log indexer and every MAVLink dialect but
-   the two Roost speaks (v2 ``common`` for the simulator, ``ardupilotmega`` for the
-   agent), and third-party test modules.
+   the ones Roost speaks (v2 ``ardupilotmega`` for the agent; ``common`` and ``all`` for
+   the simulator, which sends PX4's CURRENT_MODE, a message only ``all`` defines), and
+   third-party test modules.
 2. Everything is compiled ahead of time: without bytecode, importing the Kubernetes
    client, kopf and the dialect takes several seconds at each start instead of under one,
    and nothing can be written at run time. Docstrings stay: the Kubernetes client's watch
@@ -59,7 +60,7 @@ WORKSTATION_DISTRIBUTIONS = (
     "cryptography", "cffi", "pycparser", "psutil",
 )  # fmt: skip
 UNUSED_GLOBS = ("lxml-*.dist-info", "kubernetes/**/*_test.py", "kubernetes/**/test_*.py")
-DIALECTS_KEPT = {"__init__.py", "common.py", "ardupilotmega.py"}
+DIALECTS_KEPT = {"__init__.py", "common.py", "ardupilotmega.py", "all.py"}
 OWN_PREFIX = "roost_"
 MODE = py_compile.PycInvalidationMode.UNCHECKED_HASH
 UID = GID = 65532
