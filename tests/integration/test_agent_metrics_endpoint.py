@@ -52,23 +52,18 @@ def value(samples: list[Sample], name: str, **labels: str) -> float:
     return matching[0]
 
 
+def metrics_agent(config: Path, state_dir: Path, port: int) -> AgentProcess:
+    """A standalone ``roost-agent`` serving its metrics on ``port``."""
+    args = ["--config", str(config), "--state-dir", str(state_dir), "--cluster", "off"]
+    return AgentProcess([*args, "--metrics-port", str(port)])
+
+
 def test_scraped_agent_counts_a_failover_and_its_latency(tmp_path: Path) -> None:
     sims = start_vehicle_sims(["px4", "px4", "px4"])
     config = tmp_path / "ra.yaml"
     config.write_text(yaml.safe_dump({"spec": make_spec(sims, FinalAction.HOLD).to_api()}))
     port = free_port()
-    agent = AgentProcess(
-        [
-            "--config",
-            str(config),
-            "--state-dir",
-            str(tmp_path / "state"),
-            "--cluster",
-            "off",
-            "--metrics-port",
-            str(port),
-        ]
-    )
+    agent = metrics_agent(config, tmp_path / "state", port)
     try:
         agent.wait_line(lambda d: d.get("reason") == "AgentStarted", 10)
         take_off(sims)
@@ -164,18 +159,7 @@ def test_a_taken_metrics_port_does_not_keep_the_agent_from_flying(tmp_path: Path
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
-        agent = AgentProcess(
-            [
-                "--config",
-                str(config),
-                "--state-dir",
-                str(tmp_path / "s"),
-                "--cluster",
-                "off",
-                "--metrics-port",
-                str(port),
-            ]
-        )
+        agent = metrics_agent(config, tmp_path / "s", port)
         try:
             agent.wait_line(lambda d: d.get("reason") == "AgentStarted", 10)
             take_off(sims)

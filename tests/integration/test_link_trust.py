@@ -45,6 +45,7 @@ from roost_sim import (
 )
 from roost_sim.hostile import HostileSender, Target
 from roost_sim.link import UdpLink
+from tests.support.flight import take_off
 from tests.support.waiting import wait_until
 
 # Sub-second start-up; ArduPilot streams as with its SRn_* parameters set, since this
@@ -124,14 +125,6 @@ def agent_for(
         yield agent, events
     finally:
         agent.stop()
-
-
-def take_off(sims: list[SimulatedAutopilot]) -> None:
-    for sim in sims:
-        sim.wait_ready(timeout=5)
-        sim.fly()
-    for sim in sims:
-        sim.wait_until(lambda s: s.landed_state == "InAir" and s.altitude_m > 2.0, timeout=15)
 
 
 def _quiet_counts(sim: SimulatedAutopilot, link: AutopilotLink) -> tuple[int, int]:
