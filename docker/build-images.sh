@@ -23,6 +23,9 @@ set -euo pipefail
 
 here=$(cd "$(dirname "$0")" && pwd)
 repo=$(cd "$here/.." && pwd)
+# The package folders the wheel is built from (pyproject's packages.find); the image
+# cache key hashes the same list, so a new package cannot be left out of one of them.
+packages=(api kube operator agents cli localcluster)
 cache_root=${ROOST_CACHE_DIR:-${XDG_CACHE_HOME:-$HOME/.cache}/roost}
 out="$cache_root/images"
 storage="$out/storage"
@@ -50,7 +53,7 @@ write_context() {
   # *.egg-info in the checkout, and a stale build/lib can carry deleted modules along.
   local src="$ctx/source"
   mkdir -p "$src"
-  (cd "$repo" && cp -r pyproject.toml README.md api kube operator agents cli localcluster "$src/")
+  (cd "$repo" && cp -r pyproject.toml README.md "${packages[@]}" "$src/")
   find "$src" \( -name __pycache__ -o -name '*.egg-info' \) -prune -exec rm -rf {} +
   if ! { "$python" -m pip wheel --wheel-dir "$ctx/wheels" "$src" \
          && "$python" -m pip download --no-deps --dest "$ctx/wheels" pip; } >"$log" 2>&1; then
@@ -71,7 +74,7 @@ version=$(sed -nE 's/^version = "([^"]+)"$/\1/p' "$repo/pyproject.toml")
 key=$(
   cd "$repo"
   {
-    find api kube operator agents cli localcluster -type f \( -name '*.py' -o -name py.typed \) \
+    find "${packages[@]}" -type f \( -name '*.py' -o -name py.typed \) \
       ! -path '*/__pycache__/*' -print0 | sort -z | xargs -0 sha256sum
     sha256sum pyproject.toml README.md docker/*
     echo "base=$base_ref"
