@@ -65,6 +65,7 @@ from roost_agent.arbiter import (
 )
 from roost_agent.bridge import Bridge, BridgeError
 from roost_agent.health import Assessment, HealthTracker
+from roost_agent.hub import Hub, InStep, hub_for, hub_identity
 from roost_agent.links import AutopilotLink
 from roost_agent.report import report
 from roost_agent.safety import (
@@ -86,6 +87,7 @@ from roost_agent.state import (
 from roost_agent.streams import StreamKeeper, Why, send_requests
 from roost_api.autopilot import (
     AutopilotCommand,
+    AutopilotEntryConditionType,
     AutopilotHealth,
     AutopilotSpec,
     CommandResult,
@@ -95,7 +97,7 @@ from roost_api.autopilot import (
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
 )
-from roost_api.meta import HealthLevel
+from roost_api.meta import ConditionStatus, HealthLevel, set_condition
 from roost_mavlink import MAV_CMD_SET_MESSAGE_INTERVAL, pymavlink_device
 
 log = logging.getLogger(__name__)
@@ -289,7 +291,7 @@ def _rates(keeper: StreamKeeper) -> str:
     return ", ".join(f"{name} {hz:.0f} Hz" for name, hz in keeper.rates.items())
 
 
-def _view(a: Assessment) -> AutopilotView:
+def _view(a: Assessment, in_step: InStep | None = None) -> AutopilotView:
     return AutopilotView(
         name=a.name,
         level=a.level,
@@ -299,7 +301,14 @@ def _view(a: Assessment) -> AutopilotView:
         in_air=a.in_air,
         pilot_in_control=a.pilot_in_control,
         onset=a.onset,
+        in_step=None if in_step is None else in_step.status,
     )
+
+
+def _in_step_status(verdict: InStep) -> ConditionStatus:
+    if verdict.status is None:
+        return "Unknown"
+    return "True" if verdict.status else "False"
 
 
 def connection_problems(spec: RedundantAutopilotSpec) -> list[str]:
@@ -379,6 +388,9 @@ class Agent:
             channels={a.name: a.bridge_channel for a in spec.autopilots},
         )
         self._spec_lock = threading.Lock()
+        # The vehicle's MAVLink endpoint (roost_agent.hub), when the spec asks for it.
+        self._hub: Hub | None = hub_for(spec, self._state.active, self._cfg.links)
+        self._in_step: dict[str, InStep] = {}
 
     # -- lifecycle ---------------------------------------------------------------------
 
@@ -390,6 +402,9 @@ class Agent:
             self._bridge.select(channel)
         for link in cfg.links.values():
             link.start()
+        if self._hub is not None:
+            self._hub.start()
+            self._hub.aux_standby(self._state.active)
         self._worker.start()
         self._resume_safety(cfg)
         for target, name in (
@@ -421,6 +436,8 @@ class Agent:
             thread.join(timeout=5)
         for link in self._cfg.links.values():
             link.stop()
+        if self._hub is not None:
+            self._hub.stop()
 
     def __enter__(self) -> Agent:
         self.start()
@@ -445,6 +462,11 @@ class Agent:
     def links(self) -> Mapping[str, AutopilotLink]:
         """The links by autopilot name (counters, trackers)."""
         return self._cfg.links
+
+    @property
+    def hub(self) -> Hub | None:
+        """The vehicle's MAVLink endpoint (None when the spec has no hub)."""
+        return self._hub
 
     def failovers(self) -> list[FailoverEvent]:
         """Switches since start, oldest first (the last ``FAILOVER_HISTORY``)."""
@@ -517,7 +539,9 @@ class Agent:
             cfg = self._cfg
             state = self._state
             healths = [
-                _with_link_error(self._assessments[a.name].to_api(), cfg.links[a.name].error)
+                self._with_in_step(
+                    _with_link_error(self._assessments[a.name].to_api(), cfg.links[a.name].error)
+                )
                 for a in cfg.spec.autopilots
                 if a.name in self._assessments
             ]
@@ -540,6 +564,30 @@ class Agent:
             )
             return self._last_status
 
+    def _with_in_step(self, health: AutopilotHealth) -> AutopilotHealth:
+        """The health entry with its StandbyInStep condition (with the hub only)."""
+        verdict = self._in_step.get(health.name)
+        if verdict is None:
+            return health
+        previous = self._last_status
+        before = next(
+            (
+                h.conditions
+                for h in (previous.autopilots if previous else [])
+                if h.name == health.name
+            ),
+            [],
+        )
+        conditions = set_condition(
+            before,
+            type=AutopilotEntryConditionType.STANDBY_IN_STEP.value,
+            status=_in_step_status(verdict),
+            reason=verdict.reason.value,
+            message=verdict.message,
+            at=self._wall_clock().replace(microsecond=0),
+        )
+        return health.model_copy(update={"conditions": conditions})
+
     # -- decision loop -------------------------------------------------------------------
 
     def _decide_forever(self) -> None:
@@ -558,12 +606,14 @@ class Agent:
         cfg = self._cfg
         now = self._clock()
         assessments = {name: link.tracker.assess(now) for name, link in cfg.links.items()}
-        views = {name: _view(a) for name, a in assessments.items()}
+        in_step = self._hub.in_step(now) if self._hub is not None else {}
+        views = {name: _view(a, in_step.get(name)) for name, a in assessments.items()}
         self._execute(cfg, step(self._state, views, cfg.policy, now))
         with self._lock:
             commands = list(self._inbox)
             self._inbox.clear()
             self._assessments = assessments
+            self._in_step = in_step
         for command in commands:
             decision = handle_command(
                 self._state,
@@ -607,8 +657,11 @@ class Agent:
             self._command_done(action)
 
     def _switch(self, cfg: _Running, before: ArbiterState, action: SwitchBridge) -> None:
+        hub = self._hub
         try:
             self._bridge.select(cfg.channels[action.to_autopilot])
+            if hub is not None:  # the clients' route moves with the motors, same tick
+                hub.set_active(action.to_autopilot)
         except BridgeError as exc:
             # The motors stay where they were: undo the decision, the next tick retries.
             self._state = replace(
@@ -635,6 +688,7 @@ class Agent:
             latency_ms=round((switched_at - action.detected_at) * 1000, 3),
             trigger=action.trigger.value,
             safety_routine=None if action.safety == SafetyPlan.NONE else action.safety.value,
+            standby_in_step=action.in_step,
         )
         event = FailoverEvent(record, action.detected_at, switched_at, action.onset)
         with self._lock:
@@ -642,6 +696,8 @@ class Agent:
             self._failovers.append(event)
         if action.safety == SafetyPlan.RUN:
             self._start_routine(cfg, action.to_autopilot)
+        if hub is not None:
+            hub.aux_standby(action.to_autopilot)
         onset = event.onset_to_switch_ms
         timing = f"switched {event.latency_ms:.3f} ms after detection" + (
             f", {onset:.0f} ms after onset" if onset is not None else ""
@@ -854,6 +910,8 @@ class Agent:
             channels = {a.name: a.bridge_channel for a in spec.autopilots}
             if set(old) != set(new) or channels != dict(cfg.channels):
                 return "the autopilots or their bridge channels changed; restart the agent"
+            if hub_identity(spec) != hub_identity(cfg.spec):
+                return "the hub's endpoints or identity changed; restart the agent"
             unusable = connection_problems(spec)
             if unusable:
                 return "; ".join(unusable)
@@ -867,9 +925,13 @@ class Agent:
             retired = [links[n] for n in changed]
             for name in changed:
                 links[name] = self._new_link(new[name], spec)
+                if self._hub is not None:
+                    self._hub.attach(links[name])
                 links[name].start()
             for link in links.values():
                 link.tracker.set_thresholds(spec.failover_policy.thresholds)
+            if self._hub is not None and spec.hub is not None:
+                self._hub.configure(spec.hub)
             self._cfg = _Running(
                 spec=spec,
                 generation=generation,

@@ -63,6 +63,7 @@ class AutopilotView:
     in_air: bool | None
     pilot_in_control: bool = False  # flying a pilot-steered (manual) mode
     onset: float | None = None  # when its failure began, when known
+    in_step: bool | None = None  # a standby following the active (None: not known, no hub)
 
     @property
     def flying(self) -> bool:
@@ -143,6 +144,7 @@ class SwitchBridge:
     detected_at: float
     safety: SafetyPlan
     onset: float | None = None
+    in_step: bool | None = None  # whether the target was in step with the failed active
 
 
 @dataclass(frozen=True)
@@ -214,6 +216,16 @@ def _is_target(view: AutopilotView | None, state: ArbiterState, policy: Policy, 
     )
 
 
+def _preferred(priority: tuple[str, ...], views: Mapping[str, AutopilotView]) -> list[str]:
+    """Standbys in step with the active first, then the rest, each in priority order.
+
+    A standby out of step (or not known to be in step) still takes over when no in-step
+    one can: a dead active autopilot always gets the best standby available.
+    """
+    known = [n for n in priority if (v := views.get(n)) is not None and v.in_step is True]
+    return known + [n for n in priority if n not in known]
+
+
 def _ok_since(
     state: ArbiterState, views: Mapping[str, AutopilotView], now: float
 ) -> dict[str, float]:
@@ -259,7 +271,7 @@ def step(
         return Decision(state)
     reason = f"{state.active}: {active.reason}" if active else f"{state.active}: no data"
     onset = active.onset if active else None
-    for name in policy.priority:
+    for name in _preferred(policy.priority, views):
         if name == state.active:
             continue
         candidate = views.get(name)
@@ -285,7 +297,18 @@ def step(
         )
         return Decision(
             switched,
-            (SwitchBridge(state.active, name, reason, Trigger.AUTOMATIC, now, plan, onset),),
+            (
+                SwitchBridge(
+                    state.active,
+                    name,
+                    reason,
+                    Trigger.AUTOMATIC,
+                    now,
+                    plan,
+                    onset,
+                    candidate.in_step,
+                ),
+            ),
         )
     if state.in_flight is not True or state.landing_ordered:
         return Decision(state)
@@ -323,9 +346,15 @@ def _failback(
                 Trigger.FAILBACK,
                 now,
                 SafetyPlan.NONE,
+                in_step=primary.in_step,
             ),
         ),
     )
+
+
+def _in_step_of(views: Mapping[str, AutopilotView], name: str) -> bool | None:
+    view = views.get(name)
+    return None if view is None else view.in_step
 
 
 def _vehicle_in_flight(state: ArbiterState, views: Mapping[str, AutopilotView]) -> bool:
@@ -427,6 +456,7 @@ def _switch_command(
                 Trigger.COMMAND,
                 now,
                 SafetyPlan.NONE,
+                in_step=_in_step_of(views, target),
             ),
             CommandDone(command.id, CommandResultKind.EXECUTED, f"switched to {target}"),
         ),

@@ -498,6 +498,8 @@ class AutopilotLink:
         self._foreign_alarm = _RateAlarm(FOREIGN_ALERT_PER_S)
         self._signature_alarm = _RateAlarm(FOREIGN_ALERT_PER_S)
         self._locked: Address | None = None
+        # Called by the reader with every accepted message (the hub routes them to clients).
+        self.tap: Callable[[Any, float], None] | None = None
 
     @property
     def locked_address(self) -> Address | None:
@@ -668,6 +670,9 @@ class AutopilotLink:
         if self.error is not None:
             self.error = None
             self._event("LinkRecovered", "receiving again", False)
+        tap = self.tap
+        if tap is not None:
+            tap(msg, now)
         if kind == "COMMAND_ACK":
             target_system = getattr(msg, "target_system", 0)
             target_component = getattr(msg, "target_component", 0)
@@ -723,6 +728,10 @@ class AutopilotLink:
                 log.debug("%s: write failed: %s", self.name, exc)
                 return False
             return True
+
+    def send_frame(self, frame: bytes) -> bool:
+        """Forward a finished MAVLink frame (a hub client's), signed like the agent's own."""
+        return self._send(lambda mav: mav.file.write(frame))
 
     def send_heartbeat(self) -> bool:
         """The agent's own 1 Hz heartbeat (onboard controller, not an autopilot).

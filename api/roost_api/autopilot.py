@@ -40,6 +40,27 @@ class AutopilotConditionType(StrEnum):
     FAILED_OVER = "FailedOver"
 
 
+class AutopilotEntryConditionType(StrEnum):
+    """Condition types on one autopilot's entry in ``status.autopilots``."""
+
+    STANDBY_IN_STEP = "StandbyInStep"
+
+
+class StandbyInStepReason(StrEnum):
+    """Reasons of the per-autopilot ``StandbyInStep`` condition."""
+
+    IN_STEP = "InStep"
+    ACTIVE = "Active"
+    NO_DATA = "NoData"
+    SILENT = "Silent"
+    ARMED_DIFFERS = "ArmedDiffers"
+    MODE_DIFFERS = "ModeDiffers"
+    POSITION_DIFFERS = "PositionDiffers"
+    ALTITUDE_DIFFERS = "AltitudeDiffers"
+    REJECTED_MIRRORED = "RejectedMirroredCommand"
+    NOT_MIRRORED = "NotMirrored"
+
+
 class FailoverMode(StrEnum):
     """Who decides a failover."""
 
@@ -227,6 +248,73 @@ class SafetyRoutine(ApiModel):
     )
 
 
+class StandbyLimits(ApiModel):
+    """How far a standby may differ from the active autopilot and still count as in step."""
+
+    position_m: float = Field(
+        default=3.0,
+        gt=0,
+        le=10000,
+        description="Largest horizontal distance (m) between the standby's and the active "
+        "autopilot's position estimate.",
+    )
+    altitude_m: float = Field(
+        default=1.5,
+        gt=0,
+        le=10000,
+        description="Largest difference (m) between their altitudes above home.",
+    )
+    confirm_ms: int = Field(
+        default=1000,
+        ge=0,
+        le=60000,
+        description="How long a difference must last before the standby counts as out of "
+        "step (mirrored commands reach the autopilots a few milliseconds apart).",
+    )
+
+
+HOST_PORT_PATTERN = r"^[A-Za-z0-9]([A-Za-z0-9.-]*[A-Za-z0-9])?:[0-9]{1,5}$"
+
+
+class HubSpec(ApiModel):
+    """The vehicle's MAVLink endpoint(s), served by the node agent (the MAVLink hub).
+
+    Clients (mavros, MAVSDK, MAVProxy, a ground station) connect here instead of to an
+    autopilot; the agent routes them to the active autopilot and keeps them connected
+    across a failover.
+    """
+
+    sysid: int | None = Field(
+        default=None,
+        ge=1,
+        le=255,
+        description="The vehicle's MAVLink system id as clients see it (normally the "
+        "Vehicle's sysid); defaults to the primary autopilot's sysid.",
+    )
+    udp: str = Field(
+        default="127.0.0.1:14550",
+        max_length=shapes.URL_MAX,
+        pattern=HOST_PORT_PATTERN,
+        description="HOST:PORT the agent listens on for UDP clients (mavros).",
+    )
+    tcp: str | None = Field(
+        default=None,
+        max_length=shapes.URL_MAX,
+        pattern=HOST_PORT_PATTERN,
+        description="HOST:PORT the agent accepts TCP clients on (a ground station); none "
+        "when unset.",
+    )
+    mirror: bool = Field(
+        default=True,
+        description="Mirror what clients send that changes flight state (arm, mode, "
+        "takeoff/land/RTL, mission items, setpoints) to every standby.",
+    )
+    standby_limits: StandbyLimits = Field(
+        default_factory=StandbyLimits,
+        description="When a standby counts as in step with the active autopilot.",
+    )
+
+
 class FailoverPolicy(ApiModel):
     """How the agent decides and what it does after deciding."""
 
@@ -302,6 +390,11 @@ class RedundantAutopilotSpec(ApiModel):
     command: AutopilotCommand | None = Field(
         default=None, description="Latest request to the agent; see status.lastCommand."
     )
+    hub: HubSpec | None = Field(
+        default=None,
+        description="Serve the vehicle's MAVLink endpoint from the agent, routed to the "
+        "active autopilot (clients then never reconnect on a failover).",
+    )
 
 
 # On the whole object: metadata.name is only visible to CEL from the root.
@@ -370,6 +463,12 @@ class AutopilotHealth(ApiModel):
     unhealthy_sensors: list[str] = Field(
         default_factory=list, description="Enabled SYS_STATUS sensors reported unhealthy."
     )
+    conditions: list[Condition] = Field(
+        default_factory=list,
+        description="Per-autopilot conditions: StandbyInStep (with the hub: whether this "
+        "standby follows the active autopilot's armed state, mode and position).",
+        json_schema_extra=CONDITIONS_SCHEMA,
+    )
 
 
 class FailoverRecord(ApiModel):
@@ -385,6 +484,11 @@ class FailoverRecord(ApiModel):
         default=None,
         description="The safety routine after the switch: its plan (Run, or Skipped when a "
         "pilot flies manually) then its progress (Holding, Landing, Landed, Held…).",
+    )
+    standby_in_step: bool | None = Field(
+        default=None,
+        description="Whether the autopilot switched to was in step with the one it replaced "
+        "(None: not known, e.g. without the hub).",
     )
 
 

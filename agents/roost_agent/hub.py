@@ -1,0 +1,754 @@
+"""The vehicle's MAVLink hub: one endpoint for every client, routed to the active autopilot.
+
+Why the agent is the hub: it already owns every autopilot link (a serial port opens
+once), and it is the one process that knows, within the decision tick, which autopilot
+drives the motors. Routing here means a failover moves the clients' route in the same
+tick as the bridge write (:meth:`Hub.set_active`, one attribute store), so mavros, a
+mission's MAVSDK controller or a ground station keep their connection and their setpoint
+stream simply continues on the new autopilot: no pod restart, no reconnect.
+
+Identity. The autopilots keep distinct system ids on their own links (the spec requires
+it: the agent's health tracking, source locks and command acks tell them apart by it),
+and the hub shows clients one vehicle identity (``HubSpec.sysid``) by rewriting the
+source system id in each forwarded frame's header and recomputing its CRC
+(:func:`rewrite_source`); client frames addressed to the vehicle get the target system of
+the autopilot they go to (:func:`retarget`). Only the active autopilot's frames are ever
+rewritten and forwarded: a standby's or a failed autopilot's frames are read by the agent
+(health, in-step checks) and dropped, so nothing from them can reach a client as if from
+the vehicle. The alternative, one sysid configured on every autopilot and frames passed
+through untouched, was rejected: two autopilots answering to one id cannot be told apart
+on any shared path (a router, a radio, a log), and a standby's acknowledgement would be
+indistinguishable from the active's. Rewriting costs a header rewrite and a CRC per frame
+(measured: ``hub.added_latency_p99_ms``); when an autopilot's sysid already equals the
+vehicle's, its frames pass unchanged. Signed frames from an autopilot lose their
+signature on the way to clients (the rewritten header would not verify): the endpoint
+is for clients on the vehicle itself.
+
+Standbys in step. What clients send that changes flight state (:data:`MIRRORED_COMMANDS`
+inside COMMAND_LONG/INT, and :data:`MIRRORED_MESSAGES`: modes, mission items, setpoints,
+the ground station's heartbeat so no standby triggers a GCS failsafe) goes to every
+standby too; their answers never reach the client but are recorded, so a standby that
+rejects a mirrored command or does not answer is seen at once. :func:`judge_standby`
+compares each standby with the active (armed state, mode, position and altitude within
+``HubSpec.standby_limits``) and :class:`InStepTracker` confirms a difference over
+``confirm_ms`` before it counts, which gives the ``StandbyInStep`` condition and the
+arbiter's preference for standbys in step. Mode commands are mirrored only between
+autopilots of the same stack (a custom mode number means something else on the other
+stack), and modes are compared only there.
+
+ArduPilot standbys: ArduPilot's auxiliary function 76 (STANDBY) tells a flight controller
+its outputs are not on the motors, so it relaxes its controllers' integrators instead of
+winding them up against a vehicle it does not fly. The hub sends it (MAV_CMD_DO_AUX_FUNCTION,
+switch high) to every ArduPilot standby, and low to an ArduPilot autopilot that becomes
+active, right after the route moved (never before the bridge write).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import select
+import socket
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from roost_api.autopilot import (
+    AutopilotSpec,
+    HubSpec,
+    RedundantAutopilotSpec,
+    StandbyInStepReason,
+    StandbyLimits,
+)
+from roost_api.meta import Stack
+from roost_mavlink import AGENT_COMPONENT_ID, MavResult, mode_name
+
+log = logging.getLogger(__name__)
+
+Address = tuple[str, int]
+
+MAVLINK2_MAGIC = 0xFD
+MAVLINK1_MAGIC = 0xFE
+SIGNED_FLAG = 0x01
+SIGNATURE_LEN = 13
+
+CLIENT_TIMEOUT_S = 30.0  # a UDP client not heard this long gets nothing more
+MAX_CLIENTS = 32
+MIRROR_ACK_TIMEOUT_S = 1.5  # a standby that does not acknowledge a mirrored command by then
+REJECTION_MEMORY_S = 30.0  # how long an unresolved rejection keeps a standby out of step
+SELECT_WAIT_S = 0.1
+UDP_MAX = 65535
+TCP_SEND_BUFFER = 1 << 18
+
+AUX_FUNCTION_STANDBY = 76  # ArduPilot RC_OPTION / aux function "Standby"
+AUX_SWITCH_LOW = 0
+AUX_SWITCH_HIGH = 2
+
+# Flight-state commands a client sends that every standby must follow.
+MIRRORED_COMMANDS: frozenset[int] = frozenset(
+    {
+        mavlink.MAV_CMD_COMPONENT_ARM_DISARM,
+        mavlink.MAV_CMD_DO_SET_MODE,
+        mavlink.MAV_CMD_NAV_TAKEOFF,
+        mavlink.MAV_CMD_NAV_TAKEOFF_LOCAL,
+        mavlink.MAV_CMD_NAV_LAND,
+        mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH,
+        mavlink.MAV_CMD_NAV_LOITER_UNLIM,
+        mavlink.MAV_CMD_MISSION_START,
+        mavlink.MAV_CMD_DO_REPOSITION,
+        mavlink.MAV_CMD_DO_CHANGE_SPEED,
+        mavlink.MAV_CMD_DO_SET_HOME,
+        mavlink.MAV_CMD_DO_PAUSE_CONTINUE,
+        mavlink.MAV_CMD_DO_SET_MISSION_CURRENT,
+        mavlink.MAV_CMD_NAV_GUIDED_ENABLE,
+    }
+)
+MODE_COMMANDS: frozenset[int] = frozenset({mavlink.MAV_CMD_DO_SET_MODE})
+
+# Whole messages mirrored to every standby.
+MIRRORED_MESSAGES: frozenset[str] = frozenset(
+    {
+        "HEARTBEAT",
+        "SET_MODE",
+        "SET_POSITION_TARGET_LOCAL_NED",
+        "SET_POSITION_TARGET_GLOBAL_INT",
+        "SET_ATTITUDE_TARGET",
+        "MANUAL_CONTROL",
+        "RC_CHANNELS_OVERRIDE",
+        "MISSION_COUNT",
+        "MISSION_ITEM_INT",
+        "MISSION_ITEM",
+        "MISSION_CLEAR_ALL",
+        "MISSION_SET_CURRENT",
+        "SET_HOME_POSITION",
+    }
+)
+MODE_MESSAGES: frozenset[str] = frozenset({"SET_MODE"})
+COMMAND_MESSAGES: frozenset[str] = frozenset({"COMMAND_LONG", "COMMAND_INT"})
+
+
+# -- frames ----------------------------------------------------------------------------
+
+
+def rewrite_source(frame: bytes, sysid: int) -> bytes | None:
+    """``frame`` with its source system id set to ``sysid`` and its CRC recomputed.
+
+    A signature is dropped (it covers the header). None when the frame is not a whole
+    MAVLink 1/2 frame of a known message (nothing to forward then).
+    """
+    if len(frame) < 8:
+        return None
+    magic = frame[0]
+    if magic == MAVLINK2_MAGIC:
+        header, sys_at = 10, 5
+        msgid = frame[7] | frame[8] << 8 | frame[9] << 16
+    elif magic == MAVLINK1_MAGIC:
+        header, sys_at = 6, 3
+        msgid = frame[5]
+    else:
+        return None
+    end = header + frame[1]
+    if len(frame) < end + 2:
+        return None
+    if frame[sys_at] == sysid:
+        return frame
+    kind = mavlink.mavlink_map.get(msgid)
+    if kind is None:
+        return None
+    out = bytearray(frame[: end + 2])
+    out[sys_at] = sysid
+    if magic == MAVLINK2_MAGIC and out[2] & SIGNED_FLAG:
+        out[2] &= ~SIGNED_FLAG
+    crc = mavlink.x25crc(out[1:end])
+    crc.accumulate(bytes((kind.crc_extra,)))
+    out[end] = crc.crc & 0xFF
+    out[end + 1] = crc.crc >> 8
+    return bytes(out)
+
+
+def target_of(msg: Any) -> int | None:
+    """The target system a message addresses (None: it addresses no system)."""
+    for name in ("target_system", "target"):
+        value = getattr(msg, name, None)
+        if isinstance(value, int):
+            return value
+    return None
+
+
+def retarget(msg: Any, vehicle_sysid: int, sysid: int, packer: Any) -> bytes:
+    """The client's frame for the autopilot with ``sysid``: a message addressed to the
+    vehicle is re-encoded addressed to that autopilot (sender ids and sequence kept);
+    anything else passes unchanged."""
+    frame = bytes(msg.get_msgbuf())
+    if sysid == vehicle_sysid or target_of(msg) != vehicle_sysid:
+        return frame
+    name = "target_system" if hasattr(msg, "target_system") else "target"
+    setattr(msg, name, sysid)
+    packer.srcSystem = msg.get_srcSystem()
+    packer.srcComponent = msg.get_srcComponent()
+    packer.seq = msg.get_seq()
+    try:
+        return bytes(msg.pack(packer, force_mavlink1=frame[0] == MAVLINK1_MAGIC))
+    finally:
+        setattr(msg, name, vehicle_sysid)
+
+
+def _new_parser() -> Any:
+    parser = mavlink.MAVLink(None)
+    parser.robust_parsing = True
+    return parser
+
+
+# -- what the hub knows about each autopilot -------------------------------------------
+
+
+@dataclass
+class Snapshot:
+    """One autopilot's state as the hub last read it (monotonic seconds)."""
+
+    stack: Stack
+    heartbeat_at: float | None = None
+    armed: bool | None = None
+    mode: str | None = None
+    position_at: float | None = None
+    lat_deg: float | None = None
+    lon_deg: float | None = None
+    relative_alt_m: float | None = None
+    # mirrored command -> (what happened, when): a rejection until an accepting answer
+    rejected: dict[int, tuple[str, float]] = field(default_factory=dict)
+    # mirrored command -> when it was sent, until the standby answers it
+    awaiting: dict[int, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class InStep:
+    """Whether a standby follows the active autopilot; ``status`` None means not known."""
+
+    status: bool | None
+    reason: StandbyInStepReason
+    message: str
+
+
+def horizontal_m(lat1: float, lon1: float, lat2: float, lon2: float) -> float:
+    """Distance in metres between two nearby positions (equirectangular; metres apart)."""
+    k = math.pi / 180
+    x = (lon2 - lon1) * k * math.cos((lat1 + lat2) / 2 * k)
+    y = (lat2 - lat1) * k
+    return math.hypot(x, y) * 6_371_000.0
+
+
+def _command_text(command: int) -> str:
+    entry = mavlink.enums["MAV_CMD"].get(command)
+    return entry.name if entry is not None else str(command)
+
+
+def judge_standby(
+    active: Snapshot,
+    standby: Snapshot,
+    limits: StandbyLimits,
+    *,
+    stale_s: float,
+    now: float,
+) -> InStep:
+    """Whether ``standby`` is in step with ``active`` right now (no confirmation time)."""
+    reason = StandbyInStepReason
+    if standby.heartbeat_at is None:
+        return InStep(None, reason.NO_DATA, "no heartbeat from this standby yet")
+    if now - standby.heartbeat_at > stale_s:
+        age = now - standby.heartbeat_at
+        return InStep(False, reason.SILENT, f"no heartbeat for {age:.1f} s")
+    for command, (text, at) in standby.rejected.items():
+        if now - at <= REJECTION_MEMORY_S:
+            return InStep(
+                False, reason.REJECTED_MIRRORED, f"{_command_text(command)} mirrored: {text}"
+            )
+    for command, sent in standby.awaiting.items():
+        if now - sent > MIRROR_ACK_TIMEOUT_S:
+            return InStep(
+                False,
+                reason.SILENT,
+                f"no answer to mirrored {_command_text(command)} for {now - sent:.1f} s",
+            )
+    if active.heartbeat_at is None or active.armed is None:
+        return InStep(None, reason.NO_DATA, "no heartbeat from the active autopilot")
+    if standby.armed != active.armed:
+        state = "armed" if standby.armed else "disarmed"
+        return InStep(False, reason.ARMED_DIFFERS, f"{state}, the active is not")
+    if standby.stack == active.stack and standby.mode != active.mode:
+        return InStep(
+            False, reason.MODE_DIFFERS, f"mode {standby.mode}, the active flies {active.mode}"
+        )
+    if (
+        active.lat_deg is not None
+        and active.lon_deg is not None
+        and standby.lat_deg is not None
+        and standby.lon_deg is not None
+    ):
+        apart = horizontal_m(active.lat_deg, active.lon_deg, standby.lat_deg, standby.lon_deg)
+        if apart > limits.position_m:
+            return InStep(
+                False,
+                reason.POSITION_DIFFERS,
+                f"position {apart:.1f} m from the active's (limit {limits.position_m:g} m)",
+            )
+    if active.relative_alt_m is not None and standby.relative_alt_m is not None:
+        dz = abs(active.relative_alt_m - standby.relative_alt_m)
+        if dz > limits.altitude_m:
+            return InStep(
+                False,
+                reason.ALTITUDE_DIFFERS,
+                f"altitude {dz:.1f} m from the active's (limit {limits.altitude_m:g} m)",
+            )
+    if active.lat_deg is None or standby.lat_deg is None:
+        return InStep(None, reason.NO_DATA, "no position from both autopilots yet")
+    modes = "" if standby.stack == active.stack else " (modes not compared across stacks)"
+    return InStep(True, reason.IN_STEP, f"armed state, mode and position agree{modes}")
+
+
+class InStepTracker:
+    """Confirms a standby's verdict: a change counts after ``confirm_s`` (hysteresis)."""
+
+    def __init__(self, confirm_s: float) -> None:
+        self.confirm_s = confirm_s
+        self._shown: dict[str, InStep] = {}
+        self._since: dict[str, tuple[bool | None, float]] = {}
+
+    def update(self, name: str, verdict: InStep, now: float) -> InStep:
+        """The verdict to show for ``name`` after seeing ``verdict`` at ``now``."""
+        shown = self._shown.get(name)
+        if shown is None or shown.status == verdict.status:
+            self._since.pop(name, None)
+            self._shown[name] = verdict
+            return verdict
+        status, since = self._since.get(name, (verdict.status, now))
+        if status != verdict.status:
+            since = now
+        self._since[name] = (verdict.status, since)
+        if now - since >= self.confirm_s:
+            self._since.pop(name, None)
+            self._shown[name] = verdict
+            return verdict
+        return shown
+
+    def forget(self, name: str) -> None:
+        self._shown.pop(name, None)
+        self._since.pop(name, None)
+
+
+# -- the hub ---------------------------------------------------------------------------
+
+
+class HubLink(Protocol):
+    """What the hub needs from an autopilot link (:class:`roost_agent.links.AutopilotLink`)."""
+
+    name: str
+    spec: AutopilotSpec
+    tap: Callable[[Any, float], None] | None
+
+    def send_frame(self, frame: bytes) -> bool: ...
+
+    def send_command(
+        self, command: int, params: tuple[float, float, float, float, float, float, float]
+    ) -> bool: ...
+
+
+@dataclass
+class HubCounters:
+    """What the hub routed; for diagnostics, leak tests and the benchmarks."""
+
+    to_clients: int = 0  # frames sent to clients (each client counted)
+    from_clients: int = 0  # client messages routed to the active autopilot
+    mirrored: int = 0  # client messages also sent to a standby (each standby counted)
+    dropped_standby: int = 0  # standby / failed autopilot messages kept from clients
+    forwarded: dict[str, int] = field(default_factory=dict)  # per autopilot, to clients
+    switches: int = 0
+
+
+class _Client:
+    """One connected client: where its frames go and the parser for its bytes."""
+
+    def __init__(self, address: Address, sock: socket.socket | None, now: float) -> None:
+        self.address = address
+        self.sock = sock  # TCP clients only
+        self.parser = _new_parser()
+        self.last_seen = now
+
+
+def parse_host_port(text: str) -> Address:
+    host, _, port = text.rpartition(":")
+    return host, int(port)
+
+
+def hub_identity(spec: RedundantAutopilotSpec) -> tuple[object, ...] | None:
+    """What a running hub cannot change: its endpoints and the vehicle's identity."""
+    hub = spec.hub
+    return None if hub is None else (hub.udp, hub.tcp, vehicle_sysid(spec))
+
+
+def vehicle_sysid(spec: RedundantAutopilotSpec) -> int:
+    """The system id clients see: ``hub.sysid``, else the primary autopilot's."""
+    if spec.hub is not None and spec.hub.sysid is not None:
+        return spec.hub.sysid
+    return next(a.sysid for a in spec.autopilots if a.name == spec.primary)
+
+
+class Hub:
+    """Serves the vehicle's MAVLink endpoint(s) and routes it to the active autopilot."""
+
+    def __init__(
+        self,
+        spec: RedundantAutopilotSpec,
+        active: str,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        hub = spec.hub if spec.hub is not None else HubSpec()
+        self.settings = hub
+        self.sysid = vehicle_sysid(spec)
+        self.stale_s = spec.failover_policy.thresholds.heartbeat_error_ms / 1000
+        self.counters = HubCounters()
+        self._clock = clock
+        self._active = active
+        self._links: dict[str, HubLink] = {}
+        self._seen: dict[str, Snapshot] = {
+            a.name: Snapshot(Stack(a.stack)) for a in spec.autopilots
+        }
+        self._tracker = InStepTracker(hub.standby_limits.confirm_ms / 1000)
+        self._clients: OrderedDict[Address, _Client] = OrderedDict()
+        self._sinks: tuple[_Client, ...] = ()
+        self._clients_lock = threading.Lock()
+        self._packer = mavlink.MAVLink(None)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._tcp: socket.socket | None = None
+        try:
+            self._udp.bind(parse_host_port(hub.udp))
+            self._udp.setblocking(False)
+            if hub.tcp is not None:
+                self._tcp = socket.create_server(parse_host_port(hub.tcp))
+                self._tcp.setblocking(False)
+        except BaseException:
+            self.close()
+            raise
+
+    # -- wiring ------------------------------------------------------------------------
+
+    @property
+    def udp_address(self) -> Address:
+        host, port = self._udp.getsockname()[:2]
+        return str(host), int(port)
+
+    @property
+    def tcp_address(self) -> Address | None:
+        if self._tcp is None:
+            return None
+        host, port = self._tcp.getsockname()[:2]
+        return str(host), int(port)
+
+    @property
+    def active(self) -> str:
+        return self._active
+
+    def attach(self, link: HubLink) -> None:
+        """Route ``link``'s messages through the hub (also for a link replaced later)."""
+        name = link.name
+        self._links[name] = link
+        self._seen.setdefault(name, Snapshot(Stack(link.spec.stack)))
+
+        def tap(msg: Any, now: float) -> None:
+            self._from_autopilot(name, link.spec, msg, now)
+
+        link.tap = tap
+
+    def set_active(self, name: str) -> None:
+        """Move the clients' route to ``name`` (the agent calls it right after the bridge
+        write, in the same decision tick)."""
+        if name == self._active:
+            return
+        self._active = name
+        self.counters.switches += 1
+
+    def configure(self, hub: HubSpec) -> None:
+        """Adopt new mirroring and in-step settings (endpoints need a restart)."""
+        self.settings = hub
+        self._tracker.confirm_s = hub.standby_limits.confirm_ms / 1000
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._serve, name="mavlink-hub", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2)
+        self.close()
+
+    def close(self) -> None:
+        with self._clients_lock:
+            clients, self._clients, self._sinks = list(self._clients.values()), OrderedDict(), ()
+        for client in clients:
+            if client.sock is not None:
+                client.sock.close()
+        self._udp.close()
+        if self._tcp is not None:
+            self._tcp.close()
+
+    def clients(self) -> list[Address]:
+        """Addresses of the clients that currently get the vehicle's messages."""
+        return [c.address for c in self._sinks]
+
+    # -- standby states ----------------------------------------------------------------
+
+    def snapshot(self, name: str) -> Snapshot | None:
+        return self._seen.get(name)
+
+    def in_step(self, now: float) -> dict[str, InStep]:
+        """Every autopilot's confirmed verdict (the active one is in step by definition)."""
+        active_name = self._active
+        active = self._seen.get(active_name)
+        limits = self.settings.standby_limits
+        out: dict[str, InStep] = {}
+        for name, seen in self._seen.items():
+            if name == active_name or active is None:
+                self._tracker.forget(name)
+                out[name] = InStep(
+                    True, StandbyInStepReason.ACTIVE, "the active autopilot: clients fly it"
+                )
+                continue
+            verdict = judge_standby(active, seen, limits, stale_s=self.stale_s, now=now)
+            out[name] = self._tracker.update(name, verdict, now)
+        return out
+
+    def aux_standby(self, active: str) -> None:
+        """ArduPilot STANDBY aux function: high on every ArduPilot standby, low on the
+        active one (fire and forget: answers land in the link's ack mailbox). Also sent
+        to an ArduPilot autopilot whenever it is heard again after silence (a reboot
+        forgets it)."""
+        for name, link in self._links.items():
+            if Stack(link.spec.stack) is Stack.ARDUPILOT:
+                self._aux_standby(name, standby=name != active)
+
+    def _aux_standby(self, name: str, *, standby: bool) -> None:
+        link = self._links.get(name)
+        if link is None:
+            return
+        switch = AUX_SWITCH_HIGH if standby else AUX_SWITCH_LOW
+        link.send_command(
+            mavlink.MAV_CMD_DO_AUX_FUNCTION,
+            (float(AUX_FUNCTION_STANDBY), float(switch), 0.0, 0.0, 0.0, 0.0, 0.0),
+        )
+
+    # -- autopilot -> clients ----------------------------------------------------------
+
+    def _from_autopilot(self, name: str, spec: AutopilotSpec, msg: Any, now: float) -> None:
+        kind = msg.get_type()
+        seen = self._seen[name]
+        if kind == "HEARTBEAT":
+            fresh = seen.heartbeat_at is None or now - seen.heartbeat_at > self.stale_s
+            seen.heartbeat_at = now
+            seen.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+            seen.mode = mode_name(seen.stack, int(msg.custom_mode))
+            if fresh and seen.stack is Stack.ARDUPILOT:  # (re)connected: tell it its role
+                self._aux_standby(name, standby=name != self._active)
+        elif kind == "GLOBAL_POSITION_INT":
+            seen.position_at = now
+            seen.lat_deg = msg.lat / 1e7
+            seen.lon_deg = msg.lon / 1e7
+            seen.relative_alt_m = msg.relative_alt / 1000
+        for_agent = (
+            getattr(msg, "target_component", None) == AGENT_COMPONENT_ID
+            and getattr(msg, "target_system", None) == spec.sysid
+        )
+        if name != self._active:
+            if kind == "COMMAND_ACK" and not for_agent:
+                self._standby_answered(seen, int(msg.command), int(msg.result), now)
+            self.counters.dropped_standby += 1
+            return
+        sinks = self._sinks
+        if for_agent or not sinks:
+            return
+        frame = rewrite_source(bytes(msg.get_msgbuf()), self.sysid)
+        if frame is None:
+            return
+        sent = 0
+        for client in sinks:
+            try:
+                if client.sock is None:
+                    self._udp.sendto(frame, client.address)
+                else:
+                    client.sock.send(frame)
+                sent += 1
+            except OSError:
+                log.debug("hub: sending to %s failed", client.address)
+        counters = self.counters
+        counters.to_clients += sent
+        counters.forwarded[name] = counters.forwarded.get(name, 0) + 1
+
+    @staticmethod
+    def _standby_answered(seen: Snapshot, command: int, result: int, now: float) -> None:
+        if command not in MIRRORED_COMMANDS:
+            return
+        if result == MavResult.IN_PROGRESS:
+            return
+        seen.awaiting.pop(command, None)
+        if result == MavResult.ACCEPTED:
+            seen.rejected.pop(command, None)
+        else:
+            entry = mavlink.enums["MAV_RESULT"].get(result)
+            text = entry.name if entry is not None else str(result)
+            seen.rejected[command] = (f"answered {text}", now)
+
+    # -- clients -> autopilots ---------------------------------------------------------
+
+    def _serve(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self._serve_once()
+            except Exception:  # the hub outlives any bug in one round
+                log.exception("hub: serving failed")
+
+    def _serve_once(self) -> None:
+        watched: list[socket.socket] = [self._udp]
+        if self._tcp is not None:
+            watched.append(self._tcp)
+        watched.extend(c.sock for c in self._sinks if c.sock is not None)
+        readable, _, _ = select.select(watched, [], [], SELECT_WAIT_S)
+        now = self._clock()
+        for sock in readable:
+            if sock is self._udp:
+                self._read_udp(now)
+            elif sock is self._tcp:
+                self._accept(now)
+            else:
+                self._read_tcp(sock, now)
+        self._expire(now)
+
+    def _read_udp(self, now: float) -> None:
+        for _ in range(256):
+            try:
+                data, address = self._udp.recvfrom(UDP_MAX)
+            except (BlockingIOError, ConnectionRefusedError):
+                return
+            peer = (str(address[0]), int(address[1]))
+            client = self._clients.get(peer)
+            if client is None:
+                client = self._add(_Client(peer, None, now))
+            client.last_seen = now
+            self._from_client(client, data)
+            if client.parser.buf_len() > 0:  # a frame never continues in the next datagram
+                client.parser = _new_parser()
+
+    def _accept(self, now: float) -> None:
+        assert self._tcp is not None
+        try:
+            sock, address = self._tcp.accept()
+        except BlockingIOError:
+            return
+        sock.setblocking(False)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, TCP_SEND_BUFFER)
+        self._add(_Client((str(address[0]), int(address[1])), sock, now))
+
+    def _read_tcp(self, sock: socket.socket, now: float) -> None:
+        client = next((c for c in self._sinks if c.sock is sock), None)
+        if client is None:
+            return
+        try:
+            data = sock.recv(UDP_MAX)
+        except BlockingIOError:
+            return
+        except OSError:
+            data = b""
+        if not data:
+            self._remove(client)
+            return
+        client.last_seen = now
+        self._from_client(client, data)
+
+    def _add(self, client: _Client) -> _Client:
+        with self._clients_lock:
+            self._clients[client.address] = client
+            while len(self._clients) > MAX_CLIENTS:
+                _, dropped = self._clients.popitem(last=False)
+                if dropped.sock is not None:
+                    dropped.sock.close()
+            self._sinks = tuple(self._clients.values())
+        log.info("hub: client %s:%d connected", *client.address)
+        return client
+
+    def _remove(self, client: _Client) -> None:
+        with self._clients_lock:
+            self._clients.pop(client.address, None)
+            self._sinks = tuple(self._clients.values())
+        if client.sock is not None:
+            client.sock.close()
+        log.info("hub: client %s:%d gone", *client.address)
+
+    def _expire(self, now: float) -> None:
+        for client in self._sinks:
+            if client.sock is None and now - client.last_seen > CLIENT_TIMEOUT_S:
+                self._remove(client)
+
+    def _from_client(self, client: _Client, data: bytes) -> None:
+        parser = client.parser
+        try:
+            msg = parser.parse_char(data)
+            while msg is not None:
+                if msg.get_type() != "BAD_DATA":
+                    self.route(msg)
+                msg = parser.parse_char(b"")
+        except Exception:  # a client's garbage costs only its own parser
+            client.parser = _new_parser()
+
+    def route(self, msg: Any) -> None:
+        """Send one client message to the active autopilot, and to every standby when it
+        changes flight state (and mirroring is on)."""
+        active = self._active
+        links = self._links
+        link = links.get(active)
+        if link is not None and link.send_frame(
+            retarget(msg, self.sysid, link.spec.sysid, self._packer)
+        ):
+            self.counters.from_clients += 1
+        if not self.settings.mirror:
+            return
+        kind = msg.get_type()
+        command: int | None = None
+        if kind in COMMAND_MESSAGES:
+            command = int(msg.command)
+            if command not in MIRRORED_COMMANDS:
+                return
+        elif kind not in MIRRORED_MESSAGES:
+            return
+        target = target_of(msg)
+        if target not in (None, 0, self.sysid):
+            return  # addressed to another system on the client's network
+        mode_change = kind in MODE_MESSAGES or command in MODE_COMMANDS
+        active_stack = self._seen[active].stack if active in self._seen else None
+        now = self._clock()
+        for name, standby in links.items():
+            if name == active:
+                continue
+            seen = self._seen[name]
+            if mode_change and seen.stack != active_stack:
+                continue
+            if standby.send_frame(retarget(msg, self.sysid, standby.spec.sysid, self._packer)):
+                self.counters.mirrored += 1
+                if command is not None:
+                    seen.awaiting.setdefault(command, now)
+
+
+def hub_for(spec: RedundantAutopilotSpec, active: str, links: Mapping[str, HubLink]) -> Hub | None:
+    """The hub the spec asks for, with ``links`` attached; None without ``spec.hub``."""
+    if spec.hub is None:
+        return None
+    hub = Hub(spec, active)
+    for link in links.values():
+        hub.attach(link)
+    return hub

@@ -1,0 +1,287 @@
+"""The agent as the vehicle's MAVLink hub, against simulated autopilots over real UDP.
+
+A ground-station client (tests.support.hubclient: its own UDP socket, real MAVLink 2)
+connects to the endpoint the agent serves and flies the vehicle through it, while the
+simulated autopilots run behind the agent's links and a simulated bridge (the only
+stand-in: no GPIO hardware here). What a client must see: one vehicle identity before and
+after a failover, its commands and setpoint stream reaching whichever autopilot is
+active, nothing from a standby, and standbys kept in step (or reported out of step).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from datetime import UTC, datetime
+
+import pytest
+
+from roost_agent import Agent
+from roost_agent.bridge import SimulatedBridge
+from roost_api.autopilot import (
+    AutopilotCommand,
+    CommandAction,
+    FailoverPolicy,
+    HubSpec,
+    RedundantAutopilotSpec,
+    SafetyRoutine,
+    StandbyLimits,
+)
+from roost_api.meta import Condition, HealthLevel
+from roost_mavlink import (
+    MAV_CMD_DO_SET_MODE,
+    MavResult,
+    set_mode_params,
+)
+from roost_sim import (
+    FaultKind,
+    SimConfig,
+    SimulatedAutopilot,
+    autopilot_specs,
+    start_vehicle_sims,
+    stop_sims,
+)
+from tests.support.hubclient import HubClient
+from tests.support.waiting import wait_until
+
+pytestmark = pytest.mark.slow
+
+VEHICLE_SYSID = 42
+SIM_CONFIG = SimConfig.fast()
+POLL_S = 0.02
+MAV_CMD_COMPONENT_ARM_DISARM = 400
+MAV_CMD_NAV_TAKEOFF = 22
+MAV_CMD_NAV_LAND = 21
+
+
+@dataclass
+class Vehicle:
+    sims: list[SimulatedAutopilot]
+    agent: Agent
+    bridge: SimulatedBridge
+    client: HubClient
+
+    def sim(self, name: str) -> SimulatedAutopilot:
+        return next(s for s in self.sims if s.name == name)
+
+    def in_step(self, name: str) -> Condition | None:
+        for health in self.agent.status().autopilots:
+            if health.name == name:
+                return next((c for c in health.conditions if c.type == "StandbyInStep"), None)
+        return None
+
+
+@contextlib.contextmanager
+def vehicle(stacks: list[str], *, mirror: bool = True) -> Iterator[Vehicle]:
+    """Sims on the ground, an agent serving the hub on a free port, a client on it."""
+    sims = start_vehicle_sims(stacks, config=SIM_CONFIG)
+    agent: Agent | None = None
+    try:
+        spec = RedundantAutopilotSpec(
+            vehicle_name="v1",
+            autopilots=autopilot_specs(sims),
+            primary=sims[0].name,
+            failover_policy=FailoverPolicy(safety_routine=SafetyRoutine(hold_seconds=30)),
+            hub=HubSpec(
+                sysid=VEHICLE_SYSID,
+                udp="127.0.0.1:0",
+                mirror=mirror,
+                standby_limits=StandbyLimits(confirm_ms=300),
+            ),
+        )
+        bridge = SimulatedBridge(range(len(sims)))
+        agent = Agent(spec, bridge)
+        agent.start()
+        assert agent.hub is not None
+        with HubClient(agent.hub.udp_address) as client:
+            client.wait_for(lambda r: r.kind == "HEARTBEAT", 10)
+            for sim in sims:
+                sim.wait_ready(timeout=5)
+            wait_until(
+                "every autopilot heard",
+                lambda: all(link.locked_address for link in agent.links.values()),
+                10,
+                POLL_S,
+            )
+            yield Vehicle(sims, agent, bridge, client)
+    finally:
+        if agent is not None:
+            agent.stop()
+        stop_sims(sims)
+
+
+def take_off_through_hub(v: Vehicle) -> None:
+    """Arm and take off with commands the client addresses to the vehicle."""
+    assert v.client.command(VEHICLE_SYSID, MAV_CMD_COMPONENT_ARM_DISARM, 1) == MavResult.ACCEPTED
+    result = v.client.command(VEHICLE_SYSID, MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, 0, 0, math.nan)
+    assert result == MavResult.ACCEPTED
+
+
+def airborne(sim: SimulatedAutopilot) -> None:
+    sim.wait_until(lambda s: s.landed_state == "InAir" and s.altitude_m > 2.0, timeout=15)
+
+
+def condition_is(
+    v: Vehicle, name: str, status: str, reason: str | None = None
+) -> Callable[[], bool]:
+    def check() -> bool:
+        cond = v.in_step(name)
+        return cond is not None and cond.status == status and reason in (None, cond.reason)
+
+    return check
+
+
+def set_mode(v: Vehicle, mode: str) -> int:
+    params = set_mode_params(v.sims[0].stack, mode)
+    return v.client.command(VEHICLE_SYSID, MAV_CMD_DO_SET_MODE, *params)
+
+
+def all_ok(v: Vehicle) -> bool:
+    a = v.agent.assessments()
+    return all(s.name in a and a[s.name].level == HealthLevel.OK for s in v.sims)
+
+
+def test_client_flies_the_vehicle_through_the_hub_and_the_standby_follows() -> None:
+    with vehicle(["px4", "px4"]) as v:
+        take_off_through_hub(v)
+        for sim in v.sims:  # the standby got the mirrored arm and takeoff
+            airborne(sim)
+        wait_until("fc2 in step", condition_is(v, "fc2", "True", "InStep"), 10, POLL_S)
+        assert v.in_step("fc1") is not None and v.in_step("fc1").reason == "Active"  # type: ignore[union-attr]
+        assert set_mode(v, "AUTO.LOITER") == MavResult.ACCEPTED
+        for sim in v.sims:
+            sim.wait_until(lambda s: s.mode == "AUTO.LOITER", timeout=5)
+        assert v.client.command(VEHICLE_SYSID, MAV_CMD_NAV_LAND) == MavResult.ACCEPTED
+        for sim in v.sims:
+            sim.wait_until(lambda s: s.landed_state == "OnGround", timeout=20)
+        # one identity: everything the client ever got came from the vehicle's sysid
+        senders = {r.sysid for r in v.client.messages()}
+        assert senders == {VEHICLE_SYSID}, senders
+        kinds = {r.kind for r in v.client.messages()}
+        assert {"HEARTBEAT", "GLOBAL_POSITION_INT", "COMMAND_ACK"} <= kinds
+
+
+def test_failover_keeps_the_client_connected_and_its_setpoint_stream_moves() -> None:
+    with vehicle(["px4", "px4"]) as v:
+        take_off_through_hub(v)
+        for sim in v.sims:
+            airborne(sim)
+        wait_until("every autopilot OK", lambda: all_ok(v), 10, POLL_S)
+        wait_until("fc2 in step", condition_is(v, "fc2", "True"), 10, POLL_S)
+        time.sleep(1.2)  # not a wait for a condition: T_off, a standby's required OK time
+        stop = threading.Event()
+
+        def stream() -> None:
+            while not stop.is_set():
+                v.client.setpoint(VEHICLE_SYSID, 0.0, 0.0, -5.0)
+                stop.wait(0.05)
+
+        streamer = threading.Thread(target=stream, daemon=True)
+        streamer.start()
+        try:
+            hub = v.agent.hub
+            assert hub is not None
+            v.sim("fc1").inject(FaultKind.SILENCE)
+            wait_until("switched to fc2", lambda: v.agent.active == "fc2", 10, POLL_S)
+            assert hub.active == "fc2"
+            switched = time.monotonic()
+            # the client keeps its connection: the vehicle answers it from fc2
+            v.client.wait_for(lambda r: r.kind == "HEARTBEAT", 5, switched)
+            routed = hub.counters.from_clients
+            wait_until(
+                "setpoints reach fc2 through the hub",
+                lambda: hub.counters.from_clients > routed + 10,
+                5,
+                POLL_S,
+            )
+            record = v.agent.status().last_failover
+            assert record is not None and record.standby_in_step is True
+            assert set_mode(v, "AUTO.LOITER") == MavResult.ACCEPTED  # answered by fc2
+        finally:
+            stop.set()
+            streamer.join()
+        assert {r.sysid for r in v.client.messages()} == {VEHICLE_SYSID}
+
+
+def test_after_a_switch_nothing_from_the_old_active_reaches_the_client() -> None:
+    with vehicle(["px4", "px4"]) as v:
+        take_off_through_hub(v)
+        for sim in v.sims:
+            airborne(sim)
+        wait_until("every autopilot OK", lambda: all_ok(v), 10, POLL_S)
+        time.sleep(1.2)  # not a wait for a condition: T_off before a switch is allowed
+        command = AutopilotCommand(
+            id="switch-1",
+            action=CommandAction.SWITCH,
+            target="fc2",
+            issued_at=datetime.now(UTC),
+        )
+        assert v.agent.submit(command).result(timeout=5).result == "Executed"
+        hub = v.agent.hub
+        assert hub is not None
+        before = hub.counters.forwarded.get("fc1", 0)
+        link = v.agent.links["fc1"]
+        accepted = link.counters.accepted
+        start = time.monotonic()
+        wait_until(
+            "fc1 keeps talking to the agent",
+            lambda: link.counters.accepted > accepted + 100,
+            5,
+            POLL_S,
+        )
+        assert hub.counters.forwarded.get("fc1", 0) == before  # none of it went to clients
+        beats = v.client.messages("HEARTBEAT", start)
+        elapsed = time.monotonic() - start
+        assert len(beats) <= math.ceil(elapsed) + 1, (len(beats), elapsed)  # one source, 1 Hz
+
+
+def test_unmirrored_standby_drifts_out_of_step_and_a_dead_active_still_fails_over() -> None:
+    with vehicle(["px4", "px4"], mirror=False) as v:
+        for sim in v.sims:
+            sim.fly()
+        for sim in v.sims:
+            airborne(sim)
+        wait_until("every autopilot OK", lambda: all_ok(v), 10, POLL_S)
+        wait_until("fc2 in step", condition_is(v, "fc2", "True"), 15, POLL_S)
+        assert set_mode(v, "AUTO.RTL") == MavResult.ACCEPTED  # fc1 only: no mirroring
+        wait_until("fc2 out of step", condition_is(v, "fc2", "False", "ModeDiffers"), 10, POLL_S)
+        v.sim("fc1").inject(FaultKind.SILENCE)
+        wait_until("switched to fc2", lambda: v.agent.active == "fc2", 10, POLL_S)
+        record = v.agent.status().last_failover
+        assert record is not None and record.standby_in_step is False
+
+
+def test_standby_rejecting_a_mirrored_mode_is_out_of_step() -> None:
+    with vehicle(["px4", "px4"]) as v:
+        take_off_through_hub(v)
+        for sim in v.sims:
+            airborne(sim)
+        wait_until("fc2 in step", condition_is(v, "fc2", "True"), 15, POLL_S)
+        v.sim("fc2").inject(FaultKind.SENSOR, "gps")  # position modes refused from now
+        assert set_mode(v, "POSCTL") == MavResult.ACCEPTED  # the active accepts
+        wait_until(
+            "fc2 rejected the mirrored mode",
+            condition_is(v, "fc2", "False", "RejectedMirroredCommand"),
+            10,
+            POLL_S,
+        )
+        cond = v.in_step("fc2")
+        assert cond is not None and "DO_SET_MODE" in cond.message
+
+
+def test_silent_standby_is_out_of_step() -> None:
+    with vehicle(["ardupilot", "ardupilot"]) as v:
+        for sim in v.sims:
+            sim.fly()
+        for sim in v.sims:
+            airborne(sim)
+        wait_until("fc2 in step", condition_is(v, "fc2", "True"), 15, POLL_S)
+        v.sim("fc2").inject(FaultKind.SILENCE)
+        wait_until("fc2 silent", condition_is(v, "fc2", "False", "Silent"), 10, POLL_S)
+        # the ArduPilot standby was told it is one (STANDBY aux function, high)
+        aux = [c for c in v.sim("fc2").commands if c.command == 218]
+        assert aux and aux[0].params[:2] == (76.0, 2.0), aux

@@ -1,0 +1,135 @@
+"""A small MAVLink ground-station client over real UDP, for hub tests and benchmarks.
+
+It talks to the vehicle endpoint the agent serves (``HubSpec.udp``) as a ground station
+does: its own socket, a 1 Hz GCS heartbeat, commands addressed to the vehicle's system id,
+and a record of everything the vehicle sent (type, sender, arrival time).
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+GCS_SYSID = 255
+GCS_COMPONENT = 190  # MAV_COMP_ID_MISSIONPLANNER
+
+
+@dataclass(frozen=True)
+class Received:
+    """One message from the vehicle endpoint."""
+
+    at: float  # monotonic seconds
+    kind: str
+    sysid: int
+    msg: Any
+
+
+class HubClient:
+    """A ground station on ``address`` (the hub's UDP endpoint)."""
+
+    def __init__(self, address: tuple[str, int], *, sysid: int = GCS_SYSID) -> None:
+        self.address = address
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.1)
+        self.mav = mavlink.MAVLink(_SocketFile(self), srcSystem=sysid, srcComponent=GCS_COMPONENT)
+        self.received: list[Received] = []
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self._threads = [
+            threading.Thread(target=self._read, name="hubclient-read", daemon=True),
+            threading.Thread(target=self._beat, name="hubclient-beat", daemon=True),
+        ]
+        self._on_message: Callable[[Received], None] | None = None
+
+    def __enter__(self) -> HubClient:
+        for thread in self._threads:
+            thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        for thread in self._threads:
+            thread.join(timeout=2)
+        self.sock.close()
+
+    def on_message(self, callback: Callable[[Received], None] | None) -> None:
+        """Call ``callback`` on the reader thread for every message (benchmarks)."""
+        self._on_message = callback
+
+    def _beat(self) -> None:
+        while not self._stop.is_set():
+            self.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+            self._stop.wait(1.0)
+
+    def _read(self) -> None:
+        parser = mavlink.MAVLink(None)
+        parser.robust_parsing = True
+        while not self._stop.is_set():
+            try:
+                data = self.sock.recv(65535)
+            except (TimeoutError, OSError):
+                continue
+            now = time.monotonic()
+            msg = parser.parse_char(data)
+            while msg is not None:
+                if msg.get_type() != "BAD_DATA":
+                    item = Received(now, msg.get_type(), msg.get_srcSystem(), msg)
+                    callback = self._on_message
+                    if callback is not None:
+                        callback(item)
+                    with self._cond:
+                        self.received.append(item)
+                        self._cond.notify_all()
+                msg = parser.parse_char(b"")
+
+    def messages(self, kind: str | None = None, since: float = 0.0) -> list[Received]:
+        with self._cond:
+            return [r for r in self.received if r.at >= since and (kind is None or r.kind == kind)]
+
+    def wait_for(
+        self, predicate: Callable[[Received], bool], timeout: float, since: float = 0.0
+    ) -> Received:
+        """The first message since ``since`` that satisfies ``predicate`` (waits)."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while True:
+                for item in self.received:
+                    if item.at >= since and predicate(item):
+                        return item
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise TimeoutError("no matching message from the vehicle endpoint")
+                self._cond.wait(remaining)
+
+    def command(self, target: int, command: int, *params: float, timeout: float = 3.0) -> int:
+        """COMMAND_LONG to ``target`` (the vehicle); its COMMAND_ACK result."""
+        full = (list(params) + [0.0] * 7)[:7]
+        since = time.monotonic()
+        self.mav.command_long_send(target, 1, command, 0, *full)
+        ack = self.wait_for(
+            lambda r: r.kind == "COMMAND_ACK" and int(r.msg.command) == command, timeout, since
+        )
+        return int(ack.msg.result)
+
+    def setpoint(self, target: int, north: float, east: float, down: float) -> None:
+        """SET_POSITION_TARGET_LOCAL_NED: a position setpoint (velocities ignored)."""
+        ignore_all_but_position = 0b0000_1111_1111_1000
+        self.mav.set_position_target_local_ned_send(
+            0, target, 1, mavlink.MAV_FRAME_LOCAL_NED, ignore_all_but_position,
+            north, east, down, 0, 0, 0, 0, 0, 0, 0, 0,
+        )  # fmt: skip
+
+
+class _SocketFile:
+    def __init__(self, client: HubClient) -> None:
+        self.client = client
+
+    def write(self, data: bytes) -> None:
+        self.client.sock.sendto(bytes(data), self.client.address)
