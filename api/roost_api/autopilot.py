@@ -315,6 +315,18 @@ class HubSpec(ApiModel):
     )
 
 
+MAVROS_HUB_BIND_PORT = 14555  # mavros' own UDP port when it talks to the hub
+
+
+def hub_client_url(hub: HubSpec) -> str:
+    """The FCU URL mavros uses to reach the hub (``udp://:LOCAL@HOST:PORT``): the hub's
+    UDP endpoint, on 127.0.0.1 when it listens on every address."""
+    host, _, port = hub.udp.rpartition(":")
+    if host in ("0.0.0.0", ""):
+        host = "127.0.0.1"
+    return f"udp://:{MAVROS_HUB_BIND_PORT}@{host}:{port}"
+
+
 class FailoverPolicy(ApiModel):
     """How the agent decides and what it does after deciding."""
 

@@ -16,6 +16,7 @@ import pytest
 from roost_api.autopilot import (
     AutopilotHealth,
     FailoverRecord,
+    HubSpec,
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
 )
@@ -571,3 +572,16 @@ def test_a_vehicle_with_redundant_autopilots_is_not_ready_before_its_agent_is_he
     assert (status, reason) == ("Unknown", "AgentNotHeardYet")
     heard = [*bound, cond("AgentConnected", "True"), cond("AutopilotsHealthy", "True")]
     assert ready_condition(heard, agent_expected=True)[0] == "True"
+
+
+def test_with_the_hub_a_failover_never_repoints_or_rolls_mavros() -> None:
+    spec = ra_spec().model_copy(update={"hub": HubSpec(udp="0.0.0.0:14550")})
+    hub_url = "udp://:14555@127.0.0.1:14550"
+    first = run(status=VehicleStatus(), report=ra_status(), spec=spec)
+    assert (first.fcu_url, first.failover.followed_autopilot) == (hub_url, "fc1")
+    report = ra_status(active="fc2", failed_over="True", count=1, last=failover(T2))
+    result = run(status=pointed_at("fc1", hub_url), report=report, spec=spec)
+    assert result.active_autopilot == "fc2"  # the vehicle shows the true active
+    assert (result.fcu_url, result.failover.followed_autopilot) == (hub_url, "fc1")
+    assert result.failover.action is None and not result.acting
+    assert reasons(result) == ["FailedOver"]  # no RepointingMavros

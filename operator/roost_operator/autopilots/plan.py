@@ -15,7 +15,12 @@ What it decides, in order:
 4. Which autopilot the vehicle's workloads follow: the agent's active autopilot, unless
    a guard holds the re-point back, in which case they keep following the previous one
    and ``status.failover.blocked`` says why. The first pointing of a vehicle is set-up,
-   not remediation, and is not guarded.
+   not remediation, and is not guarded. With the agent's MAVLink hub
+   (``spec.hub``) there is nothing to re-point: mavros talks to the hub's endpoint,
+   whose route the agent moves in the switch itself, so mavros keeps following the
+   primary's configuration and is never rolled on a failover. The re-point mode stays
+   for vehicles without the hub: autopilots reached through an external MAVLink router
+   (one endpoint per autopilot), and simulated vehicles whose SITLs each serve mavros.
 
 Automatic failback (``failoverPolicy.failback: OnGround``) is decided on the vehicle by
 the agent's arbiter, like every switch; its cluster side is the re-point back to the
@@ -223,7 +228,13 @@ def plan(
         latched=book.latched,
         actions_elsewhere=actions_elsewhere,
     )
-    if target is not None and (followed is None or followed not in by_name):
+    if autopilot_spec.hub is not None and autopilot_spec.primary in by_name:
+        # mavros talks to the agent's hub, which moves the route itself: nothing to
+        # re-point, no rollout. mavros keeps the primary's configuration (firmware).
+        followed = autopilot_spec.primary
+        fcu_url = by_name[followed].fcu_url
+        action = None
+    elif target is not None and (followed is None or followed not in by_name):
         followed, fcu_url = target.name, target.fcu_url
     elif target is not None and target.name != followed:
         if verdict is Verdict.ALLOWED:

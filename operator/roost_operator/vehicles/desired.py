@@ -33,7 +33,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any, Final
 
-from roost_api.autopilot import RedundantAutopilotSpec
+from roost_api.autopilot import RedundantAutopilotSpec, hub_client_url
 from roost_api.meta import Condition, ConditionStatus, Stack, set_condition
 from roost_api.vehicle import ComponentSpec, VehicleConditionType, VehicleSpec
 from roost_api.wellknown import (
@@ -94,13 +94,15 @@ def autopilots_of(spec: VehicleSpec, autopilots: RedundantAutopilotSpec | None) 
     without one has no autopilot Roost knows of (mavros uses Starling's default URL).
     """
     if autopilots is not None:
+        # With the hub, mavros reaches every autopilot through the agent's endpoint.
+        hub = hub_client_url(autopilots.hub) if autopilots.hub is not None else None
         return [
             Autopilot(
                 name=a.name,
                 stack=Stack(a.stack),
                 sysid=a.sysid,
                 connection=a.connection,
-                fcu_url=a.fcu_url or a.connection,
+                fcu_url=hub or a.fcu_url or a.connection,
             )
             for a in autopilots.autopilots
         ]
