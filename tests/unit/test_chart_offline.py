@@ -432,7 +432,8 @@ def test_agent_metrics_stay_on_the_vehicle_unless_the_node_address_is_bound() ->
     }
     assert address in container["env"]
     assert container["ports"] == [
-        {"name": "metrics", "containerPort": 9465, "hostPort": 9465, "protocol": "TCP"}
+        {"name": "metrics", "containerPort": 9465, "hostPort": 9465, "protocol": "TCP"},
+        {"name": "mavlink", "containerPort": 14550, "hostPort": 14550, "protocol": "UDP"},
     ]
     assert _annotations(bound)["prometheus.io/port"] == "9465"
 
