@@ -24,6 +24,7 @@ MODULES: tuple[str, ...] = (
     "link",
     "firmware",
     "vehicle",
+    "hub",
 )
 
 
