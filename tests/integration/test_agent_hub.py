@@ -10,28 +10,19 @@ active, nothing from a standby, and standbys kept in step (or reported out of st
 
 from __future__ import annotations
 
-import contextlib
 import math
 import threading
 import time
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from collections.abc import Callable
 from datetime import UTC, datetime
 
 import pytest
 
-from roost_agent import Agent
-from roost_agent.bridge import SimulatedBridge
 from roost_api.autopilot import (
     AutopilotCommand,
     CommandAction,
-    FailoverPolicy,
-    HubSpec,
-    RedundantAutopilotSpec,
-    SafetyRoutine,
-    StandbyLimits,
 )
-from roost_api.meta import Condition, HealthLevel
+from roost_api.meta import HealthLevel
 from roost_mavlink import (
     MAV_CMD_DO_SET_MODE,
     MavResult,
@@ -39,82 +30,20 @@ from roost_mavlink import (
 )
 from roost_sim import (
     FaultKind,
-    SimConfig,
     SimulatedAutopilot,
-    autopilot_specs,
-    start_vehicle_sims,
-    stop_sims,
 )
-from tests.support.hubclient import HubClient
+from tests.support.hubclient import VEHICLE_SYSID, HubVehicle, hub_vehicle
 from tests.support.waiting import wait_until
 
 pytestmark = pytest.mark.slow
 
-VEHICLE_SYSID = 42
-SIM_CONFIG = SimConfig.fast()
 POLL_S = 0.02
 MAV_CMD_COMPONENT_ARM_DISARM = 400
 MAV_CMD_NAV_TAKEOFF = 22
 MAV_CMD_NAV_LAND = 21
 
 
-@dataclass
-class Vehicle:
-    sims: list[SimulatedAutopilot]
-    agent: Agent
-    bridge: SimulatedBridge
-    client: HubClient
-
-    def sim(self, name: str) -> SimulatedAutopilot:
-        return next(s for s in self.sims if s.name == name)
-
-    def in_step(self, name: str) -> Condition | None:
-        for health in self.agent.status().autopilots:
-            if health.name == name:
-                return next((c for c in health.conditions if c.type == "StandbyInStep"), None)
-        return None
-
-
-@contextlib.contextmanager
-def vehicle(stacks: list[str], *, mirror: bool = True) -> Iterator[Vehicle]:
-    """Sims on the ground, an agent serving the hub on a free port, a client on it."""
-    sims = start_vehicle_sims(stacks, config=SIM_CONFIG)
-    agent: Agent | None = None
-    try:
-        spec = RedundantAutopilotSpec(
-            vehicle_name="v1",
-            autopilots=autopilot_specs(sims),
-            primary=sims[0].name,
-            failover_policy=FailoverPolicy(safety_routine=SafetyRoutine(hold_seconds=30)),
-            hub=HubSpec(
-                sysid=VEHICLE_SYSID,
-                udp="127.0.0.1:0",
-                mirror=mirror,
-                standby_limits=StandbyLimits(confirm_ms=300),
-            ),
-        )
-        bridge = SimulatedBridge(range(len(sims)))
-        agent = Agent(spec, bridge)
-        agent.start()
-        assert agent.hub is not None
-        with HubClient(agent.hub.udp_address) as client:
-            client.wait_for(lambda r: r.kind == "HEARTBEAT", 10)
-            for sim in sims:
-                sim.wait_ready(timeout=5)
-            wait_until(
-                "every autopilot heard",
-                lambda: all(link.locked_address for link in agent.links.values()),
-                10,
-                POLL_S,
-            )
-            yield Vehicle(sims, agent, bridge, client)
-    finally:
-        if agent is not None:
-            agent.stop()
-        stop_sims(sims)
-
-
-def take_off_through_hub(v: Vehicle) -> None:
+def take_off_through_hub(v: HubVehicle) -> None:
     """Arm and take off with commands the client addresses to the vehicle."""
     assert v.client.command(VEHICLE_SYSID, MAV_CMD_COMPONENT_ARM_DISARM, 1) == MavResult.ACCEPTED
     result = v.client.command(VEHICLE_SYSID, MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, 0, 0, math.nan)
@@ -126,7 +55,7 @@ def airborne(sim: SimulatedAutopilot) -> None:
 
 
 def condition_is(
-    v: Vehicle, name: str, status: str, reason: str | None = None
+    v: HubVehicle, name: str, status: str, reason: str | None = None
 ) -> Callable[[], bool]:
     def check() -> bool:
         cond = v.in_step(name)
@@ -135,18 +64,18 @@ def condition_is(
     return check
 
 
-def set_mode(v: Vehicle, mode: str) -> int:
+def set_mode(v: HubVehicle, mode: str) -> int:
     params = set_mode_params(v.sims[0].stack, mode)
     return v.client.command(VEHICLE_SYSID, MAV_CMD_DO_SET_MODE, *params)
 
 
-def all_ok(v: Vehicle) -> bool:
+def all_ok(v: HubVehicle) -> bool:
     a = v.agent.assessments()
     return all(s.name in a and a[s.name].level == HealthLevel.OK for s in v.sims)
 
 
 def test_client_flies_the_vehicle_through_the_hub_and_the_standby_follows() -> None:
-    with vehicle(["px4", "px4"]) as v:
+    with hub_vehicle(["px4", "px4"]) as v:
         take_off_through_hub(v)
         for sim in v.sims:  # the standby got the mirrored arm and takeoff
             airborne(sim)
@@ -166,7 +95,7 @@ def test_client_flies_the_vehicle_through_the_hub_and_the_standby_follows() -> N
 
 
 def test_failover_keeps_the_client_connected_and_its_setpoint_stream_moves() -> None:
-    with vehicle(["px4", "px4"]) as v:
+    with hub_vehicle(["px4", "px4"]) as v:
         take_off_through_hub(v)
         for sim in v.sims:
             airborne(sim)
@@ -208,7 +137,7 @@ def test_failover_keeps_the_client_connected_and_its_setpoint_stream_moves() -> 
 
 
 def test_after_a_switch_nothing_from_the_old_active_reaches_the_client() -> None:
-    with vehicle(["px4", "px4"]) as v:
+    with hub_vehicle(["px4", "px4"]) as v:
         take_off_through_hub(v)
         for sim in v.sims:
             airborne(sim)
@@ -240,7 +169,7 @@ def test_after_a_switch_nothing_from_the_old_active_reaches_the_client() -> None
 
 
 def test_unmirrored_standby_drifts_out_of_step_and_a_dead_active_still_fails_over() -> None:
-    with vehicle(["px4", "px4"], mirror=False) as v:
+    with hub_vehicle(["px4", "px4"], mirror=False) as v:
         for sim in v.sims:
             sim.fly()
         for sim in v.sims:
@@ -256,7 +185,7 @@ def test_unmirrored_standby_drifts_out_of_step_and_a_dead_active_still_fails_ove
 
 
 def test_standby_rejecting_a_mirrored_mode_is_out_of_step() -> None:
-    with vehicle(["px4", "px4"]) as v:
+    with hub_vehicle(["px4", "px4"]) as v:
         take_off_through_hub(v)
         for sim in v.sims:
             airborne(sim)
@@ -274,7 +203,7 @@ def test_standby_rejecting_a_mirrored_mode_is_out_of_step() -> None:
 
 
 def test_silent_standby_is_out_of_step() -> None:
-    with vehicle(["ardupilot", "ardupilot"]) as v:
+    with hub_vehicle(["ardupilot", "ardupilot"]) as v:
         for sim in v.sims:
             sim.fly()
         for sim in v.sims:

@@ -7,14 +7,34 @@ and a record of everything the vehicle sent (type, sender, arrival time).
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from roost_agent import Agent
+from roost_agent.bridge import SimulatedBridge
+from roost_api.autopilot import (
+    FailoverPolicy,
+    HubSpec,
+    RedundantAutopilotSpec,
+    SafetyRoutine,
+    StandbyLimits,
+)
+from roost_api.meta import Condition
+from roost_sim import (
+    SimConfig,
+    SimulatedAutopilot,
+    autopilot_specs,
+    start_vehicle_sims,
+    stop_sims,
+)
+from tests.support.waiting import wait_until
 
 GCS_SYSID = 255
 GCS_COMPONENT = 190  # MAV_COMP_ID_MISSIONPLANNER
@@ -133,3 +153,71 @@ class _SocketFile:
 
     def write(self, data: bytes) -> None:
         self.client.sock.sendto(bytes(data), self.client.address)
+
+
+VEHICLE_SYSID = 42
+POLL_S = 0.02
+
+
+@dataclass
+class HubVehicle:
+    """Simulated autopilots behind an agent serving the hub, and a client on the hub."""
+
+    sims: list[SimulatedAutopilot]
+    agent: Agent
+    bridge: SimulatedBridge
+    client: HubClient
+
+    def sim(self, name: str) -> SimulatedAutopilot:
+        return next(s for s in self.sims if s.name == name)
+
+    def in_step(self, name: str) -> Condition | None:
+        """The autopilot's StandbyInStep condition as the agent reports it."""
+        for health in self.agent.status().autopilots:
+            if health.name == name:
+                return next((c for c in health.conditions if c.type == "StandbyInStep"), None)
+        return None
+
+
+@contextlib.contextmanager
+def hub_vehicle(
+    stacks: list[str], *, mirror: bool = True, config: SimConfig | None = None
+) -> Iterator[HubVehicle]:
+    """Sims on the ground and heard by the agent, which serves the hub on a free port,
+    a :class:`HubClient` on it."""
+    sims = start_vehicle_sims(stacks, config=config or SimConfig.fast())
+    agent: Agent | None = None
+    try:
+        spec = RedundantAutopilotSpec(
+            vehicle_name="v1",
+            autopilots=autopilot_specs(sims),
+            primary=sims[0].name,
+            failover_policy=FailoverPolicy(safety_routine=SafetyRoutine(hold_seconds=30)),
+            hub=HubSpec(
+                sysid=VEHICLE_SYSID,
+                udp="127.0.0.1:0",
+                mirror=mirror,
+                standby_limits=StandbyLimits(confirm_ms=300),
+            ),
+        )
+        bridge = SimulatedBridge(range(len(sims)))
+        agent = Agent(spec, bridge)
+        agent.start()
+        hub = agent.hub
+        assert hub is not None
+        with HubClient(hub.udp_address) as client:
+            client.wait_for(lambda r: r.kind == "HEARTBEAT", 10)
+            for sim in sims:
+                sim.wait_ready(timeout=5)
+            links = agent.links
+            wait_until(
+                "every autopilot heard",
+                lambda: all(link.locked_address for link in links.values()),
+                10,
+                POLL_S,
+            )
+            yield HubVehicle(sims, agent, bridge, client)
+    finally:
+        if agent is not None:
+            agent.stop()
+        stop_sims(sims)

@@ -1,0 +1,180 @@
+"""Real MAVLink clients through the agent's hub: MAVSDK's native library and MAVProxy.
+
+Neither shares code with Roost: they connect to the vehicle endpoint the agent serves,
+see one vehicle (the hub's sysid), read telemetry, arm, take off and land; the simulated
+autopilots behind the agent (real UDP MAVLink) and their standby follow. The bridge is
+simulated (no GPIO hardware here).
+"""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+from mavsdk import ComponentType, Configuration, Mavsdk
+from mavsdk.plugins.action import Action
+from mavsdk.plugins.offboard import Offboard, PositionNedYaw
+from mavsdk.plugins.telemetry import Telemetry
+
+from roost_sim import FaultKind, SimConfig
+from tests.support.hubclient import VEHICLE_SYSID, HubVehicle, hub_vehicle
+from tests.support.waiting import wait_until
+
+pytestmark = pytest.mark.slow
+
+BIN = Path(sys.executable).parent
+
+
+def eventually(what: str, check: Callable[[], bool], timeout: float = 15.0) -> None:
+    wait_until(what, check, timeout, 0.1)
+
+
+def airborne(v: HubVehicle) -> bool:
+    return all(s.snapshot().landed_state == "InAir" for s in v.sims)
+
+
+def on_ground(v: HubVehicle) -> bool:
+    return all(s.snapshot().landed_state == "OnGround" for s in v.sims)
+
+
+def mavsdk_on(v: HubVehicle) -> tuple[Mavsdk, Telemetry, Action, Offboard]:
+    hub = v.agent.hub
+    assert hub is not None
+    host, port = hub.udp_address
+    mavsdk = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
+    assert int(mavsdk.add_any_connection(f"udpout://{host}:{port}")) == 0
+    system = mavsdk.first_autopilot(10.0)
+    assert system is not None and system.get_system_id() == VEHICLE_SYSID
+    return mavsdk, Telemetry(system), Action(system), Offboard(system)
+
+
+def test_mavsdk_flies_the_vehicle_through_the_hub() -> None:
+    with hub_vehicle(["px4", "px4"]) as v:
+        mavsdk, telemetry, action, _ = mavsdk_on(v)
+        try:
+            eventually("armable", lambda: telemetry.health().is_armable)
+            eventually("home known", lambda: telemetry.health().is_home_position_ok)
+            assert not math.isnan(telemetry.position().latitude_deg)
+            action.arm()
+            action.takeoff()
+            eventually("both autopilots in the air", lambda: airborne(v))
+            eventually("MAVSDK sees the vehicle in the air", telemetry.in_air)
+            action.land()
+            eventually("both autopilots landed", lambda: on_ground(v), 30)
+            eventually("MAVSDK sees it landed", lambda: not telemetry.in_air())
+        finally:
+            mavsdk.destroy()
+
+
+def test_mavsdk_offboard_stream_continues_to_the_new_autopilot_after_a_failover() -> None:
+    with hub_vehicle(["px4", "px4"]) as v:
+        mavsdk, telemetry, action, offboard = mavsdk_on(v)
+        try:
+            eventually("armable", lambda: telemetry.health().is_armable)
+            action.arm()
+            action.takeoff()
+            eventually("both autopilots in the air", lambda: airborne(v))
+            eventually("both above 2 m", lambda: all(s.snapshot().altitude_m > 2 for s in v.sims))
+            time.sleep(1.2)  # not a wait for a condition: T_off, a standby's required OK time
+            stop = threading.Event()
+
+            def stream() -> None:  # MAVSDK resends the last setpoint itself; keep it fresh
+                while not stop.is_set():
+                    offboard.set_position_ned(PositionNedYaw(0.0, 0.0, -5.0, 0.0))
+                    stop.wait(0.1)
+
+            offboard.set_position_ned(PositionNedYaw(0.0, 0.0, -5.0, 0.0))
+            streamer = threading.Thread(target=stream, daemon=True)
+            streamer.start()
+            try:
+                hub = v.agent.hub
+                assert hub is not None
+                v.sim("fc1").inject(FaultKind.SILENCE)
+                wait_until("switched to fc2", lambda: v.agent.active == "fc2", 10, 0.02)
+                routed = hub.counters.from_clients
+                eventually(
+                    "MAVSDK's setpoints reach fc2",
+                    lambda: (
+                        v.sim("fc2").unhandled_messages.get("SET_POSITION_TARGET_LOCAL_NED", 0) > 0
+                        and hub.counters.from_clients > routed + 20
+                    ),
+                )
+                systems = mavsdk.get_systems()  # still one vehicle: no new system appeared
+                assert [s.get_system_id() for s in systems] == [VEHICLE_SYSID]
+                eventually("MAVSDK still gets telemetry", telemetry.in_air)
+            finally:
+                stop.set()
+                streamer.join()
+        finally:
+            mavsdk.destroy()
+
+
+def test_mavproxy_arms_takes_off_and_lands_through_the_hub(tmp_path: Path) -> None:
+    with hub_vehicle(["ardupilot", "ardupilot"], config=SimConfig.fast(preset_streams=True)) as v:
+        hub = v.agent.hub
+        assert hub is not None
+        host, port = hub.udp_address
+        proc = subprocess.Popen(
+            [
+                str(BIN / "mavproxy.py"),
+                f"--master=udpout:{host}:{port}",
+                f"--target-system={VEHICLE_SYSID}",
+                "--source-system=254",
+                f"--state-basedir={tmp_path}",
+                "--default-modules=mode,arm,cmdlong",
+                "--nowait",
+            ],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            cwd=tmp_path,
+        )
+        assert proc.stdin is not None
+        try:
+
+            def say(line: str) -> None:
+                assert proc.stdin is not None
+                proc.stdin.write(line + "\n")
+                proc.stdin.flush()
+
+            output: list[str] = []
+
+            def read() -> None:
+                assert proc.stdout is not None
+                for line in proc.stdout:
+                    output.append(line)
+
+            threading.Thread(target=read, daemon=True).start()
+            eventually(
+                "MAVProxy sees one vehicle, the hub's sysid",
+                lambda: any(f"Detected vehicle {VEHICLE_SYSID}:1" in line for line in output),
+            )
+            say("mode GUIDED")
+            eventually("GUIDED on both", lambda: all(s.snapshot().mode == "GUIDED" for s in v.sims))
+            say("arm throttle")
+            eventually("armed on both", lambda: all(s.snapshot().armed for s in v.sims))
+            say("takeoff 5")
+            eventually("both autopilots in the air", lambda: airborne(v))
+            say("mode LAND")
+            eventually("both autopilots landed", lambda: on_ground(v), 40)
+            detected = [line for line in output if "Detected vehicle" in line]
+            assert len(detected) == 1, detected  # one identity all along
+        finally:
+            say_quit = proc.stdin
+            try:
+                say_quit.write("exit\n")
+                say_quit.flush()
+            except OSError:
+                pass
+            try:
+                proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(timeout=5)
