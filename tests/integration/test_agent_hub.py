@@ -11,7 +11,6 @@ active, nothing from a standby, and standbys kept in step (or reported out of st
 from __future__ import annotations
 
 import math
-import threading
 import time
 from collections.abc import Callable
 from datetime import UTC, datetime
@@ -32,7 +31,7 @@ from roost_sim import (
     FaultKind,
     SimulatedAutopilot,
 )
-from tests.support.hubclient import VEHICLE_SYSID, HubVehicle, hub_vehicle
+from tests.support.hubclient import VEHICLE_SYSID, HubVehicle, hub_vehicle, repeating
 from tests.support.waiting import wait_until
 
 pytestmark = pytest.mark.slow
@@ -102,16 +101,7 @@ def test_failover_keeps_the_client_connected_and_its_setpoint_stream_moves() -> 
         wait_until("every autopilot OK", lambda: all_ok(v), 10, POLL_S)
         wait_until("fc2 in step", condition_is(v, "fc2", "True"), 10, POLL_S)
         time.sleep(1.2)  # not a wait for a condition: T_off, a standby's required OK time
-        stop = threading.Event()
-
-        def stream() -> None:
-            while not stop.is_set():
-                v.client.setpoint(VEHICLE_SYSID, 0.0, 0.0, -5.0)
-                stop.wait(0.05)
-
-        streamer = threading.Thread(target=stream, daemon=True)
-        streamer.start()
-        try:
+        with repeating(lambda: v.client.setpoint(VEHICLE_SYSID, 0.0, 0.0, -5.0), 0.05):
             hub = v.agent.hub
             assert hub is not None
             v.sim("fc1").inject(FaultKind.SILENCE)
@@ -130,9 +120,6 @@ def test_failover_keeps_the_client_connected_and_its_setpoint_stream_moves() -> 
             record = v.agent.status().last_failover
             assert record is not None and record.standby_in_step is True
             assert set_mode(v, "AUTO.LOITER") == MavResult.ACCEPTED  # answered by fc2
-        finally:
-            stop.set()
-            streamer.join()
         assert {r.sysid for r in v.client.messages()} == {VEHICLE_SYSID}
 
 

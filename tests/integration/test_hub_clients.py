@@ -23,7 +23,7 @@ from mavsdk.plugins.offboard import Offboard, PositionNedYaw
 from mavsdk.plugins.telemetry import Telemetry
 
 from roost_sim import FaultKind, SimConfig
-from tests.support.hubclient import VEHICLE_SYSID, HubVehicle, hub_vehicle
+from tests.support.hubclient import VEHICLE_SYSID, HubVehicle, hub_vehicle, repeating
 from tests.support.waiting import wait_until
 
 pytestmark = pytest.mark.slow
@@ -82,17 +82,10 @@ def test_mavsdk_offboard_stream_continues_to_the_new_autopilot_after_a_failover(
             eventually("both autopilots in the air", lambda: airborne(v))
             eventually("both above 2 m", lambda: all(s.snapshot().altitude_m > 2 for s in v.sims))
             time.sleep(1.2)  # not a wait for a condition: T_off, a standby's required OK time
-            stop = threading.Event()
-
-            def stream() -> None:  # MAVSDK resends the last setpoint itself; keep it fresh
-                while not stop.is_set():
-                    offboard.set_position_ned(PositionNedYaw(0.0, 0.0, -5.0, 0.0))
-                    stop.wait(0.1)
-
-            offboard.set_position_ned(PositionNedYaw(0.0, 0.0, -5.0, 0.0))
-            streamer = threading.Thread(target=stream, daemon=True)
-            streamer.start()
-            try:
+            setpoint = PositionNedYaw(0.0, 0.0, -5.0, 0.0)
+            offboard.set_position_ned(setpoint)
+            # MAVSDK resends the last setpoint itself; the controller keeps it fresh
+            with repeating(lambda: offboard.set_position_ned(setpoint), 0.1):
                 hub = v.agent.hub
                 assert hub is not None
                 v.sim("fc1").inject(FaultKind.SILENCE)
@@ -108,9 +101,6 @@ def test_mavsdk_offboard_stream_continues_to_the_new_autopilot_after_a_failover(
                 systems = mavsdk.get_systems()  # still one vehicle: no new system appeared
                 assert [s.get_system_id() for s in systems] == [VEHICLE_SYSID]
                 eventually("MAVSDK still gets telemetry", telemetry.in_air)
-            finally:
-                stop.set()
-                streamer.join()
         finally:
             mavsdk.destroy()
 

@@ -159,6 +159,26 @@ VEHICLE_SYSID = 42
 POLL_S = 0.02
 
 
+@contextlib.contextmanager
+def repeating(send: Callable[[], None], period_s: float) -> Iterator[None]:
+    """Call ``send`` every ``period_s`` on a thread while the block runs (a setpoint
+    stream, as an offboard controller keeps one up)."""
+    stop = threading.Event()
+
+    def loop() -> None:
+        while not stop.is_set():
+            send()
+            stop.wait(period_s)
+
+    thread = threading.Thread(target=loop, name="setpoint-stream", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()
+
+
 @dataclass
 class HubVehicle:
     """Simulated autopilots behind an agent serving the hub, and a client on the hub."""
