@@ -64,7 +64,13 @@ from roost_sim.battery import Battery
 from roost_sim.faults import FaultKind
 from roost_sim.link import Impairment, PtyLink, UdpLink
 from roost_sim.model import ModeChange, SimConfig
-from roost_sim.vehicle import autopilot_specs, free_udp_port, start_vehicle_sims, stop_sims
+from roost_sim.vehicle import (
+    autopilot_specs,
+    free_udp_port,
+    motor_listener,
+    start_vehicle_sims,
+    stop_sims,
+)
 
 __all__ = [
     "Battery",
@@ -80,6 +86,7 @@ __all__ = [
     "autopilot_specs",
     "free_udp_port",
     "message_id",
+    "motor_listener",
     "start_vehicle_sims",
     "stop_sims",
 ]

@@ -85,6 +85,9 @@ MAV_CMD_GET_MESSAGE_INTERVAL = 510
 MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES = 520
 MAV_CMD_GET_HOME_POSITION = 410
 MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN = 246
+MAV_CMD_DO_AUX_FUNCTION = 218
+AUX_FUNCTION_STANDBY = 76  # ArduPilot's "Standby" auxiliary function (RCx_OPTION 76)
+AUX_SWITCH_HIGH = 2
 MAV_COMP_ID_GIMBAL = 154
 MAV_TYPE_GIMBAL = 26
 GCS_SYSID = 255
@@ -156,6 +159,8 @@ class SimSnapshot:
     last_touchdown_mps: float | None
     faults: dict[str, str]
     unhealthy_sensors: list[str]
+    driving: bool | None = None  # on the motors per the bridge (None: no bridge told it)
+    standby_aux: bool | None = None  # ArduPilot STANDBY aux function (None: never set)
 
     def to_json(self) -> dict[str, Any]:
         """Plain dict for the control socket and the CLI."""
@@ -231,6 +236,8 @@ class SimulatedAutopilot:
         self._heard = False  # ArduPilot sends STATUSTEXT only on a link it has heard on
         self._heartbeat_mode: int | None = None
         self._origin_sent = False
+        self._driving: bool | None = None
+        self._standby_aux: bool | None = None
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
 
@@ -333,6 +340,8 @@ class SimulatedAutopilot:
                 last_touchdown_mps=touchdown,
                 faults=self._fault_values(),
                 unhealthy_sensors=[sensor_name(b) for b in sensor_bits(model.sensor_faults)],
+                driving=self._driving,
+                standby_aux=self._standby_aux,
             )
 
     @property
@@ -406,6 +415,16 @@ class SimulatedAutopilot:
             why = f": {', '.join(reasons)}" if reasons else ""
             raise RuntimeError(f"{self.name}: {command_name(command)} refused ({result}){why}")
         return result
+
+    def set_driving(self, driving: bool) -> None:
+        """The bridge connected this autopilot's outputs to the motors, or not."""
+        with self._lock:
+            self._driving = driving
+
+    @property
+    def driving(self) -> bool | None:
+        """Whether the bridge says this autopilot drives the motors (None: no bridge)."""
+        return self._driving
 
     def set_rate(self, message_id: int, hz: float) -> None:
         """Stream ``message_id`` at ``hz`` (0 stops it), whatever the flavour would do."""
@@ -795,6 +814,8 @@ class SimulatedAutopilot:
             result, after = self._request(mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
         elif command == MAV_CMD_GET_HOME_POSITION:
             result, after = self._request(mavlink.MAVLINK_MSG_ID_HOME_POSITION)
+        elif command == MAV_CMD_DO_AUX_FUNCTION and self.stack is Stack.ARDUPILOT:
+            result = self._aux_function(_whole(p[0]), _whole(p[1]))
         elif command == MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN and _whole(p[0]) == 1:
             if model.armed:
                 result = model.refused_result()
@@ -814,6 +835,14 @@ class SimulatedAutopilot:
             )
         )
         return result, after
+
+    def _aux_function(self, function: int, switch: int) -> int:
+        """ArduPilot's DO_AUX_FUNCTION; only STANDBY is modelled (its switch position is
+        recorded: high while another controller flies the vehicle)."""
+        if function != AUX_FUNCTION_STANDBY:
+            return MavResult.UNSUPPORTED
+        self._standby_aux = switch == AUX_SWITCH_HIGH
+        return MavResult.ACCEPTED
 
     def _set_interval(self, msg_id: int, interval_us: float) -> int:
         if msg_id == _HEARTBEAT and self.stack is Stack.PX4:

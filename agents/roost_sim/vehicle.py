@@ -14,7 +14,7 @@ battery failsafe should do in each case.
 from __future__ import annotations
 
 import socket
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from roost_api.autopilot import AutopilotSpec
 from roost_api.meta import Stack
@@ -107,3 +107,16 @@ def autopilot_specs(sims: Sequence[SimulatedAutopilot]) -> list[AutopilotSpec]:
         )
         for channel, sim in enumerate(sims)
     ]
+
+
+def motor_listener(sims: Sequence[SimulatedAutopilot]) -> Callable[[int], None]:
+    """A bridge listener (``SimulatedBridge.add_listener``) that tells each sim whether it
+    drives the motors; bridge channel = position in the list, as in
+    :func:`autopilot_specs`."""
+    snapshot = list(sims)
+
+    def selected(channel: int) -> None:
+        for index, sim in enumerate(snapshot):
+            sim.set_driving(index == channel)
+
+    return selected

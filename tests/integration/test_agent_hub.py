@@ -107,6 +107,7 @@ def test_failover_keeps_the_client_connected_and_its_setpoint_stream_moves() -> 
             v.sim("fc1").inject(FaultKind.SILENCE)
             wait_until("switched to fc2", lambda: v.agent.active == "fc2", 10, POLL_S)
             assert hub.active == "fc2"
+            assert (v.sim("fc1").driving, v.sim("fc2").driving) == (False, True)  # the bridge
             switched = time.monotonic()
             # the client keeps its connection: the vehicle answers it from fc2
             v.client.wait_for(lambda r: r.kind == "HEARTBEAT", 5, switched)
@@ -198,6 +199,9 @@ def test_silent_standby_is_out_of_step() -> None:
         wait_until("fc2 in step", condition_is(v, "fc2", "True"), 15, POLL_S)
         v.sim("fc2").inject(FaultKind.SILENCE)
         wait_until("fc2 silent", condition_is(v, "fc2", "False", "Silent"), 10, POLL_S)
-        # the ArduPilot standby was told it is one (STANDBY aux function, high)
+        # the ArduPilot standby was told it is one (STANDBY aux function high), the active not
         aux = [c for c in v.sim("fc2").commands if c.command == 218]
-        assert aux and aux[0].params[:2] == (76.0, 2.0), aux
+        assert aux and aux[0].params[:2] == (76.0, 2.0) and aux[0].result == 0, aux
+        assert v.sim("fc2").snapshot().standby_aux is True
+        assert v.sim("fc1").snapshot().standby_aux is False
+        assert (v.sim("fc1").driving, v.sim("fc2").driving) == (True, False)

@@ -31,6 +31,7 @@ from roost_sim import (
     SimConfig,
     SimulatedAutopilot,
     autopilot_specs,
+    motor_listener,
     start_vehicle_sims,
     stop_sims,
 )
@@ -221,6 +222,7 @@ def hub_vehicle(
             ),
         )
         bridge = SimulatedBridge(range(len(sims)))
+        bridge.add_listener(motor_listener(sims))  # the sims know which one flies
         agent = Agent(spec, bridge)
         agent.start()
         hub = agent.hub
