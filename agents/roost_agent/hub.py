@@ -377,6 +377,7 @@ class _Client:
         self.sock = sock  # TCP clients only
         self.parser = _new_parser()
         self.last_seen = now
+        self.broken = False  # a TCP client whose stream could not be written whole
 
 
 def parse_host_port(text: str) -> Address:
@@ -581,10 +582,14 @@ class Hub:
             try:
                 if client.sock is None:
                     self._udp.sendto(frame, client.address)
-                else:
-                    client.sock.send(frame)
+                elif client.sock.send(frame) < len(frame):
+                    # A TCP client that cannot keep up: a partial frame would corrupt its
+                    # stream, so it is dropped (the hub thread closes it).
+                    client.broken = True
+                    continue
                 sent += 1
             except OSError:
+                client.broken = client.sock is not None
                 log.debug("hub: sending to %s failed", client.address)
         counters = self.counters
         counters.to_clients += sent
@@ -692,7 +697,7 @@ class Hub:
 
     def _expire(self, now: float) -> None:
         for client in self._sinks:
-            if client.sock is None and now - client.last_seen > CLIENT_TIMEOUT_S:
+            if client.broken or (client.sock is None and now - client.last_seen > CLIENT_TIMEOUT_S):
                 self._remove(client)
 
     def _from_client(self, client: _Client, data: bytes) -> None:

@@ -241,6 +241,7 @@ def _health_key(health: AutopilotHealth) -> tuple[object, ...]:
         health.system_status,
         tuple(sorted(health.unhealthy_sensors)),
         tuple(_NUMBER.sub("#", r) for r in health.reasons),
+        tuple((c.type, c.status, c.reason) for c in health.conditions),  # StandbyInStep
     )
 
 

@@ -11,11 +11,13 @@ active, nothing from a standby, and standbys kept in step (or reported out of st
 from __future__ import annotations
 
 import math
+import socket
 import time
 from collections.abc import Callable
 from datetime import UTC, datetime
 
 import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from roost_api.autopilot import (
     AutopilotCommand,
@@ -205,3 +207,29 @@ def test_silent_standby_is_out_of_step() -> None:
         assert v.sim("fc2").snapshot().standby_aux is True
         assert v.sim("fc1").snapshot().standby_aux is False
         assert (v.sim("fc1").driving, v.sim("fc2").driving) == (True, False)
+
+
+def test_a_tcp_ground_station_gets_the_vehicle_and_commands_it() -> None:
+    with hub_vehicle(["px4", "px4"], tcp=True) as v:
+        hub = v.agent.hub
+        assert hub is not None and hub.tcp_address is not None
+        parser = mavlink.MAVLink(None)
+        gcs = mavlink.MAVLink(None, 254, 190)
+        with socket.create_connection(hub.tcp_address, timeout=5) as sock:
+            sock.sendall(gcs.heartbeat_encode(6, 8, 0, 0, 0).pack(gcs))
+            sock.sendall(
+                gcs.command_long_encode(VEHICLE_SYSID, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0).pack(gcs)
+            )
+            seen: set[str] = set()
+            ack = None
+            deadline = time.monotonic() + 10
+            while (ack is None or "HEARTBEAT" not in seen) and time.monotonic() < deadline:
+                for msg in parser.parse_buffer(sock.recv(65535)) or []:
+                    assert msg.get_srcSystem() == VEHICLE_SYSID
+                    seen.add(msg.get_type())
+                    if msg.get_type() == "COMMAND_ACK" and msg.command == 400:
+                        ack = msg
+        assert ack is not None and ack.result == MavResult.ACCEPTED, seen
+        assert "HEARTBEAT" in seen
+        for sim in v.sims:  # armed through TCP, mirrored to the standby
+            sim.wait_until(lambda s: s.armed, timeout=5)

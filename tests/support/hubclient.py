@@ -202,7 +202,11 @@ class HubVehicle:
 
 @contextlib.contextmanager
 def hub_vehicle(
-    stacks: list[str], *, mirror: bool = True, config: SimConfig | None = None
+    stacks: list[str],
+    *,
+    mirror: bool = True,
+    config: SimConfig | None = None,
+    tcp: bool = False,
 ) -> Iterator[HubVehicle]:
     """Sims on the ground and heard by the agent, which serves the hub on a free port,
     a :class:`HubClient` on it."""
@@ -217,6 +221,7 @@ def hub_vehicle(
             hub=HubSpec(
                 sysid=VEHICLE_SYSID,
                 udp="127.0.0.1:0",
+                tcp="127.0.0.1:0" if tcp else None,
                 mirror=mirror,
                 standby_limits=StandbyLimits(confirm_ms=300),
             ),

@@ -15,7 +15,7 @@ from roost_api.autopilot import (
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
 )
-from roost_api.meta import HealthLevel, find_condition
+from roost_api.meta import Condition, HealthLevel, find_condition
 
 NOW = datetime(2026, 5, 1, 12, 0, 0, tzinfo=UTC)
 OK, WARN, ERROR, STALE = HealthLevel.OK, HealthLevel.WARN, HealthLevel.ERROR, HealthLevel.STALE
@@ -279,6 +279,26 @@ def test_only_meaningful_changes_are_written_and_the_switch_goes_first(
     update: dict[str, object], change: Change
 ) -> None:
     assert change_class(BASE, BASE.model_copy(update=update)) is change
+
+
+def test_a_standby_falling_out_of_step_is_written_its_message_alone_is_not() -> None:
+    def with_in_step(status: str, reason: str, message: str) -> RedundantAutopilotStatus:
+        cond = Condition(
+            type="StandbyInStep",
+            status=status,
+            reason=reason,
+            message=message,
+            last_transition_time=NOW,
+        )
+        fc2 = health("fc2", ERROR, "no heartbeat for 3.1 s").model_copy(
+            update={"conditions": [cond]}
+        )
+        return BASE.model_copy(update={"autopilots": [health("fc1", OK), fc2]})
+
+    in_step = with_in_step("True", "InStep", "agree")
+    assert change_class(in_step, with_in_step("True", "InStep", "agree again")) is Change.NONE
+    out = with_in_step("False", "ModeDiffers", "mode AUTO.RTL")
+    assert change_class(in_step, out) is Change.ROUTINE
 
 
 def test_the_first_report_is_urgent() -> None:
