@@ -12,10 +12,12 @@ from __future__ import annotations
 
 import math
 import socket
+import threading
 import time
 from collections.abc import Callable
 from datetime import UTC, datetime
 
+import psutil
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
@@ -133,13 +135,7 @@ def test_after_a_switch_nothing_from_the_old_active_reaches_the_client() -> None
             airborne(sim)
         wait_until("every autopilot OK", lambda: all_ok(v), 10, POLL_S)
         time.sleep(1.2)  # not a wait for a condition: T_off before a switch is allowed
-        command = AutopilotCommand(
-            id="switch-1",
-            action=CommandAction.SWITCH,
-            target="fc2",
-            issued_at=datetime.now(UTC),
-        )
-        assert v.agent.submit(command).result(timeout=5).result == "Executed"
+        switch(v, "fc2", 1)
         hub = v.agent.hub
         assert hub is not None
         before = hub.counters.forwarded.get("fc1", 0)
@@ -156,6 +152,33 @@ def test_after_a_switch_nothing_from_the_old_active_reaches_the_client() -> None
         beats = v.client.messages("HEARTBEAT", start)
         elapsed = time.monotonic() - start
         assert len(beats) <= math.ceil(elapsed) + 1, (len(beats), elapsed)  # one source, 1 Hz
+
+
+def switch(v: HubVehicle, target: str, n: int) -> None:
+    command = AutopilotCommand(
+        id=f"switch-{n}", action=CommandAction.SWITCH, target=target, issued_at=datetime.now(UTC)
+    )
+    assert v.agent.submit(command).result(timeout=5).result == "Executed"
+
+
+def test_switching_back_and_forth_leaks_no_threads_sockets_or_clients() -> None:
+    with hub_vehicle(["px4", "px4"]) as v:
+        take_off_through_hub(v)
+        for sim in v.sims:
+            airborne(sim)
+        wait_until("every autopilot OK", lambda: all_ok(v), 10, POLL_S)
+        time.sleep(1.2)  # not a wait for a condition: T_off before a switch is allowed
+        hub = v.agent.hub
+        assert hub is not None
+        me = psutil.Process()
+        switch(v, "fc2", 0)
+        switch(v, "fc1", 1)
+        threads, fds, clients = threading.active_count(), me.num_fds(), hub.clients()
+        for n in range(2, 22):
+            switch(v, "fc2" if n % 2 == 0 else "fc1", n)
+            v.client.wait_for(lambda r: r.kind == "ATTITUDE", 5, time.monotonic())
+        assert hub.counters.switches == 22
+        assert (threading.active_count(), me.num_fds(), hub.clients()) == (threads, fds, clients)
 
 
 def test_unmirrored_standby_drifts_out_of_step_and_a_dead_active_still_fails_over() -> None:
