@@ -55,5 +55,5 @@ def test_the_status_patch_removes_what_the_agent_no_longer_reports() -> None:
     assert body["lastCommand"] is None  # top-level: null deletes it
     assert body["lastFailover"]["safetyRoutine"] is None  # object member: null deletes it
     assert body["autopilots"] == [
-        {"name": "fc1", "level": "STALE", "reasons": [], "unhealthySensors": []}
+        {"name": "fc1", "level": "STALE", "reasons": [], "unhealthySensors": [], "conditions": []}
     ]  # list items: no nulls
