@@ -265,14 +265,17 @@ def main(argv: list[str] | None = None) -> int:
     restored = restore_state(spec, state.load())
     channel = next(a.bridge_channel for a in spec.autopilots if a.name == restored.active)
     bridge = make_bridge(args, spec, channel)
-    agent = Agent(
-        spec,
-        bridge,
-        state_file=state,
-        generation=generation,
-        node_name=args.node_name,
-        signing=signing,
-    )
+    try:
+        agent = Agent(
+            spec,
+            bridge,
+            state_file=state,
+            generation=generation,
+            node_name=args.node_name,
+            signing=signing,
+        )
+    except OSError as exc:  # the hub's endpoint is taken or not an address of this node
+        raise refuse(f"cannot serve the vehicle's MAVLink endpoint (spec.hub): {exc}") from None
     agent.subscribe(lambda event: out.write(event.to_json()))
     stop = threading.Event()
 

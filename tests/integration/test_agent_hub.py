@@ -12,13 +12,17 @@ from __future__ import annotations
 
 import math
 import socket
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable
 from datetime import UTC, datetime
+from pathlib import Path
 
 import psutil
 import pytest
+import yaml
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from roost_api.autopilot import (
@@ -34,6 +38,7 @@ from roost_mavlink import (
 from roost_sim import (
     FaultKind,
     SimulatedAutopilot,
+    free_udp_port,
 )
 from tests.support.hubclient import VEHICLE_SYSID, HubVehicle, hub_vehicle, repeating
 from tests.support.waiting import wait_until
@@ -256,3 +261,44 @@ def test_a_tcp_ground_station_gets_the_vehicle_and_commands_it() -> None:
         assert "HEARTBEAT" in seen
         for sim in v.sims:  # armed through TCP, mirrored to the standby
             sim.wait_until(lambda s: s.armed, timeout=5)
+
+
+def test_an_agent_whose_hub_endpoint_is_taken_refuses_in_one_line(tmp_path: Path) -> None:
+    blocker = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    blocker.bind(("127.0.0.1", 0))
+    port = blocker.getsockname()[1]
+    config = tmp_path / "ra.yaml"
+    config.write_text(
+        yaml.safe_dump(
+            {
+                "vehicleName": "v1",
+                "primary": "fc1",
+                "autopilots": [
+                    {
+                        "name": f"fc{i}",
+                        "stack": "px4",
+                        "connection": f"udp://127.0.0.1:{free_udp_port()}",
+                        "sysid": i,
+                        "bridgeChannel": i,
+                    }
+                    for i in (1, 2)
+                ],
+                "hub": {"udp": f"127.0.0.1:{port}"},
+            }
+        )
+    )
+    exe = Path(sys.executable).with_name("roost-agent")
+    try:
+        done = subprocess.run(
+            [str(exe), "--config", str(config), "--state-dir", str(tmp_path), "--cluster", "off"],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=False,
+        )
+    finally:
+        blocker.close()
+    assert done.returncode == 2
+    refusals = [line for line in done.stderr.splitlines() if line.startswith("roost-agent: ")]
+    assert len(refusals) == 1 and "MAVLink endpoint" in refusals[0], done.stderr
+    assert "Traceback" not in done.stderr
