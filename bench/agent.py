@@ -17,11 +17,9 @@ under 5 % loss and 50 ms jitter, default 600: the committed figure must come fro
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import queue
-import signal
 import statistics
 import subprocess
 import sys
@@ -30,16 +28,13 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from datetime import UTC, datetime
+from datetime import datetime
 from pathlib import Path
-from typing import IO, Any
 
 import psutil
-import yaml
 
 from bench.core import Figure
 from roost_api.autopilot import (
-    AutopilotCommand,
     FailoverMode,
     FailoverPolicy,
     FinalAction,
@@ -57,6 +52,7 @@ from roost_sim import (
     stop_sims,
 )
 from roost_sim.streams import PX4_STREAMS
+from tests.support.agent import AgentProcess
 from tests.support.flight import take_off
 
 FAILOVERS = int(os.environ.get("ROOST_BENCH_FAILOVERS", "100"))
@@ -86,127 +82,6 @@ def percentile(values: list[float], q: float) -> float:
     return ordered[max(0, math.ceil(q / 100 * len(ordered)) - 1)]
 
 
-class AgentProcess:
-    """``roost-agent`` in its own process; JSON lines are read on a thread."""
-
-    def __init__(
-        self,
-        workdir: Path,
-        spec: RedundantAutopilotSpec,
-        status_interval_s: float = 0.25,
-        extra_args: Sequence[str] = (),
-    ) -> None:
-        self.workdir = workdir
-        self.config = workdir / "redundantautopilot.yaml"
-        self.spec = spec
-        self._write_config(None)
-        exe = Path(sys.executable).with_name("roost-agent")
-        self._stderr = (workdir / "agent.log").open("w")
-        self.proc = subprocess.Popen(
-            [
-                str(exe),
-                "--config",
-                str(self.config),
-                "--state-dir",
-                str(workdir / "state"),
-                "--cluster",
-                "off",
-                "--status-interval",
-                str(status_interval_s),
-                "--log-level",
-                "WARNING",
-                *extra_args,
-            ],
-            stdout=subprocess.PIPE,
-            stderr=self._stderr,
-            text=True,
-        )
-        self.events: queue.Queue[dict[str, Any]] = queue.Queue()
-        self.history: list[dict[str, Any]] = []
-        self.status: dict[str, Any] = {}
-        self.status_at = 0.0  # monotonic time the last status line was read
-        self.links: dict[str, dict[str, int]] = {}
-        self._commands = 0
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _write_config(self, command: AutopilotCommand | None) -> None:
-        spec = self.spec.model_copy(update={"command": command})
-        self.config.write_text(yaml.safe_dump({"spec": spec.to_api()}))
-
-    def _read(self) -> None:
-        out: IO[str] | None = self.proc.stdout
-        assert out is not None
-        for line in out:
-            doc = json.loads(line)
-            if "status" in doc:
-                self.status, self.links = doc["status"], doc.get("links", {})
-                self.status_at = time.monotonic()
-            else:
-                self.events.put(doc)
-
-    def wait_event(
-        self, predicate: Callable[[dict[str, Any]], bool], timeout: float
-    ) -> dict[str, Any]:
-        deadline = time.monotonic() + timeout
-        while True:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                recent = [f"{d.get('reason')}: {d.get('message')}" for d in self.history[-8:]]
-                log = (self.workdir / "agent.log").read_text().splitlines()[-20:]
-                raise TimeoutError(
-                    "no matching agent event; last events and log lines:\n"
-                    + "\n".join(recent + log)
-                )
-            try:
-                doc = self.events.get(timeout=remaining)
-            except queue.Empty:
-                continue
-            self.history.append(doc)
-            if predicate(doc):
-                return doc
-
-    def drain(self) -> list[dict[str, Any]]:
-        seen = []
-        while True:
-            try:
-                seen.append(self.events.get_nowait())
-            except queue.Empty:
-                return seen
-
-    def command(self, action: str, target: str | None = None) -> dict[str, Any]:
-        """Execute a command through the config file and SIGHUP; returns its result."""
-        self._commands += 1
-        cid = f"bench-{self._commands}"
-        issued = datetime.now(UTC)
-        self._write_config(AutopilotCommand(id=cid, action=action, target=target, issued_at=issued))
-        self.proc.send_signal(signal.SIGHUP)
-        doc = self.wait_event(lambda d: d.get("command", {}).get("id") == cid, 10)
-        return dict(doc["command"])
-
-    def levels(self) -> dict[str, str]:
-        return {a["name"]: a["level"] for a in self.status.get("autopilots", [])}
-
-    def wait_ok(self, names: list[str], timeout: float = 15.0) -> None:
-        """Until a status line printed after this call shows every one of ``names`` OK."""
-        since = time.monotonic()
-        deadline = since + timeout
-        while self.status_at <= since or not all(self.levels().get(n) == "OK" for n in names):
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"not OK: {self.levels()}")
-            time.sleep(0.05)
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        self._stderr.close()
-
-
 @contextmanager
 def vehicle(
     thresholds: Thresholds,
@@ -233,7 +108,13 @@ def vehicle(
                     safety_routine=SafetyRoutine(hold_seconds=0, final_action=FinalAction.HOLD),
                 ),
             )
-            agent = AgentProcess(Path(tmp), spec, status_interval_s, extra_args)
+            agent = AgentProcess.standalone(
+                Path(tmp),
+                spec,
+                status_interval_s=status_interval_s,
+                log_level="WARNING",
+                extra_args=extra_args,
+            )
             take_off(sims)
             agent.wait_ok([s.name for s in sims])
             # The any-message age applies once a full rate window has been seen (1 s).
@@ -276,7 +157,7 @@ def failover_cycles(
             kind, value = faults[i % len(faults)]
             onset = time.monotonic()
             by_name[active].inject(kind, value)
-            event = agent.wait_event(lambda d: d.get("event") == "Failover", 10)
+            event = agent.wait_for(lambda d: d.get("event") == "Failover", 10)
             detect_ms.append(float(event["latencyMs"]))
             if kind is FaultKind.SILENCE:
                 silent_ms.append((event["monotonic"]["switchedAt"] - onset) * 1000)
@@ -294,7 +175,7 @@ def heartbeat_only_cycles() -> list[float]:
         for _ in range(HEARTBEAT_FAILOVERS):
             onset = time.monotonic()
             by_name[active].inject(FaultKind.SILENCE)
-            event = agent.wait_event(lambda d: d.get("event") == "Failover", 15)
+            event = agent.wait_for(lambda d: d.get("event") == "Failover", 15)
             onset_ms.append((event["monotonic"]["switchedAt"] - onset) * 1000)
             _recover(agent, by_name[active], defaults)
             active = event["failover"]["to"]
@@ -365,7 +246,7 @@ def peer_link_lost() -> tuple[list[float], list[float], list[float]]:
                 _ = [changes.get_nowait() for _ in range(changes.qsize())]
                 onset = time.monotonic()
                 fc1.inject(FaultKind.SILENCE)
-                event = agent.wait_event(lambda d: d.get("event") == "Failover", 10)
+                event = agent.wait_for(lambda d: d.get("event") == "Failover", 10)
                 agent_ms.append((event["monotonic"]["switchedAt"] - onset) * 1000)
                 lost_at, connected = changes.get(timeout=20)
                 assert not connected
@@ -393,7 +274,7 @@ def cpu_and_memory(
         _,
         agent,
     ):
-        proc = psutil.Process(agent.proc.pid)
+        proc = psutil.Process(agent.pid)
         time.sleep(2.0)
 
         def messages() -> int:
@@ -420,9 +301,9 @@ def false_failovers() -> tuple[int, list[str], int]:
             sim.inject(FaultKind.LOSS, 5)
             sim.inject(FaultKind.JITTER, 50)
         start = sum(c["accepted"] for c in agent.links.values())
-        agent.drain()
+        agent.read()
         time.sleep(SOAK_S)
-        seen = agent.drain()
+        seen = agent.read()
         received = sum(c["accepted"] for c in agent.links.values()) - start
     failovers = sum(1 for d in seen if d.get("event") == "Failover")
     health = [d for d in seen if d.get("event") == "HealthChanged"]

@@ -195,7 +195,7 @@ def run() -> list[Figure]:
             environment={"ROOST_FAILOVER_LATCH_AFTER": str(SWITCHES * 10)},
         )
         sims = start_vehicle_sims(["px4", "px4"], config=SimConfig.fast())
-        agent = AgentProcess(cluster, NODE, Path(tmp) / "agent", report_interval_s=10.0)
+        agent = AgentProcess.in_cluster(cluster, NODE, Path(tmp) / "agent", report_interval_s=10.0)
         operator.start()
         try:
             _fly(sims)

@@ -26,7 +26,7 @@ import threading
 import time
 from pathlib import Path
 
-from bench.agent import AgentProcess, percentile
+from bench.agent import percentile
 from bench.core import Figure
 from roost_api.autopilot import (
     FailoverPolicy,
@@ -43,6 +43,7 @@ from roost_sim import (
     start_vehicle_sims,
     stop_sims,
 )
+from tests.support.agent import AgentProcess
 from tests.support.flight import take_off
 
 UNAIDED_FAILOVERS = int(os.environ.get("ROOST_BENCH_UNAIDED_FAILOVERS", "20"))
@@ -73,7 +74,7 @@ def unaided_ardupilot_cycles() -> list[float]:
     with tempfile.TemporaryDirectory(prefix="roost-bench-firmware-") as tmp:
         try:
             routine = SafetyRoutine(hold_seconds=0, final_action=FinalAction.HOLD)
-            agent = AgentProcess(Path(tmp), _spec(sims, routine))
+            agent = AgentProcess.standalone(Path(tmp), _spec(sims, routine), log_level="WARNING")
             take_off(sims)
             agent.wait_ok(["fc1", "fc2"])
             time.sleep(defaults.clear_ms / 1000 + 1.5)  # T_off, and a full rate window
@@ -81,7 +82,7 @@ def unaided_ardupilot_cycles() -> list[float]:
             for _ in range(UNAIDED_FAILOVERS):
                 onset = time.monotonic()
                 by_name[active].inject(FaultKind.SILENCE)
-                event = agent.wait_event(lambda d: d.get("event") == "Failover", 15)
+                event = agent.wait_for(lambda d: d.get("event") == "Failover", 15)
                 onset_ms.append((event["monotonic"]["switchedAt"] - onset) * 1000)
                 by_name[active].clear()
                 assert agent.command("ClearLatch")["result"] == "Executed"
@@ -120,7 +121,9 @@ def hold_losses(stack: str) -> list[float]:
         with tempfile.TemporaryDirectory(prefix="roost-bench-hold-") as tmp:
             try:
                 routine = SafetyRoutine(hold_seconds=HOLD_S, final_action=FinalAction.LAND)
-                agent = AgentProcess(Path(tmp), _spec(sims, routine))
+                agent = AgentProcess.standalone(
+                    Path(tmp), _spec(sims, routine), log_level="WARNING"
+                )
                 take_off(sims)
                 agent.wait_ok(["fc1", "fc2"])
                 time.sleep(Thresholds().clear_ms / 1000 + 1.5)
@@ -131,7 +134,7 @@ def hold_losses(stack: str) -> list[float]:
                 )
                 watcher.start()
                 sims[0].inject(FaultKind.SILENCE)
-                agent.wait_event(lambda d: d.get("reason") == "SafetyRoutineLanding", 30)
+                agent.wait_for(lambda d: d.get("reason") == "SafetyRoutineLanding", 30)
                 stop.set()
                 watcher.join()
                 losses.append(_lost_in_hold(samples, HOLD_MODES[stack]))

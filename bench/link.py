@@ -26,12 +26,13 @@ import time
 
 import psutil
 
-from bench.agent import PX4_ONBOARD_RATES, AgentProcess, vehicle
+from bench.agent import PX4_ONBOARD_RATES, vehicle
 from bench.core import Figure
 from roost_api.autopilot import FailoverMode, Thresholds
 from roost_sim import FaultKind, SimulatedAutopilot
 from roost_sim.hostile import HostileSender, Target
 from roost_sim.link import UdpLink
+from tests.support.agent import AgentProcess
 
 HOSTILE_S = float(os.environ.get("ROOST_BENCH_HOSTILE_S", "20"))
 FLOOD_S = float(os.environ.get("ROOST_BENCH_FLOOD_S", "10"))
@@ -51,9 +52,8 @@ def _quiet_totals(sims: list[SimulatedAutopilot], agent: AgentProcess) -> tuple[
     for sim in sims:
         sim.inject(FaultKind.SILENCE)
     time.sleep(0.3)
-    asked = time.monotonic()
-    while agent.status_at <= asked:  # a status line printed after the silence began
-        time.sleep(0.05)
+    agent.read()
+    agent.wait_for(lambda d: "status" in d, 5)  # a status line printed after the silence began
     sent = sum(s.link.frames_sent for s in sims)
     accepted = sum(c["accepted"] for c in agent.links.values())
     for sim in sims:
@@ -70,7 +70,7 @@ def measure() -> tuple[int, int, float, float, int, dict[str, int]]:
         with HostileSender(targets, rounds_per_s=10.0, duration_s=HOSTILE_S) as steady:
             time.sleep(HOSTILE_S)
         rounds = FLOOD_PER_S / (DATAGRAMS_PER_ROUND * len(targets))
-        proc = psutil.Process(agent.proc.pid)
+        proc = psutil.Process(agent.pid)
         with HostileSender(targets, rounds_per_s=rounds, duration_s=FLOOD_S) as flood:
             cpu0, t0 = sum(proc.cpu_times()[:2]), time.monotonic()
             time.sleep(FLOOD_S)

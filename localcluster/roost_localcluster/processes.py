@@ -46,6 +46,7 @@ class ManagedProcess:
     log: Path
     pid: int | None = None
     create_time: float | None = None
+    returncode: int | None = None  # how the last run ended (negative: killed by a signal)
     _popen: subprocess.Popen[bytes] | None = field(default=None, repr=False, compare=False)
 
     def launch(self, env: Mapping[str, str] | None = None, die_with_parent: bool = False) -> None:
@@ -107,7 +108,7 @@ class ManagedProcess:
                 psutil.wait_procs(alive, timeout=grace_s)
         if self._popen is not None:
             with contextlib.suppress(subprocess.TimeoutExpired):
-                self._popen.wait(timeout=grace_s)
+                self.returncode = self._popen.wait(timeout=grace_s)
         self._popen = None
         self.pid = None
         self.create_time = None

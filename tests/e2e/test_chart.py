@@ -489,7 +489,7 @@ def test_agent_with_its_pod_bound_token_reports_its_autopilots(
         token_cluster = _bound_token_kubeconfig(
             installed, _agent_pods(installed)[NODE_AGENT], tmp_path / "agent.kubeconfig"
         )
-        agent = AgentProcess(token_cluster, NODE_AGENT, tmp_path / "agent")
+        agent = AgentProcess.in_cluster(token_cluster, NODE_AGENT, tmp_path / "agent")
         agent.start()
 
         def reported_healthy() -> bool:

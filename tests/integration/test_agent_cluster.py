@@ -144,7 +144,7 @@ def rig(
     node = f"{name}-node"
     fake_nodes(node)
     sims = start_vehicle_sims(["px4", "px4"], config=SimConfig.fast())
-    agent = AgentProcess(roost_crds, node, tmp_path, report_interval_s=REPORT_INTERVAL_S)
+    agent = AgentProcess.in_cluster(roost_crds, node, tmp_path, report_interval_s=REPORT_INTERVAL_S)
     try:
         for sim in sims:
             sim.wait_ready()

@@ -12,16 +12,11 @@ from __future__ import annotations
 
 import contextlib
 import json
-import os
-import signal
-import subprocess
-import sys
 import time
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import pytest
 import yaml
@@ -31,17 +26,12 @@ from roost_agent.bridge import SimulatedBridge
 from roost_agent.state import STATE_FILE_NAME, StateFile
 from roost_api.autopilot import (
     AutopilotCommand,
-    FailoverPolicy,
     FinalAction,
-    RedundantAutopilotSpec,
-    SafetyRoutine,
 )
 from roost_api.meta import HealthLevel, Stack
 from roost_mavlink import (
-    AGENT_COMPONENT_ID,
     MAV_CMD_DO_SET_MODE,
     MAV_CMD_NAV_LAND,
-    MAV_CMD_SET_MESSAGE_INTERVAL,
     ModeIntent,
     custom_mode,
     intent_mode,
@@ -52,57 +42,17 @@ from roost_sim import (
     FaultKind,
     SimConfig,
     SimulatedAutopilot,
-    autopilot_specs,
     start_vehicle_sims,
     stop_sims,
 )
-from tests.support.flight import take_off
+from tests.support.agent import AgentProcess
+from tests.support.flight import CLEAR_S, HOLD_S, POLL_S, Flight, make_spec, take_off
 from tests.support.waiting import wait_until
 
 pytestmark = pytest.mark.slow
 
 # Sub-second start-up; ArduPilot streams only what the agent requests, as the firmware.
 SIM_CONFIG = SimConfig.fast()
-
-HOLD_S = 1.0
-CLEAR_S = 1.0  # Thresholds.clear_ms default: a standby must be OK this long
-POLL_S = 0.02  # failovers take tens of milliseconds: look often
-
-
-@dataclass
-class Flight:
-    sims: list[SimulatedAutopilot]
-    agent: Agent
-    bridge: SimulatedBridge
-    spec: RedundantAutopilotSpec
-    state_path: Path
-
-    def sim(self, name: str) -> SimulatedAutopilot:
-        return next(s for s in self.sims if s.name == name)
-
-    def agent_commands(self, name: str, since: float = 0.0) -> list[Any]:
-        """Commands the agent (component 191) sent to autopilot ``name``, except its
-        telemetry requests (SET_MESSAGE_INTERVAL), which it sends to every autopilot."""
-        return [
-            c
-            for c in self.sim(name).commands
-            if c.source[1] == AGENT_COMPONENT_ID
-            and c.at >= since
-            and c.command != MAV_CMD_SET_MESSAGE_INTERVAL
-        ]
-
-
-def make_spec(
-    sims: list[SimulatedAutopilot], final_action: FinalAction = FinalAction.LAND
-) -> RedundantAutopilotSpec:
-    return RedundantAutopilotSpec(
-        vehicle_name="v1",
-        autopilots=autopilot_specs(sims),
-        primary=sims[0].name,
-        failover_policy=FailoverPolicy(
-            safety_routine=SafetyRoutine(hold_seconds=HOLD_S, final_action=final_action)
-        ),
-    )
 
 
 def all_ok(agent: Agent, names: list[str]) -> bool:
@@ -389,42 +339,6 @@ def test_emergency_stop_force_disarms_every_autopilot(tmp_path: Path) -> None:
 # -- the console script ---------------------------------------------------------------
 
 
-class AgentProcess:
-    """``roost-agent`` as a subprocess, read line by line from its JSON stdout."""
-
-    def __init__(self, args: list[str]) -> None:
-        exe = Path(sys.executable).with_name("roost-agent")
-        self.proc = subprocess.Popen(
-            [str(exe), *args, "--status-interval", "0.3"],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.DEVNULL,
-            text=True,
-            env={**os.environ, "PYTHONUNBUFFERED": "1"},
-        )
-        self.seen: list[dict[str, Any]] = []
-
-    def wait_line(
-        self, predicate: Callable[[dict[str, Any]], bool], timeout: float
-    ) -> dict[str, Any]:
-        deadline = time.monotonic() + timeout
-        out: IO[str] | None = self.proc.stdout
-        assert out is not None
-        while time.monotonic() < deadline:
-            line = out.readline()
-            if not line:
-                raise AssertionError(f"roost-agent exited with {self.proc.wait()}")
-            doc = json.loads(line)
-            self.seen.append(doc)
-            if predicate(doc):
-                return doc
-        raise AssertionError("timed out reading roost-agent output")
-
-    def stop(self) -> int:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-        return self.proc.wait(timeout=10)
-
-
 def test_console_script_fails_over_and_restarts_from_its_state_dir(tmp_path: Path) -> None:
     sims = start_vehicle_sims(["px4", "px4"], config=SIM_CONFIG)
     state_dir = tmp_path / "state"
@@ -440,21 +354,19 @@ def test_console_script_fails_over_and_restarts_from_its_state_dir(tmp_path: Pat
             }
         )
     )
-    agent = AgentProcess(
-        ["--config", str(config), "--state-dir", str(state_dir), "--cluster", "off"]
-    )
+    agent = AgentProcess.standalone(tmp_path, extra_args=["--config", str(config)])
     try:
-        agent.wait_line(lambda d: d.get("reason") == "AgentStarted", 10)
+        agent.wait_for(lambda d: d.get("reason") == "AgentStarted", 10)
         take_off(sims)
 
         def both_ok(doc: dict[str, Any]) -> bool:
             aps = doc.get("status", {}).get("autopilots", [])
             return len(aps) == 2 and all(a["level"] == "OK" for a in aps)
 
-        agent.wait_line(both_ok, 10)
+        agent.wait_for(both_ok, 10)
         time.sleep(CLEAR_S + 0.3)  # T_off, a required duration: standbys become targets
         sims[0].inject(FaultKind.SILENCE)
-        event = agent.wait_line(lambda d: d.get("event") == "Failover", 10)
+        event = agent.wait_for(lambda d: d.get("event") == "Failover", 10)
         assert event["failover"]["from"] == "fc1" and event["failover"]["to"] == "fc2"
         assert event["latencyMs"] >= 0
         assert agent.stop() == 0
@@ -462,16 +374,14 @@ def test_console_script_fails_over_and_restarts_from_its_state_dir(tmp_path: Pat
         saved = json.loads((state_dir / STATE_FILE_NAME).read_text())
         assert saved["active"] == "fc2" and saved["latched"] and saved["generation"] == 3
 
-        restarted = AgentProcess(
-            ["--state-dir", str(state_dir), "--cluster", "off"]
-        )  # no config: the saved spec
+        restarted = AgentProcess.standalone(tmp_path)  # no config: the saved spec
         try:
-            started = restarted.wait_line(lambda d: d.get("reason") == "AgentStarted", 10)
+            started = restarted.wait_for(lambda d: d.get("reason") == "AgentStarted", 10)
             assert "fc2 (restored from the state file, latched)" in started["message"]
-            status = restarted.wait_line(both_ok, 10)["status"]
+            status = restarted.wait_for(both_ok, 10)["status"]
             assert status["activeAutopilot"] == "fc2" and status["latched"]
             time.sleep(CLEAR_S + 0.5)  # nothing happens past T_off: no switch back to fc1
-            restarted.wait_line(lambda d: "status" in d, 5)
+            restarted.wait_for(lambda d: "status" in d, 5)
             assert not [d for d in restarted.seen if d.get("event") == "Failover"]
         finally:
             assert restarted.stop() == 0

@@ -22,8 +22,8 @@ from prometheus_client.samples import Sample
 
 from roost_api.autopilot import FinalAction
 from roost_sim import FaultKind, start_vehicle_sims, stop_sims
-from tests.integration.test_agent_failover import CLEAR_S, AgentProcess, make_spec
-from tests.support.flight import take_off
+from tests.support.agent import AgentProcess
+from tests.support.flight import CLEAR_S, make_spec, take_off
 from tests.support.waiting import wait_until
 
 pytestmark = pytest.mark.slow
@@ -52,10 +52,10 @@ def value(samples: list[Sample], name: str, **labels: str) -> float:
     return matching[0]
 
 
-def metrics_agent(config: Path, state_dir: Path, port: int) -> AgentProcess:
+def metrics_agent(config: Path, work_dir: Path, port: int) -> AgentProcess:
     """A standalone ``roost-agent`` serving its metrics on ``port``."""
-    args = ["--config", str(config), "--state-dir", str(state_dir), "--cluster", "off"]
-    return AgentProcess([*args, "--metrics-port", str(port)])
+    args = ["--config", str(config), "--metrics-port", str(port)]
+    return AgentProcess.standalone(work_dir, extra_args=args)
 
 
 def test_scraped_agent_counts_a_failover_and_its_latency(tmp_path: Path) -> None:
@@ -63,9 +63,9 @@ def test_scraped_agent_counts_a_failover_and_its_latency(tmp_path: Path) -> None
     config = tmp_path / "ra.yaml"
     config.write_text(yaml.safe_dump({"spec": make_spec(sims, FinalAction.HOLD).to_api()}))
     port = free_port()
-    agent = metrics_agent(config, tmp_path / "state", port)
+    agent = metrics_agent(config, tmp_path, port)
     try:
-        agent.wait_line(lambda d: d.get("reason") == "AgentStarted", 10)
+        agent.wait_for(lambda d: d.get("reason") == "AgentStarted", 10)
         take_off(sims)
 
         def all_ok() -> bool:
@@ -103,7 +103,7 @@ def test_scraped_agent_counts_a_failover_and_its_latency(tmp_path: Path) -> None
 
         time.sleep(CLEAR_S + 0.3)  # T_off, a required duration: standbys become targets
         sims[0].inject(FaultKind.SILENCE)
-        agent.wait_line(lambda d: d.get("event") == "Failover", 10)
+        agent.wait_for(lambda d: d.get("event") == "Failover", 10)
 
         def counted() -> bool:
             return bool(scrape(port).get("roost_agent_failovers"))
@@ -159,16 +159,16 @@ def test_a_taken_metrics_port_does_not_keep_the_agent_from_flying(tmp_path: Path
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
-        agent = metrics_agent(config, tmp_path / "s", port)
+        agent = metrics_agent(config, tmp_path, port)
         try:
-            agent.wait_line(lambda d: d.get("reason") == "AgentStarted", 10)
+            agent.wait_for(lambda d: d.get("reason") == "AgentStarted", 10)
             take_off(sims)
 
             def both_ok(doc: dict[str, Any]) -> bool:
                 aps = doc.get("status", {}).get("autopilots", [])
                 return len(aps) == 2 and all(a["level"] == "OK" for a in aps)
 
-            agent.wait_line(both_ok, 10)
+            agent.wait_for(both_ok, 10)
             assert agent.stop() == 0
         finally:
             agent.stop()

@@ -29,13 +29,6 @@ from typing import Any
 
 import pytest
 import yaml
-from test_agent_failover import (
-    CLEAR_S,
-    POLL_S,
-    AgentProcess,
-    Flight,
-    make_spec,
-)
 
 from roost_agent import Agent
 from roost_agent.bridge import SimulatedBridge
@@ -68,7 +61,8 @@ from roost_sim import (
     start_vehicle_sims,
     stop_sims,
 )
-from tests.support.flight import take_off
+from tests.support.agent import AgentProcess
+from tests.support.flight import CLEAR_S, POLL_S, Flight, make_spec, take_off
 from tests.support.waiting import wait_until
 
 pytestmark = pytest.mark.slow
@@ -358,14 +352,12 @@ def test_agent_killed_in_each_phase_completes_the_routine_after_restart(
     config_path = tmp_path / "ra.yaml"
     _write_config(config_path, spec)
     fc2 = sims[1]
-    agent = AgentProcess(
-        ["--config", str(config_path), "--state-dir", str(state_dir), "--cluster", "off"]
-    )
+    agent = AgentProcess.standalone(tmp_path, extra_args=["--config", str(config_path)])
     restarted: AgentProcess | None = None
     try:
-        agent.wait_line(lambda d: d.get("reason") == "AgentStarted", 10)
+        agent.wait_for(lambda d: d.get("reason") == "AgentStarted", 10)
         take_off(sims)
-        agent.wait_line(
+        agent.wait_for(
             lambda d: (
                 len(aps := d.get("status", {}).get("autopilots", [])) == 2
                 and all(a["level"] == "OK" for a in aps)
@@ -374,11 +366,11 @@ def test_agent_killed_in_each_phase_completes_the_routine_after_restart(
         )
         time.sleep(CLEAR_S + 0.3)
         sims[0].inject(FaultKind.SILENCE)
-        agent.wait_line(lambda d: d.get("event") == "Failover" or d.get("reason") == kill_on, 15)
+        agent.wait_for(lambda d: d.get("event") == "Failover" or d.get("reason") == kill_on, 15)
         if kill_on != "Failover":
-            agent.wait_line(lambda d: d.get("reason") == kill_on, 15)
-        agent.proc.send_signal(signal.SIGKILL)
-        assert agent.proc.wait(timeout=5) == -signal.SIGKILL
+            agent.wait_for(lambda d: d.get("reason") == kill_on, 15)
+        agent.crash()
+        assert agent.process.returncode == -signal.SIGKILL
         killed_at = time.monotonic()
         saved = json.loads((state_dir / STATE_FILE_NAME).read_text())
         assert saved["active"] == "fc2" and saved["safety"]["autopilot"] == "fc2"
@@ -387,10 +379,10 @@ def test_agent_killed_in_each_phase_completes_the_routine_after_restart(
         time.sleep(dead_s)  # "nothing happens" while the agent is dead (by design)
         restart_at = time.monotonic()
 
-        restarted = AgentProcess(["--state-dir", str(state_dir), "--cluster", "off"])
-        resumed = restarted.wait_line(lambda d: d.get("reason") == "SafetyRoutineResumed", 10)
+        restarted = AgentProcess.standalone(tmp_path)
+        resumed = restarted.wait_for(lambda d: d.get("reason") == "SafetyRoutineResumed", 10)
         assert phase_when_killed in resumed["message"]
-        restarted.wait_line(lambda d: d.get("reason") == "SafetyRoutineLanded", 60)
+        restarted.wait_for(lambda d: d.get("reason") == "SafetyRoutineLanded", 60)
         fc2.wait_until(lambda s: s.landed_state == "OnGround", timeout=30)
         holds_after = [
             c

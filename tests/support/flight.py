@@ -1,10 +1,27 @@
-"""Getting simulated autopilots airborne, for the failover tests and the benchmarks."""
+"""Simulated autopilots in the air under an agent, for the failover tests and benchmarks.
+
+:func:`take_off` gets sims airborne; :func:`make_spec` is the RedundantAutopilot spec the
+agent tests fly them with; :class:`Flight` is one such vehicle (sims, in-process agent,
+simulated bridge) with what the tests ask of it.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
-from roost_sim import SimulatedAutopilot
+from roost_agent import Agent
+from roost_agent.bridge import SimulatedBridge
+from roost_api.autopilot import (
+    FailoverPolicy,
+    FinalAction,
+    RedundantAutopilotSpec,
+    SafetyRoutine,
+)
+from roost_mavlink import AGENT_COMPONENT_ID, MAV_CMD_SET_MESSAGE_INTERVAL
+from roost_sim import SimulatedAutopilot, autopilot_specs
 
 BOOT_TIMEOUT_S = 5.0
 TAKEOFF_TIMEOUT_S = 15.0
@@ -27,3 +44,47 @@ def take_off(sims: Sequence[SimulatedAutopilot]) -> None:
             lambda s: s.landed_state == "InAir" and s.altitude_m > AIRBORNE_M,
             timeout=TAKEOFF_TIMEOUT_S,
         )
+
+
+HOLD_S = 1.0  # the safety routine's hold in the agent tests
+CLEAR_S = 1.0  # Thresholds.clear_ms default: a standby must be OK this long
+POLL_S = 0.02  # failovers take tens of milliseconds: look often
+
+
+@dataclass
+class Flight:
+    """One airborne vehicle: its sims, the agent watching them and the simulated bridge."""
+
+    sims: list[SimulatedAutopilot]
+    agent: Agent
+    bridge: SimulatedBridge
+    spec: RedundantAutopilotSpec
+    state_path: Path
+
+    def sim(self, name: str) -> SimulatedAutopilot:
+        return next(s for s in self.sims if s.name == name)
+
+    def agent_commands(self, name: str, since: float = 0.0) -> list[Any]:
+        """Commands the agent (component 191) sent to autopilot ``name``, except its
+        telemetry requests (SET_MESSAGE_INTERVAL), which it sends to every autopilot."""
+        return [
+            c
+            for c in self.sim(name).commands
+            if c.source[1] == AGENT_COMPONENT_ID
+            and c.at >= since
+            and c.command != MAV_CMD_SET_MESSAGE_INTERVAL
+        ]
+
+
+def make_spec(
+    sims: list[SimulatedAutopilot], final_action: FinalAction = FinalAction.LAND
+) -> RedundantAutopilotSpec:
+    """Vehicle ``v1`` over ``sims`` (the first is primary), holding :data:`HOLD_S`."""
+    return RedundantAutopilotSpec(
+        vehicle_name="v1",
+        autopilots=autopilot_specs(sims),
+        primary=sims[0].name,
+        failover_policy=FailoverPolicy(
+            safety_routine=SafetyRoutine(hold_seconds=HOLD_S, final_action=final_action)
+        ),
+    )
