@@ -1,4 +1,10 @@
-"""Where the Kubernetes layer's errors meet kopf: temporary → retry, permanent → stop.
+"""The edge of every kopf handler: API errors become kopf's, and every run is timed.
+
+Every handler the operator registers goes through :func:`handler_edge` (the controllers'
+``register`` functions wrap them), so this module is the one place where a handler run
+begins and ends.
+
+Errors: temporary → retry, permanent → stop.
 
 :mod:`roost_kube.errors` splits every API failure into temporary (conflict, timeout,
 5xx, 429: the same request may succeed later) and permanent (400/422/403/404-on-write:
@@ -10,15 +16,21 @@ The layer itself never imports kopf (the agent and the CLI use it too).
 
 Every message names the object (kind namespace/name), so an operator log line says
 which object failed.
+
+Timing: when the operator's memo carries a :class:`HandlerTiming` (``memo.handler_timing``,
+the metrics of :mod:`roost_operator.metrics`), every run reports its resource plural,
+handler name, duration and how it failed, if it did. Without one (metrics off, unit tests)
+nothing is measured; kopf's own registry is never touched.
 """
 
 from __future__ import annotations
 
 import functools
 import inspect
+import time
 from collections.abc import Awaitable, Callable, Iterator, Mapping
 from contextlib import contextmanager
-from typing import Any, Final, TypeVar, cast
+from typing import Any, Final, Protocol, TypeVar, cast
 
 import kopf
 
@@ -72,25 +84,80 @@ def at_the_edge(kind: str, name: str, *, namespace: str | None = None) -> Iterat
         raise kopf_error(error, describe(kind, name, namespace)) from error
 
 
+class HandlerTiming(Protocol):
+    """Where handler runs are reported (the operator's reconcile metrics)."""
+
+    def observe(self, resource: str, handler: str, seconds: float, error: str | None) -> None:
+        """One run of ``handler`` for ``resource`` took ``seconds``; ``error`` is
+        ``temporary``, ``permanent`` or ``other`` when it raised, else ``None``."""
+
+
+def error_kind(error: BaseException) -> str:
+    """How a handler run failed, as kopf will treat it."""
+    if isinstance(error, kopf.TemporaryError):
+        return "temporary"
+    if isinstance(error, kopf.PermanentError):
+        return "permanent"
+    return "other"
+
+
+class _Run:
+    """One handler run: maps its API error and reports its time when it ends."""
+
+    def __init__(self, fn: Callable[..., Any], kwargs: Mapping[str, Any]) -> None:
+        self.kwargs = kwargs
+        self.handler = fn.__name__
+        self.started = time.perf_counter()
+        self.error: str | None = None
+
+    def failed(self, error: Exception) -> Exception:
+        """The exception to raise for ``error`` (a kopf error for an API error)."""
+        raised: Exception = error
+        if isinstance(error, ApiError):
+            raised = kopf_error(error, object_name(self.kwargs))
+        self.error = error_kind(raised)
+        return raised
+
+    def ended(self) -> None:
+        timing = getattr(self.kwargs.get("memo"), "handler_timing", None)
+        if timing is None:
+            return
+        resource = str(getattr(self.kwargs.get("resource"), "plural", "") or "")
+        timing.observe(resource, self.handler, time.perf_counter() - self.started, self.error)
+
+
 def handler_edge(fn: F) -> F:
-    """Wrap a kopf handler (sync or async) so API errors leave it as kopf errors."""
+    """Wrap a kopf handler (sync or async): API errors leave it as kopf errors, and its
+    runs are timed. Sync stays sync (kopf runs it in a thread), async stays async."""
     if inspect.iscoroutinefunction(fn):
         coroutine = cast(Callable[..., Awaitable[Any]], fn)
 
         @functools.wraps(fn)
         async def async_edge(*args: Any, **kwargs: Any) -> Any:
+            run = _Run(fn, kwargs)
             try:
                 return await coroutine(*args, **kwargs)
-            except ApiError as error:
-                raise kopf_error(error, object_name(kwargs)) from error
+            except Exception as error:
+                raised = run.failed(error)
+                if raised is error:
+                    raise
+                raise raised from error
+            finally:
+                run.ended()
 
         return cast(F, async_edge)
 
     @functools.wraps(fn)
     def edge(*args: Any, **kwargs: Any) -> Any:
+        run = _Run(fn, kwargs)
         try:
             return fn(*args, **kwargs)
-        except ApiError as error:
-            raise kopf_error(error, object_name(kwargs)) from error
+        except Exception as error:
+            raised = run.failed(error)
+            if raised is error:
+                raise
+            raise raised from error
+        finally:
+            run.ended()
 
     return cast(F, edge)

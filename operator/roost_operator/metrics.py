@@ -2,11 +2,9 @@
 
 Three sources, none of which needs a change in a handler:
 
-* **reconciles** — :func:`instrument_handlers` wraps every resource handler kopf has
-  registered (change, timer, daemon and event handlers) with a timer, once, before
-  ``kopf.run``: duration by resource and handler, and failures by kind of error. kopf
-  has no hook for this; the wrapping goes through its registry, and an unknown registry
-  layout is logged and skipped rather than failing the operator.
+* **reconciles** — every handler runs inside :func:`roost_operator.edge.handler_edge`,
+  which reports each run to :class:`Reconciles` (the memo's ``handler_timing``):
+  duration by resource and handler, and failures by kind of error.
 * **API calls** — :func:`roost_kube.client.observe_requests` reports every request of
   the shared client (method, status, seconds); watches are not counted.
 * **the fleet** — :class:`FleetCollector` lists Vehicles and Missions at scrape time
@@ -21,16 +19,11 @@ never object names or UIDs. docs/metrics.md lists every metric.
 
 from __future__ import annotations
 
-import asyncio
-import dataclasses
-import functools
 import logging
-import time
 from collections import Counter as Tally
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from typing import Any
 
-import kopf
 from prometheus_client import (
     CollectorRegistry,
     Counter,
@@ -53,8 +46,6 @@ PREFIX = "roost_operator"
 DEFAULT_PORT = 9466
 RECONCILE_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
 API_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 10.0)
-# kopf's registries of per-object handlers (the activity registry holds startup hooks).
-HANDLER_REGISTRIES = ("_changing", "_spawning", "_watching")
 
 
 class Reconciles:
@@ -76,64 +67,11 @@ class Reconciles:
             registry=registry,
         )
 
-    def wrap(self, fn: Callable[..., Any], resource: str, handler: str) -> Callable[..., Any]:
-        """``fn`` timed; sync stays sync (kopf runs it in a thread), async stays async."""
-        duration = self.duration.labels(resource, handler)
-
-        def failed(exc: BaseException) -> None:
-            if isinstance(exc, kopf.TemporaryError):
-                error = "temporary"
-            elif isinstance(exc, kopf.PermanentError):
-                error = "permanent"
-            else:
-                error = "other"
+    def observe(self, resource: str, handler: str, seconds: float, error: str | None) -> None:
+        """One handler run (the :class:`roost_operator.edge.HandlerTiming` protocol)."""
+        self.duration.labels(resource, handler).observe(seconds)
+        if error is not None:
             self.errors.labels(resource, handler, error).inc()
-
-        if asyncio.iscoroutinefunction(fn):
-
-            @functools.wraps(fn)
-            async def timed_async(*args: Any, **kwargs: Any) -> Any:
-                started = time.perf_counter()
-                try:
-                    return await fn(*args, **kwargs)
-                except Exception as exc:
-                    failed(exc)
-                    raise
-                finally:
-                    duration.observe(time.perf_counter() - started)
-
-            return timed_async
-
-        @functools.wraps(fn)
-        def timed(*args: Any, **kwargs: Any) -> Any:
-            started = time.perf_counter()
-            try:
-                return fn(*args, **kwargs)
-            except Exception as exc:
-                failed(exc)
-                raise
-            finally:
-                duration.observe(time.perf_counter() - started)
-
-        return timed
-
-
-def instrument_handlers(reconciles: Reconciles, registry: Any = None) -> int:
-    """Wrap the resource handlers registered with kopf; returns how many were wrapped."""
-    kopf_registry = registry if registry is not None else kopf.get_default_registry()
-    wrapped = 0
-    for attribute in HANDLER_REGISTRIES:
-        handlers = getattr(getattr(kopf_registry, attribute, None), "_handlers", None)
-        if not isinstance(handlers, list):
-            log.warning("kopf registry has no %s handlers: reconciles not measured", attribute)
-            continue
-        for i, handler in enumerate(handlers):
-            selector = getattr(handler, "selector", None)
-            resource = str(getattr(selector, "any_name", None) or getattr(selector, "plural", ""))
-            fn = reconciles.wrap(handler.fn, resource, str(handler.id))
-            handlers[i] = dataclasses.replace(handler, fn=fn)
-            wrapped += 1
-    return wrapped
 
 
 class ApiRequests:

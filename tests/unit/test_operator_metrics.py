@@ -15,6 +15,8 @@ import pytest
 from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.parser import text_string_to_metric_families
 
+from roost_kube.errors import error_for_status
+from roost_operator.edge import handler_edge
 from roost_operator.metrics import ApiRequests, Reconciles, fleet_families
 
 Samples = dict[tuple[str, tuple[tuple[str, str], ...]], float]
@@ -74,35 +76,60 @@ def test_fleet_gauges_count_conditions_claims_guards_and_phases() -> None:
     assert got[("roost_operator_missions", (("phase", "Aborted"),))] == 0
 
 
-def test_handler_timing_counts_runs_and_errors_by_kind() -> None:
-    registry = CollectorRegistry()
-    reconciles = Reconciles(registry)
+class _Resource:
+    def __init__(self, plural: str) -> None:
+        self.plural = plural
 
-    def ok(**_: Any) -> str:
+
+def test_handler_edge_reports_runs_and_errors_by_kind_to_the_memo() -> None:
+    registry = CollectorRegistry()
+    memo = kopf.Memo(handler_timing=Reconciles(registry))
+    vehicles, missions = _Resource("vehicles"), _Resource("missions")
+
+    @handler_edge
+    def vehicle_changed(**_: Any) -> str:
         return "done"
 
-    def retry(**_: Any) -> None:
+    @handler_edge
+    def vehicle_resync(**_: Any) -> None:
         raise kopf.TemporaryError("later", delay=1)
 
-    async def broken(**_: Any) -> None:
+    @handler_edge
+    async def mission_daemon(**_: Any) -> None:
         raise ValueError("bug")
 
-    assert reconciles.wrap(ok, "vehicles", "vehicle_changed")(body={}) == "done"
+    assert vehicle_changed(memo=memo, resource=vehicles) == "done"
+    assert vehicle_changed(resource=vehicles) == "done"  # no timing in the memo: not counted
     with pytest.raises(kopf.TemporaryError):
-        reconciles.wrap(retry, "vehicles", "vehicle_changed")()
-    timed_async = reconciles.wrap(broken, "missions", "mission_changed")
-    assert asyncio.iscoroutinefunction(timed_async)  # kopf must still await it
+        vehicle_resync(memo=memo, resource=vehicles)
     with pytest.raises(ValueError, match="bug"):
-        asyncio.run(timed_async())
+        asyncio.run(mission_daemon(memo=memo, resource=missions))
     got = parse(generate_latest(registry).decode())
     count = "roost_operator_reconcile_duration_seconds_count"
-    assert got[(count, (("handler", "vehicle_changed"), ("resource", "vehicles")))] == 2
-    assert got[(count, (("handler", "mission_changed"), ("resource", "missions")))] == 1
+    assert got[(count, (("handler", "vehicle_changed"), ("resource", "vehicles")))] == 1
+    assert got[(count, (("handler", "vehicle_resync"), ("resource", "vehicles")))] == 1
+    assert got[(count, (("handler", "mission_daemon"), ("resource", "missions")))] == 1
     errors = "roost_operator_reconcile_errors_total"
-    key = (("error", "temporary"), ("handler", "vehicle_changed"), ("resource", "vehicles"))
+    key = (("error", "temporary"), ("handler", "vehicle_resync"), ("resource", "vehicles"))
     assert got[(errors, key)] == 1
-    key = (("error", "other"), ("handler", "mission_changed"), ("resource", "missions"))
+    key = (("error", "other"), ("handler", "mission_daemon"), ("resource", "missions"))
     assert got[(errors, key)] == 1
+    assert not [k for k in got if k[0] == errors and ("handler", "vehicle_changed") in k[1]]
+
+
+def test_an_api_error_is_counted_as_what_kopf_makes_of_it() -> None:
+    registry = CollectorRegistry()
+    memo = kopf.Memo(handler_timing=Reconciles(registry))
+
+    @handler_edge
+    def vehicle_changed(**_: Any) -> None:
+        raise error_for_status(422, "PATCH", "/vehicles/x", "{}")
+
+    with pytest.raises(kopf.PermanentError):
+        vehicle_changed(memo=memo, resource=_Resource("vehicles"), name="x")
+    got = parse(generate_latest(registry).decode())
+    key = (("error", "permanent"), ("handler", "vehicle_changed"), ("resource", "vehicles"))
+    assert got[("roost_operator_reconcile_errors_total", key)] == 1
 
 
 def test_api_requests_by_verb_and_result() -> None:

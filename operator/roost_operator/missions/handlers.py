@@ -36,7 +36,7 @@ from roost_kube import resources
 from roost_kube.client import Kube
 from roost_kube.errors import ApiError, TemporaryApiError
 from roost_operator.claims import CLAIM_COMPONENT, claim_of
-from roost_operator.edge import at_the_edge
+from roost_operator.edge import at_the_edge, handler_edge
 from roost_operator.missions.cluster import reconcile_mission, release_deleted_mission
 from roost_operator.missions.wakeups import Wakeups, sleep_until_woken
 from roost_operator.runtime import runtime
@@ -211,18 +211,18 @@ def register(registry: kopf.OperatorRegistry, settings: Settings) -> None:
         id="mission",
         cancellation_timeout=timings.stop_timeout_seconds,
         registry=registry,
-    )(mission_daemon)
+    )(handler_edge(mission_daemon))
     kopf.on.delete(*MISSIONS, backoff=timings.delete_backoff_seconds, registry=registry)(
-        mission_deleted
+        handler_edge(mission_deleted)
     )
-    kopf.on.event(*MISSIONS, registry=registry)(mission_event)
-    kopf.on.event(*VEHICLES, registry=registry)(vehicle_event)
+    kopf.on.event(*MISSIONS, registry=registry)(handler_edge(mission_event))
+    kopf.on.event(*VEHICLES, registry=registry)(handler_edge(vehicle_event))
     kopf.on.event(
         *LEASES,
         labels={LABEL_COMPONENT: CLAIM_COMPONENT},
         registry=registry,
-    )(claim_event)
-    kopf.on.event(*AUTOPILOTS, registry=registry)(autopilots_event)
+    )(handler_edge(claim_event))
+    kopf.on.event(*AUTOPILOTS, registry=registry)(handler_edge(autopilots_event))
     kopf.on.event("batch", "v1", "jobs", labels={LABEL_MISSION: kopf.PRESENT}, registry=registry)(
-        job_event
+        handler_edge(job_event)
     )

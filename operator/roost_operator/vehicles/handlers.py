@@ -54,7 +54,7 @@ from roost_api.wellknown import (
 from roost_kube import resources
 from roost_kube.patches import content_hash
 from roost_operator.claims import CLAIM_COMPONENT, claim_of
-from roost_operator.edge import at_the_edge
+from roost_operator.edge import at_the_edge, handler_edge
 from roost_operator.runtime import runtime
 from roost_operator.settings import Settings
 from roost_operator.vehicles.controller import Peers
@@ -298,23 +298,23 @@ def register(registry: kopf.OperatorRegistry, settings: Settings) -> None:
     kopf.index(*VEHICLES, registry=registry)(failover_actions)
     kopf.index(*AUTOPILOTS, registry=registry)(autopilots_by_vehicle)
     for trigger in (kopf.on.resume, kopf.on.create, kopf.on.update):
-        trigger(*VEHICLES, backoff=backoff, registry=registry)(vehicle_changed)
+        trigger(*VEHICLES, backoff=backoff, registry=registry)(handler_edge(vehicle_changed))
     kopf.timer(
         *VEHICLES,
         interval=settings.resync_seconds,
         initial_delay=settings.resync_seconds,
         registry=registry,
-    )(vehicle_resync)
+    )(handler_edge(vehicle_resync))
     kopf.timer(
         *VEHICLES,
         interval=settings.failover_poll_seconds,
         when=_pending,
         backoff=backoff,
         registry=registry,
-    )(failover_pending)
-    kopf.on.event(*VEHICLES, registry=registry)(guard_annotations)
-    kopf.on.delete(*VEHICLES, backoff=backoff, registry=registry)(vehicle_deleted)
-    kopf.on.event("", "v1", "nodes", registry=registry)(node_event)
+    )(handler_edge(failover_pending))
+    kopf.on.event(*VEHICLES, registry=registry)(handler_edge(guard_annotations))
+    kopf.on.delete(*VEHICLES, backoff=backoff, registry=registry)(handler_edge(vehicle_deleted))
+    kopf.on.event("", "v1", "nodes", registry=registry)(handler_edge(node_event))
     kopf.on.event(
         "apps",
         "v1",
@@ -325,13 +325,13 @@ def register(registry: kopf.OperatorRegistry, settings: Settings) -> None:
             LABEL_COMPONENT: kopf.PRESENT,
         },
         registry=registry,
-    )(component_event)
-    kopf.on.event(*AUTOPILOTS, registry=registry)(autopilot_reported)
+    )(handler_edge(component_event))
+    kopf.on.event(*AUTOPILOTS, registry=registry)(handler_edge(autopilot_reported))
     kopf.timer(*AUTOPILOTS, interval=stale / 3, idle=stale, backoff=backoff, registry=registry)(
-        autopilot_silent
+        handler_edge(autopilot_silent)
     )
     kopf.on.event(
         *LEASES,
         labels={LABEL_MANAGED_BY: MANAGED_BY, LABEL_COMPONENT: CLAIM_COMPONENT},
         registry=registry,
-    )(claim_changed)
+    )(handler_edge(claim_changed))
