@@ -46,14 +46,6 @@ HANDLER_MODULES = (vehicle_handlers, mission_handlers)
 """Each has ``register(registry, settings)``: one controller per resource."""
 ANNOTATION_PREFIX = PREFIX.rstrip("/")
 
-WATCH_SERVER_TIMEOUT_S = 290  # seconds; the API server wants an integer
-WATCH_CLIENT_TIMEOUT_S = 300.0
-CONNECT_TIMEOUT_S = 10.0
-REQUEST_TIMEOUT_S = 60.0
-# A sync timer caught mid-run when its object is deleted cannot be cancelled; kopf then
-# re-checks it every cancellation_polling seconds (default 60), holding the finalizer.
-CANCELLATION_POLLING_S = 1.0
-
 
 def configure(settings: kopf.OperatorSettings, roost: Settings) -> None:
     """Apply Roost's kopf settings (see the module docstring for why each)."""
@@ -69,12 +61,13 @@ def configure(settings: kopf.OperatorSettings, roost: Settings) -> None:
     settings.peering.mandatory = False
     settings.peering.stealth = True
     settings.posting.level = logging.WARNING
-    settings.watching.server_timeout = WATCH_SERVER_TIMEOUT_S
-    settings.watching.client_timeout = WATCH_CLIENT_TIMEOUT_S
-    settings.watching.connect_timeout = CONNECT_TIMEOUT_S
-    settings.networking.request_timeout = REQUEST_TIMEOUT_S
-    settings.networking.connect_timeout = CONNECT_TIMEOUT_S
-    settings.background.cancellation_polling = CANCELLATION_POLLING_S
+    timings = roost.kopf
+    settings.watching.server_timeout = timings.watch_server_timeout_seconds
+    settings.watching.client_timeout = timings.watch_client_timeout_seconds
+    settings.watching.connect_timeout = timings.connect_timeout_seconds
+    settings.networking.request_timeout = timings.request_timeout_seconds
+    settings.networking.connect_timeout = timings.connect_timeout_seconds
+    settings.background.cancellation_polling = timings.cancellation_polling_seconds
 
 
 def startup(settings: kopf.OperatorSettings, memo: kopf.Memo, **_: Any) -> None:

@@ -47,6 +47,35 @@ class MissionTimings:
 
 
 @dataclass(frozen=True)
+class KopfTimings:
+    """How the operator talks to the API server through kopf (set in kopf's settings at
+    start-up by :func:`roost_operator.main.configure`)."""
+
+    watch_server_timeout_seconds: int = 290
+    """How long the API server keeps one watch request open before it ends it cleanly
+    (``ROOST_WATCH_SERVER_TIMEOUT_SECONDS``; an integer, the API server wants one). kopf
+    then re-lists and watches again; shorter means more list requests, longer means a
+    silently dead connection is noticed later."""
+
+    watch_client_timeout_seconds: float = 300.0
+    """How long kopf waits on a watch before it gives up on the connection itself
+    (``ROOST_WATCH_CLIENT_TIMEOUT_SECONDS``): a little more than the server's timeout, so
+    the server normally ends the watch first."""
+
+    connect_timeout_seconds: float = 10.0
+    """TCP/TLS connect timeout of watches and requests (``ROOST_CONNECT_TIMEOUT_SECONDS``);
+    kopf's default is none, which hangs a handler on an unreachable API server."""
+
+    request_timeout_seconds: float = 60.0
+    """Timeout of one non-watch request of kopf's (patches of progress and finalizers,
+    Events; ``ROOST_REQUEST_TIMEOUT_SECONDS``)."""
+
+    cancellation_polling_seconds: float = 1.0
+    """How often kopf re-checks a sync timer or daemon it could not cancel when its object
+    was deleted (kopf's default is 60 s, which would hold the finalizer that long)."""
+
+
+@dataclass(frozen=True)
 class Settings:
     """What the operator is configured with; see the module docstring."""
 
@@ -83,6 +112,9 @@ class Settings:
     missions: MissionTimings = field(default_factory=MissionTimings)
     """Timings of the mission controller (``ROOST_MISSION_*``)."""
 
+    kopf: KopfTimings = field(default_factory=KopfTimings)
+    """Watch and request timeouts of kopf (``ROOST_WATCH_*``, ``ROOST_*_TIMEOUT_SECONDS``)."""
+
 
 def _seconds(environ: Mapping[str, str], key: str, default: timedelta) -> timedelta:
     value = environ.get(key)
@@ -107,6 +139,26 @@ def load_guards(environ: Mapping[str, str]) -> FleetGuards:
     )
 
 
+def load_kopf_timings(environ: Mapping[str, str]) -> KopfTimings:
+    """:class:`KopfTimings` from the environment, defaults for what is unset."""
+    defaults = KopfTimings()
+    return KopfTimings(
+        watch_server_timeout_seconds=int(
+            environ.get("ROOST_WATCH_SERVER_TIMEOUT_SECONDS", defaults.watch_server_timeout_seconds)
+        ),
+        watch_client_timeout_seconds=float(
+            environ.get("ROOST_WATCH_CLIENT_TIMEOUT_SECONDS", defaults.watch_client_timeout_seconds)
+        ),
+        connect_timeout_seconds=float(
+            environ.get("ROOST_CONNECT_TIMEOUT_SECONDS", defaults.connect_timeout_seconds)
+        ),
+        request_timeout_seconds=float(
+            environ.get("ROOST_REQUEST_TIMEOUT_SECONDS", defaults.request_timeout_seconds)
+        ),
+        cancellation_polling_seconds=defaults.cancellation_polling_seconds,
+    )
+
+
 def load_settings(environ: Mapping[str, str]) -> Settings:
     """Settings from ``environ`` with defaults for what is unset."""
     defaults = Settings()
@@ -127,4 +179,5 @@ def load_settings(environ: Mapping[str, str]) -> Settings:
                 environ.get("ROOST_MISSION_ERROR_BACKOFF_SECONDS", timings.error_backoff_seconds)
             ),
         ),
+        kopf=load_kopf_timings(environ),
     )

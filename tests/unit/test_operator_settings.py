@@ -9,7 +9,13 @@ from pathlib import Path
 
 import roost_operator
 from roost_operator.autopilots.guards import FleetGuards
-from roost_operator.settings import MissionTimings, Settings, load_guards, load_settings
+from roost_operator.settings import (
+    KopfTimings,
+    MissionTimings,
+    Settings,
+    load_guards,
+    load_settings,
+)
 
 
 def test_fleet_guards_come_from_the_environment() -> None:
@@ -49,6 +55,10 @@ def test_every_variable_reaches_its_field() -> None:
             "ROOST_FAILOVER_PAUSED": "true",
             "ROOST_MISSION_RESYNC_SECONDS": "3",
             "ROOST_MISSION_ERROR_BACKOFF_SECONDS": "0.5",
+            "ROOST_WATCH_SERVER_TIMEOUT_SECONDS": "60",
+            "ROOST_WATCH_CLIENT_TIMEOUT_SECONDS": "70",
+            "ROOST_CONNECT_TIMEOUT_SECONDS": "3",
+            "ROOST_REQUEST_TIMEOUT_SECONDS": "20",
         }
     )
     assert settings.namespace == "fleet-ops"
@@ -59,11 +69,17 @@ def test_every_variable_reaches_its_field() -> None:
     assert settings.missions == dataclasses.replace(
         MissionTimings(), resync_seconds=3.0, error_backoff_seconds=0.5
     )
+    assert settings.kopf == KopfTimings(
+        watch_server_timeout_seconds=60,
+        watch_client_timeout_seconds=70.0,
+        connect_timeout_seconds=3.0,
+        request_timeout_seconds=20.0,
+    )
 
 
 def test_every_field_is_documented() -> None:
     """kopf's model: each field has its own docstring right below it."""
-    for cls in (Settings, MissionTimings):
+    for cls in (Settings, MissionTimings, KopfTimings):
         source = inspect.getsource(cls)
         for field in dataclasses.fields(cls):
             after = source.split(f"    {field.name}:", 1)[1].split("\n", 2)
