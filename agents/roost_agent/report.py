@@ -43,9 +43,11 @@ from collections.abc import Collection, Sequence
 from datetime import datetime
 from enum import IntEnum
 
+from roost_api.autopilot import AutopilotConditionReason as R
 from roost_api.autopilot import (
     AutopilotConditionType,
     AutopilotHealth,
+    FailoverTrigger,
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
 )
@@ -54,8 +56,8 @@ from roost_api.meta import Condition, ConditionStatus, HealthLevel, set_conditio
 _NUMBER = re.compile(r"-?\d+(\.\d+)?")
 
 _TRIGGER_REASON = {
-    "Automatic": "AutomaticFailover",
-    "Command": "SwitchedByCommand",
+    FailoverTrigger.AUTOMATIC: R.AUTOMATIC_FAILOVER,
+    FailoverTrigger.COMMAND: R.SWITCHED_BY_COMMAND,
 }
 
 
@@ -74,41 +76,41 @@ def _describe(health: AutopilotHealth) -> str:
 
 def _active_healthy(
     active: str | None, health: AutopilotHealth | None
-) -> tuple[ConditionStatus, str, str]:
+) -> tuple[ConditionStatus, R, str]:
     if active is None:
-        return "Unknown", "NoActiveAutopilot", "no autopilot is connected to the motors yet"
+        return "Unknown", R.NO_ACTIVE_AUTOPILOT, "no autopilot is connected to the motors yet"
     if health is None:
-        return "Unknown", "NoHealth", f"{active} is active but has not been assessed yet"
+        return "Unknown", R.NO_HEALTH, f"{active} is active but has not been assessed yet"
     level = HealthLevel(health.level)
     if level is HealthLevel.OK:
-        return "True", "Healthy", f"{active} active and healthy"
+        return "True", R.HEALTHY, f"{active} active and healthy"
     if level is HealthLevel.WARN:
-        return "True", "Degraded", f"{_describe(health)} active"
+        return "True", R.DEGRADED, f"{_describe(health)} active"
     if level is HealthLevel.STALE:
-        return "False", "NoData", f"{_describe(health)} active"
+        return "False", R.NO_DATA, f"{_describe(health)} active"
     if level is HealthLevel.STARTING:
-        return "False", "Starting", f"{_describe(health)} active"
-    return "False", "Unhealthy", f"{_describe(health)} active"
+        return "False", R.STARTING, f"{_describe(health)} active"
+    return "False", R.UNHEALTHY, f"{_describe(health)} active"
 
 
 def _redundant(
     active: str | None, standbys: Sequence[AutopilotHealth], left_behind: Collection[str]
-) -> tuple[ConditionStatus, str, str]:
+) -> tuple[ConditionStatus, R, str]:
     if active is None:
-        return "Unknown", "NoActiveAutopilot", "no autopilot is connected to the motors yet"
+        return "Unknown", R.NO_ACTIVE_AUTOPILOT, "no autopilot is connected to the motors yet"
     if not standbys:
-        return "False", "NoStandby", "no standby autopilot has been assessed"
+        return "False", R.NO_STANDBY, "no standby autopilot has been assessed"
     quiet = [h for h in standbys if h.level == HealthLevel.OK]
     healthy = [h for h in quiet if _state_known(h)]
     usable = [h for h in healthy if h.name not in left_behind]
     if usable:
         names = ", ".join(h.name for h in usable)
-        return "True", "StandbyAvailable", f"healthy standby: {names}"
+        return "True", R.STANDBY_AVAILABLE, f"healthy standby: {names}"
     if healthy:
         names = ", ".join(h.name for h in healthy)
         return (
             "False",
-            "Latched",
+            R.LATCHED,
             f"standby {names} failed earlier this flight; no automatic switch back to it "
             "until a ClearLatch or Switch command",
         )
@@ -116,11 +118,11 @@ def _redundant(
         names = ", ".join(h.name for h in quiet)
         return (
             "False",
-            "StandbyStateUnknown",
+            R.STANDBY_STATE_UNKNOWN,
             f"standby {names}: armed or landed state unknown (no heartbeat or "
             "EXTENDED_SYS_STATE), so it cannot be a failover target",
         )
-    return "False", "NoHealthyStandby", "; ".join(f"standby {_describe(h)}" for h in standbys)
+    return "False", R.NO_HEALTHY_STANDBY, "; ".join(f"standby {_describe(h)}" for h in standbys)
 
 
 def _state_known(health: AutopilotHealth) -> bool:
@@ -130,16 +132,16 @@ def _state_known(health: AutopilotHealth) -> bool:
 
 def _failed_over(
     spec: RedundantAutopilotSpec, status: RedundantAutopilotStatus
-) -> tuple[ConditionStatus, str, str]:
+) -> tuple[ConditionStatus, R, str]:
     active = status.active_autopilot
     if active is None:
-        return "Unknown", "NoActiveAutopilot", "no autopilot is connected to the motors yet"
+        return "Unknown", R.NO_ACTIVE_AUTOPILOT, "no autopilot is connected to the motors yet"
     if active == spec.primary:
-        return "False", "OnPrimary", f"primary {active} is active"
+        return "False", R.ON_PRIMARY, f"primary {active} is active"
     last = status.last_failover
     if last is None or last.to_autopilot != active:
-        return "True", "NotOnPrimary", f"{active} active, not the primary"
-    reason = _TRIGGER_REASON.get(last.trigger, "NotOnPrimary")
+        return "True", R.NOT_ON_PRIMARY, f"{active} active, not the primary"
+    reason = _TRIGGER_REASON.get(FailoverTrigger(last.trigger), R.NOT_ON_PRIMARY)
     return (
         "True",
         reason,
@@ -148,12 +150,12 @@ def _failed_over(
 
 
 def _ready(
-    active: tuple[ConditionStatus, str, str], redundant: tuple[ConditionStatus, str, str]
-) -> tuple[ConditionStatus, str, str]:
+    active: tuple[ConditionStatus, R, str], redundant: tuple[ConditionStatus, R, str]
+) -> tuple[ConditionStatus, R, str]:
     for status, reason, message in (active, redundant):
         if status != "True":
             return status, reason, message
-    return "True", "Ready", f"{active[2]}; {redundant[2]}"
+    return "True", R.READY, f"{active[2]}; {redundant[2]}"
 
 
 def conditions(

@@ -40,6 +40,37 @@ class AutopilotConditionType(StrEnum):
     FAILED_OVER = "FailedOver"
 
 
+class AutopilotConditionReason(StrEnum):
+    """Reasons of the RedundantAutopilot's conditions (written by the node agent).
+
+    ``Ready`` carries the reason of the first of ``ActiveHealthy`` and ``Redundant`` that
+    is not True, or ``Ready``.
+    """
+
+    # every condition, before the bridge has an active autopilot
+    NO_ACTIVE_AUTOPILOT = "NoActiveAutopilot"
+    # ActiveHealthy
+    NO_HEALTH = "NoHealth"
+    HEALTHY = "Healthy"
+    DEGRADED = "Degraded"
+    NO_DATA = "NoData"
+    STARTING = "Starting"
+    UNHEALTHY = "Unhealthy"
+    # Redundant
+    NO_STANDBY = "NoStandby"
+    STANDBY_AVAILABLE = "StandbyAvailable"
+    LATCHED = "Latched"
+    STANDBY_STATE_UNKNOWN = "StandbyStateUnknown"
+    NO_HEALTHY_STANDBY = "NoHealthyStandby"
+    # FailedOver
+    ON_PRIMARY = "OnPrimary"
+    NOT_ON_PRIMARY = "NotOnPrimary"
+    AUTOMATIC_FAILOVER = "AutomaticFailover"
+    SWITCHED_BY_COMMAND = "SwitchedByCommand"
+    # Ready
+    READY = "Ready"
+
+
 class AutopilotEntryConditionType(StrEnum):
     """Condition types on one autopilot's entry in ``status.autopilots``."""
 

@@ -59,6 +59,83 @@ class MissionPhase(StrEnum):
         return self in (MissionPhase.SUCCEEDED, MissionPhase.FAILED, MissionPhase.ABORTED)
 
 
+class MissionReason(StrEnum):
+    """Reasons of a Mission's phase (``status.reason``) and of its conditions.
+
+    Besides these, ``Degraded`` carries ``FailoverAction<guard>``
+    (:func:`failover_action_held_reason`) while a fleet guard holds a failover's
+    consequence back, and ``PreflightPassed`` False the first failing vehicle's
+    :class:`MissionVehicleReason`.
+    """
+
+    CLAIMING = "Claiming"
+    INSUFFICIENT_VEHICLES = "InsufficientVehicles"
+    NOT_STARTED = "NotStarted"
+    ASSIGNED = "Assigned"
+    PREFLIGHT_FAILED = "PreflightFailed"
+    ALL_CHECKS_PASSED = "AllChecksPassed"
+    NO_FAILOVER = "NoFailover"
+    STARTED = "Started"
+    RUNNING = "Running"
+    VEHICLE_FAILED_OVER = "VehicleFailedOver"
+    VEHICLE_DELETED = "VehicleDeleted"
+    VEHICLE_WORKLOAD_FAILED = "VehicleWorkloadFailed"
+    OFFBOARD_WORKLOAD_FAILED = "OffboardWorkloadFailed"
+    COMPLETED = "Completed"
+    ALL_VEHICLES_ABORTED = "AllVehiclesAborted"
+    ABORT_REQUESTED = "AbortRequested"
+    ABORTED = "Aborted"
+    ABORTED_BEFORE_START = "AbortedBeforeStart"
+    INVALID_TEMPLATE = "InvalidTemplate"
+    JOB_REJECTED = "JobRejected"
+
+
+class MissionVehicleReason(StrEnum):
+    """Reasons of one vehicle's phase in a Mission (``status.vehicles[].reason``).
+
+    Besides these: ``FailoverAction<guard>`` (:func:`failover_action_held_reason`) while a
+    fleet guard holds a failover's consequence back, and ``<action><outcome>``
+    (:func:`abort_command_reason`, e.g. ``SafetyRoutinePending``) while an abort command
+    is on its way.
+    """
+
+    # preflight
+    PREFLIGHT_PASSED = "PreflightPassed"
+    VEHICLE_MISSING = "VehicleMissing"
+    VEHICLE_NOT_READY = "VehicleNotReady"
+    AGENT_NOT_CONNECTED = "AgentNotConnected"
+    ACTIVE_AUTOPILOT_UNHEALTHY = "ActiveAutopilotUnhealthy"
+    NOT_REDUNDANT = "NotRedundant"
+    VEHICLE_CONFIG_MISSING = "VehicleConfigMissing"
+    # the onboard workload
+    JOB_CREATED = "JobCreated"
+    POD_STARTING = "PodStarting"
+    POD_RUNNING = "PodRunning"
+    COMPLETED = "Completed"
+    JOB_FAILED = "JobFailed"
+    MISSION_ENDED = "MissionEnded"
+    # failovers, deletion and aborts
+    FAILED_OVER = "FailedOver"
+    VEHICLE_DELETED = "VehicleDeleted"
+    ABORTED_BEFORE_START = "AbortedBeforeStart"
+    NO_REDUNDANT_AUTOPILOT = "NoRedundantAutopilot"
+    LANDED = "Landed"
+    DISARMED = "Disarmed"
+
+
+def failover_action_held_reason(guard: str) -> str:
+    """``FailoverAction<guard>``: a failover's consequence held back by fleet guard ``guard``
+    (a non-``Allowed`` :class:`roost_api.vehicle.FailoverGuard` value)."""
+    return f"FailoverAction{guard}"
+
+
+def abort_command_reason(action: str, outcome: str) -> str:
+    """``<action><outcome>``: where the abort command to a vehicle stands (a
+    :class:`~roost_api.autopilot.CommandAction` and a
+    :class:`~roost_api.commands.CommandOutcome` value)."""
+    return f"{action}{outcome}"
+
+
 class MissionVehiclePhase(StrEnum):
     """Lifecycle of one vehicle within a Mission."""
 

@@ -66,6 +66,47 @@ class VehicleConditionType(StrEnum):
     AGENT_CONNECTED = "AgentConnected"
 
 
+class VehicleConditionReason(StrEnum):
+    """Reasons of the Vehicle's conditions (written by the operator).
+
+    ``AutopilotsHealthy`` False for another cause carries the RedundantAutopilot's
+    ``Ready`` reason (:class:`~roost_api.autopilot.AutopilotConditionReason`), and ``Ready``
+    the reason of its first input condition that is not True.
+    """
+
+    # NodeBound
+    INVALID_VEHICLE_NAME = "InvalidVehicleName"
+    NODE_CLAIMED_BY_OTHER_VEHICLE = "NodeClaimedByOtherVehicle"
+    NODE_NOT_FOUND = "NodeNotFound"
+    NODE_NOT_READY = "NodeNotReady"
+    NODE_LABELED = "NodeLabeled"
+    NODE_REFUSED = "NodeRefused"
+    AUTOPILOT_LABEL_REFUSED = "AutopilotLabelRefused"
+    # ComponentsReady
+    CONFIG_REFUSED = "ConfigRefused"
+    WAITING_FOR_NODE = "WaitingForNode"
+    NO_COMPONENTS = "NoComponents"
+    ALL_COMPONENTS_READY = "AllComponentsReady"
+    COMPONENTS_NOT_READY = "ComponentsNotReady"
+    # AgentConnected
+    NEVER_REPORTED = "NeverReported"
+    REPORT_FROM_OTHER_NODE = "ReportFromOtherNode"
+    REPORTS_STALE = "ReportsStale"
+    REPORTING = "Reporting"
+    # AutopilotsHealthy
+    AGENT_NOT_CONNECTED = "AgentNotConnected"
+    REDUNDANT = "Redundant"
+    ACTIVE_HEALTH_UNKNOWN = "ActiveHealthUnknown"
+    ACTIVE_UNHEALTHY = "ActiveUnhealthy"
+    FAILED_OVER = "FailedOver"
+    NOT_REDUNDANT = "NotRedundant"
+    REDUNDANCY_UNKNOWN = "RedundancyUnknown"
+    READY_UNKNOWN = "ReadyUnknown"
+    # Ready
+    AGENT_NOT_HEARD_YET = "AgentNotHeardYet"
+    VEHICLE_READY = "VehicleReady"
+
+
 class FailoverGuard(StrEnum):
     """Whether a cluster-side failover action may start now, and if not, which guard holds it."""
 

@@ -34,7 +34,7 @@ from datetime import datetime, timedelta
 
 from roost_api.autopilot import AutopilotConditionType, RedundantAutopilotStatus
 from roost_api.meta import ConditionStatus, find_condition
-from roost_api.vehicle import VehicleConditionType
+from roost_api.vehicle import VehicleConditionReason, VehicleConditionType
 
 AGENT_REPORT_PERIOD = timedelta(seconds=10)
 """How often the agent re-reports when nothing changes (its publisher's default)."""
@@ -69,13 +69,16 @@ def agent_connected(
     kind = VehicleConditionType.AGENT_CONNECTED.value
     if status.reported_at is None:
         return ConditionUpdate(
-            kind, "Unknown", "NeverReported", f"no agent on node {vehicle_node} has reported yet"
+            kind,
+            "Unknown",
+            VehicleConditionReason.NEVER_REPORTED,
+            f"no agent on node {vehicle_node} has reported yet",
         )
     if status.node_name and status.node_name != vehicle_node:
         return ConditionUpdate(
             kind,
             "Unknown",
-            "ReportFromOtherNode",
+            VehicleConditionReason.REPORT_FROM_OTHER_NODE,
             f"last report came from node {status.node_name}, but the vehicle is on node "
             f"{vehicle_node}; waiting for the agent there",
         )
@@ -84,14 +87,14 @@ def agent_connected(
         return ConditionUpdate(
             kind,
             "Unknown",
-            "ReportsStale",
+            VehicleConditionReason.REPORTS_STALE,
             f"agent on node {vehicle_node} last reported {_age_text(age)} ago "
             f"(stale after {_age_text(stale_after)})",
         )
     return ConditionUpdate(
         kind,
         "True",
-        "Reporting",
+        VehicleConditionReason.REPORTING,
         f"agent on node {vehicle_node} reports; active autopilot "
         f"{status.active_autopilot or 'not chosen yet'}",
     )
@@ -107,7 +110,10 @@ def autopilots_healthy(
     kind = VehicleConditionType.AUTOPILOTS_HEALTHY.value
     if connected.status != "True":
         return ConditionUpdate(
-            kind, "Unknown", "AgentNotConnected", f"autopilot health unknown: {connected.message}"
+            kind,
+            "Unknown",
+            VehicleConditionReason.AGENT_NOT_CONNECTED,
+            f"autopilot health unknown: {connected.message}",
         )
     conditions = status.conditions
     ready = find_condition(conditions, AutopilotConditionType.READY)
@@ -115,22 +121,31 @@ def autopilots_healthy(
     redundant = find_condition(conditions, AutopilotConditionType.REDUNDANT)
     failed_over = find_condition(conditions, AutopilotConditionType.FAILED_OVER)
     if ready is not None and ready.status == "True":
-        return ConditionUpdate(kind, "True", "Redundant", ready.message)
+        return ConditionUpdate(kind, "True", VehicleConditionReason.REDUNDANT, ready.message)
     if active is None or active.status == "Unknown":
         message = active.message if active else "the agent has not judged the active autopilot"
-        return ConditionUpdate(kind, "Unknown", "ActiveHealthUnknown", message)
+        return ConditionUpdate(
+            kind, "Unknown", VehicleConditionReason.ACTIVE_HEALTH_UNKNOWN, message
+        )
     if active.status == "False":
-        return ConditionUpdate(kind, "False", "ActiveUnhealthy", active.message)
+        return ConditionUpdate(
+            kind, "False", VehicleConditionReason.ACTIVE_UNHEALTHY, active.message
+        )
     if redundant is not None and redundant.status == "False":
         if failed_over is not None and failed_over.status == "True":
             return ConditionUpdate(
-                kind, "False", "FailedOver", f"{failed_over.message}; {redundant.message}"
+                kind,
+                "False",
+                VehicleConditionReason.FAILED_OVER,
+                f"{failed_over.message}; {redundant.message}",
             )
-        return ConditionUpdate(kind, "False", "NotRedundant", redundant.message)
+        return ConditionUpdate(
+            kind, "False", VehicleConditionReason.NOT_REDUNDANT, redundant.message
+        )
     if redundant is None or redundant.status == "Unknown":
         message = redundant.message if redundant else "the agent has not judged redundancy"
-        return ConditionUpdate(kind, "Unknown", "RedundancyUnknown", message)
+        return ConditionUpdate(kind, "Unknown", VehicleConditionReason.REDUNDANCY_UNKNOWN, message)
     if ready is None or ready.status == "Unknown":
         message = ready.message if ready else "the agent has not reported Ready"
-        return ConditionUpdate(kind, "Unknown", "ReadyUnknown", message)
+        return ConditionUpdate(kind, "Unknown", VehicleConditionReason.READY_UNKNOWN, message)
     return ConditionUpdate(kind, "False", ready.reason, ready.message)

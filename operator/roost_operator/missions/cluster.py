@@ -38,7 +38,7 @@ from pydantic import ValidationError
 from roost_api.autopilot import AutopilotCommand
 from roost_api.commands import command_patch
 from roost_api.meta import API_VERSION
-from roost_api.mission import MissionPhase, MissionSpec, MissionStatus
+from roost_api.mission import MissionPhase, MissionReason, MissionSpec, MissionStatus
 from roost_api.resources import MISSION, VEHICLE
 from roost_api.wellknown import (
     LABEL_COMPONENT,
@@ -390,7 +390,7 @@ def check_templates(kube: Kube, obs: Observation, vehicles: Sequence[str]) -> Pl
             )
             return fail_mission(
                 obs,
-                "InvalidTemplate",
+                MissionReason.INVALID_TEMPLATE,
                 f"{field_path} is refused by the Job API: {error.message}",
             )
     return None
@@ -454,7 +454,7 @@ def carry_out(kube: Kube, obs: Observation, plan: Plan, operator_namespace: str)
         _each(lambda manifest: _create(kube, manifest), [*config_maps, *plan.jobs_to_create])
     except JobRejectedError as error:
         rejected = fail_mission(
-            obs, "JobRejected", f"the API server rejected a Job: {error.message}"
+            obs, MissionReason.JOB_REJECTED, f"the API server rejected a Job: {error.message}"
         )
         carry_out(kube, obs, rejected, operator_namespace)
         return

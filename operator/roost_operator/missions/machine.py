@@ -83,12 +83,16 @@ from roost_api.mission import (
     MissionConditionType,
     MissionOffboardStatus,
     MissionPhase,
+    MissionReason,
     MissionSpec,
     MissionStatus,
     MissionVehiclePhase,
+    MissionVehicleReason,
     MissionVehicleStatus,
     OnFailover,
     WorkloadPhase,
+    abort_command_reason,
+    failover_action_held_reason,
 )
 from roost_api.wellknown import ANNOTATION_CLEAR_FAILOVER_LATCH, ANNOTATION_PAUSE_FAILOVER_ACTIONS
 from roost_kube.patches import Obj
@@ -133,7 +137,7 @@ _WARNING_VEHICLE_PHASES = (
     MissionVehiclePhase.ABORTED,
 )
 _WARNING_PHASES = (MissionPhase.FAILED, MissionPhase.ABORTING, MissionPhase.ABORTED)
-_WARNING_REASONS = ("InsufficientVehicles", "PreflightFailed")
+_WARNING_REASONS = (MissionReason.INSUFFICIENT_VEHICLES, MissionReason.PREFLIGHT_FAILED)
 
 
 @dataclass(frozen=True)
@@ -306,7 +310,7 @@ def _assign(obs: Observation, plan: Plan) -> None:
             _set_phase(
                 status,
                 MissionPhase.PENDING,
-                "Claiming",
+                MissionReason.CLAIMING,
                 f"claiming {need} vehicle{'s' if need != 1 else ''}",
             )
             plan.requeue_after = 0.0
@@ -320,7 +324,7 @@ def _assign(obs: Observation, plan: Plan) -> None:
             status,
             MissionPhase.PENDING,
             MissionConditionType.VEHICLES_ASSIGNED,
-            reason="InsufficientVehicles",
+            reason=MissionReason.INSUFFICIENT_VEHICLES,
             message=message,
         )
         return
@@ -339,7 +343,9 @@ def _wait(
     """Not started yet: ``phase`` with ``reason``, condition ``failing`` False."""
     _set_phase(status, phase, reason, message)
     _condition(obs, status, failing, "False", reason=reason, message=message)
-    _condition(obs, status, MissionConditionType.COMPLETE, "False", reason="NotStarted")
+    _condition(
+        obs, status, MissionConditionType.COMPLETE, "False", reason=MissionReason.NOT_STARTED
+    )
 
 
 def _failures(obs: Observation, name: str) -> list[PreflightFailure]:
@@ -350,7 +356,8 @@ def _failures(obs: Observation, name: str) -> list[PreflightFailure]:
     if name not in obs.config_values:
         failures.append(
             PreflightFailure(
-                "VehicleConfigMissing", "the vehicle's config ConfigMap has not been written yet"
+                MissionVehicleReason.VEHICLE_CONFIG_MISSING,
+                "the vehicle's config ConfigMap has not been written yet",
             )
         )
     return failures
@@ -365,7 +372,7 @@ def _preflight(obs: Observation, plan: Plan, assigned: list[str]) -> None:
         status,
         MissionConditionType.VEHICLES_ASSIGNED,
         "True",
-        reason="Assigned",
+        reason=MissionReason.ASSIGNED,
         message=f"{len(assigned)}/{obs.spec.vehicles.count}: {names}",
     )
     results = {name: _failures(obs, name) for name in assigned}
@@ -378,7 +385,7 @@ def _preflight(obs: Observation, plan: Plan, assigned: list[str]) -> None:
                 name=name,
                 node_name=vehicle.node_name if vehicle else None,
                 phase=MissionVehiclePhase.PREFLIGHT if failures else MissionVehiclePhase.CLAIMED,
-                reason=failures[0].reason if failures else "PreflightPassed",
+                reason=failures[0].reason if failures else MissionVehicleReason.PREFLIGHT_PASSED,
                 message="; ".join(f.message for f in failures) or "all preflight checks pass",
                 job_name=onboard_job_name(obs.mission.name, name),
             )
@@ -394,7 +401,7 @@ def _preflight(obs: Observation, plan: Plan, assigned: list[str]) -> None:
             status,
             MissionPhase.PREFLIGHT,
             MissionConditionType.PREFLIGHT_PASSED,
-            reason="PreflightFailed",
+            reason=MissionReason.PREFLIGHT_FAILED,
             message=message,
         )
         return
@@ -418,13 +425,21 @@ def _start(obs: Observation, plan: Plan, assigned: list[str]) -> None:
     _set_phase(
         status,
         MissionPhase.RUNNING,
-        "Started",
+        MissionReason.STARTED,
         f"preflight passed; onboard workloads started on {count} "
         f"vehicle{'s' if count != 1 else ''}",
     )
-    _condition(obs, status, MissionConditionType.PREFLIGHT_PASSED, "True", reason="AllChecksPassed")
-    _condition(obs, status, MissionConditionType.DEGRADED, "False", reason="NoFailover")
-    _condition(obs, status, MissionConditionType.COMPLETE, "False", reason="Running")
+    _condition(
+        obs,
+        status,
+        MissionConditionType.PREFLIGHT_PASSED,
+        "True",
+        reason=MissionReason.ALL_CHECKS_PASSED,
+    )
+    _condition(
+        obs, status, MissionConditionType.DEGRADED, "False", reason=MissionReason.NO_FAILOVER
+    )
+    _condition(obs, status, MissionConditionType.COMPLETE, "False", reason=MissionReason.RUNNING)
 
 
 def _launch(
@@ -443,7 +458,7 @@ def _launch(
         )
     )
     vehicle.phase = MissionVehiclePhase.RUNNING
-    vehicle.reason = "JobCreated"
+    vehicle.reason = MissionVehicleReason.JOB_CREATED
     vehicle.message = f"onboard Job {vehicle.job_name} created"
 
 
@@ -528,7 +543,7 @@ def _run(obs: Observation, plan: Plan) -> None:
                 _hold(obs, plan, vehicle, verdict, held)
                 _follow_job(obs, plan, vehicle, job, assigned)
                 if vehicle.phase == MissionVehiclePhase.RUNNING:
-                    vehicle.reason = f"FailoverAction{verdict.value}"
+                    vehicle.reason = failover_action_held_reason(verdict.value)
                     vehicle.message = _held_text(vehicle.name, verdict, policy)
                 else:  # its workload ended meanwhile: nothing is left to hold back
                     vehicle.failover_action_held = None
@@ -537,7 +552,7 @@ def _run(obs: Observation, plan: Plan) -> None:
             what = _failover_text(autopilots.status)
             if policy is OnFailover.ABORT_VEHICLE:
                 vehicle.phase = MissionVehiclePhase.ABORTING
-                vehicle.reason = "FailedOver"
+                vehicle.reason = MissionVehicleReason.FAILED_OVER
                 vehicle.message = f"{what}; landing it (onFailover=AbortVehicle)"
                 _stop_job(plan, job)
                 _abort_vehicle(obs, plan, vehicle, CommandAction.SAFETY_ROUTINE)
@@ -551,7 +566,9 @@ def _run(obs: Observation, plan: Plan) -> None:
     _follow_offboard(obs, plan, assigned)
     _degraded(obs, status)
     if abort_mission_because is not None:
-        _set_phase(status, MissionPhase.ABORTING, "VehicleFailedOver", abort_mission_because)
+        _set_phase(
+            status, MissionPhase.ABORTING, MissionReason.VEHICLE_FAILED_OVER, abort_mission_because
+        )
         _abort(obs, plan)
         return
     _aggregate(obs, plan)
@@ -578,10 +595,10 @@ def _leave(
     """
     _stop_job(plan, job)
     plan.config_maps_to_delete.append(vehicle.name)
-    first = vehicle.reason != "VehicleDeleted"
+    first = vehicle.reason != MissionVehicleReason.VEHICLE_DELETED
     vehicle.failover_action_held = None  # nothing is left to hold back
     _abort_vehicle(obs, plan, vehicle, CommandAction.SAFETY_ROUTINE)
-    vehicle.reason = "VehicleDeleted"
+    vehicle.reason = MissionVehicleReason.VEHICLE_DELETED
     vehicle.message = f"the Vehicle was deleted during the mission; {vehicle.message}"
     if first:
         plan.events.append(
@@ -672,12 +689,12 @@ def _follow_job(
     if job is None:
         if vehicle.name not in obs.vehicles:
             vehicle.phase = MissionVehiclePhase.FAILED
-            vehicle.reason = "VehicleMissing"
+            vehicle.reason = MissionVehicleReason.VEHICLE_MISSING
             vehicle.message = "the Vehicle was deleted before its onboard Job could run"
             return
         if vehicle.name not in obs.config_values:
             vehicle.phase = MissionVehiclePhase.FAILED
-            vehicle.reason = "VehicleConfigMissing"
+            vehicle.reason = MissionVehicleReason.VEHICLE_CONFIG_MISSING
             vehicle.message = "the vehicle's config ConfigMap is gone; cannot start its Job"
             return
         _launch(obs, plan, vehicle, assigned)
@@ -689,18 +706,20 @@ def _follow_job(
     attempts = obs.spec.backoff_limit + 1
     if job.phase is JobPhase.SUCCEEDED:
         vehicle.phase = MissionVehiclePhase.SUCCEEDED
-        vehicle.reason = "Completed"
+        vehicle.reason = MissionVehicleReason.COMPLETED
         vehicle.message = f"onboard Job {job.name} completed"
     elif job.phase is JobPhase.FAILED:
         vehicle.phase = MissionVehiclePhase.FAILED
-        vehicle.reason = "JobFailed"
+        vehicle.reason = MissionVehicleReason.JOB_FAILED
         vehicle.message = (
             f"onboard Job {job.name} failed after {job.failed} of {attempts} attempts: "
             f"{job.message or 'no message'}"
         )
     else:
         vehicle.phase = MissionVehiclePhase.RUNNING
-        vehicle.reason = "PodRunning" if job.ready else "PodStarting"
+        vehicle.reason = (
+            MissionVehicleReason.POD_RUNNING if job.ready else MissionVehicleReason.POD_STARTING
+        )
         vehicle.message = (
             f"onboard Job {job.name}: {job.active} active, {job.ready} ready, "
             f"{job.failed} failed of {attempts} attempts"
@@ -750,7 +769,7 @@ def _degraded(obs: Observation, status: MissionStatus) -> None:
             status,
             MissionConditionType.DEGRADED,
             "True",
-            reason="VehicleDeleted",
+            reason=MissionReason.VEHICLE_DELETED,
             message=f"Vehicle deleted during the mission: {', '.join(lost)}",
         )
         return
@@ -759,10 +778,10 @@ def _degraded(obs: Observation, status: MissionStatus) -> None:
     names = ", ".join(v.name for v in failed_over)
     policy = OnFailover(obs.spec.on_failover)
     message = f"autopilot failover on {names} (onFailover={policy})"
-    reason = "VehicleFailedOver"
+    reason: str = MissionReason.VEHICLE_FAILED_OVER
     held = [v for v in failed_over if v.failover_action_held is not None]
     if held:
-        reason = f"FailoverAction{held[0].failover_action_held}"
+        reason = failover_action_held_reason(str(held[0].failover_action_held))
         message += "; held back by a fleet guard on " + ", ".join(
             f"{v.name} ({v.failover_action_held})" for v in held
         )
@@ -787,7 +806,7 @@ def _aggregate(obs: Observation, plan: Plan) -> None:
             obs,
             plan,
             MissionPhase.FAILED,
-            "VehicleWorkloadFailed",
+            MissionReason.VEHICLE_WORKLOAD_FAILED,
             f"{first.name}: {first.message}",
         )
         return
@@ -796,7 +815,7 @@ def _aggregate(obs: Observation, plan: Plan) -> None:
             obs,
             plan,
             MissionPhase.FAILED,
-            "OffboardWorkloadFailed",
+            MissionReason.OFFBOARD_WORKLOAD_FAILED,
             f"offboard Job {status.offboard.job_name} {status.offboard.message}",
         )
         return
@@ -806,7 +825,7 @@ def _aggregate(obs: Observation, plan: Plan) -> None:
         if succeeded:
             why = (
                 "a failover or the Vehicle's deletion"
-                if any(v.reason == "VehicleDeleted" for v in aborted)
+                if any(v.reason == MissionVehicleReason.VEHICLE_DELETED for v in aborted)
                 else "a failover"
             )
             extra = f"; {len(aborted)} aborted after {why}" if aborted else ""
@@ -814,7 +833,7 @@ def _aggregate(obs: Observation, plan: Plan) -> None:
                 obs,
                 plan,
                 MissionPhase.SUCCEEDED,
-                "Completed",
+                MissionReason.COMPLETED,
                 f"{len(succeeded)} onboard workload{'s' if len(succeeded) != 1 else ''} "
                 f"completed{extra}",
             )
@@ -823,7 +842,7 @@ def _aggregate(obs: Observation, plan: Plan) -> None:
                 obs,
                 plan,
                 MissionPhase.FAILED,
-                "AllVehiclesAborted",
+                MissionReason.ALL_VEHICLES_ABORTED,
                 "every vehicle was aborted after an autopilot failover",
             )
         return
@@ -831,7 +850,7 @@ def _aggregate(obs: Observation, plan: Plan) -> None:
     message = f"{len(succeeded)}/{len(vehicles)} onboard workloads completed, {running} running"
     if aborted:
         message += f", {len(aborted)} aborted"
-    _set_phase(status, MissionPhase.RUNNING, "Started", message)
+    _set_phase(status, MissionPhase.RUNNING, MissionReason.STARTED, message)
 
 
 def _finish(obs: Observation, plan: Plan, phase: MissionPhase, reason: str, message: str) -> None:
@@ -843,7 +862,7 @@ def _finish(obs: Observation, plan: Plan, phase: MissionPhase, reason: str, mess
     for vehicle in status.vehicles:
         if vehicle.phase in (MissionVehiclePhase.RUNNING, MissionVehiclePhase.CLAIMED):
             vehicle.phase = MissionVehiclePhase.FAILED
-            vehicle.reason = "MissionEnded"
+            vehicle.reason = MissionVehicleReason.MISSION_ENDED
             vehicle.message = f"workload stopped: the mission {phase.value.lower()} ({reason})"
     if status.offboard is not None and status.offboard.phase == WorkloadPhase.RUNNING:
         status.offboard.phase = WorkloadPhase.STOPPED
@@ -884,15 +903,21 @@ def _abort_before_start(obs: Observation, plan: Plan) -> None:
     _set_phase(
         status,
         MissionPhase.ABORTED,
-        "AbortedBeforeStart",
+        MissionReason.ABORTED_BEFORE_START,
         "aborted before any workload started; no vehicle was commanded",
     )
     status.completion_time = obs.now
     for vehicle in status.vehicles:
         vehicle.phase = MissionVehiclePhase.ABORTED
-        vehicle.reason = "AbortedBeforeStart"
+        vehicle.reason = MissionVehicleReason.ABORTED_BEFORE_START
         vehicle.message = "nothing was started on this vehicle"
-    _condition(obs, status, MissionConditionType.COMPLETE, "False", reason="AbortedBeforeStart")
+    _condition(
+        obs,
+        status,
+        MissionConditionType.COMPLETE,
+        "False",
+        reason=MissionReason.ABORTED_BEFORE_START,
+    )
     plan.releases.extend(held_by(obs.mission, obs.vehicles))
 
 
@@ -907,7 +932,7 @@ def _abort(obs: Observation, plan: Plan) -> None:
     status = plan.status
     action = abort_action(obs.spec)
     if obs.spec.abort:
-        status.reason = "AbortRequested"
+        status.reason = MissionReason.ABORT_REQUESTED
     for job in obs.jobs.values():
         _stop_job(plan, job)
     if status.offboard is not None and status.offboard.phase == WorkloadPhase.RUNNING:
@@ -924,7 +949,7 @@ def _abort(obs: Observation, plan: Plan) -> None:
         _set_phase(
             status,
             MissionPhase.ABORTING,
-            status.reason or "AbortRequested",
+            status.reason or MissionReason.ABORT_REQUESTED,
             f"{_abort_cause(obs, status, action)} — waiting for {len(waiting)} vehicle"
             f"{'s' if len(waiting) != 1 else ''}: {listed}{more}",
         )
@@ -934,7 +959,7 @@ def _abort(obs: Observation, plan: Plan) -> None:
     _set_phase(
         status,
         MissionPhase.ABORTED,
-        status.reason or "AbortRequested",
+        status.reason or MissionReason.ABORT_REQUESTED,
         f"{_abort_cause(obs, status, action)} — {count} vehicle{'s' if count != 1 else ''} stopped",
     )
     status.completion_time = obs.now
@@ -943,14 +968,14 @@ def _abort(obs: Observation, plan: Plan) -> None:
         status,
         MissionConditionType.COMPLETE,
         "False",
-        reason="Aborted",
+        reason=MissionReason.ABORTED,
         message=status.message or "",
     )
     plan.releases.extend(held_by(obs.mission, obs.vehicles))
 
 
 def _abort_cause(obs: Observation, status: MissionStatus, action: CommandAction) -> str:
-    if status.reason == "AbortRequested":
+    if status.reason == MissionReason.ABORT_REQUESTED:
         return f"abort requested ({action})"
     names = ", ".join(v.name for v in status.vehicles if v.failed_over_at is not None)
     return f"autopilot failover on {names or 'a vehicle'} (onFailover=AbortMission; {action})"
@@ -1015,7 +1040,7 @@ def _abort_vehicle(
     autopilots = obs.autopilots.get(vehicle.name)
     if autopilots is None:
         vehicle.phase = MissionVehiclePhase.ABORTED
-        vehicle.reason = "NoRedundantAutopilot"
+        vehicle.reason = MissionVehicleReason.NO_REDUNDANT_AUTOPILOT
         vehicle.message = (
             f"no RedundantAutopilot: cannot request {action}; its workload was stopped"
         )
@@ -1046,11 +1071,15 @@ def _abort_vehicle(
     status = autopilots.status
     if _reported_since(status, command) and stopped(action, status):
         vehicle.phase = MissionVehiclePhase.ABORTED
-        vehicle.reason = "Disarmed" if action is CommandAction.EMERGENCY_STOP else "Landed"
+        vehicle.reason = (
+            MissionVehicleReason.DISARMED
+            if action is CommandAction.EMERGENCY_STOP
+            else MissionVehicleReason.LANDED
+        )
         vehicle.message = f"{action} done: {_flight_text(status)}"
         return
     vehicle.phase = MissionVehiclePhase.ABORTING
-    vehicle.reason = f"{action}{outcome}"
+    vehicle.reason = abort_command_reason(action, outcome)
     detail = ""
     if outcome is CommandOutcome.REJECTED and status.last_command is not None:
         detail = f" ({status.last_command.message})"

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 from roost_api.autopilot import AutopilotConditionType
 from roost_api.meta import Condition, find_condition
-from roost_api.mission import Preflight
+from roost_api.mission import MissionVehicleReason, Preflight
 from roost_api.vehicle import VehicleConditionType
 from roost_operator.missions.observed import AutopilotView, VehicleView
 from roost_operator.missions.selection import is_claimable, unfit_reason
@@ -41,18 +41,23 @@ def preflight_failures(
 ) -> list[PreflightFailure]:
     """Every check ``vehicle`` fails, in a fixed order; empty when it may start."""
     if vehicle is None:
-        return [PreflightFailure("VehicleMissing", "the Vehicle no longer exists")]
+        return [
+            PreflightFailure(MissionVehicleReason.VEHICLE_MISSING, "the Vehicle no longer exists")
+        ]
     failures: list[PreflightFailure] = []
     if not is_claimable(vehicle):
         failures.append(
-            PreflightFailure("VehicleNotReady", f"vehicle not ready: {unfit_reason(vehicle)}")
+            PreflightFailure(
+                MissionVehicleReason.VEHICLE_NOT_READY,
+                f"vehicle not ready: {unfit_reason(vehicle)}",
+            )
         )
     if checks.require_agent_connected:
         agent = find_condition(vehicle.status.conditions, VehicleConditionType.AGENT_CONNECTED)
         if agent is None or agent.status != "True":
             failures.append(
                 PreflightFailure(
-                    "AgentNotConnected",
+                    MissionVehicleReason.AGENT_NOT_CONNECTED,
                     "node agent not connected: "
                     + _condition_text(agent, "no AgentConnected condition yet"),
                 )
@@ -61,13 +66,13 @@ def preflight_failures(
         (
             checks.require_active_healthy,
             AutopilotConditionType.ACTIVE_HEALTHY,
-            "ActiveAutopilotUnhealthy",
+            MissionVehicleReason.ACTIVE_AUTOPILOT_UNHEALTHY,
             "active autopilot not healthy",
         ),
         (
             checks.require_redundancy,
             AutopilotConditionType.REDUNDANT,
-            "NotRedundant",
+            MissionVehicleReason.NOT_REDUNDANT,
             "no healthy standby autopilot",
         ),
     ]

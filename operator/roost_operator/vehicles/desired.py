@@ -35,7 +35,12 @@ from typing import Any, Final
 
 from roost_api.autopilot import RedundantAutopilotSpec, hub_client_url
 from roost_api.meta import Condition, ConditionStatus, Stack, set_condition
-from roost_api.vehicle import ComponentSpec, VehicleConditionType, VehicleSpec
+from roost_api.vehicle import (
+    ComponentSpec,
+    VehicleConditionReason,
+    VehicleConditionType,
+    VehicleSpec,
+)
 from roost_api.wellknown import (
     ANNOTATION_CONFIG_HASH,
     LABEL_COMPONENT,
@@ -345,15 +350,15 @@ def components_condition(
     ``blocked`` says why no components run at all (the vehicle has no node to run on).
     """
     if blocked is not None:
-        return "False", "WaitingForNode", f"no components run: {blocked}"
+        return "False", VehicleConditionReason.WAITING_FOR_NODE, f"no components run: {blocked}"
     if not states:
-        return "True", "NoComponents", "no components are enabled"
+        return "True", VehicleConditionReason.NO_COMPONENTS, "no components are enabled"
     waiting = [s for s in states if not s.ready]
     if not waiting:
         names = ", ".join(s.component for s in states)
-        return "True", "AllComponentsReady", f"ready: {names}"
+        return "True", VehicleConditionReason.ALL_COMPONENTS_READY, f"ready: {names}"
     message = "; ".join(f"component {s.component} not ready: {s.detail}" for s in waiting)
-    return "False", "ComponentsNotReady", message
+    return "False", VehicleConditionReason.COMPONENTS_NOT_READY, message
 
 
 # The detail conditions Ready summarises, in the order their problems are reported.
@@ -385,7 +390,7 @@ def ready_condition(
             (
                 VehicleConditionType.AGENT_CONNECTED.value,
                 "Unknown",
-                "AgentNotHeardYet",
+                VehicleConditionReason.AGENT_NOT_HEARD_YET,
                 "the vehicle's node agent has not been heard from yet",
             )
         )
@@ -394,7 +399,7 @@ def ready_condition(
         if failing:
             message = "; ".join(f"{kind}: {text}" for kind, _, _, text in failing)
             return wanted, failing[0][2], message
-    return "True", "VehicleReady", "node bound, components ready"
+    return "True", VehicleConditionReason.VEHICLE_READY, "node bound, components ready"
 
 
 def vehicle_conditions(

@@ -32,7 +32,12 @@ from typing import Any
 
 from roost_api.autopilot import RedundantAutopilotSpec, RedundantAutopilotStatus
 from roost_api.meta import Condition, ObjectReference, Stack, set_condition
-from roost_api.vehicle import VehicleConditionType, VehicleSpec, VehicleStatus
+from roost_api.vehicle import (
+    VehicleConditionReason,
+    VehicleConditionType,
+    VehicleSpec,
+    VehicleStatus,
+)
 from roost_api.wellknown import LABEL_NODE
 from roost_kube.errors import ApiError
 from roost_kube.patches import Obj
@@ -138,19 +143,19 @@ def node_binding(obs: Observed) -> NodeBinding:
     node_name = obs.spec.node_name
     problem = vehicle_name_problem(obs.name)
     if problem is not None:
-        return NodeBinding(False, "InvalidVehicleName", problem)
+        return NodeBinding(False, VehicleConditionReason.INVALID_VEHICLE_NAME, problem)
     winner = claim_winner([*obs.node_claims, NodeClaim(obs.name, obs.created)])
     if winner is not None and winner.vehicle != obs.name:
         return NodeBinding(
             False,
-            "NodeClaimedByOtherVehicle",
+            VehicleConditionReason.NODE_CLAIMED_BY_OTHER_VEHICLE,
             f"node {node_name} already belongs to Vehicle {winner.vehicle}, which was created "
             f"first; set spec.nodeName to a free node or delete Vehicle {winner.vehicle}",
         )
     if obs.node is None:
         return NodeBinding(
             False,
-            "NodeNotFound",
+            VehicleConditionReason.NODE_NOT_FOUND,
             f"node {node_name} does not exist; join the vehicle's computer to the cluster "
             "as that node, or correct spec.nodeName",
         )
@@ -158,11 +163,15 @@ def node_binding(obs: Observed) -> NodeBinding:
     if not ready:
         return NodeBinding(
             False,
-            "NodeNotReady",
+            VehicleConditionReason.NODE_NOT_READY,
             f"node {node_name} is labelled but not Ready ({detail}); check the vehicle's "
             "computer, its network and its kubelet",
         )
-    return NodeBinding(True, "NodeLabeled", f"node {node_name} is labelled, tainted and Ready")
+    return NodeBinding(
+        True,
+        VehicleConditionReason.NODE_LABELED,
+        f"node {node_name} is labelled, tainted and Ready",
+    )
 
 
 def _failover(obs: Observed, ctx: Context) -> FailoverPlan | None:
@@ -220,7 +229,10 @@ def plan_vehicle(obs: Observed, ctx: Context) -> VehiclePlan:
         active_autopilot=followed.name if followed else None,
     )
     binding = node_binding(obs)
-    labels_node = binding.bound or binding.reason in ("NodeNotFound", "NodeNotReady")
+    labels_node = binding.bound or binding.reason in (
+        VehicleConditionReason.NODE_NOT_FOUND,
+        VehicleConditionReason.NODE_NOT_READY,
+    )
     wanted: list[Workload] = component_workloads(obs.spec, autopilots) if labels_node else []
     deployments = {
         w.component: deployment(
@@ -275,14 +287,14 @@ def _binding_after(plan: VehiclePlan, refused: Mapping[str, ApiError]) -> NodeBi
     if REFUSED_NODE in refused:
         return NodeBinding(
             False,
-            "NodeRefused",
+            VehicleConditionReason.NODE_REFUSED,
             f"labelling node {plan.status.node_name or '?'} was refused: "
             f"{refused[REFUSED_NODE].message}; check spec.nodeName and spec.labels",
         )
     if REFUSED_AUTOPILOT_LABEL in refused:
         return NodeBinding(
             False,
-            "AutopilotLabelRefused",
+            VehicleConditionReason.AUTOPILOT_LABEL_REFUSED,
             f"the RedundantAutopilot's {LABEL_NODE} label was refused: "
             f"{refused[REFUSED_AUTOPILOT_LABEL].message}; with a RedundantAutopilot "
             "spec.nodeName must also be a label value (at most 63 characters)",
@@ -316,7 +328,7 @@ def report(
     if REFUSED_CONFIG in refused:
         components = (
             "False",
-            "ConfigRefused",
+            VehicleConditionReason.CONFIG_REFUSED,
             f"the vehicle's config ConfigMap was refused: {refused[REFUSED_CONFIG].message}; "
             "make spec.config smaller",
         )
