@@ -1,50 +1,37 @@
-"""Mission decisions without a cluster: selection and claims, preflight, workloads, the
-phase state machine, abort commands and failover policy.
+"""The Mission state machine (roost_operator.missions.machine): claims and Pending,
+preflight, start and workloads, completion and failure, abort commands, failover policy
+and the fleet guards, deletion, events.
 
-Every input is an API model built here exactly as the API server would return it; the
-functions under test are pure, so these tests need no mocks.
+Every input is an API model built as the API server would return it
+(:mod:`tests.support.missions`); the functions under test are pure: no mocks.
 """
 
 from __future__ import annotations
 
-import asyncio
 from dataclasses import replace
-from datetime import UTC, datetime, timedelta
-from functools import partial
-from typing import Any
+from datetime import datetime, timedelta
 
 import pytest
 
 from roost_api.autopilot import (
-    AutopilotCommand,
     CommandAction,
     CommandResult,
-    RedundantAutopilotSpec,
-    RedundantAutopilotStatus,
 )
-from roost_api.meta import ObjectReference, condition_is_true, find_condition
+from roost_api.meta import condition_is_true, find_condition
 from roost_api.mission import (
-    LabelSelector,
     MissionPhase,
     MissionSpec,
-    MissionStatus,
     MissionVehiclePhase,
-    Preflight,
-    VehicleSelection,
 )
-from roost_api.vehicle import VehicleFailover, VehicleSpec, VehicleStatus
+from roost_api.vehicle import VehicleFailover
 from roost_api.wellknown import (
     ANNOTATION_CLEAR_FAILOVER_LATCH,
     ANNOTATION_PAUSE_FAILOVER_ACTIONS,
-    LABEL_VEHICLE,
-    TAINT_VEHICLE,
 )
 from roost_operator.autopilots.guards import FleetGuards
-from roost_operator.claims import Claim
 from roost_operator.missions.machine import (
     ABORT_COMMAND_DEADLINE_SECONDS,
     Observation,
-    Plan,
     abort_command_id,
     plan_deletion,
     plan_mission,
@@ -52,274 +39,29 @@ from roost_operator.missions.machine import (
     transition_events,
 )
 from roost_operator.missions.observed import (
-    AutopilotView,
     JobPhase,
-    JobView,
-    MissionRef,
-    VehicleView,
 )
-from roost_operator.missions.preflight import preflight_failures
-from roost_operator.missions.selection import (
-    availability,
-    candidates,
-    holding_missions,
-    matches_selector,
-    shortage_message,
-)
-from roost_operator.missions.wakeups import Wakeups, sleep_until_woken
 from roost_operator.missions.workloads import (
-    ENV_MISSION_VEHICLE_INDEX,
-    ENV_MISSION_VEHICLES,
-    bounded_name,
-    offboard_job_name,
     onboard_job_name,
-    template_probes,
 )
-from tests.support.conditions import cond as support_cond
-from tests.support.fakeagents import redundant_autopilot
-
-T0 = datetime(2026, 3, 1, 12, 0, tzinfo=UTC)
-ME = MissionRef(namespace="default", name="survey", uid="uid-survey")
-OTHER = ObjectReference(namespace="default", name="rival")
-
-
-# -- builders ------------------------------------------------------------------------------
-
-
-cond = partial(support_cond, at=T0)
-
-
-def vehicle(
-    name: str,
-    *,
-    ready: bool = True,
-    agent: bool | None = True,
-    claimed_by: ObjectReference | None = None,
-    labels: dict[str, str] | None = None,
-    deleting: bool = False,
-    annotations: dict[str, str] | None = None,
-    failover: VehicleFailover | None = None,
-) -> VehicleView:
-    """A Vehicle as the operator reports it; ``ready`` is the node/components side."""
-    flag = "True" if ready else "False"
-    conditions = [
-        cond("NodeBound", flag, "NodeLabeled" if ready else "NodeNotReady"),
-        cond("ComponentsReady", "True", "NoComponents"),
-        cond("Ready", flag, "VehicleReady" if ready else "NodeNotReady"),
-    ]
-    if agent is not None:
-        conditions.append(cond("AgentConnected", "True" if agent else "False", "Reporting"))
-    return VehicleView(
-        name=name,
-        labels=labels if labels is not None else {"fleet": "a"},
-        spec=VehicleSpec.model_validate({"nodeName": f"node-{name}", "sysid": 10}),
-        status=VehicleStatus(conditions=conditions, failover=failover),
-        resource_version="1",
-        uid=f"uid-{name}",
-        deleting=deleting,
-        annotations=annotations or {},
-        claim=claim_on(name, claimed_by) if claimed_by is not None else None,
-    )
-
-
-def claim_on(name: str, holder: ObjectReference) -> Claim:
-    """The claim Lease on vehicle ``name`` held by ``holder``, as the observer parses it."""
-    return Claim(
-        vehicle=name, holder=holder, mission_uid="", resource_version="7", uid=f"lease-{name}"
-    )
-
-
-def autopilots(
-    vehicle_name: str,
-    *,
-    healthy: bool = True,
-    redundant: bool = True,
-    failover_at: datetime | None = None,
-    landed: str = "InAir",
-    armed: bool = True,
-    reported_at: datetime | None = None,
-    command: AutopilotCommand | None = None,
-    last_command: CommandResult | None = None,
-) -> AutopilotView:
-    status: dict[str, Any] = {
-        "conditions": [
-            cond("ActiveHealthy", "True" if healthy else "False", "HeartbeatLost").to_api(),
-            cond("Redundant", "True" if redundant else "False", "StandbyStale").to_api(),
-        ],
-        "activeAutopilot": "fc2" if failover_at else "fc1",
-        "autopilots": [
-            {"name": "fc1", "level": "OK", "landedState": landed, "armed": armed},
-            {"name": "fc2", "level": "OK", "landedState": landed, "armed": armed},
-        ],
-        "reportedAt": reported_at,
-    }
-    if failover_at is not None:
-        status["lastFailover"] = {
-            "time": failover_at,
-            "from": "fc1",
-            "to": "fc2",
-            "reason": "heartbeat lost on fc1",
-            "latencyMs": 20.0,
-            "trigger": "Automatic",
-        }
-        status["conditions"].append(cond("FailedOver", "True", "Switched", at=failover_at).to_api())
-    if last_command is not None:
-        status["lastCommand"] = last_command.to_api()
-    spec = redundant_autopilot(vehicle_name)["spec"]
-    if command is not None:
-        spec["command"] = command.to_api()
-    return AutopilotView(
-        name=vehicle_name,
-        spec=RedundantAutopilotSpec.model_validate(spec),
-        status=RedundantAutopilotStatus.model_validate(status),
-    )
-
-
-POD_TEMPLATE = {
-    "metadata": {"labels": {"app": "controller"}},
-    "spec": {
-        "containers": [
-            {"name": "c", "image": "controller:1", "env": [{"name": "MINE", "value": "1"}]}
-        ]
-    },
-}
-
-
-def mission_spec(**overrides: Any) -> MissionSpec:
-    body: dict[str, Any] = {
-        "vehicles": {"selector": {"matchLabels": {"fleet": "a"}}, "count": 2},
-        "onboard": POD_TEMPLATE,
-    }
-    body.update(overrides)
-    return MissionSpec.model_validate(body)
-
-
-def config(name: str) -> dict[str, str]:
-    return {"VEHICLE_NAME": name, "VEHICLE_MAVLINK_SYSID": "10"}
-
-
-NO_GUARD_ENGAGED = FleetGuards()
-
-
-def observe(
-    vehicles: list[VehicleView],
-    *,
-    spec: MissionSpec | None = None,
-    status: MissionStatus | None = None,
-    aps: list[AutopilotView] | None = None,
-    jobs: list[JobView] | None = None,
-    live: set[str] | None = None,
-    now: datetime = T0,
-    guards: FleetGuards = NO_GUARD_ENGAGED,
-) -> Observation:
-    by_name = {v.name: v for v in vehicles}
-    return Observation(
-        mission=ME,
-        generation=1,
-        spec=spec or mission_spec(),
-        status=status or MissionStatus(),
-        vehicles=by_name,
-        autopilots={
-            a.vehicle_name: a
-            for a in (aps if aps is not None else [autopilots(v.name) for v in vehicles])
-        },
-        jobs={j.name: j for j in jobs or []},
-        config_values={name: config(name) for name in by_name},
-        live_missions=frozenset(live if live is not None else {ME.key, "default/rival"}),
-        now=now,
-        guards=guards,
-    )
-
-
-def claimed(*names: str, **kwargs: Any) -> list[VehicleView]:
-    return [vehicle(n, claimed_by=ME.reference, **kwargs) for n in names]
-
-
-def job(vehicle_name: str, phase: JobPhase = JobPhase.ACTIVE, **kwargs: Any) -> JobView:
-    return JobView(name=onboard_job_name(ME.name, vehicle_name), phase=phase, created=T0, **kwargs)
-
-
-def started(
-    names: list[str], *, spec: MissionSpec | None = None
-) -> tuple[MissionStatus, list[VehicleView]]:
-    """The status after the mission started on ``names`` (all preflight checks passed)."""
-    plan = plan_mission(
-        observe(
-            claimed(*names),
-            spec=spec or mission_spec(vehicles={"names": names, "count": len(names)}),
-        )
-    )
-    assert plan.status.phase == MissionPhase.RUNNING
-    return plan.status, claimed(*names)
-
-
-def vehicle_status(plan: Plan, name: str) -> Any:
-    return next(v for v in plan.status.vehicles if v.name == name)
-
+from tests.support.missions import (
+    ME,
+    OTHER,
+    T0,
+    autopilots,
+    claim_on,
+    claimed,
+    cond,
+    config,
+    job,
+    mission_spec,
+    observe,
+    started,
+    vehicle,
+    vehicle_status,
+)
 
 # -- selection -----------------------------------------------------------------------------
-
-
-@pytest.mark.parametrize(
-    ("selector", "labels", "matches"),
-    [
-        ({"matchLabels": {"fleet": "a"}}, {"fleet": "a", "x": "y"}, True),
-        ({"matchLabels": {"fleet": "a"}}, {"fleet": "b"}, False),
-        (
-            {"matchExpressions": [{"key": "k", "operator": "In", "values": ["1", "2"]}]},
-            {"k": "2"},
-            True,
-        ),
-        ({"matchExpressions": [{"key": "k", "operator": "In", "values": ["1"]}]}, {}, False),
-        ({"matchExpressions": [{"key": "k", "operator": "NotIn", "values": ["1"]}]}, {}, True),
-        (
-            {"matchExpressions": [{"key": "k", "operator": "NotIn", "values": ["1"]}]},
-            {"k": "1"},
-            False,
-        ),
-        ({"matchExpressions": [{"key": "k", "operator": "Exists"}]}, {"k": ""}, True),
-        ({"matchExpressions": [{"key": "k", "operator": "DoesNotExist"}]}, {"k": ""}, False),
-        ({}, {"anything": "x"}, True),
-    ],
-)
-def test_label_selectors_follow_kubernetes_semantics(
-    selector: dict[str, Any], labels: dict[str, str], matches: bool
-) -> None:
-    assert matches_selector(labels, LabelSelector.model_validate(selector)) is matches
-
-
-def test_named_vehicles_come_first_in_their_order_then_selector_matches_by_name() -> None:
-    fleet = {v.name: v for v in [vehicle("c"), vehicle("a"), vehicle("b"), vehicle("z", labels={})]}
-    selection = VehicleSelection.model_validate(
-        {"names": ["z", "b", "ghost"], "selector": {"matchLabels": {"fleet": "a"}}, "count": 2}
-    )
-    assert candidates(selection, fleet) == ["z", "b", "a", "c"]
-
-
-def test_availability_sorts_candidates_into_free_claimed_and_not_ready() -> None:
-    fleet = {
-        v.name: v
-        for v in [
-            vehicle("a"),
-            vehicle("b", claimed_by=OTHER),
-            vehicle("c", ready=False),
-            vehicle("d", claimed_by=ObjectReference(namespace="gone", name="deleted")),
-            vehicle("e", claimed_by=ME.reference),
-            vehicle("f", deleting=True),
-        ]
-    }
-    selection = VehicleSelection.model_validate(
-        {"names": ["ghost"], "selector": {"matchLabels": {"fleet": "a"}}, "count": 5}
-    )
-    result = availability(selection, fleet, ME, frozenset({ME.key, "default/rival"}))
-    assert result.free == ["a", "d"], "an orphaned claim (mission gone) counts as free"
-    assert result.claimed_elsewhere == {"b": "default/rival"}
-    assert set(result.not_ready) == {"c", "f"}
-    assert result.unknown_names == ["ghost"]
-    message = shortage_message(required=5, held=1, available=result)
-    assert message.startswith("needs 5 vehicles, 3 available: 2 missing")
-    assert "claimed by other missions (default/rival)" in message
-    assert "ghost" in message
 
 
 # -- claims and Pending --------------------------------------------------------------------
@@ -382,28 +124,6 @@ def test_vehicles_that_pass_this_missions_preflight_are_claimed_first() -> None:
 # -- preflight -----------------------------------------------------------------------------
 
 
-def test_preflight_checks_each_writer_and_counts_an_absent_condition_as_failing() -> None:
-    checks = Preflight()
-    v = vehicle("a", agent=None)
-    reasons = [f.reason for f in preflight_failures(v, autopilots("a"), checks)]
-    assert reasons == ["AgentNotConnected"]
-    assert preflight_failures(v, autopilots("a"), Preflight(require_agent_connected=False)) == []
-    unhealthy = autopilots("a", healthy=False, redundant=False)
-    reasons = [f.reason for f in preflight_failures(vehicle("a"), unhealthy, checks)]
-    assert reasons == ["ActiveAutopilotUnhealthy", "NotRedundant"]
-    relaxed = Preflight(require_redundancy=False)
-    assert [f.reason for f in preflight_failures(vehicle("a"), unhealthy, relaxed)] == [
-        "ActiveAutopilotUnhealthy"
-    ]
-    no_autopilots = [f.reason for f in preflight_failures(vehicle("a", ready=False), None, checks)]
-    assert no_autopilots == ["VehicleNotReady", "ActiveAutopilotUnhealthy", "NotRedundant"]
-    nothing_required = Preflight(
-        require_agent_connected=False, require_active_healthy=False, require_redundancy=False
-    )
-    assert preflight_failures(vehicle("a", agent=None), None, nothing_required) == []
-    assert [f.reason for f in preflight_failures(None, None, checks)] == ["VehicleMissing"]
-
-
 def test_a_failing_check_keeps_the_mission_in_preflight_with_per_vehicle_reasons() -> None:
     obs = observe(claimed("a", "b"), aps=[autopilots("a"), autopilots("b", healthy=False)])
     plan = plan_mission(obs)
@@ -444,69 +164,6 @@ def test_passing_preflight_records_the_start_then_creates_one_job_per_vehicle() 
     assert [cm["metadata"]["namespace"] for cm in plan.config_maps] == ["default", "default"]
     assert condition_is_true(plan.status.conditions, "PreflightPassed")
     assert [v.phase for v in plan.status.vehicles] == ["Running", "Running"]
-
-
-def test_an_onboard_job_is_pinned_tolerated_configured_and_knows_its_peers() -> None:
-    plan = plan_mission(observe(claimed("a", "b"), spec=mission_spec(backoffLimit=4)))
-    manifest = plan.jobs_to_create[1]
-    assert manifest["spec"]["backoffLimit"] == 4
-    assert manifest["metadata"]["ownerReferences"][0]["uid"] == ME.uid
-    pod = manifest["spec"]["template"]["spec"]
-    assert pod["restartPolicy"] == "Never"
-    assert pod["nodeSelector"] == {LABEL_VEHICLE: "b"}
-    assert any(t["key"] == TAINT_VEHICLE and t["value"] == "b" for t in pod["tolerations"])
-    container = pod["containers"][0]
-    mounts = {m["mountPath"] for m in container["volumeMounts"]}
-    assert mounts == {"/etc/roost", "/etc/starling"}
-    env = {e["name"]: e.get("value", e.get("valueFrom")) for e in container["env"]}
-    assert env[ENV_MISSION_VEHICLES] == "a,b"
-    assert env[ENV_MISSION_VEHICLE_INDEX] == "1"
-    assert env["MINE"] == "1"
-    assert env["VEHICLE_NAME"] == {
-        "configMapKeyRef": {"name": "roost-vehicle-b", "key": "VEHICLE_NAME"}
-    }
-    assert manifest["spec"]["template"]["metadata"]["labels"]["app"] == "controller"
-
-
-def test_the_offboard_job_is_kept_off_vehicle_nodes() -> None:
-    spec = mission_spec(offboard={"spec": {"containers": [{"name": "m", "image": "monitor"}]}})
-    offboard = plan_mission(observe(claimed("a", "b"), spec=spec)).jobs_to_create[-1]
-    pod = offboard["spec"]["template"]["spec"]
-    terms = pod["affinity"]["nodeAffinity"]["requiredDuringSchedulingIgnoredDuringExecution"][
-        "nodeSelectorTerms"
-    ]
-    assert terms == [{"matchExpressions": [{"key": LABEL_VEHICLE, "operator": "DoesNotExist"}]}]
-    assert "tolerations" not in pod and "nodeSelector" not in pod
-    assert {"name": ENV_MISSION_VEHICLES, "value": "a,b"} in pod["containers"][0]["env"]
-
-
-def test_the_template_probes_are_the_jobs_the_mission_would_create() -> None:
-    """What is dry-run before claiming is exactly what would be created after it."""
-    spec = mission_spec(
-        vehicles={"names": ["a", "b"], "count": 2},
-        offboard={"spec": {"containers": [{"name": "m", "image": "monitor"}]}},
-    )
-    obs = observe(claimed("a", "b"), spec=spec)
-    probes = template_probes(
-        mission=ME, spec=spec, vehicles=["a", "b"], config_values=obs.config_values
-    )
-    assert [field for field, _ in probes] == ["spec.onboard", "spec.offboard"]
-    created = {j["metadata"]["name"]: j for j in plan_mission(obs).jobs_to_create}
-    for _, probe in probes:
-        assert probe == created[probe["metadata"]["name"]]
-    onboard_only = template_probes(
-        mission=ME, spec=mission_spec(), vehicles=["a"], config_values={}
-    )
-    assert [field for field, _ in onboard_only] == ["spec.onboard"]
-    assert template_probes(mission=ME, spec=spec, vehicles=[], config_values={}) == []
-
-
-def test_long_names_are_bounded_and_stay_distinct() -> None:
-    first = onboard_job_name("m" * 40, "vehicle-" + "x" * 30 + "-1")
-    second = onboard_job_name("m" * 40, "vehicle-" + "x" * 30 + "-2")
-    assert len(first) <= 63 and len(second) <= 63 and first != second
-    assert bounded_name("short", "name") == "short-name"
-    assert offboard_job_name("m") == "m-offboard"
 
 
 # -- running, completion, failure ----------------------------------------------------------
@@ -983,27 +640,6 @@ def test_transitions_produce_events_for_the_mission_and_each_vehicle() -> None:
     assert transition_events(before, before) == []
 
 
-def test_wakeups_reach_the_holder_the_claimant_and_waiting_missions() -> None:
-    async def scenario() -> list[bool]:
-        wakeups = Wakeups()
-        holder, waiting, other = (
-            wakeups.register(k) for k in ("ns/holder", "ns/waiting", "ns/other")
-        )
-        wakeups.track("ns/holder", vehicles=["a"], waiting=False)
-        wakeups.track("ns/waiting", vehicles=[], waiting=True)
-        wakeups.track("ns/other", vehicles=["b"], waiting=False)
-        wakeups.wake_holder("a")
-        seen = [holder.is_set(), waiting.is_set(), other.is_set()]
-        holder.clear()
-        wakeups.wake_for_vehicle("c", claimant="ns/other")
-        seen += [holder.is_set(), waiting.is_set(), other.is_set()]
-        never = asyncio.Event()
-        woken = await sleep_until_woken(holder, never.wait(), 0.01)
-        return [*seen, woken]
-
-    assert asyncio.run(scenario()) == [True, False, False, False, True, True, False]
-
-
 def test_a_vehicle_still_landing_when_the_mission_fails_stays_claimed_until_it_is_down() -> None:
     obs, _ = _failover_obs("AbortVehicle", T0 + timedelta(seconds=10))
     landing = plan_mission(obs)
@@ -1036,21 +672,6 @@ def test_many_vehicles_making_one_transition_share_one_event() -> None:
     assert len(vehicle_events) == 1
     assert vehicle_events[0].message.startswith("12 vehicles Running: v0, v1")
     assert vehicle_events[0].vehicle is None
-
-
-def test_claims_of_finished_missions_count_only_while_a_vehicle_is_landing() -> None:
-    def body(name: str, status: dict[str, Any]) -> dict[str, Any]:
-        return {"metadata": {"namespace": "ns", "name": name}, "status": status}
-
-    landing = {"name": "a", "phase": "Aborting"}
-    missions = [
-        body("new", {}),
-        body("running", {"phase": "Running"}),
-        body("done", {"phase": "Succeeded", "vehicles": [{"name": "a", "phase": "Succeeded"}]}),
-        body("failed-landing", {"phase": "Failed", "vehicles": [landing]}),
-        body("aborted", {"phase": "Aborted"}),
-    ]
-    assert holding_missions(missions) == {"ns/new", "ns/running", "ns/failed-landing"}
 
 
 # -- a Vehicle deleted mid-mission ----------------------------------------------------------
