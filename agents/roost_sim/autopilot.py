@@ -66,6 +66,7 @@ from roost_sim.faults import (
     parse_sensor,
     parse_state,
 )
+from roost_sim.kinematics import ned_from_global
 from roost_sim.link import Link, PtyLink, UdpLink
 from roost_sim.model import AutopilotModel, ModeChange, SimConfig, Touchdown
 from roost_sim.params import ParamStore
@@ -99,6 +100,10 @@ _SPOOF_PERIOD_S = 0.1
 _GCS_PERIOD_S = 1.0
 _RX_POLL_S = 0.2
 _MAX_SLEEP_S = 0.01
+# SET_POSITION_TARGET_* type_mask bits: x/y/z ignored, yaw ignored.
+_IGNORE_POSITION = 0b111
+_IGNORE_YAW = 1 << 10
+DEFAULT_LAG_PERCENT = 50.0
 _RC_RELEASE = (0, 65535)  # RC_CHANNELS_OVERRIDE: hand the channel back / ignore it
 
 # Version each flavour claims in AUTOPILOT_VERSION: (major, minor, patch), official build.
@@ -161,6 +166,10 @@ class SimSnapshot:
     unhealthy_sensors: list[str]
     driving: bool | None = None  # on the motors per the bridge (None: no bridge told it)
     standby_aux: bool | None = None  # ArduPilot STANDBY aux function (None: never set)
+    north_m: float = 0.0  # local NED position from home
+    east_m: float = 0.0
+    speed_mps: float = 0.0  # horizontal
+    heading_deg: float = 90.0
 
     def to_json(self) -> dict[str, Any]:
         """Plain dict for the control socket and the CLI."""
@@ -342,6 +351,10 @@ class SimulatedAutopilot:
                 unhealthy_sensors=[sensor_name(b) for b in sensor_bits(model.sensor_faults)],
                 driving=self._driving,
                 standby_aux=self._standby_aux,
+                north_m=round(model.horizontal.north_m, 3),
+                east_m=round(model.horizontal.east_m, 3),
+                speed_mps=round(model.horizontal.speed_mps, 3),
+                heading_deg=round(math.degrees(model.horizontal.yaw_rad) % 360.0, 1),
             )
 
     @property
@@ -494,6 +507,8 @@ class SimulatedAutopilot:
                 self._spoof_sysid = int(parse_number(kind, value, default))
             elif kind is FaultKind.BATTERY:
                 self.battery.fail()
+            elif kind is FaultKind.LAG:
+                self._model.speed_scale = parse_number(kind, value, DEFAULT_LAG_PERCENT) / 100.0
 
     def clear(self, kind: FaultKind | str | None = None) -> None:
         """End one fault kind, or every fault when ``kind`` is None."""
@@ -519,6 +534,8 @@ class SimulatedAutopilot:
                     self._spoof_sysid = None
                 elif k is FaultKind.BATTERY and self.battery.failed:
                     self.battery.replace()
+                elif k is FaultKind.LAG:
+                    self._model.speed_scale = 1.0
 
     def _fault_values(self) -> dict[str, str]:
         model, imp = self._model, self.link.impairment
@@ -534,6 +551,7 @@ class SimulatedAutopilot:
             FaultKind.JITTER: imp.jitter_ms or None,
             FaultKind.SPOOF: self._spoof_sysid,
             FaultKind.BATTERY: self.battery.failed or None,
+            FaultKind.LAG: round(model.speed_scale * 100, 1) if model.speed_scale != 1.0 else None,
         }
         return {k.value: str(v) for k, v in active.items() if v is not None}
 
@@ -648,6 +666,11 @@ class SimulatedAutopilot:
             landed_state=int(model.landed_state),
             altitude_m=model.altitude_m,
             climb_mps=model.climb_mps,
+            north_m=model.horizontal.north_m,
+            east_m=model.horizontal.east_m,
+            vn_mps=model.horizontal.vn_mps,
+            ve_mps=model.horizontal.ve_mps,
+            yaw_rad=model.horizontal.yaw_rad,
             sensors=model.sensors(),
             gps_ok=not model.sensor_faults & SensorBit.GPS,
             estimator_flags=model.estimator_flags(),
@@ -755,6 +778,10 @@ class SimulatedAutopilot:
                 ]
             elif kind == "REQUEST_DATA_STREAM" and self._for_us(msg):
                 self._request_data_stream(msg.req_stream_id, msg.req_message_rate, msg.start_stop)
+            elif kind == "SET_POSITION_TARGET_LOCAL_NED" and self._for_us(msg):
+                self._local_setpoint(msg)
+            elif kind == "SET_POSITION_TARGET_GLOBAL_INT" and self._for_us(msg):
+                self._global_setpoint(msg)
             elif kind == "RC_CHANNELS_OVERRIDE" and self._for_us(msg):
                 raw = msg.chan3_raw
                 if raw not in _RC_RELEASE:
@@ -765,6 +792,31 @@ class SimulatedAutopilot:
                 self._unhandled[kind] += 1
         for reply in replies:
             self._send(reply)
+
+    def _local_setpoint(self, msg: Any) -> None:
+        """SET_POSITION_TARGET_LOCAL_NED in the local NED frame: position and yaw."""
+        if msg.type_mask & _IGNORE_POSITION or msg.coordinate_frame != mavlink.MAV_FRAME_LOCAL_NED:
+            self._unhandled["SET_POSITION_TARGET_LOCAL_NED (no local position)"] += 1
+            return
+        yaw = None if msg.type_mask & _IGNORE_YAW else msg.yaw
+        self._model.position_setpoint(msg.x, msg.y, -msg.z, yaw)
+
+    def _global_setpoint(self, msg: Any) -> None:
+        """SET_POSITION_TARGET_GLOBAL_INT: latitude/longitude and an AMSL or relative
+        altitude, converted to the local frame around home."""
+        frames = {
+            mavlink.MAV_FRAME_GLOBAL_INT: self.config.home_amsl_m,
+            mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT: 0.0,
+            mavlink.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT: 0.0,  # flat ground at home
+        }
+        if msg.type_mask & _IGNORE_POSITION or msg.coordinate_frame not in frames:
+            self._unhandled["SET_POSITION_TARGET_GLOBAL_INT (no global position)"] += 1
+            return
+        north, east = ned_from_global(
+            msg.lat_int / 1e7, msg.lon_int / 1e7, self.config.home_lat_deg, self.config.home_lon_deg
+        )
+        yaw = None if msg.type_mask & _IGNORE_YAW else msg.yaw
+        self._model.position_setpoint(north, east, msg.alt - frames[msg.coordinate_frame], yaw)
 
     def _for_us(self, msg: Any) -> bool:
         return msg.target_system in (0, self.sysid) and msg.target_component in (

@@ -28,6 +28,9 @@ battery   --                 the battery fails: voltage drops, charge reads empt
                              4 s, health bit clears, CRITICAL; PX4 then holds 5 s and
                              lands (see :mod:`roost_sim.battery`; a shared battery
                              fails for every autopilot on it)
+lag       percent of speed   the vehicle flies slower than planned (wind, a weak
+          (default 50)       battery): horizontal speed, acceleration and climb are
+                             scaled to that percentage until cleared
 ========  =================  ==========================================================
 
 ``clear`` removes one kind or all of them (a pending reboot is not undone; a cleared
@@ -60,6 +63,7 @@ class FaultKind(StrEnum):
     JITTER = "jitter"
     SPOOF = "spoof"
     BATTERY = "battery"
+    LAG = "lag"
 
 
 DEFAULT_GARBAGE_BYTES_PER_S = 2000.0
@@ -106,12 +110,13 @@ NUMERIC_RANGES: dict[FaultKind, tuple[float, float, str]] = {
     FaultKind.LOSS: (0, 100, "percent"),
     FaultKind.JITTER: (0, 10_000, "milliseconds"),
     FaultKind.SPOOF: (1, 255, "a system id"),
+    FaultKind.LAG: (1, 100, "percent of the normal speed"),
 }
 VALUELESS = frozenset({FaultKind.SILENCE, FaultKind.FREEZE, FaultKind.BATTERY})
 
 
 def parse_number(kind: FaultKind, value: str | float | None, default: float) -> float:
-    """The number for reboot, garbage, loss, jitter or spoof: finite and in range."""
+    """The number for reboot, garbage, loss, jitter, spoof or lag: finite and in range."""
     if value is None or value == "":
         return default
     low, high, unit = NUMERIC_RANGES[kind]

@@ -45,6 +45,15 @@ SITL, two instances each); the numbers below are measured there.
   failed while armed, battery at its emergency level) reports CRITICAL.
 - **Battery** (:mod:`roost_sim.battery`): PX4 answers an emergency-level battery by
   holding 5 s, then AUTO.LAND; ArduCopter's default only reports it.
+- **Horizontal flight** (:mod:`roost_sim.kinematics`, local NED metres from home).
+  Position setpoints (SET_POSITION_TARGET_LOCAL_NED / _GLOBAL_INT: position and yaw)
+  are flown in PX4 OFFBOARD and ArduCopter GUIDED. PX4 refuses OFFBOARD unless
+  setpoints arrived within the last ``offboard_loss_s`` (its COM_OF_LOSS_T, 1 s) and,
+  in OFFBOARD, falls back to AUTO.LOITER when they stop for that long; ArduCopter
+  takes setpoints only in GUIDED and keeps flying to the last one. Every other mode
+  holds the position it was entered at; RTL modes fly home at the current altitude and
+  descend once over it. Setpoints that give no position (velocity, acceleration only)
+  are not modelled and are ignored.
 """
 
 from __future__ import annotations
@@ -67,6 +76,7 @@ from roost_mavlink.status import (
     stack_sensors,
 )
 from roost_sim.battery import Battery, BatteryReading, ChargeState
+from roost_sim.kinematics import Horizontal
 
 Clock = Callable[[], float]
 
@@ -90,6 +100,11 @@ _ARDUPILOT_USER_TAKEOFF = frozenset({"GUIDED", "LOITER", "ALT_HOLD", "POSHOLD"})
 _ARDUPILOT_STICK_MODES = frozenset(
     {"STABILIZE", "ACRO", "ALT_HOLD", "LOITER", "POSHOLD", "SPORT", "DRIFT", "FLOWHOLD"}
 )
+# Modes in which a vehicle flies to position setpoints.
+_SETPOINT_MODES: dict[Stack, str] = {Stack.PX4: "OFFBOARD", Stack.ARDUPILOT: "GUIDED"}
+_RTL_MODES = frozenset({"AUTO.RTL", "RTL", "SMART_RTL", "AUTO_RTL"})
+_OVER_HOME_M = 0.5  # an RTL descends once this close to home
+_SETPOINT_CLIMB_GAIN = 1.0  # m/s of climb per metre of altitude error, within the rates
 _FALL_RATE_MPS = 8.0  # a disarmed vehicle in the air drops
 _THROTTLE_DEADZONE = 0.1  # THR_DZ 100 of 1000, each side of centre
 _PX4_BATTERY_HOLD_S = 5.0  # "Hold for 5 seconds", then land
@@ -161,7 +176,9 @@ class SimConfig:
     reports). ``preset_streams``: ArduCopter streams the usual set from boot, as with
     its SRn_* stream-rate parameters set (the real default streams only on request).
     ``gcs_heartbeat``: ArduCopter routes the 1 Hz HEARTBEAT of a ground station on
-    another of its ports (sysid 255) onto this link.
+    another of its ports (sysid 255) onto this link. ``max_speed_mps`` and
+    ``max_accel_mps2`` limit horizontal flight (:mod:`roost_sim.kinematics`);
+    ``offboard_loss_s`` is PX4's COM_OF_LOSS_T.
     """
 
     climb_rate_mps: float = 2.5
@@ -182,6 +199,9 @@ class SimConfig:
     home_lat_deg: float = 47.397742
     home_lon_deg: float = 8.545594
     home_amsl_m: float = 488.0
+    max_speed_mps: float = 5.0
+    max_accel_mps2: float = 3.0
+    offboard_loss_s: float = 1.0
 
     fast_boot: bool = False
 
@@ -259,6 +279,17 @@ class Sensors:
     health: int
 
 
+@dataclass(frozen=True)
+class PositionSetpoint:
+    """The last position target a client sent (local NED, altitude up), at ``at``."""
+
+    north_m: float
+    east_m: float
+    altitude_m: float
+    yaw_rad: float | None
+    at: float
+
+
 @dataclass
 class AutopilotModel:
     """State and rules of one flight controller; call :meth:`step` regularly."""
@@ -273,6 +304,10 @@ class AutopilotModel:
     climb_mps: float = field(init=False, default=0.0)
     landed_state: LandedState = field(init=False, default=LandedState.ON_GROUND)
     takeoff_target_m: float | None = field(init=False, default=None)
+    horizontal: Horizontal = field(init=False, default_factory=Horizontal)
+    setpoint: PositionSetpoint | None = field(init=False, default=None)
+    hold_point: tuple[float, float] = field(init=False, default=(0.0, 0.0))
+    speed_scale: float = field(init=False, default=1.0)
     sensor_faults: SensorBit = field(init=False, default=SensorBit(0))
     state_override: MavState | None = field(init=False, default=None)
     boot_at: float = field(init=False, default=0.0)
@@ -304,6 +339,9 @@ class AutopilotModel:
         self.climb_mps = 0.0
         self.landed_state = LandedState.ON_GROUND
         self.takeoff_target_m = None
+        self.horizontal = Horizontal()
+        self.setpoint = None
+        self.hold_point = (0.0, 0.0)
         self.state_override = None
         self._on_ground_armed_since = None
         self._landed_at = None
@@ -481,6 +519,8 @@ class AutopilotModel:
         name = mode_name(self.stack, value)
         if name in _POSITION_MODES[self.stack] and self.sensor_faults & SensorBit.GPS:
             return self.refused_result()
+        if name == "OFFBOARD" and not self._setpoints_flowing():
+            return self.refused_result()  # PX4: "Switching to Offboard requires setpoints"
         # Any mode change ends a climb where it is; PX4's takeoff mode starts one.
         self.takeoff_target_m = None
         if self.stack is Stack.PX4 and name == "AUTO.TAKEOFF":
@@ -525,6 +565,45 @@ class AutopilotModel:
         self.custom_mode = value
         if changed:
             self.mode_history.append(ModeChange(at=self.clock(), mode=self.mode))
+            self.hold_point = (self.horizontal.north_m, self.horizontal.east_m)
+            if self.mode == "GUIDED":
+                self.setpoint = None  # ArduCopter's GUIDED starts by holding
+
+    # ---- position setpoints ----------------------------------------------------------
+
+    def position_setpoint(
+        self, north_m: float, east_m: float, altitude_m: float, yaw_rad: float | None
+    ) -> None:
+        """A SET_POSITION_TARGET_* with a position: flown in the stack's setpoint mode.
+
+        PX4 keeps every setpoint (it needs the stream before OFFBOARD); ArduCopter reads
+        them only in GUIDED.
+        """
+        values = (north_m, east_m, altitude_m)
+        if not all(math.isfinite(v) for v in values):
+            return
+        if self.stack is Stack.ARDUPILOT and self.mode != "GUIDED":
+            return
+        yaw = yaw_rad if yaw_rad is not None and math.isfinite(yaw_rad) else None
+        self.setpoint = PositionSetpoint(north_m, east_m, altitude_m, yaw, self.clock())
+
+    def _setpoints_flowing(self) -> bool:
+        return (
+            self.setpoint is not None
+            and self.clock() - self.setpoint.at <= self.config.offboard_loss_s
+        )
+
+    def _flying_setpoint(self) -> PositionSetpoint | None:
+        """The setpoint the vehicle flies now, if its mode flies setpoints."""
+        if self.mode != _SETPOINT_MODES[self.stack] or self.setpoint is None:
+            return None
+        return self.setpoint
+
+    def _offboard_failsafe(self) -> None:
+        """PX4 without setpoints for COM_OF_LOSS_T in OFFBOARD: hold where it is."""
+        if self.stack is Stack.PX4 and self.mode == "OFFBOARD" and not self._setpoints_flowing():
+            self.texts.append((SEVERITY_CRITICAL, "Failsafe activated: offboard signal lost"))
+            self._enter_mode(custom_mode(self.stack, intent_mode(self.stack, ModeIntent.HOLD)))
 
     # ---- kinematics ------------------------------------------------------------------
 
@@ -541,13 +620,45 @@ class AutopilotModel:
             self._fall(dt, now)
             return
         self._battery_failsafe(now)
-        if self.mode in _DESCEND_MODES[self.stack]:
+        self._offboard_failsafe()
+        self._fly_horizontally(dt)
+        if self.mode in _DESCEND_MODES[self.stack] and not self._returning():
             self._descend(dt, now)
         elif self.takeoff_target_m is not None:
             self._climb(dt)
         else:
             self._track(self._commanded_climb(), dt, now)
         self._auto_disarm(now)
+
+    def _returning(self) -> bool:
+        """In an RTL mode, in the air and not yet over home (flying back, then descend)."""
+        return (
+            self.mode in _RTL_MODES
+            and not self.on_ground
+            and self.horizontal.distance_to(0.0, 0.0) > _OVER_HOME_M
+        )
+
+    def _fly_horizontally(self, dt: float) -> None:
+        """Towards the setpoint, home (RTL) or the hold point; nothing on the ground."""
+        if self.on_ground and self.altitude_m <= 0.0:
+            self.horizontal.stop()
+            return
+        flying = self._flying_setpoint()
+        if flying is not None:
+            target = (flying.north_m, flying.east_m)
+            if flying.yaw_rad is not None:
+                self.horizontal.yaw_rad = flying.yaw_rad
+        elif self.mode in _RTL_MODES:
+            target = (0.0, 0.0)
+        else:
+            target = self.hold_point
+        self.horizontal.step(
+            dt,
+            target,
+            max_speed_mps=self.config.max_speed_mps,
+            max_accel_mps2=self.config.max_accel_mps2,
+            speed_scale=self.speed_scale,
+        )
 
     def _start_up(self) -> None:
         """ArduPilot's start-up announcements; a mode set during BOOT is overwritten."""
@@ -569,6 +680,12 @@ class AutopilotModel:
 
     def _commanded_climb(self) -> float:
         """Vertical speed the current mode asks for (m/s, up positive)."""
+        flying = self._flying_setpoint()
+        if flying is not None:
+            error = flying.altitude_m - self.altitude_m
+            up = self.config.climb_rate_mps * self.speed_scale
+            down = self.config.landing(self.stack).descent_mps * 2
+            return max(-down, min(up, _SETPOINT_CLIMB_GAIN * error))
         if self.stack is not Stack.ARDUPILOT or self.mode not in _ARDUPILOT_STICK_MODES:
             return 0.0  # position and altitude holds (GUIDED, BRAKE, PX4 AUTO.LOITER..)
         stick = self.config.throttle if self.config.throttle is not None else 0.0
@@ -617,6 +734,7 @@ class AutopilotModel:
             self.texts.append((SEVERITY_INFO, f"SIM Hit ground at {speed:.6f} m/s"))
 
     def _fall(self, dt: float, now: float) -> None:
+        self.horizontal.stop()
         if self.altitude_m <= 0.0:
             self.climb_mps = 0.0
             self.landed_state = LandedState.ON_GROUND

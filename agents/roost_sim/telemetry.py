@@ -24,6 +24,7 @@ from roost_mavlink import (
 )
 from roost_mavlink.status import MAV_TYPE_QUADROTOR, LandedState, MavState
 from roost_sim.battery import BatteryReading
+from roost_sim.kinematics import global_from_ned
 from roost_sim.model import Sensors, SimConfig
 
 _STABILIZE = mavlink.MAV_MODE_FLAG_STABILIZE_ENABLED
@@ -50,6 +51,11 @@ class View:
     landed_state: int
     altitude_m: float
     climb_mps: float
+    north_m: float
+    east_m: float
+    vn_mps: float
+    ve_mps: float
+    yaw_rad: float
     sensors: Sensors
     gps_ok: bool
     estimator_flags: int
@@ -105,7 +111,13 @@ class Telemetry:
 
     # ---- helpers ---------------------------------------------------------------------
 
-    def _lat_lon(self) -> tuple[int, int]:
+    def _lat_lon(self, v: View) -> tuple[int, int]:
+        lat, lon = global_from_ned(
+            v.north_m, v.east_m, self.config.home_lat_deg, self.config.home_lon_deg
+        )
+        return round(lat * 1e7), round(lon * 1e7)
+
+    def _home_lat_lon(self) -> tuple[int, int]:
         return int(self.config.home_lat_deg * 1e7), int(self.config.home_lon_deg * 1e7)
 
     def _amsl_mm(self, v: View) -> int:
@@ -113,11 +125,12 @@ class Telemetry:
 
     @staticmethod
     def angles(v: View) -> tuple[float, float, float, float, float, float]:
-        """Roll, pitch, yaw and their rates: a gentle wobble that changes every sample."""
+        """Roll, pitch, yaw and their rates: the heading with a gentle wobble that changes
+        every sample (yaw in -pi..pi, as the stacks send it)."""
         t = v.time_boot_ms / 1000.0
         amp = 0.03 if v.landed_state != LandedState.ON_GROUND else 0.002
         roll, pitch = amp * math.sin(1.3 * t), amp * math.sin(0.9 * t + 1.0)
-        yaw = 1.5708 + 0.01 * math.sin(0.2 * t)
+        yaw = math.remainder(v.yaw_rad + 0.01 * math.sin(0.2 * t), math.tau)
         return (
             roll,
             pitch,
@@ -194,7 +207,7 @@ class Telemetry:
         )
 
     def global_position(self, v: View) -> Any:
-        lat, lon = self._lat_lon()
+        lat, lon = self._lat_lon(v)
         yaw_cdeg = int(math.degrees(self.angles(v)[2]) * 100) % 36000
         return self._mav.global_position_int_encode(
             v.time_boot_ms,
@@ -202,15 +215,15 @@ class Telemetry:
             lon,
             self._amsl_mm(v),
             int(v.altitude_m * 1000),
-            0,
-            0,
+            int(v.vn_mps * 100),
+            int(v.ve_mps * 100),
             int(-v.climb_mps * 100),
             yaw_cdeg,
         )
 
     def local_position(self, v: View) -> Any:
         return self._mav.local_position_ned_encode(
-            v.time_boot_ms, 0.0, 0.0, -v.altitude_m, 0.0, 0.0, -v.climb_mps
+            v.time_boot_ms, v.north_m, v.east_m, -v.altitude_m, v.vn_mps, v.ve_mps, -v.climb_mps
         )
 
     def odometry(self, v: View) -> Any:
@@ -220,12 +233,12 @@ class Telemetry:
             v.time_boot_ms * 1000,
             mavlink.MAV_FRAME_LOCAL_NED,
             mavlink.MAV_FRAME_BODY_FRD,
-            0.0,
-            0.0,
+            v.north_m,
+            v.east_m,
             -v.altitude_m,
             self._quaternion(v),
-            0.0,
-            0.0,
+            v.vn_mps,
+            v.ve_mps,
             -v.climb_mps,
             *self.angles(v)[3:],
             covariance,
@@ -279,12 +292,12 @@ class Telemetry:
 
     def position_target_local(self, v: View) -> Any:
         return self._mav.position_target_local_ned_encode(
-            v.time_boot_ms, mavlink.MAV_FRAME_LOCAL_NED, 0, 0.0, 0.0, -v.altitude_m,
+            v.time_boot_ms, mavlink.MAV_FRAME_LOCAL_NED, 0, v.north_m, v.east_m, -v.altitude_m,
             0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
         )  # fmt: skip
 
     def position_target_global(self, v: View) -> Any:
-        lat, lon = self._lat_lon()
+        lat, lon = self._lat_lon(v)
         return self._mav.position_target_global_int_encode(
             v.time_boot_ms, mavlink.MAV_FRAME_GLOBAL_INT, 0, lat, lon,
             self.config.home_amsl_m + v.altitude_m, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
@@ -303,10 +316,11 @@ class Telemetry:
         heading = int(math.degrees(self.angles(v)[2])) % 360
         throttle = 50 if self._flying(v) else 0
         amsl = self.config.home_amsl_m + v.altitude_m
-        return self._mav.vfr_hud_encode(0.0, 0.0, heading, throttle, amsl, v.climb_mps)
+        ground = math.hypot(v.vn_mps, v.ve_mps)
+        return self._mav.vfr_hud_encode(ground, ground, heading, throttle, amsl, v.climb_mps)
 
     def gps_raw(self, v: View) -> Any:
-        lat, lon = self._lat_lon()
+        lat, lon = self._lat_lon(v)
         fix = mavlink.GPS_FIX_TYPE_3D_FIX if v.gps_ok else mavlink.GPS_FIX_TYPE_NO_FIX
         return self._mav.gps_raw_int_encode(
             v.time_boot_ms * 1000, fix, lat, lon, self._amsl_mm(v), 80, 120, 0, 65535,
@@ -325,7 +339,7 @@ class Telemetry:
         return self._mav.mission_current_encode(0, 0, 0, 0)
 
     def open_drone_id_location(self, v: View) -> Any:
-        lat, lon = self._lat_lon()
+        lat, lon = self._lat_lon(v)
         amsl = self.config.home_amsl_m + v.altitude_m
         return self._mav.open_drone_id_location_encode(
             0, 0, [0] * 20, 2 if self._flying(v) else 1, 0, 0, int(v.climb_mps * 100), lat,
@@ -333,7 +347,7 @@ class Telemetry:
         )  # fmt: skip
 
     def open_drone_id_system(self, v: View) -> Any:
-        lat, lon = self._lat_lon()
+        lat, lon = self._home_lat_lon()
         return self._mav.open_drone_id_system_encode(
             0, 0, [0] * 20, 0, 0, lat, lon, 1, 0, -1000.0, -1000.0, 0, 0,
             self.config.home_amsl_m, v.unix_usec // 1_000_000 - 1546300800,
@@ -361,14 +375,14 @@ class Telemetry:
         return self._mav.current_mode_encode(0, v.custom_mode, v.custom_mode)
 
     def home_position(self, v: View) -> Any:
-        lat, lon = self._lat_lon()
+        lat, lon = self._home_lat_lon()
         return self._mav.home_position_encode(
             lat, lon, int(self.config.home_amsl_m * 1000), 0.0, 0.0, 0.0,
             [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, v.time_boot_ms * 1000,
         )  # fmt: skip
 
     def gps_global_origin(self, v: View) -> Any:
-        lat, lon = self._lat_lon()
+        lat, lon = self._home_lat_lon()
         return self._mav.gps_global_origin_encode(
             lat, lon, int(self.config.home_amsl_m * 1000), v.time_boot_ms * 1000
         )

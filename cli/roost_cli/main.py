@@ -271,8 +271,8 @@ def fault(
     kind: Annotated[
         str,
         typer.Argument(
-            help="silence, freeze, sensor, state, reboot, garbage, loss, jitter, spoof, or "
-            "clear (remove every fault)."
+            help="silence, freeze, sensor, state, reboot, garbage, loss, jitter, spoof, "
+            "battery, lag (--value percent of the normal speed), or clear (remove every fault)."
         ),
     ],
     value: Annotated[

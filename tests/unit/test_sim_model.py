@@ -434,3 +434,103 @@ def test_a_fault_value_that_could_stall_the_link_is_refused_and_changes_nothing(
     assert not answer["ok"] and "out of range" in answer["error"]
     assert handle_request(sim, {"op": "status"})["state"]["faults"] == {}
     assert (sim.link.impairment.jitter_ms, sim.link.impairment.loss_percent) == (0.0, 0.0)
+
+
+# ---- horizontal flight and position setpoints --------------------------------------------
+
+
+def _setpoint_mode(model: AutopilotModel, clock: FakeClock, north: float, east: float) -> None:
+    """Into the stack's setpoint mode, streaming one target as a client would."""
+    mode = "OFFBOARD" if model.stack is Stack.PX4 else "GUIDED"
+    model.position_setpoint(north, east, 5.0, None)
+    assert model.set_mode(custom_mode(model.stack, mode)) == MavResult.ACCEPTED
+    model.position_setpoint(north, east, 5.0, None)
+
+
+def _stream(model: AutopilotModel, clock: FakeClock, target: tuple[float, float], s: float) -> None:
+    for _ in range(round(s / 0.1)):
+        model.position_setpoint(*target, 5.0, None)
+        run(model, clock, 0.1)
+
+
+@pytest.mark.parametrize("stack", [Stack.PX4, Stack.ARDUPILOT])
+def test_position_setpoints_are_flown_in_the_setpoint_mode(stack: Stack) -> None:
+    model, clock = airborne(stack)
+    _setpoint_mode(model, clock, 20.0, -10.0)
+    _stream(model, clock, (20.0, -10.0), 15.0)
+    assert model.horizontal.distance_to(20.0, -10.0) < 0.1
+    assert model.altitude_m == pytest.approx(5.0, abs=0.1)
+
+
+def test_px4_refuses_offboard_without_a_setpoint_stream() -> None:
+    model, clock = airborne(Stack.PX4)
+    offboard = custom_mode(Stack.PX4, "OFFBOARD")
+    assert model.set_mode(offboard) == MavResult.TEMPORARILY_REJECTED
+    model.position_setpoint(1.0, 1.0, 3.0, None)
+    run(model, clock, 1.5)  # longer than COM_OF_LOSS_T: the stream is stale again
+    assert model.set_mode(offboard) == MavResult.TEMPORARILY_REJECTED
+    model.position_setpoint(1.0, 1.0, 3.0, None)
+    assert model.set_mode(offboard) == MavResult.ACCEPTED
+
+
+def test_px4_holds_where_it_is_when_the_offboard_stream_stops() -> None:
+    model, clock = airborne(Stack.PX4)
+    _setpoint_mode(model, clock, 50.0, 0.0)
+    _stream(model, clock, (50.0, 0.0), 4.0)
+    run(model, clock, 1.2)  # no setpoints for longer than COM_OF_LOSS_T
+    assert model.mode == "AUTO.LOITER"
+    assert any("offboard" in text for _, text in model.texts)
+    stopped_at = model.horizontal.north_m
+    run(model, clock, 10.0)
+    assert 0.0 < stopped_at < 50.0
+    assert model.horizontal.speed_mps == 0.0 and model.horizontal.north_m < 50.0
+
+
+def test_ardupilot_ignores_setpoints_outside_guided_and_keeps_the_last_one_in_it() -> None:
+    model, clock = airborne(Stack.ARDUPILOT)
+    assert model.set_mode(custom_mode(Stack.ARDUPILOT, "BRAKE")) == MavResult.ACCEPTED
+    model.position_setpoint(30.0, 0.0, 5.0, None)
+    run(model, clock, 5.0)
+    assert model.horizontal.distance_to(0.0, 0.0) < 0.01  # BRAKE holds
+    assert model.set_mode(custom_mode(Stack.ARDUPILOT, "GUIDED")) == MavResult.ACCEPTED
+    model.position_setpoint(30.0, 0.0, 5.0, None)
+    run(model, clock, 15.0)  # one setpoint, no stream: GUIDED flies to it
+    assert model.horizontal.distance_to(30.0, 0.0) < 0.1
+
+
+@pytest.mark.parametrize("stack", [Stack.PX4, Stack.ARDUPILOT])
+def test_rtl_flies_home_at_altitude_then_lands_there(stack: Stack) -> None:
+    model, clock = airborne(stack)
+    _setpoint_mode(model, clock, 25.0, 25.0)
+    _stream(model, clock, (25.0, 25.0), 12.0)
+    altitude = model.altitude_m
+    assert model.return_to_launch() == MavResult.ACCEPTED
+    run(model, clock, 3.0)
+    assert model.altitude_m == pytest.approx(altitude, abs=0.2)  # not descending yet
+    assert model.horizontal.distance_to(0.0, 0.0) < 25 * math.sqrt(2)
+    run(model, clock, 30.0)
+    assert model.on_ground and model.horizontal.distance_to(0.0, 0.0) < 0.6
+
+
+@pytest.mark.parametrize("stack", [Stack.PX4, Stack.ARDUPILOT])
+def test_holds_keep_the_position_the_mode_was_entered_at(stack: Stack) -> None:
+    model, clock = airborne(stack)
+    _setpoint_mode(model, clock, 40.0, 0.0)
+    _stream(model, clock, (40.0, 0.0), 3.0)
+    hold = custom_mode(stack, "AUTO.LOITER" if stack is Stack.PX4 else "BRAKE")
+    assert model.set_mode(hold) == MavResult.ACCEPTED
+    entered_at = model.horizontal.north_m
+    run(model, clock, 10.0)
+    assert model.horizontal.speed_mps == 0.0
+    # it brakes from its speed, so it ends a little beyond the entry point, never at 40
+    assert entered_at <= model.horizontal.north_m < entered_at + 5.0
+
+
+def test_a_lagging_vehicle_is_slower_by_the_scale() -> None:
+    normal, clock = airborne(Stack.PX4)
+    lagging, lag_clock = airborne(Stack.PX4)
+    lagging.speed_scale = 0.5
+    for model, c in ((normal, clock), (lagging, lag_clock)):
+        _setpoint_mode(model, c, 100.0, 0.0)
+        _stream(model, c, (100.0, 0.0), 8.0)
+    assert lagging.horizontal.north_m < 0.6 * normal.horizontal.north_m
