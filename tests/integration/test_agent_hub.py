@@ -40,7 +40,13 @@ from roost_sim import (
     SimulatedAutopilot,
     free_udp_port,
 )
-from tests.support.hubclient import VEHICLE_SYSID, HubVehicle, hub_vehicle, repeating
+from tests.support.hubclient import (
+    VEHICLE_SYSID,
+    HubVehicle,
+    fly_setpoint_circle,
+    hub_vehicle,
+    repeating,
+)
 from tests.support.waiting import wait_until
 
 pytestmark = pytest.mark.slow
@@ -302,3 +308,48 @@ def test_an_agent_whose_hub_endpoint_is_taken_refuses_in_one_line(tmp_path: Path
     refusals = [line for line in done.stderr.splitlines() if line.startswith("roost-agent: ")]
     assert len(refusals) == 1 and "MAVLink endpoint" in refusals[0], done.stderr
     assert "Traceback" not in done.stderr
+
+
+@pytest.mark.parametrize("mirror", [True, False], ids=["mirrored", "unmirrored"])
+def test_a_mirrored_standby_flies_the_clients_path_and_an_unmirrored_one_stays_behind(
+    mirror: bool,
+) -> None:
+    with hub_vehicle(["px4", "px4"], mirror=mirror) as v:
+        separations = fly_setpoint_circle(v, 12.0)
+        if mirror:
+            assert max(separations) < 1.0, separations
+            wait_until("fc2 in step", condition_is(v, "fc2", "True", "InStep"), 5, POLL_S)
+        else:
+            assert separations[-1] > 10.0, separations  # 24 m along the circle, fc2 hovers
+            wait_until(
+                "fc2 out of step",
+                lambda: (
+                    condition_is(v, "fc2", "False", "PositionDiffers")()
+                    or condition_is(v, "fc2", "False", "ModeDiffers")()
+                ),
+                5,
+                POLL_S,
+            )
+
+
+def test_a_failover_under_a_setpoint_stream_continues_from_where_the_vehicle_was() -> None:
+    """The client's circle goes on through the hub to fc2, which was flying the same path
+    (mirrored): the vehicle does not jump at the switch; the safety routine then holds it
+    on its track."""
+    with hub_vehicle(["px4", "px4"]) as v:
+        seen: dict[str, tuple[float, float, float]] = {}
+
+        def fail_midway(flown_s: float) -> None:
+            if flown_s >= 6.0 and "fc1" not in seen:
+                at = v.sim("fc1").snapshot()
+                seen["fc1"] = (at.north_m, at.east_m, at.altitude_m)
+                v.sim("fc1").inject(FaultKind.SILENCE)
+
+        fly_setpoint_circle(v, 10.0, on_sample=fail_midway)
+        wait_until("switched to fc2", lambda: v.agent.active == "fc2", 5, POLL_S)
+        record = v.agent.status().last_failover
+        assert record is not None and record.standby_in_step is True
+        held = v.sim("fc2").wait_until(lambda s: s.speed_mps == 0.0, timeout=15)
+        # 4 s of circle after the fault at 2 m/s, then braking: on the circle, near the switch
+        assert math.dist(seen["fc1"], (held.north_m, held.east_m, held.altitude_m)) < 12.0
+        assert abs(math.hypot(held.north_m, held.east_m - 20.0) - 20.0) < 1.5  # on the circle

@@ -8,6 +8,7 @@ and a record of everything the vehicle sent (type, sender, arrival time).
 from __future__ import annotations
 
 import contextlib
+import math
 import socket
 import threading
 import time
@@ -26,7 +27,8 @@ from roost_api.autopilot import (
     SafetyRoutine,
     StandbyLimits,
 )
-from roost_api.meta import Condition
+from roost_api.meta import Condition, Stack
+from roost_mavlink import MAV_CMD_DO_SET_MODE, set_mode_params
 from roost_sim import (
     SimConfig,
     SimulatedAutopilot,
@@ -248,3 +250,58 @@ def hub_vehicle(
         if agent is not None:
             agent.stop()
         stop_sims(sims)
+
+
+ALTITUDE_M = 5.0
+
+
+def circle_setpoint(t: float, radius_m: float, speed_mps: float) -> tuple[float, float, float]:
+    """(north, east, down) on a circle round home at :data:`ALTITUDE_M`, ``t`` s along it."""
+    angle = speed_mps * t / radius_m
+    return radius_m * math.sin(angle), radius_m * (1 - math.cos(angle)), -ALTITUDE_M
+
+
+def separation_m(a: SimulatedAutopilot, b: SimulatedAutopilot) -> float:
+    """How far apart two autopilots believe their vehicle is (3D, metres)."""
+    sa, sb = a.snapshot(), b.snapshot()
+    return math.dist((sa.north_m, sa.east_m, sa.altitude_m), (sb.north_m, sb.east_m, sb.altitude_m))
+
+
+def fly_setpoint_circle(
+    v: HubVehicle,
+    seconds: float,
+    *,
+    radius_m: float = 20.0,
+    speed_mps: float = 2.0,
+    on_sample: Callable[[float], None] | None = None,
+) -> list[float]:
+    """Both autopilots airborne (taken off by their own API, so an unmirrored standby flies
+    too), then the client streams a circle at 20 Hz through the hub in OFFBOARD for
+    ``seconds``; the active/standby separation sampled every 0.5 s (``on_sample`` is
+    called with the seconds flown at each sample, e.g. to inject a fault)."""
+    for sim in v.sims:
+        sim.fly()
+    for sim in v.sims:
+        sim.wait_until(lambda s: s.landed_state == "InAir" and s.altitude_m > 2.0, timeout=15)
+    start = time.monotonic()
+
+    def send() -> None:
+        v.client.setpoint(
+            VEHICLE_SYSID, *circle_setpoint(time.monotonic() - start, radius_m, speed_mps)
+        )
+
+    samples: list[float] = []
+    with repeating(send, 0.05):
+        send()  # a setpoint before the mode: PX4 refuses OFFBOARD without a stream
+        params = set_mode_params(Stack(v.sims[0].stack), "OFFBOARD")
+        result = v.client.command(VEHICLE_SYSID, MAV_CMD_DO_SET_MODE, *params)
+        if result != mavlink.MAV_RESULT_ACCEPTED:
+            raise RuntimeError(f"OFFBOARD refused through the hub ({result})")
+        active, standby = v.sims[0], v.sims[1]
+        end = start + seconds
+        while time.monotonic() < end:  # sampling the flight, not waiting for a condition
+            samples.append(separation_m(active, standby))
+            if on_sample is not None:
+                on_sample(time.monotonic() - start)
+            time.sleep(0.5)
+    return samples
