@@ -64,11 +64,13 @@ cluster-down: $(STAMP) ## stop the control plane started by cluster-up
 .PHONY: unit
 unit: $(STAMP) ## fast tests only (no control plane)
 	$(BIN)/pytest -m 'not cluster' tests
+	$(BIN)/pytest examples/missions/sync-paths
 
 .PHONY: test
 test: lint typecheck cluster-build ## the whole suite: lint, types, unit, integration, control-plane e2e, images
 	@docker/build-images.sh >/dev/null || echo "images: not built (above: why); tests/e2e/test_image_run.py skips or fails with the reason"
 	$(BIN)/pytest tests
+	$(BIN)/pytest examples/missions/sync-paths
 	$(BIN)/pytest --datastore kine $(KINE_SUITES)
 
 # The control-plane and operator suites again on kine+SQLite, the datastore K3s runs on

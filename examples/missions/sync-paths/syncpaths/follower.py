@@ -88,8 +88,9 @@ def fly(
             elif follower is not None:
                 vehicle.send_setpoint(follower.setpoint(now))
                 delay = follower.step(now, position)
-                if delay is not None:
+                if delay is not None:  # say it now; repeated with the hellos until confirmed
                     reported[follower.task] = delay
+                    say({"type": "delay", "task": follower.task, "delay": delay})
                 task = follower.task
                 follower.try_depart(now, delays.get(task, {}), members)
                 if position is not None and now - last_sample >= PATH_SAMPLE_S:
