@@ -68,6 +68,15 @@ def airborne(sim: SimulatedAutopilot) -> None:
     sim.wait_until(lambda s: s.landed_state == "InAir" and s.altitude_m > 2.0, timeout=15)
 
 
+def ready_to_switch(v: HubVehicle) -> None:
+    """Taken off through the hub, every autopilot OK for T_off: a switch is allowed."""
+    take_off_through_hub(v)
+    for sim in v.sims:
+        airborne(sim)
+    wait_until("every autopilot OK", lambda: all_ok(v), 10, POLL_S)
+    time.sleep(1.2)  # not a wait for a condition: T_off before a switch is allowed
+
+
 def condition_is(
     v: HubVehicle, name: str, status: str, reason: str | None = None
 ) -> Callable[[], bool]:
@@ -141,11 +150,7 @@ def test_failover_keeps_the_client_connected_and_its_setpoint_stream_moves() -> 
 
 def test_after_a_switch_nothing_from_the_old_active_reaches_the_client() -> None:
     with hub_vehicle(["px4", "px4"]) as v:
-        take_off_through_hub(v)
-        for sim in v.sims:
-            airborne(sim)
-        wait_until("every autopilot OK", lambda: all_ok(v), 10, POLL_S)
-        time.sleep(1.2)  # not a wait for a condition: T_off before a switch is allowed
+        ready_to_switch(v)
         switch(v, "fc2", 1)
         hub = v.agent.hub
         assert hub is not None
@@ -174,11 +179,7 @@ def switch(v: HubVehicle, target: str, n: int) -> None:
 
 def test_switching_back_and_forth_leaks_no_threads_sockets_or_clients() -> None:
     with hub_vehicle(["px4", "px4"]) as v:
-        take_off_through_hub(v)
-        for sim in v.sims:
-            airborne(sim)
-        wait_until("every autopilot OK", lambda: all_ok(v), 10, POLL_S)
-        time.sleep(1.2)  # not a wait for a condition: T_off before a switch is allowed
+        ready_to_switch(v)
         hub = v.agent.hub
         assert hub is not None
         me = psutil.Process()
