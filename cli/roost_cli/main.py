@@ -297,6 +297,7 @@ def fault(
 @sandbox_app.command("up")
 def sandbox_up(
     ctx: typer.Context,
+    *,
     vehicles: Annotated[
         int, typer.Option(min=1, max=plan.MAX_VEHICLES, help="Simulated vehicles to run.")
     ] = runner.DEFAULT_VEHICLES,
@@ -310,6 +311,13 @@ def sandbox_up(
     live: Annotated[
         bool, typer.Option(help="Show the live fleet view (--no-live prints plain lines).")
     ] = True,
+    mission: Annotated[
+        str | None,
+        typer.Option(
+            help="Run a reference mission's own programs (sync-paths) with lag faults "
+            "creating delays (--no-fault: none)."
+        ),
+    ] = None,
 ) -> None:
     """Start the sandbox and keep it running until Ctrl-C (`make demo` runs this)."""
     options = runner.Options(
@@ -318,6 +326,7 @@ def sandbox_up(
         fault=fault,
         fault_after_s=fault_after,
         live=live and console.is_terminal,
+        mission=mission,
     )
     runner.Sandbox(options, console).run()
 

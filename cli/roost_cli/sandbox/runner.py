@@ -43,7 +43,7 @@ from rich.text import Text
 from roost_cli import view
 from roost_cli.cluster import Fleet, Target
 from roost_cli.errors import CliError
-from roost_cli.sandbox import kwok, plan, sims, state
+from roost_cli.sandbox import kwok, missionrun, plan, sims, state
 from roost_cli.sandbox.director import Cue, Director, Script
 from roost_cli.sandbox.processes import Launcher, console_script
 from roost_cli.sandbox.progress import build_control_plane, start_control_plane
@@ -54,6 +54,7 @@ from roost_localcluster.processes import ManagedProcess
 
 DEFAULT_VEHICLES = 3
 DEFAULT_FAULT_AFTER_S = 15.0
+MONITOR_LISTENING_TIMEOUT_S = 30.0
 NODES_READY_TIMEOUT_S = 120.0
 DOWN_TIMEOUT_S = 60.0
 HEADLESS_POLL_S = 1.0
@@ -70,6 +71,8 @@ class Options:
     fault: bool = True
     fault_after_s: float = DEFAULT_FAULT_AFTER_S
     live: bool = True
+    mission: str | None = None
+    """Run that mission's own programs (see :mod:`.missionrun`) instead of the demo."""
 
 
 def _interrupt(signum: int, frame: FrameType | None) -> None:
@@ -159,6 +162,11 @@ class Sandbox:
 
     def _bring_up(self) -> None:
         self.fleet_plan = plan.plan_fleet(self.options.vehicles)
+        if self.options.mission is not None:  # refused before anything starts
+            try:
+                missionrun.check(self.options.mission, [v.name for v in self.fleet_plan])
+            except ValueError as error:
+                raise CliError(str(error)) from None
         bin_dir = build_control_plane(self.console)
         stages = self.directory / "kwok-stages.yaml"
         stages.write_text(yaml.safe_dump_all(kwok.pod_stages(), sort_keys=False))
@@ -178,6 +186,8 @@ class Sandbox:
         self._start_operator()
         self._apply(cluster)
         self._start_agents()
+        if self.options.mission is not None:
+            self._start_mission(self.options.mission)
 
     def _step(self, message: str) -> None:
         self.console.print(f"[green]✓[/] {message}")
@@ -244,6 +254,37 @@ class Sandbox:
             )
         self._step(f"roost-agent running on {', '.join(v.node for v in self.fleet_plan)}")
 
+    def _start_mission(self, mission: str) -> None:
+        """The mission's monitor, then one follower per vehicle flying its primary autopilot."""
+        names = [vehicle.name for vehicle in self.state.vehicles]
+        primaries = {vehicle.name: vehicle.primary.name for vehicle in self.fleet_plan}
+        connections = {
+            vehicle.name: next(
+                a.connection for a in vehicle.autopilots if a.name == primaries[vehicle.name]
+            )
+            for vehicle in self.state.vehicles
+        }
+        output = self.directory / "mission-results"
+        try:
+            monitor = missionrun.monitor_program(mission, names, output)
+        except ValueError as error:
+            raise CliError(str(error)) from None
+        proc = self.launcher.start(monitor.name, list(monitor.argv), monitor.env)
+        deadline = time.monotonic() + MONITOR_LISTENING_TIMEOUT_S
+        address = None
+        while address is None:
+            if not proc.alive() or time.monotonic() > deadline:
+                raise CliError(f"the {mission} monitor did not start; its log: {proc.log}")
+            with contextlib.suppress(OSError):
+                address = missionrun.listening_address(proc.log.read_text())
+            time.sleep(0.1)
+        for program in missionrun.follower_programs(mission, connections, address):
+            self.launcher.start(program.name, list(program.argv), program.env)
+        self._step(
+            f"{mission}: monitor on {address}, followers on {', '.join(names)}; "
+            f"Table I and paths will be in {output}"
+        )
+
     # ---- while running -----------------------------------------------------------------
     def _announce(self) -> None:
         assert self.plane is not None
@@ -261,7 +302,20 @@ class Sandbox:
         )
 
     def _direct(self) -> None:
-        """Start the script: take-off, then (unless --no-fault) the fault on the first vehicle."""
+        """Start the script: take-off, then (unless --no-fault) the fault on the first vehicle.
+
+        With a mission its followers take off themselves; the sandbox only slows vehicles
+        with the mission's ``lag`` schedule (and ``roost fault`` breaks one by hand).
+        """
+        if self.options.mission is not None:
+            primaries = {vehicle.name: vehicle.primary.name for vehicle in self.fleet_plan}
+
+            def send(vehicle: str, message: dict[str, object]) -> None:
+                sims.control(self.state, vehicle, primaries[vehicle], dict(message))
+
+            schedule = missionrun.lag_schedule(tuple(primaries)) if self.options.fault else ()
+            missionrun.LagInjector(schedule, send, self._stop).start()
+            return
         cue = (
             Cue(vehicle=self.fleet_plan[0].name, after_s=self.options.fault_after_s)
             if self.options.fault

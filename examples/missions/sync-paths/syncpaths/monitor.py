@@ -109,6 +109,8 @@ def main() -> int:
         env.get("SYNC_VEHICLES") or len(env.get("ROOST_MISSION_VEHICLES", "x").split(","))
     )
     channel = Channel(parse_address(env.get("SYNC_LISTEN", "0.0.0.0:7700"), 7700))
+    host, port = channel.address
+    print(json.dumps({"listening": f"{host}:{port}"}), flush=True)  # when the port was 0
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())

@@ -1,0 +1,198 @@
+"""Running a mission's own programs in the sandbox: the ``sync-paths`` reference mission.
+
+On KWOK nodes no container runs, so the sandbox plays the pods itself: one onboard
+follower per vehicle and one offboard monitor, as local processes with the environment
+the Mission's pods would get. The followers reach the monitor over UDP on 127.0.0.1 (in a
+cluster the same address is a Service) and their vehicle at its primary simulator's
+connection URL (the sandbox chooses no fixed port, so it gives the agents no hub
+endpoint). ``lag`` faults on a time schedule slow chosen vehicles on chosen legs, so the
+monitor has delays like the paper's Table I to absorb.
+
+Pure except :class:`LagInjector`, so the processes and schedule are
+unit-tested without a cluster.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import threading
+import time
+from collections.abc import Callable, Collection, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+SYNC_PATHS = "sync-paths"
+MISSIONS = (SYNC_PATHS,)
+REPO_ROOT = Path(__file__).resolve().parents[3]
+EXAMPLE_DIR = REPO_ROOT / "examples" / "missions" / SYNC_PATHS
+LEG_S = 20.0
+"""Planned transit between the reference trajectories' tasks."""
+TAKEOFF_ALLOWANCE_S = 15.0
+"""Seconds from the programs' start to the first leg (connect, arm, take off)."""
+
+
+@dataclass(frozen=True)
+class Program:
+    """One mission process: its name, command line and environment."""
+
+    name: str
+    argv: tuple[str, ...]
+    env: Mapping[str, str]
+
+
+@dataclass(frozen=True)
+class Lag:
+    """Slow ``vehicle`` to ``percent`` of its speed from ``start_s`` for ``duration_s``."""
+
+    vehicle: str
+    start_s: float
+    duration_s: float
+    percent: float
+
+
+# (vehicle, leg) -> percent of the normal speed on that leg: delays of 1.5 to 6 s
+LAG_LEGS: dict[tuple[str, int], float] = {
+    ("drone-1", 1): 23.0,
+    ("drone-2", 2): 26.0,
+    ("drone-3", 3): 28.0,
+    ("drone-1", 4): 25.0,
+}
+
+
+def lag_schedule(vehicles: tuple[str, ...]) -> tuple[Lag, ...]:
+    """Lags for the legs in :data:`LAG_LEGS` flown by ``vehicles``, by planned time.
+
+    A leg k is planned from ``(k-1)·LEG_S`` to ``k·LEG_S`` after take-off; the lag lasts
+    the planned leg (delays shift later legs a little, which only moves where it bites).
+    """
+    return tuple(
+        Lag(vehicle, TAKEOFF_ALLOWANCE_S + (leg - 1) * LEG_S, LEG_S, percent)
+        for (vehicle, leg), percent in sorted(LAG_LEGS.items(), key=lambda item: item[0][1])
+        if vehicle in vehicles
+    )
+
+
+def pymavlink_url(connection: str) -> str:
+    """``udpout://127.0.0.1:P`` (a simulator's report) as pymavlink spells it."""
+    return connection.replace("://", ":", 1)
+
+
+LISTENING_KEY = "listening"
+"""The monitor's first stdout line, ``{"listening": "HOST:PORT"}``: it binds port 0 itself."""
+
+
+def check(mission: str, vehicles: Collection[str], example_dir: Path = EXAMPLE_DIR) -> Path:
+    """The trajectory directory, or ValueError saying why the mission cannot run."""
+    if mission not in MISSIONS:
+        raise ValueError(f"unknown mission {mission!r}: one of {', '.join(MISSIONS)}")
+    trajectories = example_dir / "trajectories"
+    missing = [name for name in vehicles if not (trajectories / f"{name}.csv").is_file()]
+    if missing:
+        have = len(list(trajectories.glob("*.csv")))
+        raise ValueError(
+            f"{mission} has no trajectory for {', '.join(missing)} (in {trajectories}): "
+            f"run it with at most {have} vehicles"
+        )
+    return trajectories
+
+
+def _common(example_dir: Path, vehicles: Collection[str]) -> dict[str, str]:
+    return {
+        "PYTHONPATH": str(example_dir),
+        "PYTHONUNBUFFERED": "1",
+        "ROOST_MISSION_VEHICLES": ",".join(vehicles),
+    }
+
+
+def monitor_program(
+    mission: str, vehicles: Collection[str], output: Path, example_dir: Path = EXAMPLE_DIR
+) -> Program:
+    """The offboard monitor, on a port it chooses (see :data:`LISTENING_KEY`)."""
+    check(mission, vehicles, example_dir)
+    return Program(
+        "sync-monitor",
+        (sys.executable, "-m", "syncpaths.monitor"),
+        {
+            **_common(example_dir, vehicles),
+            "SYNC_LISTEN": "127.0.0.1:0",
+            "SYNC_VEHICLES": str(len(vehicles)),
+            "SYNC_OUTPUT": str(output),
+        },
+    )
+
+
+def follower_programs(
+    mission: str,
+    connections: Mapping[str, str],
+    monitor: str,
+    example_dir: Path = EXAMPLE_DIR,
+) -> tuple[Program, ...]:
+    """One onboard follower per vehicle (name -> its primary simulator's connection URL)."""
+    trajectories = check(mission, list(connections), example_dir)
+    return tuple(
+        Program(
+            f"sync-follower-{name}",
+            (sys.executable, "-m", "syncpaths.follower"),
+            {
+                **_common(example_dir, list(connections)),
+                "SYNC_VEHICLE": name,
+                "SYNC_TRAJECTORY_DIR": str(trajectories),
+                "SYNC_MONITOR": monitor,
+                "MAVLINK_URL": pymavlink_url(connection),
+            },
+        )
+        for name, connection in connections.items()
+    )
+
+
+def listening_address(log_text: str) -> str | None:
+    """The monitor's address from its log, once it has said it."""
+    for line in log_text.splitlines():
+        if LISTENING_KEY not in line:
+            continue
+        try:
+            said = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(said, dict) and isinstance(said.get(LISTENING_KEY), str):
+            return str(said[LISTENING_KEY])
+    return None
+
+
+class LagInjector(threading.Thread):
+    """Injects and clears the scheduled lags through ``send(vehicle, message)``."""
+
+    def __init__(
+        self,
+        schedule: tuple[Lag, ...],
+        send: Callable[[str, dict[str, object]], None],
+        stop: threading.Event,
+    ) -> None:
+        super().__init__(name="sandbox-lags", daemon=True)
+        self.schedule = schedule
+        self.send = send
+        self.stop_event = stop
+        self.sent: list[tuple[float, str, dict[str, object]]] = []
+
+    def run(self) -> None:
+        start = time.monotonic()
+        events = sorted(
+            [
+                (lag.start_s, lag.vehicle, {"op": "fault", "kind": "lag", "value": lag.percent})
+                for lag in self.schedule
+            ]
+            + [
+                (lag.start_s + lag.duration_s, lag.vehicle, {"op": "clear", "kind": "lag"})
+                for lag in self.schedule
+            ],
+            key=lambda event: event[0],
+        )
+        for at, vehicle, message in events:
+            if self.stop_event.wait(max(0.0, start + at - time.monotonic())):
+                return
+            try:
+                self.send(vehicle, message)
+            except Exception:  # a vehicle gone (failover, stop) is no error here
+                continue
+            self.sent.append((time.monotonic() - start, vehicle, message))

@@ -1,0 +1,104 @@
+"""``roost sandbox up --mission``: which programs run with which environment, the monitor's
+address as it reports it, and the lag schedule that creates the delays."""
+
+from __future__ import annotations
+
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from roost_cli.sandbox import missionrun
+from roost_cli.sandbox.missionrun import Lag, LagInjector
+
+NAMES = ["drone-1", "drone-2", "drone-3"]
+
+
+def test_unknown_mission_and_missing_trajectory_are_refused() -> None:
+    with pytest.raises(ValueError, match="unknown mission 'survey'"):
+        missionrun.check("survey", NAMES)
+    with pytest.raises(ValueError, match=r"no trajectory for drone-4.*at most 3 vehicles"):
+        missionrun.check(missionrun.SYNC_PATHS, [*NAMES, "drone-4"])
+
+
+def test_followers_reach_their_vehicle_and_the_monitor(tmp_path: Path) -> None:
+    connections = {name: f"udpout://127.0.0.1:{15000 + i}" for i, name in enumerate(NAMES)}
+    followers = missionrun.follower_programs(missionrun.SYNC_PATHS, connections, "127.0.0.1:7711")
+    assert [f.name for f in followers] == [f"sync-follower-{n}" for n in NAMES]
+    first = followers[0].env
+    assert first["MAVLINK_URL"] == "udpout:127.0.0.1:15000"
+    assert first["SYNC_MONITOR"] == "127.0.0.1:7711"
+    assert first["SYNC_VEHICLE"] == "drone-1"
+    assert (Path(first["SYNC_TRAJECTORY_DIR"]) / "drone-1.csv").is_file()
+    monitor = missionrun.monitor_program(missionrun.SYNC_PATHS, NAMES, tmp_path)
+    assert monitor.env["SYNC_VEHICLES"] == "3"
+    assert monitor.env["SYNC_OUTPUT"] == str(tmp_path)
+
+
+def test_listening_address_is_read_from_the_monitor_log() -> None:
+    assert missionrun.listening_address("") is None
+    assert missionrun.listening_address("INFO started\nnot json listening\n") is None
+    log = 'x\n{"listening": "127.0.0.1:40123"}\n'
+    assert missionrun.listening_address(log) == "127.0.0.1:40123"
+
+
+def test_the_real_monitor_reports_the_port_it_bound(tmp_path: Path) -> None:
+    program = missionrun.monitor_program(missionrun.SYNC_PATHS, NAMES, tmp_path / "out")
+    proc = subprocess.Popen(
+        list(program.argv),
+        env={**program.env, "PATH": "/usr/bin:/bin"},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        address = missionrun.listening_address(proc.stdout.readline())
+        assert address is not None
+        host, _, port = address.rpartition(":")
+        assert host == "127.0.0.1" and int(port) > 0
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+
+
+def test_lag_schedule_follows_the_planned_legs() -> None:
+    schedule = missionrun.lag_schedule(("drone-1", "drone-2"))
+    assert {lag.vehicle for lag in schedule} == {"drone-1", "drone-2"}  # drone-3 absent
+    first = schedule[0]
+    assert first == Lag("drone-1", missionrun.TAKEOFF_ALLOWANCE_S, missionrun.LEG_S, 23.0)
+    assert [lag.start_s for lag in schedule] == sorted(lag.start_s for lag in schedule)
+    assert all(1 <= lag.percent <= 100 for lag in schedule)
+
+
+def test_lag_injector_injects_then_clears_and_survives_a_gone_vehicle() -> None:
+    got: list[tuple[str, dict[str, object]]] = []
+
+    def send(vehicle: str, message: dict[str, object]) -> None:
+        if vehicle == "gone":
+            raise RuntimeError("its simulator is not there")
+        got.append((vehicle, message))
+
+    stop = threading.Event()
+    schedule = (Lag("gone", 0.0, 0.01, 50.0), Lag("drone-1", 0.02, 0.05, 25.0))
+    injector = LagInjector(schedule, send, stop)
+    injector.start()
+    deadline = time.monotonic() + 30
+    while len(got) < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    injector.join(timeout=30)
+    assert got == [
+        ("drone-1", {"op": "fault", "kind": "lag", "value": 25.0}),
+        ("drone-1", {"op": "clear", "kind": "lag"}),
+    ]
+
+
+def test_lag_injector_stops_when_told() -> None:
+    stop = threading.Event()
+    injector = LagInjector((Lag("drone-1", 3600.0, 1.0, 50.0),), lambda *_: None, stop)
+    injector.start()
+    stop.set()
+    injector.join(timeout=30)
+    assert not injector.is_alive() and injector.sent == []
