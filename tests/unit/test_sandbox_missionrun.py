@@ -68,7 +68,8 @@ def test_lag_schedule_follows_the_planned_legs() -> None:
     schedule = missionrun.lag_schedule(("drone-1", "drone-2"))
     assert {lag.vehicle for lag in schedule} == {"drone-1", "drone-2"}  # drone-3 absent
     first = schedule[0]
-    assert first == Lag("drone-1", missionrun.TAKEOFF_ALLOWANCE_S, missionrun.LEG_S, 23.0)
+    planned = missionrun.LEG_S + missionrun.LAG_OVERRUN_S
+    assert first == Lag("drone-1", missionrun.START_DELAY_S, planned, 23.0)
     assert [lag.start_s for lag in schedule] == sorted(lag.start_s for lag in schedule)
     assert all(1 <= lag.percent <= 100 for lag in schedule)
 
@@ -89,6 +90,7 @@ def test_lag_injector_injects_then_clears_and_survives_a_gone_vehicle() -> None:
     while len(got) < 2 and time.monotonic() < deadline:
         time.sleep(0.01)
     injector.join(timeout=30)
+    assert injector.failed == [("gone", "its simulator is not there")] * 2
     assert got == [
         ("drone-1", {"op": "fault", "kind": "lag", "value": 25.0}),
         ("drone-1", {"op": "clear", "kind": "lag"}),
@@ -102,3 +104,27 @@ def test_lag_injector_stops_when_told() -> None:
     stop.set()
     injector.join(timeout=30)
     assert not injector.is_alive() and injector.sent == []
+
+
+def test_lag_clock_starts_when_the_monitor_starts_the_vehicles() -> None:
+    assert not missionrun.started("drone-1 joined\n")
+    assert missionrun.started("x syncpaths.monitor: starting 3 vehicles in 2 s\n")
+    log = {"text": ""}
+    got: list[str] = []
+    stop = threading.Event()
+    injector = LagInjector(
+        (Lag("drone-1", 0.0, 3600.0, 50.0),),
+        lambda vehicle, _message: got.append(vehicle),
+        stop,
+        lambda: missionrun.started(log["text"]),
+    )
+    injector.start()
+    assert not stop.wait(3 * LagInjector.POLL_S)  # nothing happens for 3 polls: not started
+    assert got == []
+    log["text"] = "starting 3 vehicles in 2 s"
+    deadline = time.monotonic() + 30
+    while not got and time.monotonic() < deadline:
+        time.sleep(0.01)
+    stop.set()
+    injector.join(timeout=30)
+    assert got == ["drone-1"]

@@ -28,8 +28,13 @@ REPO_ROOT = Path(__file__).resolve().parents[3]
 EXAMPLE_DIR = REPO_ROOT / "examples" / "missions" / SYNC_PATHS
 LEG_S = 20.0
 """Planned transit between the reference trajectories' tasks."""
-TAKEOFF_ALLOWANCE_S = 15.0
-"""Seconds from the programs' start to the first leg (connect, arm, take off)."""
+START_DELAY_S = 2.0
+"""The monitor starts the vehicles this long after it says so (``syncpaths.monitor``)."""
+LAG_OVERRUN_S = 4.0
+"""A lag lasts this much past the planned arrival: the slowed vehicle arrives late (at a
+quarter of PX4's 5 m/s a 30 m leg takes about 24 s), and the next leg is flown at speed."""
+STARTING_MARK = "starting "
+"""What the monitor logs when every vehicle is ready: the legs' clock starts."""
 
 
 @dataclass(frozen=True)
@@ -63,11 +68,12 @@ LAG_LEGS: dict[tuple[str, int], float] = {
 def lag_schedule(vehicles: tuple[str, ...]) -> tuple[Lag, ...]:
     """Lags for the legs in :data:`LAG_LEGS` flown by ``vehicles``, by planned time.
 
-    A leg k is planned from ``(k-1)·LEG_S`` to ``k·LEG_S`` after take-off; the lag lasts
-    the planned leg (delays shift later legs a little, which only moves where it bites).
+    Times count from the monitor's start mark: leg k is planned from ``(k-1)·LEG_S`` to
+    ``k·LEG_S`` after the start; the lag lasts the leg and :data:`LAG_OVERRUN_S` more
+    (earlier delays shift later legs by a few seconds, which only moves where it bites).
     """
     return tuple(
-        Lag(vehicle, TAKEOFF_ALLOWANCE_S + (leg - 1) * LEG_S, LEG_S, percent)
+        Lag(vehicle, START_DELAY_S + (leg - 1) * LEG_S, LEG_S + LAG_OVERRUN_S, percent)
         for (vehicle, leg), percent in sorted(LAG_LEGS.items(), key=lambda item: item[0][1])
         if vehicle in vehicles
     )
@@ -146,6 +152,11 @@ def follower_programs(
     )
 
 
+def started(log_text: str) -> bool:
+    """Whether the monitor has started the vehicles (its legs' clock runs)."""
+    return any(STARTING_MARK in line for line in log_text.splitlines())
+
+
 def listening_address(log_text: str) -> str | None:
     """The monitor's address from its log, once it has said it."""
     for line in log_text.splitlines():
@@ -161,21 +172,30 @@ def listening_address(log_text: str) -> str | None:
 
 
 class LagInjector(threading.Thread):
-    """Injects and clears the scheduled lags through ``send(vehicle, message)``."""
+    """Injects and clears the scheduled lags through ``send(vehicle, message)``, counting
+    from when ``has_started()`` first says so (polled every :data:`POLL_S`)."""
+
+    POLL_S = 0.2
 
     def __init__(
         self,
         schedule: tuple[Lag, ...],
         send: Callable[[str, dict[str, object]], None],
         stop: threading.Event,
+        has_started: Callable[[], bool] = lambda: True,
     ) -> None:
         super().__init__(name="sandbox-lags", daemon=True)
         self.schedule = schedule
         self.send = send
         self.stop_event = stop
+        self.has_started = has_started
         self.sent: list[tuple[float, str, dict[str, object]]] = []
+        self.failed: list[tuple[str, str]] = []
 
     def run(self) -> None:
+        while not self.has_started():
+            if self.stop_event.wait(self.POLL_S):
+                return
         start = time.monotonic()
         events = sorted(
             [
@@ -193,6 +213,7 @@ class LagInjector(threading.Thread):
                 return
             try:
                 self.send(vehicle, message)
-            except Exception:  # a vehicle gone (failover, stop) is no error here
+            except Exception as error:  # a vehicle gone (failover, stop) is no error here
+                self.failed.append((vehicle, str(error)))
                 continue
             self.sent.append((time.monotonic() - start, vehicle, message))

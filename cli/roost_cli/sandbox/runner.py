@@ -313,8 +313,15 @@ class Sandbox:
             def send(vehicle: str, message: dict[str, object]) -> None:
                 sims.control(self.state, vehicle, primaries[vehicle], dict(message))
 
+            monitor_log = self.directory / "logs" / "sync-monitor.log"
+
+            def has_started() -> bool:
+                with contextlib.suppress(OSError):
+                    return missionrun.started(monitor_log.read_text())
+                return False
+
             schedule = missionrun.lag_schedule(tuple(primaries)) if self.options.fault else ()
-            missionrun.LagInjector(schedule, send, self._stop).start()
+            missionrun.LagInjector(schedule, send, self._stop, has_started).start()
             return
         cue = (
             Cue(vehicle=self.fleet_plan[0].name, after_s=self.options.fault_after_s)
