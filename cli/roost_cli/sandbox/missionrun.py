@@ -133,9 +133,12 @@ def follower_programs(
     connections: Mapping[str, str],
     monitor: str,
     example_dir: Path = EXAMPLE_DIR,
+    trajectories: Path | None = None,
 ) -> tuple[Program, ...]:
-    """One onboard follower per vehicle (name -> its primary simulator's connection URL)."""
-    trajectories = check(mission, list(connections), example_dir)
+    """One onboard follower per vehicle (name -> its primary simulator's connection URL);
+    ``trajectories``: another directory of ``<vehicle>.csv`` than the mission's own."""
+    if trajectories is None:
+        trajectories = check(mission, list(connections), example_dir)
     return tuple(
         Program(
             f"sync-follower-{name}",
