@@ -246,6 +246,7 @@ class SimulatedAutopilot:
         self._heartbeat_mode: int | None = None
         self._origin_sent = False
         self._driving: bool | None = None
+        self._setpoints = 0  # position setpoints received (any mode)
         self._standby_aux: bool | None = None
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -433,6 +434,11 @@ class SimulatedAutopilot:
         """The bridge connected this autopilot's outputs to the motors, or not."""
         with self._lock:
             self._driving = driving
+
+    @property
+    def setpoints_received(self) -> int:
+        """SET_POSITION_TARGET_* messages addressed to this autopilot so far."""
+        return self._setpoints
 
     @property
     def driving(self) -> bool | None:
@@ -795,6 +801,7 @@ class SimulatedAutopilot:
 
     def _local_setpoint(self, msg: Any) -> None:
         """SET_POSITION_TARGET_LOCAL_NED in the local NED frame: position and yaw."""
+        self._setpoints += 1
         if msg.type_mask & _IGNORE_POSITION or msg.coordinate_frame != mavlink.MAV_FRAME_LOCAL_NED:
             self._unhandled["SET_POSITION_TARGET_LOCAL_NED (no local position)"] += 1
             return
@@ -804,6 +811,7 @@ class SimulatedAutopilot:
     def _global_setpoint(self, msg: Any) -> None:
         """SET_POSITION_TARGET_GLOBAL_INT: latitude/longitude and an AMSL or relative
         altitude, converted to the local frame around home."""
+        self._setpoints += 1
         frames = {
             mavlink.MAV_FRAME_GLOBAL_INT: self.config.home_amsl_m,
             mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT: 0.0,

@@ -98,17 +98,28 @@ class ManagedProcess:
         return 0
 
     def stop(self, grace_s: float = STOP_GRACE_S) -> None:
-        """SIGTERM the process group, SIGKILL it after ``grace_s``, and wait for the end."""
+        """SIGTERM the process group, SIGKILL it after ``grace_s``, and wait for the end.
+
+        :attr:`returncode` is how it ended. psutil's wait reaps the child itself, after
+        which ``Popen.wait`` can only answer 0, so psutil's code is kept when it has one.
+        """
+        self.returncode = None
         proc = self._process()
         if proc is not None:
             self._signal_group(signal.SIGTERM)
-            _, alive = psutil.wait_procs([proc], timeout=grace_s)
+            gone, alive = psutil.wait_procs([proc], timeout=grace_s)
             if alive:
                 self._signal_group(signal.SIGKILL)
-                psutil.wait_procs(alive, timeout=grace_s)
+                killed, _ = psutil.wait_procs(alive, timeout=grace_s)
+                gone += killed
+            codes = [p.returncode for p in gone if getattr(p, "returncode", None) is not None]
+            if codes:
+                self.returncode = int(codes[0])
         if self._popen is not None:
             with contextlib.suppress(subprocess.TimeoutExpired):
-                self.returncode = self._popen.wait(timeout=grace_s)
+                code = self._popen.wait(timeout=grace_s)
+                if self.returncode is None:
+                    self.returncode = code
         self._popen = None
         self.pid = None
         self.create_time = None
