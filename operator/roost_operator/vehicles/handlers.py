@@ -112,9 +112,11 @@ _autopilot_prints = Fingerprints()
 
 
 # -- indexes -------------------------------------------------------------------------
+# Async so kopf calls them in its event loop: they run on every event of their kind, and a
+# sync one would cost a hop to a thread each time.
 
 
-def vehicle_node_claims(
+async def vehicle_node_claims(
     *, name: str, spec: kopf.Spec, meta: kopf.Meta, **_: Any
 ) -> dict[str, NodeClaim]:
     """node name → the Vehicles naming it (a Vehicle being deleted claims nothing)."""
@@ -123,13 +125,13 @@ def vehicle_node_claims(
     return {spec["nodeName"]: NodeClaim(name, str(meta["creationTimestamp"]))}
 
 
-def autopilots_by_vehicle(*, name: str, spec: kopf.Spec, **_: Any) -> dict[str, str]:
+async def autopilots_by_vehicle(*, name: str, spec: kopf.Spec, **_: Any) -> dict[str, str]:
     """vehicle name → its RedundantAutopilot's name."""
     vehicle = spec.get("vehicleName")
     return {vehicle: name} if vehicle else {}
 
 
-def failover_actions(*, name: str, status: kopf.Status, **_: Any) -> dict[str, bool]:
+async def failover_actions(*, name: str, status: kopf.Status, **_: Any) -> dict[str, bool]:
     """Vehicles with a cluster-side failover action running (for the fleet-wide cap)."""
     action = (status.get("failover") or {}).get("action")
     return {name: True} if action else {}
