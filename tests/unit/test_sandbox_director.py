@@ -6,6 +6,7 @@ sandbox test runs them against a live fleet.
 
 from __future__ import annotations
 
+import math
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
@@ -84,6 +85,8 @@ def test_latency_reads_well_at_every_scale(ms: float, text: str) -> None:
 def test_each_sim_binds_a_port_of_its_own_choosing() -> None:
     [vehicle] = plan.plan_fleet(1)
     assert sims.sim_config(vehicle) == {
+        "home_lat_deg": 47.397742,
+        "home_lon_deg": 8.545594,
         "fast_boot": True,
         "preset_streams": True,
         "autopilots": [
@@ -91,6 +94,13 @@ def test_each_sim_binds_a_port_of_its_own_choosing() -> None:
             {"name": "px4-b", "stack": "px4", "sysid": 2, "udp_bind": "127.0.0.1:0"},
         ],
     }
+
+
+def test_sandbox_vehicles_start_apart_on_an_east_west_line() -> None:
+    first, second = sims.home(0), sims.home(1)
+    assert first[0] == second[0]
+    metres = (second[1] - first[1]) * 111_320.0 * math.cos(math.radians(first[0]))
+    assert metres == pytest.approx(sims.SPACING_M)
 
 
 def test_fault_requests_follow_the_simulators_fault_table() -> None:

@@ -22,7 +22,9 @@ from another terminal can stop them even if this process was killed.
 from __future__ import annotations
 
 import contextlib
+import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -59,6 +61,9 @@ NODES_READY_TIMEOUT_S = 120.0
 DOWN_TIMEOUT_S = 60.0
 HEADLESS_POLL_S = 1.0
 LIVE_EVENTS = 6
+ANNOUNCE_TIMEOUT_S = 30.0
+DEFAULT_DASHBOARD_PORT = 8765
+DASHBOARD_ANNOUNCE = re.compile(r"Roost dashboard on (http://\S+/)")
 RUN_DIRECTORIES = ("agents", "sims", "logs", "cluster")
 
 
@@ -73,6 +78,9 @@ class Options:
     live: bool = True
     mission: str | None = None
     """Run that mission's own programs (see :mod:`.missionrun`) instead of the demo."""
+    dashboard: bool = True
+    """Run ``roost dashboard`` (read-write, the sandbox's kubeconfig) beside the fleet."""
+    dashboard_port: int = DEFAULT_DASHBOARD_PORT
 
 
 def _interrupt(signum: int, frame: FrameType | None) -> None:
@@ -186,6 +194,9 @@ class Sandbox:
         self._start_operator()
         self._apply(cluster)
         self._start_agents()
+        self._await_telemetry()
+        if self.options.dashboard:
+            self._start_dashboard()
         if self.options.mission is not None:
             self._start_mission(self.options.mission)
 
@@ -254,6 +265,51 @@ class Sandbox:
             )
         self._step(f"roost-agent running on {', '.join(v.node for v in self.fleet_plan)}")
 
+    def _await_telemetry(self) -> None:
+        """Record the telemetry URL each agent announces (it binds a free port itself)."""
+        logs = {
+            v.name: self.directory / "logs" / f"roost-agent-{v.name}.log" for v in self.fleet_plan
+        }
+        deadline = time.monotonic() + ANNOUNCE_TIMEOUT_S
+        for vehicle in self.state.vehicles:
+            while vehicle.telemetry is None and time.monotonic() < deadline:
+                with contextlib.suppress(OSError):
+                    vehicle.telemetry = announced_telemetry(logs[vehicle.name].read_text())
+                if vehicle.telemetry is None:
+                    time.sleep(0.1)
+            if vehicle.telemetry is None:
+                self.script.warn(f"the agent of {vehicle.name} announced no telemetry stream")
+        self._save()
+
+    def _start_dashboard(self) -> None:
+        """``roost dashboard`` on the sandbox's cluster and agents; its URL is announced."""
+        assert self.plane is not None
+        argv = [
+            console_script("roost"),
+            "--kubeconfig",
+            str(self.plane.kubeconfig),
+            "dashboard",
+            "--port",
+            str(self.options.dashboard_port),
+        ]
+        for vehicle in self.state.vehicles:
+            if vehicle.telemetry:
+                argv += ["--agent", f"{vehicle.name}={vehicle.telemetry}"]
+        proc = self.launcher.start("roost-dashboard", argv, {"COLUMNS": "400"})
+        deadline = time.monotonic() + ANNOUNCE_TIMEOUT_S
+        while self.state.dashboard is None:
+            with contextlib.suppress(OSError):
+                found = DASHBOARD_ANNOUNCE.search(proc.log.read_text())
+                self.state.dashboard = found.group(1) if found else None
+            if self.state.dashboard is not None:
+                break
+            if not proc.alive() or time.monotonic() > deadline:
+                self.script.warn(f"the dashboard did not start; its log: {proc.log}")
+                return
+            time.sleep(0.1)
+        self._save()
+        self._step(f"dashboard on {self.state.dashboard}")
+
     def _start_mission(self, mission: str) -> None:
         """The mission's monitor, then one follower per vehicle flying its primary autopilot."""
         names = [vehicle.name for vehicle in self.state.vehicles]
@@ -294,6 +350,11 @@ class Sandbox:
                     "\n[bold green]The Roost sandbox is running.[/] In another terminal:"
                 ),
                 Text(f"  export KUBECONFIG={self.plane.kubeconfig}", style="bold"),
+                *(
+                    [Text(f"  open {self.state.dashboard}   # the live dashboard", style="bold")]
+                    if self.state.dashboard
+                    else []
+                ),
                 Text("  kubectl get roost            # every Roost object", style="dim"),
                 Text("  roost status --watch         # this fleet view", style="dim"),
                 Text("  roost sandbox down           # stop it (or Ctrl-C here)", style="dim"),
@@ -390,7 +451,18 @@ def agent_argv(vehicle: plan.VehiclePlan, state_dir: Path) -> list[str]:
         "simulated",
         "--status-interval",
         "0",
+        "--telemetry-port",
+        "auto",
     ]
+
+
+def announced_telemetry(log: str) -> str | None:
+    """The telemetry URL an agent printed (``{"telemetry": URL}``), None before it did."""
+    for line in log.splitlines():
+        if line.startswith('{"telemetry"'):
+            with contextlib.suppress(ValueError):
+                return str(json.loads(line)["telemetry"])
+    return None
 
 
 def stop_recorded(recorded: state.SandboxState) -> list[int]:

@@ -59,6 +59,8 @@ class SandboxVehicle(BaseModel):
     node: str
     stack: str
     autopilots: list[SimulatedAutopilot]
+    telemetry: str | None = None
+    """The agent's telemetry stream (``ws://127.0.0.1:P/``), once it announced it."""
 
 
 class SandboxState(BaseModel):
@@ -73,6 +75,8 @@ class SandboxState(BaseModel):
     processes: list[dict[str, Any]] = Field(default_factory=list)
     """``ManagedProcess.to_state()`` of each process the sandbox started itself."""
     vehicles: list[SandboxVehicle] = Field(default_factory=list)
+    dashboard: str | None = None
+    """The URL ``roost dashboard`` serves the sandbox on, once it announced it."""
 
     @property
     def cluster_dir(self) -> Path:
