@@ -10,79 +10,22 @@ the processes the sandbox started is left.
 
 from __future__ import annotations
 
-import contextlib
 import json
-import os
-import signal
 import subprocess
-import sys
-import time
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
 from roost_cli.sandbox import state as sandbox_state
+from tests.support.sandbox import BIN, RunningSandbox, await_running, await_step, running_sandbox
 
 pytestmark = [pytest.mark.cluster, pytest.mark.slow, pytest.mark.timeout(600)]
 
-BIN = Path(sys.executable).parent
 VEHICLES = 2
 FAULT_VEHICLE = "drone-1"
-UP_TIMEOUT_S = 240.0
 STEP_TIMEOUT_S = 90.0
-
-
-@dataclass
-class RunningSandbox:
-    """A `roost sandbox up` subprocess and how to talk to what it started."""
-
-    directory: Path
-    process: subprocess.Popen[str]
-    output: Path
-
-    def roost(self, *args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
-        env = {**os.environ, "COLUMNS": "220", sandbox_state.DIR_ENV: str(self.directory)}
-        env.pop("KUBECONFIG", None)
-        return subprocess.run(
-            [str(BIN / "roost"), *args],
-            capture_output=True,
-            text=True,
-            timeout=120,
-            check=check,
-            env=env,
-        )
-
-    def kubectl(self, *args: str) -> str:
-        recorded = sandbox_state.load(self.directory)
-        assert recorded is not None and recorded.kubeconfig is not None
-        return subprocess.run(
-            [str(BIN / "kubectl"), "--kubeconfig", recorded.kubeconfig, *args],
-            capture_output=True,
-            text=True,
-            timeout=60,
-            check=True,
-        ).stdout
-
-    def get(self, kind: str, name: str, namespace: str | None = None) -> dict[str, Any]:
-        scope = ["-n", namespace] if namespace else []
-        obj: dict[str, Any] = json.loads(self.kubectl("get", kind, name, *scope, "-o", "json"))
-        return obj
-
-    def log(self) -> str:
-        return self.output.read_text(errors="replace")
-
-
-def _await(what: str, check: Callable[[], bool], sandbox: RunningSandbox, timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not check():
-        if sandbox.process.poll() is not None:
-            pytest.fail(f"roost sandbox up exited while waiting for {what}:\n{sandbox.log()}")
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout_s:.0f} s waiting for {what}:\n{sandbox.log()}")
-        time.sleep(0.5)
 
 
 def _identities(directory: Path) -> dict[int, float]:
@@ -102,50 +45,19 @@ def _still_running(identities: dict[int, float]) -> list[int]:
 
 @pytest.fixture
 def sandbox(tmp_path: Path) -> Iterator[RunningSandbox]:
-    directory = tmp_path / "sandbox"
-    output = tmp_path / "sandbox-up.log"
-    with output.open("w") as out:
-        process = subprocess.Popen(
-            [
-                str(BIN / "roost"),
-                "--sandbox-dir",
-                str(directory),
-                "sandbox",
-                "up",
-                "--vehicles",
-                str(VEHICLES),
-                "--no-live",
-                "--no-fault",
-            ],
-            stdout=out,
-            stderr=subprocess.STDOUT,
-            text=True,
-            env={**os.environ, "COLUMNS": "200"},
-        )
-    running = RunningSandbox(directory, process, output)
-    try:
+    args = ["--vehicles", str(VEHICLES), "--no-live", "--no-fault", "--dashboard-port", "0"]
+    with running_sandbox(tmp_path, args) as running:
         yield running
-    finally:
-        if process.poll() is None:
-            with contextlib.suppress(subprocess.SubprocessError):
-                running.roost("sandbox", "down", check=False)
-        if process.poll() is None:
-            process.send_signal(signal.SIGKILL)
-        process.wait(timeout=30)
 
 
 def test_sandbox_flies_a_mission_fails_over_and_leaves_nothing_behind(
     sandbox: RunningSandbox,
 ) -> None:
-    def up() -> bool:
-        recorded = sandbox_state.load(sandbox.directory)
-        return recorded is not None and recorded.phase == sandbox_state.Phase.RUNNING
-
-    _await("the sandbox to be running", up, sandbox, UP_TIMEOUT_S)
-    recorded = sandbox_state.load(sandbox.directory)
-    assert recorded is not None
+    recorded = await_running(sandbox)
     assert [v.name for v in recorded.vehicles] == ["drone-1", "drone-2"]
     assert "export KUBECONFIG=" in sandbox.log()
+    assert recorded.dashboard is not None and recorded.dashboard in sandbox.log()
+    assert all(v.telemetry for v in recorded.vehicles)
 
     def mission_phase() -> str | None:
         phase: str | None = (
@@ -153,18 +65,20 @@ def test_sandbox_flies_a_mission_fails_over_and_leaves_nothing_behind(
         )
         return phase
 
-    _await("Mission survey to run", lambda: mission_phase() == "Running", sandbox, STEP_TIMEOUT_S)
+    await_step(
+        "Mission survey to run", lambda: mission_phase() == "Running", sandbox, STEP_TIMEOUT_S
+    )
 
     def active_of(vehicle: str) -> str | None:
         status = sandbox.get("redundantautopilot", vehicle).get("status", {})
         active: str | None = status.get("activeAutopilot")
         return active
 
-    _await("the agent to report", lambda: active_of(FAULT_VEHICLE) == "px4-a", sandbox, 60)
+    await_step("the agent to report", lambda: active_of(FAULT_VEHICLE) == "px4-a", sandbox, 60)
     fault = sandbox.roost("fault", FAULT_VEHICLE, "px4-a", "silence")
     assert "faults now silence" in fault.stdout
 
-    _await("the failover", lambda: active_of(FAULT_VEHICLE) == "px4-b", sandbox, STEP_TIMEOUT_S)
+    await_step("the failover", lambda: active_of(FAULT_VEHICLE) == "px4-b", sandbox, STEP_TIMEOUT_S)
     ra = sandbox.get("redundantautopilot", FAULT_VEHICLE)
     last = ra["status"]["lastFailover"]
     assert (last["from"], last["to"], last["trigger"]) == ("px4-a", "px4-b", "Automatic")
@@ -187,7 +101,7 @@ def test_sandbox_flies_a_mission_fails_over_and_leaves_nothing_behind(
         )["items"]
         return any("px4-b" in e.get("message", "") for e in events)
 
-    _await("an Event about the failover", failover_event, sandbox, 30)
+    await_step("an Event about the failover", failover_event, sandbox, 30)
 
     def vehicle_in_mission(name: str) -> dict[str, Any]:
         mission = sandbox.get("mission", "survey", "default")
@@ -195,7 +109,7 @@ def test_sandbox_flies_a_mission_fails_over_and_leaves_nothing_behind(
         return entry
 
     # The Mission's onFailover is AbortVehicle: drone-1 lands and leaves, drone-2 flies on.
-    _await(
+    await_step(
         "the mission to abort drone-1",
         lambda: vehicle_in_mission(FAULT_VEHICLE)["phase"] in ("Aborting", "Aborted"),
         sandbox,
@@ -235,7 +149,7 @@ def test_sandbox_flies_a_mission_fails_over_and_leaves_nothing_behind(
     aborted = sandbox.roost("abort", "survey")
     assert "abort requested" in aborted.stdout
     assert sandbox.get("mission", "survey", "default")["spec"]["abort"] is True
-    _await(
+    await_step(
         "the mission to end",
         lambda: mission_phase() in ("Aborting", "Aborted", "Failed"),
         sandbox,
