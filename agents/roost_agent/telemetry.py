@@ -45,13 +45,19 @@ from websockets.sync.server import Server, ServerConnection, serve
 from roost_api.telemetry import MAX_HZ, Origin, north_east_m
 
 if TYPE_CHECKING:
-    from roost_agent.health import Assessment, Fix
+    from roost_agent.health import Fix
     from roost_api.autopilot import FailoverRecord
+    from roost_api.meta import HealthLevel
 
 log = logging.getLogger(__name__)
 
 DEFAULT_ADDRESS = "127.0.0.1"
 MAX_CLIENTS = 4
+
+
+class Leveled(Protocol):
+    @property
+    def level(self) -> HealthLevel: ...
 
 
 class FixSource(Protocol):
@@ -76,7 +82,7 @@ class TelemetryAgent(Protocol):
     @property
     def links(self) -> Mapping[str, FixSource]: ...
 
-    def assessments(self) -> dict[str, Assessment]: ...
+    def assessments(self) -> Mapping[str, Leveled]: ...
 
 
 class Sampler:

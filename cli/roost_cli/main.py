@@ -336,6 +336,13 @@ def dashboard(
         str | None,
         typer.Option(help="XYZ tile URL template ({z}/{x}/{y}) drawn under the arena."),
     ] = None,
+    cluster: Annotated[
+        bool,
+        typer.Option(
+            help="Read the cluster (--no-cluster: only the --agent streams, read-only; "
+            "for standalone agents)."
+        ),
+    ] = True,
 ) -> None:
     """A live fleet view in the browser: arena, fleet, missions, timeline, guarded actions.
 
@@ -346,12 +353,14 @@ def dashboard(
     from roost_cli.dashboard.sources import Endpoints  # noqa: PLC0415
 
     context = _context(ctx)
-    fleet = context.fleet()
+    fleet = context.fleet() if cluster else None
     flags = dict(_agent_flag(text) for text in agent or [])
+    if fleet is None and not flags:
+        raise CliError("--no-cluster shows only the agents' streams: name them with --agent")
 
     def sandbox_endpoints() -> dict[str, str]:
         recorded = sandbox_state.running(context.sandbox_dir)
-        if recorded is None or fleet.target.source != "sandbox":
+        if recorded is None or fleet is None or fleet.target.source != "sandbox":
             return {}
         return {v.name: v.telemetry for v in recorded.vehicles if v.telemetry}
 
@@ -362,14 +371,20 @@ def dashboard(
         origin=_origin_flag(origin) if origin else None,
         tiles=tiles,
     )
-    mode = "read-only" if read_only else f"acting as the kubeconfig's user ({fleet.target.shown})"
+    if fleet is None:
+        where, mode = server.NO_CLUSTER, "read-only"
+    else:
+        where = fleet.server
+        mode = (
+            "read-only" if read_only else f"acting as the kubeconfig's user ({fleet.target.shown})"
+        )
     with contextlib.suppress(KeyboardInterrupt):
         server.serve(
             fleet,
             settings,
             Endpoints(flags, sandbox_endpoints),
             announce=lambda url: console.print(
-                f"Roost dashboard on {url} — {fleet.server}, {mode}. Ctrl-C stops it.",
+                f"Roost dashboard on {url} — {where}, {mode}. Ctrl-C stops it.",
                 highlight=False,
                 soft_wrap=True,
             ),

@@ -127,15 +127,23 @@ def static_text(name: str) -> str:
     return resources.files("roost_cli.dashboard").joinpath("static", name).read_text()
 
 
+NO_CLUSTER = "no cluster: the agents' streams only"
+
+
 def build_app(
-    fleet: Fleet,
+    fleet: Fleet | None,
     settings: Settings,
     endpoints: Endpoints,
     *,
     model: FleetModel | None = None,
     watch: bool = True,
 ) -> Starlette:
-    """The dashboard app; its lifespan starts the watches, telemetry clients and pusher."""
+    """The dashboard app; its lifespan starts the watches, telemetry clients and pusher.
+
+    Without a ``fleet`` (``--no-cluster``) it shows only what the agents stream, read-only.
+    """
+    read_only = settings.read_only or fleet is None
+    server = fleet.server if fleet is not None else NO_CLUSTER
     token = secrets.token_urlsafe(24)
     pusher_box: list[Pusher] = []
 
@@ -148,7 +156,7 @@ def build_app(
         model._on_change = on_change
 
     def render() -> str:
-        doc = fleet_model.snapshot(read_only=settings.read_only, server=fleet.server)
+        doc = fleet_model.snapshot(read_only=read_only, server=server)
         return json.dumps(doc, separators=(",", ":"), default=str)
 
     pusher = Pusher(fleet_model, render)
@@ -156,7 +164,7 @@ def build_app(
 
     @contextlib.asynccontextmanager
     async def lifespan(app: Starlette) -> AsyncIterator[None]:
-        watchers = start_watchers(fleet.kube, fleet_model) if watch else []
+        watchers = start_watchers(fleet.kube, fleet_model) if watch and fleet else []
         tasks = [
             asyncio.create_task(pusher.run()),
             asyncio.create_task(TelemetryClients(fleet_model, endpoints).run()),
@@ -174,7 +182,7 @@ def build_app(
 
     page = (
         static_text("index.html")
-        .replace("__TOKEN__", token if not settings.read_only else "")
+        .replace("__TOKEN__", token if not read_only else "")
         .replace("__TILES__", json.dumps(settings.tiles or ""))
     )
 
@@ -193,7 +201,7 @@ def build_app(
         handler: Callable[[Fleet, FleetModel, dict[str, Any]], dict[str, Any]],
     ) -> Callable[[Request], Any]:
         async def endpoint(request: Request) -> Response:
-            if settings.read_only:
+            if read_only or fleet is None:
                 return JSONResponse({"error": "this dashboard is read-only"}, status_code=403)
             if not secrets.compare_digest(request.headers.get(TOKEN_HEADER, ""), token):
                 return JSONResponse({"error": "missing or wrong token"}, status_code=403)
@@ -246,7 +254,7 @@ def url_of(sock: socket.socket) -> str:
 
 
 def serve(
-    fleet: Fleet,
+    fleet: Fleet | None,
     settings: Settings,
     endpoints: Endpoints,
     *,

@@ -95,23 +95,26 @@ function drawTiles() {
   }
 }
 
+const drawn = new Map(); // vehicle -> {g, trail, last}
+
 function renderArena(vehicles) {
   fitArena(vehicles);
   const markers = $("markers"), trails = $("trails");
   const seen = new Set();
   for (const v of vehicles) {
-    const id = `m-${v.name}`;
-    seen.add(id);
-    let g = document.getElementById(id);
-    let trail = document.getElementById(`t-${v.name}`);
-    if (!g) {
-      g = el("svg:g", { id, class: "marker", "data-vehicle": v.name });
+    seen.add(v.name);
+    let entry = drawn.get(v.name);
+    if (!entry) {
+      const g = el("svg:g", { class: "marker", "data-vehicle": v.name });
       g.append(el("svg:circle", { r: 0.9 }), el("svg:line", { x1: 0, y1: 0, x2: 0, y2: -2 }),
         el("svg:text", { x: 1.2, y: -1 }, v.name));
       markers.append(g);
-      trail = el("svg:polyline", { id: `t-${v.name}`, class: "trail" });
+      const trail = el("svg:polyline", { class: "trail", "data-vehicle": v.name });
       trails.append(trail);
+      entry = { g, trail, last: null };
+      drawn.set(v.name, entry);
     }
+    const { g, trail } = entry;
     const cls = LEVEL_CLASS(v.worst);
     setAttr(g, "class", `marker ${cls}${v.telemetry === "live" ? "" : " stale"}`);
     setAttr(g, "data-worst", v.worst);
@@ -125,23 +128,31 @@ function renderArena(vehicles) {
     } else if (!g.getAttribute("transform")) {
       g.style.display = "none"; // never reported a position: nowhere to draw it
     }
-    setAttr(trail, "points", (v.trail || []).map(([n, e]) => `${e},${-n}`).join(" "));
+    const points = v.trail || [];
+    const last = points.length ? `${points.length}:${points[points.length - 1]}` : "";
+    if (entry.last !== last) { // a trail changes only when a new position arrived
+      entry.last = last;
+      trail.setAttribute("points", points.map(([n, e]) => `${e},${-n}`).join(" "));
+    }
   }
-  for (const g of [...markers.children]) {
-    if (!seen.has(g.id)) {
-      g.remove();
-      document.getElementById(`t-${g.id.slice(2)}`)?.remove();
+  for (const [name, entry] of drawn) {
+    if (!seen.has(name)) {
+      entry.g.remove();
+      entry.trail.remove();
+      drawn.delete(name);
     }
   }
 }
 
 // ---- fleet table ----------------------------------------------------------------------
+const rowsByName = new Map();
+
 function renderFleet(doc) {
   const body = $("fleet").tBodies[0];
   const seen = new Set();
   for (const v of doc.vehicles) {
     seen.add(v.name);
-    let row = body.querySelector(`tr[data-vehicle="${CSS.escape(v.name)}"]`);
+    let row = rowsByName.get(v.name);
     if (!row) {
       row = el("tr", { "data-vehicle": v.name });
       for (let i = 0; i < 9; i++) row.append(el("td"));
@@ -150,6 +161,7 @@ function renderFleet(doc) {
       stop.addEventListener("click", () => confirmEstop([v.name], false));
       row.cells[8].append(stop);
       body.append(row);
+      rowsByName.set(v.name, row);
     }
     setAttr(row, "class", `worst-${v.worst}`);
     setAttr(row, "data-worst", v.worst);
@@ -178,7 +190,12 @@ function renderFleet(doc) {
     row.cells[7].title = v.failoverDetail;
     row.cells[8].firstChild.hidden = doc.readOnly;
   }
-  for (const row of [...body.rows]) if (!seen.has(row.dataset.vehicle)) row.remove();
+  for (const [name, row] of rowsByName) {
+    if (!seen.has(name)) {
+      row.remove();
+      rowsByName.delete(name);
+    }
+  }
 }
 
 // ---- missions -------------------------------------------------------------------------
@@ -215,21 +232,36 @@ function renderMissions(doc) {
 }
 
 // ---- timeline -------------------------------------------------------------------------
+const entryKey = (e) => `${e.time}|${e.object}|${e.reason}|${e.message}`;
+let shownKeys = []; // the timeline's entries as shown, oldest first
+
+function timelineItem(e) {
+  const li = el("li", { "data-kind": e.kind, "data-object": e.object, "data-reason": e.reason,
+    "data-source": e.source, class: e.warning ? "warning" : "" });
+  const when = e.time ? new Date(e.time).toLocaleTimeString() : "";
+  li.append(el("span", { class: "when" }, when), el("span", { class: "lane" }, e.kind),
+    el("b", {}, `${e.object} `), el("span", { class: "reason" }, `${e.reason} `),
+    el("span", {}, e.message));
+  return li;
+}
+
 function renderTimeline(doc) {
+  // Newest first. A new document usually drops some oldest entries and adds new ones at
+  // the end: then only those change in the DOM; anything else rebuilds the list.
   const list = $("timeline");
-  const last = doc.timeline[doc.timeline.length - 1];
-  const key = `${doc.timeline.length}|${last ? last.time + last.object + last.reason : ""}`;
-  if (list.dataset.key === key) return;
-  list.dataset.key = key;
-  list.replaceChildren(...doc.timeline.slice().reverse().map((e) => {
-    const li = el("li", { "data-kind": e.kind, "data-object": e.object, "data-reason": e.reason,
-      "data-source": e.source, class: e.warning ? "warning" : "" });
-    const when = e.time ? new Date(e.time).toLocaleTimeString() : "";
-    li.append(el("span", { class: "when" }, when), el("span", { class: "lane" }, e.kind),
-      el("b", {}, `${e.object} `), el("span", { class: "reason" }, `${e.reason} `),
-      el("span", {}, e.message));
-    return li;
-  }));
+  const keys = doc.timeline.map(entryKey);
+  const old = shownKeys;
+  const dropped = keys.length && old.length ? old.indexOf(keys[0]) : -1;
+  let continues = dropped >= 0;
+  for (let i = dropped; continues && i < old.length; i++) continues = old[i] === keys[i - dropped];
+  if (continues) {
+    for (let i = 0; i < dropped; i++) list.lastElementChild.remove();
+    const added = doc.timeline.slice(old.length - dropped);
+    if (added.length) list.prepend(...added.reverse().map(timelineItem));
+  } else if (keys.join("\n") !== old.join("\n")) {
+    list.replaceChildren(...doc.timeline.slice().reverse().map(timelineItem));
+  }
+  shownKeys = keys;
 }
 
 // ---- guarded actions ------------------------------------------------------------------
