@@ -28,7 +28,7 @@ from typer._click.exceptions import NoArgsIsHelpError  # typer >= 0.29 vendors c
 from roost_api.autopilot import CommandAction
 from roost_api.telemetry import Origin
 from roost_cli import actions, render, tables, view
-from roost_cli.cluster import Fleet, resolve_kubeconfig
+from roost_cli.cluster import Fleet, in_cluster_target, resolve_kubeconfig
 from roost_cli.errors import CliError
 from roost_cli.sandbox import plan, runner, sims
 from roost_cli.sandbox import state as sandbox_state
@@ -343,6 +343,12 @@ def dashboard(
             "for standalone agents)."
         ),
     ] = True,
+    in_cluster: Annotated[
+        bool,
+        typer.Option(
+            "--in-cluster", help="Use the pod's service account (the chart's Deployment)."
+        ),
+    ] = False,
 ) -> None:
     """A live fleet view in the browser: arena, fleet, missions, timeline, guarded actions.
 
@@ -353,7 +359,12 @@ def dashboard(
     from roost_cli.dashboard.sources import Endpoints  # noqa: PLC0415
 
     context = _context(ctx)
-    fleet = context.fleet() if cluster else None
+    if not cluster:
+        fleet = None
+    elif in_cluster:
+        fleet = Fleet(in_cluster_target())
+    else:
+        fleet = context.fleet()
     flags = dict(_agent_flag(text) for text in agent or [])
     if fleet is None and not flags:
         raise CliError("--no-cluster shows only the agents' streams: name them with --agent")

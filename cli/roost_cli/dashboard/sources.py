@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from websockets.asyncio.client import connect
 from websockets.exceptions import WebSocketException
 
+from roost_api.wellknown import ANNOTATION_TELEMETRY
 from roost_cli.dashboard.model import FleetModel
 from roost_kube.client import Kube
 from roost_kube.errors import ApiError, ApiUnavailableError
@@ -31,7 +32,7 @@ from roost_kube.resources import EVENTS, MISSIONS, REDUNDANT_AUTOPILOTS, VEHICLE
 
 log = logging.getLogger(__name__)
 
-TELEMETRY_ANNOTATION = "roost.dev/telemetry"
+TELEMETRY_ANNOTATION = ANNOTATION_TELEMETRY
 """A Vehicle annotation naming its agent's telemetry URL (``ws://HOST:PORT/``)."""
 WATCH_TIMEOUT_S = 240
 RETRY_S = 2.0
