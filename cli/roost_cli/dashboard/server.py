@@ -48,6 +48,7 @@ from roost_cli.cluster import Fleet
 from roost_cli.dashboard import actions_api
 from roost_cli.dashboard.model import FleetModel
 from roost_cli.dashboard.sources import Endpoints, TelemetryClients, start_watchers
+from roost_cli.errors import CliError
 
 log = logging.getLogger(__name__)
 
@@ -262,7 +263,13 @@ def serve(
     stop: threading.Event | None = None,
 ) -> None:
     """Run the dashboard until Ctrl-C/SIGTERM (or ``stop``)."""
-    sock = bind(settings.host, settings.port)
+    try:
+        sock = bind(settings.host, settings.port)
+    except OSError as error:
+        raise CliError(
+            f"cannot serve on {settings.host}:{settings.port}: {error.strerror or error} "
+            "(--port 0 picks a free port)"
+        ) from None
     app = build_app(fleet, settings, endpoints)
     config = uvicorn.Config(app, log_level="warning", lifespan="on", ws="websockets-sansio")
     server = uvicorn.Server(config)

@@ -27,6 +27,7 @@ import os
 import re
 import shutil
 import signal
+import socket
 import subprocess
 import threading
 import time
@@ -284,13 +285,16 @@ class Sandbox:
     def _start_dashboard(self) -> None:
         """``roost dashboard`` on the sandbox's cluster and agents; its URL is announced."""
         assert self.plane is not None
+        port = self.options.dashboard_port
+        if port and not port_free(port):  # another sandbox has it: any free port will do
+            port = 0
         argv = [
             console_script("roost"),
             "--kubeconfig",
             str(self.plane.kubeconfig),
             "dashboard",
             "--port",
-            str(self.options.dashboard_port),
+            str(port),
         ]
         for vehicle in self.state.vehicles:
             if vehicle.telemetry:
@@ -454,6 +458,16 @@ def agent_argv(vehicle: plan.VehiclePlan, state_dir: Path) -> list[str]:
         "--telemetry-port",
         "auto",
     ]
+
+
+def port_free(port: int) -> bool:
+    """Whether 127.0.0.1:``port`` can be bound now (the dashboard binds it next)."""
+    with socket.socket() as probe:
+        try:
+            probe.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
 
 
 def announced_telemetry(log: str) -> str | None:
