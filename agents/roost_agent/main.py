@@ -21,7 +21,9 @@ primary, and a ``command`` executed once per id); SIGTERM/SIGINT stop the agent.
 A configuration the agent cannot fly with (an autopilot connection URL it could not
 open, a signing key it cannot use) is refused at start with one line on stderr and exit
 status 2, never a traceback. MAVLink signing: ``--signing`` and ``--signing-keys`` (see
-:mod:`roost_agent.signing`).
+:mod:`roost_agent.signing`). Optional local endpoints, both off by default: Prometheus
+metrics (``--metrics-port``, :mod:`roost_agent.metrics`) and the live telemetry stream
+``roost dashboard`` follows (``--telemetry-port``, :mod:`roost_agent.telemetry`).
 """
 
 from __future__ import annotations
