@@ -149,6 +149,15 @@ def test_dashboard_shows_a_failover_and_aborts_the_mission(
         assert driver.find_element(
             By.CSS_SELECTOR, f'#markers g[data-vehicle="{FAULT_VEHICLE}"]'
         ).get_attribute("data-worst") in ("ERROR", "STALE"), row
+        # The Kubernetes Event of the same failover follows (watched, Roost Events only).
+        wait_for(
+            driver,
+            "the failover Event in the timeline",
+            "return [...document.querySelectorAll("
+            '\'#timeline li[data-source="event"][data-kind="failover"]\')]'
+            f".some((li) => li.dataset.object === 'RedundantAutopilot/{FAULT_VEHICLE}')",
+            STEP_TIMEOUT_S,
+        )
         screenshot(driver, tmp_path, "dashboard")
 
         # 3. Abort the mission through the dialog: every vehicle lands.
@@ -174,9 +183,20 @@ def test_dashboard_shows_a_failover_and_aborts_the_mission(
             "return m && ['Aborting', 'Aborted'].includes(m.dataset.phase)",
             STEP_TIMEOUT_S,
         )
+        assert driver.find_elements(
+            By.CSS_SELECTOR, '#timeline li[data-source="event"][data-kind="safety"]'
+        ), "no safety-routine Event in the timeline"
         screenshot(driver, tmp_path, "dashboard-aborted")
 
-        # 4. E-stop one vehicle through its dialog; the agent acknowledges.
+        # 4. E-stop one vehicle through its dialog; the agent acknowledges. Once the abort
+        # is over: while it runs, the operator's own commands would supersede ours.
+        wait_for(
+            driver,
+            "the mission to be Aborted",
+            "return document.querySelector('.mission[data-mission=\"default/survey\"]')"
+            ".dataset.phase === 'Aborted'",
+            STEP_TIMEOUT_S,
+        )
         driver.execute_script("window.__roost.lastAction = null")
         targets = confirm(driver, 'button.estop[data-vehicle="drone-2"]')
         assert targets == ["drone-2"]

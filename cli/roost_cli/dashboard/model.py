@@ -105,7 +105,7 @@ class FleetModel:
         with self._lock:
             if kind == "Event":
                 self._events.clear()
-                for obj in objects[-EVENTS_KEPT:]:
+                for obj in sorted(objects, key=tables.event_time)[-EVENTS_KEPT:]:
                     self._events[_key(obj)] = obj
             else:
                 self._objects[kind] = {_key(obj): obj for obj in objects}

@@ -31,7 +31,7 @@ import sys
 import threading
 import time
 from collections.abc import AsyncIterator, Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from importlib import resources
 from typing import Any
 
@@ -53,6 +53,7 @@ from roost_cli.errors import CliError
 log = logging.getLogger(__name__)
 
 PUSH_HZ = 10.0
+SEND_TIMEOUT_S = 2.0
 TOKEN_HEADER = "x-roost-token"
 DEFAULT_PORT = 8765
 
@@ -67,7 +68,6 @@ class Settings:
     origin: Origin | None = None
     tiles: str | None = None
     """An XYZ tile URL template for an outdoor field (``{z}/{x}/{y}``); none by default."""
-    agents: dict[str, str] = field(default_factory=dict)
 
 
 class Pusher:
@@ -79,7 +79,6 @@ class Pusher:
         self._clients: set[WebSocket] = set()
         self._changed = asyncio.Event()
         self._loop: asyncio.AbstractEventLoop | None = None
-        self.pushes = 0
 
     def changed(self) -> None:
         """Called from any thread when the model changed."""
@@ -104,12 +103,13 @@ class Pusher:
             sent_version = self.model.version
             last = time.monotonic()
             text = self._render()
-            self.pushes += 1
             for ws in list(self._clients):
-                try:
-                    await ws.send_text(text)
-                except (RuntimeError, WebSocketDisconnect, OSError):
+                try:  # a browser that stopped reading is dropped, not waited for
+                    await asyncio.wait_for(ws.send_text(text), SEND_TIMEOUT_S)
+                except (RuntimeError, WebSocketDisconnect, OSError, TimeoutError):
                     self._clients.discard(ws)
+                    with contextlib.suppress(RuntimeError, OSError, TimeoutError):
+                        await asyncio.wait_for(ws.close(code=1011), 1.0)  # it reconnects
 
     async def serve(self, ws: WebSocket, first: str) -> None:
         await ws.accept()
@@ -135,9 +135,6 @@ def build_app(
     fleet: Fleet | None,
     settings: Settings,
     endpoints: Endpoints,
-    *,
-    model: FleetModel | None = None,
-    watch: bool = True,
 ) -> Starlette:
     """The dashboard app; its lifespan starts the watches, telemetry clients and pusher.
 
@@ -152,9 +149,7 @@ def build_app(
         if pusher_box:
             pusher_box[0].changed()
 
-    fleet_model = model or FleetModel(settings.origin, on_change=on_change)
-    if model is not None:
-        model._on_change = on_change
+    fleet_model = FleetModel(settings.origin, on_change=on_change)
 
     def render() -> str:
         doc = fleet_model.snapshot(read_only=read_only, server=server)
@@ -165,7 +160,7 @@ def build_app(
 
     @contextlib.asynccontextmanager
     async def lifespan(app: Starlette) -> AsyncIterator[None]:
-        watchers = start_watchers(fleet.kube, fleet_model) if watch and fleet else []
+        watchers = start_watchers(fleet.kube, fleet_model) if fleet else []
         tasks = [
             asyncio.create_task(pusher.run()),
             asyncio.create_task(TelemetryClients(fleet_model, endpoints).run()),

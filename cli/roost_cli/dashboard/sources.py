@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from websockets.asyncio.client import connect
 from websockets.exceptions import WebSocketException
 
+from roost_api.meta import API_VERSION
 from roost_api.wellknown import ANNOTATION_TELEMETRY
 from roost_cli.dashboard.model import FleetModel
 from roost_kube.client import Kube
@@ -38,22 +39,27 @@ WATCH_TIMEOUT_S = 240
 RETRY_S = 2.0
 RECONNECT_MAX_S = 5.0
 ENDPOINTS_EVERY_S = 1.0
-WATCHED: tuple[tuple[str, Resource], ...] = (
-    ("Vehicle", VEHICLES),
-    ("RedundantAutopilot", REDUNDANT_AUTOPILOTS),
-    ("Mission", MISSIONS),
-    ("Event", EVENTS),
+ROOST_EVENTS = f"involvedObject.apiVersion={API_VERSION}"
+"""Only the Events about Roost objects: the API server filters, the dashboard keeps less."""
+WATCHED: tuple[tuple[str, Resource, str], ...] = (
+    ("Vehicle", VEHICLES, ""),
+    ("RedundantAutopilot", REDUNDANT_AUTOPILOTS, ""),
+    ("Mission", MISSIONS, ""),
+    ("Event", EVENTS, ROOST_EVENTS),
 )
 
 
 class Watcher:
     """Keeps the model in step with one kind, on a daemon thread, until :meth:`stop`."""
 
-    def __init__(self, kube: Kube, model: FleetModel, kind: str, resource: Resource) -> None:
+    def __init__(
+        self, kube: Kube, model: FleetModel, kind: str, resource: Resource, selector: str = ""
+    ) -> None:
         self._kube = kube
         self._model = model
         self._kind = kind
         self._resource = resource
+        self._selector = selector
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"watch-{kind}", daemon=True)
 
@@ -66,7 +72,9 @@ class Watcher:
     def _run(self) -> None:
         while not self._stop.is_set():
             try:
-                items, version = self._kube.list_with_version(self._resource)
+                items, version = self._kube.list_with_version(
+                    self._resource, field_selector=self._selector
+                )
                 self._model.replace(self._kind, items)
                 self._model.set_cluster_error(None)
                 while not self._stop.is_set():
@@ -78,7 +86,10 @@ class Watcher:
 
     def _watch(self, version: str) -> str:
         for change, obj in self._kube.watch_collection(
-            self._resource, resource_version=version, timeout_s=WATCH_TIMEOUT_S
+            self._resource,
+            resource_version=version,
+            field_selector=self._selector,
+            timeout_s=WATCH_TIMEOUT_S,
         ):
             version = str(obj.get("metadata", {}).get("resourceVersion") or version)
             if change != "BOOKMARK":
@@ -148,7 +159,7 @@ class TelemetryClients:
 
 
 def start_watchers(kube: Kube, model: FleetModel) -> list[Watcher]:
-    watchers = [Watcher(kube, model, kind, resource) for kind, resource in WATCHED]
+    watchers = [Watcher(kube, model, *watched) for watched in WATCHED]
     for watcher in watchers:
         watcher.start()
     return watchers

@@ -199,36 +199,56 @@ function renderFleet(doc) {
 }
 
 // ---- missions -------------------------------------------------------------------------
+const missionBoxes = new Map(); // mission -> {div, phase, assigned, message, abort, table, key}
+
+function missionBox(m) {
+  const div = el("div", { class: "mission", "data-mission": m.name });
+  const h = el("h3");
+  const phase = el("span", { class: "phase" });
+  const assigned = el("span");
+  const message = el("small");
+  // Created once and kept: a button must not be replaced under the user's pointer.
+  const abort = el("button", { class: "danger abort", "data-mission": m.name }, "Abort");
+  abort.addEventListener("click", () => confirmAbort(missionBoxes.get(m.name).mission));
+  h.append(el("span", {}, m.name), phase, assigned, message, abort);
+  const table = el("table");
+  div.append(h, table);
+  $("missions").append(div);
+  return { div, phase, assigned, message, abort, table, key: "", mission: m };
+}
+
 function renderMissions(doc) {
-  const key = JSON.stringify([doc.missions, doc.readOnly]);
-  const box = $("missions");
-  if (box.dataset.key === key) return;
-  box.dataset.key = key;
-  box.replaceChildren(...doc.missions.map((m) => {
-    const div = el("div", { class: "mission", "data-mission": m.name, "data-phase": m.phase });
-    const h = el("h3");
-    h.append(el("span", {}, m.name), el("span", { class: "phase" }, m.phase),
-      el("span", {}, `${m.assigned} vehicles`), el("small", {}, m.message));
-    if (!doc.readOnly && !["Succeeded", "Failed", "Aborted"].includes(m.phase) && !m.abort) {
-      const b = el("button", { class: "danger abort", "data-mission": m.name }, "Abort");
-      b.addEventListener("click", () => confirmAbort(m));
-      h.append(b);
+  const seen = new Set();
+  for (const m of doc.missions) {
+    seen.add(m.name);
+    const box = missionBoxes.get(m.name) || missionBox(m);
+    missionBoxes.set(m.name, box);
+    box.mission = m;
+    setAttr(box.div, "data-phase", m.phase);
+    setText(box.phase, m.phase);
+    setText(box.assigned, `${m.assigned} vehicles`);
+    setText(box.message, m.message);
+    box.abort.hidden = doc.readOnly || m.abort || ["Succeeded", "Failed", "Aborted"].includes(m.phase);
+    const key = JSON.stringify(m.perVehicle);
+    if (box.key !== key) {
+      box.key = key;
+      const head = el("tr");
+      head.append(el("th", {}, "Vehicle"), el("th", {}, "Phase"),
+        el("th", {}, "Preflight / reason"), el("th", {}, "Message"));
+      box.table.replaceChildren(head, ...m.perVehicle.map((v) => {
+        const tr = el("tr", { "data-vehicle": v.name, "data-phase": v.phase });
+        tr.append(el("td", {}, v.name), el("td", {}, v.phase), el("td", {}, v.reason),
+          el("td", {}, v.message));
+        return tr;
+      }));
     }
-    div.append(h);
-    const table = el("table");
-    const head = el("tr");
-    head.append(el("th", {}, "Vehicle"), el("th", {}, "Phase"),
-      el("th", {}, "Preflight / reason"), el("th", {}, "Message"));
-    table.append(head);
-    for (const v of m.perVehicle) {
-      const tr = el("tr", { "data-vehicle": v.name, "data-phase": v.phase });
-      tr.append(el("td", {}, v.name), el("td", {}, v.phase), el("td", {}, v.reason),
-        el("td", {}, v.message));
-      table.append(tr);
+  }
+  for (const [name, box] of missionBoxes) {
+    if (!seen.has(name)) {
+      box.div.remove();
+      missionBoxes.delete(name);
     }
-    div.append(table);
-    return div;
-  }));
+  }
 }
 
 // ---- timeline -------------------------------------------------------------------------
