@@ -31,7 +31,7 @@ def binaries() -> tuple[str, str] | None:
 
 @contextlib.contextmanager
 def chromium(log: Path) -> Iterator[webdriver.Chrome]:
-    """A headless Chromium session; the driver's log goes to ``log``."""
+    """A headless Chromium driven over WebDriver; the driver's log goes to ``log``."""
     found = binaries()
     if found is None:
         pytest.skip("needs Debian's chromium and chromium-driver (apt-get install them)")
