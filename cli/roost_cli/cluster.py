@@ -183,6 +183,15 @@ class Fleet:
             raise not_found(what, REDUNDANT_AUTOPILOT)
         return obj
 
+    def mission(self, namespace: str, name: str) -> dict[str, Any]:
+        what = f"get Mission {namespace}/{name}"
+        obj = self._call(
+            what, MISSION, lambda: self.kube.get(Resource.of(MISSION), name, namespace=namespace)
+        )
+        if obj is None:
+            raise not_found(what, MISSION)
+        return obj
+
     def patch_autopilot(self, name: str, body: Mapping[str, Any]) -> dict[str, Any]:
         """Merge-patch one RedundantAutopilot (spec only: status belongs to the agent)."""
         return self._call(

@@ -14,8 +14,13 @@ Settings are explicit rather than kopf's defaults, following operator practice:
   Roost posts its own Events on meaningful transitions;
 * watch ``server_timeout`` below the client timeout so a silently stalled watch is
   reopened (kopf #955, #1276), and request timeouts on every API call;
-* a short ``background.cancellation_polling``: a deleted Vehicle whose (sync) resync
-  timer happens to be running would otherwise keep its finalizer for a minute.
+* a short ``background.cancellation_polling``: a deleted Vehicle whose (sync) timer
+  happens to be running would otherwise keep its finalizer for a minute;
+* a bounded ``batching.worker_limit`` and ``execution.max_workers``
+  (:class:`~roost_operator.settings.KopfTimings`): back-pressure on the watch streams
+  instead of a worker per object, and a fixed thread pool for the handlers that block.
+  The Vehicle controller's reconciles run in its own work queue
+  (:mod:`roost_operator.workqueue`), started here at startup and stopped at cleanup.
 
 Nothing is registered on import: :func:`main` reads the settings (environment, then
 flags) once, builds a kopf registry with every controller's handlers registered with
@@ -41,6 +46,7 @@ from roost_operator.missions import handlers as mission_handlers
 from roost_operator.runtime import Runtime, settings_of
 from roost_operator.settings import Settings, load_settings
 from roost_operator.vehicles import handlers as vehicle_handlers
+from roost_operator.vehicles.handlers import reconcile_vehicle
 
 HANDLER_MODULES = (vehicle_handlers, mission_handlers)
 """Each has ``register(registry, settings)``: one controller per resource."""
@@ -68,6 +74,8 @@ def configure(settings: kopf.OperatorSettings, roost: Settings) -> None:
     settings.networking.request_timeout = timings.request_timeout_seconds
     settings.networking.connect_timeout = timings.connect_timeout_seconds
     settings.background.cancellation_polling = timings.cancellation_polling_seconds
+    settings.batching.worker_limit = timings.object_workers
+    settings.execution.max_workers = timings.handler_threads
 
 
 def startup(settings: kopf.OperatorSettings, memo: kopf.Memo, **_: Any) -> None:
@@ -80,7 +88,16 @@ def startup(settings: kopf.OperatorSettings, memo: kopf.Memo, **_: Any) -> None:
     # labels). The sandbox, with admin rights, gets it created.
     if kube.get(NAMESPACES, roost.namespace) is None:
         kube.apply({"apiVersion": "v1", "kind": "Namespace", "metadata": {"name": roost.namespace}})
-    memo.runtime = Runtime.start(kube, roost)
+    memo.runtime = Runtime.start(
+        kube, roost, reconcile_vehicle, timing=getattr(memo, "handler_timing", None)
+    )
+
+
+def cleanup(memo: kopf.Memo, **_: Any) -> None:
+    """Stop the Vehicle queue's workers after the reconciles they are running."""
+    rt = getattr(memo, "runtime", None)
+    if rt is not None:
+        rt.stop()
 
 
 def build_registry(settings: Settings) -> kopf.OperatorRegistry:
@@ -90,6 +107,7 @@ def build_registry(settings: Settings) -> kopf.OperatorRegistry:
     # (a fresh registry has none of the default registry's login handlers).
     kopf.on.login(registry=registry)(kopf.login_via_client)
     kopf.on.startup(registry=registry)(startup)
+    kopf.on.cleanup(registry=registry)(cleanup)
     for module in HANDLER_MODULES:
         module.register(registry, settings)
     return registry
@@ -109,7 +127,7 @@ def parse_args(argv: list[str] | None, environ: Mapping[str, str]) -> tuple[Any,
     )
     parser.add_argument("--namespace", help="operator namespace (overrides ROOST_NAMESPACE)")
     parser.add_argument(
-        "--resync-seconds", type=float, help="Vehicle resync period (ROOST_RESYNC_SECONDS)"
+        "--resync-seconds", type=float, help="fleet sweep period, 0: none (ROOST_RESYNC_SECONDS)"
     )
     parser.add_argument(
         "--metrics-port",
@@ -139,6 +157,10 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    # kopf logs every handler run at INFO ("Handler 'node_event' succeeded."): a line per
+    # watch event, most of the log's volume and a measurable cost at fleet scale. Its
+    # warnings and errors (and the Events kopf posts for them) stay.
+    logging.getLogger("kopf.objects").setLevel(logging.DEBUG if args.verbose else logging.WARNING)
     registry = build_registry(settings)
     memo = kopf.Memo(settings=settings)
     if args.metrics_port:

@@ -2,39 +2,133 @@
 
 :func:`roost_operator.main.main` builds the :class:`~roost_operator.settings.Settings`
 and hands them to kopf in the operator's ``memo``; the startup handler adds the API
-client and the controllers that keep per-process state (locks, the failover ledger).
-Handlers call :func:`runtime` to get it typed. Nothing here talks to kopf's own API
-client: all of Roost's reads and writes go through :class:`roost_kube.client.Kube`.
+client, the controllers that keep per-process state (locks, the failover ledger) and
+the Vehicle controller's work queue (:mod:`roost_operator.workqueue`), whose workers
+start with it and stop at the operator's cleanup. Handlers call :func:`runtime` to get
+it typed. Nothing here talks to kopf's own API client: all of Roost's reads and writes
+go through :class:`roost_kube.client.Kube`.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Any, cast
 
+import kopf
+
 from roost_kube.client import Kube
+from roost_kube.errors import ApiError
+from roost_operator.edge import HandlerTiming, error_kind
 from roost_operator.settings import Settings
-from roost_operator.vehicles.controller import VehicleController
+from roost_operator.vehicles.controller import Peers, VehicleController
+from roost_operator.workqueue import Backoff, WorkQueue
+
+log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
+def is_permanent(error: BaseException) -> bool:
+    """Whether a reconcile failure will repeat until the object changes.
+
+    Handlers' API errors arrive mapped to kopf's types at the edge
+    (:func:`roost_operator.edge.at_the_edge`); anything else (a bug, a dropped
+    connection) is retried with the queue's backoff, as kopf would.
+    """
+    if isinstance(error, kopf.PermanentError):
+        return True
+    return isinstance(error, ApiError) and not error.temporary
+
+
+@dataclass
 class Runtime:
-    """The API client, the settings and the Vehicle controller shared by all handlers."""
+    """The API client, the settings, the Vehicle controller and its queue."""
 
     kube: Kube
     settings: Settings
     vehicles: VehicleController
+    vehicle_queue: WorkQueue = field(init=False)
+    peers: Peers | None = None
+    """The kopf indexes as :class:`Peers` (bound by the first handler that runs: kopf
+    hands its live index objects only to handlers)."""
+    connected: dict[str, str | None] = field(default_factory=dict)
+    """Each vehicle's ``AgentConnected`` status as its last reconcile wrote it."""
+    timing: HandlerTiming | None = None
+    """Where each queued reconcile's duration goes (the operator's metrics), if anywhere."""
+    _sweep_stop: threading.Event = field(default_factory=threading.Event)
 
     @classmethod
-    def start(cls, kube: Kube, settings: Settings) -> Runtime:
-        """The runtime of an operator with ``settings`` talking through ``kube``."""
+    def start(
+        cls,
+        kube: Kube,
+        settings: Settings,
+        reconcile: Callable[[Runtime, str], None] | None = None,
+        *,
+        timing: HandlerTiming | None = None,
+    ) -> Runtime:
+        """The runtime of an operator with ``settings`` talking through ``kube``; its
+        queue's workers run ``reconcile(runtime, vehicle)`` (none: the queue is not
+        started, for unit tests)."""
         controller = VehicleController(
             kube=kube,
             namespace=settings.namespace,
             guards=settings.guards,
             stale_after=settings.agent_stale_after,
         )
-        return cls(kube=kube, settings=settings, vehicles=controller)
+        rt = cls(kube=kube, settings=settings, vehicles=controller, timing=timing)
+        rt.vehicle_queue = WorkQueue(
+            lambda vehicle: rt._timed(reconcile, vehicle),
+            workers=settings.reconcile_workers,
+            backoff=Backoff(settings.retry_backoff_seconds, settings.max_backoff_seconds),
+            is_permanent=is_permanent,
+            on_permanent=rt._report_permanent,
+            name="vehicle-reconcile",
+        )
+        if reconcile is not None:
+            rt.vehicle_queue.start()
+            if settings.resync_seconds > 0:
+                threading.Thread(target=rt._sweep, name="vehicle-sweep", daemon=True).start()
+        return rt
+
+    def bind_peers(self, make: Callable[[], Peers]) -> None:
+        """Keep the index view from the first handler that offers it."""
+        if self.peers is None:
+            self.peers = make()
+
+    def _timed(self, reconcile: Callable[[Runtime, str], None] | None, vehicle: str) -> None:
+        """Run one queued reconcile, reporting its duration (resource ``vehicles``,
+        handler ``reconcile``) and how it failed, as every kopf handler's run is."""
+        if reconcile is None:
+            return
+        started, failed = time.perf_counter(), None
+        try:
+            reconcile(self, vehicle)
+        except Exception as error:
+            failed = error_kind(error)
+            raise
+        finally:
+            if self.timing is not None:
+                self.timing.observe("vehicles", "reconcile", time.perf_counter() - started, failed)
+
+    def stop(self) -> None:
+        """Stop the sweep and the queue's workers (after their running reconciles)."""
+        self._sweep_stop.set()
+        self.vehicle_queue.stop()
+
+    def _report_permanent(self, vehicle: str, error: BaseException) -> None:
+        """A reconcile failed for good: say so once (the queue does not retry it)."""
+        log.error("Vehicle %s: not reconciled until it changes: %s", vehicle, error)
+
+    def _sweep(self) -> None:
+        """Queue every known vehicle each ``resync_seconds`` (a safety net; off by
+        default, see :attr:`Settings.resync_seconds`)."""
+        while not self._sweep_stop.wait(self.settings.resync_seconds):
+            if self.peers is None:
+                continue
+            for vehicle in list(self.connected):
+                self.vehicle_queue.add(vehicle)
 
 
 def runtime(memo: Any) -> Runtime:

@@ -74,6 +74,18 @@ class KopfTimings:
     """How often kopf re-checks a sync timer or daemon it could not cancel when its object
     was deleted (kopf's default is 60 s, which would hold the finalizer that long)."""
 
+    object_workers: int = 200
+    """kopf's ``batching.worker_limit``: at most this many objects have their events
+    processed at once (kopf's default is unbounded: a re-list of 3,000 objects would start
+    3,000 workers). Beyond it kopf stops reading the watch until a worker frees up, which
+    is back-pressure on the API server's stream instead of an unbounded backlog in memory.
+    Roost's event handlers only queue, so a worker is busy for microseconds."""
+
+    handler_threads: int = 8
+    """kopf's ``execution.max_workers``: threads for the handlers that block (deletion,
+    the mission controller); the Vehicle reconciles have their own workers
+    (``Settings.reconcile_workers``)."""
+
 
 @dataclass(frozen=True)
 class Settings:
@@ -87,14 +99,24 @@ class Settings:
     peering: str = "roost"
     """Name of the kopf peering object, one per operator deployment (``ROOST_PEERING``)."""
 
-    resync_seconds: float = 60.0
-    """Period of the level-based resync of every Vehicle: puts back hand edits of Roost's
-    node labels, converges after missed events (``ROOST_RESYNC_SECONDS``). A resync that
-    finds nothing to change writes nothing."""
+    resync_seconds: float = 0.0
+    """Period of a fleet sweep that queues every Vehicle for a reconcile
+    (``ROOST_RESYNC_SECONDS``; 0, the default: none). Everything the Vehicle controller
+    reads or writes is watched, so hand edits are put back on their own event; a sweep is
+    a safety net whose cost grows with the fleet and almost always finds nothing."""
+
+    reconcile_workers: int = 4
+    """Threads reconciling Vehicles from the work queue (``ROOST_RECONCILE_WORKERS``):
+    how many reconciles, and so how many API requests, run at once, whatever the event
+    rate (kopf's event handlers only queue)."""
 
     retry_backoff_seconds: float = 2.0
-    """kopf's backoff before retrying a Vehicle or RedundantAutopilot handler that failed
-    on a temporary error."""
+    """First wait before retrying a Vehicle reconcile (or kopf's handler for a Vehicle's
+    deletion) that failed on a temporary error; doubles per failure up to
+    :attr:`max_backoff_seconds`."""
+
+    max_backoff_seconds: float = 60.0
+    """Longest wait between retries of a failing Vehicle reconcile."""
 
     agent_stale_after: timedelta = DEFAULT_AGENT_STALE_AFTER
     """Age of an agent's last report after which its Vehicle's ``AgentConnected`` turns
@@ -167,6 +189,7 @@ def load_settings(environ: Mapping[str, str]) -> Settings:
         namespace=environ.get("ROOST_NAMESPACE", defaults.namespace),
         peering=environ.get("ROOST_PEERING", defaults.peering),
         resync_seconds=float(environ.get("ROOST_RESYNC_SECONDS", defaults.resync_seconds)),
+        reconcile_workers=int(environ.get("ROOST_RECONCILE_WORKERS", defaults.reconcile_workers)),
         agent_stale_after=_seconds(
             environ, "ROOST_AGENT_STALE_SECONDS", defaults.agent_stale_after
         ),

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -44,9 +45,12 @@ def _still_running(identities: dict[int, float]) -> list[int]:
 
 
 @pytest.fixture
-def sandbox(tmp_path: Path) -> Iterator[RunningSandbox]:
+def sandbox(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[RunningSandbox]:
+    """``roost sandbox up`` headless without the scripted fault; an indirect parameter adds
+    arguments (``--mission sync-paths``)."""
+    extra: list[str] = list(getattr(request, "param", ()))
     args = ["--vehicles", str(VEHICLES), "--no-live", "--no-fault", "--dashboard-port", "0"]
-    with running_sandbox(tmp_path, args) as running:
+    with running_sandbox(tmp_path, [*args, *extra]) as running:
         yield running
 
 
@@ -163,3 +167,59 @@ def test_sandbox_flies_a_mission_fails_over_and_leaves_nothing_behind(
     sandbox.process.wait(timeout=60)
     assert _still_running(identities) == []
     assert sandbox_state.load(sandbox.directory) is None
+
+
+@pytest.mark.parametrize("sandbox", [("--mission", "sync-paths")], indirect=True)
+def test_the_sync_paths_mission_flies_through_the_hubs_and_goes_on_without_a_failed_vehicle(
+    sandbox: RunningSandbox,
+) -> None:
+    """The reference mission's programs fly the sandbox through the agents' MAVLink hubs.
+    drone-2's primary goes silent on the first leg: its agent fails over (the follower's
+    connection to the hub is untouched), the Mission's ``onFailover: AbortVehicle`` takes
+    it out, the sandbox stops its follower as the kubelet would stop its pod, and drone-1
+    flies every task without waiting for drone-2's delay reports."""
+    recorded = await_running(sandbox)
+    hubs = {v.name: v.hub for v in recorded.vehicles}
+    assert all(hub is not None and hub.startswith("127.0.0.1:") for hub in hubs.values())
+    for name, hub in hubs.items():
+        assert sandbox.get("redundantautopilot", name)["spec"]["hub"]["udp"] == hub
+    monitor_log = sandbox.directory / "logs" / "sync-monitor.log"
+
+    def legs_started() -> bool:
+        return monitor_log.is_file() and "starting " in monitor_log.read_text()
+
+    await_step("the monitor to start the legs", legs_started, sandbox, STEP_TIMEOUT_S)
+    time.sleep(5.0)  # well into leg 1 (20 s)
+    fault = sandbox.roost("fault", "drone-2", "apm-a", "silence")
+    assert "faults now silence" in fault.stdout
+
+    def mission_vehicle(name: str) -> dict[str, Any]:
+        mission = sandbox.get("mission", "sync-paths", "default")
+        entry: dict[str, Any] = next(v for v in mission["status"]["vehicles"] if v["name"] == name)
+        return entry
+
+    await_step(
+        "the mission to take drone-2 out",
+        lambda: mission_vehicle("drone-2")["phase"] in ("Aborting", "Aborted"),
+        sandbox,
+        STEP_TIMEOUT_S,
+    )
+    await_step(
+        "the sandbox to stop drone-2's follower",
+        lambda: "drone-2 left mission default/sync-paths" in sandbox.log(),
+        sandbox,
+        30,
+    )
+    ra = sandbox.get("redundantautopilot", "drone-2")
+    assert ra["status"]["activeAutopilot"] == "apm-b"
+    results_file = sandbox.directory / "mission-results" / "results.json"
+    await_step("drone-1 to finish the mission", results_file.is_file, sandbox, 180)
+    results = json.loads(results_file.read_text())
+    assert results["drone-2"]["type"] == "leave"
+    assert results["drone-1"]["type"] == "done"
+    records = results["drone-1"]["records"]
+    assert [r["task"] for r in records] == [1, 2, 3, 4]
+    assert all(r["wait_s"] < 1.0 for r in records[1:]), records  # nobody to wait for
+    assert mission_vehicle("drone-1")["phase"] in ("Running", "Succeeded")
+    follower_log = (sandbox.directory / "logs" / "sync-follower-drone-1.log").read_text()
+    assert f"flying through udpout:{hubs['drone-1']}" in follower_log

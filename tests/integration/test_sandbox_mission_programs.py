@@ -47,8 +47,10 @@ def test_a_lagging_vehicle_is_waited_for_and_transits_stay_planned(tmp_path: Pat
     try:
         running = [sims.start(launcher, vehicle, tmp_path) for vehicle in fleet]
         names = [vehicle.name for vehicle in running]
-        connections = {
-            vehicle.name: next(a.connection for a in vehicle.autopilots if a.name == p.primary.name)
+        connections = {  # straight to the primaries: no agents (and no hubs) here
+            vehicle.name: missionrun.pymavlink_url(
+                next(a.connection for a in vehicle.autopilots if a.name == p.primary.name)
+            )
             for vehicle, p in zip(running, fleet, strict=True)
         }
         output = tmp_path / "out"

@@ -24,17 +24,61 @@ def test_unknown_mission_and_missing_trajectory_are_refused() -> None:
 
 
 def test_followers_reach_their_vehicle_and_the_monitor(tmp_path: Path) -> None:
-    connections = {name: f"udpout://127.0.0.1:{15000 + i}" for i, name in enumerate(NAMES)}
+    connections = {
+        name: missionrun.hub_url(f"127.0.0.1:{24550 + i}") for i, name in enumerate(NAMES)
+    }
     followers = missionrun.follower_programs(missionrun.SYNC_PATHS, connections, "127.0.0.1:7711")
     assert [f.name for f in followers] == [f"sync-follower-{n}" for n in NAMES]
     first = followers[0].env
-    assert first["MAVLINK_URL"] == "udpout:127.0.0.1:15000"
+    assert first["MAVLINK_URL"] == "udpout:127.0.0.1:24550"
     assert first["SYNC_MONITOR"] == "127.0.0.1:7711"
     assert first["SYNC_VEHICLE"] == "drone-1"
     assert (Path(first["SYNC_TRAJECTORY_DIR"]) / "drone-1.csv").is_file()
     monitor = missionrun.monitor_program(missionrun.SYNC_PATHS, NAMES, tmp_path)
     assert monitor.env["SYNC_VEHICLES"] == "3"
     assert monitor.env["SYNC_OUTPUT"] == str(tmp_path)
+
+
+def test_a_simulator_report_is_spelled_as_pymavlink_wants_it() -> None:
+    assert missionrun.pymavlink_url("udpout://127.0.0.1:15001") == "udpout:127.0.0.1:15001"
+
+
+def test_the_sandbox_applies_the_missions_own_manifest_sized_to_its_fleet() -> None:
+    runtime = {"roost.dev/kwok-runtime": "10m"}
+    documents = missionrun.mission_manifests(missionrun.SYNC_PATHS, 2, runtime)
+    assert [d["kind"] for d in documents] == ["Mission", "Service"]
+    assert missionrun.mission_ref(documents) == ("default", "sync-paths")
+    mission = documents[0]["spec"]
+    assert mission["vehicles"]["count"] == 2
+    assert mission["onFailover"] == "AbortVehicle"
+    for workload in ("onboard", "offboard"):
+        template = mission[workload]["metadata"]
+        assert template["annotations"] == runtime
+        assert template["labels"]  # the example's own metadata is kept
+    with pytest.raises(ValueError, match="no Mission"):
+        missionrun.mission_ref(documents[1:])
+
+
+@pytest.mark.parametrize(
+    ("phase", "out"),
+    [
+        ("Claimed", False),
+        ("Preflight", False),
+        ("Running", False),
+        ("Succeeded", False),
+        ("Aborting", True),
+        ("Aborted", True),
+        ("Failed", True),
+    ],
+)
+def test_a_follower_stops_when_the_mission_takes_its_vehicle_out(phase: str, out: bool) -> None:
+    mission = {"status": {"vehicles": [{"name": "drone-2", "phase": phase}]}}
+    assert missionrun.vehicles_out(mission) == ({"drone-2"} if out else set())
+
+
+def test_a_mission_without_status_has_no_vehicle_out() -> None:
+    assert missionrun.vehicles_out({}) == set()
+    assert missionrun.vehicles_out({"status": {"vehicles": None}}) == set()
 
 
 def test_listening_address_is_read_from_the_monitor_log() -> None:

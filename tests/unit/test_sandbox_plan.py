@@ -19,7 +19,7 @@ from roost_api.autopilot import RedundantAutopilotSpec
 from roost_api.mission import MissionSpec
 from roost_api.resources import KINDS
 from roost_api.vehicle import VehicleSpec
-from roost_cli.sandbox import kwok, plan, state
+from roost_cli.sandbox import kwok, missionrun, plan, state
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -73,18 +73,45 @@ def test_manifests_fit_the_models_and_the_crd_schemas() -> None:
     fleet = _fleet(3)
     for vehicle in fleet:
         v = plan.vehicle_manifest(vehicle)
-        ra = plan.autopilot_manifest(vehicle, _connections(vehicle))
+        hub = f"127.0.0.1:{plan.HUB_PORT_BASE + vehicle.index}"
+        ra = plan.autopilot_manifest(vehicle, _connections(vehicle), hub)
         spec = VehicleSpec.model_validate(v["spec"])
         assert spec.node_name == vehicle.node
         ra_spec = RedundantAutopilotSpec.model_validate(ra["spec"])
         assert ra_spec.vehicle_name == vehicle.name
         assert ra_spec.primary == vehicle.primary.name
         assert [a.connection for a in ra_spec.autopilots] == list(_connections(vehicle).values())
+        assert ra_spec.hub is not None
+        assert ra_spec.hub.udp == hub
         jsonschema.Draft4Validator(_schema("Vehicle")).validate(v)
         jsonschema.Draft4Validator(_schema("RedundantAutopilot")).validate(ra)
     mission = plan.mission_manifest(len(fleet))
     assert MissionSpec.model_validate(mission["spec"]).vehicles.count == 3
     jsonschema.Draft4Validator(_schema("Mission")).validate(mission)
+
+
+def test_without_a_hub_port_the_autopilot_has_no_hub() -> None:
+    vehicle = _fleet(1)[0]
+    assert "hub" not in plan.autopilot_manifest(vehicle, _connections(vehicle))["spec"]
+
+
+def test_hub_ports_skip_taken_ones_and_stay_below_the_ephemeral_range() -> None:
+    taken = {plan.HUB_PORT_BASE + 1}
+    ports = plan.hub_ports(3, lambda port: port not in taken, below=32768)
+    assert ports == (plan.HUB_PORT_BASE, plan.HUB_PORT_BASE + 2, plan.HUB_PORT_BASE + 3)
+    with pytest.raises(ValueError, match="no 3 free UDP ports"):
+        plan.hub_ports(3, lambda port: port not in taken, below=plan.HUB_PORT_BASE + 3)
+
+
+def test_the_reference_missions_manifest_fits_and_selects_the_sandbox_vehicles() -> None:
+    runtime = {kwok.RUNTIME_ANNOTATION: plan.MISSION_RUNTIME}
+    mission = missionrun.mission_manifests(missionrun.SYNC_PATHS, 2, runtime)[0]
+    assert MissionSpec.model_validate(mission["spec"]).vehicles.count == 2
+    jsonschema.Draft4Validator(_schema("Mission")).validate(mission)
+    selector = mission["spec"]["vehicles"]["selector"]["matchLabels"]
+    for vehicle in _fleet(2):
+        labels = plan.vehicle_manifest(vehicle)["metadata"]["labels"]
+        assert selector.items() <= labels.items()
 
 
 def test_the_mission_selects_exactly_the_sandbox_vehicles() -> None:

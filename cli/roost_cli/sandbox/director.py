@@ -63,9 +63,13 @@ class Script:
 
     def warn(self, message: str) -> None:
         """Say it in red, once (repeats of the same warning are dropped)."""
+        self.once(message, "bold red")
+
+    def once(self, message: str, style: str = "") -> None:
+        """Say it unless it was said already (with this style)."""
         with self._lock:
-            if (message, "bold red") not in self._lines:
-                self._lines.append((message, "bold red"))
+            if (message, style) not in self._lines:
+                self._lines.append((message, style))
 
     def lines(self) -> list[tuple[str, str]]:
         """Every (message, style) so far, oldest first."""

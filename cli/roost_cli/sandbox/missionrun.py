@@ -1,14 +1,19 @@
 """Running a mission's own programs in the sandbox: the ``sync-paths`` reference mission.
 
-On KWOK nodes no container runs, so the sandbox plays the pods itself: one onboard
-follower per vehicle and one offboard monitor, as local processes with the environment
-the Mission's pods would get. The followers reach the monitor over UDP on 127.0.0.1 (in a
-cluster the same address is a Service) and their vehicle at its primary simulator's
-connection URL (the sandbox chooses no fixed port, so it gives the agents no hub
-endpoint). ``lag`` faults on a time schedule slow chosen vehicles on chosen legs, so the
-monitor has delays like the paper's Table I to absorb.
+The sandbox applies the mission's own manifest (``mission.yaml``: the Mission and the
+monitor's Service), so the operator claims, preflights and follows the vehicles as it
+would in a cluster. On KWOK nodes no container runs, so the sandbox plays the pods
+itself: one onboard follower per vehicle and one offboard monitor, as local processes
+with the environment the Mission's pods would get. The followers reach the monitor over
+UDP on 127.0.0.1 (in a cluster the same address is a Service) and their vehicle at its
+agent's MAVLink hub, as on a real vehicle: a failover moves the hub's route, never the
+follower's connection. When the operator takes a vehicle out of the Mission (an abort,
+or ``onFailover: AbortVehicle``) it would stop that vehicle's pod; the sandbox stops the
+follower (:func:`vehicles_out`), which tells the monitor it leaves, so the others do not
+wait for it. ``lag`` faults on a time schedule slow chosen vehicles on chosen legs, so
+the monitor has delays like the paper's Table I to absorb.
 
-Pure except :class:`LagInjector`, so the processes and schedule are
+Pure except :class:`LagInjector`, so the processes, manifests and schedule are
 unit-tested without a cluster.
 """
 
@@ -21,6 +26,11 @@ import time
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
+
+import yaml
+
+from roost_api.mission import MissionVehiclePhase
 
 SYNC_PATHS = "sync-paths"
 MISSIONS = (SYNC_PATHS,)
@@ -79,9 +89,66 @@ def lag_schedule(vehicles: tuple[str, ...]) -> tuple[Lag, ...]:
     )
 
 
+OUT_OF_MISSION = frozenset(
+    {MissionVehiclePhase.ABORTING, MissionVehiclePhase.ABORTED, MissionVehiclePhase.FAILED}
+)
+"""Phases in which the operator has stopped (or is stopping) a vehicle's onboard pod."""
+
+
 def pymavlink_url(connection: str) -> str:
     """``udpout://127.0.0.1:P`` (a simulator's report) as pymavlink spells it."""
     return connection.replace("://", ":", 1)
+
+
+def hub_url(hub: str) -> str:
+    """pymavlink's URL for a client of the agent's hub at ``HOST:PORT``."""
+    return f"udpout:{hub}"
+
+
+def mission_manifests(
+    mission: str, count: int, runtime: Mapping[str, str], example_dir: Path = EXAMPLE_DIR
+) -> list[dict[str, Any]]:
+    """The mission's own ``mission.yaml`` for a sandbox of ``count`` vehicles.
+
+    Changed only where the sandbox differs from a cluster: the Mission asks for ``count``
+    vehicles, and its pod templates carry ``runtime`` (KWOK's annotations for how long
+    the pods it plays run).
+    """
+    check(mission, [], example_dir)
+    documents = [
+        doc
+        for doc in yaml.safe_load_all((example_dir / "mission.yaml").read_text())
+        if doc is not None
+    ]
+    for doc in documents:
+        if doc.get("kind") != "Mission":
+            continue
+        spec = doc["spec"]
+        spec["vehicles"]["count"] = count
+        for workload in ("onboard", "offboard"):
+            if spec.get(workload) is not None:
+                metadata = spec[workload].setdefault("metadata", {})
+                metadata.setdefault("annotations", {}).update(runtime)
+    return documents
+
+
+def mission_ref(documents: list[dict[str, Any]]) -> tuple[str, str]:
+    """(namespace, name) of the Mission among ``documents``."""
+    for doc in documents:
+        if doc.get("kind") == "Mission":
+            meta = doc["metadata"]
+            return str(meta.get("namespace", "default")), str(meta["name"])
+    raise ValueError("the mission's manifest has no Mission")
+
+
+def vehicles_out(mission: Mapping[str, Any]) -> set[str]:
+    """Vehicles the Mission has taken out (their onboard pods stop), from its status."""
+    status = mission.get("status") or {}
+    return {
+        str(entry["name"])
+        for entry in status.get("vehicles") or []
+        if entry.get("phase") in OUT_OF_MISSION
+    }
 
 
 LISTENING_KEY = "listening"
@@ -135,8 +202,9 @@ def follower_programs(
     example_dir: Path = EXAMPLE_DIR,
     trajectories: Path | None = None,
 ) -> tuple[Program, ...]:
-    """One onboard follower per vehicle (name -> its primary simulator's connection URL);
-    ``trajectories``: another directory of ``<vehicle>.csv`` than the mission's own."""
+    """One onboard follower per vehicle (name -> pymavlink URL of its vehicle: the agent's
+    hub, see :func:`hub_url`); ``trajectories``: another directory of ``<vehicle>.csv``
+    than the mission's own."""
     if trajectories is None:
         trajectories = check(mission, list(connections), example_dir)
     return tuple(
@@ -148,7 +216,7 @@ def follower_programs(
                 "SYNC_VEHICLE": name,
                 "SYNC_TRAJECTORY_DIR": str(trajectories),
                 "SYNC_MONITOR": monitor,
-                "MAVLINK_URL": pymavlink_url(connection),
+                "MAVLINK_URL": connection,
             },
         )
         for name, connection in connections.items()

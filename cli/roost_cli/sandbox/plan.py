@@ -10,14 +10,17 @@ by binding and closing a socket can be taken by any process before its user bind
 simulator's own ephemeral socket once took an agent's port). So each simulator binds a
 free port itself and reports it as its connection URL (``udpout://127.0.0.1:P``: the agent
 sends to the simulator, which answers whoever writes to it), and the RedundantAutopilot
-is written from those reports (:func:`autopilot_manifest`). System ids do follow
+is written from those reports (:func:`autopilot_manifest`). The agents' MAVLink hubs are
+the exception: a client (a mission's follower, MAVProxy) must know where to connect before
+the agent starts, so :func:`hub_ports` picks them below the kernel's ephemeral range, where
+no program is ever given a port it did not ask for. System ids do follow
 :func:`roost_mavlink.sitl.sitl_instance` (one global numbering, ``instance + 1``) so no two
 autopilots of the sandbox ever share one.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -38,6 +41,10 @@ VEHICLE_SYSID_BASE = 10
 HOLD_SECONDS = 3.0
 MISSION_RUNTIME = "10m"
 """How long kwok lets each onboard pod run: long enough to watch a failover mid-mission."""
+HUB_HOST = "127.0.0.1"
+HUB_PORT_BASE = 24550
+"""First port tried for the agents' hubs: 14550 (MAVLink's ground-station port) + 10000,
+clear of real SITLs and ground stations, and below Linux's ephemeral range (32768+)."""
 STACK_SHORT_NAMES = {Stack.PX4: "px4", Stack.ARDUPILOT: "apm"}
 _STACK_ORDER = (Stack.PX4, Stack.ARDUPILOT)
 
@@ -113,12 +120,33 @@ def vehicle_manifest(vehicle: VehiclePlan) -> dict[str, Any]:
     }
 
 
-def autopilot_manifest(vehicle: VehiclePlan, connections: Mapping[str, str]) -> dict[str, Any]:
+def hub_ports(count: int, is_free: Callable[[int], bool], below: int) -> tuple[int, ...]:
+    """``count`` ports from :data:`HUB_PORT_BASE` up that ``is_free`` accepts, each below
+    ``below`` (the first port the kernel hands out by itself), or ValueError."""
+    found: list[int] = []
+    for port in range(HUB_PORT_BASE, below):
+        if len(found) == count:
+            break
+        if is_free(port):
+            found.append(port)
+    if len(found) < count:
+        raise ValueError(
+            f"no {count} free UDP ports on {HUB_HOST} between {HUB_PORT_BASE} and {below} "
+            "for the agents' MAVLink hubs"
+        )
+    return tuple(found)
+
+
+def autopilot_manifest(
+    vehicle: VehiclePlan, connections: Mapping[str, str], hub: str | None = None
+) -> dict[str, Any]:
     """Its RedundantAutopilot: automatic failover, hold then land, manual failback.
 
-    ``connections``: autopilot name → the connection URL its simulator reported.
+    ``connections``: autopilot name → the connection URL its simulator reported; ``hub``:
+    ``HOST:PORT`` where the agent serves the vehicle's MAVLink endpoint (clients stay
+    connected there across a failover).
     """
-    return {
+    manifest: dict[str, Any] = {
         "apiVersion": API_VERSION,
         "kind": REDUNDANT_AUTOPILOT.kind,
         "metadata": {"name": vehicle.name},
@@ -142,6 +170,11 @@ def autopilot_manifest(vehicle: VehiclePlan, connections: Mapping[str, str]) -> 
             },
         },
     }
+    if hub is not None:
+        # Clients see the primary autopilot's sysid (the hub's default): Vehicle sysids
+        # (10 + index) and autopilot sysids (SITL numbering) overlap from the tenth vehicle.
+        manifest["spec"]["hub"] = {"udp": hub}
+    return manifest
 
 
 def mission_manifest(count: int) -> dict[str, Any]:

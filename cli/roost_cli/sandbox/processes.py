@@ -49,6 +49,12 @@ class Launcher:
         """Processes that have exited although nobody stopped them."""
         return [proc for proc in self.processes if not proc.alive()]
 
+    def stop(self, proc: ManagedProcess) -> None:
+        """Stop one process (SIGTERM, then SIGKILL after the grace) and forget it."""
+        proc.stop(grace_s=STOP_GRACE_S)
+        self.processes.remove(proc)
+        self.on_change()
+
     def stop_all(self) -> list[int]:
         """Stop every process, newest first; returns the pids stopped."""
         pids = [proc.pid for proc in self.processes if proc.pid is not None]

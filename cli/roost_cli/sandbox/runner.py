@@ -7,7 +7,8 @@ Up, in order (each step shown as it happens):
 2. install the CRDs and create one fake (kwok) node per vehicle;
 3. start the simulated autopilots (two per vehicle, each binding a free UDP port itself and
    reporting it);
-4. start the operator, then apply the Vehicles, RedundantAutopilots and the Mission;
+4. start the operator, then apply the Vehicles, RedundantAutopilots (each with the
+   agent's MAVLink hub on a port of its own) and the Mission;
 5. start one ``roost-agent`` per vehicle, with the simulated bridge;
 6. show the fleet live, and after a pause inject a fault on one vehicle's active autopilot
    so the failover happens on screen;
@@ -104,6 +105,10 @@ class Sandbox:
         self.fleet_plan: tuple[plan.VehiclePlan, ...] = ()
         self.script = Script()
         self.director: Director | None = None
+        self.mission_ref = (plan.MISSION_NAMESPACE, plan.MISSION_NAME)
+        self.followers: dict[str, ManagedProcess] = {}
+        """A mission's onboard programs by vehicle (``--mission`` only)."""
+        self._mission_fleet: Fleet | None = None
         self._stop = threading.Event()
 
     # ---- lifecycle ---------------------------------------------------------------------
@@ -235,19 +240,33 @@ class Sandbox:
 
     def _apply(self, cluster: Cluster) -> None:
         documents: list[dict[str, Any]] = []
-        for vehicle, running in zip(self.fleet_plan, self.state.vehicles, strict=True):
+        try:
+            ports = plan.hub_ports(len(self.fleet_plan), udp_port_free, ephemeral_ports_start())
+        except ValueError as error:
+            raise CliError(str(error)) from None
+        for vehicle, running, port in zip(self.fleet_plan, self.state.vehicles, ports, strict=True):
+            running.hub = f"{plan.HUB_HOST}:{port}"
             connections = {a.name: a.connection for a in running.autopilots}
             documents += [
                 plan.vehicle_manifest(vehicle),
-                plan.autopilot_manifest(vehicle, connections),
+                plan.autopilot_manifest(vehicle, connections, running.hub),
             ]
-        documents.append(plan.mission_manifest(len(self.fleet_plan)))
+        self._save()
+        if self.options.mission is None:
+            documents.append(plan.mission_manifest(len(self.fleet_plan)))
+            self.mission_ref = (plan.MISSION_NAMESPACE, plan.MISSION_NAME)
+        else:
+            runtime = {kwok.RUNTIME_ANNOTATION: plan.MISSION_RUNTIME}
+            own = missionrun.mission_manifests(self.options.mission, len(ports), runtime)
+            documents += own
+            self.mission_ref = missionrun.mission_ref(own)
         manifest = self.directory / "fleet.yaml"
         manifest.write_text(yaml.safe_dump_all(documents, sort_keys=False))
         cluster.kubectl("apply", "-f", str(manifest))
+        namespace, name = self.mission_ref
         self._step(
             f"applied {len(self.fleet_plan)} Vehicles, their RedundantAutopilots and "
-            f"Mission {plan.MISSION_NAMESPACE}/{plan.MISSION_NAME} ({manifest})"
+            f"Mission {namespace}/{name} ({manifest})"
         )
 
     def _start_agents(self) -> None:
@@ -315,14 +334,12 @@ class Sandbox:
         self._step(f"dashboard on {self.state.dashboard}")
 
     def _start_mission(self, mission: str) -> None:
-        """The mission's monitor, then one follower per vehicle flying its primary autopilot."""
+        """The mission's monitor, then one follower per vehicle flying through its hub."""
         names = [vehicle.name for vehicle in self.state.vehicles]
-        primaries = {vehicle.name: vehicle.primary.name for vehicle in self.fleet_plan}
         connections = {
-            vehicle.name: next(
-                a.connection for a in vehicle.autopilots if a.name == primaries[vehicle.name]
-            )
+            vehicle.name: missionrun.hub_url(vehicle.hub)
             for vehicle in self.state.vehicles
+            if vehicle.hub is not None
         }
         output = self.directory / "mission-results"
         try:
@@ -339,7 +356,9 @@ class Sandbox:
                 address = missionrun.listening_address(proc.log.read_text())
             time.sleep(0.1)
         for program in missionrun.follower_programs(mission, connections, address):
-            self.launcher.start(program.name, list(program.argv), program.env)
+            self.followers[program.env["SYNC_VEHICLE"]] = self.launcher.start(
+                program.name, list(program.argv), program.env
+            )
         self._step(
             f"{mission}: monitor on {address}, followers on {', '.join(names)}; "
             f"Table I and paths will be in {output}"
@@ -362,6 +381,10 @@ class Sandbox:
                 Text("  kubectl get roost            # every Roost object", style="dim"),
                 Text("  roost status --watch         # this fleet view", style="dim"),
                 Text("  roost sandbox down           # stop it (or Ctrl-C here)", style="dim"),
+                Text(
+                    "MAVLink (each agent's hub; e.g. mavproxy.py --master=udpout:HOST:PORT): "
+                    + ", ".join(f"{v.name} {v.hub}" for v in self.state.vehicles if v.hub)
+                ),
                 Text(f"Logs: {self.directory / 'logs'}, control plane: {self.plane.logs_dir}\n"),
             )
         )
@@ -426,8 +449,34 @@ class Sandbox:
         return self.script.renderable()
 
     def _check_processes(self) -> None:
+        self._stop_followers_out_of_mission()
         for proc in self.launcher.dead():
-            self.script.warn(f"{proc.name} exited; its log: {proc.log}")
+            if proc.name.startswith(MISSION_PROGRAM_PREFIX) and proc.returncode == 0:
+                self.script.once(f"{proc.name} finished; its log: {proc.log}")
+            else:
+                self.script.warn(f"{proc.name} exited; its log: {proc.log}")
+
+    def _stop_followers_out_of_mission(self) -> None:
+        """Stop the follower of each vehicle the Mission took out, as the kubelet would
+        stop its pod: the follower tells the monitor it leaves, and the others go on."""
+        if not self.followers:
+            return
+        namespace, name = self.mission_ref
+        if self._mission_fleet is None:
+            self._mission_fleet = self._fleet()
+        try:
+            mission = self._mission_fleet.mission(namespace, name)
+        except CliError:  # the API is briefly unreachable: look again next time
+            return
+        for vehicle in sorted(missionrun.vehicles_out(mission)):
+            proc = self.followers.pop(vehicle, None)
+            if proc is not None and proc.alive():
+                self.launcher.stop(proc)
+                self.script.say(
+                    f"{vehicle} left mission {namespace}/{name}: its follower was stopped "
+                    "(the others do not wait for it)",
+                    "yellow",
+                )
 
     # ---- teardown ----------------------------------------------------------------------
     def _down(self) -> None:
@@ -439,6 +488,30 @@ class Sandbox:
             self.plane.stop()
         state.remove(self.directory)
         self.console.print(f"[green]✓[/] sandbox stopped ({len(pids)} processes: {pids})")
+
+
+MISSION_PROGRAM_PREFIX = "sync-"
+"""Names of a mission's programs (:mod:`.missionrun`), which end by themselves."""
+
+
+def udp_port_free(port: int) -> bool:
+    """Whether a UDP port of the hubs' host is free now (:func:`plan.hub_ports`)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.bind((plan.HUB_HOST, port))
+        except OSError:
+            return False
+    return True
+
+
+def ephemeral_ports_start(
+    path: Path = Path("/proc/sys/net/ipv4/ip_local_port_range"),
+) -> int:
+    """The first port the kernel hands out by itself (32768 when it does not say)."""
+    try:
+        return int(path.read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768
 
 
 def agent_argv(vehicle: plan.VehiclePlan, state_dir: Path) -> list[str]:

@@ -59,6 +59,8 @@ class SandboxVehicle(BaseModel):
     node: str
     stack: str
     autopilots: list[SimulatedAutopilot]
+    hub: str | None = None
+    """``HOST:PORT`` of the agent's MAVLink hub: connect a client (MAVProxy, a mission) here."""
     telemetry: str | None = None
     """The agent's telemetry stream (``ws://127.0.0.1:P/``), once it announced it."""
 

@@ -1,61 +1,70 @@
-"""kopf triggers of the Vehicle controller: every one funnels into one reconcile.
+"""kopf triggers of the Vehicle controller: every one adds the vehicle to one work queue.
+
+kopf watches; :class:`~roost_operator.workqueue.WorkQueue` reconciles. Each handler
+below only decides *which vehicle* an event concerns and whether anything Roost reads
+changed, then adds that vehicle's name to the queue and returns: handlers are async and
+never touch the API, so kopf's event loop never waits on a thread, and a burst of
+events about one vehicle (a Deployment's rollout) costs one reconcile. The queue's
+workers run :meth:`~roost_operator.vehicles.controller.VehicleController.reconcile`,
+retry temporary failures with a backoff, and report a permanent one once.
 
 Triggers, and why each exists:
 
-* the Vehicle itself (resume on operator start, create, update) — kopf retries these
-  with a backoff when a reconcile fails on a temporary error;
-* a periodic resync (``Settings.resync_seconds``) — puts back hand edits and converges
-  after anything missed; it writes nothing when nothing differs;
+* the Vehicle itself (every watch event, the initial listing included) — when its
+  generation, labels, annotations (the guard annotations: pause, clear the latch) or
+  deletion mark changed; its status (which only this controller writes) is ignored;
 * its node (watch all Nodes) — a node appearing, turning Ready/NotReady or losing a
   Roost label re-reconciles the vehicles that claim it or that it is labelled for; node
-  heartbeats that change nothing Roost looks at are filtered out by a fingerprint;
-* its component Deployments — rollout progress updates ComponentsReady and ends a
-  mavros re-point;
+  heartbeats that change nothing Roost looks at are dropped here by a fingerprint;
+* what Roost made for it (its ConfigMap and component Deployments, selected by Roost's
+  labels on the server) — rollout progress, and a hand edit is put back at once;
 * its RedundantAutopilot — the agent reported. Reports that change nothing the
   controller reads (the periodic refresh of ``reportedAt``, heartbeat ages) are skipped
   by a fingerprint, except while the vehicle's ``AgentConnected`` is not True (a report
-  is then exactly the news that the agent is back);
-* a RedundantAutopilot timer that fires only once the object has been *idle* for the
-  staleness window — the agent went silent: ``AgentConnected`` becomes Unknown;
-* the Vehicle's guard annotations (pause, clear the latch), by watch event: kopf's
-  update handlers do not see annotations under Roost's own prefix;
-* a Vehicle timer while a failover action runs or a guard holds one back — timeouts,
-  and the moment a guard lifts;
-* its claim Lease — the mission claim mirrored into ``status.claimedBy``.
+  is then exactly the news that the agent is back). Every report moves the vehicle's
+  *staleness deadline* in the queue: if no report comes for ``agent_stale_after``, the
+  deadline reconciles it and ``AgentConnected`` turns Unknown — without a timer per
+  object;
+* a Vehicle timer while a failover action runs or a guard holds one back (only then) —
+  timeouts, and the moment a guard lifts;
+* its claim Lease — the mission claim mirrored into ``status.claimedBy``;
+* optionally a fleet sweep every ``resync_seconds`` (off by default: everything above is
+  event-driven, and a sweep at fleet scale is work that almost always finds nothing).
 
 Deletion goes through the Roost finalizer (``roost.dev/cleanup``): labels, taint,
 config and workloads are removed before the Vehicle disappears; what cannot be removed
 is reported in an Event and the finalizer is released anyway. Other Vehicles waiting
-for the freed node are reconciled next.
+for the freed node are queued next.
 
-Handlers are registered by :func:`register` with the operator's settings (intervals
-come from there); the :class:`~roost_operator.vehicles.controller.VehicleController`
-and its per-process state live in the operator's memo (:mod:`roost_operator.runtime`).
+Handlers are registered by :func:`register` with the operator's settings; the
+:class:`~roost_operator.vehicles.controller.VehicleController`, the queue and the view
+of kopf's indexes live in the operator's :class:`~roost_operator.runtime.Runtime`.
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Hashable, Mapping
+from datetime import UTC, datetime
 from typing import Any, Final
 
 import kopf
 
 from roost_api.meta import now
 from roost_api.wellknown import (
-    ANNOTATION_CLEAR_FAILOVER_LATCH,
-    ANNOTATION_PAUSE_FAILOVER_ACTIONS,
     LABEL_COMPONENT,
     LABEL_MANAGED_BY,
     LABEL_VEHICLE,
     MANAGED_BY,
+    PREFIX,
 )
 from roost_kube import resources
 from roost_kube.patches import content_hash
 from roost_operator.claims import CLAIM_COMPONENT, claim_of
 from roost_operator.edge import at_the_edge, handler_edge
-from roost_operator.runtime import runtime
+from roost_operator.runtime import Runtime, runtime
 from roost_operator.settings import Settings
 from roost_operator.vehicles.controller import Peers
 from roost_operator.vehicles.placement import NodeClaim
@@ -64,6 +73,12 @@ from roost_operator.vehicles.plan import relevant_autopilot
 VEHICLES: Final = resources.VEHICLES.kopf
 AUTOPILOTS: Final = resources.REDUNDANT_AUTOPILOTS.kopf
 LEASES: Final = resources.LEASES.kopf
+STALE_MARGIN_S: Final = 1.1
+"""The staleness deadline fires this long after the report turns stale: ``reportedAt``
+and the controller's clock are both whole seconds (as Kubernetes stores times), so a
+report is seen stale only in the second after it turns stale."""
+KOPF_ANNOTATIONS: Final = (f"{PREFIX}last-handled-configuration",)
+"""Annotations kopf keeps on Vehicles under Roost's prefix (not the user's input)."""
 
 NodeClaims = kopf.Index[str, NodeClaim]
 AutopilotsByVehicle = kopf.Index[str, str]
@@ -91,10 +106,9 @@ class Fingerprints:
 
 
 log = logging.getLogger(__name__)
+_vehicle_prints = Fingerprints()
 _node_prints = Fingerprints()
 _autopilot_prints = Fingerprints()
-_annotation_prints = Fingerprints()
-_connected: dict[str, str | None] = {}
 
 
 # -- indexes -------------------------------------------------------------------------
@@ -127,7 +141,8 @@ def _autopilot_of(vehicle: str, indexes: Mapping[str, Any]) -> str | None:
 
 
 def peers_from(indexes: Mapping[str, Any]) -> Peers:
-    """The :class:`Peers` view of the kopf indexes (a handler's ``**kwargs``)."""
+    """The :class:`Peers` view of the kopf indexes (a handler's ``**kwargs``; kopf's
+    index objects are live, so the view stays current)."""
     claims: NodeClaims = indexes["vehicle_node_claims"]
     actions: FailoverActions = indexes["failover_actions"]
     return Peers(
@@ -137,53 +152,77 @@ def peers_from(indexes: Mapping[str, Any]) -> Peers:
     )
 
 
-def reconcile_now(memo: Any, vehicle: str, indexes: Mapping[str, Any]) -> None:
-    """Reconcile one Vehicle (it may not exist: then nothing happens)."""
-    rt = runtime(memo)
+# -- the queue's side ------------------------------------------------------------------
+
+
+def reconcile_vehicle(rt: Runtime, vehicle: str) -> None:
+    """One queued reconcile (a worker thread): API errors leave as kopf's error types,
+    which the queue sorts into retried (temporary) and reported once (permanent)."""
+    peers = rt.peers
+    if peers is None:  # nothing was queued before a handler bound the indexes
+        return
     with at_the_edge("Vehicle", vehicle):
-        outcome = rt.vehicles.reconcile(vehicle, peers_from(indexes))
+        outcome = rt.vehicles.reconcile(vehicle, peers)
     if outcome is None:
-        _connected.pop(vehicle, None)
+        rt.connected.pop(vehicle, None)
     else:
-        _connected[vehicle] = outcome.agent_connected
+        rt.connected[vehicle] = outcome.agent_connected
+
+
+def enqueue(memo: Any, vehicle: str, indexes: Mapping[str, Any]) -> None:
+    """Queue a reconcile of ``vehicle`` (it may not exist: then nothing happens)."""
+    rt = runtime(memo)
+    rt.bind_peers(lambda: peers_from(indexes))
+    rt.vehicle_queue.add(vehicle)
+
+
+def _stale_deadline(rt: Runtime, reported_at: str | None) -> float | None:
+    """When (this process's monotonic clock) a report made at ``reported_at`` turns stale."""
+    if not reported_at:
+        return None
+    try:
+        at = datetime.fromisoformat(reported_at.replace("Z", "+00:00"))
+    except ValueError:
+        return None
+    left = at + rt.settings.agent_stale_after - datetime.now(UTC)
+    return time.monotonic() + max(0.0, left.total_seconds()) + STALE_MARGIN_S
 
 
 # -- the Vehicle's own triggers -----------------------------------------------------------
 
 
-def vehicle_changed(*, name: str, memo: Any, **indexes: Any) -> None:
-    """The Vehicle was created or its spec/labels changed (or the operator started)."""
-    reconcile_now(memo, name, indexes)
+def _vehicle_relevant(meta: Mapping[str, Any]) -> Any:
+    """What of a Vehicle's metadata Roost acts on (its spec is in the generation)."""
+    annotations = {
+        key: value
+        for key, value in (meta.get("annotations") or {}).items()
+        if key not in KOPF_ANNOTATIONS
+    }
+    return [meta.get("generation"), meta.get("labels"), annotations, meta.get("deletionTimestamp")]
 
 
-def guard_annotations(
+async def vehicle_event(
     *, type: str | None, name: str, meta: kopf.Meta, memo: Any, **indexes: Any
 ) -> None:
-    """A human paused, resumed or cleared the latch of this vehicle's failover actions.
+    """The Vehicle appeared (the operator started, or it was created), its spec, labels or
+    annotations changed (a human paused, resumed or cleared the latch of its failover
+    actions), or it is being deleted. Status writes (this controller's own) are skipped.
 
-    A watch-event handler because kopf's update handlers do not see annotations under
-    the operator's own ``roost.dev/`` prefix (its progress storage lives there).
+    A watch-event handler: kopf's update handlers do not see annotations under the
+    operator's own ``roost.dev/`` prefix (its progress storage lives there), and they
+    store a diff base on every object, a write per Vehicle that nothing here needs.
     """
     if type == "DELETED":
-        _annotation_prints.forget(name)
+        _vehicle_prints.forget(name)
+        runtime(memo).vehicle_queue.forget(name)
         return
-    annotations = meta.get("annotations") or {}
-    relevant = [
-        annotations.get(ANNOTATION_PAUSE_FAILOVER_ACTIONS),
-        annotations.get(ANNOTATION_CLEAR_FAILOVER_LATCH),
-    ]
-    if _annotation_prints.changed(name, relevant):
-        reconcile_now(memo, name, indexes)
+    if _vehicle_prints.changed(name, _vehicle_relevant(meta)):
+        enqueue(memo, name, indexes)
 
 
-def vehicle_resync(*, name: str, memo: Any, **indexes: Any) -> None:
-    """Periodic level-based resync (NFD practice: put hand edits back)."""
-    reconcile_now(memo, name, indexes)
-
-
-def failover_pending(*, name: str, memo: Any, **indexes: Any) -> None:
+async def failover_pending(*, name: str, memo: Any, **indexes: Any) -> None:
     """An action runs or waits for a guard: check for its end, timeout or the guard lifting."""
-    reconcile_now(memo, name, indexes)
+    enqueue(memo, name, indexes)
 
 
 def _pending(status: kopf.Status, **_: Any) -> bool:
@@ -211,11 +250,11 @@ def vehicle_deleted(
             type="Warning",
             at=now().isoformat().replace("+00:00", "Z"),
         )
-    _connected.pop(name, None)
+    rt.connected.pop(name, None)
     claims: NodeClaims = indexes["vehicle_node_claims"]
     for claim in claims.get(spec.get("nodeName", ""), []):
         if claim.vehicle != name:
-            reconcile_now(memo, claim.vehicle, indexes)
+            enqueue(memo, claim.vehicle, indexes)
 
 
 # -- other objects' triggers ---------------------------------------------------------------
@@ -237,8 +276,10 @@ def _node_relevant(body: Mapping[str, Any]) -> Any:
     ]
 
 
-def node_event(*, type: str | None, name: str, body: kopf.Body, memo: Any, **indexes: Any) -> None:
-    """A node changed: reconcile the vehicles that claim it or that it carries."""
+async def node_event(
+    *, type: str | None, name: str, body: kopf.Body, memo: Any, **indexes: Any
+) -> None:
+    """A node changed: queue the vehicles that claim it or that it carries."""
     if type == "DELETED":
         _node_prints.forget(name)
     elif not _node_prints.changed(name, _node_relevant(body)):
@@ -249,42 +290,42 @@ def node_event(*, type: str | None, name: str, body: kopf.Body, memo: Any, **ind
     if labelled:
         vehicles.add(labelled)
     for vehicle in sorted(vehicles):
-        reconcile_now(memo, vehicle, indexes)
+        enqueue(memo, vehicle, indexes)
 
 
-def component_event(*, labels: kopf.Labels, memo: Any, **indexes: Any) -> None:
-    """A component Deployment changed (rollout progress, deletion): update the vehicle."""
-    reconcile_now(memo, labels[LABEL_VEHICLE], indexes)
+async def owned_event(*, labels: kopf.Labels, memo: Any, **indexes: Any) -> None:
+    """Something Roost made for a vehicle changed (a component Deployment's rollout, its
+    ConfigMap edited or deleted by hand): queue the vehicle."""
+    enqueue(memo, labels[LABEL_VEHICLE], indexes)
 
 
-def autopilot_reported(
+async def autopilot_reported(
     *, type: str | None, name: str, body: kopf.Body, memo: Any, **indexes: Any
 ) -> None:
-    """The agent wrote a report (or someone changed the spec): act on what is new."""
+    """The agent wrote a report (or someone changed the spec): act on what is new, and
+    move the vehicle's staleness deadline."""
     vehicle = (body.get("spec") or {}).get("vehicleName")
     if not vehicle:
         return
+    rt = runtime(memo)
     if type == "DELETED":
         _autopilot_prints.forget(name)
-        reconcile_now(memo, vehicle, indexes)
+        enqueue(memo, vehicle, indexes)
         return
+    deadline = _stale_deadline(rt, (body.get("status") or {}).get("reportedAt"))
+    if deadline is not None:
+        rt.bind_peers(lambda: peers_from(indexes))
+        rt.vehicle_queue.add_at(vehicle, deadline)
     changed = _autopilot_prints.changed(name, relevant_autopilot(body))
-    if changed or _connected.get(vehicle) != "True":
-        reconcile_now(memo, vehicle, indexes)
+    if changed or rt.connected.get(vehicle) != "True":
+        enqueue(memo, vehicle, indexes)
 
 
-def autopilot_silent(*, spec: kopf.Spec, memo: Any, **indexes: Any) -> None:
-    """No report for the whole staleness window: AgentConnected turns Unknown."""
-    vehicle = spec.get("vehicleName")
-    if vehicle:
-        reconcile_now(memo, vehicle, indexes)
-
-
-def claim_changed(*, body: kopf.Body, memo: Any, **indexes: Any) -> None:
+async def claim_changed(*, body: kopf.Body, memo: Any, **indexes: Any) -> None:
     """A mission claimed or released the vehicle: mirror it into ``status.claimedBy``."""
     claim = claim_of(body)
     if claim is not None:
-        reconcile_now(memo, claim.vehicle, indexes)
+        enqueue(memo, claim.vehicle, indexes)
 
 
 # -- registration ------------------------------------------------------------------------
@@ -293,18 +334,10 @@ def claim_changed(*, body: kopf.Body, memo: Any, **indexes: Any) -> None:
 def register(registry: kopf.OperatorRegistry, settings: Settings) -> None:
     """Register the Vehicle controller's handlers with the operator's settings."""
     backoff = settings.retry_backoff_seconds
-    stale = settings.agent_stale_after.total_seconds()
     kopf.index(*VEHICLES, registry=registry)(vehicle_node_claims)
     kopf.index(*VEHICLES, registry=registry)(failover_actions)
     kopf.index(*AUTOPILOTS, registry=registry)(autopilots_by_vehicle)
-    for trigger in (kopf.on.resume, kopf.on.create, kopf.on.update):
-        trigger(*VEHICLES, backoff=backoff, registry=registry)(handler_edge(vehicle_changed))
-    kopf.timer(
-        *VEHICLES,
-        interval=settings.resync_seconds,
-        initial_delay=settings.resync_seconds,
-        registry=registry,
-    )(handler_edge(vehicle_resync))
+    kopf.on.event(*VEHICLES, registry=registry)(handler_edge(vehicle_event))
     kopf.timer(
         *VEHICLES,
         interval=settings.failover_poll_seconds,
@@ -312,24 +345,21 @@ def register(registry: kopf.OperatorRegistry, settings: Settings) -> None:
         backoff=backoff,
         registry=registry,
     )(handler_edge(failover_pending))
-    kopf.on.event(*VEHICLES, registry=registry)(handler_edge(guard_annotations))
     kopf.on.delete(*VEHICLES, backoff=backoff, registry=registry)(handler_edge(vehicle_deleted))
     kopf.on.event("", "v1", "nodes", registry=registry)(handler_edge(node_event))
-    kopf.on.event(
-        "apps",
-        "v1",
-        "deployments",
-        labels={
-            LABEL_MANAGED_BY: MANAGED_BY,
-            LABEL_VEHICLE: kopf.PRESENT,
-            LABEL_COMPONENT: kopf.PRESENT,
-        },
-        registry=registry,
-    )(handler_edge(component_event))
+    for group, plural in (("apps", "deployments"), ("", "configmaps")):  # what Roost made
+        kopf.on.event(
+            group,
+            "v1",
+            plural,
+            labels={
+                LABEL_MANAGED_BY: MANAGED_BY,
+                LABEL_VEHICLE: kopf.PRESENT,
+                LABEL_COMPONENT: kopf.PRESENT,
+            },
+            registry=registry,
+        )(handler_edge(owned_event))
     kopf.on.event(*AUTOPILOTS, registry=registry)(handler_edge(autopilot_reported))
-    kopf.timer(*AUTOPILOTS, interval=stale / 3, idle=stale, backoff=backoff, registry=registry)(
-        handler_edge(autopilot_silent)
-    )
     kopf.on.event(
         *LEASES,
         labels={LABEL_MANAGED_BY: MANAGED_BY, LABEL_COMPONENT: CLAIM_COMPONENT},

@@ -143,7 +143,9 @@ def main() -> int:
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
-    vehicle = MavlinkVehicle(env.get("MAVLINK_URL", "udpout:127.0.0.1:14550"))
+    url = env.get("MAVLINK_URL", "udpout:127.0.0.1:14550")
+    log.info("%s: flying through %s, monitor %s", name, url, env.get("SYNC_MONITOR"))
+    vehicle = MavlinkVehicle(url)
     try:
         vehicle.wait_connected()
         result = fly(

@@ -1,0 +1,255 @@
+"""The operator at fleet scale: one ``roost-operator`` process, 1,000 (and more) Vehicles.
+
+A real control plane (``FLEET_SETTINGS``: sized for a thousand nodes) with one KWOK node
+per vehicle, and the operator as its own process, as the chart runs it. Each Vehicle has
+the default components (mavros, as a Deployment KWOK "runs") and no RedundantAutopilot,
+so no agent writes anything: once the fleet is Ready, nothing changes in the cluster and
+any CPU the operator spends is its own overhead.
+
+- ``fleet.ready_<N>_s``: ``kubectl apply`` of N Vehicles (nodes already Ready) until every
+  Vehicle's ``Ready`` condition is True (labels and taint on its node, its ConfigMap, its
+  mavros Deployment available). The Ready poll lists Vehicles every second.
+- ``fleet.operator_rss_mb_<N>``: the operator's peak resident memory over the run.
+- ``fleet.idle_cpu_pct_<N>``: the operator's CPU (user + system, % of one core) over
+  ``IDLE_S`` once the fleet has been Ready for ``SETTLE_S``.
+- ``fleet.single_change_p99_s``: with the fleet idle, one Vehicle's spec changes (its
+  mavros image) until its Deployment carries the new image; p99 over ``CHANGES``.
+
+Sizes: ``ROOST_BENCH_FLEET`` (default 1000; ``1000,3000`` runs both, the larger one is
+recorded with what happened). The machine's load average is recorded with every figure:
+the operator shares the cores with the API server, etcd, the controller manager, the
+scheduler and KWOK.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import statistics
+import tempfile
+import threading
+import time
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import psutil
+from kubernetes import client
+
+from bench.controlplane import FLEET_SETTINGS
+from bench.core import Figure
+from roost_api.wellknown import LABEL_VEHICLE
+from roost_kube.client import Kube
+from roost_kube.resources import DEPLOYMENTS, VEHICLES
+from roost_localcluster import binaries, nodes
+from roost_localcluster.cluster import Cluster
+from roost_localcluster.controlplane import ControlPlane
+from tests.support.operator import OperatorProcess
+from tests.support.waiting import wait_until
+
+COMMAND = "python -m bench fleet"
+SIZES = tuple(int(n) for n in os.environ.get("ROOST_BENCH_FLEET", "1000").split(","))
+NAMESPACE = "roost-bench"
+FLEET_LABEL = "bench-fleet"
+NODES_TIMEOUT_S = 900.0
+READY_TIMEOUT_S = 900.0
+SETTLE_S = 30.0
+IDLE_S = 60.0
+CHANGES = 20
+CHANGE_TIMEOUT_S = 60.0
+
+
+def vehicle_name(index: int) -> str:
+    return f"fleet-{index:04d}"
+
+
+def vehicle_manifest(index: int) -> dict[str, Any]:
+    name = vehicle_name(index)
+    return {
+        "apiVersion": "roost.dev/v1alpha1",
+        "kind": "Vehicle",
+        "metadata": {"name": name, "labels": {"fleet": FLEET_LABEL}},
+        "spec": {"nodeName": f"{name}-node", "sysid": 1 + index % 250},
+    }
+
+
+def _create_nodes(cluster: Cluster, count: int) -> None:
+    def create(index: int) -> None:
+        manifest = nodes.fake_node(f"{vehicle_name(index)}-node")
+        with cluster.api_client() as api:
+            node = client.V1Node.from_dict(manifest)
+            assert node is not None
+            client.CoreV1Api(api).create_node(node)
+
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        list(pool.map(create, range(count)))
+    cluster.wait_nodes_ready([f"{vehicle_name(i)}-node" for i in range(count)], NODES_TIMEOUT_S)
+
+
+def _ready_count(kube: Kube) -> int:
+    return sum(
+        1
+        for v in kube.list_objects(VEHICLES, labels={"fleet": FLEET_LABEL})
+        if any(
+            c["type"] == "Ready" and c["status"] == "True"
+            for c in (v.get("status") or {}).get("conditions", [])
+        )
+    )
+
+
+@dataclass
+class Sampler:
+    """Samples a process's RSS every half second in a thread; keeps the peak."""
+
+    proc: psutil.Process
+    peak_mb: float = 0.0
+    _stop: threading.Event = field(default_factory=threading.Event)
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.5):
+            try:
+                self.peak_mb = max(self.peak_mb, self.proc.memory_info().rss / 1e6)
+            except psutil.Error:
+                return
+
+    @contextmanager
+    def running(self) -> Iterator[Sampler]:
+        thread = threading.Thread(target=self._run, name="rss-sampler", daemon=True)
+        thread.start()
+        try:
+            yield self
+        finally:
+            self._stop.set()
+            thread.join()
+
+
+def _cpu_s(proc: psutil.Process) -> float:
+    times = proc.cpu_times()
+    return float(times.user + times.system)
+
+
+def _single_changes(kube: Kube, cluster: Cluster, count: int) -> list[float]:
+    """Change one Vehicle's mavros image at a time; seconds until its Deployment has it."""
+    seconds: list[float] = []
+    for attempt in range(CHANGES):
+        index = (attempt * 37) % count
+        name = vehicle_name(index)
+        image = f"roost.dev/bench/mavros:change-{attempt}"
+        patch = {"spec": {"components": {"mavros": {"enabled": True, "image": image}}}}
+        started = time.monotonic()
+        kube.merge_patch(VEHICLES, name, patch)
+
+        def rolled(name: str = name, image: str = image) -> bool:
+            return any(
+                c.get("image") == image
+                for deployment in kube.list_objects(
+                    DEPLOYMENTS, namespace=NAMESPACE, labels={LABEL_VEHICLE: name}
+                )
+                for c in deployment["spec"]["template"]["spec"]["containers"]
+            )
+
+        wait_until(f"{name}'s mavros image", rolled, CHANGE_TIMEOUT_S, poll_s=0.02)
+        seconds.append(time.monotonic() - started)
+    return seconds
+
+
+def measure(count: int) -> tuple[dict[str, float], str]:
+    """The figures at ``count`` vehicles and a note on how the run went."""
+    with (
+        tempfile.TemporaryDirectory(prefix="bench-fleet-") as tmp,
+        ControlPlane(Path(tmp), settings=FLEET_SETTINGS) as plane,
+    ):
+        cluster = Cluster.of(plane)
+        cluster.install_crds()
+        _create_nodes(cluster, count)
+        operator = OperatorProcess(cluster, Path(tmp) / "operator.log", namespace=NAMESPACE)
+        operator.start()
+        try:
+            proc = psutil.Process(operator.process.pid)
+            with Sampler(proc).running() as rss, cluster.api_client() as api:
+                kube = Kube(api, "roost-bench")
+                manifest = "\n---\n".join(json.dumps(vehicle_manifest(i)) for i in range(count))
+                started = time.monotonic()
+                cluster.kubectl("apply", "-f", "-", input_text=manifest)
+                wait_until(
+                    f"{count} Vehicles Ready",
+                    lambda: _ready_count(kube) >= count,
+                    READY_TIMEOUT_S,
+                    poll_s=1.0,
+                )
+                ready_s = time.monotonic() - started
+                time.sleep(SETTLE_S)
+                cpu0, t0 = _cpu_s(proc), time.monotonic()
+                time.sleep(IDLE_S)
+                idle_pct = (_cpu_s(proc) - cpu0) / (time.monotonic() - t0) * 100
+                changes = _single_changes(kube, cluster, count)
+                load = os.getloadavg()[0]
+            log = (Path(tmp) / "operator.log").read_text(errors="replace")
+        finally:
+            operator.stop()
+    orphaned = log.count("Leaving it orphaned")
+    figures = {
+        "ready_s": ready_s,
+        "rss_mb": rss.peak_mb,
+        "idle_cpu_pct": idle_pct,
+        "single_change_p99_s": sorted(changes)[max(0, round(0.99 * len(changes)) - 1)],
+        "single_change_median_s": statistics.median(changes),
+    }
+    note = (
+        f"{count} Vehicles (default components, no RedundantAutopilot) on {count} KWOK "
+        f"nodes; 1-min load average {load:.1f} on {os.cpu_count()} cores; "
+        f"{orphaned} orphaned handlers logged"
+    )
+    return figures, note
+
+
+def run() -> list[Figure]:
+    binaries.ensure_built()
+    out: list[Figure] = []
+    for count in SIZES:
+        figures, note = measure(count)
+        print(f"bench fleet {count}: {figures} ({note})", flush=True)
+        target = count == 1000
+        out += [
+            Figure(
+                f"fleet.ready_{count}_s",
+                round(figures["ready_s"], 1),
+                "s",
+                "<= 30" if target else "informational",
+                COMMAND,
+                note,
+            ),
+            Figure(
+                f"fleet.operator_rss_mb_{count}",
+                round(figures["rss_mb"], 1),
+                "MB",
+                "<= 250" if target else "informational",
+                COMMAND,
+                note,
+            ),
+            Figure(
+                f"fleet.idle_cpu_pct_{count}",
+                round(figures["idle_cpu_pct"], 2),
+                "%",
+                "<= 2" if target else "informational",
+                COMMAND,
+                f"operator CPU over {IDLE_S:.0f} s after {SETTLE_S:.0f} s settled; {note}",
+            ),
+        ]
+        if target:
+            out.append(
+                Figure(
+                    "fleet.single_change_p99_s",
+                    round(figures["single_change_p99_s"], 3),
+                    "s",
+                    "<= 1",
+                    COMMAND,
+                    f"{CHANGES} mavros image changes, one at a time, until the Deployment "
+                    f"has the image (median {figures['single_change_median_s']:.3f} s); "
+                    f"{note}",
+                )
+            )
+    return out

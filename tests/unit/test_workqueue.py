@@ -1,0 +1,166 @@
+"""The operator's reconcile queue: coalescing, one run per name at a time, retries with
+backoff, permanent failures reported once, deadlines that move."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import Counter
+
+import pytest
+
+from roost_operator.workqueue import Backoff, Permanent, WorkQueue
+
+WAIT_S = 5.0
+
+
+def _until(check: object, what: str) -> None:
+    deadline = time.monotonic() + WAIT_S
+    while not check():  # type: ignore[operator]
+        assert time.monotonic() < deadline, f"{what} did not happen"
+        time.sleep(0.005)
+
+
+def test_events_before_a_worker_picks_a_name_up_cost_one_reconcile() -> None:
+    seen: Counter[str] = Counter()
+    queue = WorkQueue(lambda key: seen.update([key]), workers=2)
+    for _ in range(10):
+        queue.add("drone-1")
+    queue.add("drone-2")
+    queue.start()
+    try:
+        _until(lambda: queue.idle() and sum(seen.values()) >= 2, "the reconciles")
+        time.sleep(0.05)
+        assert seen == {"drone-1": 1, "drone-2": 1}
+    finally:
+        queue.stop()
+
+
+def test_a_name_added_while_it_runs_runs_once_more_and_never_twice_at_once() -> None:
+    running: Counter[str] = Counter()
+    overlaps: list[str] = []
+    runs: list[str] = []
+    gate = threading.Event()
+
+    def reconcile(key: str) -> None:
+        running[key] += 1
+        if running[key] > 1:
+            overlaps.append(key)
+        if not runs:
+            gate.wait(WAIT_S)
+        runs.append(key)
+        running[key] -= 1
+
+    queue = WorkQueue(reconcile, workers=4)
+    queue.start()
+    try:
+        queue.add("drone-1")
+        _until(lambda: running["drone-1"] == 1, "the first run")
+        for _ in range(5):
+            queue.add("drone-1")  # dirty while running
+        gate.set()
+        _until(lambda: len(runs) == 2 and queue.idle(), "the second run")
+        time.sleep(0.05)
+        assert runs == ["drone-1", "drone-1"]
+        assert overlaps == []
+    finally:
+        queue.stop()
+
+
+def test_a_temporary_failure_is_retried_with_a_growing_backoff() -> None:
+    times: list[float] = []
+
+    def reconcile(key: str) -> None:
+        times.append(time.monotonic())
+        if len(times) < 3:
+            raise RuntimeError("the API server timed out")
+
+    queue = WorkQueue(reconcile, workers=1, backoff=Backoff(base_s=0.05, cap_s=1.0))
+    queue.start()
+    try:
+        queue.add("drone-1")
+        _until(lambda: len(times) == 3, "two retries")
+        first, second = times[1] - times[0], times[2] - times[1]
+        assert first >= 0.05
+        assert second >= 0.1  # doubled
+    finally:
+        queue.stop()
+
+
+def test_a_permanent_failure_is_reported_once_and_not_retried() -> None:
+    calls: list[str] = []
+    reported: list[tuple[str, str]] = []
+
+    def reconcile(key: str) -> None:
+        calls.append(key)
+        raise Permanent("the spec cannot be written")
+
+    queue = WorkQueue(
+        reconcile,
+        workers=1,
+        backoff=Backoff(base_s=0.01, cap_s=0.01),
+        on_permanent=lambda key, error: reported.append((key, str(error))),
+    )
+    queue.start()
+    try:
+        queue.add("drone-1")
+        _until(lambda: reported, "the report")
+        time.sleep(0.1)  # ten backoffs' worth: nothing more happens
+        assert calls == ["drone-1"]
+        assert reported == [("drone-1", "the spec cannot be written")]
+        queue.add("drone-1")  # the object changed: one more attempt
+        _until(lambda: len(calls) == 2, "the attempt after a change")
+    finally:
+        queue.stop()
+
+
+def test_a_deadline_fires_once_and_a_later_one_replaces_it() -> None:
+    runs: list[tuple[str, float]] = []
+    queue = WorkQueue(lambda key: runs.append((key, time.monotonic())), workers=1)
+    queue.start()
+    try:
+        start = time.monotonic()
+        queue.add_at("drone-1", start + 0.1)
+        queue.add_at("drone-1", start + 0.3)  # the agent reported again: moved later
+        queue.add_at("drone-2", start + 0.05)
+        _until(lambda: len(runs) == 2, "both deadlines")
+        assert [key for key, _ in runs] == ["drone-2", "drone-1"]
+        assert runs[1][1] - start >= 0.3
+        time.sleep(0.2)
+        assert len(runs) == 2  # the replaced deadline never fired
+    finally:
+        queue.stop()
+
+
+def test_a_forgotten_name_loses_its_deadline() -> None:
+    runs: list[str] = []
+    queue = WorkQueue(runs.append, workers=1)
+    queue.start()
+    try:
+        queue.add_at("drone-1", time.monotonic() + 0.05)
+        queue.forget("drone-1")
+        time.sleep(0.15)
+        assert runs == []
+    finally:
+        queue.stop()
+
+
+@pytest.mark.parametrize(("failures", "delay"), [(1, 1.0), (2, 2.0), (3, 4.0), (10, 60.0)])
+def test_backoff_doubles_up_to_its_cap(failures: int, delay: float) -> None:
+    assert Backoff(base_s=1.0, cap_s=60.0).delay(failures) == delay
+
+
+def test_stop_waits_for_the_running_reconcile() -> None:
+    started, finished = threading.Event(), threading.Event()
+
+    def reconcile(key: str) -> None:
+        started.set()
+        time.sleep(0.1)
+        finished.set()
+
+    queue = WorkQueue(reconcile, workers=1)
+    queue.start()
+    queue.add("drone-1")
+    assert started.wait(WAIT_S)
+    queue.stop()
+    assert finished.is_set()
