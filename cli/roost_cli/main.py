@@ -371,8 +371,12 @@ def dashboard(
 
     def sandbox_endpoints() -> dict[str, str]:
         recorded = sandbox_state.running(context.sandbox_dir)
-        if recorded is None or fleet is None or fleet.target.source != "sandbox":
+        if recorded is None or fleet is None or recorded.kubeconfig is None:
             return {}
+        if Path(recorded.kubeconfig).resolve() not in {
+            path.resolve() for path in fleet.target.all_files
+        }:
+            return {}  # another cluster than the sandbox's
         return {v.name: v.telemetry for v in recorded.vehicles if v.telemetry}
 
     settings = server.Settings(
