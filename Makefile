@@ -69,6 +69,7 @@ unit: $(STAMP) ## fast tests only (no control plane)
 .PHONY: test
 test: lint typecheck cluster-build ## the whole suite: lint, types, unit, integration, control-plane e2e, images
 	@docker/build-images.sh >/dev/null || echo "images: not built (above: why); tests/e2e/test_image_run.py skips or fails with the reason"
+	@$(MAKE) --no-print-directory browser || echo "browser: not installed (above: why); the dashboard's browser tests skip"
 	$(BIN)/pytest tests
 	$(BIN)/pytest examples/missions/sync-paths
 	$(BIN)/pytest --datastore kine $(KINE_SUITES)
@@ -81,6 +82,10 @@ KINE_SUITES := tests/integration/test_control_plane.py tests/integration/test_ve
 .PHONY: test-kine
 test-kine: $(STAMP) cluster-build ## every control-plane test on kine+SQLite (K3s's datastore) instead of etcd
 	$(BIN)/pytest --datastore kine -m cluster tests
+
+.PHONY: browser
+browser: ## install Debian's chromium and chromium-driver (the dashboard's browser tests and bench)
+	docker/debian-packages.sh chromium=chromium chromedriver=chromium-driver
 
 .PHONY: bench
 bench: $(STAMP) cluster-build ## run the benchmarks; writes bench/results.json

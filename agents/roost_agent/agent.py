@@ -468,6 +468,16 @@ class Agent:
         """The vehicle's MAVLink endpoint (None when the spec has no hub)."""
         return self._hub
 
+    @property
+    def last_failover(self) -> FailoverRecord | None:
+        """The last switch (restored from the state file after a restart)."""
+        return self._last_failover
+
+    @property
+    def vehicle_name(self) -> str:
+        """The vehicle the agent flies (its spec's ``vehicleName``)."""
+        return self._cfg.spec.vehicle_name
+
     def failovers(self) -> list[FailoverEvent]:
         """Switches since start, oldest first (the last ``FAILOVER_HISTORY``)."""
         with self._lock:

@@ -106,6 +106,7 @@ ESTIMATOR_ATTITUDE = 0x1
 ESTIMATOR_POS_HORIZ_ABS = 0x10
 ESTIMATOR_ACCEL_ERROR = 0x800  # ESTIMATOR_STATUS only
 EKF_UNINITIALIZED = 0x400  # EKF_STATUS_REPORT only
+UNKNOWN_HEADING = 65535  # GLOBAL_POSITION_INT.hdg when the autopilot has none
 
 _FATAL_STATES = {MavState.EMERGENCY, MavState.POWEROFF, MavState.FLIGHT_TERMINATION}
 _NOT_FLYING_STATES = {MavState.UNINIT, MavState.BOOT, MavState.CALIBRATING}
@@ -274,6 +275,19 @@ class _Observed:
     altitude_m: float | None = None  # GLOBAL_POSITION_INT relative_alt
     climb_mps: float | None = None  # up positive (GLOBAL_POSITION_INT vz is down positive)
     motion_at: float | None = None
+    position_msg: Any = None  # the last GLOBAL_POSITION_INT, decoded only when sampled
+    position_at: float | None = None
+
+
+@dataclass(frozen=True)
+class Fix:
+    """The last position an autopilot reported (GLOBAL_POSITION_INT), decoded on demand."""
+
+    lat_deg: float
+    lon_deg: float
+    altitude_m: float  # above home
+    heading_deg: float | None  # None: the autopilot does not know (hdg 65535)
+    at: float  # when it was received (monotonic)
 
 
 @dataclass(frozen=True)
@@ -354,6 +368,7 @@ class HealthTracker:
                 o.altitude_m = int(msg.relative_alt) / 1000.0
                 o.climb_mps = -int(msg.vz) / 100.0
                 o.motion_at = now
+                o.position_msg, o.position_at = msg, now
             return changed
 
     def _observe_boot_time(self, boot_ms: int, now: float, seq: int | None) -> bool:
@@ -554,6 +569,25 @@ class HealthTracker:
             if o.altitude_m is None or o.climb_mps is None or o.motion_at is None:
                 return None
             return Motion(o.altitude_m, o.climb_mps, o.motion_at)
+
+    def fix(self) -> Fix | None:
+        """Last horizontal position and heading, None before the first GLOBAL_POSITION_INT.
+
+        The message is kept as received and decoded here, at the reader's (the telemetry
+        stream's) rate, so the link's reader does no work for it.
+        """
+        with self._lock:
+            msg, at = self._o.position_msg, self._o.position_at
+        if msg is None or at is None:
+            return None
+        hdg = int(msg.hdg)
+        return Fix(
+            lat_deg=int(msg.lat) / 1e7,
+            lon_deg=int(msg.lon) / 1e7,
+            altitude_m=int(msg.relative_alt) / 1000.0,
+            heading_deg=None if hdg == UNKNOWN_HEADING else hdg / 100.0,
+            at=at,
+        )
 
     def stream_facts(self) -> StreamFacts:
         """Per-type counts, last heartbeat, last message and reboots (for the keeper)."""

@@ -66,7 +66,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from roost_agent.health import HealthTracker, Motion
+from roost_agent.health import Fix, HealthTracker, Motion
 from roost_agent.signing import LinkSigning
 from roost_api.autopilot import AutopilotSpec
 from roost_api.meta import Stack
@@ -793,3 +793,7 @@ class AutopilotLink:
     def motion(self) -> Motion | None:
         """The autopilot's last altitude and vertical speed."""
         return self.tracker.motion()
+
+    def fix(self) -> Fix | None:
+        """The autopilot's last position and heading (decoded now, not by the reader)."""
+        return self.tracker.fix()

@@ -21,7 +21,9 @@ primary, and a ``command`` executed once per id); SIGTERM/SIGINT stop the agent.
 A configuration the agent cannot fly with (an autopilot connection URL it could not
 open, a signing key it cannot use) is refused at start with one line on stderr and exit
 status 2, never a traceback. MAVLink signing: ``--signing`` and ``--signing-keys`` (see
-:mod:`roost_agent.signing`).
+:mod:`roost_agent.signing`). Optional local endpoints, both off by default: Prometheus
+metrics (``--metrics-port``, :mod:`roost_agent.metrics`) and the live telemetry stream
+``roost dashboard`` follows (``--telemetry-port``, :mod:`roost_agent.telemetry`).
 """
 
 from __future__ import annotations
@@ -49,6 +51,7 @@ from roost_api.autopilot import AutopilotSpec, RedundantAutopilotSpec
 
 if TYPE_CHECKING:
     from roost_agent.kube import AgentKube
+    from roost_agent.telemetry import TelemetryServer
 
 log = logging.getLogger("roost_agent")
 
@@ -161,8 +164,40 @@ def build_parser() -> argparse.ArgumentParser:
         help="address the metrics endpoint binds (the agent runs on the host network: "
         "127.0.0.1 keeps it on the vehicle; the node's address lets Prometheus scrape it)",
     )
+    parser.add_argument(
+        "--telemetry-port",
+        type=telemetry_port,
+        default=os.environ.get("ROOST_AGENT_TELEMETRY_PORT", "0"),
+        help="serve the live telemetry stream (WebSocket, <= 10 Hz) on this port; auto: a "
+        'free port, announced on stdout as {"telemetry": URL}; 0: off, the default '
+        "(see docs/dashboard.md)",
+    )
+    parser.add_argument(
+        "--telemetry-address",
+        default=os.environ.get("ROOST_AGENT_TELEMETRY_ADDRESS", "127.0.0.1"),
+        help="address the telemetry stream binds (127.0.0.1 keeps it on the vehicle)",
+    )
+    parser.add_argument(
+        "--telemetry-origin",
+        default=os.environ.get("ROOST_AGENT_TELEMETRY_ORIGIN") or None,
+        metavar="LAT,LON",
+        help="where the stream's north/east metres start (default: the first position)",
+    )
     parser.add_argument("--log-level", default="INFO")
     return parser
+
+
+def telemetry_port(text: str) -> int | None:
+    """``--telemetry-port``: a port, ``auto`` (None: the system picks) or 0 (off)."""
+    if text == "auto":
+        return None
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a port, auto or 0, not {text!r}") from None
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"port {port} is out of range")
+    return port
 
 
 def refuse(message: str) -> SystemExit:
@@ -226,6 +261,29 @@ class JsonLines:
         with self._lock:
             self._out.write(line + "\n")
             self._out.flush()
+
+
+def start_telemetry(
+    args: argparse.Namespace, agent: Agent, out: JsonLines
+) -> TelemetryServer | None:
+    """The telemetry stream when ``--telemetry-port`` asks for it; flying goes on without it."""
+    if args.telemetry_port == 0:
+        return None
+    # websockets is imported only when the stream is on (resident memory).
+    from roost_agent.telemetry import TelemetryServer  # noqa: PLC0415
+    from roost_api.telemetry import Origin  # noqa: PLC0415
+
+    try:
+        origin = Origin.parse(args.telemetry_origin) if args.telemetry_origin else None
+        server = TelemetryServer(
+            agent, address=args.telemetry_address, port=args.telemetry_port or 0, origin=origin
+        )
+    except (OSError, ValueError) as exc:
+        log.error("cannot serve telemetry (%s); running without the stream", exc)
+        return None
+    log.info("telemetry on %s", server.url)
+    out.write({"telemetry": server.url})
+    return server
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -322,11 +380,14 @@ def main(argv: list[str] | None = None) -> int:
             )
         else:
             log.info("metrics on http://%s:%d/metrics", args.metrics_address, metrics.port)
+    telemetry = start_telemetry(args, agent, out)
     try:
         while not stop.wait(args.status_interval or None):
             links = {name: asdict(link.counters) for name, link in agent.links.items()}
             out.write({"status": agent.status().to_api(), "links": links})
     finally:
+        if telemetry is not None:
+            telemetry.close()
         if metrics is not None:
             metrics.close()
         if publisher is not None:

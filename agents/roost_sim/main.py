@@ -5,7 +5,8 @@
     roost-sim run --vehicle px4,ardupilot          # free ports, names fc1, fc2
     roost-sim run --config sims.yaml               # autopilots: [{name, stack, sysid,
                                                    #   udp_out, udp_bind, pty}, ...],
-                                                   # fast_boot, preset_streams, battery
+                                                   # fast_boot, preset_streams, battery,
+                                                   # home_lat_deg, home_lon_deg
     roost-sim run --vehicle px4,px4 --fast-boot    # boots in <1 s (default: as the
                                                    #   firmware: PX4 4 s, ArduCopter 41 s)
     roost-sim run --stack ardupilot --preset-streams --gcs-heartbeat
@@ -63,6 +64,9 @@ def sim_config(options: dict[str, Any]) -> SimConfig:
     for key in ("boot_s", "position_wait_s"):
         if options.get(key) is not None:
             setattr(config, key, float(options[key]))
+    for key in _HOME_KEYS:
+        if options.get(key) is not None:
+            setattr(config, key, float(options[key]))
     config.preset_streams = bool(options.get("preset_streams"))
     config.gcs_heartbeat = bool(options.get("gcs_heartbeat"))
     return config
@@ -86,6 +90,7 @@ def _sim_from_entry(
 
 
 _OPTION_KEYS = ("fast_boot", "boot_s", "position_wait_s", "preset_streams", "gcs_heartbeat")
+_HOME_KEYS = ("home_lat_deg", "home_lon_deg")  # config files only: where the vehicle starts
 
 
 def build_sims(args: argparse.Namespace) -> list[SimulatedAutopilot]:
@@ -102,7 +107,8 @@ def build_sims(args: argparse.Namespace) -> list[SimulatedAutopilot]:
     if args.config:
         document = yaml.safe_load(Path(args.config).read_text()) or {}
         entries = document.get("autopilots", [])
-        options.update({k: document[k] for k in _OPTION_KEYS if document.get(k) is not None})
+        keys = (*_OPTION_KEYS, *_HOME_KEYS)
+        options.update({k: document[k] for k in keys if document.get(k) is not None})
         layout = layout or document.get("battery")
     else:
         entries = [

@@ -24,6 +24,8 @@ STARLING_LABEL_VEHICLE_TYPE = "starling.dev/vehicle-type"
 
 # Node annotation listing every label/taint key Roost set; only these are ever removed.
 ANNOTATION_MANAGED_LABELS = f"{PREFIX}managed-labels"
+# A Vehicle's agent telemetry stream (ws://HOST:PORT/), read by `roost dashboard`.
+ANNOTATION_TELEMETRY = f"{PREFIX}telemetry"
 
 # Taint keeping ordinary workloads off vehicle nodes.
 TAINT_VEHICLE = f"{PREFIX}vehicle"

@@ -33,6 +33,8 @@ NO_CLUSTER = (
 )
 
 T = TypeVar("T")
+IN_CLUSTER: Final = "in-cluster"
+SERVICE_ACCOUNT_DIR: Final = Path("/var/run/secrets/kubernetes.io/serviceaccount")
 
 
 @dataclass(frozen=True)
@@ -87,19 +89,31 @@ def resolve_kubeconfig(
     raise CliError(NO_CLUSTER)
 
 
+def in_cluster_target() -> Target:
+    """The pod's service account (a Deployment running ``roost dashboard``)."""
+    return Target(SERVICE_ACCOUNT_DIR, IN_CLUSTER)
+
+
 class Fleet:
     """Roost's custom objects in one cluster, with errors a user can act on."""
 
     def __init__(self, target: Target) -> None:
         from kubernetes import client  # noqa: PLC0415 - only commands that talk to a cluster
+        from kubernetes import config as k8s_config  # noqa: PLC0415
 
         from roost_kube.client import Kube  # noqa: PLC0415 - imports the client
 
         self.target = target
         try:
-            configuration = kubeconfig.load(target.all_files, target.context)
+            if target.source == IN_CLUSTER:
+                configuration = client.Configuration()
+                k8s_config.load_incluster_config(client_configuration=configuration)  # type: ignore[no-untyped-call]
+            else:
+                configuration = kubeconfig.load(target.all_files, target.context)
         except kubeconfig.KubeconfigError as error:
             raise CliError(f"kubeconfig ({target.source}): {error}") from None
+        except k8s_config.ConfigException as error:
+            raise CliError(f"in-cluster service account: {error}") from None
         # Fail fast on a dead server: one retry, not urllib3's default three with backoff.
         configuration.retries = 1
         self.kube = Kube(

@@ -26,8 +26,9 @@ from rich.text import Text
 from typer._click.exceptions import NoArgsIsHelpError  # typer >= 0.29 vendors click
 
 from roost_api.autopilot import CommandAction
+from roost_api.telemetry import Origin
 from roost_cli import actions, render, tables, view
-from roost_cli.cluster import Fleet, resolve_kubeconfig
+from roost_cli.cluster import Fleet, in_cluster_target, resolve_kubeconfig
 from roost_cli.errors import CliError
 from roost_cli.sandbox import plan, runner, sims
 from roost_cli.sandbox import state as sandbox_state
@@ -294,6 +295,117 @@ def fault(
     console.print(f"{vehicle}/{autopilot}: faults now {shown}. Watch with `roost status -w`.")
 
 
+def _agent_flag(text: str) -> tuple[str, str]:
+    vehicle, sep, url = text.partition("=")
+    if not sep or not vehicle or not url.startswith(("ws://", "wss://")):
+        raise typer.BadParameter(f"expected VEHICLE=ws://HOST:PORT/, not {text!r}")
+    return vehicle, url
+
+
+def _origin_flag(text: str) -> Origin:
+    try:
+        return Origin.parse(text)
+    except ValueError as error:
+        raise typer.BadParameter(str(error)) from None
+
+
+@app.command()
+def dashboard(
+    ctx: typer.Context,
+    *,
+    host: Annotated[str, typer.Option(help="Address to serve on.")] = "127.0.0.1",
+    port: Annotated[
+        int, typer.Option(min=0, max=65535, help="Port to serve on (0: a free one).")
+    ] = 8765,
+    read_only: Annotated[
+        bool, typer.Option("--read-only", help="No actions: only watch the fleet.")
+    ] = False,
+    agent: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="VEHICLE=ws://HOST:PORT/: where a vehicle's agent streams its telemetry "
+            "(repeatable; default: the sandbox's agents, then each Vehicle's "
+            "roost.dev/telemetry annotation)."
+        ),
+    ] = None,
+    origin: Annotated[
+        str | None,
+        typer.Option(help="LAT,LON of the arena's 0,0 (default: the first agent's origin)."),
+    ] = None,
+    tiles: Annotated[
+        str | None,
+        typer.Option(help="XYZ tile URL template ({z}/{x}/{y}) drawn under the arena."),
+    ] = None,
+    cluster: Annotated[
+        bool,
+        typer.Option(
+            help="Read the cluster (--no-cluster: only the --agent streams, read-only; "
+            "for standalone agents)."
+        ),
+    ] = True,
+    in_cluster: Annotated[
+        bool,
+        typer.Option(
+            "--in-cluster", help="Use the pod's service account (the chart's Deployment)."
+        ),
+    ] = False,
+) -> None:
+    """A live fleet view in the browser: arena, fleet, missions, timeline, guarded actions.
+
+    It acts (abort, e-stop) with your kubeconfig's identity; --read-only removes the
+    actions. See docs/dashboard.md.
+    """
+    from roost_cli.dashboard import server  # noqa: PLC0415 - imports starlette and uvicorn
+    from roost_cli.dashboard.sources import Endpoints  # noqa: PLC0415
+
+    context = _context(ctx)
+    if not cluster:
+        fleet = None
+    elif in_cluster:
+        fleet = Fleet(in_cluster_target())
+    else:
+        fleet = context.fleet()
+    flags = dict(_agent_flag(text) for text in agent or [])
+    if fleet is None and not flags:
+        raise CliError("--no-cluster shows only the agents' streams: name them with --agent")
+
+    def sandbox_endpoints() -> dict[str, str]:
+        recorded = sandbox_state.running(context.sandbox_dir)
+        if recorded is None or fleet is None or recorded.kubeconfig is None:
+            return {}
+        if Path(recorded.kubeconfig).resolve() not in {
+            path.resolve() for path in fleet.target.all_files
+        }:
+            return {}  # another cluster than the sandbox's
+        return {v.name: v.telemetry for v in recorded.vehicles if v.telemetry}
+
+    settings = server.Settings(
+        host=host,
+        port=port,
+        read_only=read_only,
+        origin=_origin_flag(origin) if origin else None,
+        tiles=tiles,
+    )
+    if fleet is None:
+        where, mode = server.NO_CLUSTER, "read-only"
+    else:
+        where = fleet.server
+        mode = (
+            "read-only" if read_only else f"acting as the kubeconfig's user ({fleet.target.shown})"
+        )
+    with contextlib.suppress(KeyboardInterrupt):
+        server.serve(
+            fleet,
+            settings,
+            Endpoints(flags, sandbox_endpoints),
+            announce=lambda url: console.print(
+                f"Roost dashboard on {url} — {where}, {mode}. Ctrl-C stops it.",
+                highlight=False,
+                soft_wrap=True,
+            ),
+        )
+
+
 @sandbox_app.command("up")
 def sandbox_up(
     ctx: typer.Context,
@@ -318,6 +430,12 @@ def sandbox_up(
             "creating delays (--no-fault: none)."
         ),
     ] = None,
+    dashboard: Annotated[
+        bool, typer.Option(help="Serve `roost dashboard` for the sandbox (its URL is printed).")
+    ] = True,
+    dashboard_port: Annotated[
+        int, typer.Option(min=0, max=65535, help="The dashboard's port (0: a free one).")
+    ] = runner.DEFAULT_DASHBOARD_PORT,
 ) -> None:
     """Start the sandbox and keep it running until Ctrl-C (`make demo` runs this)."""
     options = runner.Options(
@@ -327,6 +445,8 @@ def sandbox_up(
         fault_after_s=fault_after,
         live=live and console.is_terminal,
         mission=mission,
+        dashboard=dashboard,
+        dashboard_port=dashboard_port,
     )
     runner.Sandbox(options, console).run()
 

@@ -97,7 +97,7 @@ def _name(obj: RawObject) -> str:
     return str(obj.get("metadata", {}).get("name", ""))
 
 
-def _namespaced_name(obj: RawObject) -> str:
+def namespaced_name(obj: RawObject) -> str:
     metadata = obj.get("metadata", {})
     return f"{metadata.get('namespace', '')}/{metadata.get('name', '')}"
 
@@ -169,7 +169,7 @@ def _mission_of_vehicle(vehicle: str, claimed_by: str | None, missions: Sequence
     listed by a mission that has not finished (claims are released when it ends).
     """
     for mission in missions:
-        key = _namespaced_name(mission)
+        key = namespaced_name(mission)
         status = _parse(MissionStatus, mission.get("status"))
         if status is None:
             continue
@@ -229,14 +229,14 @@ def fleet_rows(
 def mission_rows(missions: Iterable[RawObject], now: datetime) -> list[MissionRow]:
     """The ``roost missions`` table: one row per Mission, sorted by namespace and name."""
     rows = []
-    for mission in sorted(missions, key=_namespaced_name):
+    for mission in sorted(missions, key=namespaced_name):
         spec = _parse(MissionSpec, mission.get("spec"))
         status = _parse(MissionStatus, mission.get("status")) or MissionStatus()
         degraded = find_condition(status.conditions, "Degraded")
         required = str(spec.vehicles.count) if spec else "?"
         rows.append(
             MissionRow(
-                name=_namespaced_name(mission),
+                name=namespaced_name(mission),
                 phase=str(status.phase),
                 assigned=f"{status.assigned_count}/{required}",
                 vehicles=", ".join(f"{v.name} {v.phase}" for v in status.vehicles) or NONE,
@@ -262,7 +262,7 @@ class EventRow:
     message: str
 
 
-def _event_time(event: RawObject) -> str:
+def event_time(event: RawObject) -> str:
     """The event's latest time as an ISO string (they sort correctly as text)."""
     series = event.get("series") or {}
     return str(
@@ -274,24 +274,28 @@ def _event_time(event: RawObject) -> str:
     )
 
 
-def event_rows(events: Iterable[RawObject], now: datetime, limit: int) -> list[EventRow]:
-    """The ``limit`` most recent Events about roost.dev objects, oldest first.
-
-    Events are how operator and agents explain their decisions (failover, safety routine,
-    claims), so the fleet view shows them next to the state they changed.
-    """
-    roost = [
+def roost_events(events: Iterable[RawObject]) -> list[RawObject]:
+    """The Events about roost.dev objects."""
+    return [
         e
         for e in events
         if str((e.get("involvedObject") or e.get("regarding") or {}).get("apiVersion", ""))
         .split("/")[0]
         .endswith(GROUP)
     ]
-    newest = sorted(roost, key=_event_time)[-limit:] if limit > 0 else []
+
+
+def event_rows(events: Iterable[RawObject], now: datetime, limit: int) -> list[EventRow]:
+    """The ``limit`` most recent Events about roost.dev objects, oldest first.
+
+    Events are how operator and agents explain their decisions (failover, safety routine,
+    claims), so the fleet view shows them next to the state they changed.
+    """
+    newest = sorted(roost_events(events), key=event_time)[-limit:] if limit > 0 else []
     rows = []
     for event in newest:
         involved = event.get("involvedObject") or event.get("regarding") or {}
-        stamp = _event_time(event)
+        stamp = event_time(event)
         when = datetime.fromisoformat(stamp.replace("Z", "+00:00")) if stamp else None
         rows.append(
             EventRow(

@@ -206,6 +206,19 @@ class Kube:
             item.setdefault("kind", resource.kind)
         return items
 
+    def list_with_version(
+        self, resource: Resource, *, namespace: str | None = None, field_selector: str = ""
+    ) -> tuple[list[Obj], str]:
+        """Every object of a kind (matching ``field_selector``) and the list's
+        resourceVersion (to watch from)."""
+        query = {"fieldSelector": field_selector} if field_selector else None
+        result = self.request("GET", resource.collection_path(namespace), query=query) or {}
+        items: list[Obj] = result.get("items", [])
+        for item in items:  # list items carry no apiVersion/kind; restore them
+            item.setdefault("apiVersion", resource.api_version)
+            item.setdefault("kind", resource.kind)
+        return items, str(result.get("metadata", {}).get("resourceVersion", ""))
+
     def watch(
         self, resource: Resource, name: str, *, namespace: str | None = None, timeout_s: int
     ) -> Iterator[tuple[str, Obj]]:
@@ -215,12 +228,36 @@ class Kube:
         the connection fails. The caller simply watches again: each watch begins with
         the object as it is, so nothing missed in between is lost.
         """
+        query = {"fieldSelector": f"metadata.name={name}"}
+        return self._watch(resource, namespace, query, timeout_s, f"watch of {name}")
+
+    def watch_collection(
+        self,
+        resource: Resource,
+        *,
+        resource_version: str,
+        namespace: str | None = None,
+        field_selector: str = "",
+        timeout_s: int,
+    ) -> Iterator[tuple[str, Obj]]:
+        """Watch every object of a kind from ``resource_version`` (a list's, see
+        :meth:`list_with_version`). A version the server no longer has raises
+        :class:`~roost_kube.errors.ApiError` with status 410: list again."""
+        query = {"resourceVersion": resource_version, "allowWatchBookmarks": "true"}
+        if field_selector:
+            query["fieldSelector"] = field_selector
+        return self._watch(resource, namespace, query, timeout_s, f"watch of {resource.plural}")
+
+    def _watch(
+        self,
+        resource: Resource,
+        namespace: str | None,
+        query: Mapping[str, str],
+        timeout_s: int,
+        what: str,
+    ) -> Iterator[tuple[str, Obj]]:
         path = resource.collection_path(namespace)
-        query = {
-            "watch": "true",
-            "fieldSelector": f"metadata.name={name}",
-            "timeoutSeconds": str(timeout_s),
-        }
+        query = {**query, "watch": "true", "timeoutSeconds": str(timeout_s)}
         response = self._send(
             "GET",
             path,
@@ -248,11 +285,7 @@ class Kube:
             if transport is None:
                 raise
             raise ApiUnavailableError(
-                None,
-                "WATCH",
-                path,
-                f"watch of {name}: {type(exc).__name__}: {exc}",
-                transport=transport,
+                None, "WATCH", path, f"{what}: {type(exc).__name__}: {exc}", transport=transport
             ) from exc
         finally:
             response.response.release_conn()

@@ -10,79 +10,23 @@ the processes the sandbox started is left.
 
 from __future__ import annotations
 
-import contextlib
 import json
-import os
-import signal
 import subprocess
-import sys
 import time
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
 from roost_cli.sandbox import state as sandbox_state
+from tests.support.sandbox import BIN, RunningSandbox, await_running, await_step, running_sandbox
 
 pytestmark = [pytest.mark.cluster, pytest.mark.slow, pytest.mark.timeout(600)]
 
-BIN = Path(sys.executable).parent
 VEHICLES = 2
 FAULT_VEHICLE = "drone-1"
-UP_TIMEOUT_S = 240.0
 STEP_TIMEOUT_S = 90.0
-
-
-@dataclass
-class RunningSandbox:
-    """A `roost sandbox up` subprocess and how to talk to what it started."""
-
-    directory: Path
-    process: subprocess.Popen[str]
-    output: Path
-
-    def roost(self, *args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
-        env = {**os.environ, "COLUMNS": "220", sandbox_state.DIR_ENV: str(self.directory)}
-        env.pop("KUBECONFIG", None)
-        return subprocess.run(
-            [str(BIN / "roost"), *args],
-            capture_output=True,
-            text=True,
-            timeout=120,
-            check=check,
-            env=env,
-        )
-
-    def kubectl(self, *args: str) -> str:
-        recorded = sandbox_state.load(self.directory)
-        assert recorded is not None and recorded.kubeconfig is not None
-        return subprocess.run(
-            [str(BIN / "kubectl"), "--kubeconfig", recorded.kubeconfig, *args],
-            capture_output=True,
-            text=True,
-            timeout=60,
-            check=True,
-        ).stdout
-
-    def get(self, kind: str, name: str, namespace: str | None = None) -> dict[str, Any]:
-        scope = ["-n", namespace] if namespace else []
-        obj: dict[str, Any] = json.loads(self.kubectl("get", kind, name, *scope, "-o", "json"))
-        return obj
-
-    def log(self) -> str:
-        return self.output.read_text(errors="replace")
-
-
-def _await(what: str, check: Callable[[], bool], sandbox: RunningSandbox, timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not check():
-        if sandbox.process.poll() is not None:
-            pytest.fail(f"roost sandbox up exited while waiting for {what}:\n{sandbox.log()}")
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout_s:.0f} s waiting for {what}:\n{sandbox.log()}")
-        time.sleep(0.5)
 
 
 def _identities(directory: Path) -> dict[int, float]:
@@ -105,51 +49,19 @@ def sandbox(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[RunningS
     """``roost sandbox up`` headless without the scripted fault; an indirect parameter adds
     arguments (``--mission sync-paths``)."""
     extra: list[str] = list(getattr(request, "param", ()))
-    directory = tmp_path / "sandbox"
-    output = tmp_path / "sandbox-up.log"
-    with output.open("w") as out:
-        process = subprocess.Popen(
-            [
-                str(BIN / "roost"),
-                "--sandbox-dir",
-                str(directory),
-                "sandbox",
-                "up",
-                "--vehicles",
-                str(VEHICLES),
-                "--no-live",
-                "--no-fault",
-                *extra,
-            ],
-            stdout=out,
-            stderr=subprocess.STDOUT,
-            text=True,
-            env={**os.environ, "COLUMNS": "200"},
-        )
-    running = RunningSandbox(directory, process, output)
-    try:
+    args = ["--vehicles", str(VEHICLES), "--no-live", "--no-fault", "--dashboard-port", "0"]
+    with running_sandbox(tmp_path, [*args, *extra]) as running:
         yield running
-    finally:
-        if process.poll() is None:
-            with contextlib.suppress(subprocess.SubprocessError):
-                running.roost("sandbox", "down", check=False)
-        if process.poll() is None:
-            process.send_signal(signal.SIGKILL)
-        process.wait(timeout=30)
 
 
 def test_sandbox_flies_a_mission_fails_over_and_leaves_nothing_behind(
     sandbox: RunningSandbox,
 ) -> None:
-    def up() -> bool:
-        recorded = sandbox_state.load(sandbox.directory)
-        return recorded is not None and recorded.phase == sandbox_state.Phase.RUNNING
-
-    _await("the sandbox to be running", up, sandbox, UP_TIMEOUT_S)
-    recorded = sandbox_state.load(sandbox.directory)
-    assert recorded is not None
+    recorded = await_running(sandbox)
     assert [v.name for v in recorded.vehicles] == ["drone-1", "drone-2"]
     assert "export KUBECONFIG=" in sandbox.log()
+    assert recorded.dashboard is not None and recorded.dashboard in sandbox.log()
+    assert all(v.telemetry for v in recorded.vehicles)
 
     def mission_phase() -> str | None:
         phase: str | None = (
@@ -157,18 +69,20 @@ def test_sandbox_flies_a_mission_fails_over_and_leaves_nothing_behind(
         )
         return phase
 
-    _await("Mission survey to run", lambda: mission_phase() == "Running", sandbox, STEP_TIMEOUT_S)
+    await_step(
+        "Mission survey to run", lambda: mission_phase() == "Running", sandbox, STEP_TIMEOUT_S
+    )
 
     def active_of(vehicle: str) -> str | None:
         status = sandbox.get("redundantautopilot", vehicle).get("status", {})
         active: str | None = status.get("activeAutopilot")
         return active
 
-    _await("the agent to report", lambda: active_of(FAULT_VEHICLE) == "px4-a", sandbox, 60)
+    await_step("the agent to report", lambda: active_of(FAULT_VEHICLE) == "px4-a", sandbox, 60)
     fault = sandbox.roost("fault", FAULT_VEHICLE, "px4-a", "silence")
     assert "faults now silence" in fault.stdout
 
-    _await("the failover", lambda: active_of(FAULT_VEHICLE) == "px4-b", sandbox, STEP_TIMEOUT_S)
+    await_step("the failover", lambda: active_of(FAULT_VEHICLE) == "px4-b", sandbox, STEP_TIMEOUT_S)
     ra = sandbox.get("redundantautopilot", FAULT_VEHICLE)
     last = ra["status"]["lastFailover"]
     assert (last["from"], last["to"], last["trigger"]) == ("px4-a", "px4-b", "Automatic")
@@ -191,7 +105,7 @@ def test_sandbox_flies_a_mission_fails_over_and_leaves_nothing_behind(
         )["items"]
         return any("px4-b" in e.get("message", "") for e in events)
 
-    _await("an Event about the failover", failover_event, sandbox, 30)
+    await_step("an Event about the failover", failover_event, sandbox, 30)
 
     def vehicle_in_mission(name: str) -> dict[str, Any]:
         mission = sandbox.get("mission", "survey", "default")
@@ -199,7 +113,7 @@ def test_sandbox_flies_a_mission_fails_over_and_leaves_nothing_behind(
         return entry
 
     # The Mission's onFailover is AbortVehicle: drone-1 lands and leaves, drone-2 flies on.
-    _await(
+    await_step(
         "the mission to abort drone-1",
         lambda: vehicle_in_mission(FAULT_VEHICLE)["phase"] in ("Aborting", "Aborted"),
         sandbox,
@@ -239,7 +153,7 @@ def test_sandbox_flies_a_mission_fails_over_and_leaves_nothing_behind(
     aborted = sandbox.roost("abort", "survey")
     assert "abort requested" in aborted.stdout
     assert sandbox.get("mission", "survey", "default")["spec"]["abort"] is True
-    _await(
+    await_step(
         "the mission to end",
         lambda: mission_phase() in ("Aborting", "Aborted", "Failed"),
         sandbox,
@@ -255,17 +169,6 @@ def test_sandbox_flies_a_mission_fails_over_and_leaves_nothing_behind(
     assert sandbox_state.load(sandbox.directory) is None
 
 
-def _running(sandbox: RunningSandbox) -> sandbox_state.SandboxState:
-    def up() -> bool:
-        recorded = sandbox_state.load(sandbox.directory)
-        return recorded is not None and recorded.phase == sandbox_state.Phase.RUNNING
-
-    _await("the sandbox to be running", up, sandbox, UP_TIMEOUT_S)
-    recorded = sandbox_state.load(sandbox.directory)
-    assert recorded is not None
-    return recorded
-
-
 @pytest.mark.parametrize("sandbox", [("--mission", "sync-paths")], indirect=True)
 def test_the_sync_paths_mission_flies_through_the_hubs_and_goes_on_without_a_failed_vehicle(
     sandbox: RunningSandbox,
@@ -275,7 +178,7 @@ def test_the_sync_paths_mission_flies_through_the_hubs_and_goes_on_without_a_fai
     connection to the hub is untouched), the Mission's ``onFailover: AbortVehicle`` takes
     it out, the sandbox stops its follower as the kubelet would stop its pod, and drone-1
     flies every task without waiting for drone-2's delay reports."""
-    recorded = _running(sandbox)
+    recorded = await_running(sandbox)
     hubs = {v.name: v.hub for v in recorded.vehicles}
     assert all(hub is not None and hub.startswith("127.0.0.1:") for hub in hubs.values())
     for name, hub in hubs.items():
@@ -285,7 +188,7 @@ def test_the_sync_paths_mission_flies_through_the_hubs_and_goes_on_without_a_fai
     def legs_started() -> bool:
         return monitor_log.is_file() and "starting " in monitor_log.read_text()
 
-    _await("the monitor to start the legs", legs_started, sandbox, STEP_TIMEOUT_S)
+    await_step("the monitor to start the legs", legs_started, sandbox, STEP_TIMEOUT_S)
     time.sleep(5.0)  # well into leg 1 (20 s)
     fault = sandbox.roost("fault", "drone-2", "apm-a", "silence")
     assert "faults now silence" in fault.stdout
@@ -295,13 +198,13 @@ def test_the_sync_paths_mission_flies_through_the_hubs_and_goes_on_without_a_fai
         entry: dict[str, Any] = next(v for v in mission["status"]["vehicles"] if v["name"] == name)
         return entry
 
-    _await(
+    await_step(
         "the mission to take drone-2 out",
         lambda: mission_vehicle("drone-2")["phase"] in ("Aborting", "Aborted"),
         sandbox,
         STEP_TIMEOUT_S,
     )
-    _await(
+    await_step(
         "the sandbox to stop drone-2's follower",
         lambda: "drone-2 left mission default/sync-paths" in sandbox.log(),
         sandbox,
@@ -310,7 +213,7 @@ def test_the_sync_paths_mission_flies_through_the_hubs_and_goes_on_without_a_fai
     ra = sandbox.get("redundantautopilot", "drone-2")
     assert ra["status"]["activeAutopilot"] == "apm-b"
     results_file = sandbox.directory / "mission-results" / "results.json"
-    _await("drone-1 to finish the mission", results_file.is_file, sandbox, 180)
+    await_step("drone-1 to finish the mission", results_file.is_file, sandbox, 180)
     results = json.loads(results_file.read_text())
     assert results["drone-2"]["type"] == "leave"
     assert results["drone-1"]["type"] == "done"

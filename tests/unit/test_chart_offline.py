@@ -61,6 +61,13 @@ VALUE_SETS: dict[str, tuple[dict[str, Any], tuple[Path, ...]]] = {
         },
         (),
     ),
+    "dashboard": (
+        {
+            "dashboard": {"enabled": True, "origin": "47.3977,8.5456"},
+            "agent": {"telemetry": {"enabled": True, "bindNodeAddress": True}},
+        },
+        (),
+    ),
     "no-metrics": (
         {"operator": {"metrics": {"enabled": False}}, "agent": {"metrics": {"enabled": False}}},
         (),
@@ -486,3 +493,46 @@ def test_grafana_dashboard_ships_valid_json_using_only_documented_metrics() -> N
     )
     assert used and used <= documented, used - documented
     assert not [m for m in _render_set("defaults") if m["kind"] == "ConfigMap"]
+
+
+# -- dashboard -------------------------------------------------------------------------
+
+
+def test_dashboard_is_off_by_default_and_agents_stream_nothing() -> None:
+    manifests = _render_set("defaults")
+    assert not [m for m in manifests if m["metadata"]["name"].endswith("-dashboard")]
+    container = find(manifests, "DaemonSet", "-agent")["spec"]["template"]["spec"]["containers"][0]
+    assert not [a for a in container["args"] if a.startswith("--telemetry")]
+
+
+def test_dashboard_runs_read_only_with_a_role_that_only_reads() -> None:
+    manifests = _render_set("dashboard")
+    role = find(manifests, "ClusterRole", "-dashboard")
+    verbs = {verb for rule in role["rules"] for verb in rule["verbs"]}
+    assert verbs == {"get", "list", "watch"}
+    resources = {r for rule in role["rules"] for r in rule["resources"]}
+    assert resources == {"vehicles", "redundantautopilots", "missions", "events"}
+    binding = find(manifests, "ClusterRoleBinding", "-dashboard")
+    deployment = find(manifests, "Deployment", "-dashboard")
+    pod = deployment["spec"]["template"]["spec"]
+    assert binding["subjects"][0]["name"] == pod["serviceAccountName"]
+    [container] = pod["containers"]
+    assert container["command"] == ["roost"]
+    assert container["args"][:3] == ["dashboard", "--in-cluster", "--read-only"]
+    assert "--origin=47.3977,8.5456" in container["args"]
+    assert container["securityContext"]["readOnlyRootFilesystem"] is True
+    service = find(manifests, "Service", "-dashboard")
+    assert service["spec"]["selector"] == deployment["spec"]["selector"]["matchLabels"]
+
+
+def test_agent_telemetry_binds_the_node_address_only_when_asked() -> None:
+    daemonset = find(_render_set("dashboard"), "DaemonSet", "-agent")
+    container = daemonset["spec"]["template"]["spec"]["containers"][0]
+    assert "--telemetry-port=9467" in container["args"]
+    assert {
+        "name": "ROOST_AGENT_TELEMETRY_ADDRESS",
+        "valueFrom": {"fieldRef": {"fieldPath": "status.hostIP"}},
+    } in container["env"]
+    assert {"name": "telemetry", "containerPort": 9467, "hostPort": 9467, "protocol": "TCP"} in (
+        container["ports"]
+    )

@@ -6,6 +6,8 @@ sandbox test runs them against a live fleet.
 
 from __future__ import annotations
 
+import math
+import socket
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
@@ -13,6 +15,7 @@ import pytest
 
 from roost_cli.errors import CliError
 from roost_cli.sandbox import director, plan, sims
+from roost_cli.sandbox.runner import announced_telemetry, port_free
 from roost_cli.tables import format_latency
 
 FAULT_AT = datetime(2026, 5, 1, 12, 0, 0, 600000, tzinfo=UTC)
@@ -84,6 +87,8 @@ def test_latency_reads_well_at_every_scale(ms: float, text: str) -> None:
 def test_each_sim_binds_a_port_of_its_own_choosing() -> None:
     [vehicle] = plan.plan_fleet(1)
     assert sims.sim_config(vehicle) == {
+        "home_lat_deg": 47.397742,
+        "home_lon_deg": 8.545594,
         "fast_boot": True,
         "preset_streams": True,
         "autopilots": [
@@ -91,6 +96,13 @@ def test_each_sim_binds_a_port_of_its_own_choosing() -> None:
             {"name": "px4-b", "stack": "px4", "sysid": 2, "udp_bind": "127.0.0.1:0"},
         ],
     }
+
+
+def test_sandbox_vehicles_start_apart_on_an_east_west_line() -> None:
+    first, second = sims.home(0), sims.home(1)
+    assert first[0] == second[0]
+    metres = (second[1] - first[1]) * 111_320.0 * math.cos(math.radians(first[0]))
+    assert metres == pytest.approx(sims.SPACING_M)
 
 
 def test_fault_requests_follow_the_simulators_fault_table() -> None:
@@ -102,3 +114,16 @@ def test_fault_requests_follow_the_simulators_fault_table() -> None:
     assert sims.fault_message("clear", None) == {"op": "clear", "kind": None}
     with pytest.raises(CliError, match="unknown fault 'melt': one of silence"):
         sims.fault_message("melt", None)
+
+
+def test_the_sandbox_reads_the_url_each_agent_announces() -> None:
+    log = '2026 INFO roost_agent: started\n{"event": "Started"}\n{"telemetry": "ws://127.0.0.1:4242/"}\n'
+    assert announced_telemetry(log) == "ws://127.0.0.1:4242/"
+    assert announced_telemetry('{"telemetry": ') is None
+
+
+def test_a_bound_port_is_not_free() -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        assert not port_free(taken.getsockname()[1])

@@ -23,7 +23,9 @@ from another terminal can stop them even if this process was killed.
 from __future__ import annotations
 
 import contextlib
+import json
 import os
+import re
 import shutil
 import signal
 import socket
@@ -61,6 +63,9 @@ NODES_READY_TIMEOUT_S = 120.0
 DOWN_TIMEOUT_S = 60.0
 HEADLESS_POLL_S = 1.0
 LIVE_EVENTS = 6
+ANNOUNCE_TIMEOUT_S = 30.0
+DEFAULT_DASHBOARD_PORT = 8765
+DASHBOARD_ANNOUNCE = re.compile(r"Roost dashboard on (http://\S+/)")
 RUN_DIRECTORIES = ("agents", "sims", "logs", "cluster")
 
 
@@ -75,6 +80,9 @@ class Options:
     live: bool = True
     mission: str | None = None
     """Run that mission's own programs (see :mod:`.missionrun`) instead of the demo."""
+    dashboard: bool = True
+    """Run ``roost dashboard`` (read-write, the sandbox's kubeconfig) beside the fleet."""
+    dashboard_port: int = DEFAULT_DASHBOARD_PORT
 
 
 def _interrupt(signum: int, frame: FrameType | None) -> None:
@@ -192,6 +200,9 @@ class Sandbox:
         self._start_operator()
         self._apply(cluster)
         self._start_agents()
+        self._await_telemetry()
+        if self.options.dashboard:
+            self._start_dashboard()
         if self.options.mission is not None:
             self._start_mission(self.options.mission)
 
@@ -233,9 +244,7 @@ class Sandbox:
             ports = plan.hub_ports(len(self.fleet_plan), udp_port_free, ephemeral_ports_start())
         except ValueError as error:
             raise CliError(str(error)) from None
-        for vehicle, running, port in zip(
-            self.fleet_plan, self.state.vehicles, ports, strict=True
-        ):
+        for vehicle, running, port in zip(self.fleet_plan, self.state.vehicles, ports, strict=True):
             running.hub = f"{plan.HUB_HOST}:{port}"
             connections = {a.name: a.connection for a in running.autopilots}
             documents += [
@@ -275,6 +284,54 @@ class Sandbox:
                 {**self._env(), "NODE_NAME": vehicle.node},
             )
         self._step(f"roost-agent running on {', '.join(v.node for v in self.fleet_plan)}")
+
+    def _await_telemetry(self) -> None:
+        """Record the telemetry URL each agent announces (it binds a free port itself)."""
+        logs = {
+            v.name: self.directory / "logs" / f"roost-agent-{v.name}.log" for v in self.fleet_plan
+        }
+        deadline = time.monotonic() + ANNOUNCE_TIMEOUT_S
+        for vehicle in self.state.vehicles:
+            while vehicle.telemetry is None and time.monotonic() < deadline:
+                with contextlib.suppress(OSError):
+                    vehicle.telemetry = announced_telemetry(logs[vehicle.name].read_text())
+                if vehicle.telemetry is None:
+                    time.sleep(0.1)
+            if vehicle.telemetry is None:
+                self.script.warn(f"the agent of {vehicle.name} announced no telemetry stream")
+        self._save()
+
+    def _start_dashboard(self) -> None:
+        """``roost dashboard`` on the sandbox's cluster and agents; its URL is announced."""
+        assert self.plane is not None
+        port = self.options.dashboard_port
+        if port and not port_free(port):  # another sandbox has it: any free port will do
+            port = 0
+        argv = [
+            console_script("roost"),
+            "--kubeconfig",
+            str(self.plane.kubeconfig),
+            "dashboard",
+            "--port",
+            str(port),
+        ]
+        for vehicle in self.state.vehicles:
+            if vehicle.telemetry:
+                argv += ["--agent", f"{vehicle.name}={vehicle.telemetry}"]
+        proc = self.launcher.start("roost-dashboard", argv, {"COLUMNS": "400"})
+        deadline = time.monotonic() + ANNOUNCE_TIMEOUT_S
+        while self.state.dashboard is None:
+            with contextlib.suppress(OSError):
+                found = DASHBOARD_ANNOUNCE.search(proc.log.read_text())
+                self.state.dashboard = found.group(1) if found else None
+            if self.state.dashboard is not None:
+                break
+            if not proc.alive() or time.monotonic() > deadline:
+                self.script.warn(f"the dashboard did not start; its log: {proc.log}")
+                return
+            time.sleep(0.1)
+        self._save()
+        self._step(f"dashboard on {self.state.dashboard}")
 
     def _start_mission(self, mission: str) -> None:
         """The mission's monitor, then one follower per vehicle flying through its hub."""
@@ -316,6 +373,11 @@ class Sandbox:
                     "\n[bold green]The Roost sandbox is running.[/] In another terminal:"
                 ),
                 Text(f"  export KUBECONFIG={self.plane.kubeconfig}", style="bold"),
+                *(
+                    [Text(f"  open {self.state.dashboard}   # the live dashboard", style="bold")]
+                    if self.state.dashboard
+                    else []
+                ),
                 Text("  kubectl get roost            # every Roost object", style="dim"),
                 Text("  roost status --watch         # this fleet view", style="dim"),
                 Text("  roost sandbox down           # stop it (or Ctrl-C here)", style="dim"),
@@ -466,7 +528,28 @@ def agent_argv(vehicle: plan.VehiclePlan, state_dir: Path) -> list[str]:
         "simulated",
         "--status-interval",
         "0",
+        "--telemetry-port",
+        "auto",
     ]
+
+
+def port_free(port: int) -> bool:
+    """Whether 127.0.0.1:``port`` can be bound now (the dashboard binds it next)."""
+    with socket.socket() as probe:
+        try:
+            probe.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def announced_telemetry(log: str) -> str | None:
+    """The telemetry URL an agent printed (``{"telemetry": URL}``), None before it did."""
+    for line in log.splitlines():
+        if line.startswith('{"telemetry"'):
+            with contextlib.suppress(ValueError):
+                return str(json.loads(line)["telemetry"])
+    return None
 
 
 def stop_recorded(recorded: state.SandboxState) -> list[int]:

@@ -12,6 +12,7 @@ simulator documents (:mod:`roost_sim.faults`).
 
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 from typing import Any
@@ -24,15 +25,28 @@ from roost_cli.sandbox.processes import Launcher, console_script
 from roost_localcluster.processes import ManagedProcess
 from roost_sim.control import request, socket_path
 from roost_sim.faults import FaultKind, check_value
+from roost_sim.model import SimConfig
 
 READY_TIMEOUT_S = 30.0
+SPACING_M = 8.0
+"""Vehicles start this far apart on an east-west line (the dashboard's arena shows them)."""
 CLEAR = "clear"
 BIND_HOST = "127.0.0.1"
 
 
+def home(index: int) -> tuple[float, float]:
+    """Where sandbox vehicle ``index`` starts: :data:`SPACING_M` east of the one before."""
+    base = SimConfig()
+    metres_per_degree = 111_320.0 * math.cos(math.radians(base.home_lat_deg))
+    return base.home_lat_deg, base.home_lon_deg + index * SPACING_M / metres_per_degree
+
+
 def sim_config(vehicle: plan.VehiclePlan) -> dict[str, Any]:
     """``roost-sim run --config`` for one vehicle: its autopilots, each on a port it picks."""
+    lat, lon = home(vehicle.index)
     return {
+        "home_lat_deg": lat,
+        "home_lon_deg": round(lon, 9),
         # A demo should not wait for GPS: sub-second start-up. ArduPilot streams as with
         # its SRn_* stream-rate parameters set, for agents that do not request streams.
         "fast_boot": True,

@@ -61,6 +61,8 @@ class SandboxVehicle(BaseModel):
     autopilots: list[SimulatedAutopilot]
     hub: str | None = None
     """``HOST:PORT`` of the agent's MAVLink hub: connect a client (MAVProxy, a mission) here."""
+    telemetry: str | None = None
+    """The agent's telemetry stream (``ws://127.0.0.1:P/``), once it announced it."""
 
 
 class SandboxState(BaseModel):
@@ -75,6 +77,8 @@ class SandboxState(BaseModel):
     processes: list[dict[str, Any]] = Field(default_factory=list)
     """``ManagedProcess.to_state()`` of each process the sandbox started itself."""
     vehicles: list[SandboxVehicle] = Field(default_factory=list)
+    dashboard: str | None = None
+    """The URL ``roost dashboard`` serves the sandbox on, once it announced it."""
 
     @property
     def cluster_dir(self) -> Path:

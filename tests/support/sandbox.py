@@ -1,0 +1,118 @@
+"""A ``roost sandbox up`` subprocess, as a user starts it, for the end-to-end tests.
+
+:func:`running_sandbox` starts the real CLI (control plane, operator, agents, simulated
+autopilots, the dashboard) in a directory of the test's own and stops it with
+``roost sandbox down`` afterwards, whatever happened; :class:`RunningSandbox` plays the
+user in a second terminal (``roost`` commands, kubectl).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from roost_cli.sandbox import state as sandbox_state
+
+BIN = Path(sys.executable).parent
+UP_TIMEOUT_S = 240.0
+
+
+@dataclass
+class RunningSandbox:
+    """A `roost sandbox up` subprocess and how to talk to what it started."""
+
+    directory: Path
+    process: subprocess.Popen[str]
+    output: Path
+
+    def roost(self, *args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
+        env = {**os.environ, "COLUMNS": "220", sandbox_state.DIR_ENV: str(self.directory)}
+        env.pop("KUBECONFIG", None)
+        return subprocess.run(
+            [str(BIN / "roost"), *args],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            check=check,
+            env=env,
+        )
+
+    def kubectl(self, *args: str) -> str:
+        recorded = sandbox_state.load(self.directory)
+        assert recorded is not None and recorded.kubeconfig is not None
+        return subprocess.run(
+            [str(BIN / "kubectl"), "--kubeconfig", recorded.kubeconfig, *args],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=True,
+        ).stdout
+
+    def get(self, kind: str, name: str, namespace: str | None = None) -> dict[str, Any]:
+        scope = ["-n", namespace] if namespace else []
+        obj: dict[str, Any] = json.loads(self.kubectl("get", kind, name, *scope, "-o", "json"))
+        return obj
+
+    def log(self) -> str:
+        return self.output.read_text(errors="replace")
+
+
+def await_step(
+    what: str, check: Callable[[], bool], sandbox: RunningSandbox, timeout_s: float
+) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not check():
+        if sandbox.process.poll() is not None:
+            pytest.fail(f"roost sandbox up exited while waiting for {what}:\n{sandbox.log()}")
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout_s:.0f} s waiting for {what}:\n{sandbox.log()}")
+        time.sleep(0.5)
+
+
+def await_running(sandbox: RunningSandbox) -> sandbox_state.SandboxState:
+    """Wait until ``roost sandbox up`` says it is running; its recorded state."""
+
+    def up() -> bool:
+        recorded = sandbox_state.load(sandbox.directory)
+        return recorded is not None and recorded.phase == sandbox_state.Phase.RUNNING
+
+    await_step("the sandbox to be running", up, sandbox, UP_TIMEOUT_S)
+    recorded = sandbox_state.load(sandbox.directory)
+    assert recorded is not None
+    return recorded
+
+
+@contextlib.contextmanager
+def running_sandbox(tmp_path: Path, args: Sequence[str]) -> Iterator[RunningSandbox]:
+    """``roost sandbox up ARGS`` in ``tmp_path``; stopped (and waited for) on exit."""
+    directory = tmp_path / "sandbox"
+    output = tmp_path / "sandbox-up.log"
+    with output.open("w") as out:
+        process = subprocess.Popen(
+            [str(BIN / "roost"), "--sandbox-dir", str(directory), "sandbox", "up", *args],
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env={**os.environ, "COLUMNS": "200"},
+        )
+    running = RunningSandbox(directory, process, output)
+    try:
+        yield running
+    finally:
+        if process.poll() is None:
+            with contextlib.suppress(subprocess.SubprocessError):
+                running.roost("sandbox", "down", check=False)
+        if process.poll() is None:
+            process.send_signal(signal.SIGKILL)
+        process.wait(timeout=30)
