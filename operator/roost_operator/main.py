@@ -157,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
-    # kopf logs every handler run at INFO ("Handler 'node_event' succeeded."): a line per
+    # kopf logs every handler run at INFO ("Handler 'owned_event' succeeded."): a line per
     # watch event, most of the log's volume and a measurable cost at fleet scale. Its
     # warnings and errors (and the Events kopf posts for them) stay.
     logging.getLogger("kopf.objects").setLevel(logging.DEBUG if args.verbose else logging.WARNING)

@@ -4,7 +4,8 @@
 and hands them to kopf in the operator's ``memo``; the startup handler adds the API
 client, the controllers that keep per-process state (locks, the failover ledger) and
 the Vehicle controller's work queue (:mod:`roost_operator.workqueue`), whose workers
-start with it and stop at the operator's cleanup. Handlers call :func:`runtime` to get
+start with it and stop at the operator's cleanup, and the Node watch that feeds it
+(:mod:`roost_operator.vehicles.nodewatch`). Handlers call :func:`runtime` to get
 it typed. Nothing here talks to kopf's own API client: all of Roost's reads and writes
 go through :class:`roost_kube.client.Kube`.
 """
@@ -25,6 +26,7 @@ from roost_kube.errors import ApiError
 from roost_operator.edge import HandlerTiming, error_kind
 from roost_operator.settings import Settings
 from roost_operator.vehicles.controller import Peers, VehicleController
+from roost_operator.vehicles.nodewatch import NodeWatcher
 from roost_operator.workqueue import Backoff, WorkQueue
 
 log = logging.getLogger(__name__)
@@ -57,6 +59,7 @@ class Runtime:
     """Each vehicle's ``AgentConnected`` status as its last reconcile wrote it."""
     timing: HandlerTiming | None = None
     """Where each queued reconcile's duration goes (the operator's metrics), if anywhere."""
+    node_watcher: NodeWatcher | None = None
     _sweep_stop: threading.Event = field(default_factory=threading.Event)
 
     @classmethod
@@ -88,6 +91,8 @@ class Runtime:
         )
         if reconcile is not None:
             rt.vehicle_queue.start()
+            rt.node_watcher = NodeWatcher(kube, lambda: rt.peers, rt.vehicle_queue.add)
+            rt.node_watcher.start()
             if settings.resync_seconds > 0:
                 threading.Thread(target=rt._sweep, name="vehicle-sweep", daemon=True).start()
         return rt
@@ -115,6 +120,8 @@ class Runtime:
     def stop(self) -> None:
         """Stop the sweep and the queue's workers (after their running reconciles)."""
         self._sweep_stop.set()
+        if self.node_watcher is not None:
+            self.node_watcher.stop()
         self.vehicle_queue.stop()
 
     def _report_permanent(self, vehicle: str, error: BaseException) -> None:

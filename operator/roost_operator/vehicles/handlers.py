@@ -13,9 +13,11 @@ Triggers, and why each exists:
 * the Vehicle itself (every watch event, the initial listing included) — when its
   generation, labels, annotations (the guard annotations: pause, clear the latch) or
   deletion mark changed; its status (which only this controller writes) is ignored;
-* its node (watch all Nodes) — a node appearing, turning Ready/NotReady or losing a
-  Roost label re-reconciles the vehicles that claim it or that it is labelled for; node
-  heartbeats that change nothing Roost looks at are dropped here by a fingerprint;
+* its node — a node appearing, turning Ready/NotReady or losing a Roost label queues
+  the vehicles that claim it or that it is labelled for. Nodes are watched by Roost's
+  own thread (:mod:`~roost_operator.vehicles.nodewatch`), not by kopf: node heartbeats
+  are most of a fleet's watch events, and they are dropped there by a fingerprint
+  before any of kopf's per-event work;
 * what Roost made for it (its ConfigMap and component Deployments, selected by Roost's
   labels on the server) — rollout progress, and a hand edit is put back at once;
 * its RedundantAutopilot — the agent reported. Reports that change nothing the
@@ -262,39 +264,6 @@ def vehicle_deleted(
 # -- other objects' triggers ---------------------------------------------------------------
 
 
-def _node_relevant(body: Mapping[str, Any]) -> Any:
-    """What Roost reads from a node: existence, labels, annotations, taints, Ready."""
-    meta = body.get("metadata", {})
-    ready = [
-        (c.get("status"), c.get("reason"), c.get("message"))
-        for c in (body.get("status") or {}).get("conditions") or []
-        if c.get("type") == "Ready"
-    ]
-    return [
-        meta.get("labels"),
-        meta.get("annotations"),
-        (body.get("spec") or {}).get("taints"),
-        ready,
-    ]
-
-
-async def node_event(
-    *, type: str | None, name: str, body: kopf.Body, memo: Any, **indexes: Any
-) -> None:
-    """A node changed: queue the vehicles that claim it or that it carries."""
-    if type == "DELETED":
-        _node_prints.forget(name)
-    elif not _node_prints.changed(name, _node_relevant(body)):
-        return
-    claims: NodeClaims = indexes["vehicle_node_claims"]
-    vehicles = {claim.vehicle for claim in claims.get(name, [])}
-    labelled = body.get("metadata", {}).get("labels", {}).get(LABEL_VEHICLE)
-    if labelled:
-        vehicles.add(labelled)
-    for vehicle in sorted(vehicles):
-        enqueue(memo, vehicle, indexes)
-
-
 async def owned_event(*, labels: kopf.Labels, memo: Any, **indexes: Any) -> None:
     """Something Roost made for a vehicle changed (a component Deployment's rollout, its
     ConfigMap edited or deleted by hand): queue the vehicle."""
@@ -348,7 +317,6 @@ def register(registry: kopf.OperatorRegistry, settings: Settings) -> None:
         registry=registry,
     )(handler_edge(failover_pending))
     kopf.on.delete(*VEHICLES, backoff=backoff, registry=registry)(handler_edge(vehicle_deleted))
-    kopf.on.event("", "v1", "nodes", registry=registry)(handler_edge(node_event))
     for group, plural in (("apps", "deployments"), ("", "configmaps")):  # what Roost made
         kopf.on.event(
             group,
