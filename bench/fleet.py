@@ -6,7 +6,7 @@ the default components (mavros, as a Deployment KWOK "runs") and no RedundantAut
 so no agent writes anything: once the fleet is Ready, nothing changes in the cluster and
 any CPU the operator spends is its own overhead.
 
-- ``fleet.ready_<N>_s``: ``kubectl apply`` of N Vehicles (nodes already Ready) until every
+- ``fleet.ready_<N>_s``: ``kubectl apply --server-side`` of N Vehicles (one request each) (nodes already Ready) until every
   Vehicle's ``Ready`` condition is True (labels and taint on its node, its ConfigMap, its
   mavros Deployment available). The Ready poll lists Vehicles every second.
 - ``fleet.operator_rss_mb_<N>``: the operator's peak resident memory over the run.
@@ -56,6 +56,7 @@ NAMESPACE = "roost-bench"
 FLEET_LABEL = "bench-fleet"
 NODES_TIMEOUT_S = 900.0
 READY_TIMEOUT_S = 900.0
+APPLY_TIMEOUT_S = 900.0
 SETTLE_S = 30.0
 IDLE_S = 60.0
 CHANGES = 20
@@ -173,7 +174,14 @@ def measure(count: int) -> tuple[dict[str, float], str]:
                 kube = Kube(api, "roost-bench")
                 manifest = "\n---\n".join(json.dumps(vehicle_manifest(i)) for i in range(count))
                 started = time.monotonic()
-                cluster.kubectl("apply", "-f", "-", input_text=manifest)
+                cluster.kubectl(
+                    "apply",
+                    "--server-side",
+                    "-f",
+                    "-",
+                    input_text=manifest,
+                    timeout_s=APPLY_TIMEOUT_S,
+                )
                 wait_until(
                     f"{count} Vehicles Ready",
                     lambda: _ready_count(kube) >= count,

@@ -11,6 +11,11 @@
 The fleet's node agents are :class:`~tests.support.fakeagents.FakeAgents` reporting every
 few seconds (the real agent reports every 10 s), so the operator's ``AgentConnected`` and
 the preflight checks see live reports as they would in a fleet.
+
+``ROOST_BENCH_MISSION_FLEET=1000`` runs the same on a fleet of 1,000 (the figure is then
+``mission.rollout_100_of_1000_s``); its stand-in agents report every 20 s and the
+operator calls a report stale after 60 s, as a fleet that size would be configured (1,000
+agents at 10 s are 100 status writes a second on this 2-core machine's API server).
 """
 
 from __future__ import annotations
@@ -22,25 +27,28 @@ import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+from bench.controlplane import FLEET_SETTINGS
 from bench.core import Figure
 from roost_api.wellknown import LABEL_MISSION, LABEL_VEHICLE
 from roost_kube.client import Kube
 from roost_kube.resources import MISSIONS, PODS, VEHICLES
 from roost_localcluster import binaries
 from roost_localcluster.cluster import Cluster
-from roost_localcluster.controlplane import ControlPlane
+from roost_localcluster.controlplane import ControlPlane, Settings
 from roost_operator.missions.workloads import bounded_name
 from tests.support.fakeagents import FakeAgents, redundant_autopilot
 from tests.support.operator import OperatorProcess
 from tests.support.waiting import wait_until
 
 COMMAND = "python -m bench mission"
-FLEET = 100
-SIZES = (10, 100)
+FLEET = int(os.environ.get("ROOST_BENCH_MISSION_FLEET", "100"))
+BIG_FLEET = FLEET > 100
+SIZES = (100,) if BIG_FLEET else (10, 100)
 NAMESPACE = "roost-bench"
 FLIGHTS = "bench-flights"
 FLEET_LABEL = "bench-fleet"
-AGENT_PERIOD_S = 5.0
+AGENT_PERIOD_S = 20.0 if BIG_FLEET else 5.0
+STALE_S = 60.0 if BIG_FLEET else 30.0
 SETUP_TIMEOUT_S = 600.0
 ROLLOUT_TIMEOUT_S = 300.0
 STARTED_PHASES = frozenset({"Running", "Succeeded"})
@@ -150,12 +158,17 @@ def run() -> list[Figure]:
     binaries.ensure_built()
     with (
         tempfile.TemporaryDirectory(prefix="bench-mission-") as tmp,
-        ControlPlane(Path(tmp)) as plane,
+        ControlPlane(Path(tmp), settings=FLEET_SETTINGS if BIG_FLEET else Settings()) as plane,
     ):
         cluster = Cluster.of(plane)
         cluster.install_crds()
         cluster.kubectl("create", "namespace", FLIGHTS)
-        operator = OperatorProcess(cluster, Path(tmp) / "operator.log", namespace=NAMESPACE)
+        operator = OperatorProcess(
+            cluster,
+            Path(tmp) / "operator.log",
+            namespace=NAMESPACE,
+            environment={"ROOST_AGENT_STALE_SECONDS": str(STALE_S)},
+        )
         operator.start()
         try:
             with cluster.api_client() as api, FakeAgents(cluster, AGENT_PERIOD_S) as agents:
@@ -166,9 +179,10 @@ def run() -> list[Figure]:
         finally:
             operator.stop()
     targets = {10: "informational", 100: "<= 30"}
+    suffix = f"_of_{FLEET}" if BIG_FLEET else ""
     return [
         Figure(
-            f"mission.rollout_{count}_s",
+            f"mission.rollout_{count}{suffix}_s",
             seconds,
             "s",
             targets[count],
