@@ -490,17 +490,19 @@ class RealNodes:
         )
 
     def import_images(self, node: RealNode, archives: Sequence[Path]) -> None:
-        """Import OCI archives into the node's containerd (as ``ctr images import``)."""
+        """Import OCI archives into the node's containerd (``ctr images import``, into
+        the CRI's namespace), under the names the archives give (``make images`` names
+        them ``localhost/roost-<target>:<version>``)."""
         for archive in archives:
-            done = subprocess.run(
-                node.ctr("images", "import", "--no-unpack", str(archive)),
-                capture_output=True,
-                text=True,
-                check=False,
-                timeout=600,
-            )
-            if done.returncode != 0:
-                raise RealNodeError(f"ctr images import {archive}: {done.stderr.strip()}")
+            self._ctr(node, "images", "import", "--no-unpack", str(archive), timeout_s=600)
+
+    def _ctr(self, node: RealNode, *args: str, timeout_s: float = 60) -> str:
+        done = subprocess.run(
+            node.ctr(*args), capture_output=True, text=True, check=False, timeout=timeout_s
+        )
+        if done.returncode != 0:
+            raise RealNodeError(f"ctr {' '.join(args)}: {done.stderr.strip()}")
+        return done.stdout
 
     def images(self, node: RealNode) -> list[str]:
         """Names of the images in the node's containerd."""
