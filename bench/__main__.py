@@ -27,6 +27,7 @@ MODULES: tuple[str, ...] = (
     "hub",
     "standby",
     "sync",
+    "node",
 )
 
 

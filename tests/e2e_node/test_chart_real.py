@@ -28,10 +28,19 @@ import pytest
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.realnode import RealNodes
 from roost_sim.faults import FaultKind
+from tests.support.images import missing_tools
 from tests.support.realfleet import GROUND_NODE, VEHICLE, WAIT_S, RealFleet, chart_values
 from tests.support.waiting import wait_until
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.timeout(1800),  # builds the images first when they are not cached
+    pytest.mark.skipif(
+        bool(missing_tools()),
+        reason=f"image tools not installed: {', '.join(missing_tools())} "
+        "(`make images` installs them on Debian)",
+    ),
+]
 
 BIN = Path(sys.executable).parent
 NODE_NAME_KEY = "authentication.kubernetes.io/node-name"
