@@ -32,7 +32,10 @@ directories, removes the cgroups, the namespace and the veth. Needs root.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
+import dataclasses
+import ipaddress
 import json
 import os
 import secrets
@@ -48,6 +51,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, Self
 
+import psutil
 import yaml
 from kubernetes import client
 
@@ -365,6 +369,25 @@ class RealNodes:
         self.relay: ManagedProcess | None = None
         self.nodes: dict[str, RealNode] = {}
         self._next_index = 0
+        sweep_stale()
+        atexit.register(self.cleanup)
+
+    def _record(self) -> None:
+        """Write what this pool owns to ``RUNTIME_ROOT/<tag>.json``, so that a later pool
+        can take it down if this process dies without cleaning up (see :func:`sweep_stale`)."""
+        if self.network is None:
+            return
+        RUNTIME_ROOT.mkdir(parents=True, exist_ok=True)
+        record = {
+            "pid": os.getpid(),
+            "create_time": psutil.Process().create_time(),
+            "subnet": str(self.network.subnet),
+            "nodes": [
+                {f.name: str(getattr(n, f.name)) for f in _RECORDED_FIELDS}
+                for n in self.nodes.values()
+            ],
+        }
+        _owner_file(self.tag).write_text(json.dumps(record))
 
     def __enter__(self) -> Self:
         return self
@@ -385,6 +408,7 @@ class RealNodes:
         port = self.plane.ports.apiserver
         network = NodeNetwork.create(self.tag)
         self.network = network
+        self._record()
         relay = ManagedProcess(
             "api-relay",
             [
@@ -432,6 +456,7 @@ class RealNodes:
             cgroup=f"/roost-{self.tag}-{index}",
         )
         self.nodes[name] = node
+        self._record()
         try:
             network.add_node(index)
             self._prepare(node)
@@ -446,7 +471,7 @@ class RealNodes:
         return node
 
     def _prepare(self, node: RealNode) -> None:
-        for sub in ("logs", "kubelet", "containerd", "cni/net.d", "pod-logs", "pki"):
+        for sub in ("logs", "containerd", "cni/net.d", "pod-logs", "pki"):
             (node.directory / sub).mkdir(parents=True, exist_ok=True)
         node.runtime_dir.mkdir(parents=True, exist_ok=True)
         for mount in cgroup_mounts():
@@ -545,7 +570,8 @@ class RealNodes:
             f"--kubeconfig={kubeconfig}",
             f"--hostname-override={node.name}",
             f"--node-ip={node.address}",
-            f"--root-dir={node.directory / 'kubelet'}",
+            # Short: the kubelet's unix sockets live there (107 bytes at most).
+            f"--root-dir={node.runtime_dir / 'kubelet'}",
             "--v=1",
         ]
         if labels:
@@ -587,13 +613,8 @@ class RealNodes:
             proc = node.processes.pop(program, None)
             if proc is not None:
                 proc.stop(grace_s=5.0)
-        _kill_cgroup_tree(_tracking_hierarchy() / node.cgroup.lstrip("/"))
-        _unmount_all(node.directory, node.runtime_dir)
-        for mount in cgroup_mounts():
-            _remove_cgroup_tree(mount / node.cgroup.lstrip("/"))
-        if self.network is not None:
-            self.network.remove_node(node.index)
-        shutil.rmtree(node.runtime_dir, ignore_errors=True)
+        release(node, self.network)
+        self._record()
         if delete_node:
             self.cluster.kubectl("delete", "node", name, "--ignore-not-found", check=False)
 
@@ -611,8 +632,63 @@ class RealNodes:
             )  # fmt: skip
             self.network.delete()
             self.network = None
+        _owner_file(self.tag).unlink(missing_ok=True)
+        atexit.unregister(self.cleanup)
         with contextlib.suppress(OSError):
             RUNTIME_ROOT.rmdir()  # only when no other harness uses it
+
+
+def release(node: RealNode, network: NodeNetwork | None) -> None:
+    """Take down what is left of a node whose programs have stopped (or died): processes
+    in its cgroup, mounts under its directories, its cgroups, veth and namespace."""
+    _kill_cgroup_tree(_tracking_hierarchy() / node.cgroup.lstrip("/"))
+    _unmount_all(node.directory, node.runtime_dir)
+    for mount in cgroup_mounts():
+        _remove_cgroup_tree(mount / node.cgroup.lstrip("/"))
+    if network is not None:
+        network.remove_node(node.index)
+    shutil.rmtree(node.runtime_dir, ignore_errors=True)
+
+
+_RECORDED_FIELDS = [f for f in dataclasses.fields(RealNode) if f.name != "processes"]
+
+
+def _owner_file(tag: str) -> Path:
+    return RUNTIME_ROOT / f"{tag}.json"
+
+
+def sweep_stale() -> list[str]:
+    """Take down the nodes and networks of pools whose process is gone (SIGKILLed test
+    runs: their programs died with them, by the parent-death signal, but namespaces,
+    links, cgroups and mounts outlive processes). Returns the tags swept."""
+    swept = []
+    for path in sorted(RUNTIME_ROOT.glob("*.json")) if RUNTIME_ROOT.is_dir() else []:
+        try:
+            record = json.loads(path.read_text())
+            owner = psutil.Process(int(record["pid"]))
+            if abs(owner.create_time() - float(record["create_time"])) < 0.01:
+                continue  # alive: another harness's
+        except psutil.NoSuchProcess:
+            pass
+        except (OSError, ValueError, KeyError):
+            continue
+        tag = path.stem
+        network = NodeNetwork(tag, ipaddress.IPv4Network(record["subnet"]))
+        for entry in record["nodes"]:
+            node = RealNode(
+                name=entry["name"],
+                index=int(entry["index"]),
+                address=entry["address"],
+                namespace=entry["namespace"],
+                directory=Path(entry["directory"]),
+                runtime_dir=Path(entry["runtime_dir"]),
+                cgroup=entry["cgroup"],
+            )
+            release(node, network)
+        network.delete()
+        path.unlink(missing_ok=True)
+        swept.append(tag)
+    return swept
 
 
 def _kill_cgroup_tree(root: Path, timeout_s: float = 10.0) -> None:

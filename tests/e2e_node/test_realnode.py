@@ -10,6 +10,7 @@ mount, cgroup, namespace or link.
 
 from __future__ import annotations
 
+import atexit
 import ipaddress
 import json
 import subprocess
@@ -21,7 +22,14 @@ import pytest
 
 from roost_localcluster import binaries
 from roost_localcluster.cluster import Cluster, FakeNodes
-from roost_localcluster.realnode import RealNode, RealNodes, cgroup_mounts, mounts_under
+from roost_localcluster.realnode import (
+    RUNTIME_ROOT,
+    RealNode,
+    RealNodes,
+    cgroup_mounts,
+    mounts_under,
+    sweep_stale,
+)
 from tests.support.waiting import wait_until
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
@@ -135,3 +143,35 @@ def test_removing_a_node_with_a_running_pod_leaves_nothing(
     assert _leftovers(removed) == []
     gone = cluster.kubectl("get", "node", name, check=False)
     assert gone.returncode != 0
+
+
+def test_a_dead_pools_leftovers_are_swept_by_the_next_pool(
+    cluster: Cluster, real_nodes: RealNodes, tmp_path: Path
+) -> None:
+    """A test run killed with SIGKILL takes its node programs along (parent-death signal)
+    but leaves namespaces, links, cgroups, mounts and running containers: the next pool
+    takes them down from the record the dead one left."""
+    orphaned = RealNodes(cluster, tmp_path / "orphaned")
+    atexit.unregister(orphaned.cleanup)  # this pool's process "dies" below
+    name = "real-node-orphan"
+    node = orphaned.add(name)
+    cluster.kubectl("apply", "-f", "-", input_text=json.dumps(_pod("orphan", name, False)))
+    wait_until("the orphan's pod Running", lambda: _running(cluster, "orphan"), 120)
+    for proc in [*node.processes.values(), orphaned.relay]:
+        assert proc is not None
+        proc.crash()
+    record_path = RUNTIME_ROOT / f"{orphaned.tag}.json"
+    record = json.loads(record_path.read_text())
+    record["create_time"] = 0.0  # the owner is another process than the one recorded
+    record_path.write_text(json.dumps(record))
+    assert _leftovers(node), "the dead pool left nothing to sweep"
+
+    assert orphaned.tag in sweep_stale()
+    assert _leftovers(node) == []
+    assert not record_path.exists()
+    assert orphaned.network is not None
+    assert not Path(f"/sys/class/net/{orphaned.network.bridge}").exists()
+    cluster.kubectl(
+        "delete", "pod", "orphan", "-n", NAMESPACE, "--force", "--grace-period=0", check=False
+    )
+    cluster.kubectl("delete", "node", name)
