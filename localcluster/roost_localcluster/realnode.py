@@ -28,6 +28,13 @@ containerd must share one mount namespace, as on a real machine, so volumes the 
 mounts are what containerd binds into containers. Teardown stops them by pid, kills what
 is left in the node's cgroup (pods, shims) by pid, unmounts every mount under the node's
 directories, removes the cgroups, the namespace and the veth. Needs root.
+
+A pool records what it owns in ``/run/roost-node/<tag>.json`` (with its pid); a pool whose
+process was SIGKILLed leaves its programs dead (parent-death signal) but namespaces,
+links, cgroups, mounts and containers behind, which the next pool sweeps from that record
+(:func:`sweep_stale`). Short paths (unix sockets: the containerd socket, the kubelet's
+root directory) are under ``/run/roost-node/<tag>-<index>``; the rest under the pool's
+directory.
 """
 
 from __future__ import annotations
