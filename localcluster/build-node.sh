@@ -9,9 +9,11 @@
 #   images/     roost-pause.oci.tar (image localhost/roost-pause:<digest of its sources>)
 #               and roost-pause.name (that image name)
 #
-# The node also needs Debian's runc, iptables and conntrack (installed when missing, as
-# root, by docker/debian-packages.sh). A warm run (everything present) returns at once; a
-# cold one takes about 10 minutes on two cores, timed per binary in build-times.tsv.
+# The node also needs Debian's runc, iptables, conntrack, iproute2 and util-linux, and gcc
+# for the pause binary (installed when missing, as root, by docker/debian-packages.sh).
+# A warm run (everything present) returns at once; a cold one took 206 s on two cores
+# (kubelet 110 s, containerd 73 s) with the control plane's Go modules already downloaded,
+# timed per program in build-times.tsv.
 #
 #   localcluster/build-node.sh            build what is missing, print the node directory
 #   localcluster/build-node.sh --print    print the node directory only
@@ -54,7 +56,8 @@ targets=(
 pause_archive="$node_dir/images/roost-pause.oci.tar"
 pause_name="localhost/roost-pause:$pause_tag"
 
-"$here/../docker/debian-packages.sh" runc=runc iptables=iptables conntrack=conntrack
+"$here/../docker/debian-packages.sh" runc=runc iptables=iptables conntrack=conntrack ip=iproute2 \
+  nsenter=util-linux cc=gcc
 
 missing=()
 for t in "${targets[@]}"; do
