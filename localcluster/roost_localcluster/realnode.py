@@ -72,7 +72,8 @@ POD_CIDR = "10.214.0.0/16"
 """Pods of real nodes: node ``index`` hands out 10.214.<index>.0/24 (masqueraded inside the
 node's namespace, so two harnesses using the same addresses never meet)."""
 RUNTIME_ROOT = Path("/run/roost-node")  # short paths: unix sockets allow 107 bytes
-CGROUP_FS = Path("/sys/fs/cgroup")
+CNI_CACHE = Path("/var/lib/cni/results")  # libcni's, not configurable through containerd
+CONTAINER_LOG_LINKS = Path("/var/log/containers")  # the kubelet's, fixed
 CONTAINERD_NAMESPACE = "k8s.io"
 START_TIMEOUT_S = 180.0
 _PROGRAMS = ("containerd", "kubelet", "kube-proxy")
@@ -238,6 +239,8 @@ def containerd_config(node: RealNode, node_dir: Path) -> str:
         "[plugins.'io.containerd.cri.v1.runtime'.cni]",
         f"  bin_dirs = [{json.dumps(str(node_dir / 'cni'))}]",
         f"  conf_dir = {json.dumps(str(node.directory / 'cni' / 'net.d'))}",
+        # containerd brings up the pod's loopback itself: no host-wide CNI cache entry.
+        "  use_internal_loopback = true",
         "[plugins.'io.containerd.grpc.v1.cri']",
         "  stream_server_address = '127.0.0.1'",
     ]
@@ -248,7 +251,8 @@ def cni_config(node: RealNode) -> dict[str, Any]:
     """The pod network: a bridge inside the node's namespace, masqueraded, plus portmap."""
     return {
         "cniVersion": "1.0.0",
-        "name": "roost",
+        # The node's own name: libcni caches results host-wide under <name>-<container>.
+        "name": node.namespace,
         "plugins": [
             {
                 "type": "bridge",
@@ -655,6 +659,13 @@ def release(node: RealNode, network: NodeNetwork | None) -> None:
     if network is not None:
         network.remove_node(node.index)
     shutil.rmtree(node.runtime_dir, ignore_errors=True)
+    # What the kubelet and libcni write to fixed host paths for this node's containers.
+    for cached in CNI_CACHE.glob(f"{node.namespace}-*"):
+        cached.unlink(missing_ok=True)
+    for link in CONTAINER_LOG_LINKS.glob("*.log"):
+        with contextlib.suppress(OSError):
+            if link.is_symlink() and link.readlink().is_relative_to(node.directory):
+                link.unlink()
 
 
 _RECORDED_FIELDS = [f for f in dataclasses.fields(RealNode) if f.name != "processes"]

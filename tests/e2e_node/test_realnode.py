@@ -23,6 +23,8 @@ import pytest
 from roost_localcluster import binaries
 from roost_localcluster.cluster import Cluster, FakeNodes
 from roost_localcluster.realnode import (
+    CNI_CACHE,
+    CONTAINER_LOG_LINKS,
     RUNTIME_ROOT,
     RealNode,
     RealNodes,
@@ -119,6 +121,12 @@ def _leftovers(node: RealNode) -> list[str]:
     ).stdout
     if node.namespace in namespaces.split():
         found.append(f"netns {node.namespace}")
+    found += [f"CNI cache {p}" for p in CNI_CACHE.glob(f"{node.namespace}-*")]
+    found += [
+        f"log link {link}"
+        for link in CONTAINER_LOG_LINKS.glob("*.log")
+        if link.is_symlink() and link.readlink().is_relative_to(node.directory)
+    ]
     tag = node.namespace.split("-")[1]
     if Path(f"/sys/class/net/rn{tag}-{node.index}").exists():
         found.append("veth")
