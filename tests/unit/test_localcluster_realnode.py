@@ -1,18 +1,12 @@
-"""The real-node harness's pure parts: configurations, certificates, the API relay.
+"""The real-node harness's pure parts: the node network's names, configurations, certificates.
 
 What each real program is told (kubelet, containerd, kube-proxy, CNI) is checked here
-without starting one; ``tests/e2e_node`` starts them. The relay test moves bytes over
-real sockets on 127.0.0.1.
+without starting one; ``tests/e2e_node`` starts them.
 """
 
 from __future__ import annotations
 
-import contextlib
 import ipaddress
-import socket
-import sys
-import threading
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -21,7 +15,6 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from roost_localcluster import pki
 from roost_localcluster.nodenet import NodeNetwork
-from roost_localcluster.processes import ManagedProcess
 from roost_localcluster.realnode import (
     RealNode,
     api_endpoint_slice,
@@ -30,7 +23,6 @@ from roost_localcluster.realnode import (
     kube_proxy_config,
     kubelet_config,
 )
-from tests.support.waiting import wait_until
 
 
 @pytest.fixture
@@ -125,51 +117,3 @@ def test_node_certificates_are_signed_by_the_harness_ca(tmp_path: Path) -> None:
     client.verify_directly_issued_by(ca)
     subject = {a.oid._name: a.value for a in client.subject}
     assert subject == {"commonName": "system:node:clover-1", "organizationName": "system:nodes"}
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
-@pytest.fixture
-def echo_server() -> Iterator[int]:
-    """A TCP server on 127.0.0.1 answering every chunk with the same chunk."""
-    server = socket.create_server(("127.0.0.1", 0))
-    port = int(server.getsockname()[1])
-
-    def serve() -> None:
-        with contextlib.suppress(OSError):
-            conn, _ = server.accept()
-            with conn:
-                while data := conn.recv(65536):
-                    conn.sendall(data)
-
-    thread = threading.Thread(target=serve, daemon=True)
-    thread.start()
-    yield port
-    server.close()
-
-
-def test_relay_carries_bytes_both_ways(echo_server: int, tmp_path: Path) -> None:
-    listen = f"127.0.0.1:{_free_port()}"
-    process = ManagedProcess(
-        "relay",
-        [sys.executable, "-m", "roost_localcluster.relay", listen, f"127.0.0.1:{echo_server}"],
-        tmp_path / "relay.log",
-    )
-    process.launch(die_with_parent=True)
-    try:
-        wait_until("the relay listening", lambda: "relaying" in process.log.read_text(), 10)
-        payload = bytes(range(256)) * 1024
-        host, port = listen.split(":")
-        with socket.create_connection((host, int(port)), timeout=5) as conn:
-            conn.sendall(payload)
-            received = b""
-            while len(received) < len(payload):
-                received += conn.recv(65536)
-        assert received == payload
-    finally:
-        process.stop()
-    assert process.returncode == 0  # SIGTERM ends it cleanly
