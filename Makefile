@@ -49,6 +49,10 @@ cluster-build: ## build (or reuse) the control-plane binaries (and kine) cached 
 	localcluster/build-control-plane.sh
 	localcluster/build-control-plane.sh kine >/dev/null
 
+.PHONY: node-build
+node-build: ## build (or reuse) a real node's programs: kubelet, kube-proxy, containerd, CNI plugins, pause image
+	localcluster/build-node.sh >/dev/null
+
 .PHONY: images
 images: ## build the operator and agent images (buildah) into ~/.cache/roost/images as OCI archives
 	docker/build-images.sh
@@ -98,6 +102,11 @@ run-operator: $(STAMP) ## run the operator in the foreground against $$KUBECONFI
 .PHONY: demo
 demo: $(STAMP) ## start the local fleet sandbox (builds the control plane with a progress bar; Ctrl-C stops it)
 	$(BIN)/roost sandbox up
+
+.PHONY: e2e-node
+e2e-node: $(STAMP) cluster-build node-build ## the chart's real pods on real harness nodes (kubelet+containerd; needs root)
+	@docker/build-images.sh >/dev/null || echo "images: not built (above: why); the chart's real-node tests skip or fail with the reason"
+	$(BIN)/pytest tests/e2e_node
 
 .PHONY: e2e-kind
 e2e-kind: $(STAMP) ## end-to-end suite on KinD (skips where no container engine runs)

@@ -27,8 +27,9 @@ MODULES: tuple[str, ...] = (
     "hub",
     "standby",
     "sync",
-    "fleet",
+    "node",
     "dashboard",
+    "fleet",
 )
 
 

@@ -2,8 +2,13 @@
 # `make images`: build Roost's operator and agent images with buildah (no container
 # engine or daemon needed) and export them as OCI archives:
 #
-#   ~/.cache/roost/images/roost-operator.oci.tar   (image roost-operator:<version>)
-#   ~/.cache/roost/images/roost-agent.oci.tar      (image roost-agent:<version>)
+#   ~/.cache/roost/images/roost-operator.oci.tar   (image localhost/roost-operator:<version>)
+#   ~/.cache/roost/images/roost-agent.oci.tar      (image localhost/roost-agent:<version>)
+#
+# The archives carry the full name (localhost/, as podman and buildah name local images):
+# `ctr images import` keeps a name as the archive gives it, and the kubelet looks a name
+# without a registry up under docker.io/library/, where an imported `roost-agent:<version>`
+# is not found.
 #
 # Steps: install the Debian tools when missing (buildah, podman, runc, mmdebstrap);
 # build the base (ROOST_IMAGE_BASE, default `local`: Debian's python3 via
@@ -113,7 +118,7 @@ for target in operator agent; do
     exit 1
   fi
   rm -f "$out/roost-$target.oci.tar"
-  buildah_ push --quiet "localhost/$image" "oci-archive:$out/roost-$target.oci.tar.partial:$image" >/dev/null
+  buildah_ push --quiet "localhost/$image" "oci-archive:$out/roost-$target.oci.tar.partial:localhost/$image" >/dev/null
   mv -f "$out/roost-$target.oci.tar.partial" "$out/roost-$target.oci.tar"
 done
 # Drop what earlier builds left behind (their images and the intermediate stages).

@@ -7,5 +7,8 @@ the upstream binaries), :mod:`~roost_localcluster.pki` (certificates),
 :mod:`~roost_localcluster.controlplane` (start/stop), :mod:`~roost_localcluster.cluster`
 (client helpers), :mod:`~roost_localcluster.nodes` (fake vehicle nodes),
 :mod:`~roost_localcluster.clients` (kubectl and helm), :mod:`~roost_localcluster.cli`
-(``roost-cluster``).
+(``roost-cluster``). Real nodes beside the kwok ones (kubelet, containerd, CNI, each in a
+network namespace): :mod:`~roost_localcluster.realnode`, with
+:mod:`~roost_localcluster.nodenet` (their network) and :mod:`~roost_localcluster.relay`
+(their way to the API server).
 """

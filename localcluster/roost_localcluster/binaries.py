@@ -61,3 +61,43 @@ def ensure_built(names: tuple[str, ...] = COMPONENTS) -> Path:
     if still_missing:
         raise RuntimeError(f"build did not produce {still_missing} in {directory}")
     return directory
+
+
+NODE_BUILD_SCRIPT = PACKAGE_HOME / "build-node.sh"
+NODE_BINARIES = ("kubelet", "kube-proxy", "containerd", "ctr", "containerd-shim-runc-v2")
+CNI_PLUGINS = ("bridge", "host-local", "loopback", "portmap")
+PAUSE_ARCHIVE = "images/roost-pause.oci.tar"
+PAUSE_NAME = "images/roost-pause.name"  # the image name, tagged with a digest of its sources
+
+
+def node_dir() -> Path:
+    """The cache directory of a real node's programs (``build-node.sh`` lays it out)."""
+    out = subprocess.run(
+        [str(NODE_BUILD_SCRIPT), "--print"], check=True, capture_output=True, text=True
+    ).stdout
+    return Path(out.strip())
+
+
+def node_missing(directory: Path) -> list[str]:
+    """What of a real node's programs and pause image is not yet in ``directory``."""
+    wanted = [f"bin/{n}" for n in NODE_BINARIES] + [f"cni/{n}" for n in CNI_PLUGINS]
+    wanted += [PAUSE_ARCHIVE, PAUSE_NAME]
+    return [path for path in wanted if not (directory / path).is_file()]
+
+
+def pause_image(directory: Path) -> str:
+    """The name of the pause image built into ``directory`` (its sandbox image)."""
+    return (directory / PAUSE_NAME).read_text().strip()
+
+
+def ensure_node_built() -> Path:
+    """Return the node directory, building what is missing first (minutes when cold)."""
+    directory = node_dir()
+    if node_missing(directory):
+        subprocess.run(
+            [str(NODE_BUILD_SCRIPT)], check=True, stdout=subprocess.DEVNULL, stderr=sys.stderr
+        )
+    still_missing = node_missing(directory)
+    if still_missing:
+        raise RuntimeError(f"build did not produce {still_missing} in {directory}")
+    return directory

@@ -160,8 +160,14 @@ def _args_apiserver(bin_dir: Path, ports: Ports, keys: pki.Pki) -> list[str]:
         "--requestheader-extra-headers-prefix=X-Remote-Extra-",
         f"--proxy-client-cert-file={keys.client_cert(pki.FRONT_PROXY)}",
         f"--proxy-client-key-file={keys.client_key(pki.FRONT_PROXY)}",
-        # Node authorisation would only matter for real kubelets; kwok is one client.
-        "--authorization-mode=RBAC",
+        # Node authorisation and NodeRestriction for real kubelets (realnode.py), as on any
+        # cluster; kwok is one system:masters client and passes both.
+        "--authorization-mode=Node,RBAC",
+        "--enable-admission-plugins=NodeRestriction",
+        # How the API server reaches a real node's kubelet (logs, exec): by its address.
+        f"--kubelet-client-certificate={keys.client_cert(pki.APISERVER_KUBELET)}",
+        f"--kubelet-client-key={keys.client_key(pki.APISERVER_KUBELET)}",
+        "--kubelet-preferred-address-types=InternalIP,Hostname",
         f"--service-account-issuer={SERVICE_ACCOUNT_ISSUER}",
         f"--service-account-key-file={keys.service_account_pub}",
         f"--service-account-signing-key-file={keys.service_account_key}",

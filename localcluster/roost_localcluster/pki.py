@@ -14,6 +14,9 @@ Identities (each a client certificate signed by the cluster CA):
 - ``kwok``: group ``system:masters``. kwok impersonates every fake kubelet at once (node
   status, leases, pod status of all nodes); upstream ships no role for that, and its rights
   are not what our tests examine.
+- ``kube-apiserver-kubelet-client``: group ``system:masters``; what the API server presents
+  to a real node's kubelet (``kubectl logs``/``exec``/port-forward), which authorises it
+  with a SubjectAccessReview like any other client (as kubeadm sets it up).
 - ``front-proxy-client``: what the API server presents when it proxies to aggregated API
   servers; the controller manager and scheduler also read its CA to authenticate their own
   health endpoints (without it they log errors about a missing request-header CA). One CA
@@ -62,7 +65,17 @@ CONTROLLER_MANAGER = ClientIdentity("kube-controller-manager", "system:kube-cont
 SCHEDULER = ClientIdentity("kube-scheduler", "system:kube-scheduler")
 KWOK = ClientIdentity("kwok", "kwok-controller", ("system:masters",))
 FRONT_PROXY = ClientIdentity("front-proxy-client", "front-proxy-client")
-CLIENTS = (ADMIN, CONTROLLER_MANAGER, SCHEDULER, KWOK, FRONT_PROXY)
+APISERVER_KUBELET = ClientIdentity(
+    "apiserver-kubelet-client", "kube-apiserver-kubelet-client", ("system:masters",)
+)
+CLIENTS = (ADMIN, CONTROLLER_MANAGER, SCHEDULER, KWOK, FRONT_PROXY, APISERVER_KUBELET)
+# The identity kube-proxy authenticates as: the bootstrap policy binds system:node-proxier.
+KUBE_PROXY = ClientIdentity("kube-proxy", "system:kube-proxy")
+
+
+def node_identity(node: str) -> ClientIdentity:
+    """A kubelet's identity: what the Node authoriser and NodeRestriction admission expect."""
+    return ClientIdentity(f"kubelet-{node}", f"system:node:{node}", ("system:nodes",))
 
 
 @dataclass(frozen=True)
@@ -212,20 +225,7 @@ def write_pki(directory: Path) -> Pki:
     _write(pki.serving_key, _key_pem(serving_key), private=True)
 
     for who in CLIENTS:
-        key = _new_key()
-        cert = _issue(
-            _name(who.user, who.groups),
-            key,
-            ca_name,
-            ca_key,
-            [
-                (x509.BasicConstraints(ca=False, path_length=None), True),
-                (_leaf_usage(), True),
-                (x509.ExtendedKeyUsage([ExtendedKeyUsageOID.CLIENT_AUTH]), False),
-            ],
-        )
-        _write(pki.client_cert(who), cert.public_bytes(serialization.Encoding.PEM))
-        _write(pki.client_key(who), _key_pem(key), private=True)
+        _issue_client(pki, who, ca_name, ca_key)
 
     sa_key = _new_key()
     _write(pki.service_account_key, _key_pem(sa_key), private=True)
@@ -238,8 +238,75 @@ def write_pki(directory: Path) -> Pki:
     return pki
 
 
-def write_kubeconfig(path: Path, pki: Pki, server: str, who: ClientIdentity) -> Path:
-    """Write a self-contained kubeconfig (certificates embedded) for ``who`` at ``path``."""
+def _issue_client(
+    pki: Pki, who: ClientIdentity, ca_name: x509.Name, ca_key: ec.EllipticCurvePrivateKey
+) -> None:
+    key = _new_key()
+    cert = _issue(
+        _name(who.user, who.groups),
+        key,
+        ca_name,
+        ca_key,
+        [
+            (x509.BasicConstraints(ca=False, path_length=None), True),
+            (_leaf_usage(), True),
+            (x509.ExtendedKeyUsage([ExtendedKeyUsageOID.CLIENT_AUTH]), False),
+        ],
+    )
+    _write(pki.client_cert(who), cert.public_bytes(serialization.Encoding.PEM))
+    _write(pki.client_key(who), _key_pem(key), private=True)
+
+
+def _load_ca(pki: Pki) -> tuple[x509.Name, ec.EllipticCurvePrivateKey]:
+    ca_cert = x509.load_pem_x509_certificate(pki.ca_cert.read_bytes())
+    ca_key = serialization.load_pem_private_key(pki.ca_key.read_bytes(), password=None)
+    assert isinstance(ca_key, ec.EllipticCurvePrivateKey)
+    return ca_cert.subject, ca_key
+
+
+def issue_client(pki: Pki, who: ClientIdentity) -> None:
+    """A client certificate for ``who`` signed by the existing CA of ``pki``."""
+    _issue_client(pki, who, *_load_ca(pki))
+
+
+def issue_kubelet_serving(pki: Pki, node: str, address: str) -> tuple[Path, Path]:
+    """The serving certificate of a real node's kubelet (for ``node`` and its ``address``),
+    signed by the cluster CA so the API server can verify whom it streams logs from.
+    Returns (certificate, key) paths in ``pki``'s directory."""
+    ca_name, ca_key = _load_ca(pki)
+    key = _new_key()
+    alt_names: list[x509.GeneralName] = [
+        x509.DNSName(node),
+        x509.IPAddress(ipaddress.ip_address(address)),
+    ]
+    cert = _issue(
+        _name(f"system:node:{node}", ("system:nodes",)),
+        key,
+        ca_name,
+        ca_key,
+        [
+            (x509.BasicConstraints(ca=False, path_length=None), True),
+            (_leaf_usage(), True),
+            (x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH]), False),
+            (x509.SubjectAlternativeName(alt_names), False),
+        ],
+    )
+    cert_path = pki.directory / f"kubelet-{node}-serving.crt"
+    key_path = pki.directory / f"kubelet-{node}-serving.key"
+    _write(cert_path, cert.public_bytes(serialization.Encoding.PEM))
+    _write(key_path, _key_pem(key), private=True)
+    return cert_path, key_path
+
+
+def write_kubeconfig(
+    path: Path, pki: Pki, server: str, who: ClientIdentity, tls_server_name: str | None = None
+) -> Path:
+    """Write a self-contained kubeconfig (certificates embedded) for ``who`` at ``path``.
+
+    ``tls_server_name`` is the name the server's certificate is checked against when
+    ``server`` is an address the certificate does not list (a real node reaches the API
+    server through an address of its own network).
+    """
 
     def b64(file: Path) -> str:
         return base64.b64encode(file.read_bytes()).decode()
@@ -251,7 +318,11 @@ def write_kubeconfig(path: Path, pki: Pki, server: str, who: ClientIdentity) -> 
         "clusters": [
             {
                 "name": name,
-                "cluster": {"server": server, "certificate-authority-data": b64(pki.ca_cert)},
+                "cluster": {
+                    "server": server,
+                    "certificate-authority-data": b64(pki.ca_cert),
+                    **({"tls-server-name": tls_server_name} if tls_server_name else {}),
+                },
             }
         ],
         "users": [

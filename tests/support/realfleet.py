@@ -1,0 +1,251 @@
+"""Roost's chart on real harness nodes: a ground node, a vehicle node, simulated autopilots.
+
+Shared by the real-node suite (``tests/e2e_node``) and ``bench/node.py``, which measure
+the same steps. The layout is a small fleet's: the operator on a ground node (the chart
+keeps it off vehicle nodes), the agent DaemonSet on the vehicle node the operator labels
+from the Vehicle, and the vehicle's two simulated autopilots (``roost-sim``, started the
+way ``roost sandbox up`` starts them) inside the vehicle node's network namespace, where
+the agent on the host network reaches them on the node's loopback as on a companion
+computer. Images are the ``make images`` archives, imported into each node's containerd
+as ``localhost/roost-<target>:<version>`` and never pulled.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from roost_api.wellknown import LABEL_VEHICLE
+from roost_cli.sandbox import plan, sims, state
+from roost_cli.sandbox.processes import Launcher
+from roost_localcluster.cluster import Cluster
+from roost_localcluster.processes import ManagedProcess
+from roost_localcluster.realnode import RealNode, RealNodes
+from roost_sim.control import request
+from tests.support.chart import install_args
+from tests.support.images import archive, build_images
+from tests.support.waiting import wait_until
+
+GROUND_NODE = "real-ground"
+VEHICLE = "real-drone-1"
+WAIT_S = 180.0
+
+
+def chart_values(ground: str, **agent: Any) -> dict[str, Any]:
+    """Values for the locally built images: imported, so IfNotPresent never pulls; the
+    operator on the ground node. ``agent`` adds keys under ``agent``."""
+    return {
+        "operator": {
+            "image": {"repository": "localhost/roost-operator", "pullPolicy": "IfNotPresent"},
+            "nodeSelector": {"kubernetes.io/hostname": ground},
+        },
+        "agent": {
+            "image": {"repository": "localhost/roost-agent", "pullPolicy": "IfNotPresent"},
+            **agent,
+        },
+    }
+
+
+class NamespaceLauncher(Launcher):
+    """The sandbox's process launcher, starting everything in a real node's network
+    namespace (the simulators the node's agent talks to over its loopback)."""
+
+    def __init__(self, node: RealNode, logs_dir: Path) -> None:
+        super().__init__(logs_dir, lambda: None)
+        self.node = node
+
+    def start(self, name: str, argv: list[str], env: Mapping[str, str]) -> ManagedProcess:
+        return super().start(name, self.node.run_in_namespace(argv), env)
+
+
+@dataclass
+class Timings:
+    """Seconds between the steps of :class:`RealFleet` (what bench/node.py reports)."""
+
+    ground_start_to_ready_s: float = 0.0
+    vehicle_start_to_ready_s: float = 0.0
+    install_to_operator_ready_s: float = 0.0
+    agent_pod_to_first_report_s: float = 0.0
+
+
+@dataclass
+class RealFleet:
+    """Two real nodes with the chart installed and one vehicle flying simulated autopilots.
+
+    ``start`` brings it up step by step (recording :class:`Timings`); ``stop`` removes
+    the vehicle's objects and simulators and uninstalls the chart when still installed.
+    The nodes stay in ``pool`` (the caller's), so a test can look at them afterwards.
+    """
+
+    cluster: Cluster
+    pool: RealNodes
+    directory: Path
+    release: str = "real"
+    namespace: str = "roost-real"
+    timings: Timings = field(default_factory=Timings)
+    ground: RealNode | None = None
+    vehicle_node: RealNode | None = None
+    vehicle: plan.VehiclePlan = field(
+        default_factory=lambda: dataclasses.replace(plan.plan_fleet(1)[0], name=VEHICLE)
+    )
+    simulated: state.SandboxVehicle | None = None
+    launcher: NamespaceLauncher | None = None
+    installed: bool = False
+
+    # ---- bring-up ------------------------------------------------------------------------
+    def start(self) -> None:
+        images = build_images()
+        t0 = time.monotonic()
+        self.ground = self.pool.add(GROUND_NODE, images=[archive(images, "operator")])
+        self.timings.ground_start_to_ready_s = time.monotonic() - t0
+        t0 = time.monotonic()
+        self.vehicle_node = self.pool.add(self.vehicle.node, images=[archive(images, "agent")])
+        self.timings.vehicle_start_to_ready_s = time.monotonic() - t0
+        self.launcher = NamespaceLauncher(self.vehicle_node, self.directory / "logs")
+        self.simulated = sims.start(self.launcher, self.vehicle, self.directory)
+        self.install()
+        self.timings.install_to_operator_ready_s = self.wait_operator_ready()
+        self.timings.agent_pod_to_first_report_s = self.add_vehicle()
+
+    def helm(self, values: Mapping[str, Any], *extra: str) -> None:
+        args = install_args(self.release, self.namespace, values, self.directory)
+        args = [a for a in args if a != "--wait"]  # the steps are waited for (and timed) here
+        self.cluster.helm(*args, *extra)
+
+    def install(self) -> None:
+        assert self.ground is not None
+        self.helm(chart_values(self.ground.name))
+        self.installed = True
+
+    def wait_operator_ready(self) -> float:
+        """Seconds until the operator Deployment has an available pod."""
+        t0 = time.monotonic()
+        wait_until(
+            "the operator Deployment available",
+            lambda: (
+                self.get("deployment", self.operator_deployment, namespaced=True)
+                .get("status", {})
+                .get("availableReplicas")
+            ),
+            WAIT_S,
+        )
+        return time.monotonic() - t0
+
+    def add_vehicle(self) -> float:
+        """Apply the Vehicle and its RedundantAutopilot; seconds from the agent pod's
+        appearance on the vehicle node to the agent's first report in the status."""
+        assert self.simulated is not None
+        connections = {a.name: a.connection for a in self.simulated.autopilots}
+        manifests = [self.vehicle_manifest(), plan.autopilot_manifest(self.vehicle, connections)]
+        text = "\n---\n".join(yaml.safe_dump(m) for m in manifests)
+        self.cluster.kubectl("apply", "-f", "-", input_text=text)
+        wait_until("the agent pod on the vehicle node", self.agent_pod, WAIT_S, poll_s=0.05)
+        t0 = time.monotonic()
+        wait_until("the agent's first report", self.reported, WAIT_S, poll_s=0.05)
+        return time.monotonic() - t0
+
+    def vehicle_manifest(self) -> dict[str, Any]:
+        """The sandbox's Vehicle without its simulation block and mavros: its autopilots
+        are the simulators started here (as a vehicle's flight controllers are hardware),
+        and neither SITL nor mavros images exist on the node."""
+        manifest = plan.vehicle_manifest(self.vehicle)
+        manifest["spec"].pop("simulation", None)
+        manifest["spec"]["components"] = {"mavros": {"enabled": False}}
+        return manifest
+
+    # ---- reading -------------------------------------------------------------------------
+    @property
+    def operator_deployment(self) -> str:
+        return f"{self.release}-roost-operator"
+
+    @property
+    def agent_daemonset(self) -> str:
+        return f"{self.release}-roost-agent"
+
+    def get(self, *args: str, namespaced: bool = False) -> dict[str, Any]:
+        extra = ["-n", self.namespace] if namespaced else []
+        found: dict[str, Any] = json.loads(
+            self.cluster.kubectl("get", *args, *extra, "-o", "json").stdout
+        )
+        return found
+
+    def pods(self, component: str) -> list[dict[str, Any]]:
+        selector = (
+            f"app.kubernetes.io/instance={self.release},app.kubernetes.io/component={component}"
+        )
+        items: list[dict[str, Any]] = self.get("pods", "-l", selector, namespaced=True)["items"]
+        return items
+
+    def agent_pod(self) -> dict[str, Any] | None:
+        """The agent pod on the vehicle node, once it exists."""
+        return next(
+            (p for p in self.pods("agent") if p["spec"].get("nodeName") == self.vehicle.node),
+            None,
+        )
+
+    def autopilot_status(self) -> dict[str, Any]:
+        status: dict[str, Any] = self.get("redundantautopilot", VEHICLE).get("status") or {}
+        return status
+
+    def reported(self) -> bool:
+        """The agent reported from the vehicle node, every autopilot healthy."""
+        status = self.autopilot_status()
+        levels = {a.get("level") for a in status.get("autopilots", [])}
+        return status.get("nodeName") == self.vehicle.node and levels == {"OK"}
+
+    def node_labelled(self) -> bool:
+        assert self.vehicle_node is not None
+        node = self.get("node", self.vehicle_node.name)
+        labels: dict[str, str] = node["metadata"].get("labels", {})
+        return labels.get(LABEL_VEHICLE) == VEHICLE
+
+    def control(self, autopilot: str, message: dict[str, Any]) -> dict[str, Any]:
+        """A request to one simulated autopilot (``roost fault``'s channel)."""
+        assert self.simulated is not None
+        target = next(a for a in self.simulated.autopilots if a.name == autopilot)
+        return request(Path(target.control), message)
+
+    def fly(self) -> None:
+        assert self.simulated is not None
+        sims.fly(self.simulated)
+
+    def containers(self) -> list[str]:
+        """Images of the containers the vehicle node's containerd holds."""
+        assert self.vehicle_node is not None
+        done = subprocess.run(
+            self.vehicle_node.ctr("containers", "list"),
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        return [line.split()[1] for line in done.stdout.splitlines()[1:] if line.strip()]
+
+    # ---- teardown ------------------------------------------------------------------------
+    def uninstall(self) -> None:
+        self.cluster.helm("uninstall", self.release, "--namespace", self.namespace, "--wait")
+        self.installed = False
+
+    def stop(self) -> None:
+        objects = ("redundantautopilot,vehicle", VEHICLE)
+        if not self.installed:
+            # The operator is gone with the chart: nobody releases the Vehicle's finalizer.
+            unfinalized = json.dumps({"metadata": {"finalizers": None}})
+            self.cluster.kubectl(
+                "patch", "vehicle", VEHICLE, "--type=merge", "-p", unfinalized, check=False
+            )
+        self.cluster.kubectl("delete", *objects, "--ignore-not-found", "--timeout=60s", check=False)
+        if self.installed:
+            self.uninstall()
+        if self.launcher is not None:
+            self.launcher.stop_all()
+        for node in (self.vehicle_node, self.ground):
+            if node is not None:
+                self.pool.remove(node.name)
