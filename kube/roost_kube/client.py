@@ -207,12 +207,21 @@ class Kube:
         return items
 
     def list_with_version(
-        self, resource: Resource, *, namespace: str | None = None, field_selector: str = ""
+        self,
+        resource: Resource,
+        *,
+        namespace: str | None = None,
+        field_selector: str = "",
+        label_selector: str = "",
     ) -> tuple[list[Obj], str]:
-        """Every object of a kind (matching ``field_selector``) and the list's
+        """Every object of a kind (matching the selectors) and the list's
         resourceVersion (to watch from)."""
-        query = {"fieldSelector": field_selector} if field_selector else None
-        result = self.request("GET", resource.collection_path(namespace), query=query) or {}
+        query = {
+            key: value
+            for key, value in (("fieldSelector", field_selector), ("labelSelector", label_selector))
+            if value
+        }
+        result = self.request("GET", resource.collection_path(namespace), query=query or None) or {}
         items: list[Obj] = result.get("items", [])
         for item in items:  # list items carry no apiVersion/kind; restore them
             item.setdefault("apiVersion", resource.api_version)
@@ -238,14 +247,18 @@ class Kube:
         resource_version: str,
         namespace: str | None = None,
         field_selector: str = "",
+        label_selector: str = "",
         timeout_s: int,
     ) -> Iterator[tuple[str, Obj]]:
-        """Watch every object of a kind from ``resource_version`` (a list's, see
-        :meth:`list_with_version`). A version the server no longer has raises
-        :class:`~roost_kube.errors.ApiError` with status 410: list again."""
+        """Watch every object of a kind (matching the selectors, applied by the server)
+        from ``resource_version`` (a list's, see :meth:`list_with_version`). A version the
+        server no longer has raises :class:`~roost_kube.errors.ApiError` with status 410:
+        list again."""
         query = {"resourceVersion": resource_version, "allowWatchBookmarks": "true"}
         if field_selector:
             query["fieldSelector"] = field_selector
+        if label_selector:
+            query["labelSelector"] = label_selector
         return self._watch(resource, namespace, query, timeout_s, f"watch of {resource.plural}")
 
     def _watch(

@@ -15,21 +15,28 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, cast
 
 import kopf
 
+from roost_api.wellknown import LABEL_COMPONENT, LABEL_MANAGED_BY, MANAGED_BY
 from roost_kube.client import Kube
 from roost_kube.errors import ApiError
+from roost_kube.resources import LEASES
+from roost_operator.claims import CLAIM_COMPONENT, Claim, claim_of
 from roost_operator.edge import HandlerTiming, error_kind
 from roost_operator.settings import Settings
 from roost_operator.vehicles.controller import Peers, VehicleController
-from roost_operator.vehicles.nodewatch import NodeWatcher
+from roost_operator.vehicles.nodewatch import node_watcher
+from roost_operator.watches import Watcher
 from roost_operator.workqueue import Backoff, WorkQueue
 
 log = logging.getLogger(__name__)
+
+CLAIM_SELECTOR = f"{LABEL_MANAGED_BY}={MANAGED_BY},{LABEL_COMPONENT}={CLAIM_COMPONENT}"
+"""The claim Leases, selected by the API server (never every node's heartbeat Lease)."""
 
 
 def is_permanent(error: BaseException) -> bool:
@@ -59,7 +66,11 @@ class Runtime:
     """Each vehicle's ``AgentConnected`` status as its last reconcile wrote it."""
     timing: HandlerTiming | None = None
     """Where each queued reconcile's duration goes (the operator's metrics), if anywhere."""
-    node_watcher: NodeWatcher | None = None
+    watchers: list[Watcher] = field(default_factory=list)
+    """Roost's own watches (Nodes, claim Leases): see :mod:`roost_operator.watches`."""
+    claim_listeners: list[Callable[[Claim], None]] = field(default_factory=list)
+    """Called (from the claim watch's thread) with every claim Lease event; the Vehicle
+    queue is always told, the mission controller adds itself here at startup."""
     _sweep_stop: threading.Event = field(default_factory=threading.Event)
 
     @classmethod
@@ -91,8 +102,18 @@ class Runtime:
         )
         if reconcile is not None:
             rt.vehicle_queue.start()
-            rt.node_watcher = NodeWatcher(kube, lambda: rt.peers, rt.vehicle_queue.add)
-            rt.node_watcher.start()
+            rt.watchers = [
+                node_watcher(kube, lambda: rt.peers, rt.vehicle_queue.add),
+                Watcher(
+                    kube,
+                    LEASES,
+                    lambda kind, lease: rt._claim_changed(lease),
+                    rt._claims_listed,
+                    label_selector=CLAIM_SELECTOR,
+                ),
+            ]
+            for watcher in rt.watchers:
+                watcher.start()
             if settings.resync_seconds > 0:
                 threading.Thread(target=rt._sweep, name="vehicle-sweep", daemon=True).start()
         return rt
@@ -120,9 +141,23 @@ class Runtime:
     def stop(self) -> None:
         """Stop the sweep and the queue's workers (after their running reconciles)."""
         self._sweep_stop.set()
-        if self.node_watcher is not None:
-            self.node_watcher.stop()
+        for watcher in self.watchers:
+            watcher.stop()
         self.vehicle_queue.stop()
+
+    def _claim_changed(self, lease: Mapping[str, Any]) -> None:
+        """A mission claimed or released a vehicle: queue it (``status.claimedBy``) and
+        tell the mission controller."""
+        claim = claim_of(lease)
+        if claim is None:
+            return
+        self.vehicle_queue.add(claim.vehicle)
+        for listener in list(self.claim_listeners):
+            listener(claim)
+
+    def _claims_listed(self, leases: list[Mapping[str, Any]]) -> None:
+        for lease in leases:
+            self._claim_changed(lease)
 
     def _report_permanent(self, vehicle: str, error: BaseException) -> None:
         """A reconcile failed for good: say so once (the queue does not retry it)."""

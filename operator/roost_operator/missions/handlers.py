@@ -31,11 +31,11 @@ from typing import Any, Final
 import kopf
 
 from roost_api.meta import now
-from roost_api.wellknown import LABEL_COMPONENT, LABEL_MISSION
+from roost_api.wellknown import LABEL_MISSION
 from roost_kube import resources
 from roost_kube.client import Kube
 from roost_kube.errors import ApiError, TemporaryApiError
-from roost_operator.claims import CLAIM_COMPONENT, claim_of
+from roost_operator.claims import Claim
 from roost_operator.edge import at_the_edge, handler_edge
 from roost_operator.missions.cluster import reconcile_mission, release_deleted_mission
 from roost_operator.missions.wakeups import Wakeups, sleep_until_woken
@@ -45,7 +45,6 @@ from roost_operator.settings import MissionTimings, Settings
 MISSIONS: Final = resources.MISSIONS.kopf
 VEHICLES: Final = resources.VEHICLES.kopf
 AUTOPILOTS: Final = resources.REDUNDANT_AUTOPILOTS.kopf
-LEASES: Final = resources.LEASES.kopf
 
 WAKEUPS: Final = Wakeups()
 log = logging.getLogger(__name__)
@@ -181,12 +180,15 @@ async def vehicle_event(*, name: str, status: kopf.Status, **_: Any) -> None:
     WAKEUPS.wake_for_vehicle(name, claimant)
 
 
-async def claim_event(*, body: kopf.Body, **_: Any) -> None:
-    """A vehicle was claimed or released: wake its holder and the waiting missions."""
-    claim = claim_of(body)
-    if claim is None:
-        return
-    WAKEUPS.wake_for_vehicle(claim.vehicle, claim.holder_key)
+async def listen_to_claims(memo: Any, **_: Any) -> None:
+    """At startup: wake missions on claim Lease events (the runtime's own claim watch
+    calls back from its thread, so the wake-up is handed to this event loop)."""
+    loop = asyncio.get_running_loop()
+
+    def claimed(claim: Claim) -> None:
+        loop.call_soon_threadsafe(WAKEUPS.wake_for_vehicle, claim.vehicle, claim.holder_key)
+
+    runtime(memo).claim_listeners.append(claimed)
 
 
 async def autopilots_event(*, spec: kopf.Spec, **_: Any) -> None:
@@ -217,11 +219,7 @@ def register(registry: kopf.OperatorRegistry, settings: Settings) -> None:
     )
     kopf.on.event(*MISSIONS, registry=registry)(handler_edge(mission_event))
     kopf.on.event(*VEHICLES, registry=registry)(handler_edge(vehicle_event))
-    kopf.on.event(
-        *LEASES,
-        labels={LABEL_COMPONENT: CLAIM_COMPONENT},
-        registry=registry,
-    )(handler_edge(claim_event))
+    kopf.on.startup(registry=registry)(listen_to_claims)
     kopf.on.event(*AUTOPILOTS, registry=registry)(handler_edge(autopilots_event))
     kopf.on.event("batch", "v1", "jobs", labels={LABEL_MISSION: kopf.PRESENT}, registry=registry)(
         handler_edge(job_event)

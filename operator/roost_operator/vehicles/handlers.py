@@ -29,7 +29,10 @@ Triggers, and why each exists:
   object;
 * a Vehicle timer while a failover action runs or a guard holds one back (only then) —
   timeouts, and the moment a guard lifts;
-* its claim Lease — the mission claim mirrored into ``status.claimedBy``;
+* its claim Lease — the mission claim mirrored into ``status.claimedBy``. Claim Leases
+  are watched by Roost's own thread with a server-side label selector
+  (:mod:`roost_operator.watches`): kopf filters labels itself, so a kopf handler would
+  have kopf process every node's heartbeat Lease;
 * optionally a fleet sweep every ``resync_seconds`` (off by default: everything above is
   event-driven, and a sweep at fleet scale is work that almost always finds nothing).
 
@@ -64,7 +67,6 @@ from roost_api.wellknown import (
 )
 from roost_kube import resources
 from roost_kube.patches import content_hash
-from roost_operator.claims import CLAIM_COMPONENT, claim_of
 from roost_operator.edge import at_the_edge, handler_edge
 from roost_operator.runtime import Runtime, runtime
 from roost_operator.settings import Settings
@@ -74,7 +76,6 @@ from roost_operator.vehicles.plan import relevant_autopilot
 
 VEHICLES: Final = resources.VEHICLES.kopf
 AUTOPILOTS: Final = resources.REDUNDANT_AUTOPILOTS.kopf
-LEASES: Final = resources.LEASES.kopf
 STALE_MARGIN_S: Final = 1.1
 """The staleness deadline fires this long after the report turns stale: ``reportedAt``
 and the controller's clock are both whole seconds (as Kubernetes stores times), so a
@@ -292,13 +293,6 @@ async def autopilot_reported(
         enqueue(memo, vehicle, indexes)
 
 
-async def claim_changed(*, body: kopf.Body, memo: Any, **indexes: Any) -> None:
-    """A mission claimed or released the vehicle: mirror it into ``status.claimedBy``."""
-    claim = claim_of(body)
-    if claim is not None:
-        enqueue(memo, claim.vehicle, indexes)
-
-
 # -- registration ------------------------------------------------------------------------
 
 
@@ -330,8 +324,3 @@ def register(registry: kopf.OperatorRegistry, settings: Settings) -> None:
             registry=registry,
         )(handler_edge(owned_event))
     kopf.on.event(*AUTOPILOTS, registry=registry)(handler_edge(autopilot_reported))
-    kopf.on.event(
-        *LEASES,
-        labels={LABEL_MANAGED_BY: MANAGED_BY, LABEL_COMPONENT: CLAIM_COMPONENT},
-        registry=registry,
-    )(handler_edge(claim_changed))

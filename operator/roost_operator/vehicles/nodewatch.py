@@ -4,40 +4,31 @@ Why not a kopf handler: every node's kubelet (or KWOK) rewrites the Node's statu
 few seconds, and kopf processes each of those events in full (its per-object worker,
 cause detection, a deep copy for the diff base) before a handler can say "nothing I
 read changed" — about 3 ms per event here, which at 1,000 nodes was most of the
-operator's idle CPU. This thread lists and watches Nodes with Roost's own client, keeps
-a fingerprint of the part Roost reads (:func:`node_relevant`: labels, annotations,
-taints, the Ready condition) and queues the vehicles of a node only when that part
-changed (or the node appeared or went away).
+operator's idle CPU. A :class:`~roost_operator.watches.Watcher` lists and watches
+Nodes with Roost's own client, keeps a fingerprint of the part Roost reads
+(:func:`node_relevant`: labels, annotations, taints, the Ready condition) and queues the
+vehicles of a node only when that part changed (or the node appeared or went away).
 
 Which vehicles a node concerns comes from kopf's index of Vehicles by node
 (:class:`~roost_operator.vehicles.controller.Peers`) plus the vehicle the node is
 labelled for. Before the first handler has bound that index there is nothing to queue:
 every Vehicle is queued by its own first event anyway.
 
-A watch that ends is resumed from the last resourceVersion; one the server no longer
-has (410 Gone) is replaced by a fresh list, compared against the fingerprints, so a
-change missed in between is still seen.
+A fresh list after the watch lost its place (:mod:`roost_operator.watches`) is compared
+against the fingerprints, so a change missed in between is still seen.
 """
 
 from __future__ import annotations
 
-import logging
-import threading
 from collections.abc import Callable, Iterable, Mapping
-from typing import Any, Final
+from typing import Any
 
 from roost_api.wellknown import LABEL_VEHICLE
 from roost_kube.client import Kube
-from roost_kube.errors import ApiError
 from roost_kube.patches import content_hash
 from roost_kube.resources import NODES
 from roost_operator.vehicles.controller import Peers
-
-log = logging.getLogger(__name__)
-
-WATCH_TIMEOUT_S: Final = 290
-RETRY_S: Final = 2.0
-GONE: Final = 410
+from roost_operator.watches import Watcher
 
 
 def node_relevant(body: Mapping[str, Any]) -> Any:
@@ -99,59 +90,23 @@ class NodeFingerprints:
         return changed
 
 
-class NodeWatcher:
-    """Lists and watches Nodes in a thread; calls ``enqueue(vehicle)`` for what matters."""
+def node_watcher(
+    kube: Kube, peers: Callable[[], Peers | None], enqueue: Callable[[str], None]
+) -> Watcher:
+    """A :class:`~roost_operator.watches.Watcher` of Nodes that calls ``enqueue(vehicle)``
+    for the vehicles of each node whose relevant part changed."""
+    prints = NodeFingerprints()
 
-    def __init__(
-        self,
-        kube: Kube,
-        peers: Callable[[], Peers | None],
-        enqueue: Callable[[str], None],
-    ) -> None:
-        self.kube = kube
-        self.peers = peers
-        self.enqueue = enqueue
-        self.prints = NodeFingerprints()
-        self.events = 0
-        """Watch events received (heartbeats included), for tests and benchmarks."""
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="node-watch", daemon=True)
+    def queue(node: Mapping[str, Any]) -> None:
+        for vehicle in sorted(vehicles_of(node, peers())):
+            enqueue(vehicle)
 
-    def start(self) -> None:
-        self._thread.start()
+    def on_event(kind: str, node: Mapping[str, Any]) -> None:
+        if prints.changed(kind, node):
+            queue(node)
 
-    def stop(self) -> None:
-        self._stop.set()
+    def on_list(nodes: list[Mapping[str, Any]]) -> None:
+        for node in prints.relist(nodes):
+            queue(node)
 
-    def _queue(self, node: Mapping[str, Any]) -> None:
-        for vehicle in sorted(vehicles_of(node, self.peers())):
-            self.enqueue(vehicle)
-
-    def _run(self) -> None:
-        version: str | None = None
-        while not self._stop.is_set():
-            try:
-                if version is None:
-                    nodes, version = self.kube.list_with_version(NODES)
-                    for node in self.prints.relist(nodes):
-                        self._queue(node)
-                for kind, node in self.kube.watch_collection(
-                    NODES, resource_version=version, timeout_s=WATCH_TIMEOUT_S
-                ):
-                    if self._stop.is_set():
-                        return
-                    version = node.get("metadata", {}).get("resourceVersion", version)
-                    if kind == "BOOKMARK":
-                        continue
-                    self.events += 1
-                    if self.prints.changed(kind, node):
-                        self._queue(node)
-            except ApiError as error:
-                if getattr(error, "status", None) == GONE:
-                    version = None  # too old: list again
-                    continue
-                log.warning("watching nodes failed (%s); retrying in %.0f s", error, RETRY_S)
-                self._stop.wait(RETRY_S)
-            except Exception:  # a dropped connection, a bad event: watch again
-                log.exception("watching nodes failed; retrying in %.0f s", RETRY_S)
-                self._stop.wait(RETRY_S)
+    return Watcher(kube, NODES, on_event, on_list)
