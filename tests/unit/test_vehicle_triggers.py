@@ -21,6 +21,7 @@ from roost_operator.vehicles.handlers import (
     Fingerprints,
     _stale_deadline,
     _vehicle_relevant,
+    owned_relevant,
 )
 
 META: dict[str, Any] = {
@@ -93,3 +94,29 @@ def test_a_report_already_stale_is_due_now() -> None:
     deadline = _stale_deadline(_runtime(30), old)
     assert deadline is not None
     assert deadline - time.monotonic() <= STALE_MARGIN_S
+
+
+def _deployment(**status: Any) -> dict[str, Any]:
+    conditions = status.pop("conditions", [])
+    return {
+        "metadata": {"generation": 1, "labels": {"app": "mavros"}, "annotations": {}},
+        "status": {"observedGeneration": 1, **status, "conditions": conditions},
+    }
+
+
+def test_a_rollout_heartbeat_of_a_deployment_queues_nothing() -> None:
+    progressing = {"type": "Progressing", "status": "True", "reason": "NewReplicaSetAvailable"}
+    before = _deployment(
+        replicas=1, availableReplicas=1, conditions=[{**progressing, "lastUpdateTime": "t0"}]
+    )
+    after = _deployment(
+        replicas=1, availableReplicas=1, conditions=[{**progressing, "lastUpdateTime": "t1"}]
+    )
+    assert owned_relevant(before) == owned_relevant(after)
+
+
+def test_rollout_progress_and_hand_edits_queue_a_reconcile() -> None:
+    base = _deployment(replicas=1)
+    assert owned_relevant(base) != owned_relevant(_deployment(replicas=1, availableReplicas=1))
+    edited = {"metadata": {"labels": {}}, "data": {"vehicle.yaml": "edited by hand"}}
+    assert owned_relevant({"metadata": {"labels": {}}, "data": {}}) != owned_relevant(edited)

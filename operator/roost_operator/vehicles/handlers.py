@@ -112,6 +112,7 @@ log = logging.getLogger(__name__)
 _vehicle_prints = Fingerprints()
 _node_prints = Fingerprints()
 _autopilot_prints = Fingerprints()
+_owned_prints = Fingerprints()
 
 
 # -- indexes -------------------------------------------------------------------------
@@ -265,9 +266,39 @@ def vehicle_deleted(
 # -- other objects' triggers ---------------------------------------------------------------
 
 
-async def owned_event(*, labels: kopf.Labels, memo: Any, **indexes: Any) -> None:
+def owned_relevant(body: Mapping[str, Any]) -> Any:
+    """What the controller reads of a ConfigMap or Deployment it made: its content (in the
+    generation, or the data) and labels, and a Deployment's rollout counts and conditions
+    — not the timestamps the Deployment controller refreshes on every status write."""
+    meta = body.get("metadata") or {}
+    status = body.get("status") or {}
+    return [
+        meta.get("generation"),
+        meta.get("labels"),
+        meta.get("annotations"),
+        body.get("data"),
+        {key: value for key, value in status.items() if key != "conditions"},
+        [(c.get("type"), c.get("status"), c.get("reason")) for c in status.get("conditions") or []],
+    ]
+
+
+async def owned_event(
+    *,
+    type: str | None,
+    uid: str | None,
+    labels: kopf.Labels,
+    body: kopf.Body,
+    memo: Any,
+    **indexes: Any,
+) -> None:
     """Something Roost made for a vehicle changed (a component Deployment's rollout, its
-    ConfigMap edited or deleted by hand): queue the vehicle."""
+    ConfigMap edited or deleted by hand): queue the vehicle. Status writes that change no
+    count and no condition (a rollout's heartbeat) are dropped by a fingerprint."""
+    key = uid or body.get("metadata", {}).get("name")
+    if type == "DELETED":
+        _owned_prints.forget(key)
+    elif not _owned_prints.changed(key, owned_relevant(body)):
+        return
     enqueue(memo, labels[LABEL_VEHICLE], indexes)
 
 
