@@ -2,10 +2,13 @@
 
 Threads and why:
 
-- one reader per autopilot link (:mod:`roost_agent.links`) feeds its health tracker and
-  wakes the decision loop when something the arbiter acts on changed;
-- the decision loop ticks every ``tick_s`` (and at once when woken), assesses every
-  autopilot, steps the pure arbiter and executes its actions. The switch path is local
+- one reader thread (:class:`roost_agent.links.LinkReader`) reads every autopilot link,
+  feeds the health trackers and runs the decision loop: every ``tick_s`` (and at once
+  when a link saw something the arbiter acts on change, or a command came), right after
+  reading whatever arrived, it assesses every autopilot, steps the pure arbiter and
+  executes its actions. One thread, one wake-up per tick: on a companion computer the
+  wake-ups and GIL hand-offs of a thread per link and a separate loop cost more than
+  the parsing. The switch path is local
   and immediate: assessment, arbiter and the bridge write, with no logging, no network
   and no disk in between. Everything slower happens after the bridge switched;
 - a worker runs the safety routine, landing orders and the emergency stop one at a time
@@ -66,7 +69,7 @@ from roost_agent.arbiter import (
 from roost_agent.bridge import Bridge, BridgeError
 from roost_agent.health import Assessment, HealthTracker
 from roost_agent.hub import Hub, InStep, hub_for, hub_identity
-from roost_agent.links import AutopilotLink
+from roost_agent.links import AutopilotLink, LinkReader
 from roost_agent.report import report
 from roost_agent.safety import (
     DEFAULT_TIMING,
@@ -376,10 +379,11 @@ class Agent:
         self._last_status: RedundantAutopilotStatus | None = None
         self._listeners: list[Listener] = []
         self._events: queue.SimpleQueue[AgentEvent | None] = queue.SimpleQueue()
-        self._wake = threading.Event()
         self._stop = threading.Event()
         self._worker = _SafetyWorker()
         self._threads: list[threading.Thread] = []
+        self._reader = LinkReader()
+        self._reader.drive(self.tick, tick_s)
         self._cfg = _Running(
             spec=spec,
             generation=generation,
@@ -390,6 +394,8 @@ class Agent:
         self._spec_lock = threading.Lock()
         # The vehicle's MAVLink endpoint (roost_agent.hub), when the spec asks for it.
         self._hub: Hub | None = hub_for(spec, self._state.active, self._cfg.links)
+        if self._hub is not None:  # routed frames are not held back while clients wait
+            self._reader.hurry = self._hub.has_clients
         self._in_step: dict[str, InStep] = {}
 
     # -- lifecycle ---------------------------------------------------------------------
@@ -400,6 +406,7 @@ class Agent:
         channel = cfg.channels[self._state.active]
         if self._bridge.selected != channel:
             self._bridge.select(channel)
+        self._reader.start()
         for link in cfg.links.values():
             link.start()
         if self._hub is not None:
@@ -408,7 +415,6 @@ class Agent:
         self._worker.start()
         self._resume_safety(cfg)
         for target, name in (
-            (self._decide_forever, "decision-loop"),
             (self._heartbeat_forever, "agent-heartbeat"),
             (self._notify_forever, "event-notifier"),
         ):
@@ -429,13 +435,13 @@ class Agent:
     def stop(self) -> None:
         """Stop every thread and link; the bridge keeps its selection."""
         self._stop.set()
-        self._wake.set()
         self._worker.stop()
         self._events.put(None)
         for thread in self._threads:
             thread.join(timeout=5)
         for link in self._cfg.links.values():
             link.stop()
+        self._reader.stop()
         if self._hub is not None:
             self._hub.stop()
 
@@ -508,7 +514,7 @@ class Agent:
             future = Future()
             self._pending[command.id] = future
             self._inbox.append(command)
-        self._wake.set()
+        self._reader.poke()
         return future
 
     def apply_spec(self, spec: RedundantAutopilotSpec, generation: int | None = None) -> str | None:
@@ -589,17 +595,6 @@ class Agent:
         return health.model_copy(update={"conditions": conditions})
 
     # -- decision loop -------------------------------------------------------------------
-
-    def _decide_forever(self) -> None:
-        while not self._stop.is_set():
-            self._wake.wait(self._tick_s)
-            self._wake.clear()
-            if self._stop.is_set():
-                return
-            try:
-                self.tick()
-            except Exception:  # the loop must outlive any bug in one tick
-                log.exception("decision tick failed")
 
     def tick(self) -> None:
         """One decision: assess, step the arbiter, switch first, then everything else."""
@@ -896,10 +891,11 @@ class Agent:
         return AutopilotLink(
             spec_ap,
             tracker,
-            on_change=self._wake.set,
+            on_change=self._reader.poke,
             clock=self._clock,
             signing=self._signing,
             on_event=link_event,
+            reader=self._reader,
         )
 
     def _apply_spec(self, spec: RedundantAutopilotSpec, generation: int | None) -> str | None:
