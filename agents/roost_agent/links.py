@@ -69,6 +69,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from roost_agent.frames import split as split_frames
 from roost_agent.health import HealthTracker, Motion
 from roost_agent.signing import LinkSigning
 from roost_api.autopilot import AutopilotSpec
@@ -910,6 +911,15 @@ class AutopilotLink:
                     True,
                 )
             return
+        if session.transport.datagrams:
+            frames = split_frames(data)
+            if frames is not None:  # all good MAVLink 2: no parser needed (roost_agent.frames)
+                try:
+                    for frame in frames:
+                        self._message(session, frame, sender, now)
+                except Exception:
+                    self.counters.errors += 1
+                return
         parser = session.parsers.pop(sender, None)
         if parser is None:
             parser = _new_parser()
