@@ -74,8 +74,21 @@ def _layout(cls: Any) -> Layout:
     )
 
 
-LAYOUTS: dict[int, Layout] = {msg_id: _layout(cls) for msg_id, cls in mavlink.mavlink_map.items()}
-_ANY_FIELD = frozenset().union(*(layout.fields for layout in LAYOUTS.values()))
+_LAYOUTS: dict[int, Layout] = {}  # built on first sight: an autopilot sends a few dozen types
+_ANY_FIELD = frozenset().union(*(cls.fieldnames for cls in mavlink.mavlink_map.values()))
+
+
+def layout(msg_id: int) -> Layout | None:
+    """The layout of a message id of the dialect (None: not one of its messages)."""
+    known = _LAYOUTS.get(msg_id)
+    if known is None:
+        cls = mavlink.mavlink_map.get(msg_id)
+        if cls is None:
+            return None
+        known = _LAYOUTS[msg_id] = _layout(cls)
+    return known
+
+
 _DECODER = mavlink.MAVLink(None)  # decode() keeps no state without a signing key
 
 
@@ -159,11 +172,12 @@ def split(data: bytes) -> list[Frame] | None:
         end = crc_at + CRC_BYTES + (SIGNATURE_BYTES if incompat else 0)
         if end > total:
             return None
-        layout = LAYOUTS.get(header[7] | (header[8] << 16))
-        if layout is None:
+        msg_id = header[7] | (header[8] << 16)
+        kind = _LAYOUTS.get(msg_id) or layout(msg_id)
+        if kind is None:
             return None
-        if _crc16(data[start + 1 : crc_at] + layout.crc_extra) != _CRC.unpack_from(data, crc_at)[0]:
+        if _crc16(data[start + 1 : crc_at] + kind.crc_extra) != _CRC.unpack_from(data, crc_at)[0]:
             return None
-        frames.append(Frame(data, start, end, header, layout))
+        frames.append(Frame(data, start, end, header, kind))
         start = end
     return frames
