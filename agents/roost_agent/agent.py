@@ -64,6 +64,7 @@ from roost_agent.arbiter import (
     SwitchBridge,
     Trigger,
     handle_command,
+    settled,
     step,
 )
 from roost_agent.bridge import Bridge, BridgeError
@@ -397,6 +398,7 @@ class Agent:
         if self._hub is not None:  # routed frames are not held back while clients wait
             self._reader.hurry = self._hub.has_clients
         self._in_step: dict[str, InStep] = {}
+        self._views: dict[str, tuple[tuple[object, ...], AutopilotView]] = {}
 
     # -- lifecycle ---------------------------------------------------------------------
 
@@ -602,8 +604,9 @@ class Agent:
         now = self._clock()
         assessments = {name: link.tracker.assess(now) for name, link in cfg.links.items()}
         in_step = self._hub.in_step(now) if self._hub is not None else {}
-        views = {name: _view(a, in_step.get(name)) for name, a in assessments.items()}
-        self._execute(cfg, step(self._state, views, cfg.policy, now))
+        views = {name: self._view(a, in_step.get(name)) for name, a in assessments.items()}
+        if not settled(self._state, views, cfg.policy):
+            self._execute(cfg, step(self._state, views, cfg.policy, now))
         with self._lock:
             commands = list(self._inbox)
             self._inbox.clear()
@@ -620,6 +623,18 @@ class Agent:
             )
             self._execute(cfg, decision)
         self._note_health_changes(assessments)
+
+    def _view(self, a: Assessment, in_step: InStep | None) -> AutopilotView:
+        """:func:`_view`, reusing the last one while what it is made of is unchanged (a
+        healthy autopilot's findings are empty tick after tick)."""
+        key = (a.stack, a.level, a.findings, a.armed, a.landed_state, a.custom_mode)
+        key += (None if in_step is None else in_step.status,)
+        cached = self._views.get(a.name)
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        view = _view(a, in_step)
+        self._views[a.name] = (key, view)
+        return view
 
     def _execute(self, cfg: _Running, decision: Decision) -> None:
         before = self._state
