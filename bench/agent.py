@@ -61,7 +61,7 @@ HEARTBEAT_FAILOVERS = int(os.environ.get("ROOST_BENCH_HEARTBEAT_FAILOVERS", "12"
 PEER_SAMPLES = int(os.environ.get("ROOST_BENCH_PEER_SAMPLES", "3"))
 CPU_S = float(os.environ.get("ROOST_BENCH_CPU_S", "30"))
 SOAK_S = float(os.environ.get("ROOST_BENCH_SOAK_S", "600"))
-PARTS = ("cpu", "failover", "heartbeat", "peer", "soak", "defaults")
+PARTS = ("cpu", "cluster", "failover", "heartbeat", "peer", "soak", "defaults")
 SELECTED = [p for p in os.environ.get("ROOST_BENCH_AGENT_PARTS", ",".join(PARTS)).split(",") if p]
 COMMAND = "make bench (python -m bench agent)"
 
@@ -478,6 +478,64 @@ def soak_figures() -> list[Figure]:
     ]
 
 
+def cluster_rss(seconds: float = CPU_S) -> float:
+    """Peak RSS (MB) of an agent in cluster mode: the local control plane, the
+    operator, two flying PX4 sims at onboard rates; measured once the Vehicle is Ready."""
+    from bench import cluster as rig  # noqa: PLC0415 - the control plane only for this part
+    from roost_kube.client import Kube  # noqa: PLC0415
+    from roost_localcluster import binaries  # noqa: PLC0415
+    from roost_localcluster.cluster import Cluster  # noqa: PLC0415
+    from roost_localcluster.controlplane import ControlPlane  # noqa: PLC0415
+    from tests.support.operator import OperatorProcess  # noqa: PLC0415
+    from tests.support.waiting import wait_until  # noqa: PLC0415
+
+    binaries.ensure_built()
+    with (
+        tempfile.TemporaryDirectory(prefix="bench-agent-cluster-") as tmp,
+        ControlPlane(Path(tmp)) as plane,
+    ):
+        cluster = Cluster.of(plane)
+        cluster.install_crds()
+        cluster.add_node(rig.NODE)
+        operator = OperatorProcess(cluster, Path(tmp) / "operator.log", namespace=rig.NAMESPACE)
+        sims = start_vehicle_sims(["px4", "px4"], rates=PX4_ONBOARD_RATES, config=SimConfig.fast())
+        agent = AgentProcess.in_cluster(cluster, rig.NODE, Path(tmp) / "agent")
+        operator.start()
+        try:
+            rig._fly(sims)
+            rig._apply_vehicle(cluster, sims)
+            agent.start()
+            with cluster.api_client() as api:
+                kube = Kube(api, "roost-bench")
+                wait_until("the vehicle Ready", lambda: rig._ready(kube), rig.WAIT_S)
+            proc = psutil.Process(agent.pid)
+            t0, peak = time.monotonic(), 0.0
+            while time.monotonic() - t0 < seconds:
+                peak = max(peak, proc.memory_info().rss / 1e6)
+                time.sleep(0.5)
+        finally:
+            agent.stop()
+            operator.stop()
+            stop_sims(sims)
+    return peak
+
+
+def cluster_figures() -> list[Figure]:
+    rss_mb = cluster_rss()
+    return [
+        Figure(
+            "agent.rss_mb_cluster",
+            round(rss_mb, 1),
+            "MB",
+            "<= 45",
+            f"ROOST_BENCH_AGENT_PARTS=cluster {COMMAND}",
+            "peak RSS of roost-agent in cluster mode (local control plane, operator running, "
+            "the Vehicle Ready, reporting) with two PX4 sims at onboard rates, over "
+            f"{CPU_S:.0f} s; 1-min load {_load()}",
+        )
+    ]
+
+
 def default_figures() -> list[Figure]:
     """The vehicle as shipped: default thresholds, silent onsets and the soak."""
     defaults = Thresholds()
@@ -510,6 +568,7 @@ def default_figures() -> list[Figure]:
 def run() -> list[Figure]:
     parts: dict[str, Callable[[], list[Figure]]] = {
         "cpu": cpu_figures,
+        "cluster": cluster_figures,
         "failover": failover_figures,
         "heartbeat": heartbeat_figures,
         "peer": peer_figures,

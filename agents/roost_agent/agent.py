@@ -8,9 +8,11 @@ Threads and why:
   reading whatever arrived, it assesses every autopilot, steps the pure arbiter and
   executes its actions. One thread, one wake-up per tick: on a companion computer the
   wake-ups and GIL hand-offs of a thread per link and a separate loop cost more than
-  the parsing. The switch path is local
-  and immediate: assessment, arbiter and the bridge write, with no logging, no network
-  and no disk in between. Everything slower happens after the bridge switched;
+  the parsing. Messages keep their kernel arrival times, so reading once per tick does
+  not age them; while a hub client is connected the reader wakes for every datagram
+  (routed frames are not held back). The switch path is local and immediate:
+  assessment, arbiter and the bridge write, with no logging, no network and no disk in
+  between. Everything slower happens after the bridge switched;
 - a worker runs the safety routine, landing orders and the emergency stop one at a time
   (a newer job supersedes an older one, nothing supersedes an emergency stop), so the
   decision loop never waits for an autopilot to answer;

@@ -1,11 +1,17 @@
-"""One MAVLink link per autopilot: a transport, one reader thread, locked writes.
+"""One MAVLink link per autopilot: a transport, one reader for all links, locked writes.
 
 Why one link per autopilot (not one shared socket): two autopilots behind one socket are
 merged by a MAVLink router and a command can reach both. Why a single reader: the
 pymavlink parser is not thread-safe, so the reader is the only thing that ever parses;
-it feeds the health tracker and hands COMMAND_ACKs to whoever waits for them. Writes
-(the agent's heartbeat, safety commands) take a lock, which also keeps the MAVLink
-sequence numbers in order.
+it feeds the health tracker and hands COMMAND_ACKs to whoever waits for them. One
+:class:`LinkReader` thread reads every link of the agent (a selector; a link started on
+its own gets a reader of its own), and the agent runs its decision loop on it too
+(:meth:`LinkReader.drive`): a thread per link woke once per datagram, which cost more
+than parsing. Datagrams of good MAVLink 2 frames are checked by header and CRC and
+decoded field by field on demand (:mod:`roost_agent.frames`); anything else goes through
+pymavlink's parser, so hostile traffic meets the same rules either way. Writes (the
+agent's heartbeat, safety commands) take a lock, which also keeps the MAVLink sequence
+numbers in order.
 
 Why our own transports instead of ``pymavlink.mavutil`` connections: mavutil imports
 numpy and a MAVLink 1 dialect (about 30 MB of the agent's memory, on a companion
@@ -44,7 +50,9 @@ the autopilot's own address and port; signing can.
 
 A reader never dies: any exception is counted, reported (``error``, shown in the status,
 and a warning Event) and the link reopened with exponential backoff
-(:data:`REOPEN_DELAY_S` doubling to :data:`REOPEN_MAX_S`).
+(:data:`REOPEN_DELAY_S` doubling to :data:`REOPEN_MAX_S`). Opening (which can block: a
+TCP connect) happens beside the reader, so one unreachable autopilot never delays
+reading the others.
 
 The agent talks as component 191 (onboard computer) with the autopilot's own system id,
 as a companion computer does, and addresses commands to the autopilot's component
