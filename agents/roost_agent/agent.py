@@ -629,8 +629,8 @@ class Agent:
     def _view(self, a: Assessment, in_step: InStep | None) -> AutopilotView:
         """:func:`_view`, reusing the last one while what it is made of is unchanged (a
         healthy autopilot's findings are empty tick after tick)."""
-        key = (a.stack, a.level, a.findings, a.armed, a.landed_state, a.custom_mode)
-        key += (None if in_step is None else in_step.status,)
+        status = None if in_step is None else in_step.status
+        key = (a.stack, a.level, a.findings, a.armed, a.landed_state, a.custom_mode, status)
         cached = self._views.get(a.name)
         if cached is not None and cached[0] == key:
             return cached[1]
