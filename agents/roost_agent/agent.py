@@ -386,7 +386,7 @@ class Agent:
         self._worker = _SafetyWorker()
         self._threads: list[threading.Thread] = []
         self._reader = LinkReader()
-        self._reader.drive(self.tick, tick_s)
+        self._reader.drive(self._tick_while_running, tick_s)
         self._cfg = _Running(
             spec=spec,
             generation=generation,
@@ -599,6 +599,10 @@ class Agent:
         return health.model_copy(update={"conditions": conditions})
 
     # -- decision loop -------------------------------------------------------------------
+
+    def _tick_while_running(self) -> None:
+        if not self._stop.is_set():  # stopping: the links close, nothing is decided on that
+            self.tick()
 
     def tick(self) -> None:
         """One decision: assess, step the arbiter, switch first, then everything else."""
