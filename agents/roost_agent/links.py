@@ -513,6 +513,7 @@ class _Session:
     parsers: OrderedDict[Address | None, Any] = field(default_factory=OrderedDict)
     accepted_at_open: int = 0
     link: AutopilotLink | None = None
+    fd: int = -1  # the descriptor the reader selects on
 
 
 class LinkReader:
@@ -605,6 +606,7 @@ class LinkReader:
         """Read ``session``'s transport from now on (reader thread only)."""
         fd = session.transport.fileno()
         self._sessions[fd] = session
+        session.fd = fd
         self._selector.register(fd, selectors.EVENT_READ, session)
 
     def detach(self, session: _Session) -> None:
@@ -662,14 +664,25 @@ class LinkReader:
             session = key.data
             if session is None:
                 self._run_calls()
-                continue
-            link = session.link
-            assert link is not None
-            try:
-                link._drain(session)
-            except Exception as exc:  # every failure: the link reports and reopens
+            else:
+                self._drain(session)
+
+    def _drain(self, session: _Session) -> None:
+        link = session.link
+        assert link is not None
+        try:
+            link._drain(session)
+            if session.transport.fileno() != session.fd:  # a TCP listener took a client
                 self.detach(session)
-                link._failed(exc, session)
+                self.attach(session)
+        except Exception as exc:  # every failure: the link reports and reopens
+            self.detach(session)
+            link._failed(exc, session)
+
+    def _drain_all(self) -> None:
+        """Read every link (a tick reads them all anyway: no select needed to ask which)."""
+        for session in list(self._sessions.values()):
+            self._drain(session)
 
     def _select(self, selector: selectors.BaseSelector, timeout: float) -> list[Any]:
         try:
@@ -698,7 +711,7 @@ class LinkReader:
             else:
                 if timeout > 0 and not self._urgent:
                     self._read(self._select(self._idle, timeout))
-                self._read(self._select(self._selector, 0))
+                self._drain_all()
             now = time.monotonic()
             if now >= next_tick or self._urgent:
                 self._urgent = False
