@@ -514,6 +514,7 @@ class _Session:
     accepted_at_open: int = 0
     link: AutopilotLink | None = None
     fd: int = -1  # the descriptor the reader selects on
+    arrived: float = float("-inf")  # the time given to the last datagram read
 
 
 class LinkReader:
@@ -913,7 +914,10 @@ class AutopilotLink:
             if stamp is not None and stamps:
                 arrived = stamp - offset
                 if now - STAMP_SLACK_S <= arrived < now:
-                    now = arrived
+                    # never before an earlier datagram's time (one read after a stall longer
+                    # than the slack got the read time)
+                    now = max(arrived, session.arrived)
+            session.arrived = now
             self._datagram(session, data, sender, now)
 
     def _datagram(self, session: _Session, data: bytes, sender: Address | None, now: float) -> None:
