@@ -522,8 +522,11 @@ class LinkReader:
 
     Why one thread, not one per link: a thread per link woke once per datagram and
     handed the GIL over each time, which cost several times the parsing itself. Here one
-    wake-up reads whatever every link has, then (while :attr:`hurry` says no client waits)
-    lets datagrams gather for :data:`BATCH_S`. Messages keep their kernel arrival time.
+    wake-up reads whatever every link has. Driven by a tick (:meth:`drive`, the agent's
+    decision loop) it wakes once per tick, reads, then ticks; on its own it lets
+    datagrams gather for :data:`BATCH_S` after each read. Either way it wakes for every
+    datagram while :attr:`hurry` says a client waits for routed frames, and messages keep
+    their kernel arrival time.
 
     Opening a transport can block (a TCP connect, a serial port), so it happens on a
     short-lived thread per attempt; the opened session is handed to the reader. Failures
@@ -669,6 +672,8 @@ class LinkReader:
                 self._drain(session)
 
     def _drain(self, session: _Session) -> None:
+        if self._sessions.get(session.fd) is not session:
+            return  # detached since the select (a link stopped by a call): not ours to read
         link = session.link
         assert link is not None
         try:
