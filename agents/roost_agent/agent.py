@@ -2,12 +2,17 @@
 
 Threads and why:
 
-- one reader per autopilot link (:mod:`roost_agent.links`) feeds its health tracker and
-  wakes the decision loop when something the arbiter acts on changed;
-- the decision loop ticks every ``tick_s`` (and at once when woken), assesses every
-  autopilot, steps the pure arbiter and executes its actions. The switch path is local
-  and immediate: assessment, arbiter and the bridge write, with no logging, no network
-  and no disk in between. Everything slower happens after the bridge switched;
+- one reader thread (:class:`roost_agent.links.LinkReader`) reads every autopilot link,
+  feeds the health trackers and runs the decision loop: every ``tick_s`` (and at once
+  when a link saw something the arbiter acts on change, or a command came), right after
+  reading whatever arrived, it assesses every autopilot, steps the pure arbiter and
+  executes its actions. One thread, one wake-up per tick: on a companion computer the
+  wake-ups and GIL hand-offs of a thread per link and a separate loop cost more than
+  the parsing. Messages keep their kernel arrival times, so reading once per tick does
+  not age them; while a hub client is connected the reader wakes for every datagram
+  (routed frames are not held back). The switch path is local and immediate:
+  assessment, arbiter and the bridge write, with no logging, no network and no disk in
+  between. Everything slower happens after the bridge switched;
 - a worker runs the safety routine, landing orders and the emergency stop one at a time
   (a newer job supersedes an older one, nothing supersedes an emergency stop), so the
   decision loop never waits for an autopilot to answer;
@@ -61,12 +66,13 @@ from roost_agent.arbiter import (
     SwitchBridge,
     Trigger,
     handle_command,
+    settled,
     step,
 )
 from roost_agent.bridge import Bridge, BridgeError
 from roost_agent.health import Assessment, HealthTracker
 from roost_agent.hub import Hub, InStep, hub_for, hub_identity
-from roost_agent.links import AutopilotLink
+from roost_agent.links import AutopilotLink, LinkReader
 from roost_agent.report import report
 from roost_agent.safety import (
     DEFAULT_TIMING,
@@ -376,10 +382,11 @@ class Agent:
         self._last_status: RedundantAutopilotStatus | None = None
         self._listeners: list[Listener] = []
         self._events: queue.SimpleQueue[AgentEvent | None] = queue.SimpleQueue()
-        self._wake = threading.Event()
         self._stop = threading.Event()
         self._worker = _SafetyWorker()
         self._threads: list[threading.Thread] = []
+        self._reader = LinkReader()
+        self._reader.drive(self._tick_while_running, tick_s)
         self._cfg = _Running(
             spec=spec,
             generation=generation,
@@ -390,7 +397,10 @@ class Agent:
         self._spec_lock = threading.Lock()
         # The vehicle's MAVLink endpoint (roost_agent.hub), when the spec asks for it.
         self._hub: Hub | None = hub_for(spec, self._state.active, self._cfg.links)
+        if self._hub is not None:  # routed frames are not held back while clients wait
+            self._reader.hurry = self._hub.has_clients
         self._in_step: dict[str, InStep] = {}
+        self._views: dict[str, tuple[tuple[object, ...], AutopilotView]] = {}
 
     # -- lifecycle ---------------------------------------------------------------------
 
@@ -400,6 +410,7 @@ class Agent:
         channel = cfg.channels[self._state.active]
         if self._bridge.selected != channel:
             self._bridge.select(channel)
+        self._reader.start()
         for link in cfg.links.values():
             link.start()
         if self._hub is not None:
@@ -408,7 +419,6 @@ class Agent:
         self._worker.start()
         self._resume_safety(cfg)
         for target, name in (
-            (self._decide_forever, "decision-loop"),
             (self._heartbeat_forever, "agent-heartbeat"),
             (self._notify_forever, "event-notifier"),
         ):
@@ -429,13 +439,13 @@ class Agent:
     def stop(self) -> None:
         """Stop every thread and link; the bridge keeps its selection."""
         self._stop.set()
-        self._wake.set()
         self._worker.stop()
         self._events.put(None)
         for thread in self._threads:
             thread.join(timeout=5)
         for link in self._cfg.links.values():
             link.stop()
+        self._reader.stop()
         if self._hub is not None:
             self._hub.stop()
 
@@ -518,7 +528,7 @@ class Agent:
             future = Future()
             self._pending[command.id] = future
             self._inbox.append(command)
-        self._wake.set()
+        self._reader.poke()
         return future
 
     def apply_spec(self, spec: RedundantAutopilotSpec, generation: int | None = None) -> str | None:
@@ -600,16 +610,9 @@ class Agent:
 
     # -- decision loop -------------------------------------------------------------------
 
-    def _decide_forever(self) -> None:
-        while not self._stop.is_set():
-            self._wake.wait(self._tick_s)
-            self._wake.clear()
-            if self._stop.is_set():
-                return
-            try:
-                self.tick()
-            except Exception:  # the loop must outlive any bug in one tick
-                log.exception("decision tick failed")
+    def _tick_while_running(self) -> None:
+        if not self._stop.is_set():  # stopping: the links close, nothing is decided on that
+            self.tick()
 
     def tick(self) -> None:
         """One decision: assess, step the arbiter, switch first, then everything else."""
@@ -617,8 +620,9 @@ class Agent:
         now = self._clock()
         assessments = {name: link.tracker.assess(now) for name, link in cfg.links.items()}
         in_step = self._hub.in_step(now) if self._hub is not None else {}
-        views = {name: _view(a, in_step.get(name)) for name, a in assessments.items()}
-        self._execute(cfg, step(self._state, views, cfg.policy, now))
+        views = {name: self._view(a, in_step.get(name)) for name, a in assessments.items()}
+        if not settled(self._state, views, cfg.policy):
+            self._execute(cfg, step(self._state, views, cfg.policy, now))
         with self._lock:
             commands = list(self._inbox)
             self._inbox.clear()
@@ -635,6 +639,18 @@ class Agent:
             )
             self._execute(cfg, decision)
         self._note_health_changes(assessments)
+
+    def _view(self, a: Assessment, in_step: InStep | None) -> AutopilotView:
+        """:func:`_view`, reusing the last one while what it is made of is unchanged (a
+        healthy autopilot's findings are empty tick after tick)."""
+        status = None if in_step is None else in_step.status
+        key = (a.stack, a.level, a.findings, a.armed, a.landed_state, a.custom_mode, status)
+        cached = self._views.get(a.name)
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        view = _view(a, in_step)
+        self._views[a.name] = (key, view)
+        return view
 
     def _execute(self, cfg: _Running, decision: Decision) -> None:
         before = self._state
@@ -906,10 +922,11 @@ class Agent:
         return AutopilotLink(
             spec_ap,
             tracker,
-            on_change=self._wake.set,
+            on_change=self._reader.poke,
             clock=self._clock,
             signing=self._signing,
             on_event=link_event,
+            reader=self._reader,
         )
 
     def _apply_spec(self, spec: RedundantAutopilotSpec, generation: int | None) -> str | None:

@@ -242,6 +242,35 @@ def _ok_since(
     }
 
 
+def settled(state: ArbiterState, views: Mapping[str, AutopilotView], policy: Policy) -> bool:
+    """Whether :func:`step` with these views would return ``state`` as it is and act on
+    nothing, at any time: the active autopilot is not failing, no timer runs, and no
+    failback is pending. The decision loop skips the step then (most ticks of a healthy
+    flight); it is a shortcut, never a different answer.
+    """
+    active = views.get(state.active)
+    if active is None or active.failing:
+        return False
+    if state.failing_since is not None or state.landing_ordered:
+        return False
+    if active.in_air is not None and active.in_air != state.in_flight:
+        return False
+    healthy = 0
+    for name, view in views.items():
+        if view.level.rank <= HealthLevel.WARN.rank and not view.failing:
+            if name not in state.ok_since:
+                return False
+            healthy += 1
+    if healthy != len(state.ok_since):
+        return False
+    return (
+        not policy.automatic
+        or policy.failback != Failback.ON_GROUND
+        or not state.latched
+        or state.active == policy.primary
+    )
+
+
 def step(
     state: ArbiterState,
     views: Mapping[str, AutopilotView],

@@ -500,6 +500,11 @@ class Hub:
         if self._tcp is not None:
             self._tcp.close()
 
+    def has_clients(self) -> bool:
+        """Whether any client gets the vehicle's messages now (cheap: the reader asks
+        after every wake-up)."""
+        return bool(self._sinks)
+
     def clients(self) -> list[Address]:
         """Addresses of the clients that currently get the vehicle's messages."""
         return [c.address for c in self._sinks]

@@ -1,11 +1,17 @@
-"""One MAVLink link per autopilot: a transport, one reader thread, locked writes.
+"""One MAVLink link per autopilot: a transport, one reader for all links, locked writes.
 
 Why one link per autopilot (not one shared socket): two autopilots behind one socket are
 merged by a MAVLink router and a command can reach both. Why a single reader: the
 pymavlink parser is not thread-safe, so the reader is the only thing that ever parses;
-it feeds the health tracker and hands COMMAND_ACKs to whoever waits for them. Writes
-(the agent's heartbeat, safety commands) take a lock, which also keeps the MAVLink
-sequence numbers in order.
+it feeds the health tracker and hands COMMAND_ACKs to whoever waits for them. One
+:class:`LinkReader` thread reads every link of the agent (a selector; a link started on
+its own gets a reader of its own), and the agent runs its decision loop on it too
+(:meth:`LinkReader.drive`): a thread per link woke once per datagram, which cost more
+than parsing. Datagrams of good MAVLink 2 frames are checked by header and CRC and
+decoded field by field on demand (:mod:`roost_agent.frames`); anything else goes through
+pymavlink's parser, so hostile traffic meets the same rules either way. Writes (the
+agent's heartbeat, safety commands) take a lock, which also keeps the MAVLink sequence
+numbers in order.
 
 Why our own transports instead of ``pymavlink.mavutil`` connections: mavutil imports
 numpy and a MAVLink 1 dialect (about 30 MB of the agent's memory, on a companion
@@ -44,7 +50,9 @@ the autopilot's own address and port; signing can.
 
 A reader never dies: any exception is counted, reported (``error``, shown in the status,
 and a warning Event) and the link reopened with exponential backoff
-(:data:`REOPEN_DELAY_S` doubling to :data:`REOPEN_MAX_S`).
+(:data:`REOPEN_DELAY_S` doubling to :data:`REOPEN_MAX_S`). Opening (which can block: a
+TCP connect) happens beside the reader, so one unreachable autopilot never delays
+reading the others.
 
 The agent talks as component 191 (onboard computer) with the autopilot's own system id,
 as a companion computer does, and addresses commands to the autopilot's component
@@ -54,9 +62,12 @@ as a companion computer does, and addresses commands to the autopilot's componen
 
 from __future__ import annotations
 
+import contextlib
+import heapq
 import logging
-import select
+import selectors
 import socket
+import struct
 import threading
 import time
 from collections import OrderedDict, deque
@@ -66,6 +77,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from roost_agent.frames import split as split_frames
 from roost_agent.health import Fix, HealthTracker, Motion
 from roost_agent.signing import LinkSigning
 from roost_api.autopilot import AutopilotSpec
@@ -80,8 +92,15 @@ Params = tuple[float, float, float, float, float, float, float]
 Address = tuple[str, int]
 EventSink = Callable[[str, str, bool], None]  # (reason, message, warning)
 
-READ_WAIT_S = 0.1  # how long the reader blocks in select() before checking for stop
-DRAIN_MAX = 256  # datagrams read per wake-up before checking for stop again
+READ_WAIT_S = 0.5  # longest the reader blocks in select() (timers and stop wake it sooner)
+DRAIN_MAX = 256  # datagrams read from one transport per wake-up
+# While no hub client waits for routed frames, the reader lets datagrams gather this long
+# after each wake-up: one wake-up then reads several (a PX4 onboard stream is ~400 a
+# second), which is most of the agent's CPU time. Arrival times come from the kernel's
+# receive timestamps, so the health judgement sees when a message arrived, not when it
+# was read; only the wake-up for a changed fact (MAV_STATE, sensors) waits this long.
+BATCH_S = 0.005
+STAMP_SLACK_S = 0.1  # a kernel timestamp older than the read by more is not trusted
 REOPEN_DELAY_S = 0.5
 REOPEN_MAX_S = 30.0
 CONNECT_TIMEOUT_S = 2.0
@@ -126,6 +145,11 @@ class Transport:
         """Available bytes and who sent them (None where the transport has one peer)."""
         raise NotImplementedError
 
+    def receive_stamped(self) -> tuple[bytes, Address | None, float | None]:
+        """:meth:`receive` plus the kernel's arrival time (CLOCK_REALTIME s) where known."""
+        data, sender = self.receive()
+        return data, sender, None
+
     def send(self, data: bytes) -> None:
         raise NotImplementedError
 
@@ -134,6 +158,10 @@ class Transport:
 
     def close(self) -> None:
         raise NotImplementedError
+
+
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux; the module lacks the name
+_TIMESPEC = struct.Struct("@qq")
 
 
 class _Udp(Transport):
@@ -149,6 +177,11 @@ class _Udp(Transport):
             self._sock.close()
             raise
         self._sock.setblocking(False)
+        try:
+            self._sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+            self._stamped = True
+        except OSError:  # not Linux: arrival is the time the reader reads it
+            self._stamped = False
 
     def fileno(self) -> int:
         return self._sock.fileno()
@@ -159,6 +192,21 @@ class _Udp(Transport):
         except (BlockingIOError, ConnectionRefusedError):
             return b"", None
         return data, (str(address[0]), int(address[1]))
+
+    def receive_stamped(self) -> tuple[bytes, Address | None, float | None]:
+        if not self._stamped:
+            data, sender = self.receive()
+            return data, sender, None
+        try:
+            data, ancillary, _, address = self._sock.recvmsg(UDP_MAX, 64)
+        except (BlockingIOError, ConnectionRefusedError):
+            return b"", None, None
+        stamp = None
+        for level, kind, value in ancillary:
+            if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
+                seconds, nanoseconds = _TIMESPEC.unpack_from(value)
+                stamp = seconds + nanoseconds * 1e-9
+        return data, (str(address[0]), int(address[1])), stamp
 
     def close(self) -> None:
         self._sock.close()
@@ -464,6 +512,220 @@ class _Session:
     verifier: Verifier | None
     parsers: OrderedDict[Address | None, Any] = field(default_factory=OrderedDict)
     accepted_at_open: int = 0
+    link: AutopilotLink | None = None
+    fd: int = -1  # the descriptor the reader selects on
+    arrived: float = float("-inf")  # the time given to the last datagram read
+
+
+class LinkReader:
+    """One thread that reads every link: a selector over their transports.
+
+    Why one thread, not one per link: a thread per link woke once per datagram and
+    handed the GIL over each time, which cost several times the parsing itself. Here one
+    wake-up reads whatever every link has. Driven by a tick (:meth:`drive`, the agent's
+    decision loop) it wakes once per tick, reads, then ticks; on its own it lets
+    datagrams gather for :data:`BATCH_S` after each read. Either way it wakes for every
+    datagram while :attr:`hurry` says a client waits for routed frames, and messages keep
+    their kernel arrival time.
+
+    Opening a transport can block (a TCP connect, a serial port), so it happens on a
+    short-lived thread per attempt; the opened session is handed to the reader. Failures
+    and reopen timers are the links' (:meth:`AutopilotLink._failed`); the reader only
+    runs them. Everything that touches the selector runs on the reader thread
+    (:meth:`call`), so a closed file descriptor is never polled.
+    """
+
+    def __init__(
+        self,
+        *,
+        hurry: Callable[[], bool] = lambda: False,
+        batch_s: float = BATCH_S,
+        name: str = "link-reader",
+    ) -> None:
+        self.hurry = hurry
+        self.batch_s = batch_s
+        self._name = name
+        self._selector = selectors.DefaultSelector()
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._wake_r.setblocking(False)
+        self._wake_w.setblocking(False)
+        self._selector.register(self._wake_r, selectors.EVENT_READ, None)
+        self._calls: deque[tuple[Callable[[], None], threading.Event]] = deque()
+        self._timers: list[tuple[float, int, Callable[[], None]]] = []
+        self._timer_serial = 0
+        # While nothing hurries it, the reader sleeps on the wake-up socket alone.
+        self._idle = selectors.DefaultSelector()
+        self._idle.register(self._wake_r, selectors.EVENT_READ, None)
+        self._sessions: dict[int, _Session] = {}
+        self._stopping = False
+        self._thread: threading.Thread | None = None
+        self._tick: Callable[[], None] | None = None
+        self._tick_s = 0.0
+        self._urgent = False
+
+    def drive(self, tick: Callable[[], None], tick_s: float) -> None:
+        """Run ``tick`` on the reader thread every ``tick_s`` (and at once when :meth:`poke`
+        d), right after reading: the agent's decision loop. Every datagram that arrived by
+        then is read first, so one wake-up per tick serves reading and deciding. Call
+        before :meth:`start`."""
+        self._tick, self._tick_s = tick, tick_s
+
+    def poke(self) -> None:
+        """Tick as soon as possible (from any thread; on the reader thread: after reading)."""
+        self._urgent = True
+        if threading.current_thread() is not self._thread:
+            self._wake()
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._serve, name=self._name, daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stopping = True
+        self._wake()
+        if self._thread is not None:
+            self._thread.join(timeout=2)
+        self._selector.close()
+        self._idle.close()
+        self._wake_r.close()
+        self._wake_w.close()
+
+    def call(self, fn: Callable[[], None], timeout_s: float = 2.0) -> None:
+        """Run ``fn`` on the reader thread and wait for it (at once when already there)."""
+        thread = self._thread
+        if thread is None or threading.current_thread() is thread or not thread.is_alive():
+            fn()
+            return
+        done = threading.Event()
+        self._calls.append((fn, done))
+        self._wake()
+        done.wait(timeout_s)
+
+    def after(self, delay_s: float, fn: Callable[[], None]) -> None:
+        """Run ``fn`` on the reader thread ``delay_s`` from now (reader thread only)."""
+        self._timer_serial += 1
+        heapq.heappush(self._timers, (time.monotonic() + delay_s, self._timer_serial, fn))
+
+    def attach(self, session: _Session) -> None:
+        """Read ``session``'s transport from now on (reader thread only)."""
+        fd = session.transport.fileno()
+        self._sessions[fd] = session
+        session.fd = fd
+        self._selector.register(fd, selectors.EVENT_READ, session)
+
+    def detach(self, session: _Session) -> None:
+        """Stop reading ``session`` (reader thread only; closing it is the caller's)."""
+        for fd, known in list(self._sessions.items()):
+            if known is session:
+                del self._sessions[fd]
+                with contextlib.suppress(KeyError, ValueError):
+                    self._selector.unregister(fd)
+
+    def _wake(self) -> None:
+        with contextlib.suppress(OSError):  # already awake (full), or closing
+            self._wake_w.send(b"\0")
+
+    def _run_calls(self) -> None:
+        try:
+            while self._wake_r.recv(4096):
+                pass
+        except BlockingIOError:
+            pass
+        while self._calls:
+            fn, done = self._calls.popleft()
+            try:
+                fn()
+            except Exception:
+                log.exception("link reader call failed")
+            finally:
+                done.set()
+
+    def _run_timers(self) -> float:
+        """Run due timers; seconds until the next one (capped at READ_WAIT_S)."""
+        timers = self._timers
+        while timers and timers[0][0] <= time.monotonic():
+            _, _, fn = heapq.heappop(timers)
+            try:
+                fn()
+            except Exception:
+                log.exception("link reader timer failed")
+        return (
+            READ_WAIT_S
+            if not timers
+            else max(0.0, min(READ_WAIT_S, timers[0][0] - time.monotonic()))
+        )
+
+    def _serve(self) -> None:
+        if self._tick is not None:
+            self._serve_ticking(self._tick)
+        else:
+            self._serve_reading()
+        for session in list(self._sessions.values()):
+            self.detach(session)
+
+    def _read(self, ready: list[tuple[selectors.SelectorKey, int]]) -> None:
+        for key, _ in ready:
+            session = key.data
+            if session is None:
+                self._run_calls()
+            else:
+                self._drain(session)
+
+    def _drain(self, session: _Session) -> None:
+        if self._sessions.get(session.fd) is not session:
+            return  # detached since the select (a link stopped by a call): not ours to read
+        link = session.link
+        assert link is not None
+        try:
+            link._drain(session)
+            if session.transport.fileno() != session.fd:  # a TCP listener took a client
+                self.detach(session)
+                self.attach(session)
+        except Exception as exc:  # every failure: the link reports and reopens
+            self.detach(session)
+            link._failed(exc, session)
+
+    def _drain_all(self) -> None:
+        """Read every link (a tick reads them all anyway: no select needed to ask which)."""
+        for session in list(self._sessions.values()):
+            self._drain(session)
+
+    def _select(self, selector: selectors.BaseSelector, timeout: float) -> list[Any]:
+        try:
+            return selector.select(timeout)
+        except OSError:
+            if self._stopping:
+                return []
+            raise
+
+    def _serve_reading(self) -> None:
+        """Read as datagrams come (batched while nothing hurries)."""
+        while not self._stopping:
+            timeout = self._run_timers()
+            self._read(self._select(self._selector, timeout))
+            if self.batch_s > 0 and not self._calls and not self.hurry():
+                time.sleep(self.batch_s)
+
+    def _serve_ticking(self, tick: Callable[[], None]) -> None:
+        """Read and decide: wake for the next tick (for data too while hurried), read
+        everything that arrived, then tick when due or poked."""
+        next_tick = time.monotonic()
+        while not self._stopping:
+            timeout = min(self._run_timers(), max(0.0, next_tick - time.monotonic()))
+            if self.hurry():
+                self._read(self._select(self._selector, timeout))
+            else:
+                if timeout > 0 and not self._urgent:
+                    self._read(self._select(self._idle, timeout))
+                self._drain_all()
+            now = time.monotonic()
+            if now >= next_tick or self._urgent:
+                self._urgent = False
+                try:
+                    tick()
+                except Exception:  # the loop must outlive any bug in one tick
+                    log.exception("decision tick failed")
+                next_tick = time.monotonic() + self._tick_s
 
 
 class AutopilotLink:
@@ -478,6 +740,7 @@ class AutopilotLink:
         *,
         signing: LinkSigning | None = None,
         on_event: EventSink = lambda reason, message, warning: None,
+        reader: LinkReader | None = None,
     ) -> None:
         self.spec = spec
         self.name = spec.name
@@ -494,7 +757,13 @@ class AutopilotLink:
         self._transport: Transport | None = None
         self._mav: Any = None
         self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        # The reader this link is read by: shared by the agent's links, or its own.
+        self._reader = reader
+        self._own_reader: LinkReader | None = None
+        self._session: _Session | None = None
+        self._delay = REOPEN_DELAY_S
+        # Kernel arrival timestamps are CLOCK_REALTIME: usable where the clock is monotonic.
+        self._stamps = clock is time.monotonic
         self._foreign_alarm = _RateAlarm(FOREIGN_ALERT_PER_S)
         self._signature_alarm = _RateAlarm(FOREIGN_ALERT_PER_S)
         self._locked: Address | None = None
@@ -509,17 +778,32 @@ class AutopilotLink:
     # -- lifecycle -------------------------------------------------------------------
 
     def start(self) -> None:
-        """Start the reader thread; the transport is opened (and reopened) by it."""
+        """Start reading (on the shared reader, else on one of its own); the transport is
+        opened (and reopened) in the background."""
         self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name=f"link-{self.name}", daemon=True)
-        self._thread.start()
+        reader = self._reader
+        if reader is None:
+            reader = self._own_reader = LinkReader(name=f"link-{self.name}")
+            reader.start()
+        self._delay = REOPEN_DELAY_S
+        reader.call(lambda: self._open_soon(reader, 0.0))
 
     def stop(self) -> None:
-        """Stop the reader and close the transport."""
+        """Stop reading and close the transport."""
         self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2)
+        reader = self._own_reader or self._reader
+        if reader is not None:
+            reader.call(self._forget)
+        if self._own_reader is not None:
+            self._own_reader.stop()
+            self._own_reader = None
         self._close()
+
+    def _forget(self) -> None:
+        session, self._session = self._session, None
+        reader = self._own_reader or self._reader
+        if session is not None and reader is not None:
+            reader.detach(session)
 
     def _close(self) -> None:
         with self._write_lock:
@@ -536,31 +820,61 @@ class AutopilotLink:
         except Exception:  # a reporting bug must not stop the reader
             log.exception("%s: reporting %s failed", self.name, reason)
 
-    # -- reading ---------------------------------------------------------------------
+    # -- opening, failing, reopening (on the reader thread; opening itself beside it) --
 
-    def _run(self) -> None:
-        delay = REOPEN_DELAY_S
-        while not self._stop.is_set():
-            session: _Session | None = None
-            try:
-                session = self._open()
-                self._read_until_stopped(session)
-            except Exception as exc:  # every failure: report, back off, reopen
-                self.counters.errors += 1
-                text = " ".join(f"{type(exc).__name__}: {exc}".split())
-                if text != self.error:
-                    log.warning("%s: link failed (%s); retrying", self.name, text)
-                    self._event("LinkError", f"link failed: {text}; retrying", True)
-                self.error = text
-            finally:
-                self._close()
+    def _open_soon(self, reader: LinkReader, delay_s: float) -> None:
+        def begin() -> None:
+            if not self._stop.is_set():
+                threading.Thread(
+                    target=self._open_beside, args=(reader,), name=f"open-{self.name}", daemon=True
+                ).start()
+
+        reader.after(delay_s, begin)
+
+    def _open_beside(self, reader: LinkReader) -> None:
+        """Open the transport (may block) and hand the session to the reader."""
+        try:
+            session = self._open()
+        except Exception as exc:
+            failure = exc
+            reader.call(lambda: self._failed(failure, None))
+            return
+        session.link = self
+
+        def adopt() -> None:
             if self._stop.is_set():
+                self._close()
                 return
-            if session is not None and self.counters.accepted > session.accepted_at_open:
-                delay = REOPEN_DELAY_S  # it worked for a while: retry soon
-            self.counters.reopened += 1
-            self._stop.wait(delay)
-            delay = min(delay * 2, REOPEN_MAX_S)
+            try:
+                reader.attach(session)
+            except Exception as exc:
+                self._failed(exc, session)
+                return
+            self._session = session
+
+        reader.call(adopt)
+
+    def _failed(self, exc: Exception, session: _Session | None) -> None:
+        """Report a failure, close, and reopen with backoff (on the reader thread)."""
+        self._session = None
+        self.counters.errors += 1
+        text = " ".join(f"{type(exc).__name__}: {exc}".split())
+        if text != self.error:
+            log.warning("%s: link failed (%s); retrying", self.name, text)
+            self._event("LinkError", f"link failed: {text}; retrying", True)
+        self.error = text
+        self._close()
+        if self._stop.is_set():
+            return
+        if session is not None and self.counters.accepted > session.accepted_at_open:
+            self._delay = REOPEN_DELAY_S  # it worked for a while: retry soon
+        self.counters.reopened += 1
+        reader = self._own_reader or self._reader
+        if reader is not None:
+            self._open_soon(reader, self._delay)
+        self._delay = min(self._delay * 2, REOPEN_MAX_S)
+
+    # -- reading ---------------------------------------------------------------------
 
     def _open(self) -> _Session:
         transport = open_transport(self.spec.connection)
@@ -592,21 +906,26 @@ class AutopilotLink:
             self._transport, self._mav = transport, mav
         return _Session(transport, lock, verifier, accepted_at_open=self.counters.accepted)
 
-    def _read_until_stopped(self, session: _Session) -> None:
-        """Read and dispatch until stopped; transport failures propagate."""
+    def _drain(self, session: _Session) -> None:
+        """Read what the transport has (up to :data:`DRAIN_MAX`); failures propagate."""
         transport = session.transport
-        while not self._stop.is_set():
-            readable, _, _ = select.select([transport.fileno()], [], [], READ_WAIT_S)
-            if not readable:
-                continue
-            for _ in range(DRAIN_MAX):
-                data, sender = transport.receive()
-                if not data:
-                    break
-                self._datagram(session, data, sender)
+        stamps = self._stamps
+        offset = time.time() - time.monotonic() if stamps else 0.0
+        for _ in range(DRAIN_MAX):
+            data, sender, stamp = transport.receive_stamped()
+            if not data:
+                return
+            now = self._clock()
+            if stamp is not None and stamps:
+                arrived = stamp - offset
+                if now - STAMP_SLACK_S <= arrived < now:
+                    # never before an earlier datagram's time (one read after a stall longer
+                    # than the slack got the read time)
+                    now = max(arrived, session.arrived)
+            session.arrived = now
+            self._datagram(session, data, sender, now)
 
-    def _datagram(self, session: _Session, data: bytes, sender: Address | None) -> None:
-        now = self._clock()
+    def _datagram(self, session: _Session, data: bytes, sender: Address | None, now: float) -> None:
         self.counters.bytes += len(data)
         lock = session.lock
         if sender is not None and sender != lock.locked and not lock.hears(sender, now):
@@ -622,6 +941,15 @@ class AutopilotLink:
                     True,
                 )
             return
+        if session.transport.datagrams:
+            frames = split_frames(data)
+            if frames is not None:  # all good MAVLink 2: no parser needed (roost_agent.frames)
+                try:
+                    for frame in frames:
+                        self._message(session, frame, sender, now)
+                except Exception:
+                    self.counters.errors += 1
+                return
         parser = session.parsers.pop(sender, None)
         if parser is None:
             parser = _new_parser()

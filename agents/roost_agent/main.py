@@ -289,7 +289,8 @@ def start_telemetry(
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     # A thread waiting for the GIL waits up to the switch interval (5 ms by default) while
-    # a link reader parses; 1 ms bounds how long the decision loop can be held up.
+    # another holds it; 1 ms bounds how long the reader and decision loop (one thread) can
+    # be held up by the hub, the heartbeat or the publisher.
     sys.setswitchinterval(0.001)
     logging.basicConfig(
         level=args.log_level.upper(),

@@ -42,6 +42,9 @@ class ApiModel(BaseModel):
         populate_by_name=True,
         extra="ignore",
         use_enum_values=True,
+        # Validators are built on first use, not at import: a standalone node agent
+        # uses a few of the API's models, and every built one costs memory.
+        defer_build=True,
     )
 
     def to_api(self) -> dict[str, Any]:

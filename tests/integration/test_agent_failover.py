@@ -27,6 +27,7 @@ from roost_agent.state import STATE_FILE_NAME, StateFile
 from roost_api.autopilot import (
     AutopilotCommand,
     FinalAction,
+    Thresholds,
 )
 from roost_api.meta import HealthLevel, Stack
 from roost_mavlink import (
@@ -67,6 +68,7 @@ def flying(
     *,
     transport: str = "udp",
     final_action: FinalAction = FinalAction.LAND,
+    thresholds: Thresholds | None = None,
 ) -> Iterator[Flight]:
     """Sims started and airborne, an agent watching them, every standby ready.
 
@@ -82,7 +84,7 @@ def flying(
         sims = start_vehicle_sims(stacks, transport=transport, config=SIM_CONFIG)
     agent: Agent | None = None
     try:
-        spec = make_spec(sims, final_action)
+        spec = make_spec(sims, final_action, thresholds)
         bridge = SimulatedBridge(range(len(sims)))
         state_path = tmp_path / STATE_FILE_NAME
         agent = Agent(spec, bridge, state_file=StateFile(state_path))
@@ -133,6 +135,10 @@ def assert_held_then_landed(flight: Flight, name: str, since: float) -> None:
     wait_until("safety routine reported Landed", lambda: routine_outcome() == "Landed", 5, POLL_S)
 
 
+# Each fault must be reported by its own detector: a rebooting ArduPilot streams nothing
+# (requests do not survive a reboot) for longer than the default 200 ms silence, which
+# would then name the failover first. Silence here takes 500 ms.
+DETECTORS = Thresholds(message_warn_ms=200, message_error_ms=500, confirm_ms=100)
 FAULTS = [
     pytest.param(FaultKind.SILENCE, None, "silent", id="silence"),
     pytest.param(FaultKind.FREEZE, None, "frozen", id="freeze"),
@@ -147,7 +153,7 @@ FAULTS = [
 def test_fault_on_active_switches_bridge_and_runs_safety_routine(
     tmp_path: Path, stack: str, fault: FaultKind, value: Any, reason: str
 ) -> None:
-    with flying([stack, stack], tmp_path) as flight:
+    with flying([stack, stack], tmp_path, thresholds=DETECTORS) as flight:
         injected = time.monotonic()
         flight.sim("fc1").inject(fault, value)
         (event,) = wait_until("a failover", flight.agent.failovers, 10, POLL_S)

@@ -19,6 +19,7 @@ from roost_api.autopilot import (
     FinalAction,
     RedundantAutopilotSpec,
     SafetyRoutine,
+    Thresholds,
 )
 from roost_mavlink import AGENT_COMPONENT_ID, MAV_CMD_SET_MESSAGE_INTERVAL
 from roost_sim import SimulatedAutopilot, autopilot_specs
@@ -77,14 +78,18 @@ class Flight:
 
 
 def make_spec(
-    sims: list[SimulatedAutopilot], final_action: FinalAction = FinalAction.LAND
+    sims: list[SimulatedAutopilot],
+    final_action: FinalAction = FinalAction.LAND,
+    thresholds: Thresholds | None = None,
 ) -> RedundantAutopilotSpec:
-    """Vehicle ``v1`` over ``sims`` (the first is primary), holding :data:`HOLD_S`."""
+    """Vehicle ``v1`` over ``sims`` (the first is primary), holding :data:`HOLD_S`
+    (default thresholds unless given)."""
     return RedundantAutopilotSpec(
         vehicle_name="v1",
         autopilots=autopilot_specs(sims),
         primary=sims[0].name,
         failover_policy=FailoverPolicy(
-            safety_routine=SafetyRoutine(hold_seconds=HOLD_S, final_action=final_action)
+            thresholds=thresholds if thresholds is not None else Thresholds(),
+            safety_routine=SafetyRoutine(hold_seconds=HOLD_S, final_action=final_action),
         ),
     )

@@ -8,6 +8,7 @@ import os
 import socket
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
@@ -270,3 +271,77 @@ def test_tcp_link_reads_only_its_autopilot_answers_as_191_and_reconnects() -> No
     finally:
         link.stop()
         server.close()
+
+
+def test_tcp_listener_link_reads_the_autopilot_that_connects_to_it() -> None:
+    """``tcpin://``: the link listens, an autopilot connects; the reader follows the
+    accepted connection (its descriptor is not the listening one) and reads its frames,
+    also after the autopilot reconnects."""
+    from pymavlink.dialects.v20 import common  # noqa: PLC0415
+
+    probe = socket.create_server(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()
+    spec = SPEC.autopilots[0].model_copy(update={"connection": f"tcpin://127.0.0.1:{port}"})
+    link = AutopilotLink(spec, HealthTracker("fc1", Stack.PX4, Thresholds()))
+    link.start()
+    autopilot = common.MAVLink(None, srcSystem=1, srcComponent=1)
+    try:
+        for connection in (1, 2):
+            client = wait_until(
+                "the link listening",
+                lambda: _connected(port),
+                5.0,
+                0.02,
+            )
+            with client:
+                before = link.counters.accepted
+                for _ in range(3):
+                    client.sendall(autopilot.heartbeat_encode(2, 12, 129, 0, 4).pack(autopilot))
+                wait_until(
+                    f"frames of connection {connection}",
+                    lambda before=before: link.counters.accepted >= before + 3,  # type: ignore[misc]
+                    5.0,
+                    0.01,
+                )
+    finally:
+        link.stop()
+
+
+def _connected(port: int) -> socket.socket | None:
+    try:
+        return socket.create_connection(("127.0.0.1", port), timeout=1.0)
+    except OSError:
+        return None
+
+
+def test_a_datagram_read_late_keeps_its_kernel_arrival_time() -> None:
+    """The reader reads once per tick; the health tracker must see when a message arrived
+    (the kernel's receive timestamp), not when it was read."""
+    from pymavlink.dialects.v20 import common  # noqa: PLC0415
+
+    autopilot_socket = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    autopilot_socket.bind(("127.0.0.1", 0))
+    sender = autopilot_socket.getsockname()
+    port = free_udp_port()
+    spec = SPEC.autopilots[0].model_copy(
+        update={"connection": f"udp://127.0.0.1:{port}@{sender[0]}:{sender[1]}"}
+    )
+    link = AutopilotLink(spec, HealthTracker("fc1", Stack.PX4, Thresholds()))
+    session = link._open()
+    try:
+        mav = common.MAVLink(None, srcSystem=1, srcComponent=1)
+        sent_at = time.monotonic()
+        autopilot_socket.sendto(
+            mav.heartbeat_encode(2, 12, 129, 0, 4).pack(mav), ("127.0.0.1", port)
+        )
+        delivered = time.monotonic()  # loopback queues the datagram inside sendto
+        time.sleep(0.05)
+        link._drain(session)
+        beat = link.heartbeat()
+        assert beat is not None
+        # arrival (within the clock conversion's rounding), not the read 50 ms later
+        assert sent_at - 0.001 <= beat[2] <= delivered + 0.001
+    finally:
+        link._close()
+        autopilot_socket.close()

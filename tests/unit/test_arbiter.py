@@ -32,6 +32,7 @@ from roost_agent.arbiter import (
     handle_command,
     step,
 )
+from roost_agent.arbiter import settled as step_settled
 from roost_api.autopilot import AutopilotCommand, Failback
 from roost_api.meta import HealthLevel
 
@@ -572,3 +573,41 @@ def test_property_oscillating_health_never_switches(gaps: list[float], bad: Heal
         decision = step(state, views(view("fc1", bad if i % 2 else OK), view("fc2")), pol, now)
         assert decision.actions == ()
         state = decision.state
+
+
+LEVELS = st.sampled_from([OK, WARN, ERROR, STALE])
+MAYBE = st.sampled_from([True, False, None])
+
+
+@st.composite
+def situations(
+    draw: st.DrawFn,
+) -> tuple[ArbiterState, dict[str, AutopilotView], Policy, float]:
+    """Any state, the views of two autopilots, a policy and a time."""
+    views = {name: view(name, draw(LEVELS), in_air=draw(MAYBE)) for name in ("fc1", "fc2")}
+    state = ArbiterState(
+        active=draw(st.sampled_from(["fc1", "fc2"])),
+        latched=draw(st.booleans()),
+        failing_since=draw(st.sampled_from([None, 3.0])),
+        ok_since=draw(st.sampled_from([{}, {"fc1": 1.0}, {"fc2": 2.0}, {"fc1": 1.0, "fc2": 2.0}])),
+        in_flight=draw(MAYBE),
+        landing_ordered=draw(st.booleans()),
+    )
+    rules = policy(automatic=draw(st.booleans()), failback=draw(st.sampled_from(list(Failback))))
+    return state, views, rules, draw(st.sampled_from([3.0, 5.0, 50.0]))
+
+
+@settings(max_examples=500, deadline=None)
+@given(situations())
+def test_a_settled_state_is_what_step_returns_unchanged_and_without_actions(
+    situation: tuple[ArbiterState, dict[str, AutopilotView], Policy, float],
+) -> None:
+    state, views, rules, now = situation
+    if step_settled(state, views, rules):
+        assert step(state, views, rules, now) == Decision(state)
+    # and a healthy steady flight settles after one step (the shortcut is taken)
+    after = step(state, views, rules, now)
+    steady = all(v.level == OK and v.in_air is True for v in views.values())
+    pending_failback = rules.failback == Failback.ON_GROUND and after.state.latched
+    if steady and not after.actions and not (rules.automatic and pending_failback):
+        assert step_settled(after.state, views, rules)

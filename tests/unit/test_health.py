@@ -31,6 +31,8 @@ OK, WARN, ERROR, STALE = HealthLevel.OK, HealthLevel.WARN, HealthLevel.ERROR, He
 ARMED = 128 | 1
 SENSORS = int(stack_sensors(Stack.PX4)) & ~int(SensorBit.RC_RECEIVER | SensorBit.PREARM_CHECK)
 LOITER = custom_mode(Stack.PX4, "AUTO.LOITER")
+# The numbers these tests assert are these thresholds', not whatever the defaults are.
+TH = Thresholds(message_warn_ms=200, message_error_ms=500, confirm_ms=100)
 
 
 class Vehicle:
@@ -41,7 +43,7 @@ class Vehicle:
     """
 
     def __init__(self, stack: Stack = Stack.PX4, thresholds: Thresholds | None = None) -> None:
-        self.tracker = HealthTracker("fc1", stack, thresholds or Thresholds())
+        self.tracker = HealthTracker("fc1", stack, thresholds or TH)
         self.boot_ms = 100_000
         self.t = 0.0
         self.sensors_health = SENSORS
@@ -373,7 +375,7 @@ def test_thresholds_come_from_the_spec() -> None:
     v = Vehicle(thresholds=tight)
     v.fly(1.5)
     assert v.at(0.22).level == ERROR
-    v.tracker.set_thresholds(Thresholds())
+    v.tracker.set_thresholds(TH)
     assert v.at(0.22).level == WARN
 
 
