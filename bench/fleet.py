@@ -8,7 +8,8 @@ any CPU the operator spends is its own overhead.
 
 - ``fleet.ready_<N>_s``: ``kubectl apply --server-side`` of N Vehicles (one request
   each; nodes already Ready) until every Vehicle's ``Ready`` condition is True (labels
-  and taint on its node, its ConfigMap, its mavros Deployment available). The Ready poll lists Vehicles every second.
+  and taint on its node, its ConfigMap, its mavros Deployment available). The Ready
+  poll lists Vehicles every second.
 - ``fleet.operator_rss_mb_<N>``: the operator's peak resident memory over the run.
 - ``fleet.idle_cpu_pct_<N>``: the operator's CPU (user + system, % of one core) over
   ``IDLE_S`` once the fleet has been Ready for ``SETTLE_S``.
