@@ -26,11 +26,14 @@ from typing import Any
 
 from roost_api.meta import API_VERSION, Stack
 from roost_api.resources import MISSION, REDUNDANT_AUTOPILOT, VEHICLE
+from roost_api.vehicle import MAX_SIM_INSTANCE
 from roost_cli.sandbox.kwok import RUNTIME_ANNOTATION
 from roost_mavlink.sitl import sitl_instance
 
-MAX_VEHICLES = 10
-"""Two cores run an agent and two simulators per vehicle next to a control plane."""
+MAX_VEHICLES = 25
+"""Two cores run an agent and two simulated autopilots per vehicle next to a control
+plane and the operator: 25 vehicles are 50 autopilots at PX4's onboard rates (about
+21,000 MAVLink messages a second) on this size of machine."""
 AUTOPILOTS_PER_VEHICLE = 2
 FLEET_LABEL = "fleet"
 FLEET_VALUE = "sandbox"
@@ -115,7 +118,12 @@ def vehicle_manifest(vehicle: VehiclePlan) -> dict[str, Any]:
         "spec": {
             "nodeName": vehicle.node,
             "sysid": vehicle.sysid,
-            "simulation": {"stack": vehicle.stack.value, "instance": vehicle.index},
+            # The SITL instance is an offset on the vehicle's node, and every sandbox
+            # vehicle has a node of its own; it only has to stay in the API's range.
+            "simulation": {
+                "stack": vehicle.stack.value,
+                "instance": vehicle.index % (MAX_SIM_INSTANCE + 1),
+            },
         },
     }
 
