@@ -133,7 +133,7 @@ def _cpu_s(proc: psutil.Process) -> float:
     return float(times.user + times.system)
 
 
-def _single_changes(kube: Kube, cluster: Cluster, count: int) -> list[float]:
+def _single_changes(kube: Kube, count: int) -> list[float]:
     """Change one Vehicle's mavros image at a time; seconds until its Deployment has it."""
     seconds: list[float] = []
     for attempt in range(CHANGES):
@@ -194,7 +194,7 @@ def measure(count: int) -> tuple[dict[str, float], str]:
                 cpu0, t0 = _cpu_s(proc), time.monotonic()
                 time.sleep(IDLE_S)
                 idle_pct = (_cpu_s(proc) - cpu0) / (time.monotonic() - t0) * 100
-                changes = _single_changes(kube, cluster, count)
+                changes = _single_changes(kube, count)
                 load = os.getloadavg()[0]
             log = (Path(tmp) / "operator.log").read_text(errors="replace")
         finally:
@@ -222,31 +222,21 @@ def run() -> list[Figure]:
         figures, note = measure(count)
         print(f"bench fleet {count}: {figures} ({note})", flush=True)
         target = count == 1000
+        idle_note = f"operator CPU over {IDLE_S:.0f} s after {SETTLE_S:.0f} s settled; {note}"
         out += [
             Figure(
-                f"fleet.ready_{count}_s",
-                round(figures["ready_s"], 1),
-                "s",
-                "<= 30" if target else "informational",
+                f"fleet.{name}_{count}{suffix}",
+                round(figures[key], digits),
+                unit,
+                goal if target else "informational",
                 COMMAND,
-                note,
-            ),
-            Figure(
-                f"fleet.operator_rss_mb_{count}",
-                round(figures["rss_mb"], 1),
-                "MB",
-                "<= 250" if target else "informational",
-                COMMAND,
-                note,
-            ),
-            Figure(
-                f"fleet.idle_cpu_pct_{count}",
-                round(figures["idle_cpu_pct"], 2),
-                "%",
-                "<= 2" if target else "informational",
-                COMMAND,
-                f"operator CPU over {IDLE_S:.0f} s after {SETTLE_S:.0f} s settled; {note}",
-            ),
+                idle_note if key == "idle_cpu_pct" else note,
+            )
+            for name, suffix, key, unit, goal, digits in (
+                ("ready", "_s", "ready_s", "s", "<= 30", 1),
+                ("operator_rss_mb", "", "rss_mb", "MB", "<= 250", 1),
+                ("idle_cpu_pct", "", "idle_cpu_pct", "%", "<= 2", 2),
+            )
         ]
         if target:
             out.append(

@@ -44,6 +44,13 @@ def _still_running(identities: dict[int, float]) -> list[int]:
     return [pid for pid, started in identities.items() if sandbox_state.process_alive(pid, started)]
 
 
+def mission_vehicle(sandbox: RunningSandbox, mission: str, vehicle: str) -> dict[str, Any]:
+    """``status.vehicles[]`` entry of ``vehicle`` in Mission ``default/<mission>``."""
+    found = sandbox.get("mission", mission, "default")
+    entry: dict[str, Any] = next(v for v in found["status"]["vehicles"] if v["name"] == vehicle)
+    return entry
+
+
 @pytest.fixture
 def sandbox(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[RunningSandbox]:
     """``roost sandbox up`` headless without the scripted fault; an indirect parameter adds
@@ -108,9 +115,7 @@ def test_sandbox_flies_a_mission_fails_over_and_leaves_nothing_behind(
     await_step("an Event about the failover", failover_event, sandbox, 30)
 
     def vehicle_in_mission(name: str) -> dict[str, Any]:
-        mission = sandbox.get("mission", "survey", "default")
-        entry: dict[str, Any] = next(v for v in mission["status"]["vehicles"] if v["name"] == name)
-        return entry
+        return mission_vehicle(sandbox, "survey", name)
 
     # The Mission's onFailover is AbortVehicle: drone-1 lands and leaves, drone-2 flies on.
     await_step(
@@ -193,14 +198,11 @@ def test_the_sync_paths_mission_flies_through_the_hubs_and_goes_on_without_a_fai
     fault = sandbox.roost("fault", "drone-2", "apm-a", "silence")
     assert "faults now silence" in fault.stdout
 
-    def mission_vehicle(name: str) -> dict[str, Any]:
-        mission = sandbox.get("mission", "sync-paths", "default")
-        entry: dict[str, Any] = next(v for v in mission["status"]["vehicles"] if v["name"] == name)
-        return entry
-
     await_step(
         "the mission to take drone-2 out",
-        lambda: mission_vehicle("drone-2")["phase"] in ("Aborting", "Aborted"),
+        lambda: (
+            mission_vehicle(sandbox, "sync-paths", "drone-2")["phase"] in ("Aborting", "Aborted")
+        ),
         sandbox,
         STEP_TIMEOUT_S,
     )
@@ -220,6 +222,6 @@ def test_the_sync_paths_mission_flies_through_the_hubs_and_goes_on_without_a_fai
     records = results["drone-1"]["records"]
     assert [r["task"] for r in records] == [1, 2, 3, 4]
     assert all(r["wait_s"] < 1.0 for r in records[1:]), records  # nobody to wait for
-    assert mission_vehicle("drone-1")["phase"] in ("Running", "Succeeded")
+    assert mission_vehicle(sandbox, "sync-paths", "drone-1")["phase"] in ("Running", "Succeeded")
     follower_log = (sandbox.directory / "logs" / "sync-follower-drone-1.log").read_text()
     assert f"flying through udpout:{hubs['drone-1']}" in follower_log
