@@ -81,16 +81,21 @@ def _fleet(cluster: Cluster, kube: Kube, agents: FakeAgents) -> None:
             "metadata": {"name": name, "labels": {"fleet": FLEET_LABEL}},
             "spec": {
                 "nodeName": f"{name}-node",
-                "sysid": 10 + i,
+                "sysid": 10 + i % 240,  # MAVLink ids end at 255; vehicles never meet here
                 "components": {"mavros": {"enabled": False}},
             },
         }
         for i, name in enumerate(names)
     ]
-    cluster.kubectl(
-        "apply", "-f", "-", input_text=_documents([redundant_autopilot(n) for n in names])
-    )
-    cluster.kubectl("apply", "-f", "-", input_text=_documents(vehicles))
+    for documents in ([redundant_autopilot(n) for n in names], vehicles):
+        cluster.kubectl(
+            "apply",
+            "--server-side",
+            "-f",
+            "-",
+            input_text=_documents(documents),
+            timeout_s=SETUP_TIMEOUT_S,
+        )
     for name in names:
         agents.add(name, name, f"{name}-node")
     wait_until("the fleet Ready", lambda: _ready(kube), SETUP_TIMEOUT_S, poll_s=1.0)
