@@ -99,8 +99,35 @@ DRAIN_MAX = 256  # datagrams read from one transport per wake-up
 # second), which is most of the agent's CPU time. Arrival times come from the kernel's
 # receive timestamps, so the health judgement sees when a message arrived, not when it
 # was read; only the wake-up for a changed fact (MAV_STATE, sensors) waits this long.
+# (Linux turns arrival stamping on globally a moment after the first socket asks for it;
+# until then a datagram's stamp is its read time, which is what an unstamped read gets.)
 BATCH_S = 0.005
 STAMP_SLACK_S = 0.1  # a kernel timestamp older than the read by more is not trusted
+OFFSET_TRIES = 3
+OFFSET_TIGHT_S = 1e-4  # two clock reads this close together were not interrupted
+
+
+def realtime_offset() -> float:
+    """CLOCK_REALTIME minus CLOCK_MONOTONIC, to turn the kernel's receive stamps (realtime)
+    into the agent's clock.
+
+    Read as monotonic, realtime, monotonic, against the midpoint: a thread descheduled
+    between two plain reads (tens of milliseconds on a loaded core) would shift every
+    stamp of the drain by that much, and a stamp shifted past the read time is thrown
+    away. The tightest of a few tries is kept.
+    """
+    best_gap, best_offset = float("inf"), 0.0
+    for _ in range(OFFSET_TRIES):
+        before = time.monotonic()
+        wall = time.time()
+        after = time.monotonic()
+        if after - before < best_gap:
+            best_gap, best_offset = after - before, wall - (before + after) / 2
+        if best_gap < OFFSET_TIGHT_S:
+            break
+    return best_offset
+
+
 REOPEN_DELAY_S = 0.5
 REOPEN_MAX_S = 30.0
 CONNECT_TIMEOUT_S = 2.0
@@ -910,7 +937,7 @@ class AutopilotLink:
         """Read what the transport has (up to :data:`DRAIN_MAX`); failures propagate."""
         transport = session.transport
         stamps = self._stamps
-        offset = time.time() - time.monotonic() if stamps else 0.0
+        offset = realtime_offset() if stamps else 0.0
         for _ in range(DRAIN_MAX):
             data, sender, stamp = transport.receive_stamped()
             if not data:
