@@ -16,11 +16,12 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Hashable, Mapping
 from typing import Any, Final
 
 from roost_kube.client import Kube
 from roost_kube.errors import ApiError
+from roost_kube.patches import content_hash
 from roost_kube.resources import Resource
 
 log = logging.getLogger(__name__)
@@ -33,6 +34,31 @@ OnEvent = Callable[[str, Mapping[str, Any]], None]
 """``(ADDED|MODIFIED|DELETED, object)``."""
 OnList = Callable[[list[Mapping[str, Any]]], None]
 """Every object after a (re)list."""
+
+
+class Fingerprints:
+    """Remembers a digest per object to skip events that change nothing relevant."""
+
+    def __init__(self) -> None:
+        self._seen: dict[Hashable, str] = {}
+        self._lock = threading.Lock()
+
+    def changed(self, key: Hashable, relevant: Any) -> bool:
+        digest = content_hash(relevant)
+        with self._lock:
+            if self._seen.get(key) == digest:
+                return False
+            self._seen[key] = digest
+            return True
+
+    def forget(self, key: Hashable) -> bool:
+        """Drop ``key``; whether it was known."""
+        with self._lock:
+            return self._seen.pop(key, None) is not None
+
+    def keys(self) -> set[Hashable]:
+        with self._lock:
+            return set(self._seen)
 
 
 class Watcher:

@@ -30,24 +30,24 @@ def _node(name: str, *, ready: str = "True", heartbeat: str = "t0", **labels: st
 
 def test_a_heartbeat_changes_nothing_roost_reads() -> None:
     prints = NodeFingerprints()
-    assert prints.changed("ADDED", _node("n1"))
-    assert not prints.changed("MODIFIED", _node("n1", heartbeat="t1"))
-    assert not prints.changed("MODIFIED", _node("n1", heartbeat="t2"))
+    assert prints.changed_node("ADDED", _node("n1"))
+    assert not prints.changed_node("MODIFIED", _node("n1", heartbeat="t1"))
+    assert not prints.changed_node("MODIFIED", _node("n1", heartbeat="t2"))
 
 
 def test_readiness_labels_and_deletion_do() -> None:
     prints = NodeFingerprints()
-    prints.changed("ADDED", _node("n1"))
-    assert prints.changed("MODIFIED", _node("n1", ready="False"))
-    assert prints.changed("MODIFIED", _node("n1", ready="False", team="blue"))
-    assert prints.changed("DELETED", _node("n1"))
-    assert not prints.changed("DELETED", _node("n1"))  # twice gone is not news
+    prints.changed_node("ADDED", _node("n1"))
+    assert prints.changed_node("MODIFIED", _node("n1", ready="False"))
+    assert prints.changed_node("MODIFIED", _node("n1", ready="False", team="blue"))
+    assert prints.changed_node("DELETED", _node("n1"))
+    assert not prints.changed_node("DELETED", _node("n1"))  # twice gone is not news
 
 
 def test_a_relist_reports_what_changed_or_vanished_meanwhile() -> None:
     prints = NodeFingerprints()
     for name in ("n1", "n2", "n3"):
-        prints.changed("ADDED", _node(name))
+        prints.changed_node("ADDED", _node(name))
     changed = prints.relist([_node("n1", heartbeat="t9"), _node("n2", ready="False")])
     assert sorted(n["metadata"]["name"] for n in changed) == ["n2", "n3"]
 

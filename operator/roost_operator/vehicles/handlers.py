@@ -49,9 +49,8 @@ of kopf's indexes live in the operator's :class:`~roost_operator.runtime.Runtime
 from __future__ import annotations
 
 import logging
-import threading
 import time
-from collections.abc import Hashable, Mapping
+from collections.abc import Mapping
 from datetime import UTC, datetime
 from typing import Any, Final
 
@@ -66,13 +65,13 @@ from roost_api.wellknown import (
     PREFIX,
 )
 from roost_kube import resources
-from roost_kube.patches import content_hash
 from roost_operator.edge import at_the_edge, handler_edge
 from roost_operator.runtime import Runtime, runtime
 from roost_operator.settings import Settings
 from roost_operator.vehicles.controller import Peers
 from roost_operator.vehicles.placement import NodeClaim
 from roost_operator.vehicles.plan import relevant_autopilot
+from roost_operator.watches import Fingerprints
 
 VEHICLES: Final = resources.VEHICLES.kopf
 AUTOPILOTS: Final = resources.REDUNDANT_AUTOPILOTS.kopf
@@ -86,26 +85,6 @@ KOPF_ANNOTATIONS: Final = (f"{PREFIX}last-handled-configuration",)
 NodeClaims = kopf.Index[str, NodeClaim]
 AutopilotsByVehicle = kopf.Index[str, str]
 FailoverActions = kopf.Index[str, bool]
-
-
-class Fingerprints:
-    """Remembers a digest per object to skip events that change nothing relevant."""
-
-    def __init__(self) -> None:
-        self._seen: dict[Hashable, str] = {}
-        self._lock = threading.Lock()
-
-    def changed(self, key: Hashable, relevant: Any) -> bool:
-        digest = content_hash(relevant)
-        with self._lock:
-            if self._seen.get(key) == digest:
-                return False
-            self._seen[key] = digest
-            return True
-
-    def forget(self, key: Hashable) -> None:
-        with self._lock:
-            self._seen.pop(key, None)
 
 
 log = logging.getLogger(__name__)

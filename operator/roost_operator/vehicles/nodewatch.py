@@ -25,10 +25,9 @@ from typing import Any
 
 from roost_api.wellknown import LABEL_VEHICLE
 from roost_kube.client import Kube
-from roost_kube.patches import content_hash
 from roost_kube.resources import NODES
 from roost_operator.vehicles.controller import Peers
-from roost_operator.watches import Watcher
+from roost_operator.watches import Fingerprints, Watcher
 
 
 def node_relevant(body: Mapping[str, Any]) -> Any:
@@ -57,23 +56,16 @@ def vehicles_of(node: Mapping[str, Any], peers: Peers | None) -> set[str]:
     return vehicles
 
 
-class NodeFingerprints:
-    """Digest of the relevant part of every node seen; decides which events matter."""
+class NodeFingerprints(Fingerprints):
+    """Fingerprints of nodes by name; decides which watch events matter."""
 
-    def __init__(self) -> None:
-        self._seen: dict[str, str] = {}
-
-    def changed(self, kind: str, node: Mapping[str, Any]) -> bool:
+    def changed_node(self, kind: str, node: Mapping[str, Any]) -> bool:
         """Whether this watch event (``ADDED``/``MODIFIED``/``DELETED``) changes anything
         Roost reads (and remember it)."""
         name = node.get("metadata", {}).get("name", "")
         if kind == "DELETED":
-            return self._seen.pop(name, None) is not None
-        digest = content_hash(node_relevant(node))
-        if self._seen.get(name) == digest:
-            return False
-        self._seen[name] = digest
-        return True
+            return self.forget(name)
+        return self.changed(name, node_relevant(node))
 
     def relist(self, nodes: Iterable[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
         """After a fresh list: the nodes that changed or vanished meanwhile (a vanished
@@ -82,10 +74,10 @@ class NodeFingerprints:
         changed: list[Mapping[str, Any]] = []
         for node in nodes:
             present.add(node.get("metadata", {}).get("name", ""))
-            if self.changed("MODIFIED", node):
+            if self.changed_node("MODIFIED", node):
                 changed.append(node)
-        for gone in set(self._seen) - present:
-            del self._seen[gone]
+        for gone in self.keys() - present:
+            self.forget(gone)
             changed.append({"metadata": {"name": gone}})
         return changed
 
@@ -102,7 +94,7 @@ def node_watcher(
             enqueue(vehicle)
 
     def on_event(kind: str, node: Mapping[str, Any]) -> None:
-        if prints.changed(kind, node):
+        if prints.changed_node(kind, node):
             queue(node)
 
     def on_list(nodes: list[Mapping[str, Any]]) -> None:
