@@ -133,6 +133,26 @@ def _cpu_s(proc: psutil.Process) -> float:
     return float(times.user + times.system)
 
 
+def _cpu_by_program() -> dict[str, float]:
+    """CPU seconds so far of every process under this one, summed by program name."""
+    totals: dict[str, float] = {}
+    for proc in psutil.Process().children(recursive=True):
+        try:
+            name = proc.name()
+            totals[name] = totals.get(name, 0.0) + _cpu_s(proc)
+        except psutil.Error:
+            continue
+    return totals
+
+
+def _cpu_spent(before: dict[str, float]) -> str:
+    """Where the CPU went since ``before``: the busiest programs first."""
+    after = _cpu_by_program()
+    spent = {name: after[name] - before.get(name, 0.0) for name in after}
+    top = sorted(spent.items(), key=lambda item: -item[1])[:6]
+    return ", ".join(f"{name} {seconds:.0f} s" for name, seconds in top if seconds >= 0.5)
+
+
 def _single_changes(kube: Kube, count: int) -> list[float]:
     """Change one Vehicle's mavros image at a time; seconds until its Deployment has it."""
     seconds: list[float] = []
@@ -174,6 +194,7 @@ def measure(count: int) -> tuple[dict[str, float], str]:
             with Sampler(proc).running() as rss, cluster.api_client() as api:
                 kube = Kube(api, "roost-bench")
                 manifest = "\n---\n".join(json.dumps(vehicle_manifest(i)) for i in range(count))
+                cpu_before = _cpu_by_program()
                 started = time.monotonic()
                 cluster.kubectl(
                     "apply",
@@ -190,6 +211,7 @@ def measure(count: int) -> tuple[dict[str, float], str]:
                     poll_s=1.0,
                 )
                 ready_s = time.monotonic() - started
+                ready_cpu = _cpu_spent(cpu_before)
                 time.sleep(SETTLE_S)
                 cpu0, t0 = _cpu_s(proc), time.monotonic()
                 time.sleep(IDLE_S)
@@ -210,7 +232,7 @@ def measure(count: int) -> tuple[dict[str, float], str]:
     note = (
         f"{count} Vehicles (default components, no RedundantAutopilot) on {count} KWOK "
         f"nodes; 1-min load average {load:.1f} on {os.cpu_count()} cores; "
-        f"{orphaned} orphaned handlers logged"
+        f"{orphaned} orphaned handlers logged; CPU until Ready: {ready_cpu}"
     )
     return figures, note
 
