@@ -121,7 +121,7 @@ class Runtime:
                 Watcher(
                     kube,
                     LEASES,
-                    lambda kind, lease: rt._claim_changed(lease),
+                    lambda kind, lease, news: rt._claim_changed(lease),
                     rt._claims_listed,
                     label_selector=CLAIM_SELECTOR,
                     namespace=namespace,

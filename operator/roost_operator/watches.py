@@ -35,8 +35,10 @@ WATCH_TIMEOUT_S: Final = 290
 RETRY_S: Final = 2.0
 GONE: Final = 410
 
-OnEvent = Callable[[str, Mapping[str, Any]], None]
-"""``(ADDED|MODIFIED|DELETED, object)``."""
+OnEvent = Callable[[str, Mapping[str, Any], bool], None]
+"""``(ADDED|MODIFIED|DELETED, object, news)``; ``news`` is False when the watcher's
+store already held this version: the answer to the owner's own write, which the owner
+acted on when it wrote it."""
 OnList = Callable[[list[Mapping[str, Any]], list[Mapping[str, Any]]], None]
 """Every object after a (re)list, and the last version of each object the watcher's
 store held that the list no longer has (none without a store)."""
@@ -147,8 +149,9 @@ class Store:
         self.synced.set()
         return vanished
 
-    def observe(self, kind: str, obj: Mapping[str, Any]) -> None:
-        """A watch event (``ADDED``/``MODIFIED``/``DELETED``)."""
+    def observe(self, kind: str, obj: Mapping[str, Any]) -> bool:
+        """A watch event (``ADDED``/``MODIFIED``/``DELETED``); whether it was news (False:
+        this version, or a newer one, was already here)."""
         key = key_of(obj)
         with self._lock:
             if kind == "DELETED":
@@ -156,9 +159,12 @@ class Store:
                 revision = _revision(obj)
                 if revision is not None:
                     self._deleted[key] = revision
-            elif self._newer(key, obj):
-                self._deleted.pop(key, None)
-                self._put(obj)
+                return True
+            if not self._newer(key, obj, strictly=True):
+                return False
+            self._deleted.pop(key, None)
+            self._put(obj)
+            return True
 
     # -- what the owner wrote ---------------------------------------------------------
 
@@ -182,12 +188,14 @@ class Store:
 
     # -- under the lock -------------------------------------------------------------
 
-    def _newer(self, key: Key, obj: Mapping[str, Any]) -> bool:
+    def _newer(self, key: Key, obj: Mapping[str, Any], *, strictly: bool = False) -> bool:
         present = self._objects.get(key)
         if present is None:
             return True
         mine, theirs = _revision(obj), _revision(present)
-        return mine is None or theirs is None or mine >= theirs
+        if mine is None or theirs is None:
+            return True
+        return mine > theirs if strictly else mine >= theirs
 
     def _put(self, obj: Mapping[str, Any]) -> None:
         key = key_of(obj)
@@ -300,9 +308,8 @@ class Watcher:
                     if kind == "BOOKMARK":
                         continue
                     self.events += 1
-                    if self.store is not None:
-                        self.store.observe(kind, obj)
-                    self.on_event(kind, obj)
+                    news = self.store is None or self.store.observe(kind, obj)
+                    self.on_event(kind, obj, news)
             except ApiError as error:
                 if error.status == GONE:
                     version = None  # too old: list again

@@ -114,3 +114,13 @@ def test_a_node_concerns_the_vehicles_claiming_it_and_the_one_it_is_labelled_for
     }
     assert vehicles_of(_node("n2"), peers) == set()
     assert vehicles_of(_node("n2", **{LABEL_VEHICLE: "drone-2"}), None) == {"drone-2"}
+
+
+def test_the_echo_of_the_controllers_own_write_queues_nothing_but_is_remembered() -> None:
+    seen = Recorder()
+    seen.trigger.on_event("ADDED", _labelled("n1"))
+    seen.take()
+    labelled = _labelled("n1", team="blue")
+    seen.trigger.on_event("MODIFIED", labelled, False)  # the reconcile that wrote it knows
+    seen.trigger.on_event("MODIFIED", _labelled("n1", team="blue", heartbeat="t3"))
+    assert seen.take() == []  # and the next heartbeat is compared with the echo

@@ -116,3 +116,12 @@ def test_cluster_scoped_objects_have_no_namespace() -> None:
     store.replace([_obj("node-1", "1", namespace="")], "1")
     assert store.get("node-1") is not None
     assert store.get("node-1", "roost") is None
+
+
+def test_the_echo_of_an_own_write_is_no_news() -> None:
+    store = Store()
+    store.replace([_obj("a", "5")], "5")
+    store.remember(_obj("a", "6"))  # the answer to our patch
+    assert not store.observe("MODIFIED", _obj("a", "6"))  # its watch event
+    assert store.observe("MODIFIED", _obj("a", "7"))  # someone else's change
+    assert store.observe("DELETED", _obj("a", "8"))

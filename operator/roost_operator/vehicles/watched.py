@@ -105,7 +105,8 @@ def labelled_vehicle(obj: Mapping[str, Any]) -> set[str]:
 
 class VehicleTrigger:
     """Decides which watch events queue which vehicles: only a change of the
-    ``relevant`` part of an object, its appearance or its disappearance."""
+    ``relevant`` part of an object, its appearance or its disappearance — and not the
+    echo of the controller's own write (the reconcile that wrote it used the answer)."""
 
     def __init__(
         self, relevant: Relevant, concerns: Concerns, enqueue: Callable[[str], None]
@@ -115,12 +116,13 @@ class VehicleTrigger:
         self.enqueue = enqueue
         self.prints = Fingerprints()
 
-    def on_event(self, kind: str, obj: Mapping[str, Any]) -> None:
-        """One watch event (``ADDED``/``MODIFIED``/``DELETED``)."""
+    def on_event(self, kind: str, obj: Mapping[str, Any], news: bool = True) -> None:
+        """One watch event (``ADDED``/``MODIFIED``/``DELETED``); ``news`` False: the
+        store already had it from the controller's own write."""
         if kind == "DELETED":
             if self.prints.forget(key_of(obj)):
                 self._queue(obj)
-        elif self.prints.changed(key_of(obj), self.relevant(obj)):
+        elif self.prints.changed(key_of(obj), self.relevant(obj)) and news:
             self._queue(obj)
 
     def on_list(self, objects: list[Mapping[str, Any]], vanished: list[Mapping[str, Any]]) -> None:
