@@ -339,12 +339,13 @@ def _load() -> str:
 def _thresholds_text(th: Thresholds) -> str:
     return (
         f"thresholds message warn/error {th.message_warn_ms}/{th.message_error_ms} ms, "
+        f"heartbeat warn/error {th.heartbeat_warn_ms}/{th.heartbeat_error_ms} ms, "
         f"confirm {th.confirm_ms} ms"
     )
 
 
 def _soak_note(th: Thresholds, failovers: int, errors: list[str], msgs: int) -> str:
-    judgements = "; ".join(errors[:3]) or "none"
+    judgements = "; ".join(errors) or "none"
     return (
         f"{SOAK_S:.0f} s of healthy flight, two PX4 sims, 5 % loss and 50 ms jitter on "
         f"every link, {_thresholds_text(th)}; {msgs} messages accepted; {len(errors)} ERROR "
@@ -435,9 +436,10 @@ def heartbeat_figures() -> list[Figure]:
             f"{len(heartbeat)} silent autopilots that stream only 1 Hz HEARTBEAT, SYS_STATUS, "
             "EXTENDED_SYS_STATE on their own; the agent's stream keeper requests the streams "
             "the health model reads (ATTITUDE 50 Hz...) and the simulated PX4 grants them, so "
-            "the silence is caught on those, not after the 3 s heartbeat error; default "
+            "the silence is caught on those, not after the "
+            f"{Thresholds().heartbeat_error_ms} ms heartbeat error; default "
             f"{_thresholds_text(Thresholds())}; p99 of {len(heartbeat)} is their maximum; "
-            f"median {statistics.median(heartbeat):.0f} ms",
+            f"median {statistics.median(heartbeat):.0f} ms; 1-min load {_load()}",
         ),
     ]
 

@@ -32,7 +32,13 @@ ARMED = 128 | 1
 SENSORS = int(stack_sensors(Stack.PX4)) & ~int(SensorBit.RC_RECEIVER | SensorBit.PREARM_CHECK)
 LOITER = custom_mode(Stack.PX4, "AUTO.LOITER")
 # The numbers these tests assert are these thresholds', not whatever the defaults are.
-TH = Thresholds(message_warn_ms=200, message_error_ms=500, confirm_ms=100)
+TH = Thresholds(
+    message_warn_ms=200,
+    message_error_ms=500,
+    heartbeat_warn_ms=1500,
+    heartbeat_error_ms=3000,
+    confirm_ms=100,
+)
 
 
 class Vehicle:
