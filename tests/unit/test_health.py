@@ -576,3 +576,101 @@ def test_a_reboot_in_the_air_is_reported_as_the_reboot_not_as_a_disarm() -> None
     a = v.at(0.0)
     assert a.failing and "rebooted" in a.failure_reason
     assert "disarmed while in the air" not in a.failure_reason
+
+
+# -- the default thresholds: decision tables at their boundaries ---------------------------
+
+DEFAULTS = Thresholds()
+# HEARTBEAT period: nominal 1 Hz on both stacks, and the longest gap in the recorded
+# firmware traffic (PX4 v1.16 SIH, ArduCopter SITL; see test_capture_replay).
+HEARTBEAT_PERIOD_S = (1.0, 1.015)
+LINK_JITTER_S = 0.05  # the soak's jitter: each frame delayed by 0..50 ms
+
+
+def streaming(v: Vehicle, start_s: float, end_s: float, beats_until_s: float) -> list[Assessment]:
+    """ATTITUDE at 50 Hz and SYS_STATUS at 5 Hz on the exact sample times i/50 from
+    ``start_s`` to ``end_s``; HEARTBEAT and landed state each whole second up to
+    ``beats_until_s``. Returns the judgement after each sample, as the decision loop
+    would see it."""
+    seen = []
+    for i in range(round(start_s * 50), math.floor(end_s * 50) + 1):
+        v.t = i / 50
+        if i % 50 == 0 and v.t <= beats_until_s:
+            v.heartbeat()
+            v.landed()
+        if i % 10 == 0:
+            v.sys_status()
+        v.attitude()
+        seen.append(v.at(0.0))
+    return seen
+
+
+BELOW_AT_ABOVE = [
+    # threshold, ms relative to it, level, findings
+    ("heartbeat_warn_ms", -1, OK, set()),
+    ("heartbeat_warn_ms", 0, WARN, {"heartbeat-late"}),
+    ("heartbeat_warn_ms", 1, WARN, {"heartbeat-late"}),
+    ("heartbeat_error_ms", -1, WARN, {"heartbeat-late"}),
+    ("heartbeat_error_ms", 0, ERROR, {"heartbeat-lost"}),
+    ("heartbeat_error_ms", 1, ERROR, {"heartbeat-lost"}),
+]
+
+
+@pytest.mark.parametrize(("threshold", "offset_ms", "level", "found"), BELOW_AT_ABOVE)
+def test_heartbeat_age_at_the_default_boundaries(
+    threshold: str, offset_ms: int, level: HealthLevel, found: set[str]
+) -> None:
+    """Heartbeats stop at t=0 while telemetry keeps streaming: only the heartbeat age
+    decides, and only ERROR may fail over."""
+    age_s = (getattr(DEFAULTS, threshold) + offset_ms) / 1000
+    v = Vehicle(thresholds=DEFAULTS)
+    streaming(v, -3.0, age_s, beats_until_s=0.0)
+    a = v.tracker.assess(age_s)
+    assert (a.level, codes(a), a.failing) == (level, found, level == ERROR)
+    assert a.heartbeat_age_s == age_s
+    if a.failing:
+        assert a.onset == 0.0  # the last heartbeat
+
+
+@pytest.mark.parametrize(
+    ("threshold", "offset_ms", "level", "found"),
+    [
+        ("message_warn_ms", -1, OK, set()),
+        ("message_warn_ms", 0, WARN, {"late"}),
+        ("message_warn_ms", 1, WARN, {"late"}),
+        ("message_error_ms", -1, WARN, {"late"}),
+        ("message_error_ms", 0, ERROR, {"silent"}),
+        ("message_error_ms", 1, ERROR, {"silent"}),
+    ],
+)
+def test_message_age_at_the_default_boundaries(
+    threshold: str, offset_ms: int, level: HealthLevel, found: set[str]
+) -> None:
+    """A 50 Hz stream (heartbeat included) stops at t=0."""
+    age_s = (getattr(DEFAULTS, threshold) + offset_ms) / 1000
+    v = Vehicle(thresholds=DEFAULTS)
+    streaming(v, -3.0, 0.0, beats_until_s=0.0)
+    a = v.tracker.assess(age_s)
+    assert (a.level, codes(a), a.failing) == (level, found, level == ERROR)
+    assert a.message_age_s == age_s
+
+
+@pytest.mark.parametrize("timing", ["shortest", "longest"])
+@pytest.mark.parametrize(
+    ("lost", "level"), [(0, OK), (1, OK), (2, WARN), (3, WARN), (4, ERROR), (5, ERROR)]
+)
+def test_consecutive_lost_heartbeats_at_the_defaults(
+    lost: int, level: HealthLevel, timing: str
+) -> None:
+    """The worst judgement while ``lost`` heartbeats in a row are missing, with the gap
+    to the next one as short or as long as the period and the link's jitter make it:
+    WARN takes two lost in a row, ERROR four (docs/health-model.md has the rates)."""
+    shortest = timing == "shortest"
+    period = HEARTBEAT_PERIOD_S[0] if shortest else HEARTBEAT_PERIOD_S[1]
+    gap_s = (lost + 1) * period + (-LINK_JITTER_S if shortest else LINK_JITTER_S)
+    v = Vehicle(thresholds=DEFAULTS)
+    streaming(v, -3.0, 0.0, beats_until_s=0.0)
+    seen = streaming(v, 0.02, gap_s, beats_until_s=0.0)
+    seen.append(v.tracker.assess(math.nextafter(gap_s, 0.0)))  # just before it arrives
+    worst = max((a.level for a in seen), key=lambda lv: lv.rank)
+    assert worst == level, [a.reasons for a in seen if a.level == worst][:1]
