@@ -32,13 +32,8 @@ ARMED = 128 | 1
 SENSORS = int(stack_sensors(Stack.PX4)) & ~int(SensorBit.RC_RECEIVER | SensorBit.PREARM_CHECK)
 LOITER = custom_mode(Stack.PX4, "AUTO.LOITER")
 # The numbers these tests assert are these thresholds', not whatever the defaults are.
-TH = Thresholds(
-    message_warn_ms=200,
-    message_error_ms=500,
-    heartbeat_warn_ms=1500,
-    heartbeat_error_ms=3000,
-    confirm_ms=100,
-)
+HEARTBEAT_MS = {"heartbeat_warn_ms": 1500, "heartbeat_error_ms": 3000}
+TH = Thresholds(message_warn_ms=200, message_error_ms=500, confirm_ms=100, **HEARTBEAT_MS)
 
 
 class Vehicle:
@@ -605,54 +600,44 @@ def streaming(v: Vehicle, start_s: float, end_s: float, beats_until_s: float) ->
     return seen
 
 
-BELOW_AT_ABOVE = [
-    # threshold, ms relative to it, level, findings
-    ("heartbeat_warn_ms", -1, OK, set()),
-    ("heartbeat_warn_ms", 0, WARN, {"heartbeat-late"}),
-    ("heartbeat_warn_ms", 1, WARN, {"heartbeat-late"}),
-    ("heartbeat_error_ms", -1, WARN, {"heartbeat-late"}),
-    ("heartbeat_error_ms", 0, ERROR, {"heartbeat-lost"}),
-    ("heartbeat_error_ms", 1, ERROR, {"heartbeat-lost"}),
+def below_at_above(
+    clock: str, warn: str, error: str, late: str, lost: str
+) -> list[tuple[str, str, int, HealthLevel, set[str]]]:
+    """(clock, threshold, ms relative to it, level, findings): 1 ms under, at and 1 ms
+    over the warn and the error threshold of one liveness clock."""
+    return [
+        (clock, warn, -1, OK, set()),
+        (clock, warn, 0, WARN, {late}),
+        (clock, warn, 1, WARN, {late}),
+        (clock, error, -1, WARN, {late}),
+        (clock, error, 0, ERROR, {lost}),
+        (clock, error, 1, ERROR, {lost}),
+    ]
+
+
+BOUNDARIES = [
+    *below_at_above(
+        "heartbeat", "heartbeat_warn_ms", "heartbeat_error_ms", "heartbeat-late", "heartbeat-lost"
+    ),
+    *below_at_above("message", "message_warn_ms", "message_error_ms", "late", "silent"),
 ]
 
 
-@pytest.mark.parametrize(("threshold", "offset_ms", "level", "found"), BELOW_AT_ABOVE)
-def test_heartbeat_age_at_the_default_boundaries(
-    threshold: str, offset_ms: int, level: HealthLevel, found: set[str]
+@pytest.mark.parametrize(("clock", "threshold", "offset_ms", "level", "found"), BOUNDARIES)
+def test_liveness_at_the_default_boundaries(
+    clock: str, threshold: str, offset_ms: int, level: HealthLevel, found: set[str]
 ) -> None:
-    """Heartbeats stop at t=0 while telemetry keeps streaming: only the heartbeat age
-    decides, and only ERROR may fail over."""
+    """At t=0 either the heartbeats stop while telemetry keeps streaming at 50 Hz (only
+    the heartbeat age decides) or the whole stream stops (the message age decides).
+    Only ERROR may fail over, from the last message of the clock as its onset."""
     age_s = (getattr(DEFAULTS, threshold) + offset_ms) / 1000
     v = Vehicle(thresholds=DEFAULTS)
-    streaming(v, -3.0, age_s, beats_until_s=0.0)
+    streaming(v, -3.0, age_s if clock == "heartbeat" else 0.0, beats_until_s=0.0)
     a = v.tracker.assess(age_s)
     assert (a.level, codes(a), a.failing) == (level, found, level == ERROR)
-    assert a.heartbeat_age_s == age_s
+    assert (a.heartbeat_age_s if clock == "heartbeat" else a.message_age_s) == age_s
     if a.failing:
-        assert a.onset == 0.0  # the last heartbeat
-
-
-@pytest.mark.parametrize(
-    ("threshold", "offset_ms", "level", "found"),
-    [
-        ("message_warn_ms", -1, OK, set()),
-        ("message_warn_ms", 0, WARN, {"late"}),
-        ("message_warn_ms", 1, WARN, {"late"}),
-        ("message_error_ms", -1, WARN, {"late"}),
-        ("message_error_ms", 0, ERROR, {"silent"}),
-        ("message_error_ms", 1, ERROR, {"silent"}),
-    ],
-)
-def test_message_age_at_the_default_boundaries(
-    threshold: str, offset_ms: int, level: HealthLevel, found: set[str]
-) -> None:
-    """A 50 Hz stream (heartbeat included) stops at t=0."""
-    age_s = (getattr(DEFAULTS, threshold) + offset_ms) / 1000
-    v = Vehicle(thresholds=DEFAULTS)
-    streaming(v, -3.0, 0.0, beats_until_s=0.0)
-    a = v.tracker.assess(age_s)
-    assert (a.level, codes(a), a.failing) == (level, found, level == ERROR)
-    assert a.message_age_s == age_s
+        assert a.onset == 0.0
 
 
 @pytest.mark.parametrize("timing", ["shortest", "longest"])
