@@ -245,10 +245,16 @@ class Thresholds(ApiModel):
     # ERROR four; at 5 % loss that is an ERROR once in ~47 hours per link, where 3000 ms
     # (two lost plus jitter) gave several an hour. The arithmetic: docs/health-model.md.
     heartbeat_warn_ms: int = Field(
-        default=2500, ge=100, le=60000, description="Heartbeat age WARN (two lost in a row)."
+        default=2500,
+        ge=100,
+        le=60000,
+        description="Heartbeat age WARN (default: two 1 Hz heartbeats lost in a row).",
     )
     heartbeat_error_ms: int = Field(
-        default=4500, ge=200, le=60000, description="Heartbeat age ERROR (four lost in a row)."
+        default=4500,
+        ge=200,
+        le=60000,
+        description="Heartbeat age ERROR (default: four 1 Hz heartbeats lost in a row).",
     )
     confirm_ms: int = Field(
         default=20,
