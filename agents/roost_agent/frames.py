@@ -154,16 +154,16 @@ class Frame:
 
     def get_msgId(self) -> int:  # noqa: N802 - pymavlink's name
         header = self._header
-        return int(header[7] | (header[8] << 16))
+        return header[7] | (header[8] << 16)  # type: ignore[no-any-return]
 
     def get_srcSystem(self) -> int:  # noqa: N802 - pymavlink's name
-        return int(self._header[5])
+        return self._header[5]  # type: ignore[no-any-return]
 
     def get_srcComponent(self) -> int:  # noqa: N802 - pymavlink's name
-        return int(self._header[6])
+        return self._header[6]  # type: ignore[no-any-return]
 
     def get_seq(self) -> int:
-        return int(self._header[4])
+        return self._header[4]  # type: ignore[no-any-return]
 
     def get_msgbuf(self) -> bytearray:
         return bytearray(self._data[self._start : self._end])

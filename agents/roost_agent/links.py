@@ -988,7 +988,12 @@ class AutopilotLink:
         try:
             msg = parser.parse_char(data)
             while msg is not None:
-                self._message(session, msg, sender, now)
+                if msg.get_type().startswith("UNKNOWN_"):  # an id pymavlink's dialect lacks
+                    msg = known_frame(msg)  # one of ours (roost_agent.frames), checked
+                if msg is None:
+                    self.counters.unknown += 1
+                else:
+                    self._message(session, msg, sender, now)
                 msg = parser.parse_char(b"")
         except Exception:  # the parser choked: this sender's parser starts over
             self.counters.errors += 1
@@ -1004,12 +1009,6 @@ class AutopilotLink:
         if kind == "BAD_DATA":
             self.counters.bad += 1
             return
-        if kind.startswith("UNKNOWN_"):  # an id pymavlink's dialect lacks: is it one of ours?
-            frame = known_frame(msg)
-            if frame is None:
-                self.counters.unknown += 1
-                return
-            msg, kind = frame, frame.get_type()
         if (
             msg.get_srcSystem() != self.spec.sysid
             or msg.get_srcComponent() != self.spec.component_id
