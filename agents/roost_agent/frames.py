@@ -154,16 +154,16 @@ class Frame:
 
     def get_msgId(self) -> int:  # noqa: N802 - pymavlink's name
         header = self._header
-        return header[7] | (header[8] << 16)  # type: ignore[no-any-return]
+        return header[7] | (header[8] << 16)
 
     def get_srcSystem(self) -> int:  # noqa: N802 - pymavlink's name
-        return self._header[5]  # type: ignore[no-any-return]
+        return self._header[5]
 
     def get_srcComponent(self) -> int:  # noqa: N802 - pymavlink's name
-        return self._header[6]  # type: ignore[no-any-return]
+        return self._header[6]
 
     def get_seq(self) -> int:
-        return self._header[4]  # type: ignore[no-any-return]
+        return self._header[4]
 
     def get_msgbuf(self) -> bytearray:
         return bytearray(self._data[self._start : self._end])
