@@ -156,6 +156,7 @@ class Credentials:
     key_file: Path | None = None
     cert_data: bytes | None = None
     key_data: bytes | None = None
+    tls_server_name: str | None = None  # the name the server's certificate must carry
 
 
 class DirectTransport:
@@ -164,7 +165,9 @@ class DirectTransport:
     def __init__(self, credentials: Credentials, *, retries: int | None = None) -> None:
         self.credentials = credentials
         self._retries: urllib3.Retry | bool | int | None = retries if retries is not None else None
-        self._pool = urllib3.PoolManager(ssl_context=_ssl_context(credentials), maxsize=4)
+        name = credentials.tls_server_name
+        named: dict[str, Any] = {"server_hostname": name, "assert_hostname": name} if name else {}
+        self._pool = urllib3.PoolManager(ssl_context=_ssl_context(credentials), maxsize=4, **named)
         self._token_lock = threading.Lock()
         self._token: tuple[str, float] | None = None
 
@@ -310,4 +313,5 @@ def from_kubeconfig(files: Sequence[Path], context: str | None = None) -> Creden
         if user.get("client-certificate-data")
         else None,
         key_data=_data(user["client-key-data"]) if user.get("client-key-data") else None,
+        tls_server_name=str(cluster["tls-server-name"]) if cluster.get("tls-server-name") else None,
     )

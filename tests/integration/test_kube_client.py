@@ -13,9 +13,11 @@ from __future__ import annotations
 import socket
 from collections.abc import Iterator
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import Any
 
 import pytest
+import yaml
 
 from roost_cli.cluster import Fleet, Target
 from roost_cli.errors import CliError
@@ -156,3 +158,23 @@ def test_the_cli_refuses_a_namespace_that_does_not_exist(roost_crds: Cluster) ->
     missing = unique("no-such-namespace")
     with pytest.raises(CliError, match=f"namespace '{missing}' does not exist"):
         fleet.require_namespace(missing)
+
+
+@pytest.mark.parametrize(("name", "works"), [("kubernetes", True), ("not-the-server", False)])
+def test_the_direct_transport_checks_the_servers_certificate_against_tls_server_name(
+    roost_crds: Cluster, tmp_path: Path, name: str, works: bool
+) -> None:
+    """A real node reaches the API server through a relay under another address and
+    checks its certificate against ``tls-server-name`` (roost_localcluster.pki)."""
+    doc = yaml.safe_load(roost_crds.kubeconfig.read_text())
+    for entry in doc["clusters"]:
+        entry["cluster"]["tls-server-name"] = name
+    path = tmp_path / "kubeconfig"
+    path.write_text(yaml.safe_dump(doc))
+    kube = Kube.from_environment("roost-tests", kubeconfig=path, retries=0, direct=True)
+    if works:
+        assert kube.get(CONFIGMAPS, unique("absent"), NAMESPACE) is None
+    else:
+        with pytest.raises(ApiUnavailableError) as error:
+            kube.get(CONFIGMAPS, "x", NAMESPACE)
+        assert error.value.transport == "tls"

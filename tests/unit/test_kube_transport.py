@@ -41,12 +41,16 @@ def _config(
 def test_inline_certificates_and_the_server(tmp_path: Path) -> None:
     pem = b"-----BEGIN CERTIFICATE-----\nx\n-----END CERTIFICATE-----\n"
     encoded = base64.b64encode(pem).decode()
-    cluster = {"server": "https://127.0.0.1:6443/", "certificate-authority-data": encoded}
+    cluster = {
+        "server": "https://127.0.0.1:6443/",
+        "certificate-authority-data": encoded,
+        "tls-server-name": "kubernetes",
+    }
     user = {"client-certificate-data": encoded, "client-key-data": encoded}
     got = from_kubeconfig([_write(tmp_path / "a", _config("sandbox", cluster, user))])
     assert got.host == "https://127.0.0.1:6443"
     assert got.ca_data == got.cert_data == got.key_data == pem
-    assert got.verify and got.token is None
+    assert got.verify and got.token is None and got.tls_server_name == "kubernetes"
 
 
 def test_relative_paths_start_at_the_file_that_names_them(tmp_path: Path) -> None:
