@@ -49,6 +49,7 @@ from roost_kube.transport import (
     ApiClientTransport,
     Credentials,
     DirectTransport,
+    Request,
     Response,
     Transport,
     from_kubeconfig,
@@ -157,7 +158,7 @@ class Kube:
         url = f"{path}?{urlencode(query)}" if query else path
         try:
             return self._transport.send(
-                method, url, headers=headers, body=body, timeout=timeout or self.timeout
+                Request(method, url, headers, body, timeout or self.timeout)
             )
         except Exception as exc:
             transport = transport_of(exc)

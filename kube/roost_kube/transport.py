@@ -12,8 +12,8 @@ too, so failures are the same exceptions and :func:`roost_kube.errors.transport_
 classifies them the same way). A kubeconfig that needs more (an exec or auth-provider
 plugin) is refused with a :class:`~roost_kube.kubeconfig.KubeconfigError` saying so.
 
-Both send exactly what :class:`~roost_kube.client.Kube` asks (method, path and query,
-headers, a JSON body) and answer with a :class:`Response`.
+Both send exactly what :class:`~roost_kube.client.Kube` asks (a :class:`Request`) and
+answer with a :class:`Response` over urllib3's response.
 """
 
 from __future__ import annotations
@@ -40,17 +40,35 @@ SERVICE_ACCOUNT = Path("/var/run/secrets/kubernetes.io/serviceaccount")
 TOKEN_REREAD_S = 60.0  # the kubelet rotates projected tokens well before they expire
 
 
-class Response(Protocol):
-    """What a transport answers: the status, then the body whole or line by line."""
+@dataclass(frozen=True)
+class Request:
+    """What :class:`~roost_kube.client.Kube` sends: ``path`` carries its query; a body is
+    sent as JSON."""
 
-    @property
-    def status(self) -> int: ...
+    method: str
+    path: str
+    headers: Mapping[str, str]
+    body: Any
+    timeout: Timeout
 
-    def read(self) -> bytes: ...
 
-    def lines(self) -> Iterator[bytes]: ...
+@dataclass(frozen=True)
+class Response:
+    """The status and the body, unread (a watch reads it line by line)."""
 
-    def release(self) -> None: ...
+    status: int
+    raw: urllib3.BaseHTTPResponse
+
+    def read(self) -> bytes:
+        data = self.raw.read()
+        self.raw.release_conn()
+        return bytes(data)
+
+    def lines(self) -> Iterator[bytes]:
+        yield from self.raw  # urllib3 yields the body line by line
+
+    def release(self) -> None:
+        self.raw.release_conn()
 
 
 class Transport(Protocol):
@@ -59,37 +77,9 @@ class Transport(Protocol):
         """The API server's URL."""
         ...
 
-    def send(
-        self,
-        method: str,
-        path: str,
-        *,
-        headers: Mapping[str, str],
-        body: Any,
-        timeout: Timeout,
-    ) -> Response:
-        """One request (``path`` with its query); urllib3's exceptions propagate."""
+    def send(self, request: Request) -> Response:
+        """One request; urllib3's exceptions propagate."""
         ...
-
-
-@dataclass
-class _Urllib3Response:
-    response: urllib3.BaseHTTPResponse
-
-    @property
-    def status(self) -> int:
-        return int(self.response.status)
-
-    def read(self) -> bytes:
-        data = self.response.read()
-        self.response.release_conn()
-        return bytes(data)
-
-    def lines(self) -> Iterator[bytes]:
-        yield from self.response  # urllib3 yields the body line by line
-
-    def release(self) -> None:
-        self.response.release_conn()
 
 
 class ApiClientTransport:
@@ -102,43 +92,24 @@ class ApiClientTransport:
     def host(self) -> str:
         return str(self.api.configuration.host)
 
-    def send(
-        self,
-        method: str,
-        path: str,
-        *,
-        headers: Mapping[str, str],
-        body: Any,
-        timeout: Timeout,
-    ) -> Response:
-        route, _, query = path.partition("?")
+    def send(self, request: Request) -> Response:
+        route, _, query = request.path.partition("?")
         _, url, signed, _, _ = self.api.param_serialize(
-            method, route, header_params=dict(headers), auth_settings=["BearerToken"]
+            request.method,
+            route,
+            header_params=dict(request.headers),
+            auth_settings=["BearerToken"],
         )
         if query:
             url = f"{url}?{query}"
         answer = self.api.call_api(
-            method, url, header_params=signed, body=body, _request_timeout=timeout
+            request.method,
+            url,
+            header_params=signed,
+            body=request.body,
+            _request_timeout=request.timeout,
         )
-        return _ApiClientResponse(answer)
-
-
-@dataclass
-class _ApiClientResponse:
-    answer: Any  # kubernetes.client.rest.RESTResponse
-
-    @property
-    def status(self) -> int:
-        return int(self.answer.status)
-
-    def read(self) -> bytes:
-        return bytes(self.answer.read() or b"")
-
-    def lines(self) -> Iterator[bytes]:
-        yield from self.answer.response
-
-    def release(self) -> None:
-        self.answer.response.release_conn()
+        return Response(int(answer.status), answer.response)
 
 
 @dataclass(frozen=True)
@@ -187,30 +158,22 @@ class DirectTransport:
                 self._token = (c.token_file.read_text().strip(), now)
             return self._token[0]
 
-    def send(
-        self,
-        method: str,
-        path: str,
-        *,
-        headers: Mapping[str, str],
-        body: Any,
-        timeout: Timeout,
-    ) -> Response:
-        sent = dict(headers)
+    def send(self, request: Request) -> Response:
+        headers = dict(request.headers)
         token = self._bearer()
         if token:
-            sent["Authorization"] = f"Bearer {token}"
-        data = None if body is None else json.dumps(body).encode()
-        response = self._pool.request(
-            method,
-            self.credentials.host + path,
-            body=data,
-            headers=sent,
-            timeout=urllib3.Timeout(connect=timeout[0], read=timeout[1]),
+            headers["Authorization"] = f"Bearer {token}"
+        body = None if request.body is None else json.dumps(request.body).encode()
+        raw = self._pool.request(
+            request.method,
+            self.credentials.host + request.path,
+            body=body,
+            headers=headers,
+            timeout=urllib3.Timeout(connect=request.timeout[0], read=request.timeout[1]),
             retries=self._retries,
             preload_content=False,
         )
-        return _Urllib3Response(response)
+        return Response(int(raw.status), raw)
 
 
 def _ssl_context(c: Credentials) -> ssl.SSLContext:

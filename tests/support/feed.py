@@ -2,7 +2,8 @@
 
 For tests of the health model and the decision loop that need real MAVLink messages
 (encoded and decoded by pymavlink, so each carries the stream's next sequence number)
-but no sockets and no clock.
+but no sockets and no clock; :func:`two_px4_spec` is the vehicle such an agent (never
+started: its links never open) flies.
 """
 
 from __future__ import annotations
@@ -15,6 +16,12 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from roost_agent.health import Assessment, HealthTracker
+from roost_api.autopilot import (
+    AutopilotSpec,
+    FailoverPolicy,
+    RedundantAutopilotSpec,
+    Thresholds,
+)
 from roost_api.meta import Stack
 from roost_mavlink import LandedState, MavState, SensorBit, custom_mode
 from roost_mavlink.status import MAV_AUTOPILOT_PX4, stack_sensors
@@ -105,3 +112,23 @@ class Feed:
 
     def at(self, dt: float) -> Assessment:
         return self.tracker.assess(self.t + dt)
+
+
+def two_px4_spec(first_port: int, thresholds: Thresholds | None = None) -> RedundantAutopilotSpec:
+    """Vehicle ``v1``: PX4 autopilots fc1 (primary, sysid 1, channel 0) and fc2 on UDP
+    ports ``first_port + 1`` and ``+ 2`` of 127.0.0.1 (nobody sends there)."""
+    return RedundantAutopilotSpec(
+        vehicle_name="v1",
+        autopilots=[
+            AutopilotSpec(
+                name=f"fc{i}",
+                stack="px4",
+                connection=f"udp://127.0.0.1:{first_port + i}",
+                sysid=i,
+                bridge_channel=i - 1,
+            )
+            for i in (1, 2)
+        ],
+        primary="fc1",
+        failover_policy=FailoverPolicy(thresholds=thresholds or Thresholds()),
+    )

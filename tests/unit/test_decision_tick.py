@@ -21,13 +21,10 @@ import pytest
 from roost_agent.agent import Agent, AgentEvent
 from roost_agent.bridge import SimulatedBridge
 from roost_api.autopilot import (
-    AutopilotSpec,
-    FailoverPolicy,
-    RedundantAutopilotSpec,
     Thresholds,
 )
 from roost_mavlink import LandedState, MavState, SensorBit
-from tests.support.feed import SENSORS, Feed
+from tests.support.feed import SENSORS, Feed, two_px4_spec
 
 TICK_S = 0.01
 RATE_HZ = 50
@@ -60,27 +57,11 @@ class Run:
     ticks: int = 0
 
 
-def _spec() -> RedundantAutopilotSpec:
-    return RedundantAutopilotSpec(
-        vehicle_name="v1",
-        autopilots=[
-            AutopilotSpec(
-                name=f"fc{i}",
-                stack="px4",
-                connection=f"udp://127.0.0.1:{15100 + i}",
-                sysid=i,
-                bridge_channel=i - 1,
-            )
-            for i in (1, 2)
-        ],
-        primary="fc1",
-        failover_policy=FailoverPolicy(thresholds=TH),
-    )
-
-
 def _fly(faults: list[Fault], seconds: float, *, skipping: bool) -> Run:
     clock = Clock()
-    agent = Agent(_spec(), SimulatedBridge([0, 1]), clock=clock, wall_clock=lambda: WALL)
+    agent = Agent(
+        two_px4_spec(15100, TH), SimulatedBridge([0, 1]), clock=clock, wall_clock=lambda: WALL
+    )
     run = Run(agent)
     if not skipping:
         agent._nothing_new = lambda *_: False  # type: ignore[method-assign]
