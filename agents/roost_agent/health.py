@@ -353,6 +353,13 @@ class HealthTracker:
             before = _judged(o, self.thresholds) if judged else None
             if o.first_at is None:
                 o.first_at = o.window_start = now
+            elif (
+                o.last_at is not None
+                and (now - o.last_at) * 1000 >= self.thresholds.message_error_ms
+            ):
+                # A silence ends: what is judged only while messages come (frozen
+                # telemetry) may apply from this message on.
+                o.version += 1
             o.last_at = now
             o.counts[kind] = o.counts.get(kind, 0) + 1
             o.window_count += 1

@@ -595,6 +595,10 @@ STEP = st.tuples(
             "estimator-bad",
             "estimator-good",
             "reboot",
+            "boot-state",
+            "burst",
+            "streams",
+            "no-streams",
             "nothing",
         ]
     ),
@@ -617,6 +621,10 @@ def _act(v: Vehicle, action: str) -> None:
         "estimator-bad": lambda: _estimator(v, 0),
         "estimator-good": lambda: _estimator(v, GOOD_ESTIMATOR),
         "reboot": lambda: v.observe(mav.MAVLink_attitude_message(50, 0, 0, 0, 0, 0, 0)),
+        "boot-state": lambda: v.heartbeat(state=MavState.BOOT),
+        "burst": lambda: [v.attitude() for _ in range(30)],
+        "streams": lambda: v.tracker.expect_streams(50.0),
+        "no-streams": lambda: v.tracker.expect_streams(None),
         "nothing": lambda: None,
     }
     actions[action]()
