@@ -10,6 +10,7 @@ import socket
 import struct
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Iterator
 from datetime import UTC, datetime
@@ -234,6 +235,28 @@ def test_standalone_agent_imports_neither_kopf_nor_heavy_clients() -> None:
     )
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_the_agent_in_cluster_mode_never_imports_the_kubernetes_package() -> None:
+    """Its API client goes through roost_kube's minimal transport (about 13 MB less)."""
+    probe = (
+        "import sys, pathlib, roost_agent.main, roost_agent.publisher; "
+        "from roost_agent.kube import AgentKube; "
+        "AgentKube.from_environment(pathlib.Path(sys.argv[1])); "
+        "print('kubernetes' in sys.modules)"
+    )
+    with tempfile.TemporaryDirectory() as tmp:
+        config = Path(tmp) / "kubeconfig"
+        config.write_text(
+            "current-context: x\n"
+            "contexts: [{name: x, context: {cluster: x, user: x}}]\n"
+            "clusters: [{name: x, cluster: {server: 'https://127.0.0.1:1'}}]\n"
+            "users: [{name: x, user: {token: t}}]\n"
+        )
+        out = subprocess.run(
+            [sys.executable, "-c", probe, str(config)], capture_output=True, text=True, check=True
+        )
+    assert out.stdout.strip() == "False"
 
 
 def test_tcp_link_reads_only_its_autopilot_answers_as_191_and_reconnects() -> None:
