@@ -21,14 +21,17 @@ from __future__ import annotations
 import math
 import os
 import queue
+import re
 import statistics
 import subprocess
 import sys
 import tempfile
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 
@@ -299,11 +302,21 @@ def cpu_and_memory(
         return (cpu1 - cpu0) * 1000 / count * 10_000, peak, count / (t1 - t0)
 
 
-def false_failovers(thresholds: Thresholds = FAST) -> tuple[int, list[str], int]:
-    """(failovers, what each ERROR judgement said, messages) in SOAK_S of healthy flight
-    with 5 % loss and 50 ms jitter on every autopilot link. Each ERROR comes with the
-    other autopilot's warnings within a second of it: both late at once points at a
-    stall of the host (both sims share this process), not at one link."""
+@dataclass(frozen=True)
+class Soak:
+    """What :data:`SOAK_S` of healthy flight under loss and jitter produced."""
+
+    failovers: int
+    errors: list[str]  # every ERROR judgement, with the other autopilot's warnings near it
+    warnings: Counter[str]  # WARN judgements by reason, numbers left out
+    received: int  # messages accepted
+
+
+def false_failovers(thresholds: Thresholds = FAST) -> Soak:
+    """Failovers and judgements in SOAK_S of healthy flight with 5 % loss and 50 ms
+    jitter on every autopilot link. Each ERROR comes with the other autopilot's warnings
+    within a second of it: both late at once points at a stall of the host (both sims
+    share this process), not at one link."""
     with vehicle(thresholds) as (sims, agent):
         for sim in sims:
             sim.inject(FaultKind.LOSS, 5)
@@ -316,7 +329,10 @@ def false_failovers(thresholds: Thresholds = FAST) -> tuple[int, list[str], int]
     failovers = sum(1 for d in seen if d.get("event") == "Failover")
     health = [d for d in seen if d.get("event") == "HealthChanged"]
     judged: list[str] = []
+    warnings: Counter[str] = Counter()
     for doc in health:
+        if doc["health"]["level"] == "WARN":
+            warnings.update(re.sub(r"\d+", "N", r) for r in doc["health"]["reasons"])
         if doc["health"]["level"] in ("OK", "WARN"):
             continue
         at = datetime.fromisoformat(doc["time"])
@@ -328,7 +344,7 @@ def false_failovers(thresholds: Thresholds = FAST) -> tuple[int, list[str], int]
             and d["health"]["level"] != "OK"
         ]
         judged.append(doc["message"] + (f" (meanwhile {'; '.join(nearby)})" if nearby else ""))
-    return failovers, judged, received
+    return Soak(failovers, judged, warnings, received)
 
 
 def _load() -> str:
@@ -339,16 +355,19 @@ def _load() -> str:
 def _thresholds_text(th: Thresholds) -> str:
     return (
         f"thresholds message warn/error {th.message_warn_ms}/{th.message_error_ms} ms, "
+        f"heartbeat warn/error {th.heartbeat_warn_ms}/{th.heartbeat_error_ms} ms, "
         f"confirm {th.confirm_ms} ms"
     )
 
 
-def _soak_note(th: Thresholds, failovers: int, errors: list[str], msgs: int) -> str:
-    judgements = "; ".join(errors[:3]) or "none"
+def _soak_note(th: Thresholds, soak: Soak) -> str:
+    judgements = "; ".join(soak.errors) or "none"
+    warnings = ", ".join(f"{why} x{n}" for why, n in soak.warnings.most_common()) or "none"
     return (
         f"{SOAK_S:.0f} s of healthy flight, two PX4 sims, 5 % loss and 50 ms jitter on "
-        f"every link, {_thresholds_text(th)}; {msgs} messages accepted; {len(errors)} ERROR "
-        f"judgements: {judgements}; 1-min load {_load()} at the end"
+        f"every link, {_thresholds_text(th)}; {soak.received} messages accepted; "
+        f"{len(soak.errors)} ERROR judgements: {judgements}; "
+        f"{soak.warnings.total()} WARN judgements: {warnings}; 1-min load {_load()} at the end"
     )
 
 
@@ -435,9 +454,10 @@ def heartbeat_figures() -> list[Figure]:
             f"{len(heartbeat)} silent autopilots that stream only 1 Hz HEARTBEAT, SYS_STATUS, "
             "EXTENDED_SYS_STATE on their own; the agent's stream keeper requests the streams "
             "the health model reads (ATTITUDE 50 Hz...) and the simulated PX4 grants them, so "
-            "the silence is caught on those, not after the 3 s heartbeat error; default "
+            "the silence is caught on those, not after the "
+            f"{Thresholds().heartbeat_error_ms} ms heartbeat error; default "
             f"{_thresholds_text(Thresholds())}; p99 of {len(heartbeat)} is their maximum; "
-            f"median {statistics.median(heartbeat):.0f} ms",
+            f"median {statistics.median(heartbeat):.0f} ms; 1-min load {_load()}",
         ),
     ]
 
@@ -468,15 +488,15 @@ def peer_figures() -> list[Figure]:
 
 
 def soak_figures() -> list[Figure]:
-    failovers, errors, msgs = false_failovers(FAST)
+    soak = false_failovers(FAST)
     return [
         Figure(
             "failover.false_failovers_10min",
-            float(failovers),
+            float(soak.failovers),
             "count",
             "== 0",
             f"ROOST_BENCH_SOAK_S={SOAK_S:.0f} {COMMAND}",
-            _soak_note(FAST, failovers, errors, msgs),
+            _soak_note(FAST, soak),
         )
     ]
 
@@ -545,7 +565,7 @@ def default_figures() -> list[Figure]:
     silences = [(FaultKind.SILENCE, None)]
     _, silent = failover_cycles(max(1, FAILOVERS // 2), thresholds=defaults, faults=silences)
     load = _load()
-    failovers, errors, msgs = false_failovers(defaults)
+    soak = false_failovers(defaults)
     return [
         Figure(
             "failover.silent_onset_to_switch_default_p99_ms",
@@ -559,11 +579,11 @@ def default_figures() -> list[Figure]:
         ),
         Figure(
             "failover.false_failovers_10min_default",
-            float(failovers),
+            float(soak.failovers),
             "count",
             "== 0",
             f"ROOST_BENCH_SOAK_S={SOAK_S:.0f} {COMMAND}",
-            _soak_note(defaults, failovers, errors, msgs),
+            _soak_note(defaults, soak),
         ),
     ]
 

@@ -28,6 +28,7 @@ from bench.core import Figure
 from roost_localcluster import binaries, nodes
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import ControlPlane, Settings
+from roost_localcluster.kwoknodes import KUBELET_REPORT_S
 
 COMMAND = "python -m bench controlplane"
 SETTLE_S = 10.0
@@ -35,7 +36,11 @@ AGENT_DS = "bench-agent"
 VEHICLE_LABEL = "roost.dev/vehicle-class"
 # 1000 nodes from one kwok: longer leases and grace period so a busy 2-core machine does not
 # mark nodes NotReady while kwok renews a thousand leases.
-FLEET_SETTINGS = Settings(node_lease_duration_s=120, node_monitor_grace_period_s=180)
+FLEET_SETTINGS = Settings(
+    node_lease_duration_s=120,
+    node_monitor_grace_period_s=180,
+    node_status_report_s=KUBELET_REPORT_S,
+)
 
 
 def _mb(plane: ControlPlane) -> float:

@@ -26,7 +26,7 @@ import threading
 import time
 from pathlib import Path
 
-from bench.agent import percentile
+from bench.agent import _load, _thresholds_text, percentile
 from bench.core import Figure
 from roost_api.autopilot import (
     FailoverPolicy,
@@ -147,6 +147,7 @@ def hold_losses(stack: str) -> list[float]:
 
 def run() -> list[Figure]:
     unaided = unaided_ardupilot_cycles()
+    unaided_load = _load()
     holds = {stack: hold_losses(stack) for stack in ("px4", "ardupilot")}
     worst = max(max(v) for v in holds.values())
     per_flavour = "; ".join(
@@ -161,9 +162,9 @@ def run() -> list[Figure]:
             "<= 700",
             COMMAND,
             f"{len(unaided)} silent simulated ArduCopters that send only HEARTBEAT until "
-            "the agent requests streams; default thresholds (message error "
-            f"{Thresholds().message_error_ms} ms, confirm {Thresholds().confirm_ms} ms); "
-            f"median {statistics.median(unaided):.0f} ms, max {max(unaided):.0f} ms",
+            f"the agent requests streams; default {_thresholds_text(Thresholds())}; "
+            f"median {statistics.median(unaided):.0f} ms, max {max(unaided):.0f} ms; "
+            f"1-min load {unaided_load}",
         ),
         Figure(
             "safety.hold_altitude_loss_m",

@@ -2,7 +2,7 @@
 
 Why: ArduCopter sends nothing but HEARTBEAT on a link until someone requests streams, so
 an agent that only listens never learns whether a standby is armed and in the air (it
-cannot be a failover target) and notices a dead link only by heartbeat age (~3 s). PX4's
+cannot be a failover target) and notices a dead link only by heartbeat age (seconds). PX4's
 onboard link streams by itself, but not necessarily every message the model uses. So the
 agent asks, per stack, and verifies:
 

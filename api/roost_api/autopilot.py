@@ -240,9 +240,21 @@ class Thresholds(ApiModel):
     message_error_ms: int = Field(
         default=200, ge=20, le=60000, description="Any-message age ERROR (silent link)."
     )
-    heartbeat_warn_ms: int = Field(default=1500, ge=100, le=60000, description="Heartbeat WARN.")
+    # HEARTBEAT is 1 Hz on both stacks. Each threshold sits half a period between two
+    # counts of consecutive lost heartbeats (plus jitter), so WARN takes two in a row and
+    # ERROR four; at 5 % loss that is an ERROR once in ~47 hours per link, where 3000 ms
+    # (two lost plus jitter) gave several an hour. The arithmetic: docs/health-model.md.
+    heartbeat_warn_ms: int = Field(
+        default=2500,
+        ge=100,
+        le=60000,
+        description="Heartbeat age WARN (default: two 1 Hz heartbeats lost in a row).",
+    )
     heartbeat_error_ms: int = Field(
-        default=3000, ge=200, le=60000, description="Heartbeat age ERROR."
+        default=4500,
+        ge=200,
+        le=60000,
+        description="Heartbeat age ERROR (default: four 1 Hz heartbeats lost in a row).",
     )
     confirm_ms: int = Field(
         default=20,

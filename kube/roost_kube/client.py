@@ -77,6 +77,13 @@ def _report(method: str, result: str, started: float) -> None:
         observer(method, result, seconds)
 
 
+class _Unread:
+    """Marks an argument the caller did not read (distinct from None, "absent")."""
+
+
+UNREAD = _Unread()
+
+
 @dataclass
 class Kube:
     """Thin synchronous client for the Kubernetes REST API (thread-safe).
@@ -104,17 +111,23 @@ class Kube:
         context: str | None = None,
         timeout: Timeout = (5.0, 30.0),
         retries: int | None = None,
+        connections: int | None = None,
         direct: bool = False,
     ) -> Kube:
         """A client configured like kubectl.
 
         With no ``kubeconfig``: the in-cluster service account, else ``$KUBECONFIG`` (a
         list is merged) or ``~/.kube/config``. ``retries`` replaces urllib3's default.
+        ``connections``: how many connections to keep open for reuse — at least the
+        number of threads that send requests at once (each watch holds one for its
+        whole length); beyond the pool, every request pays a new TLS handshake.
         ``direct``: through :class:`~roost_kube.transport.DirectTransport` (the agent).
         """
         if direct:
             return cls(
-                DirectTransport(_credentials(kubeconfig, context), retries=retries),
+                DirectTransport(
+                    _credentials(kubeconfig, context), retries=retries, connections=connections
+                ),
                 field_manager,
                 timeout,
             )
@@ -122,6 +135,8 @@ class Kube:
         from kubernetes import config as k8s_config  # noqa: PLC0415
 
         configuration = k8s_client.Configuration()
+        if connections is not None:
+            configuration.connection_pool_maxsize = connections
         if kubeconfig is None:
             try:
                 k8s_config.load_incluster_config(client_configuration=configuration)  # type: ignore[no-untyped-call]
@@ -333,17 +348,25 @@ class Kube:
 
     # -- writes ------------------------------------------------------------------
 
-    def apply(self, manifest: Mapping[str, Any]) -> tuple[Obj, bool]:
+    def apply(
+        self, manifest: Mapping[str, Any], *, current: Mapping[str, Any] | _Unread | None = UNREAD
+    ) -> tuple[Obj, bool]:
         """Server-side apply ``manifest`` unless the live object already matches.
 
-        Returns the live object and whether a write was sent.
+        ``current`` is the live object (None: absent) when the caller knows it, from a
+        watch cache say; otherwise it is read first. Returns the live object and whether
+        a write was sent.
         """
         resource = resource_of(manifest)
         desired = with_applied_hash(manifest)
         meta = desired["metadata"]
-        actual = self.get(resource, meta["name"], meta.get("namespace"))
+        actual = (
+            self.get(resource, meta["name"], meta.get("namespace"))
+            if isinstance(current, _Unread)
+            else current
+        )
         if actual is not None and not needs_apply(desired, actual):
-            return actual, False
+            return dict(actual), False
         applied = self.request(
             "PATCH",
             resource.object_path(meta["name"], meta.get("namespace")),

@@ -133,12 +133,20 @@ class Credentials:
 class DirectTransport:
     """urllib3 with the credentials' TLS and auth; thread-safe (one connection pool)."""
 
-    def __init__(self, credentials: Credentials, *, retries: int | None = None) -> None:
+    def __init__(
+        self,
+        credentials: Credentials,
+        *,
+        retries: int | None = None,
+        connections: int | None = None,
+    ) -> None:
         self.credentials = credentials
         self._retries: urllib3.Retry | bool | int | None = retries if retries is not None else None
         name = credentials.tls_server_name
         named: dict[str, Any] = {"server_hostname": name, "assert_hostname": name} if name else {}
-        self._pool = urllib3.PoolManager(ssl_context=_ssl_context(credentials), maxsize=4, **named)
+        self._pool = urllib3.PoolManager(
+            ssl_context=_ssl_context(credentials), maxsize=connections or 4, **named
+        )
         self._token_lock = threading.Lock()
         self._token: tuple[str, float] | None = None
 

@@ -82,7 +82,7 @@ def startup(settings: kopf.OperatorSettings, memo: kopf.Memo, **_: Any) -> None:
     """Configure kopf, connect to the API and make sure the operator's namespace exists."""
     roost = settings_of(memo)
     configure(settings, roost)
-    kube = Kube.from_environment(FIELD_MANAGER)
+    kube = Kube.from_environment(FIELD_MANAGER, connections=roost.api_connections)
     # Only when missing: under the chart the namespace exists and the operator may only
     # read it (a right to patch it would let the operator relax its own Pod Security
     # labels). The sandbox, with admin rights, gets it created.

@@ -4,8 +4,9 @@
 and hands them to kopf in the operator's ``memo``; the startup handler adds the API
 client, the controllers that keep per-process state (locks, the failover ledger) and
 the Vehicle controller's work queue (:mod:`roost_operator.workqueue`), whose workers
-start with it and stop at the operator's cleanup, and the Node watch that feeds it
-(:mod:`roost_operator.vehicles.nodewatch`). Handlers call :func:`runtime` to get
+start with it and stop at the operator's cleanup, and Roost's own watches that feed it
+and whose stores the controller reads (:mod:`roost_operator.vehicles.watched`, claims
+here). Handlers call :func:`runtime` to get
 it typed. Nothing here talks to kopf's own API client: all of Roost's reads and writes
 go through :class:`roost_kube.client.Kube`.
 """
@@ -21,16 +22,17 @@ from typing import Any, cast
 
 import kopf
 
-from roost_api.wellknown import LABEL_COMPONENT, LABEL_MANAGED_BY, MANAGED_BY
+from roost_api.wellknown import LABEL_COMPONENT, LABEL_MANAGED_BY, LABEL_VEHICLE, MANAGED_BY
 from roost_kube.client import Kube
 from roost_kube.errors import ApiError
-from roost_kube.resources import LEASES
+from roost_kube.resources import CONFIGMAPS, DEPLOYMENTS, LEASES, NODES
+from roost_operator.cache import Cached
 from roost_operator.claims import CLAIM_COMPONENT, Claim, claim_of
 from roost_operator.edge import HandlerTiming, error_kind
 from roost_operator.settings import Settings
 from roost_operator.vehicles.controller import Peers, VehicleController
-from roost_operator.vehicles.nodewatch import node_watcher
-from roost_operator.watches import Watcher
+from roost_operator.vehicles.watched import node_kept, node_watcher, owned_watchers
+from roost_operator.watches import Store, Watcher
 from roost_operator.workqueue import Backoff, WorkQueue
 
 log = logging.getLogger(__name__)
@@ -85,11 +87,22 @@ class Runtime:
         """The runtime of an operator with ``settings`` talking through ``kube``; its
         queue's workers run ``reconcile(runtime, vehicle)`` (none: the queue is not
         started, for unit tests)."""
+        namespace = settings.namespace
+        stores = {
+            NODES.kind: Store(index_label=LABEL_VEHICLE, trim=node_kept),
+            LEASES.kind: Store(),
+            CONFIGMAPS.kind: Store(index_label=LABEL_VEHICLE),
+            DEPLOYMENTS.kind: Store(index_label=LABEL_VEHICLE),
+        }
         controller = VehicleController(
             kube=kube,
-            namespace=settings.namespace,
+            namespace=namespace,
             guards=settings.guards,
             stale_after=settings.agent_stale_after,
+            caches={
+                kind: Cached(store, "" if kind == NODES.kind else namespace)
+                for kind, store in stores.items()
+            },
         )
         rt = cls(kube=kube, settings=settings, vehicles=controller, timing=timing)
         rt.vehicle_queue = WorkQueue(
@@ -102,15 +115,19 @@ class Runtime:
         )
         if reconcile is not None:
             rt.vehicle_queue.start()
+            enqueue = rt.vehicle_queue.add
             rt.watchers = [
-                node_watcher(kube, lambda: rt.peers, rt.vehicle_queue.add),
+                node_watcher(kube, lambda: rt.peers, enqueue, stores[NODES.kind]),
                 Watcher(
                     kube,
                     LEASES,
-                    lambda kind, lease: rt._claim_changed(lease),
+                    lambda kind, lease, news: rt._claim_changed(lease),
                     rt._claims_listed,
                     label_selector=CLAIM_SELECTOR,
+                    namespace=namespace,
+                    store=stores[LEASES.kind],
                 ),
+                *owned_watchers(kube, namespace, enqueue, stores),
             ]
             for watcher in rt.watchers:
                 watcher.start()
@@ -155,8 +172,10 @@ class Runtime:
         for listener in list(self.claim_listeners):
             listener(claim)
 
-    def _claims_listed(self, leases: list[Mapping[str, Any]]) -> None:
-        for lease in leases:
+    def _claims_listed(
+        self, leases: list[Mapping[str, Any]], vanished: list[Mapping[str, Any]]
+    ) -> None:
+        for lease in [*leases, *vanished]:  # a vanished claim was released meanwhile
             self._claim_changed(lease)
 
     def _report_permanent(self, vehicle: str, error: BaseException) -> None:

@@ -112,6 +112,15 @@ class Settings:
     (about a fifth of its time is the operator's CPU at fleet scale), so more threads
     than cores keep the API server busy when a thousand Vehicles arrive at once."""
 
+    @property
+    def api_connections(self) -> int:
+        """Connections Roost's API client keeps open: one per thread that may send at
+        once — the reconcile workers, kopf's handler threads, and Roost's own watches
+        (nodes, claims, ConfigMaps, Deployments), each holding one for its whole length —
+        plus a few for the rest. A request beyond the pool opens, and then throws away,
+        a connection of its own: a TLS handshake per request on both ends."""
+        return self.reconcile_workers + self.kopf.handler_threads + 8
+
     retry_backoff_seconds: float = 2.0
     """First wait before retrying a Vehicle reconcile (or kopf's handler for a Vehicle's
     deletion) that failed on a temporary error; doubles per failure up to

@@ -43,6 +43,7 @@ from roost_sim import (
     FaultKind,
     SimConfig,
     SimulatedAutopilot,
+    message_id,
     start_vehicle_sims,
     stop_sims,
 )
@@ -171,6 +172,42 @@ def test_fault_on_active_switches_bridge_and_runs_safety_routine(
         assert_held_then_landed(flight, "fc2", injected)
         assert flight.agent_commands("fc1", injected) == []
         assert len(flight.agent.failovers()) == 1
+
+
+# A heartbeat pause this long misses two or three heartbeats (a gap of 2.8-3.8 s, with the
+# phase of the last one): past the default warn, short of the default error.
+HEARTBEAT_PAUSE_S = 2.8
+
+
+def test_default_heartbeat_thresholds_ride_out_lost_heartbeats_and_catch_a_dead_one(
+    tmp_path: Path,
+) -> None:
+    """Telemetry keeps streaming while the active's HEARTBEAT pauses: a few missed in a
+    row (what a lossy link does) are a warning and nothing moves; heartbeats gone for
+    good fail over on the heartbeat age, once the default error age is reached."""
+    defaults = Thresholds()
+    heartbeat = message_id("HEARTBEAT")
+    with flying(["px4", "px4"], tmp_path) as flight:
+        fc1 = flight.sim("fc1")
+        levels: list[HealthLevel] = []
+        paused = time.monotonic()
+        fc1.set_rate(heartbeat, 0.0)
+        while time.monotonic() - paused < HEARTBEAT_PAUSE_S:
+            levels.append(flight.agent.assessments()["fc1"].level)
+            time.sleep(POLL_S)
+        fc1.set_rate(heartbeat, 1.0)
+        wait_until("fc1 OK again", lambda: all_ok(flight.agent, ["fc1"]), 5, POLL_S)
+        assert HealthLevel.WARN in levels and HealthLevel.ERROR not in levels, levels
+        assert flight.agent.failovers() == [] and flight.bridge.selected == 0
+
+        stopped = time.monotonic()
+        fc1.set_rate(heartbeat, 0.0)
+        (event,) = wait_until("a failover", flight.agent.failovers, 10, POLL_S)
+        assert "heartbeat lost" in event.record.reason
+        assert (event.record.from_autopilot, event.record.to_autopilot) == ("fc1", "fc2")
+        # the last heartbeat came at most a period before the stop
+        assert event.switched_at - stopped >= defaults.heartbeat_error_ms / 1000 - 1.0
+        assert flight.bridge.selected == 1
 
 
 def test_three_autopilots_fail_over_in_turn_and_never_back(tmp_path: Path) -> None:

@@ -18,6 +18,7 @@ failsafe's MAV_STATE CRITICAL reported and corroborated into an ERROR. The hold 
 
 from __future__ import annotations
 
+import itertools
 import os
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -92,7 +93,11 @@ class Replay:
         return next(a for a in self.timeline if a.at >= t)
 
 
-def replay(name: str, stack: Stack, tail_s: float = 4.0) -> Replay:
+def replay(
+    name: str, stack: Stack, tail_s: float = 4.0, lose_heartbeats: frozenset[int] = frozenset()
+) -> Replay:
+    """``lose_heartbeats``: which of the autopilot's HEARTBEATs (0 = its first) a lossy
+    link drops before the tracker sees them."""
     conn: Any = mavutil.mavlink_connection(str(capture(name)), dialect="ardupilotmega")
     tracker = HealthTracker("fc1", stack, TH)
     messages: list[tuple[float, Any]] = []
@@ -100,6 +105,7 @@ def replay(name: str, stack: Stack, tail_s: float = 4.0) -> Replay:
     start: float | None = None
     next_at = 0.0
     foreign = unknown = 0
+    heartbeats = 0
     while (msg := conn.recv_match()) is not None:
         start = msg._timestamp if start is None else start
         t = msg._timestamp - start
@@ -114,6 +120,10 @@ def replay(name: str, stack: Stack, tail_s: float = 4.0) -> Replay:
         if msg.get_type() == "BAD_DATA" or (msg.get_srcSystem(), msg.get_srcComponent()) != (1, 1):
             foreign += 1
             continue
+        if msg.get_type() == "HEARTBEAT":
+            heartbeats += 1
+            if heartbeats - 1 in lose_heartbeats:
+                continue
         tracker.observe(msg, t)
         messages.append((t, msg))
     end = next_at + tail_s
@@ -201,7 +211,7 @@ def test_px4_killed_in_flight_is_an_error_within_the_message_threshold() -> None
     failing = next(a for a in r.timeline if a.at > killed and a.failing)
     assert failing.at - killed <= TH.message_error_ms / 1000 + STEP_S
     assert failing.level == ERROR and failing.onset == killed
-    assert "silent" in failing.failure_reason  # the stream, not the 3 s heartbeat age
+    assert "silent" in failing.failure_reason  # the stream, not the heartbeat age
     assert failing.in_air is True and failing.armed is True  # a failover target's state
 
 
@@ -323,3 +333,69 @@ def test_brake_is_a_hold() -> None:
     r = replay("arducopter-streams-arm-takeoff-brake-land.tlog", Stack.ARDUPILOT)
     _, failures = _hold_verdicts(r, "BRAKE")
     assert failures == []
+
+
+# Every recording, up to where its autopilot reports trouble itself (MAV_STATE CRITICAL)
+# or the recording ends (the killed PX4's recording ends with the kill).
+RECORDINGS = [
+    ("px4-v1.16-sih-boot-arm-takeoff-loiter-land.tlog", Stack.PX4),
+    ("px4-v1.16-sih-killed-in-flight.tlog", Stack.PX4),
+    ("px4-v1.16-sih-battery-failsafe.tlog", Stack.PX4),
+    ("arducopter-boot-unrequested.tlog", Stack.ARDUPILOT),
+    ("arducopter-streams-arm-takeoff-brake-land.tlog", Stack.ARDUPILOT),
+    ("arducopter-loiter-no-rc.tlog", Stack.ARDUPILOT),
+]
+LOST_IN_A_ROW = 3  # the most the default heartbeat error tolerates (test_health)
+
+
+def healthy_until(r: Replay) -> float:
+    critical = [
+        t
+        for t, m in r.messages
+        if m.get_type() == "HEARTBEAT" and m.system_status == MavState.CRITICAL
+    ]
+    return min(critical, default=r.last_at)
+
+
+def heartbeat_times(r: Replay) -> list[float]:
+    return [t for t, m in r.messages if m.get_type() == "HEARTBEAT"]
+
+
+@pytest.mark.parametrize(("name", "stack"), RECORDINGS)
+def test_healthy_recorded_flight_is_never_an_error_at_the_default_thresholds(
+    name: str, stack: Stack
+) -> None:
+    r = replay(name, stack)
+    healthy = r.during(0, healthy_until(r))
+    assert ERROR not in levels(healthy) and HealthLevel.STALE not in levels(healthy)
+    heartbeat_findings = {f.code for a in healthy for f in a.findings} & {
+        "heartbeat-late",
+        "heartbeat-lost",
+    }
+    assert heartbeat_findings == set()  # lossless recordings: nothing near either threshold
+    beats = heartbeat_times(r)
+    # 1 Hz, as the loss table in test_health assumes (its longest period: 1.015 s)
+    assert max(b - a for a, b in itertools.pairwise(beats)) < 1.02
+
+
+@pytest.mark.parametrize(("name", "stack"), RECORDINGS)
+def test_three_heartbeats_lost_in_a_row_in_recorded_flight_only_warn(
+    name: str, stack: Stack
+) -> None:
+    """The widest stretch of three consecutive heartbeats after boot, dropped as a lossy
+    link would: the judgement goes to WARN (heartbeat late), never to ERROR."""
+    r = replay(name, stack)
+    end, beats = healthy_until(r), heartbeat_times(r)
+    after = LOST_IN_A_ROW + 1  # the heartbeat that arrives after the gap
+    first = max(
+        (i for i in range(len(beats) - after) if beats[i] > r.up() and beats[i + after] < end),
+        key=lambda i: beats[i + after] - beats[i],
+    )
+    lost = frozenset(range(first + 1, first + after))
+    gap_s = beats[first + after] - beats[first]
+    lossy = replay(name, stack, lose_heartbeats=lost)
+    healthy = lossy.during(0, end)
+    assert ERROR not in levels(healthy) and HealthLevel.STALE not in levels(healthy)
+    late = [a for a in healthy if "heartbeat-late" in {f.code for f in a.findings}]
+    assert late, f"no heartbeat-late in the {gap_s:.2f} s gap"
+    assert max(a.heartbeat_age_s or 0.0 for a in late) < TH.heartbeat_error_ms / 1000

@@ -32,7 +32,8 @@ from tests.support.feed import ARMED, LOITER, SENSORS, Feed
 
 OK, WARN, ERROR, STALE = HealthLevel.OK, HealthLevel.WARN, HealthLevel.ERROR, HealthLevel.STALE
 # The numbers these tests assert are these thresholds', not whatever the defaults are.
-TH = Thresholds(message_warn_ms=200, message_error_ms=500, confirm_ms=100)
+HEARTBEAT_MS = {"heartbeat_warn_ms": 1500, "heartbeat_error_ms": 3000}
+TH = Thresholds(message_warn_ms=200, message_error_ms=500, confirm_ms=100, **HEARTBEAT_MS)
 
 
 class Vehicle(Feed):
@@ -652,3 +653,91 @@ def test_a_judgement_that_holds_is_the_judgement_made_afresh(
             tick += 0.01
         v.t = end
         _act(v, action)
+
+
+# -- the default thresholds: decision tables at their boundaries ---------------------------
+
+DEFAULTS = Thresholds()
+# HEARTBEAT period: nominal 1 Hz on both stacks, and the longest gap in the recorded
+# firmware traffic (PX4 v1.16 SIH, ArduCopter SITL; see test_capture_replay).
+HEARTBEAT_PERIOD_S = (1.0, 1.015)
+LINK_JITTER_S = 0.05  # the soak's jitter: each frame delayed by 0..50 ms
+
+
+def streaming(v: Vehicle, start_s: float, end_s: float, beats_until_s: float) -> list[Assessment]:
+    """ATTITUDE at 50 Hz and SYS_STATUS at 5 Hz on the exact sample times i/50 from
+    ``start_s`` to ``end_s``; HEARTBEAT and landed state each whole second up to
+    ``beats_until_s``. Returns the judgement after each sample, as the decision loop
+    would see it."""
+    seen = []
+    for i in range(round(start_s * 50), math.floor(end_s * 50) + 1):
+        v.t = i / 50
+        if i % 50 == 0 and v.t <= beats_until_s:
+            v.heartbeat()
+            v.landed()
+        if i % 10 == 0:
+            v.sys_status()
+        v.attitude()
+        seen.append(v.at(0.0))
+    return seen
+
+
+def below_at_above(
+    clock: str, warn: str, error: str, late: str, lost: str
+) -> list[tuple[str, str, int, HealthLevel, set[str]]]:
+    """(clock, threshold, ms relative to it, level, findings): 1 ms under, at and 1 ms
+    over the warn and the error threshold of one liveness clock."""
+    return [
+        (clock, warn, -1, OK, set()),
+        (clock, warn, 0, WARN, {late}),
+        (clock, warn, 1, WARN, {late}),
+        (clock, error, -1, WARN, {late}),
+        (clock, error, 0, ERROR, {lost}),
+        (clock, error, 1, ERROR, {lost}),
+    ]
+
+
+BOUNDARIES = [
+    *below_at_above(
+        "heartbeat", "heartbeat_warn_ms", "heartbeat_error_ms", "heartbeat-late", "heartbeat-lost"
+    ),
+    *below_at_above("message", "message_warn_ms", "message_error_ms", "late", "silent"),
+]
+
+
+@pytest.mark.parametrize(("clock", "threshold", "offset_ms", "level", "found"), BOUNDARIES)
+def test_liveness_at_the_default_boundaries(
+    clock: str, threshold: str, offset_ms: int, level: HealthLevel, found: set[str]
+) -> None:
+    """At t=0 either the heartbeats stop while telemetry keeps streaming at 50 Hz (only
+    the heartbeat age decides) or the whole stream stops (the message age decides).
+    Only ERROR may fail over, from the last message of the clock as its onset."""
+    age_s = (getattr(DEFAULTS, threshold) + offset_ms) / 1000
+    v = Vehicle(thresholds=DEFAULTS)
+    streaming(v, -3.0, age_s if clock == "heartbeat" else 0.0, beats_until_s=0.0)
+    a = v.tracker.assess(age_s)
+    assert (a.level, codes(a), a.failing) == (level, found, level == ERROR)
+    assert (a.heartbeat_age_s if clock == "heartbeat" else a.message_age_s) == age_s
+    if a.failing:
+        assert a.onset == 0.0
+
+
+@pytest.mark.parametrize("timing", ["shortest", "longest"])
+@pytest.mark.parametrize(
+    ("lost", "level"), [(0, OK), (1, OK), (2, WARN), (3, WARN), (4, ERROR), (5, ERROR)]
+)
+def test_consecutive_lost_heartbeats_at_the_defaults(
+    lost: int, level: HealthLevel, timing: str
+) -> None:
+    """The worst judgement while ``lost`` heartbeats in a row are missing, with the gap
+    to the next one as short or as long as the period and the link's jitter make it:
+    WARN takes two lost in a row, ERROR four (docs/health-model.md has the rates)."""
+    shortest = timing == "shortest"
+    period = HEARTBEAT_PERIOD_S[0] if shortest else HEARTBEAT_PERIOD_S[1]
+    gap_s = (lost + 1) * period + (-LINK_JITTER_S if shortest else LINK_JITTER_S)
+    v = Vehicle(thresholds=DEFAULTS)
+    streaming(v, -3.0, 0.0, beats_until_s=0.0)
+    seen = streaming(v, 0.02, gap_s, beats_until_s=0.0)
+    seen.append(v.tracker.assess(math.nextafter(gap_s, 0.0)))  # just before it arrives
+    worst = max((a.level for a in seen), key=lambda lv: lv.rank)
+    assert worst == level, [a.reasons for a in seen if a.level == worst][:1]

@@ -48,6 +48,12 @@ def test_a_claim_queues_its_vehicle_and_tells_the_listeners() -> None:
     rt = Runtime.start(cast(Kube, object()), Settings())  # no reconcile: nothing runs
     heard: list[Claim] = []
     rt.claim_listeners.append(heard.append)
-    rt._claims_listed([_lease("drone-1", "flights/survey"), _lease(None, "flights/survey")])
-    assert rt.vehicle_queue.depth() == 1  # the Lease without a vehicle is no claim
-    assert [(c.vehicle, c.holder_key) for c in heard] == [("drone-1", "flights/survey")]
+    rt._claims_listed(
+        [_lease("drone-1", "flights/survey"), _lease(None, "flights/survey")],
+        [_lease("drone-2", "flights/old")],  # released while the watch was away
+    )
+    assert rt.vehicle_queue.depth() == 2  # the Lease without a vehicle is no claim
+    assert [(c.vehicle, c.holder_key) for c in heard] == [
+        ("drone-1", "flights/survey"),
+        ("drone-2", "flights/old"),
+    ]

@@ -21,8 +21,8 @@ from roost_operator.vehicles.handlers import (
     Fingerprints,
     _stale_deadline,
     _vehicle_relevant,
-    owned_relevant,
 )
+from roost_operator.vehicles.watched import owned_relevant
 
 META: dict[str, Any] = {
     "name": "drone-1",

@@ -10,8 +10,10 @@ Why it is safe to run at any time, any number of times, and to be killed half-wa
 
 * **one lock per vehicle** serialises every reconcile of one vehicle in the process
   (kopf runs handlers of different objects concurrently);
-* **read your own write**: the Vehicle, its RedundantAutopilot and its claim are read
-  fresh from the API on every run, never from a watch cache;
+* **read your own write**: the Vehicle and its RedundantAutopilot are read fresh from
+  the API on every run; nodes, the claim and what Roost made for the vehicle come from
+  watch caches that this controller's own writes update at once
+  (:class:`~roost_operator.cache.CachedView`, which says why that is safe);
 * everything is computed from what was just read and written only where it differs
   (node patch planned by :func:`~roost_operator.vehicles.placement.plan_node`, objects
   through :meth:`~roost_kube.client.Kube.apply`, status compared before patching);
@@ -31,7 +33,7 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from datetime import timedelta
 from typing import Final
@@ -61,6 +63,7 @@ from roost_operator import claims
 from roost_operator.autopilots.conditions import DEFAULT_AGENT_STALE_AFTER
 from roost_operator.autopilots.guards import FleetGuards
 from roost_operator.autopilots.plan import PlannedEvent, mavros_follows
+from roost_operator.cache import Cached, CachedView
 from roost_operator.vehicles.config import config_map_name
 from roost_operator.vehicles.desired import workload_name
 from roost_operator.vehicles.placement import NodeClaim, NodeState, plan_node
@@ -166,8 +169,16 @@ class VehicleController:
     guards: FleetGuards = field(default_factory=FleetGuards)
     stale_after: timedelta = DEFAULT_AGENT_STALE_AFTER
     ledger: ActionLedger = field(default_factory=ActionLedger)
+    caches: Mapping[str, Cached] = field(default_factory=dict)
+    """Watch caches (by kind) of nodes, claims and owned objects; others are read from
+    the API."""
+    cluster: CachedView = field(init=False, repr=False)
+    """Reads of nodes, claims and owned objects, and the writes that keep them."""
     _locks: dict[str, threading.Lock] = field(default_factory=dict, repr=False)
     _guard: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def __post_init__(self) -> None:
+        self.cluster = CachedView(self.kube, self.caches)
 
     def lock(self, name: str) -> threading.Lock:
         """The lock of vehicle ``name`` (one per vehicle, for every path that writes)."""
@@ -200,7 +211,8 @@ class VehicleController:
         rollout_done = True
         if autopilot is not None and book is not None and book.action is not None:
             rollout_done = self._mavros_rolled_out(name, spec, status.fcu_url)
-        claim = claims.claim_of(kube.get(LEASES, claims.lease_name(name), self.namespace) or {})
+        cluster = self.cluster
+        claim = claims.claim_of(cluster.get(LEASES, claims.lease_name(name), self.namespace) or {})
         observed = Observed(
             name=name,
             uid=meta.get("uid", ""),
@@ -217,7 +229,7 @@ class VehicleController:
                 if autopilot
                 else None
             ),
-            node=kube.get(NODES, spec.node_name),
+            node=cluster.get(NODES, spec.node_name),
             node_claims=[c for c in peers.claims_on(spec.node_name) if c.vehicle != name],
             claimed_by=claim.holder if claim else None,
             rollout_done=rollout_done,
@@ -229,8 +241,8 @@ class VehicleController:
     def _mavros_rolled_out(self, vehicle: str, spec: VehicleSpec, fcu_url: str | None) -> bool:
         if not spec.components.mavros.enabled:
             return True
-        config_map = self.kube.get(CONFIGMAPS, config_map_name(vehicle), self.namespace)
-        mavros = self.kube.get(DEPLOYMENTS, workload_name(vehicle, "mavros"), self.namespace)
+        config_map = self.cluster.get(CONFIGMAPS, config_map_name(vehicle), self.namespace)
+        mavros = self.cluster.get(DEPLOYMENTS, workload_name(vehicle, "mavros"), self.namespace)
         return mavros_follows(fcu_url, config_map, mavros)
 
     def _reconcile_once(self, name: str, peers: Peers) -> Outcome | None:
@@ -299,7 +311,7 @@ class VehicleController:
         self, obs: Observed, plan: VehiclePlan, autopilot: Obj | None
     ) -> tuple[dict[str, Obj | None], dict[str, ApiError]]:
         """Carry out ``plan``; the live Deployments and those the API server refused."""
-        kube = self.kube
+        cluster = self.cluster
         refused: dict[str, ApiError] = {}
 
         def attempt(key: str, write: Callable[[], object]) -> None:
@@ -309,7 +321,7 @@ class VehicleController:
                 refused[key] = error
 
         target = obs.spec.node_name if plan.node_state is not None else None
-        for node in kube.list_objects(NODES, labels={LABEL_VEHICLE: obs.name}):
+        for node in cluster.list_objects(NODES, labels={LABEL_VEHICLE: obs.name}):
             if node["metadata"]["name"] != target:
                 self._converge_node(node, NodeState.released())
         bound, state = obs.node, plan.node_state
@@ -320,11 +332,11 @@ class VehicleController:
                 REFUSED_AUTOPILOT_LABEL,
                 lambda: self._label_autopilot(autopilot, obs.spec.node_name),
             )
-        attempt(REFUSED_CONFIG, lambda: kube.apply(plan.config_map))
+        attempt(REFUSED_CONFIG, lambda: cluster.apply(plan.config_map))
         live: dict[str, Obj | None] = {}
         for component, manifest in plan.deployments.items():
             try:
-                live[component], _ = kube.apply(manifest)
+                live[component], _ = cluster.apply(manifest)
             except ConflictError:
                 raise
             except ApiError as err:
@@ -332,10 +344,11 @@ class VehicleController:
         owned = {LABEL_MANAGED_BY: MANAGED_BY, LABEL_VEHICLE: obs.name}
         stale = [
             d
-            for d in kube.list_objects(DEPLOYMENTS, namespace=self.namespace, labels=owned)
+            for d in cluster.list_objects(DEPLOYMENTS, namespace=self.namespace, labels=owned)
             if d["metadata"].get("labels", {}).get(LABEL_COMPONENT) not in plan.deployments
         ]
-        kube.delete_all(DEPLOYMENTS, stale)
+        for deployment in stale:
+            cluster.delete(DEPLOYMENTS, deployment["metadata"]["name"], self.namespace)
         return live, refused
 
     def _label_autopilot(self, autopilot: Obj, node_name: str) -> None:
@@ -357,9 +370,9 @@ class VehicleController:
             if patch is None:
                 return node
             try:
-                return self.kube.merge_patch(NODES, name, patch)
+                return self.cluster.merge_patch(NODES, name, patch)
             except ConflictError:
-                fresh = self.kube.get(NODES, name)
+                fresh = self.cluster.fresh(NODES, name)
                 if fresh is None:
                     return node
                 node = fresh

@@ -14,12 +14,12 @@ Triggers, and why each exists:
   generation, labels, annotations (the guard annotations: pause, clear the latch) or
   deletion mark changed; its status (which only this controller writes) is ignored;
 * its node — a node appearing, turning Ready/NotReady or losing a Roost label queues
-  the vehicles that claim it or that it is labelled for. Nodes are watched by Roost's
-  own thread (:mod:`~roost_operator.vehicles.nodewatch`), not by kopf: node heartbeats
-  are most of a fleet's watch events, and they are dropped there by a fingerprint
-  before any of kopf's per-event work;
-* what Roost made for it (its ConfigMap and component Deployments, selected by Roost's
-  labels on the server) — rollout progress, and a hand edit is put back at once;
+  the vehicles that claim it or that it is labelled for;
+* what Roost made for it (its ConfigMap and component Deployments) — rollout progress,
+  and a hand edit is put back at once. Nodes and these are watched by Roost's own
+  threads (:mod:`~roost_operator.vehicles.watched`), not by kopf: node heartbeats and
+  rollout steps are most of a fleet's watch events, and they are dropped there by a
+  fingerprint before any of kopf's per-event work, into stores the controller reads;
 * its RedundantAutopilot — the agent reported. Reports that change nothing the
   controller reads (the periodic refresh of ``reportedAt``, heartbeat ages) are skipped
   by a fingerprint, except while the vehicle's ``AgentConnected`` is not True (a report
@@ -58,10 +58,6 @@ import kopf
 
 from roost_api.meta import now
 from roost_api.wellknown import (
-    LABEL_COMPONENT,
-    LABEL_MANAGED_BY,
-    LABEL_VEHICLE,
-    MANAGED_BY,
     PREFIX,
 )
 from roost_kube import resources
@@ -91,7 +87,6 @@ log = logging.getLogger(__name__)
 _vehicle_prints = Fingerprints()
 _node_prints = Fingerprints()
 _autopilot_prints = Fingerprints()
-_owned_prints = Fingerprints()
 
 
 # -- indexes -------------------------------------------------------------------------
@@ -245,42 +240,6 @@ def vehicle_deleted(
 # -- other objects' triggers ---------------------------------------------------------------
 
 
-def owned_relevant(body: Mapping[str, Any]) -> Any:
-    """What the controller reads of a ConfigMap or Deployment it made: its content (in the
-    generation, or the data) and labels, and a Deployment's rollout counts and conditions
-    — not the timestamps the Deployment controller refreshes on every status write."""
-    meta = body.get("metadata") or {}
-    status = body.get("status") or {}
-    return [
-        meta.get("generation"),
-        meta.get("labels"),
-        meta.get("annotations"),
-        body.get("data"),
-        {key: value for key, value in status.items() if key != "conditions"},
-        [(c.get("type"), c.get("status"), c.get("reason")) for c in status.get("conditions") or []],
-    ]
-
-
-async def owned_event(
-    *,
-    type: str | None,
-    uid: str | None,
-    labels: kopf.Labels,
-    body: kopf.Body,
-    memo: Any,
-    **indexes: Any,
-) -> None:
-    """Something Roost made for a vehicle changed (a component Deployment's rollout, its
-    ConfigMap edited or deleted by hand): queue the vehicle. Status writes that change no
-    count and no condition (a rollout's heartbeat) are dropped by a fingerprint."""
-    key = uid or body.get("metadata", {}).get("name")
-    if type == "DELETED":
-        _owned_prints.forget(key)
-    elif not _owned_prints.changed(key, owned_relevant(body)):
-        return
-    enqueue(memo, labels[LABEL_VEHICLE], indexes)
-
-
 async def autopilot_reported(
     *, type: str | None, name: str, body: kopf.Body, memo: Any, **indexes: Any
 ) -> None:
@@ -321,16 +280,4 @@ def register(registry: kopf.OperatorRegistry, settings: Settings) -> None:
         registry=registry,
     )(handler_edge(failover_pending))
     kopf.on.delete(*VEHICLES, backoff=backoff, registry=registry)(handler_edge(vehicle_deleted))
-    for group, plural in (("apps", "deployments"), ("", "configmaps")):  # what Roost made
-        kopf.on.event(
-            group,
-            "v1",
-            plural,
-            labels={
-                LABEL_MANAGED_BY: MANAGED_BY,
-                LABEL_VEHICLE: kopf.PRESENT,
-                LABEL_COMPONENT: kopf.PRESENT,
-            },
-            registry=registry,
-        )(handler_edge(owned_event))
     kopf.on.event(*AUTOPILOTS, registry=registry)(handler_edge(autopilot_reported))
