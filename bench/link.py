@@ -90,7 +90,8 @@ def measure() -> tuple[int, int, float, float, int, dict[str, int]]:
 def run() -> list[Figure]:
     sent, lost, cpu_pct, flood_rate, hostile, totals = measure()
     counted = ", ".join(
-        f"{k} {totals.get(k, 0)}" for k in ("foreign", "bad", "truncated", "other", "errors")
+        f"{k} {totals.get(k, 0)}"
+        for k in ("foreign", "bad", "unknown", "truncated", "other", "errors")
     )
     return [
         Figure(

@@ -401,6 +401,9 @@ class Agent:
             self._reader.hurry = self._hub.has_clients
         self._in_step: dict[str, InStep] = {}
         self._views: dict[str, tuple[tuple[object, ...], AutopilotView]] = {}
+        # The configuration the arbiter was settled under after the last full tick
+        # (None: it was not, or no tick yet): see _nothing_new.
+        self._settled_with: _Running | None = None
 
     # -- lifecycle ---------------------------------------------------------------------
 
@@ -494,9 +497,16 @@ class Agent:
             return list(self._failovers)
 
     def assessments(self) -> dict[str, Assessment]:
-        """The latest health assessment of every autopilot."""
+        """Every autopilot's health as of now (of those the decision loop judged yet).
+
+        Judged afresh: the decision loop keeps its last judgement while nothing can
+        have changed it, but its message and heartbeat ages go on."""
         with self._lock:
-            return dict(self._assessments)
+            return self._current_assessments()
+
+    def _current_assessments(self) -> dict[str, Assessment]:
+        links, now = self._cfg.links, self._clock()
+        return {n: links[n].tracker.assess(now) for n in self._assessments if n in links}
 
     def subscribe(self, listener: Listener) -> Callable[[], None]:
         """Call ``listener`` with every event (on the notifier thread); returns unsubscribe."""
@@ -558,12 +568,13 @@ class Agent:
         with self._lock:
             cfg = self._cfg
             state = self._state
+            assessments = self._current_assessments()
             healths = [
                 self._with_in_step(
-                    _with_link_error(self._assessments[a.name].to_api(), cfg.links[a.name].error)
+                    _with_link_error(assessments[a.name].to_api(), cfg.links[a.name].error)
                 )
                 for a in cfg.spec.autopilots
-                if a.name in self._assessments
+                if a.name in assessments
             ]
             observed = RedundantAutopilotStatus(
                 active_autopilot=state.active,
@@ -615,11 +626,20 @@ class Agent:
             self.tick()
 
     def tick(self) -> None:
-        """One decision: assess, step the arbiter, switch first, then everything else."""
+        """One decision: assess, step the arbiter, switch first, then everything else.
+
+        A tick in which nothing can have changed returns at once (:meth:`_nothing_new`):
+        most ticks of a healthy flight.
+        """
         cfg = self._cfg
         now = self._clock()
-        assessments = {name: link.tracker.assess(now) for name, link in cfg.links.items()}
         in_step = self._hub.in_step(now) if self._hub is not None else {}
+        if self._nothing_new(cfg, now, in_step):
+            if in_step:
+                with self._lock:
+                    self._in_step = in_step
+            return
+        assessments = {name: link.tracker.assess(now) for name, link in cfg.links.items()}
         views = {name: self._view(a, in_step.get(name)) for name, a in assessments.items()}
         if not settled(self._state, views, cfg.policy):
             self._execute(cfg, step(self._state, views, cfg.policy, now))
@@ -639,6 +659,29 @@ class Agent:
             )
             self._execute(cfg, decision)
         self._note_health_changes(assessments)
+        self._settled_with = cfg if settled(self._state, views, cfg.policy) else None
+
+    def _nothing_new(self, cfg: _Running, now: float, in_step: Mapping[str, InStep]) -> bool:
+        """Whether a full tick now would decide exactly what the last one did: the arbiter
+        was settled after it (:func:`roost_agent.arbiter.settled`: no timer runs, nothing
+        pending) under the same configuration, no command waits, every autopilot's
+        judgement holds (:meth:`roost_agent.health.HealthTracker.holds`: nothing it reads
+        changed, no threshold passed since) and the hub's in-step verdicts are the same.
+        Then the views are the ones the arbiter settled on, so stepping it would change
+        nothing, and no health event is due. Silence is still judged at the first tick
+        after its threshold: a threshold passing is exactly what ends the skipping."""
+        if self._settled_with is not cfg or self._inbox:
+            return False
+        judged = self._assessments
+        for name, link in cfg.links.items():
+            last = judged.get(name)
+            if last is None or not link.tracker.holds(last, now):
+                return False
+        if in_step or self._in_step:
+            return {n: v.status for n, v in in_step.items()} == {
+                n: v.status for n, v in self._in_step.items()
+            }
+        return True
 
     def _view(self, a: Assessment, in_step: InStep | None) -> AutopilotView:
         """:func:`_view`, reusing the last one while what it is made of is unchanged (a

@@ -18,6 +18,13 @@ straight from the payload (zero-padded, as MAVLink 2 truncates trailing zeros) a
 anything else (arrays, strings, ``pack``, ``to_dict``...) from the pymavlink message,
 decoded once on first use. A field another message type has and this one lacks raises
 AttributeError without decoding (``getattr(msg, "time_boot_ms", None)`` stays cheap).
+
+The dialect is pymavlink's ``ardupilotmega`` plus the messages real autopilots send that
+it lacks (:data:`roost_mavlink.definitions.EXTRA_MESSAGES`: PX4's CURRENT_MODE, EVENT...):
+their frames are checked and counted like any other and answer their scalar fields; they
+have no pymavlink message behind them. :func:`known` checks such a frame where pymavlink's
+parser returned it as an unknown message (links whose bytes go through that parser:
+TCP, serial, datagrams the fast path refuses).
 """
 
 from __future__ import annotations
@@ -29,6 +36,8 @@ from typing import Any
 
 import fastcrc
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from roost_mavlink.definitions import EXTRA_MESSAGES, MessageDef
 
 V2_MAGIC = 0xFD
 V2_HEADER = 10
@@ -52,6 +61,7 @@ class Layout:
     size: int
     scalars: dict[str, tuple[int, struct.Struct]]
     fields: frozenset[str]
+    decodable: bool = True  # pymavlink can decode it (False: one of EXTRA_MESSAGES)
 
 
 def _layout(cls: Any) -> Layout:
@@ -74,8 +84,29 @@ def _layout(cls: Any) -> Layout:
     )
 
 
+def _extra_layout(message: MessageDef) -> Layout:
+    scalars: dict[str, tuple[int, struct.Struct]] = {}
+    offset = 0
+    for f in message.wire_order:
+        unit = struct.Struct("<" + f.code)
+        if not f.array:
+            scalars[f.name] = (offset, unit)
+        offset += unit.size
+    return Layout(
+        name=message.name,
+        crc_extra=bytes([message.crc_extra]),
+        size=offset,
+        scalars=scalars,
+        fields=frozenset(f.name for f in message.fields),
+        decodable=False,
+    )
+
+
 _LAYOUTS: dict[int, Layout] = {}  # built on first sight: an autopilot sends a few dozen types
-_ANY_FIELD = frozenset().union(*(cls.fieldnames for cls in mavlink.mavlink_map.values()))
+_ANY_FIELD = frozenset().union(
+    *(cls.fieldnames for cls in mavlink.mavlink_map.values()),
+    *({f.name for f in m.fields} for m in EXTRA_MESSAGES.values()),
+)
 
 
 def layout(msg_id: int) -> Layout | None:
@@ -83,9 +114,14 @@ def layout(msg_id: int) -> Layout | None:
     known = _LAYOUTS.get(msg_id)
     if known is None:
         cls = mavlink.mavlink_map.get(msg_id)
-        if cls is None:
+        extra = EXTRA_MESSAGES.get(msg_id)
+        if cls is not None:
+            known = _layout(cls)
+        elif extra is not None:
+            known = _extra_layout(extra)
+        else:
             return None
-        known = _LAYOUTS[msg_id] = _layout(cls)
+        _LAYOUTS[msg_id] = known
     return known
 
 
@@ -118,16 +154,16 @@ class Frame:
 
     def get_msgId(self) -> int:  # noqa: N802 - pymavlink's name
         header = self._header
-        return int(header[7] | (header[8] << 16))
+        return header[7] | (header[8] << 16)
 
     def get_srcSystem(self) -> int:  # noqa: N802 - pymavlink's name
-        return int(self._header[5])
+        return self._header[5]
 
     def get_srcComponent(self) -> int:  # noqa: N802 - pymavlink's name
-        return int(self._header[6])
+        return self._header[6]
 
     def get_seq(self) -> int:
-        return int(self._header[4])
+        return self._header[4]
 
     def get_msgbuf(self) -> bytearray:
         return bytearray(self._data[self._start : self._end])
@@ -149,7 +185,7 @@ class Frame:
                 return unit.unpack_from(self._data, at)[0]
             payload = self._data[self._start + V2_HEADER : self._start + V2_HEADER + self._mlen]
             return unit.unpack_from(payload + bytes(layout.size - self._mlen), offset)[0]
-        if name in _ANY_FIELD and name not in layout.fields:
+        if (name in _ANY_FIELD and name not in layout.fields) or not layout.decodable:
             raise AttributeError(name)
         return getattr(self.decoded(), name)
 
@@ -181,3 +217,16 @@ def split(data: bytes) -> list[Frame] | None:
         frames.append(Frame(data, start, end, header, kind))
         start = end
     return frames
+
+
+def known(unknown: Any) -> Frame | None:
+    """The frame behind pymavlink's ``MAVLink_unknown`` (a message id its dialect lacks,
+    which pymavlink returns without checking its CRC) when it is a good frame of one of
+    :data:`EXTRA_MESSAGES`; None otherwise (still unknown, or a bad CRC)."""
+    data = bytes(getattr(unknown, "data", b""))
+    if len(data) < V2_HEADER or data[0] != V2_MAGIC:
+        return None
+    if (data[7] | (data[8] << 8) | (data[9] << 16)) not in EXTRA_MESSAGES:
+        return None
+    frames = split(data)
+    return frames[0] if frames is not None and len(frames) == 1 else None

@@ -122,6 +122,7 @@ class Finding:
     reason: str
     triggers_failover: bool = False
     onset: float | None = None  # monotonic time the condition began, when known
+    varies: bool = False  # its reason reads the clock ("silent for 230 ms"): judged every tick
 
 
 @dataclass(frozen=True)
@@ -140,6 +141,7 @@ class Assessment:
     landed_state: int | None
     system_status: int | None
     unhealthy_sensors: tuple[str, ...]
+    version: int = -1  # the tracker's judgement version it was made from (HealthTracker.holds)
 
     @property
     def failing(self) -> bool:
@@ -277,6 +279,10 @@ class _Observed:
     motion_at: float | None = None
     position_msg: Any = None  # the last GLOBAL_POSITION_INT, decoded only when sampled
     position_at: float | None = None
+    # Bumped whenever something a judgement reads changed, other than the times of the
+    # last message, heartbeat and time_boot_ms advance (which only ever move on):
+    # HealthTracker.holds.
+    version: int = 0
 
 
 @dataclass(frozen=True)
@@ -325,7 +331,9 @@ class HealthTracker:
 
     def set_thresholds(self, thresholds: Thresholds) -> None:
         """Apply new thresholds (a spec change); observations are kept."""
-        self.thresholds = thresholds
+        with self._lock:
+            self.thresholds = thresholds
+            self._o.version += 1
 
     # -- observing -------------------------------------------------------------------
 
@@ -339,14 +347,28 @@ class HealthTracker:
         kind = msg.get_type()
         with self._lock:
             o = self._o
+            # Messages that can change a judgement other than by their arrival time are
+            # compared before and after (a few a second); the stream's bulk is not.
+            judged = o.claim is not None or o.boot_advanced_at is None or kind in _JUDGED_KINDS
+            before = _judged(o, self.thresholds) if judged else None
             if o.first_at is None:
                 o.first_at = o.window_start = now
+            elif (
+                o.last_at is not None
+                and (now - o.last_at) * 1000 >= self.thresholds.message_error_ms
+            ):
+                # A silence ends: what is judged only while messages come (frozen
+                # telemetry) may apply from this message on.
+                o.version += 1
             o.last_at = now
             o.counts[kind] = o.counts.get(kind, 0) + 1
             o.window_count += 1
             if now - o.window_start >= RATE_WINDOW_S:
+                fast = _fast_stream(o, self.thresholds)
                 o.stream_rate = o.window_count / (now - o.window_start)
                 o.window_start, o.window_count = now, 0
+                if _fast_stream(o, self.thresholds) != fast:
+                    o.version += 1
             boot_ms = getattr(msg, "time_boot_ms", None)
             boot_ms = boot_ms if isinstance(boot_ms, int) else None
             seq = _seq(msg)
@@ -369,6 +391,8 @@ class HealthTracker:
                 o.climb_mps = -int(msg.vz) / 100.0
                 o.motion_at = now
                 o.position_msg, o.position_at = msg, now
+            if judged and _judged(o, self.thresholds) != before:
+                o.version += 1
             return changed
 
     def _observe_boot_time(self, boot_ms: int, now: float, seq: int | None) -> bool:
@@ -489,12 +513,17 @@ class HealthTracker:
 
     def _observe_attitude(self, roll: float, pitch: float, now: float) -> None:
         o = self._o
+        warned = _tilt_warned(o, self.thresholds)
         o.tilt_deg = tilt_degrees(roll, pitch)
         if o.tilt_deg > self.thresholds.max_tilt_deg:
             if o.tilt_over_since is None:
                 o.tilt_over_since = now
-        else:
+                o.version += 1
+        elif o.tilt_over_since is not None:
             o.tilt_over_since = None
+            o.version += 1
+        if _tilt_warned(o, self.thresholds) != warned:
+            o.version += 1
 
     def _observe_estimator(self, kind: str, flags: int, now: float) -> None:
         o = self._o
@@ -531,6 +560,26 @@ class HealthTracker:
                 landed_state=o.landed_state,
                 system_status=o.system_status,
                 unhealthy_sensors=o.unhealthy_names,
+                version=o.version if not any(f.varies for f in findings) else -1,
+            )
+
+    def holds(self, judged: Assessment, now: float) -> bool:
+        """Whether :meth:`assess` at ``now`` would find exactly what ``judged`` found (its
+        findings, level and flight facts; not its ages), without judging again.
+
+        True when nothing a judgement reads changed since (the version) and ``now`` is
+        before the first threshold any finding could cross with nothing new arriving:
+        the silence, heartbeat and frozen-telemetry thresholds from the times of the last
+        message, heartbeat and ``time_boot_ms`` advance, which only ever move later, and
+        the persistence times of sensor, estimator, tilt and reboot findings
+        (:func:`_next_threshold`). An assessment with a finding whose text reads the
+        clock never holds. This is what lets the decision loop skip a tick in which
+        nothing can have changed; silence is still judged at the tick its threshold passes.
+        """
+        with self._lock:
+            o = self._o
+            return judged.version == o.version and now < _next_threshold(
+                o, self.thresholds, judged.at
             )
 
     @property
@@ -543,6 +592,7 @@ class HealthTracker:
         """Judge liveness on these verified requested streams (None: on what arrives)."""
         with self._lock:
             self._o.expected_rate = rate_hz
+            self._o.version += 1
 
     def heartbeat(self) -> tuple[int, int, float] | None:
         """(custom_mode, base_mode, received_at) of the last heartbeat, for confirmations."""
@@ -594,6 +644,76 @@ class HealthTracker:
         with self._lock:
             o = self._o
             return StreamFacts(dict(o.counts), o.heartbeat_at, o.last_at, o.reboots)
+
+
+# Messages whose content a judgement reads beyond their arrival time (tilt from ATTITUDE,
+# at 100 Hz, is tracked by its own changes in HealthTracker._observe_attitude).
+_JUDGED_KINDS = frozenset(
+    {"HEARTBEAT", "SYS_STATUS", "EXTENDED_SYS_STATE", "ESTIMATOR_STATUS", "EKF_STATUS_REPORT"}
+)
+# Thresholds are compared with ``>=`` on differences of floats; a recheck this much
+# early costs one judgement, a recheck late would miss one.
+_RECHECK_EARLY_S = 1e-6
+
+
+def _judged(o: _Observed, th: Thresholds) -> tuple[object, ...]:
+    """Everything :func:`_findings` and the assessment read, except the times that only
+    move on (last message, heartbeat, time_boot_ms advance) and tilt (its own changes)."""
+    return (
+        o.first_at is None,
+        o.heartbeat_at is None,
+        o.boot_advanced_at is None,
+        _fast_stream(o, th),
+        o.heartbeat_autopilot,
+        o.base_mode,
+        o.custom_mode,
+        o.system_status,
+        o.system_status_since,
+        o.landed_state,
+        o.sensors,
+        tuple(o.critical_since.items()),
+        o.unhealthy_names,
+        o.reboot_at,
+        o.reboot_reason,
+        o.estimator_flags,
+        o.estimator_kind,
+        o.estimator_bad_since,
+        o.estimator_ever_ok,
+        o.position_ever_ok,
+        o.disarmed_in_air_at,
+    )
+
+
+def _tilt_warned(o: _Observed, th: Thresholds) -> bool:
+    return o.tilt_deg is not None and o.tilt_deg > min(TILT_WARN_DEG, th.max_tilt_deg)
+
+
+def _next_threshold(o: _Observed, th: Thresholds, after: float) -> float:
+    """The first time after ``after`` (when the last judgement was made) a finding could
+    appear, go or change level with nothing new observed (see
+    :meth:`HealthTracker.holds`): every threshold of :func:`_findings`. Thresholds passed
+    by then were part of that judgement; one within float rounding of it still counts."""
+    if o.last_at is None or o.first_at is None:
+        return math.inf  # "no data" lasts until a message comes (a new version)
+    fast = _fast_stream(o, th)
+    times = [o.last_at + (th.message_warn_ms if fast else th.heartbeat_error_ms) / 1000]
+    if o.heartbeat_at is not None:
+        times.append(o.heartbeat_at + th.heartbeat_warn_ms / 1000)
+    else:
+        times.append(o.first_at + th.heartbeat_error_ms / 1000)
+    if o.boot_advanced_at is not None:
+        limit_ms = th.message_error_ms if fast else th.heartbeat_error_ms
+        times.append(o.boot_advanced_at + limit_ms / 1000)
+    if o.reboot_at is not None:
+        times.append(o.reboot_at + REBOOT_REMEMBERED_S)
+    persist_s = th.sensor_persist_ms / 1000
+    times.extend(since + persist_s for since in o.critical_since.values())
+    if o.estimator_bad_since is not None:
+        times.append(o.estimator_bad_since + persist_s)
+    if o.tilt_over_since is not None:
+        times.append(o.tilt_over_since + TILT_PERSIST_S)
+    upcoming = [t for t in times if t > after - _RECHECK_EARLY_S]
+    return min(upcoming) - _RECHECK_EARLY_S if upcoming else math.inf
 
 
 def _seq(msg: Any) -> int | None:
@@ -651,6 +771,7 @@ def _liveness(o: _Observed, th: Thresholds, now: float) -> list[Finding]:
                 f"link lost: no message for {silent_s:.1f} s",
                 True,
                 o.last_at,
+                varies=True,
             )
         )
     elif _fast_stream(o, th):
@@ -662,11 +783,17 @@ def _liveness(o: _Observed, th: Thresholds, now: float) -> list[Finding]:
                     f"silent for {silent_s * 1000:.0f} ms",
                     True,
                     o.last_at,
+                    varies=True,
                 )
             )
         elif silent_s * 1000 >= th.message_warn_ms:
             found.append(
-                Finding(HealthLevel.WARN, "late", f"no message for {silent_s * 1000:.0f} ms")
+                Finding(
+                    HealthLevel.WARN,
+                    "late",
+                    f"no message for {silent_s * 1000:.0f} ms",
+                    varies=True,
+                )
             )
     since_beat = o.heartbeat_at if o.heartbeat_at is not None else o.first_at
     beat_age_ms = (now - since_beat) * 1000
@@ -679,11 +806,17 @@ def _liveness(o: _Observed, th: Thresholds, now: float) -> list[Finding]:
                 f"{label} lost for {beat_age_ms:.0f} ms",
                 True,
                 since_beat,
+                varies=True,
             )
         )
     elif o.heartbeat_at is not None and beat_age_ms >= th.heartbeat_warn_ms:
         found.append(
-            Finding(HealthLevel.WARN, "heartbeat-late", f"heartbeat late: {beat_age_ms:.0f} ms")
+            Finding(
+                HealthLevel.WARN,
+                "heartbeat-late",
+                f"heartbeat late: {beat_age_ms:.0f} ms",
+                varies=True,
+            )
         )
     if o.boot_advanced_at is not None and silent_s * 1000 < th.message_error_ms:
         stuck_ms = (now - o.boot_advanced_at) * 1000
@@ -697,6 +830,7 @@ def _liveness(o: _Observed, th: Thresholds, now: float) -> list[Finding]:
                     f"for {stuck_ms:.0f} ms",
                     True,
                     o.boot_advanced_at,
+                    varies=True,
                 )
             )
     return found
@@ -729,6 +863,7 @@ def _sensors(o: _Observed, th: Thresholds, now: float) -> list[Finding]:
                     f"{sensor_name(bit)} unhealthy for {lasted_ms:.0f} ms",
                     True,
                     since,
+                    varies=True,
                 )
             )
         else:
@@ -821,10 +956,13 @@ def _flight(o: _Observed, th: Thresholds, now: float) -> list[Finding]:
                     f"attitude {o.tilt_deg:.0f} deg beyond the {th.max_tilt_deg:.0f} deg envelope",
                     True,
                     o.tilt_over_since,
+                    varies=True,
                 )
             )
         elif o.tilt_deg > min(TILT_WARN_DEG, th.max_tilt_deg):
-            found.append(Finding(HealthLevel.WARN, "tilt", f"attitude {o.tilt_deg:.0f} deg"))
+            found.append(
+                Finding(HealthLevel.WARN, "tilt", f"attitude {o.tilt_deg:.0f} deg", varies=True)
+            )
     return found
 
 

@@ -50,9 +50,11 @@ class AgentKube:
         *,
         timeout: Timeout = DEFAULT_TIMEOUT,
     ) -> AgentKube:
-        """In-cluster service account, else ``kubeconfig`` / ``$KUBECONFIG``; no retries."""
+        """In-cluster service account, else ``kubeconfig`` / ``$KUBECONFIG``; no retries.
+        Through the minimal transport (:class:`roost_kube.transport.DirectTransport`):
+        the ``kubernetes`` package is never imported on a vehicle."""
         kube = Kube.from_environment(
-            FIELD_MANAGER, kubeconfig=kubeconfig, timeout=timeout, retries=0
+            FIELD_MANAGER, kubeconfig=kubeconfig, timeout=timeout, retries=0, direct=True
         )
         return cls(kube)
 

@@ -77,6 +77,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from roost_agent.frames import known as known_frame
 from roost_agent.frames import split as split_frames
 from roost_agent.health import Fix, HealthTracker, Motion
 from roost_agent.signing import LinkSigning
@@ -151,6 +152,7 @@ class LinkCounters:
     unlocked: int = 0  # parsed before any address proved itself (not used)
     other: int = 0  # from the locked address but another sysid or component
     bad: int = 0  # bytes that did not parse or failed their CRC (BAD_DATA)
+    unknown: int = 0  # framed, but a message id the dialect lacks: its CRC cannot be checked
     truncated: int = 0  # datagrams that ended inside a frame
     unsigned: int = 0  # dropped while signing is required: no signature
     bad_signature: int = 0  # dropped while signing is required: wrong or replayed
@@ -986,7 +988,12 @@ class AutopilotLink:
         try:
             msg = parser.parse_char(data)
             while msg is not None:
-                self._message(session, msg, sender, now)
+                if msg.get_type().startswith("UNKNOWN_"):  # an id pymavlink's dialect lacks
+                    msg = known_frame(msg)  # one of ours (roost_agent.frames), checked
+                if msg is None:
+                    self.counters.unknown += 1
+                else:
+                    self._message(session, msg, sender, now)
                 msg = parser.parse_char(b"")
         except Exception:  # the parser choked: this sender's parser starts over
             self.counters.errors += 1

@@ -75,6 +75,7 @@ FRAME_RESULTS = (
     "unlocked",
     "other",
     "bad",
+    "unknown",
     "truncated",
     "unsigned",
     "bad_signature",

@@ -19,12 +19,17 @@ the pure planning functions and the wire share one shape.
   :func:`observe_requests` — method, outcome, seconds — which is how the operator's
   Prometheus metrics count API calls without this layer importing prometheus_client.
 
-Authentication and TLS come from the ``kubernetes`` client's own config loaders.
+Authentication and TLS come from the ``kubernetes`` client's own config loaders
+(:class:`roost_kube.transport.ApiClientTransport`), or, for the node agent, from the
+minimal :class:`roost_kube.transport.DirectTransport` (``Kube.from_environment(...,
+direct=True)``: a service account or a kubeconfig with a certificate or token, without
+importing the ``kubernetes`` package). Requests, errors and results are the same.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import threading
 import time
 from collections import Counter
@@ -35,13 +40,21 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlencode
 
-from kubernetes import client as k8s_client
-from kubernetes import config as k8s_config
-
 from roost_kube.errors import ApiUnavailableError, ConflictError, error_for_status, transport_of
 from roost_kube.events import EventType, event_manifest
+from roost_kube.kubeconfig import existing, split_list
 from roost_kube.patches import Obj, needs_apply, with_applied_hash
 from roost_kube.resources import Resource, resource_of
+from roost_kube.transport import (
+    ApiClientTransport,
+    Credentials,
+    DirectTransport,
+    Request,
+    Response,
+    Transport,
+    from_kubeconfig,
+    in_cluster,
+)
 
 Timeout = tuple[float, float]
 """``(connect, read)`` seconds."""
@@ -73,13 +86,21 @@ UNREAD = _Unread()
 
 @dataclass
 class Kube:
-    """Thin synchronous client for the Kubernetes REST API (thread-safe)."""
+    """Thin synchronous client for the Kubernetes REST API (thread-safe).
 
-    api: k8s_client.ApiClient
+    ``api`` is a ``kubernetes.client.ApiClient`` or a :class:`~roost_kube.transport.Transport`.
+    """
+
+    api: Any
     field_manager: str
     timeout: Timeout = (5.0, 30.0)
     writes: Counter[str] = field(default_factory=Counter)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    _transport: Transport = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        is_transport = isinstance(self.api, (DirectTransport, ApiClientTransport))
+        self._transport = self.api if is_transport else ApiClientTransport(self.api)
 
     @classmethod
     def from_environment(
@@ -91,6 +112,7 @@ class Kube:
         timeout: Timeout = (5.0, 30.0),
         retries: int | None = None,
         connections: int | None = None,
+        direct: bool = False,
     ) -> Kube:
         """A client configured like kubectl.
 
@@ -99,7 +121,19 @@ class Kube:
         ``connections``: how many connections to keep open for reuse — at least the
         number of threads that send requests at once (each watch holds one for its
         whole length); beyond the pool, every request pays a new TLS handshake.
+        ``direct``: through :class:`~roost_kube.transport.DirectTransport` (the agent).
         """
+        if direct:
+            return cls(
+                DirectTransport(
+                    _credentials(kubeconfig, context), retries=retries, connections=connections
+                ),
+                field_manager,
+                timeout,
+            )
+        from kubernetes import client as k8s_client  # noqa: PLC0415 - not for the agent
+        from kubernetes import config as k8s_config  # noqa: PLC0415
+
         configuration = k8s_client.Configuration()
         if connections is not None:
             configuration.connection_pool_maxsize = connections
@@ -121,7 +155,7 @@ class Kube:
     @property
     def server(self) -> str:
         """The API server's URL."""
-        return str(self.api.configuration.host)
+        return self._transport.host
 
     # -- raw request -------------------------------------------------------------
 
@@ -134,16 +168,12 @@ class Kube:
         body: Any,
         content_type: str,
         timeout: Timeout | None,
-    ) -> Any:
+    ) -> Response:
         headers = {"Accept": "application/json", "Content-Type": content_type}
-        _, url, headers, _, _ = self.api.param_serialize(
-            method, path, header_params=headers, auth_settings=["BearerToken"]
-        )
-        if query:
-            url = f"{url}?{urlencode(query)}"
+        url = f"{path}?{urlencode(query)}" if query else path
         try:
-            return self.api.call_api(
-                method, url, header_params=headers, body=body, _request_timeout=timeout
+            return self._transport.send(
+                Request(method, url, headers, body, timeout or self.timeout)
             )
         except Exception as exc:
             transport = transport_of(exc)
@@ -174,7 +204,7 @@ class Kube:
                 content_type=content_type,
                 timeout=timeout or self.timeout,
             )
-            raw: bytes = response.read() or b"{}"
+            raw = response.read() or b"{}"
         except ApiUnavailableError:
             _report(method, "unavailable", started)
             raise
@@ -293,10 +323,10 @@ class Kube:
             timeout=(self.timeout[0], timeout_s + self.timeout[1]),
         )
         if response.status >= 400:
-            raw: bytes = response.read() or b"{}"
+            raw = response.read() or b"{}"
             raise error_for_status(response.status, "GET", path, raw.decode(errors="replace"))
         try:
-            for line in response.response:
+            for line in response.lines():
                 if not line.strip():
                     continue
                 event = json.loads(line)
@@ -314,7 +344,7 @@ class Kube:
                 None, "WATCH", path, f"{what}: {type(exc).__name__}: {exc}", transport=transport
             ) from exc
         finally:
-            response.response.release_conn()
+            response.release()
 
     # -- writes ------------------------------------------------------------------
 
@@ -425,3 +455,18 @@ class Kube:
         except ConflictError:
             return False
         return True
+
+
+def _credentials(kubeconfig: Path | str | None, context: str | None) -> Credentials:
+    """What :class:`~roost_kube.transport.DirectTransport` connects with: the in-cluster
+    service account, else the kubeconfig (``kubeconfig``, ``$KUBECONFIG`` or
+    ``~/.kube/config``, as for the ``kubernetes`` loaders)."""
+    if kubeconfig is None:
+        pod = in_cluster()
+        if pod is not None:
+            return pod
+        files = existing(split_list(os.environ.get("KUBECONFIG", "")))
+        files = files or [Path("~/.kube/config").expanduser()]
+    else:
+        files = [Path(kubeconfig)]
+    return from_kubeconfig(files, context)

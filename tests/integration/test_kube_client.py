@@ -4,7 +4,8 @@ The operator, the agent and the CLI rely on these semantics: a missing object re
 None, a stale write and a duplicate create are ConflictError (temporary), a malformed
 object is InvalidError and a patch of a missing one NotFoundError (permanent), an
 unchanged apply sends nothing, a retried Event post is a duplicate, a watch starts with
-the object as it is, and a server that is not there is ApiUnavailableError.
+the object as it is, and a server that is not there is ApiUnavailableError. Through
+either transport (roost_kube.transport): the same answers.
 """
 
 from __future__ import annotations
@@ -12,9 +13,11 @@ from __future__ import annotations
 import socket
 from collections.abc import Iterator
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import Any
 
 import pytest
+import yaml
 
 from roost_cli.cluster import Fleet, Target
 from roost_cli.errors import CliError
@@ -27,6 +30,7 @@ from roost_kube.errors import (
 )
 from roost_kube.patches import precondition
 from roost_kube.resources import CONFIGMAPS, REDUNDANT_AUTOPILOTS
+from roost_kube.transport import Credentials, DirectTransport
 from roost_localcluster.cluster import Cluster
 from tests.support.fakeagents import redundant_autopilot
 from tests.support.waiting import unique
@@ -34,8 +38,15 @@ from tests.support.waiting import unique
 NAMESPACE = "default"
 
 
-@pytest.fixture
-def kube(roost_crds: Cluster) -> Iterator[Kube]:
+@pytest.fixture(params=["ApiClient", "direct"])
+def kube(roost_crds: Cluster, request: pytest.FixtureRequest) -> Iterator[Kube]:
+    """Every test through both transports: the ``kubernetes`` client's (operator, CLI)
+    and the agent's minimal one (the cluster's kubeconfig: client certificate)."""
+    if request.param == "direct":
+        yield Kube.from_environment(
+            "roost-tests", kubeconfig=roost_crds.kubeconfig, timeout=(5.0, 30.0), direct=True
+        )
+        return
     with roost_crds.api_client() as api:
         yield Kube(api, "roost-tests")
 
@@ -130,9 +141,40 @@ def test_a_server_that_is_not_there_is_unavailable(roost_crds: Cluster) -> None:
     assert error.value.transport == "refused" and error.value.status is None
 
 
+def test_a_server_that_is_not_there_is_unavailable_through_the_direct_transport() -> None:
+    with socket.socket() as probe:  # a port nobody listens on
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    nowhere = Credentials(f"https://127.0.0.1:{port}", verify=False)
+    kube = Kube(DirectTransport(nowhere, retries=0), "roost-tests", timeout=(2.0, 2.0))
+    with pytest.raises(ApiUnavailableError) as error:
+        kube.get(CONFIGMAPS, "x", NAMESPACE)
+    assert error.value.transport == "refused" and error.value.status is None
+
+
 def test_the_cli_refuses_a_namespace_that_does_not_exist(roost_crds: Cluster) -> None:
     fleet = Fleet(Target(roost_crds.kubeconfig, "--kubeconfig"))
     fleet.require_namespace(NAMESPACE)
     missing = unique("no-such-namespace")
     with pytest.raises(CliError, match=f"namespace '{missing}' does not exist"):
         fleet.require_namespace(missing)
+
+
+@pytest.mark.parametrize(("name", "works"), [("kubernetes", True), ("not-the-server", False)])
+def test_the_direct_transport_checks_the_servers_certificate_against_tls_server_name(
+    roost_crds: Cluster, tmp_path: Path, name: str, works: bool
+) -> None:
+    """A real node reaches the API server through a relay under another address and
+    checks its certificate against ``tls-server-name`` (roost_localcluster.pki)."""
+    doc = yaml.safe_load(roost_crds.kubeconfig.read_text())
+    for entry in doc["clusters"]:
+        entry["cluster"]["tls-server-name"] = name
+    path = tmp_path / "kubeconfig"
+    path.write_text(yaml.safe_dump(doc))
+    kube = Kube.from_environment("roost-tests", kubeconfig=path, retries=0, direct=True)
+    if works:
+        assert kube.get(CONFIGMAPS, unique("absent"), NAMESPACE) is None
+    else:
+        with pytest.raises(ApiUnavailableError) as error:
+            kube.get(CONFIGMAPS, "x", NAMESPACE)
+        assert error.value.transport == "tls"

@@ -4,18 +4,23 @@ Every message type of the dialect is encoded by pymavlink (with random field val
 trailing zero fields that MAVLink 2 truncates, signed and unsigned) and read both ways:
 the frame must give the same type, header and field values as pymavlink's own parser.
 Whatever pymavlink would not decode cleanly must be refused, so the link falls back to
-pymavlink for it.
+pymavlink for it. The messages added to the dialect (PX4's CURRENT_MODE and others
+pymavlink's dialect lacks) are checked against pymavlink's own CRC_EXTRA computation and
+against another implementation's frames; ``test_capture_replay`` checks them against the
+recorded PX4 flights.
 """
 
 from __future__ import annotations
 
+import inspect
 import random
 from typing import Any
 
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from roost_agent.frames import Frame, layout, split
+from roost_agent.frames import Frame, known, layout, split
+from roost_mavlink.definitions import EXTRA_MESSAGES, FieldDef, MessageDef
 
 INT_RANGES = {
     "int8_t": (-128, 127),
@@ -158,3 +163,77 @@ def test_what_pymavlink_would_not_decode_cleanly_is_left_to_it() -> None:
     assert split(b"") == []
     assert all(layout(msg_id) is not None for msg_id in mavlink.mavlink_map)
     assert layout(0xFFFFFF) is None
+
+
+# -- messages the dialect lacks (roost_mavlink.definitions) ---------------------------------
+
+
+def _declared(cls: Any) -> tuple[MessageDef, bool]:
+    """A pymavlink message class as a definition of its base fields (declaration order,
+    base types; extension fields, the constructor's defaulted arguments, left out) and
+    whether it has extension fields."""
+    counts = dict(zip(cls.ordered_fieldnames, cls.array_lengths, strict=True))
+    parameters = inspect.signature(cls.__init__).parameters
+    base = [n for n in cls.fieldnames if parameters[n].default is inspect.Parameter.empty]
+    kinds = dict(zip(cls.fieldnames, cls.fieldtypes, strict=True))
+    fields = tuple(
+        FieldDef(kinds[name].replace("_mavlink_version", ""), name, counts[name]) for name in base
+    )
+    return MessageDef(cls.id, cls.msgname, fields), len(base) < len(cls.fieldnames)
+
+
+def test_wire_order_and_crc_extra_are_computed_as_the_generators_compute_them() -> None:
+    """Against every message of pymavlink's dialect (extension fields are not in CRC_EXTRA
+    and keep their declared place after the base fields)."""
+    for cls in mavlink.mavlink_map.values():
+        message, extended = _declared(cls)
+        assert message.crc_extra == cls.crc_extra, cls.msgname
+        wire = [f.name for f in message.wire_order]
+        assert wire == list(cls.ordered_fieldnames[: len(wire)]), cls.msgname
+        if not extended:
+            assert message.unpacker.size == cls.unpacker.size, cls.msgname
+
+
+def test_the_added_messages_are_ones_the_dialect_lacks() -> None:
+    assert EXTRA_MESSAGES
+    assert not set(EXTRA_MESSAGES) & set(mavlink.mavlink_map)
+    assert all(m.id == msg_id for msg_id, m in EXTRA_MESSAGES.items())
+
+
+def _current_mode_frame(custom_mode: int, *, corrupt: bool = False) -> bytes:
+    """CURRENT_MODE as pymavlink's ``all`` dialect (which defines it) encodes it."""
+    from pymavlink.dialects.v20 import all as everything  # noqa: PLC0415 - this test only
+
+    sink = _Sink()
+    packer = everything.MAVLink(sink, srcSystem=1, srcComponent=1)
+    packer.send(everything.MAVLink_current_mode_message(4, custom_mode, custom_mode + 1))
+    data = sink.frames[0]
+    return _corrupt(data, len(data) - 1) if corrupt else data
+
+
+def test_current_mode_reads_as_another_implementation_writes_it() -> None:
+    (frame,) = split(_current_mode_frame(0x04030000)) or []
+    assert frame.get_type() == "CURRENT_MODE" and frame.get_msgId() == 436
+    assert (frame.standard_mode, frame.custom_mode, frame.intended_custom_mode) == (
+        4,
+        0x04030000,
+        0x04030001,
+    )
+    assert getattr(frame, "time_boot_ms", None) is None
+    assert split(_current_mode_frame(1, corrupt=True)) is None
+
+
+def test_an_added_message_is_recognised_behind_pymavlinks_unknown_message() -> None:
+    """pymavlink returns an id its dialect lacks as ``UNKNOWN_<id>`` without checking the
+    CRC; :func:`known` checks it against the added definition."""
+    good, bad = _current_mode_frame(7), _current_mode_frame(7, corrupt=True)
+    (unknown,) = _pymavlink(good)
+    assert unknown.get_type() == "UNKNOWN_436"
+    frame = known(unknown)
+    assert frame is not None and frame.custom_mode == 7
+    (corrupt,) = _pymavlink(bad)
+    assert corrupt.get_type() == "UNKNOWN_436" and known(corrupt) is None
+    other = bytearray(good)
+    other[7:10] = (0xFFFF00).to_bytes(3, "little")
+    (undefined,) = _pymavlink(bytes(other))
+    assert known(undefined) is None

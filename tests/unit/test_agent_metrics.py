@@ -28,8 +28,9 @@ from roost_agent.metrics import (
     build_registry,
 )
 from roost_agent.publisher import Publisher, PublisherSettings
-from roost_api.autopilot import AutopilotSpec, CommandResult, FailoverRecord, RedundantAutopilotSpec
+from roost_api.autopilot import CommandResult, FailoverRecord
 from roost_kube.client import Kube
+from tests.support.feed import two_px4_spec
 from tests.support.waiting import wait_until
 
 NOW = datetime(2026, 1, 1, tzinfo=UTC)
@@ -37,20 +38,7 @@ NOW = datetime(2026, 1, 1, tzinfo=UTC)
 
 def make_agent() -> Agent:
     """An agent (not started: no threads) on two UDP links nobody sends to."""
-    spec = RedundantAutopilotSpec(
-        vehicle_name="v1",
-        autopilots=[
-            AutopilotSpec(
-                name=f"fc{i}",
-                stack="px4",
-                connection=f"udp://127.0.0.1:{15000 + i}",
-                sysid=i,
-                bridge_channel=i - 1,
-            )
-            for i in (1, 2)
-        ],
-        primary="fc1",
-    )
+    spec = two_px4_spec(15000)
     return Agent(spec, SimulatedBridge([0, 1]))
 
 

@@ -10,6 +10,7 @@ import socket
 import struct
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Iterator
 from datetime import UTC, datetime
@@ -236,6 +237,28 @@ def test_standalone_agent_imports_neither_kopf_nor_heavy_clients() -> None:
     assert out.stdout.strip() == "[]"
 
 
+def test_the_agent_in_cluster_mode_never_imports_the_kubernetes_package() -> None:
+    """Its API client goes through roost_kube's minimal transport (about 13 MB less)."""
+    probe = (
+        "import sys, pathlib, roost_agent.main, roost_agent.publisher; "
+        "from roost_agent.kube import AgentKube; "
+        "AgentKube.from_environment(pathlib.Path(sys.argv[1])); "
+        "print('kubernetes' in sys.modules)"
+    )
+    with tempfile.TemporaryDirectory() as tmp:
+        config = Path(tmp) / "kubeconfig"
+        config.write_text(
+            "current-context: x\n"
+            "contexts: [{name: x, context: {cluster: x, user: x}}]\n"
+            "clusters: [{name: x, cluster: {server: 'https://127.0.0.1:1'}}]\n"
+            "users: [{name: x, user: {token: t}}]\n"
+        )
+        out = subprocess.run(
+            [sys.executable, "-c", probe, str(config)], capture_output=True, text=True, check=True
+        )
+    assert out.stdout.strip() == "False"
+
+
 def test_tcp_link_reads_only_its_autopilot_answers_as_191_and_reconnects() -> None:
     """A real TCP MAVLink peer (ArduPilot SITL serves TCP): frames from the autopilot
     count, a foreign sysid does not, the agent's own heartbeat goes out as component 191,
@@ -274,6 +297,63 @@ def test_tcp_link_reads_only_its_autopilot_answers_as_191_and_reconnects() -> No
     finally:
         link.stop()
         server.close()
+
+
+def _px4_frames() -> tuple[bytes, bytes, bytes]:
+    """(HEARTBEAT, CURRENT_MODE, a well-framed message of an id nobody defines) from
+    system 1 component 1, as pymavlink's ``all`` dialect (which defines CURRENT_MODE)
+    encodes them."""
+    from pymavlink.dialects.v20 import all as everything  # noqa: PLC0415
+
+    autopilot = everything.MAVLink(None, srcSystem=1, srcComponent=1)
+    beat = autopilot.heartbeat_encode(2, 12, 129, 0x03040000, 4).pack(autopilot)
+    mode = autopilot.current_mode_encode(0, 0x03040000, 0x03040000).pack(autopilot)
+    undefined = bytearray(beat)
+    undefined[7:10] = (0xFFFF00).to_bytes(3, "little")
+    return bytes(beat), bytes(mode), bytes(undefined)
+
+
+@pytest.mark.parametrize("transport", ["udp", "tcp"])
+def test_a_message_the_pymavlink_dialect_lacks_is_counted_as_the_autopilots(
+    transport: str,
+) -> None:
+    """PX4 v1.16's CURRENT_MODE is accepted like any message of the autopilot, on the
+    checked fast path (UDP datagrams) and behind pymavlink's parser (a TCP stream); a
+    frame of an id nobody defines is counted ``unknown`` and costs nothing after it."""
+    beat, mode, undefined = _px4_frames()
+    peer = socket.socket(
+        socket.AF_INET, socket.SOCK_DGRAM if transport == "udp" else socket.SOCK_STREAM
+    )
+    peer.bind(("127.0.0.1", 0))
+    if transport == "udp":
+        port = free_udp_port()
+        connection = f"udp://127.0.0.1:{port}@127.0.0.1:{peer.getsockname()[1]}"
+    else:
+        peer.listen()
+        connection = f"tcp://127.0.0.1:{peer.getsockname()[1]}"
+    spec = SPEC.autopilots[0].model_copy(update={"connection": connection})
+    link = AutopilotLink(spec, HealthTracker("fc1", Stack.PX4, Thresholds()))
+    link.start()
+    try:
+        if transport == "udp":  # bound (and locked to the peer) once the link opened
+            wait_until("the link open", lambda: link.locked_address is not None, 5.0, 0.01)
+            for datagram in (beat, mode, undefined, mode + beat):
+                peer.sendto(datagram, ("127.0.0.1", port))
+        else:
+            conn, _ = peer.accept()
+            conn.sendall(beat + mode + undefined + mode + beat)
+        wait_until(
+            "five frames read",
+            lambda: link.counters.accepted + link.counters.unknown >= 5,
+            5.0,
+            0.01,
+        )
+        c = link.counters
+        assert (c.accepted, c.unknown, c.bad, c.errors) == (4, 1, 0, 0)
+        assert link.tracker.stream_facts().counts["CURRENT_MODE"] == 2
+    finally:
+        link.stop()
+        peer.close()
 
 
 def test_tcp_listener_link_reads_the_autopilot_that_connects_to_it() -> None:

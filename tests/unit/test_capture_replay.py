@@ -30,6 +30,7 @@ os.environ.setdefault("MAVLINK20", "1")
 import pytest
 from pymavlink import mavutil
 
+from roost_agent.frames import known
 from roost_agent.health import Assessment, HealthTracker, Motion
 from roost_agent.report import conditions
 from roost_agent.safety import DEFAULT_TIMING, judge_hold
@@ -63,6 +64,7 @@ class Replay:
     messages: list[tuple[float, Any]]
     timeline: list[Assessment]
     foreign: int
+    unknown: int  # the autopilot's frames of ids neither pymavlink's dialect nor ours defines
 
     @property
     def last_at(self) -> float:
@@ -102,7 +104,7 @@ def replay(
     timeline: list[Assessment] = []
     start: float | None = None
     next_at = 0.0
-    foreign = 0
+    foreign = unknown = 0
     heartbeats = 0
     while (msg := conn.recv_match()) is not None:
         start = msg._timestamp if start is None else start
@@ -110,6 +112,11 @@ def replay(
         while next_at < t:
             timeline.append(tracker.assess(next_at))
             next_at += STEP_S
+        if msg.get_type().startswith("UNKNOWN_"):  # as the link reads it: one of ours?
+            msg = known(msg)
+            if msg is None:
+                unknown += 1
+                continue
         if msg.get_type() == "BAD_DATA" or (msg.get_srcSystem(), msg.get_srcComponent()) != (1, 1):
             foreign += 1
             continue
@@ -123,7 +130,7 @@ def replay(
     while next_at < end:
         timeline.append(tracker.assess(next_at))
         next_at += STEP_S
-    return Replay(messages, timeline, foreign)
+    return Replay(messages, timeline, foreign, unknown)
 
 
 def levels(assessments: list[Assessment]) -> set[HealthLevel]:
@@ -142,7 +149,7 @@ def test_px4_boot_is_starting_and_ok_comes_only_after_the_first_heartbeat(name: 
     r = replay(name, Stack.PX4)
     first_beat = r.first("HEARTBEAT")
     standby = r.up()
-    assert r.foreign > 0  # the file has frames the link would not take as the autopilot's
+    assert r.foreign == r.unknown == 0  # every frame is the autopilot's, of a known message
     assert OK not in levels(r.during(0, first_beat))
     assert levels(r.during(0, standby)) == {STARTING}  # UNINIT, estimator start-up, GPS
     reasons = {x for a in r.during(0, standby) for x in a.reasons}
@@ -150,6 +157,44 @@ def test_px4_boot_is_starting_and_ok_comes_only_after_the_first_heartbeat(name: 
     assert any(x.startswith("estimator starting (ESTIMATOR_STATUS flags") for x in reasons)
     armed = r.first("HEARTBEAT", system_status=MavState.ACTIVE)
     assert levels(r.during(standby + STEP_S, armed + 5)) == {OK}
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        "px4-v1.16-sih-boot-arm-takeoff-loiter-land.tlog",
+        "px4-v1.16-sih-battery-failsafe.tlog",
+    ],
+)
+def test_every_px4_frame_is_of_a_message_the_agent_knows(name: str) -> None:
+    """PX4 v1.16 sends five messages pymavlink's dialect lacks; with the agent's added
+    definitions every one of the autopilot's frames passes its CRC and is counted as the
+    autopilot's own. CURRENT_MODE's layout is checked against what it reports: its
+    custom_mode is the mode of the heartbeat before it (or, at a mode change, after it),
+    its intended_custom_mode one the autopilot flew (after a failsafe: the mode the pilot
+    had chosen, not the failsafe's)."""
+    r = replay(name, Stack.PX4)
+    assert r.unknown == 0
+    kinds = {m.get_type() for _, m in r.messages}
+    assert kinds >= {
+        "CURRENT_MODE",
+        "LINK_NODE_STATUS",
+        "TIME_ESTIMATE_TO_TARGET",
+        "EVENT",
+        "CURRENT_EVENT_SEQUENCE",
+    }
+    modes = [(i, m) for i, (_, m) in enumerate(r.messages) if m.get_type() == "CURRENT_MODE"]
+    beats = [
+        (i, m.custom_mode) for i, (_, m) in enumerate(r.messages) if m.get_type() == "HEARTBEAT"
+    ]
+    assert len(modes) >= 10
+    assert any(m.intended_custom_mode != m.custom_mode for _, m in modes) == ("failsafe" in name)
+    for at, mode in modes:
+        before = [c for i, c in beats if i < at][-1:]
+        after = [c for i, c in beats if i > at][:1]
+        assert mode.custom_mode in before + after, (at, mode.custom_mode, before, after)
+        assert mode.intended_custom_mode in {0, *(c for _, c in beats)}
+        assert 0 <= mode.standard_mode <= 16
 
 
 def test_px4_flight_is_ok_throughout_until_the_recording_ends() -> None:

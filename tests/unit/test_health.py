@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from typing import Any
 
 os.environ.setdefault("MAVLINK20", "1")
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from roost_agent.health import (
@@ -24,97 +27,20 @@ from roost_mavlink.status import (
     MAV_AUTOPILOT_ARDUPILOTMEGA,
     MAV_AUTOPILOT_INVALID,
     MAV_AUTOPILOT_PX4,
-    stack_sensors,
 )
+from tests.support.feed import ARMED, LOITER, SENSORS, Feed
 
 OK, WARN, ERROR, STALE = HealthLevel.OK, HealthLevel.WARN, HealthLevel.ERROR, HealthLevel.STALE
-ARMED = 128 | 1
-SENSORS = int(stack_sensors(Stack.PX4)) & ~int(SensorBit.RC_RECEIVER | SensorBit.PREARM_CHECK)
-LOITER = custom_mode(Stack.PX4, "AUTO.LOITER")
 # The numbers these tests assert are these thresholds', not whatever the defaults are.
 HEARTBEAT_MS = {"heartbeat_warn_ms": 1500, "heartbeat_error_ms": 3000}
 TH = Thresholds(message_warn_ms=200, message_error_ms=500, confirm_ms=100, **HEARTBEAT_MS)
 
 
-class Vehicle:
-    """Feeds one tracker the messages of a PX4-like autopilot at chosen times.
-
-    Every message goes through a real encode and decode, so it carries the next MAVLink
-    sequence number of the autopilot's stream (the corroboration rules read it).
-    """
+class Vehicle(Feed):
+    """A feed into a tracker of its own with this module's thresholds."""
 
     def __init__(self, stack: Stack = Stack.PX4, thresholds: Thresholds | None = None) -> None:
-        self.tracker = HealthTracker("fc1", stack, thresholds or TH)
-        self.boot_ms = 100_000
-        self.t = 0.0
-        self.sensors_health = SENSORS
-        self.sensors_enabled = SENSORS
-        self.encoder = mav.MAVLink(None, srcSystem=1, srcComponent=1)
-        self.decoder = mav.MAVLink(None)
-
-    def observe(self, msg: Any, *, seq: int | None = None) -> bool:
-        """Deliver ``msg`` as the stream's next frame (or with a forged ``seq``)."""
-        if seq is not None:
-            saved, self.encoder.seq = self.encoder.seq, seq
-        frame = msg.pack(self.encoder)
-        if seq is None:
-            self.encoder.seq = (self.encoder.seq + 1) % 256
-        else:
-            self.encoder.seq = saved
-        return self.tracker.observe(self.decoder.decode(bytearray(frame)), self.t)
-
-    def heartbeat(
-        self,
-        *,
-        state: int = MavState.ACTIVE,
-        base_mode: int = ARMED,
-        mode: int = LOITER,
-        autopilot: int = MAV_AUTOPILOT_PX4,
-    ) -> bool:
-        msg = mav.MAVLink_heartbeat_message(2, autopilot, base_mode, mode, state, 3)
-        return self.observe(msg)
-
-    def landed(self, state: int = LandedState.IN_AIR) -> bool:
-        return self.observe(mav.MAVLink_extended_sys_state_message(0, state))
-
-    def sys_status(self, health: int | None = None, enabled: int | None = None) -> bool:
-        if health is not None:
-            self.sensors_health = health
-        if enabled is not None:
-            self.sensors_enabled = enabled
-        enabled, health = self.sensors_enabled, self.sensors_health
-        msg = mav.MAVLink_sys_status_message(
-            enabled, enabled, health, 100, 12000, -1, -1, 0, 0, 0, 0, 0, 0
-        )
-        return self.observe(msg)
-
-    def attitude(self, roll: float = 0.0, pitch: float = 0.0, *, advance: bool = True) -> None:
-        if advance:
-            self.boot_ms = 100_000 + round(self.t * 1000)
-        msg = mav.MAVLink_attitude_message(self.boot_ms, roll, pitch, 0.0, 0.0, 0.0, 0.0)
-        self.observe(msg)
-
-    def attitude_changes(self) -> bool:
-        """One ATTITUDE on the current timeline; whether the tracker reported a change."""
-        self.boot_ms = 100_000 + round(self.t * 1000)
-        return self.observe(mav.MAVLink_attitude_message(self.boot_ms, 0, 0, 0, 0, 0, 0))
-
-    def fly(self, seconds: float, *, rate_hz: float = 50.0, **attitude: float) -> None:
-        """Stream ATTITUDE at ``rate_hz`` plus 1 Hz heartbeats and 5 Hz status for ``seconds``."""
-        end = self.t + seconds
-        n = 0
-        while self.t < end:
-            if n % round(rate_hz) == 0:
-                self.heartbeat()
-                self.landed()
-            if n % max(1, round(rate_hz / 5)) == 0:
-                self.sys_status()
-            self.attitude(**attitude)
-            self.t += 1 / rate_hz
-            n += 1
-
-    def at(self, dt: float) -> Assessment:
-        return self.tracker.assess(self.t + dt)
+        super().__init__(HealthTracker("fc1", stack, thresholds or TH))
 
 
 def codes(a: Assessment) -> set[str]:
@@ -571,6 +497,162 @@ def test_a_reboot_in_the_air_is_reported_as_the_reboot_not_as_a_disarm() -> None
     a = v.at(0.0)
     assert a.failing and "rebooted" in a.failure_reason
     assert "disarmed while in the air" not in a.failure_reason
+
+
+# -- holds: when the decision loop may keep a judgement (decision table, then property) ----
+
+
+def judgement(a: Assessment) -> tuple[object, ...]:
+    """What the decision loop reads of an assessment (everything but its ages)."""
+    return (a.level, a.findings, a.custom_mode, a.armed, a.landed_state, a.system_status)
+
+
+def _estimator(v: Vehicle, flags: int) -> None:
+    v.observe(mav.MAVLink_estimator_status_message(0, flags, 0, 0, 0, 0, 0, 0, 0, 0))
+
+
+GOOD_ESTIMATOR = 0x1 | 0x2 | 0x4 | 0x8 | 0x10 | 0x20
+HOLD_TABLE: list[tuple[str, Any, float, bool]] = [
+    # (what happens after the judgement at v.t, then the check dt later, holds?)
+    ("nothing new, no threshold reached", lambda v: None, 0.1, True),
+    ("silence up to just before the warn threshold", lambda v: None, 0.17, True),
+    ("silence reaches the warn threshold (200 ms after the last message)", None, 0.18, False),
+    ("a message that only arrives", lambda v: v.attitude(), 0.05, True),
+    ("the same heartbeat again", lambda v: v.heartbeat(), 0.05, True),
+    ("MAV_STATE CRITICAL", lambda v: v.heartbeat(state=MavState.CRITICAL), 0.05, False),
+    ("disarmed", lambda v: v.heartbeat(base_mode=0), 0.05, False),
+    ("another mode", lambda v: v.heartbeat(mode=custom_mode(Stack.PX4, "POSCTL")), 0.05, False),
+    ("the same SYS_STATUS again", lambda v: v.sys_status(), 0.05, True),
+    (
+        "a sensor goes unhealthy",
+        lambda v: v.sys_status(health=SENSORS & ~int(SensorBit.GYRO)),
+        0.05,
+        False,
+    ),
+    ("landed", lambda v: v.landed(LandedState.ON_GROUND), 0.05, False),
+    ("tilted past the warning", lambda v: v.attitude(roll=math.radians(40)), 0.05, False),
+    ("a small tilt", lambda v: v.attitude(roll=math.radians(5)), 0.05, True),
+    ("estimator flags change", lambda v: _estimator(v, GOOD_ESTIMATOR & ~0x10), 0.05, False),
+    ("requested streams verified", lambda v: v.tracker.expect_streams(50.0), 0.05, False),
+    ("new thresholds", lambda v: v.tracker.set_thresholds(Thresholds()), 0.05, False),
+]
+
+
+@pytest.mark.parametrize(
+    ("what", "action", "dt", "holds"), HOLD_TABLE, ids=[row[0] for row in HOLD_TABLE]
+)
+def test_a_judgement_holds_until_something_it_reads_changes_or_a_threshold_passes(
+    what: str, action: Any, dt: float, holds: bool
+) -> None:
+    v = Vehicle()
+    _estimator(v, GOOD_ESTIMATOR)
+    v.fly(2.0)  # the last ATTITUDE 20 ms before v.t
+    judged = v.at(0.0)
+    assert judged.level == OK and not judged.findings
+    if action is not None:
+        action(v)
+    now = v.t + dt
+    assert v.tracker.holds(judged, now) is holds, what
+    if holds:
+        assert judgement(v.tracker.assess(now)) == judgement(judged)
+
+
+def test_frozen_telemetry_ends_the_hold_at_its_threshold() -> None:
+    v = Vehicle()
+    v.fly(2.0)
+    judged = v.at(0.0)
+    frozen_at = v.t - 1 / 50  # the last time_boot_ms advance
+    for _ in range(30):  # messages keep coming, time_boot_ms stuck
+        v.attitude(advance=False)
+        v.t += 1 / 50
+    assert v.tracker.holds(judged, frozen_at + 0.49)
+    assert not v.tracker.holds(judged, frozen_at + 0.5)
+    assert "frozen" in codes(v.tracker.assess(frozen_at + 0.5))
+
+
+def test_a_judgement_whose_text_reads_the_clock_never_holds() -> None:
+    v = Vehicle()
+    v.fly(2.0)
+    late = v.at(0.25)
+    assert codes(late) == {"late"}
+    assert not v.tracker.holds(late, late.at)
+
+
+STEP = st.tuples(
+    st.floats(min_value=0.0, max_value=0.7),
+    st.sampled_from(
+        [
+            "attitude",
+            "frozen",
+            "tilt",
+            "heartbeat",
+            "critical",
+            "emergency",
+            "disarm",
+            "gyro",
+            "sensors",
+            "landed",
+            "airborne",
+            "estimator-bad",
+            "estimator-good",
+            "reboot",
+            "boot-state",
+            "burst",
+            "streams",
+            "no-streams",
+            "nothing",
+        ]
+    ),
+)
+
+
+def _act(v: Vehicle, action: str) -> None:
+    actions: dict[str, Callable[[], object]] = {
+        "attitude": v.attitude,
+        "frozen": lambda: v.attitude(advance=False),
+        "tilt": lambda: v.attitude(roll=math.radians(70)),
+        "heartbeat": v.heartbeat,
+        "critical": lambda: v.heartbeat(state=MavState.CRITICAL),
+        "emergency": lambda: v.heartbeat(state=MavState.EMERGENCY),
+        "disarm": lambda: v.heartbeat(base_mode=0),
+        "gyro": lambda: v.sys_status(health=SENSORS & ~int(SensorBit.GYRO)),
+        "sensors": lambda: v.sys_status(health=SENSORS),
+        "landed": lambda: v.landed(LandedState.ON_GROUND),
+        "airborne": lambda: v.landed(LandedState.IN_AIR),
+        "estimator-bad": lambda: _estimator(v, 0),
+        "estimator-good": lambda: _estimator(v, GOOD_ESTIMATOR),
+        "reboot": lambda: v.observe(mav.MAVLink_attitude_message(50, 0, 0, 0, 0, 0, 0)),
+        "boot-state": lambda: v.heartbeat(state=MavState.BOOT),
+        "burst": lambda: [v.attitude() for _ in range(30)],
+        "streams": lambda: v.tracker.expect_streams(50.0),
+        "no-streams": lambda: v.tracker.expect_streams(None),
+        "nothing": lambda: None,
+    }
+    actions[action]()
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(STEP, min_size=1, max_size=40))
+def test_a_judgement_that_holds_is_the_judgement_made_afresh(
+    steps: list[tuple[float, str]],
+) -> None:
+    """The decision loop's ticks (every 10 ms) over random flights with silences: at
+    every tick where the last judgement holds, judging afresh finds exactly the same."""
+    v = Vehicle()
+    v.fly(1.5)
+    judged = v.at(0.0)
+    tick = v.t
+    for dt, action in steps:
+        end = v.t + dt
+        while tick <= end:
+            fresh = v.tracker.assess(tick)
+            if v.tracker.holds(judged, tick):
+                assert judgement(fresh) == judgement(judged), (tick, action)
+            else:
+                judged = fresh
+            tick += 0.01
+        v.t = end
+        _act(v, action)
 
 
 # -- the default thresholds: decision tables at their boundaries ---------------------------

@@ -1,0 +1,134 @@
+"""A PX4-like autopilot's messages fed straight into a health tracker at chosen times.
+
+For tests of the health model and the decision loop that need real MAVLink messages
+(encoded and decoded by pymavlink, so each carries the stream's next sequence number)
+but no sockets and no clock; :func:`two_px4_spec` is the vehicle such an agent (never
+started: its links never open) flies.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+os.environ.setdefault("MAVLINK20", "1")
+
+from pymavlink.dialects.v20 import ardupilotmega as mav
+
+from roost_agent.health import Assessment, HealthTracker
+from roost_api.autopilot import (
+    AutopilotSpec,
+    FailoverPolicy,
+    RedundantAutopilotSpec,
+    Thresholds,
+)
+from roost_api.meta import Stack
+from roost_mavlink import LandedState, MavState, SensorBit, custom_mode
+from roost_mavlink.status import MAV_AUTOPILOT_PX4, stack_sensors
+
+ARMED = 128 | 1
+SENSORS = int(stack_sensors(Stack.PX4)) & ~int(SensorBit.RC_RECEIVER | SensorBit.PREARM_CHECK)
+LOITER = custom_mode(Stack.PX4, "AUTO.LOITER")
+
+
+class Feed:
+    """Feeds one tracker the messages of a PX4-like autopilot at chosen times.
+
+    Every message goes through a real encode and decode, so it carries the next MAVLink
+    sequence number of the autopilot's stream (the corroboration rules read it).
+    """
+
+    def __init__(self, tracker: HealthTracker) -> None:
+        self.tracker = tracker
+        self.boot_ms = 100_000
+        self.t = 0.0
+        self.sensors_health = SENSORS
+        self.sensors_enabled = SENSORS
+        self.encoder = mav.MAVLink(None, srcSystem=1, srcComponent=1)
+        self.decoder = mav.MAVLink(None)
+
+    def observe(self, msg: Any, *, seq: int | None = None) -> bool:
+        """Deliver ``msg`` as the stream's next frame (or with a forged ``seq``)."""
+        if seq is not None:
+            saved, self.encoder.seq = self.encoder.seq, seq
+        frame = msg.pack(self.encoder)
+        if seq is None:
+            self.encoder.seq = (self.encoder.seq + 1) % 256
+        else:
+            self.encoder.seq = saved
+        return self.tracker.observe(self.decoder.decode(bytearray(frame)), self.t)
+
+    def heartbeat(
+        self,
+        *,
+        state: int = MavState.ACTIVE,
+        base_mode: int = ARMED,
+        mode: int = LOITER,
+        autopilot: int = MAV_AUTOPILOT_PX4,
+    ) -> bool:
+        msg = mav.MAVLink_heartbeat_message(2, autopilot, base_mode, mode, state, 3)
+        return self.observe(msg)
+
+    def landed(self, state: int = LandedState.IN_AIR) -> bool:
+        return self.observe(mav.MAVLink_extended_sys_state_message(0, state))
+
+    def sys_status(self, health: int | None = None, enabled: int | None = None) -> bool:
+        if health is not None:
+            self.sensors_health = health
+        if enabled is not None:
+            self.sensors_enabled = enabled
+        enabled, health = self.sensors_enabled, self.sensors_health
+        msg = mav.MAVLink_sys_status_message(
+            enabled, enabled, health, 100, 12000, -1, -1, 0, 0, 0, 0, 0, 0
+        )
+        return self.observe(msg)
+
+    def attitude(self, roll: float = 0.0, pitch: float = 0.0, *, advance: bool = True) -> None:
+        if advance:
+            self.boot_ms = 100_000 + round(self.t * 1000)
+        msg = mav.MAVLink_attitude_message(self.boot_ms, roll, pitch, 0.0, 0.0, 0.0, 0.0)
+        self.observe(msg)
+
+    def attitude_changes(self) -> bool:
+        """One ATTITUDE on the current timeline; whether the tracker reported a change."""
+        self.boot_ms = 100_000 + round(self.t * 1000)
+        return self.observe(mav.MAVLink_attitude_message(self.boot_ms, 0, 0, 0, 0, 0, 0))
+
+    def fly(
+        self, seconds: float, *, rate_hz: float = 50.0, roll: float = 0.0, pitch: float = 0.0
+    ) -> None:
+        """Stream ATTITUDE at ``rate_hz`` plus 1 Hz heartbeats and 5 Hz status for ``seconds``."""
+        end = self.t + seconds
+        n = 0
+        while self.t < end:
+            if n % round(rate_hz) == 0:
+                self.heartbeat()
+                self.landed()
+            if n % max(1, round(rate_hz / 5)) == 0:
+                self.sys_status()
+            self.attitude(roll, pitch)
+            self.t += 1 / rate_hz
+            n += 1
+
+    def at(self, dt: float) -> Assessment:
+        return self.tracker.assess(self.t + dt)
+
+
+def two_px4_spec(first_port: int, thresholds: Thresholds | None = None) -> RedundantAutopilotSpec:
+    """Vehicle ``v1``: PX4 autopilots fc1 (primary, sysid 1, channel 0) and fc2 on UDP
+    ports ``first_port + 1`` and ``+ 2`` of 127.0.0.1 (nobody sends there)."""
+    return RedundantAutopilotSpec(
+        vehicle_name="v1",
+        autopilots=[
+            AutopilotSpec(
+                name=f"fc{i}",
+                stack="px4",
+                connection=f"udp://127.0.0.1:{first_port + i}",
+                sysid=i,
+                bridge_channel=i - 1,
+            )
+            for i in (1, 2)
+        ],
+        primary="fc1",
+        failover_policy=FailoverPolicy(thresholds=thresholds or Thresholds()),
+    )

@@ -1,0 +1,162 @@
+"""The decision loop's skipped ticks decide exactly what full ticks decide (decision table).
+
+A tick in which nothing can have changed returns at once (``Agent._nothing_new``,
+``HealthTracker.holds``). Each row below flies two autopilots into an agent (not started:
+no threads, no sockets; real MAVLink messages fed into its trackers, a clock the test
+sets) and ticks every 10 ms, twice: as the agent does, and with every tick a full one.
+The failovers (at which tick, from and to, why), the health events and the arbiter's
+final state must be the same, and the skipping agent must have skipped most ticks.
+In particular an autopilot that goes silent is judged at the first tick past its
+threshold although no message arrives to wake anything.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+
+import pytest
+
+from roost_agent.agent import Agent, AgentEvent
+from roost_agent.bridge import SimulatedBridge
+from roost_api.autopilot import (
+    Thresholds,
+)
+from roost_mavlink import LandedState, MavState, SensorBit
+from tests.support.feed import SENSORS, Feed, two_px4_spec
+
+TICK_S = 0.01
+RATE_HZ = 50
+TH = Thresholds(message_warn_ms=100, message_error_ms=200, confirm_ms=20, clear_ms=300)
+WALL = datetime(2026, 5, 1, 12, 0, tzinfo=UTC)
+
+
+@dataclass
+class Clock:
+    now: float = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+@dataclass
+class Fault:
+    """From ``at`` seconds on, what one autopilot does instead of streaming normally."""
+
+    autopilot: str
+    at: float
+    kind: str  # silence | emergency | gyro | resume
+
+
+@dataclass
+class Run:
+    agent: Agent
+    events: list[AgentEvent] = field(default_factory=list)
+    full_ticks: int = 0
+    ticks: int = 0
+
+
+def _fly(faults: list[Fault], seconds: float, *, skipping: bool) -> Run:
+    clock = Clock()
+    agent = Agent(
+        two_px4_spec(15100, TH), SimulatedBridge([0, 1]), clock=clock, wall_clock=lambda: WALL
+    )
+    run = Run(agent)
+    if not skipping:
+        agent._nothing_new = lambda *_: False  # type: ignore[method-assign]
+    full = agent.tick
+
+    def counted_assess(tracker_assess: Callable[[float], object]) -> Callable[[float], object]:
+        def assess(now: float) -> object:
+            run.full_ticks += 1
+            return tracker_assess(now)
+
+        return assess
+
+    fc1 = agent.links["fc1"].tracker
+    fc1.assess = counted_assess(fc1.assess)  # type: ignore[method-assign,assignment]
+    feeds = {name: Feed(link.tracker) for name, link in agent.links.items()}
+    step = 0
+    while step * TICK_S < seconds:
+        t = step * TICK_S
+        for name, feed in feeds.items():
+            feed.t = t
+            state = "stream"
+            for fault in faults:
+                if fault.autopilot == name and t >= fault.at:
+                    state = fault.kind
+            if state == "silence":
+                continue
+            if step % round(1 / (RATE_HZ * TICK_S)) == 0:
+                feed.attitude()
+            if step % 100 == 0:
+                status = MavState.EMERGENCY if state == "emergency" else MavState.ACTIVE
+                feed.heartbeat(state=status)
+                feed.landed(LandedState.IN_AIR)
+            if step % 20 == 0:
+                gyro = state == "gyro"
+                feed.sys_status(health=SENSORS & ~int(SensorBit.GYRO) if gyro else SENSORS)
+        clock.now = t
+        full()
+        run.ticks += 1
+        step += 1
+    while not agent._events.empty():
+        event = agent._events.get()
+        if event is not None:
+            run.events.append(event)
+    return run
+
+
+def _decided(run: Run) -> list[tuple[object, ...]]:
+    return [
+        (
+            e.kind,
+            e.reason,
+            e.autopilot,
+            e.message,
+            None if e.failover is None else e.failover.detected_at,
+        )
+        for e in run.events
+    ]
+
+
+ROWS: list[tuple[str, list[Fault], str]] = [
+    ("healthy flight", [], "fc1"),
+    ("the active autopilot falls silent", [Fault("fc1", 3.0, "silence")], "fc2"),
+    ("the active autopilot declares EMERGENCY", [Fault("fc1", 3.05, "emergency")], "fc2"),
+    ("the active autopilot's gyro fails", [Fault("fc1", 3.0, "gyro")], "fc2"),
+    ("the standby falls silent", [Fault("fc2", 3.0, "silence")], "fc1"),
+    (
+        "the standby falls silent and comes back",
+        [Fault("fc2", 3.0, "silence"), Fault("fc2", 3.6, "resume")],
+        "fc1",
+    ),
+]
+
+
+@pytest.mark.parametrize(("what", "faults", "active"), ROWS, ids=[r[0] for r in ROWS])
+def test_skipped_ticks_decide_what_full_ticks_decide(
+    what: str, faults: list[Fault], active: str
+) -> None:
+    skipping = _fly(faults, 6.0, skipping=True)
+    full = _fly(faults, 6.0, skipping=False)
+    assert _decided(skipping) == _decided(full), what
+    assert skipping.agent.active == full.agent.active == active
+    assert skipping.agent._state == full.agent._state
+    assert full.full_ticks == full.ticks
+    assert skipping.full_ticks < full.ticks / 2  # most ticks of these flights skip
+
+
+def test_a_silent_active_autopilot_is_judged_at_its_threshold_without_any_message() -> None:
+    """fc1's last message arrives at 2.98 s. Nothing from fc1 arrives after it; the
+    switch comes at the first tick past message_error_ms (200 ms) plus confirm_ms
+    (20 ms) — the tick of a loop that judges every tick."""
+    run = _fly([Fault("fc1", 3.0, "silence")], 4.0, skipping=True)
+    (failover,) = [e.failover for e in run.events if e.failover is not None]
+    last = 2.98
+    assert failover.record.from_autopilot == "fc1" and failover.record.to_autopilot == "fc2"
+    assert "silent" in failover.record.reason
+    error_tick = last + TH.message_error_ms / 1000
+    assert error_tick <= failover.detected_at <= error_tick + TH.confirm_ms / 1000 + 2 * TICK_S
+    assert failover.onset_at == pytest.approx(last)
