@@ -16,10 +16,14 @@ Why a read from a cache cannot make the controller do the wrong thing:
 * writes that replace a list (node taints) carry the ``resourceVersion`` they were
   computed from; a stale cache makes the API server refuse them (409) and the
   controller retries from :meth:`fresh` reads, which also refresh the store.
-* the objects whose status the controller writes (the Vehicle) or decides on (its
-  RedundantAutopilot) are not cached: they are read fresh every time.
-* before a store's first list completes, and for any other kind or namespace, reads go
-  to the API server.
+* the Vehicle comes from a store fed by kopf's own watch of Vehicles (the events its
+  handler receives) and by the answers to the controller's status writes, which carry
+  the ``resourceVersion`` they were computed from: a status computed from a stale
+  Vehicle is refused (409) and recomputed from a fresh read. A Vehicle with a
+  RedundantAutopilot — whose reconcile may act on a failover — is always read fresh,
+  and so is the RedundantAutopilot.
+* before a listed store's first list completes, for an object a store fed by events
+  alone has not seen, and for any other kind or namespace, reads go to the API server.
 
 Objects handed out are the stores' own: callers must not change them.
 """
@@ -42,6 +46,9 @@ class Cached:
 
     store: Store
     namespace: str = ""
+    listed: bool = True
+    """The store is filled by a list and a watch, so an object it lacks does not exist;
+    False: by watch events alone, so an object it lacks is asked for."""
 
 
 @dataclass
@@ -57,14 +64,20 @@ class CachedView:
         cached = self.caches.get(resource.kind)
         if cached is None or (namespace or "") != cached.namespace:
             return None
-        return cached.store if cached.store.synced.is_set() else None
+        return cached.store if cached.store.synced.is_set() or not cached.listed else None
 
     def get(self, resource: Resource, name: str, namespace: str | None = None) -> Obj | None:
         store = self._store(resource, namespace)
-        if store is None:
+        found = None if store is None else store.get(name, namespace)
+        if found is None and (store is None or not self.caches[resource.kind].listed):
             return self.fresh(resource, name, namespace)
-        found = store.get(name, namespace)
         return None if found is None else dict(found)
+
+    def remember(self, obj: Mapping[str, Any]) -> None:
+        """The answer to a write made elsewhere (the Vehicle's status)."""
+        store = self._store(resource_of(obj), obj["metadata"].get("namespace"))
+        if store is not None:
+            store.remember(obj)
 
     def fresh(self, resource: Resource, name: str, namespace: str | None = None) -> Obj | None:
         """Read from the API server (after a conflict), keeping the store current."""

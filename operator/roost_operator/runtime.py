@@ -25,7 +25,7 @@ import kopf
 from roost_api.wellknown import LABEL_COMPONENT, LABEL_MANAGED_BY, LABEL_VEHICLE, MANAGED_BY
 from roost_kube.client import Kube
 from roost_kube.errors import ApiError
-from roost_kube.resources import CONFIGMAPS, DEPLOYMENTS, LEASES, NODES
+from roost_kube.resources import CONFIGMAPS, DEPLOYMENTS, LEASES, NODES, VEHICLES
 from roost_operator.cache import Cached
 from roost_operator.claims import CLAIM_COMPONENT, Claim, claim_of
 from roost_operator.edge import HandlerTiming, error_kind
@@ -68,6 +68,9 @@ class Runtime:
     """Each vehicle's ``AgentConnected`` status as its last reconcile wrote it."""
     timing: HandlerTiming | None = None
     """Where each queued reconcile's duration goes (the operator's metrics), if anywhere."""
+    vehicles_seen: Store = field(default_factory=Store)
+    """Every Vehicle as kopf's watch last delivered it (or the controller last wrote it):
+    the Vehicle controller's cache of Vehicles without a RedundantAutopilot."""
     watchers: list[Watcher] = field(default_factory=list)
     """Roost's own watches (Nodes, claim Leases): see :mod:`roost_operator.watches`."""
     claim_listeners: list[Callable[[Claim], None]] = field(default_factory=list)
@@ -94,17 +97,27 @@ class Runtime:
             CONFIGMAPS.kind: Store(index_label=LABEL_VEHICLE),
             DEPLOYMENTS.kind: Store(index_label=LABEL_VEHICLE),
         }
+        vehicles_seen = Store()
         controller = VehicleController(
             kube=kube,
             namespace=namespace,
             guards=settings.guards,
             stale_after=settings.agent_stale_after,
             caches={
-                kind: Cached(store, "" if kind == NODES.kind else namespace)
-                for kind, store in stores.items()
+                **{
+                    kind: Cached(store, "" if kind == NODES.kind else namespace)
+                    for kind, store in stores.items()
+                },
+                VEHICLES.kind: Cached(vehicles_seen, listed=False),
             },
         )
-        rt = cls(kube=kube, settings=settings, vehicles=controller, timing=timing)
+        rt = cls(
+            kube=kube,
+            settings=settings,
+            vehicles=controller,
+            timing=timing,
+            vehicles_seen=vehicles_seen,
+        )
         rt.vehicle_queue = WorkQueue(
             lambda vehicle: rt._timed(reconcile, vehicle),
             workers=settings.reconcile_workers,

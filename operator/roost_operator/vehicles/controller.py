@@ -10,10 +10,11 @@ Why it is safe to run at any time, any number of times, and to be killed half-wa
 
 * **one lock per vehicle** serialises every reconcile of one vehicle in the process
   (kopf runs handlers of different objects concurrently);
-* **read your own write**: the Vehicle and its RedundantAutopilot are read fresh from
-  the API on every run; nodes, the claim and what Roost made for the vehicle come from
-  watch caches that this controller's own writes update at once
-  (:class:`~roost_operator.cache.CachedView`, which says why that is safe);
+* **read your own write**: a Vehicle with a RedundantAutopilot (whose reconcile may act
+  on a failover) and the RedundantAutopilot are read fresh from the API on every run;
+  other Vehicles, nodes, the claim and what Roost made for the vehicle come from watch
+  caches that this controller's own writes update at once, and a retry after a conflict
+  reads fresh (:class:`~roost_operator.cache.CachedView` says why that is safe);
 * everything is computed from what was just read and written only where it differs
   (node patch planned by :func:`~roost_operator.vehicles.placement.plan_node`, objects
   through :meth:`~roost_kube.client.Kube.apply`, status compared before patching);
@@ -192,7 +193,7 @@ class VehicleController:
         with self.lock(name):
             for attempt in range(CONFLICT_RETRIES):
                 try:
-                    return self._reconcile_once(name, peers)
+                    return self._reconcile_once(name, peers, fresh=attempt > 0)
                 except ConflictError:
                     if attempt == CONFLICT_RETRIES - 1:
                         raise
@@ -245,9 +246,12 @@ class VehicleController:
         mavros = self.cluster.get(DEPLOYMENTS, workload_name(vehicle, "mavros"), self.namespace)
         return mavros_follows(fcu_url, config_map, mavros)
 
-    def _reconcile_once(self, name: str, peers: Peers) -> Outcome | None:
+    def _reconcile_once(self, name: str, peers: Peers, *, fresh: bool) -> Outcome | None:
         kube = self.kube
-        vehicle = kube.get(VEHICLES, name)
+        if fresh or peers.autopilots_of(name) is not None:
+            vehicle = self.cluster.fresh(VEHICLES, name)
+        else:
+            vehicle = self.cluster.get(VEHICLES, name)
         if vehicle is None or vehicle["metadata"].get("deletionTimestamp"):
             self.ledger.forget(name)
             return None
@@ -281,11 +285,13 @@ class VehicleController:
                 fields=STATUS_FIELDS,
                 event_types=EVENT_CONDITIONS,
             )
+            if written is not None:
+                self.cluster.remember(written)
         except Exception:
             with self.ledger.lock:  # nothing was stored: the index/status stay the truth
                 self.ledger.record(name, was_acting)
             raise
-        if written and refused:  # reported when the status shows it, never per retry
+        if written is not None and refused:  # reported when the status shows it, never per retry
             summary = "; ".join(f"{what}: {error.message}" for what, error in refused.items())
             log.warning("Vehicle %s: the API server refused: %s", name, summary)
             kube.post_event(

@@ -182,7 +182,13 @@ def _vehicle_relevant(meta: Mapping[str, Any]) -> Any:
 
 
 async def vehicle_event(
-    *, type: str | None, name: str, meta: kopf.Meta, memo: Any, **indexes: Any
+    *,
+    type: str | None,
+    name: str,
+    meta: kopf.Meta,
+    event: kopf.RawEvent,
+    memo: Any,
+    **indexes: Any,
 ) -> None:
     """The Vehicle appeared (the operator started, or it was created), its spec, labels or
     annotations changed (a human paused, resumed or cleared the latch of its failover
@@ -191,7 +197,11 @@ async def vehicle_event(
     A watch-event handler: kopf's update handlers do not see annotations under the
     operator's own ``roost.dev/`` prefix (its progress storage lives there), and they
     store a diff base on every object, a write per Vehicle that nothing here needs.
+
+    Every event, status writes included, keeps the controller's cache of Vehicles
+    (:attr:`~roost_operator.runtime.Runtime.vehicles_seen`) current.
     """
+    runtime(memo).vehicles_seen.observe(type or "ADDED", event["object"])
     if type == "DELETED":
         _vehicle_prints.forget(name)
         runtime(memo).vehicle_queue.forget(name)

@@ -18,7 +18,7 @@ from typing import Any
 from roost_api.meta import now
 from roost_api.vehicle import VehicleStatus
 from roost_kube.client import Kube
-from roost_kube.patches import merge_patch_fields
+from roost_kube.patches import Obj, merge_patch_fields
 from roost_kube.resources import VEHICLES
 from roost_operator.vehicles.desired import transitions
 
@@ -44,17 +44,18 @@ def write_vehicle_status(
     *,
     fields: Iterable[str],
     event_types: Iterable[str],
-) -> bool:
-    """Patch the owned ``fields`` of ``vehicle``'s status if they changed; True if sent.
+) -> Obj | None:
+    """Patch the owned ``fields`` of ``vehicle``'s status if they changed; the Vehicle as
+    written, or None when nothing needed writing.
 
     Raises :class:`~roost_kube.errors.ConflictError` when the Vehicle changed since
     ``vehicle`` was read: recompute from a fresh read and call again.
     """
     patch = status_patch(old, new, fields)
     if patch is None:
-        return False
+        return None
     meta = vehicle["metadata"]
-    kube.merge_patch(
+    written = kube.merge_patch(
         VEHICLES,
         meta["name"],
         {"metadata": {"resourceVersion": meta["resourceVersion"]}, "status": patch},
@@ -69,4 +70,4 @@ def write_vehicle_status(
             type="Normal" if cond.status == "True" else "Warning",
             at=at,
         )
-    return True
+    return written
