@@ -22,12 +22,12 @@ its functions.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any, Final
 
 KUBELET_REPORT_S: Final = 300
 """A kubelet's default ``nodeStatusReportFrequency``."""
 
-_API = "kwok.x-k8s.io/v1alpha1"
 _NODE = {"apiGroup": "v1", "kind": "Node"}
 _READY = '.status.conditions.[] | select( .type == "Ready" ) | .status'
 
@@ -63,12 +63,14 @@ phase: Running
 )
 
 
-def _stage(name: str, spec: dict[str, Any]) -> dict[str, Any]:
+def stage(name: str, resource: Mapping[str, str], spec: Mapping[str, Any]) -> dict[str, Any]:
+    """A kwok Stage object named ``name`` for objects of ``resource`` (``apiGroup``,
+    ``kind``) with the rest of its ``spec`` (selector, delay, next)."""
     return {
-        "apiVersion": _API,
+        "apiVersion": "kwok.x-k8s.io/v1alpha1",
         "kind": "Stage",
         "metadata": {"name": name},
-        "spec": {"resourceRef": _NODE, **spec},
+        "spec": {"resourceRef": dict(resource), **spec},
     }
 
 
@@ -76,8 +78,9 @@ def node_stages(report_every_s: float = KUBELET_REPORT_S) -> list[dict[str, Any]
     """The two Node Stages described in the module docstring."""
     period_ms = round(report_every_s * 1000)
     return [
-        _stage(
+        stage(
             "roost-node-ready",
+            _NODE,
             {
                 "selector": {
                     "matchExpressions": [{"key": _READY, "operator": "NotIn", "values": ["True"]}]
@@ -85,8 +88,9 @@ def node_stages(report_every_s: float = KUBELET_REPORT_S) -> list[dict[str, Any]
                 "next": {"statusTemplate": _READY_STATUS},
             },
         ),
-        _stage(
+        stage(
             "roost-node-report",
+            _NODE,
             {
                 "selector": {
                     "matchExpressions": [

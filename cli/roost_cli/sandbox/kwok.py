@@ -19,11 +19,11 @@ from __future__ import annotations
 from typing import Any
 
 from roost_api.wellknown import PREFIX
+from roost_localcluster.kwoknodes import stage
 
 RUNTIME_ANNOTATION = f"{PREFIX}sandbox-runtime"
 """Pod annotation: how long kwok keeps a Job's pod Running (a Go duration, e.g. ``10m``)."""
 
-_API = "kwok.x-k8s.io/v1alpha1"
 _POD = {"apiGroup": "v1", "kind": "Pod"}
 _NOT_DELETING = {"key": ".metadata.deletionTimestamp", "operator": "DoesNotExist"}
 
@@ -78,20 +78,12 @@ finishedAt: {{ $now | Quote }}}}
 """
 
 
-def _stage(name: str, spec: dict[str, Any]) -> dict[str, Any]:
-    return {
-        "apiVersion": _API,
-        "kind": "Stage",
-        "metadata": {"name": name},
-        "spec": {"resourceRef": _POD, **spec},
-    }
-
-
 def pod_stages() -> list[dict[str, Any]]:
     """The three pod Stages described in the module docstring."""
     return [
-        _stage(
+        stage(
             "roost-pod-ready",
+            _POD,
             {
                 "selector": {
                     "matchExpressions": [
@@ -102,8 +94,9 @@ def pod_stages() -> list[dict[str, Any]]:
                 "next": {"statusTemplate": _RUNNING_STATUS},
             },
         ),
-        _stage(
+        stage(
             "roost-pod-complete",
+            _POD,
             {
                 "selector": {
                     "matchExpressions": [
@@ -125,8 +118,9 @@ def pod_stages() -> list[dict[str, Any]]:
                 "next": {"statusTemplate": _SUCCEEDED_STATUS},
             },
         ),
-        _stage(
+        stage(
             "roost-pod-delete",
+            _POD,
             {
                 "selector": {
                     "matchExpressions": [
