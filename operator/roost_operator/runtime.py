@@ -68,9 +68,6 @@ class Runtime:
     """Each vehicle's ``AgentConnected`` status as its last reconcile wrote it."""
     timing: HandlerTiming | None = None
     """Where each queued reconcile's duration goes (the operator's metrics), if anywhere."""
-    vehicles_seen: Store = field(default_factory=Store)
-    """Every Vehicle as kopf's watch last delivered it (or the controller last wrote it):
-    the Vehicle controller's cache of Vehicles without a RedundantAutopilot."""
     watchers: list[Watcher] = field(default_factory=list)
     """Roost's own watches (Nodes, claim Leases): see :mod:`roost_operator.watches`."""
     claim_listeners: list[Callable[[Claim], None]] = field(default_factory=list)
@@ -97,7 +94,6 @@ class Runtime:
             CONFIGMAPS.kind: Store(index_label=LABEL_VEHICLE),
             DEPLOYMENTS.kind: Store(index_label=LABEL_VEHICLE),
         }
-        vehicles_seen = Store()
         controller = VehicleController(
             kube=kube,
             namespace=namespace,
@@ -108,16 +104,10 @@ class Runtime:
                     kind: Cached(store, "" if kind == NODES.kind else namespace)
                     for kind, store in stores.items()
                 },
-                VEHICLES.kind: Cached(vehicles_seen, listed=False),
+                VEHICLES.kind: Cached(Store(), listed=False),
             },
         )
-        rt = cls(
-            kube=kube,
-            settings=settings,
-            vehicles=controller,
-            timing=timing,
-            vehicles_seen=vehicles_seen,
-        )
+        rt = cls(kube=kube, settings=settings, vehicles=controller, timing=timing)
         rt.vehicle_queue = WorkQueue(
             lambda vehicle: rt._timed(reconcile, vehicle),
             workers=settings.reconcile_workers,
@@ -147,6 +137,13 @@ class Runtime:
             if settings.resync_seconds > 0:
                 threading.Thread(target=rt._sweep, name="vehicle-sweep", daemon=True).start()
         return rt
+
+    @property
+    def vehicles_seen(self) -> Store:
+        """Every Vehicle as kopf's watch last delivered it (or the controller last wrote
+        it): the Vehicle controller's cache of Vehicles without a RedundantAutopilot, fed
+        by the Vehicle event handler."""
+        return self.vehicles.caches[VEHICLES.kind].store
 
     def bind_peers(self, make: Callable[[], Peers]) -> None:
         """Keep the index view from the first handler that offers it."""

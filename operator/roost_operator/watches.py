@@ -243,10 +243,6 @@ class Fingerprints:
         with self._lock:
             return self._seen.pop(key, None) is not None
 
-    def keys(self) -> set[Hashable]:
-        with self._lock:
-            return set(self._seen)
-
 
 class Watcher:
     """Lists and watches one kind in a daemon thread, calling back per event."""

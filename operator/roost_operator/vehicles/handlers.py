@@ -57,9 +57,7 @@ from typing import Any, Final
 import kopf
 
 from roost_api.meta import now
-from roost_api.wellknown import (
-    PREFIX,
-)
+from roost_api.wellknown import PREFIX
 from roost_kube import resources
 from roost_operator.edge import at_the_edge, handler_edge
 from roost_operator.runtime import Runtime, runtime
@@ -85,7 +83,6 @@ FailoverActions = kopf.Index[str, bool]
 
 log = logging.getLogger(__name__)
 _vehicle_prints = Fingerprints()
-_node_prints = Fingerprints()
 _autopilot_prints = Fingerprints()
 
 
@@ -201,10 +198,11 @@ async def vehicle_event(
     Every event, status writes included, keeps the controller's cache of Vehicles
     (:attr:`~roost_operator.runtime.Runtime.vehicles_seen`) current.
     """
-    runtime(memo).vehicles_seen.observe(type or "ADDED", event["object"])
+    rt = runtime(memo)
+    rt.vehicles_seen.observe(type or "ADDED", event["object"])
     if type == "DELETED":
         _vehicle_prints.forget(name)
-        runtime(memo).vehicle_queue.forget(name)
+        rt.vehicle_queue.forget(name)
         return
     if _vehicle_prints.changed(name, _vehicle_relevant(meta)):
         enqueue(memo, name, indexes)
