@@ -30,6 +30,13 @@ EARTH_RADIUS_M = 6_378_137.0
 ARRIVED_M = 0.05
 """Closer than this to the target with no speed left counts as on it."""
 
+MAX_STEP_S = 0.02
+"""Longest stretch integrated in one go. The simulator steps on its own clock, so a busy
+machine can hand :meth:`Horizontal.step` half a second at once; flown as one step, the
+braking curve near the target overshoots and rings (a discrete controller whose gain is
+too high for its period). Cutting ``dt`` into slices no longer than this makes where the
+vehicle ends up independent of how often it was stepped."""
+
 
 @dataclass
 class Horizontal:
@@ -64,6 +71,19 @@ class Horizontal:
         """Fly towards ``target`` (north, east) for ``dt`` seconds within the limits."""
         if dt <= 0.0:
             return
+        slices = math.ceil(dt / MAX_STEP_S)
+        for _ in range(slices):
+            self._slice(dt / slices, target, max_speed_mps, max_accel_mps2, speed_scale)
+
+    def _slice(
+        self,
+        dt: float,
+        target: tuple[float, float],
+        max_speed_mps: float,
+        max_accel_mps2: float,
+        speed_scale: float,
+    ) -> None:
+        """One integration step, short enough for the braking curve to be flown exactly."""
         speed_limit = max(0.0, max_speed_mps * speed_scale)
         accel = max_accel_mps2 * max(speed_scale, 0.1)
         dn, de = target[0] - self.north_m, target[1] - self.east_m

@@ -62,3 +62,16 @@ def test_global_and_local_coordinates_convert_both_ways() -> None:
     assert north == pytest.approx(120.0, abs=1e-6) and east == pytest.approx(-35.0, abs=1e-6)
     lat, _ = global_from_ned(111.32, 0.0, *home)
     assert lat - home[0] == pytest.approx(0.001, rel=0.01)  # ~111 m per millidegree
+
+
+@pytest.mark.parametrize("stall_s", [0.25, 0.5, 1.0])
+def test_a_stalled_stepper_ends_up_where_a_steady_one_does(stall_s: float) -> None:
+    """The simulator steps on its own clock; a busy machine hands it long gaps, and the
+    vehicle must not overshoot and ring around its target because of them."""
+    steady, stalled = Horizontal(), Horizontal()
+    limits = {"max_speed_mps": 5.0, "max_accel_mps2": 3.0}
+    for _ in range(round(12.0 / stall_s)):
+        stalled.step(stall_s, (20.0, 10.0), **limits)
+    fly(steady, (20.0, 10.0), 12.0)
+    assert stalled.distance_to(20.0, 10.0) < 0.05 and stalled.speed_mps == 0.0
+    assert stalled.north_m == pytest.approx(steady.north_m, abs=0.05)
