@@ -40,6 +40,7 @@ id, also across restarts) and :meth:`Agent.apply_spec` (a new spec from the clus
 from __future__ import annotations
 
 import logging
+import math
 import queue
 import threading
 import time
@@ -65,6 +66,7 @@ from roost_agent.arbiter import (
     SafetyPlan,
     SwitchBridge,
     Trigger,
+    deadline,
     handle_command,
     settled,
     step,
@@ -108,7 +110,15 @@ from roost_mavlink import MAV_CMD_SET_MESSAGE_INTERVAL, pymavlink_device
 
 log = logging.getLogger(__name__)
 
-DEFAULT_TICK_S = 0.01
+DEFAULT_TICK_S = 0.02
+"""How long a datagram may wait to be read while no hub client hurries the reader: the
+decision loop reads and ticks this often. Judgements that turn with nothing arriving
+(a silence crossing its threshold, the confirm window of a failure ending) are not
+held to it: :meth:`Agent.tick` says when the next one is due and the loop ticks then.
+Each wake-up costs the agent more than the messages it reads (docs/performance.md)."""
+JUDGE_LATE_S = 1e-4
+"""A tick meant for a health threshold comes this much after it: the judgement there
+compares a difference of float times with the threshold and must see it crossed."""
 HEARTBEAT_PERIOD_S = 1.0
 STREAM_CHECK_S = 0.1
 FAILOVER_HISTORY = 100
@@ -621,24 +631,29 @@ class Agent:
 
     # -- decision loop -------------------------------------------------------------------
 
-    def _tick_while_running(self) -> None:
-        if not self._stop.is_set():  # stopping: the links close, nothing is decided on that
-            self.tick()
+    def _tick_while_running(self) -> float | None:
+        if self._stop.is_set():  # stopping: the links close, nothing is decided on that
+            return None
+        return self.tick()
 
-    def tick(self) -> None:
+    def tick(self) -> float | None:
         """One decision: assess, step the arbiter, switch first, then everything else.
 
         A tick in which nothing can have changed returns at once (:meth:`_nothing_new`):
-        most ticks of a healthy flight.
+        most ticks of a healthy flight. Returns when, on this clock, the next decision is
+        due even if no message arrives (None: nothing sooner than the next read): the
+        first health threshold any autopilot crosses while the arbiter is settled, the
+        end of a running confirm window otherwise.
         """
         cfg = self._cfg
         now = self._clock()
         in_step = self._hub.in_step(now) if self._hub is not None else {}
-        if self._nothing_new(cfg, now, in_step):
+        quiet_until = self._nothing_new(cfg, now, in_step)
+        if quiet_until is not None:
             if in_step:
                 with self._lock:
                     self._in_step = in_step
-            return
+            return quiet_until + JUDGE_LATE_S
         assessments = {name: link.tracker.assess(now) for name, link in cfg.links.items()}
         views = {name: self._view(a, in_step.get(name)) for name, a in assessments.items()}
         if not settled(self._state, views, cfg.policy):
@@ -659,29 +674,46 @@ class Agent:
             )
             self._execute(cfg, decision)
         self._note_health_changes(assessments)
-        self._settled_with = cfg if settled(self._state, views, cfg.policy) else None
+        if settled(self._state, views, cfg.policy):
+            self._settled_with = cfg
+            due = min(link.tracker.next_threshold(assessments[n]) for n, link in cfg.links.items())
+            return due + JUDGE_LATE_S
+        self._settled_with = None
+        return deadline(self._state, cfg.policy)
 
-    def _nothing_new(self, cfg: _Running, now: float, in_step: Mapping[str, InStep]) -> bool:
-        """Whether a full tick now would decide exactly what the last one did: the arbiter
-        was settled after it (:func:`roost_agent.arbiter.settled`: no timer runs, nothing
-        pending) under the same configuration, no command waits, every autopilot's
-        judgement holds (:meth:`roost_agent.health.HealthTracker.holds`: nothing it reads
-        changed, no threshold passed since) and the hub's in-step verdicts are the same.
-        Then the views are the ones the arbiter settled on, so stepping it would change
-        nothing, and no health event is due. Silence is still judged at the first tick
-        after its threshold: a threshold passing is exactly what ends the skipping."""
+    def _nothing_new(
+        self, cfg: _Running, now: float, in_step: Mapping[str, InStep]
+    ) -> float | None:
+        """Until when a full tick would decide exactly what the last one did (None: not
+        now): the arbiter was settled after it (:func:`roost_agent.arbiter.settled`: no
+        timer runs, nothing pending) under the same configuration, no command waits,
+        every autopilot's judgement holds (:meth:`roost_agent.health.HealthTracker.holds`:
+        nothing it reads changed, no threshold passed since) and the hub's in-step
+        verdicts are the same. Then the views are the ones the arbiter settled on, so
+        stepping it would change nothing, and no health event is due. A threshold
+        passing is exactly what ends the skipping, and the loop ticks when it does."""
         if self._settled_with is not cfg or self._inbox:
-            return False
-        judged = self._assessments
+            return None
+        until = self._judgements_hold_until(cfg, self._assessments)
+        if now >= until:
+            return None
+        if (in_step or self._in_step) and {n: v.status for n, v in in_step.items()} != {
+            n: v.status for n, v in self._in_step.items()
+        }:
+            return None
+        return until
+
+    @staticmethod
+    def _judgements_hold_until(cfg: _Running, judged: Mapping[str, Assessment]) -> float:
+        """The first time an autopilot's last judgement stops holding (minus infinity:
+        one has no judgement yet, or already changed)."""
+        until = math.inf
         for name, link in cfg.links.items():
             last = judged.get(name)
-            if last is None or not link.tracker.holds(last, now):
-                return False
-        if in_step or self._in_step:
-            return {n: v.status for n, v in in_step.items()} == {
-                n: v.status for n, v in self._in_step.items()
-            }
-        return True
+            if last is None:
+                return -math.inf
+            until = min(until, link.tracker.holds_until(last))
+        return until
 
     def _view(self, a: Assessment, in_step: InStep | None) -> AutopilotView:
         """:func:`_view`, reusing the last one while what it is made of is unchanged (a

@@ -271,6 +271,15 @@ def settled(state: ArbiterState, views: Mapping[str, AutopilotView], policy: Pol
     )
 
 
+def deadline(state: ArbiterState, policy: Policy) -> float | None:
+    """When :func:`step` would act with the views unchanged: the end of the confirm
+    window of a failing active autopilot (None: no such timer runs). The decision loop
+    ticks then, not at its next read, so a confirmed failure switches on time."""
+    if not policy.automatic or state.failing_since is None:
+        return None
+    return state.failing_since + policy.confirm_s
+
+
 def step(
     state: ArbiterState,
     views: Mapping[str, AutopilotView],
@@ -295,8 +304,9 @@ def step(
         return Decision(state)
     if not failing:
         return _failback(state, views, policy, now)
-    assert state.failing_since is not None
-    if now - state.failing_since < policy.confirm_s:
+    confirmed_at = deadline(state, policy)
+    assert confirmed_at is not None
+    if now < confirmed_at:  # the same sum the decision loop wakes at: no rounding between
         return Decision(state)
     reason = f"{state.active}: {active.reason}" if active else f"{state.active}: no data"
     onset = active.onset if active else None

@@ -576,11 +576,24 @@ class HealthTracker:
         clock never holds. This is what lets the decision loop skip a tick in which
         nothing can have changed; silence is still judged at the tick its threshold passes.
         """
+        return now < self.holds_until(judged)
+
+    def holds_until(self, judged: Assessment) -> float:
+        """The time until which :meth:`holds` is true for ``judged`` with nothing new
+        observed (minus infinity when something it read changed already): when the
+        decision loop next has to judge this autopilot although no message came."""
         with self._lock:
             o = self._o
-            return judged.version == o.version and now < _next_threshold(
-                o, self.thresholds, judged.at
-            )
+            if judged.version != o.version:
+                return -math.inf
+            return _next_threshold(o, self.thresholds, judged.at)
+
+    def next_threshold(self, judged: Assessment) -> float:
+        """The first time after ``judged`` a finding could appear, go or change level with
+        nothing new observed — also for a judgement that never holds because a finding's
+        text reads the clock: when to judge again at the latest."""
+        with self._lock:
+            return _next_threshold(self._o, self.thresholds, judged.at)
 
     @property
     def refuted(self) -> int:

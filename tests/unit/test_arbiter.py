@@ -29,6 +29,7 @@ from roost_agent.arbiter import (
     SafetyPlan,
     SwitchBridge,
     Trigger,
+    deadline,
     handle_command,
     step,
 )
@@ -139,6 +140,21 @@ def test_a_failure_shorter_than_the_confirm_time_is_ignored() -> None:
     ]
     state, actions = run(settled("fc1", "fc1", "fc2"), pol, timeline)
     assert actions == [] and state.active == "fc1"
+
+
+def test_the_deadline_is_the_end_of_the_confirm_window_and_switching_at_it_switches() -> None:
+    pol = policy()
+    state = settled("fc1", "fc1", "fc2")
+    assert deadline(state, pol) is None  # healthy: nothing to wake for
+    failing = step(state, views(view("fc1", ERROR), view("fc2")), pol, 5.0).state
+    due = deadline(failing, pol)
+    assert due is not None and due == pytest.approx(5.0 + CONFIRM)
+    early = step(failing, views(view("fc1", ERROR), view("fc2")), pol, due - 1e-6)
+    assert early.actions == ()
+    on_time = step(failing, views(view("fc1", ERROR), view("fc2")), pol, due)
+    assert any(isinstance(a, SwitchBridge) for a in on_time.actions)
+    assert on_time.state.active == "fc2" and deadline(on_time.state, pol) is None
+    assert deadline(failing, policy(automatic=False)) is None  # manual: never acts alone
 
 
 @pytest.mark.parametrize("level", [OK, WARN])

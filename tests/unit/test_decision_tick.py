@@ -64,7 +64,7 @@ def _fly(faults: list[Fault], seconds: float, *, skipping: bool) -> Run:
     )
     run = Run(agent)
     if not skipping:
-        agent._nothing_new = lambda *_: False  # type: ignore[method-assign]
+        agent._nothing_new = lambda *_: None  # type: ignore[method-assign]
     full = agent.tick
 
     def counted_assess(tracker_assess: Callable[[float], object]) -> Callable[[float], object]:
@@ -160,3 +160,58 @@ def test_a_silent_active_autopilot_is_judged_at_its_threshold_without_any_messag
     error_tick = last + TH.message_error_ms / 1000
     assert error_tick <= failover.detected_at <= error_tick + TH.confirm_ms / 1000 + 2 * TICK_S
     assert failover.onset_at == pytest.approx(last)
+
+
+def test_a_loop_ticking_only_when_due_judges_a_silence_at_its_threshold() -> None:
+    """With nothing arriving from the active autopilot, nothing pokes the loop: it ticks
+    when the last tick said it is next due, and no sooner. A silent active autopilot must
+    still switch at its last message + the error threshold + the confirm time."""
+    clock = Clock()
+    agent = Agent(
+        two_px4_spec(15100, TH), SimulatedBridge([0, 1]), clock=clock, wall_clock=lambda: WALL
+    )
+    feeds = {name: Feed(link.tracker) for name, link in agent.links.items()}
+
+    def stream(name: str, t: float, step: int) -> None:
+        feed = feeds[name]
+        feed.t = t
+        feed.attitude()
+        if step % 50 == 0:
+            feed.heartbeat()
+            feed.landed(LandedState.IN_AIR)
+        if step % 10 == 0:
+            feed.sys_status()
+
+    step = 0
+    while step * 0.02 < 3.0:  # both stream at 50 Hz; the loop ticks with every message
+        clock.now = step * 0.02
+        for name in feeds:
+            stream(name, clock.now, step)
+        due = agent.tick()
+        step += 1
+    last_message = (step - 1) * 0.02
+    ticks: list[float] = []
+    while agent.active == "fc1" and len(ticks) < 50:  # fc1 is silent; fc2 streams unread
+        assert due is not None and due > clock.now, "a silent autopilot must be due a tick"
+        while step * 0.02 <= due:
+            clock.now = step * 0.02
+            stream("fc2", clock.now, step)
+            step += 1
+        clock.now = due
+        ticks.append(due)
+        due = agent.tick()
+    switched = [e for e in _events(agent) if e.failover is not None]
+    assert agent.active == "fc2" and len(switched) == 1
+    expected = last_message + (TH.message_error_ms + TH.confirm_ms) / 1000
+    detected = switched[0].failover.detected_at  # type: ignore[union-attr]
+    assert detected == pytest.approx(expected, abs=1e-3)
+    assert len(ticks) <= 4  # the warning, the error, the end of the confirm window
+
+
+def _events(agent: Agent) -> list[AgentEvent]:
+    events = []
+    while not agent._events.empty():
+        event = agent._events.get()
+        if event is not None:
+            events.append(event)
+    return events
