@@ -20,6 +20,12 @@ any CPU the operator spends is its own overhead.
   events a real fleet sends.
 - ``fleet.single_change_p99_s``: with the fleet idle, one Vehicle's spec changes (its
   mavros image) until its Deployment carries the new image; p99 over ``CHANGES``.
+- ``fleet.control_plane_floor_<N>_s``: what the control plane alone needs for the same
+  outcome. A fresh control plane of the same settings gets the same N nodes (with the
+  labels the operator gave them) and, by the same ``kubectl apply`` streams, the very
+  ConfigMaps and Deployments the operator made, with no operator running; the figure is
+  apply → every Deployment available. No operator can make the fleet Ready sooner on
+  this machine, so it is the yardstick for ``fleet.ready_<N>_s``.
 
 Sizes: ``ROOST_BENCH_FLEET`` (default 1000; ``1000,3000`` runs both, the larger one is
 recorded with what happened). The machine's load average is recorded with every figure:
@@ -49,7 +55,7 @@ from bench.controlplane import FLEET_SETTINGS
 from bench.core import Figure
 from roost_api.wellknown import LABEL_VEHICLE
 from roost_kube.client import Kube
-from roost_kube.resources import DEPLOYMENTS, VEHICLES
+from roost_kube.resources import CONFIGMAPS, DEPLOYMENTS, NODES, VEHICLES
 from roost_localcluster import binaries, nodes
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import ControlPlane
@@ -84,26 +90,27 @@ def vehicle_manifest(index: int) -> dict[str, Any]:
     }
 
 
-def _create_nodes(cluster: Cluster, count: int) -> None:
-    def create(index: int) -> None:
-        manifest = nodes.fake_node(f"{vehicle_name(index)}-node")
+def _create_nodes(cluster: Cluster, labelled: list[tuple[str, dict[str, str]]]) -> None:
+    """Create kwok nodes ``(name, labels)`` and wait until they are Ready."""
+
+    def create(node: tuple[str, dict[str, str]]) -> None:
+        manifest = nodes.fake_node(node[0], labels=node[1])
         with cluster.api_client() as api:
-            node = client.V1Node.from_dict(manifest)
-            assert node is not None
-            client.CoreV1Api(api).create_node(node)
+            body = client.V1Node.from_dict(manifest)
+            assert body is not None
+            client.CoreV1Api(api).create_node(body)
 
     with ThreadPoolExecutor(max_workers=4) as pool:
-        list(pool.map(create, range(count)))
-    cluster.wait_nodes_ready([f"{vehicle_name(i)}-node" for i in range(count)], NODES_TIMEOUT_S)
+        list(pool.map(create, labelled))
+    cluster.wait_nodes_ready([name for name, _ in labelled], NODES_TIMEOUT_S)
 
 
-def _apply_fleet(cluster: Cluster, count: int) -> None:
-    """``kubectl apply --server-side`` the fleet's Vehicles in ``APPLY_STREAMS`` streams."""
+def _apply_streams(cluster: Cluster, documents: list[str]) -> None:
+    """``kubectl apply --server-side`` the JSON ``documents`` in ``APPLY_STREAMS`` streams,
+    as ``xargs -P`` would."""
 
     def apply(stream: int) -> None:
-        manifest = "\n---\n".join(
-            json.dumps(vehicle_manifest(i)) for i in range(stream, count, APPLY_STREAMS)
-        )
+        manifest = "\n---\n".join(documents[stream::APPLY_STREAMS])
         cluster.kubectl(
             "apply", "--server-side", "-f", "-", input_text=manifest, timeout_s=APPLY_TIMEOUT_S
         )
@@ -199,15 +206,79 @@ def _single_changes(kube: Kube, count: int) -> list[float]:
     return seconds
 
 
-def measure(count: int) -> tuple[dict[str, float], str]:
-    """The figures at ``count`` vehicles and a note on how the run went."""
+@dataclass(frozen=True)
+class Made:
+    """What the operator made for the fleet, as manifests to apply elsewhere."""
+
+    node_labels: dict[str, dict[str, str]]
+    objects: list[dict[str, Any]]  # ConfigMaps and Deployments, server fields removed
+
+
+def _as_manifest(obj: dict[str, Any]) -> dict[str, Any]:
+    """``obj`` as one would write it: no status, no server-set metadata, no owners (the
+    Vehicles are not there to own it)."""
+    meta = obj["metadata"]
+    kept = {k: meta[k] for k in ("name", "namespace", "labels", "annotations") if k in meta}
+    return {k: v for k, v in obj.items() if k not in ("status", "metadata")} | {"metadata": kept}
+
+
+def _made(kube: Kube) -> Made:
+    node_labels = {
+        node["metadata"]["name"]: dict(node["metadata"].get("labels") or {})
+        for node in kube.list_objects(NODES)
+    }
+    objects = [
+        _as_manifest(obj)
+        for resource in (CONFIGMAPS, DEPLOYMENTS)
+        for obj in kube.list_objects(resource, namespace=NAMESPACE)
+        if LABEL_VEHICLE in (obj["metadata"].get("labels") or {})
+    ]
+    return Made(node_labels, objects)
+
+
+def _available_count(kube: Kube) -> int:
+    return sum(
+        1
+        for d in kube.list_objects(DEPLOYMENTS, namespace=NAMESPACE)
+        if (d.get("status") or {}).get("availableReplicas", 0) >= 1
+    )
+
+
+def control_plane_floor(made: Made) -> tuple[float, str]:
+    """Seconds from applying ``made`` to a fresh control plane (same nodes, no operator)
+    until every Deployment is available, and where the CPU went."""
+    deployments = sum(1 for obj in made.objects if obj["kind"] == "Deployment")
+    with (
+        tempfile.TemporaryDirectory(prefix="bench-fleet-floor-") as tmp,
+        ControlPlane(Path(tmp), settings=FLEET_SETTINGS) as plane,
+    ):
+        cluster = Cluster.of(plane)
+        cluster.kubectl("create", "namespace", NAMESPACE)
+        _create_nodes(cluster, list(made.node_labels.items()))
+        with cluster.api_client() as api:
+            kube = Kube(api, "roost-bench")
+            cpu_before = _cpu_by_program()
+            started = time.monotonic()
+            _apply_streams(cluster, [json.dumps(obj) for obj in made.objects])
+            wait_until(
+                f"{deployments} Deployments available",
+                lambda: _available_count(kube) >= deployments,
+                READY_TIMEOUT_S,
+                poll_s=1.0,
+            )
+            return time.monotonic() - started, _cpu_spent(cpu_before)
+
+
+def measure(count: int) -> tuple[dict[str, float], str, Made]:
+    """The figures at ``count`` vehicles, a note on how the run went, and what the
+    operator made."""
     with (
         tempfile.TemporaryDirectory(prefix="bench-fleet-") as tmp,
         ControlPlane(Path(tmp), settings=FLEET_SETTINGS) as plane,
     ):
         cluster = Cluster.of(plane)
         cluster.install_crds()
-        _create_nodes(cluster, count)
+        _create_nodes(cluster, [(f"{vehicle_name(i)}-node", {}) for i in range(count)])
         reports_from = time.monotonic() + FLEET_SETTINGS.node_status_report_s * 1.1
         operator = OperatorProcess(cluster, Path(tmp) / "operator.log", namespace=NAMESPACE)
         operator.start()
@@ -217,7 +288,7 @@ def measure(count: int) -> tuple[dict[str, float], str]:
                 kube = Kube(api, "roost-bench")
                 cpu_before = _cpu_by_program()
                 started = time.monotonic()
-                _apply_fleet(cluster, count)
+                _apply_streams(cluster, [json.dumps(vehicle_manifest(i)) for i in range(count)])
                 applied_s = time.monotonic() - started
                 wait_until(
                     f"{count} Vehicles Ready",
@@ -233,6 +304,7 @@ def measure(count: int) -> tuple[dict[str, float], str]:
                 idle_pct = (_cpu_s(proc) - cpu0) / (time.monotonic() - t0) * 100
                 changes = _single_changes(kube, count)
                 load = os.getloadavg()[0]
+                made = _made(kube)
             log = (Path(tmp) / "operator.log").read_text(errors="replace")
         finally:
             operator.stop()
@@ -250,16 +322,33 @@ def measure(count: int) -> tuple[dict[str, float], str]:
         f"{orphaned} orphaned handlers logged; the apply took {applied_s:.1f} s; CPU until "
         f"Ready: {ready_cpu}"
     )
-    return figures, note
+    return figures, note, made
 
 
 def run() -> list[Figure]:
     binaries.ensure_built()
     out: list[Figure] = []
     for count in SIZES:
-        figures, note = measure(count)
+        figures, note, made = measure(count)
         print(f"bench fleet {count}: {figures} ({note})", flush=True)
         target = count == 1000
+        floor_s, floor_cpu = control_plane_floor(made)
+        print(f"bench fleet {count}: control plane floor {floor_s:.1f} s", flush=True)
+        out.append(
+            Figure(
+                f"fleet.control_plane_floor_{count}_s",
+                round(floor_s, 1),
+                "s",
+                "informational",
+                COMMAND,
+                f"the {len(made.objects)} ConfigMaps and Deployments the operator made for "
+                f"{count} Vehicles, applied in {APPLY_STREAMS} kubectl streams to a fresh "
+                f"control plane with the same {count} KWOK nodes and no operator, until "
+                f"every Deployment is available (fleet.ready_{count}_s: "
+                f"{figures['ready_s']:.1f} s); 1-min load average {os.getloadavg()[0]:.1f}; "
+                f"CPU: {floor_cpu}",
+            )
+        )
         idle_note = f"operator CPU over {IDLE_S:.0f} s after {SETTLE_S:.0f} s settled; {note}"
         out += [
             Figure(
