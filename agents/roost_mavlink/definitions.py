@@ -65,20 +65,37 @@ class FieldDef:
 
 @dataclass(frozen=True)
 class MessageDef:
-    """One message as its XML declares it (fields in declaration order)."""
+    """One message as its XML declares it: base fields in declaration order, then the
+    extension fields (after ``<extensions/>``) in declaration order."""
 
     id: int
     name: str
     fields: tuple[FieldDef, ...]
+    extensions: tuple[FieldDef, ...] = ()
 
     @property
-    def wire_order(self) -> tuple[FieldDef, ...]:
-        """The fields as they sit in the payload: largest type first, stable."""
+    def base_order(self) -> tuple[FieldDef, ...]:
+        """The base fields as they sit in the payload: largest type first, stable."""
         return tuple(sorted(self.fields, key=lambda f: -TYPES[f.type][1]))
 
     @property
+    def wire_order(self) -> tuple[FieldDef, ...]:
+        """Every field as it sits in the payload: the sorted base, then the extensions."""
+        return self.base_order + self.extensions
+
+    @property
+    def min_length(self) -> int:
+        """Payload bytes of the base fields (a MAVLink 1 payload)."""
+        return sum(f.size for f in self.fields)
+
+    @property
+    def max_length(self) -> int:
+        """Payload bytes with every extension field (MAVLink 2 before zero truncation)."""
+        return self.min_length + sum(f.size for f in self.extensions)
+
+    @property
     def crc_extra(self) -> int:
-        return crc_extra(self.name, self.wire_order)
+        return crc_extra(self.name, self.base_order)
 
     @property
     def unpacker(self) -> struct.Struct:
@@ -96,8 +113,161 @@ def crc_extra(name: str, wire_order: tuple[FieldDef, ...]) -> int:
     return (crc & 0xFF) ^ (crc >> 8)
 
 
-def _message(msg_id: int, name: str, *fields: tuple[str, str] | tuple[str, str, int]) -> MessageDef:
-    return MessageDef(msg_id, name, tuple(FieldDef(*f) for f in fields))
+Declared = tuple[str, str] | tuple[str, str, int]
+
+
+def _message(
+    msg_id: int, name: str, *fields: Declared, extensions: tuple[Declared, ...] = ()
+) -> MessageDef:
+    return MessageDef(
+        msg_id,
+        name,
+        tuple(FieldDef(*f) for f in fields),
+        tuple(FieldDef(*f) for f in extensions),
+    )
+
+
+_PARAMS = tuple(("float", f"param{i}") for i in range(1, 8))
+
+# The messages whose fields the agent reads (health, hub, command acks) or writes (its
+# heartbeat, commands, ArduPilot stream requests), as common.xml / ardupilotmega.xml
+# declare them.
+AGENT_MESSAGES: dict[int, MessageDef] = {
+    m.id: m
+    for m in (
+        _message(
+            0,
+            "HEARTBEAT",
+            ("uint8_t", "type"),
+            ("uint8_t", "autopilot"),
+            ("uint8_t", "base_mode"),
+            ("uint32_t", "custom_mode"),
+            ("uint8_t", "system_status"),
+            ("uint8_t", "mavlink_version"),
+        ),
+        _message(
+            1,
+            "SYS_STATUS",
+            ("uint32_t", "onboard_control_sensors_present"),
+            ("uint32_t", "onboard_control_sensors_enabled"),
+            ("uint32_t", "onboard_control_sensors_health"),
+            ("uint16_t", "load"),
+            ("uint16_t", "voltage_battery"),
+            ("int16_t", "current_battery"),
+            ("int8_t", "battery_remaining"),
+            ("uint16_t", "drop_rate_comm"),
+            ("uint16_t", "errors_comm"),
+            ("uint16_t", "errors_count1"),
+            ("uint16_t", "errors_count2"),
+            ("uint16_t", "errors_count3"),
+            ("uint16_t", "errors_count4"),
+            extensions=(
+                ("uint32_t", "onboard_control_sensors_present_extended"),
+                ("uint32_t", "onboard_control_sensors_enabled_extended"),
+                ("uint32_t", "onboard_control_sensors_health_extended"),
+            ),
+        ),
+        _message(
+            30,
+            "ATTITUDE",
+            ("uint32_t", "time_boot_ms"),
+            ("float", "roll"),
+            ("float", "pitch"),
+            ("float", "yaw"),
+            ("float", "rollspeed"),
+            ("float", "pitchspeed"),
+            ("float", "yawspeed"),
+        ),
+        _message(
+            33,
+            "GLOBAL_POSITION_INT",
+            ("uint32_t", "time_boot_ms"),
+            ("int32_t", "lat"),
+            ("int32_t", "lon"),
+            ("int32_t", "alt"),
+            ("int32_t", "relative_alt"),
+            ("int16_t", "vx"),
+            ("int16_t", "vy"),
+            ("int16_t", "vz"),
+            ("uint16_t", "hdg"),
+        ),
+        _message(
+            66,
+            "REQUEST_DATA_STREAM",
+            ("uint8_t", "target_system"),
+            ("uint8_t", "target_component"),
+            ("uint8_t", "req_stream_id"),
+            ("uint16_t", "req_message_rate"),
+            ("uint8_t", "start_stop"),
+        ),
+        _message(
+            75,
+            "COMMAND_INT",
+            ("uint8_t", "target_system"),
+            ("uint8_t", "target_component"),
+            ("uint8_t", "frame"),
+            ("uint16_t", "command"),
+            ("uint8_t", "current"),
+            ("uint8_t", "autocontinue"),
+            *_PARAMS[:4],
+            ("int32_t", "x"),
+            ("int32_t", "y"),
+            ("float", "z"),
+        ),
+        _message(
+            76,
+            "COMMAND_LONG",
+            ("uint8_t", "target_system"),
+            ("uint8_t", "target_component"),
+            ("uint16_t", "command"),
+            ("uint8_t", "confirmation"),
+            *_PARAMS,
+        ),
+        _message(
+            77,
+            "COMMAND_ACK",
+            ("uint16_t", "command"),
+            ("uint8_t", "result"),
+            extensions=(
+                ("uint8_t", "progress"),
+                ("int32_t", "result_param2"),
+                ("uint8_t", "target_system"),
+                ("uint8_t", "target_component"),
+            ),
+        ),
+        _message(
+            193,
+            "EKF_STATUS_REPORT",
+            ("uint16_t", "flags"),
+            ("float", "velocity_variance"),
+            ("float", "pos_horiz_variance"),
+            ("float", "pos_vert_variance"),
+            ("float", "compass_variance"),
+            ("float", "terrain_alt_variance"),
+            extensions=(("float", "airspeed_variance"),),
+        ),
+        _message(
+            230,
+            "ESTIMATOR_STATUS",
+            ("uint64_t", "time_usec"),
+            ("uint16_t", "flags"),
+            ("float", "vel_ratio"),
+            ("float", "pos_horiz_ratio"),
+            ("float", "pos_vert_ratio"),
+            ("float", "mag_ratio"),
+            ("float", "hagl_ratio"),
+            ("float", "tas_ratio"),
+            ("float", "pos_horiz_accuracy"),
+            ("float", "pos_vert_accuracy"),
+        ),
+        _message(
+            245,
+            "EXTENDED_SYS_STATE",
+            ("uint8_t", "vtol_state"),
+            ("uint8_t", "landed_state"),
+        ),
+    )
+}
 
 
 EXTRA_MESSAGES: dict[int, MessageDef] = {
