@@ -143,7 +143,18 @@ def layout(msg_id: int) -> Layout | None:
 class Frame:
     """One CRC-checked frame of a known message (see the module docstring)."""
 
-    __slots__ = ("_at", "_comp", "_data", "_end", "_layout", "_mlen", "_msg_id", "_seq", "_start", "_sys")
+    __slots__ = (
+        "_at",
+        "_comp",
+        "_data",
+        "_end",
+        "_layout",
+        "_mlen",
+        "_msg_id",
+        "_seq",
+        "_start",
+        "_sys",
+    )
 
     def __init__(
         self,
@@ -222,7 +233,14 @@ class Frame:
         else:
             payload = _truncated(payload)
             compat = self._data[self._start + 3]
-            body = _v2_header(len(payload), compat, self._seq, self._sys, self._comp, self._msg_id)
+            body = _v2_header(
+                mlen=len(payload),
+                compat=compat,
+                seq=self._seq,
+                sys=self._sys,
+                comp=self._comp,
+                msg_id=self._msg_id,
+            )
         body += payload
         magic = self._data[self._start]
         return bytes((magic,)) + body + _CRC.pack(frame_crc(body, self._layout.crc_extra))
@@ -301,7 +319,7 @@ def scan(data: bytes) -> tuple[list[Parsed], int]:
     start, total = 0, len(data)
     while start < total:
         magic = data[start]
-        if magic != V2_MAGIC and magic != V1_MAGIC:
+        if magic not in (V2_MAGIC, V1_MAGIC):
             found = _FRAME_START.search(data, start + 1)
             stop = total if found is None else found.start()
             out.append(BadData(data[start:stop], "bad prefix"))
@@ -347,7 +365,7 @@ def _truncated(payload: bytearray) -> bytearray:
     return payload[:end]
 
 
-def _v2_header(mlen: int, compat: int, seq: int, sys: int, comp: int, msg_id: int) -> bytes:
+def _v2_header(*, mlen: int, compat: int, seq: int, sys: int, comp: int, msg_id: int) -> bytes:
     """A MAVLink 2 header without its magic byte (what the CRC covers), unsigned."""
     return _V2_HEADER.pack(
         V2_MAGIC, mlen, 0, compat, seq, sys, comp, msg_id & 0xFFFF, msg_id >> 16
@@ -373,7 +391,10 @@ def encode(
     if unknown:
         raise ValueError(f"{message.name} has no field {sorted(unknown)}")
     payload = _truncated(bytearray(message.unpacker.pack(*args)))
-    body = _v2_header(len(payload), 0, seq & 0xFF, system, component, message.id) + payload
+    header = _v2_header(
+        mlen=len(payload), compat=0, seq=seq & 0xFF, sys=system, comp=component, msg_id=message.id
+    )
+    body = header + payload
     return bytes((V2_MAGIC,)) + body + _CRC.pack(frame_crc(body, message.crc_extra))
 
 

@@ -24,9 +24,9 @@ from typing import Any
 from roost_mavlink.definitions import (
     AGENT_MESSAGES,
     EXTRA_MESSAGES,
+    TYPES,
     FieldDef,
     MessageDef,
-    TYPES,
 )
 
 # Fields the agent reads of whatever message has them: the reboot check's time_boot_ms,
@@ -90,7 +90,8 @@ def render(table: dict[int, Row]) -> str:
         "dialect: do not edit. See :mod:`roost_mavlink.table_gen` for what a row holds.",
         '"""',
         "",
-        "CHECKED_MESSAGES: dict[int, tuple[str, int, int, int, tuple[tuple[str, int, str], ...]]] = {",
+        "CHECKED_MESSAGES: dict[int, tuple[str, int, int, int, tuple[tuple[str, int, str], ...]]]"
+        " = {",
     ]
     lines += [f"    {msg_id}: {entry!r}," for msg_id, entry in table.items()]
     lines.append("}")
