@@ -20,34 +20,22 @@ The rules are those of the MAVLink signing specification:
   rejects a frame that does not advance it; a stream it has not seen is accepted when its
   timestamp is no more than one minute behind the receiver's own clock.
 
-CRC_EXTRA comes from :mod:`roost_mavlink.codec` (no pymavlink). SHA-256 is the standard
-library's own implementation, not OpenSSL's: ``hashlib`` maps OpenSSL's libcrypto
-(about 3 MB of the agent's memory on a companion computer) for one hash of ~60 bytes per
-frame.
+CRC_EXTRA comes from :mod:`roost_mavlink.codec` (no pymavlink). SHA-256 stays
+``hashlib``'s: the standard library's OpenSSL-free ``_sha256`` was measured to save
+nothing in the agent, whose pydantic models import ``hashlib`` (via ``secrets``) anyway.
 """
 
 from __future__ import annotations
 
+import hashlib
+import hmac
 import struct
 import threading
 import time
 from collections.abc import Callable
 from enum import StrEnum
-from typing import Any
 
 from roost_mavlink.codec import crc_extra_of, frame_crc
-
-try:  # the standard library's SHA-256 (no OpenSSL): _sha2 from 3.12, _sha256 before
-    from _sha2 import sha256 as _sha256_type  # type: ignore[import-not-found,unused-ignore]
-except ImportError:  # pragma: no cover - the interpreter decides
-    from _sha256 import sha256 as _sha256_type  # type: ignore[import-not-found,no-redef,unused-ignore]
-from _operator import _compare_digest as compare_digest  # hmac.compare_digest's own
-
-
-def _sha256(data: bytes) -> bytes:
-    digest: Any = _sha256_type(data)
-    return bytes(digest.digest())
-
 
 KEY_BYTES = 32
 SIGNATURE_BLOCK = 13
@@ -155,7 +143,7 @@ def sign_frame(frame: bytes, key: bytes, link_id: int, timestamp: int) -> bytes:
         return frame
     signed = bytes(body) + struct.pack("<H", crc) + bytes([link_id & 0xFF])
     signed += struct.pack("<Q", timestamp)[:6]
-    return signed + _sha256(key + signed)[:6]
+    return signed + hashlib.sha256(key + signed).digest()[:6]
 
 
 class Verdict(StrEnum):
@@ -184,8 +172,8 @@ class Verifier:
         if not frame[2] & IFLAG_SIGNED:
             return Verdict.UNSIGNED
         data = bytes(frame)
-        expected = _sha256(self._key + data[:-6])[:6]
-        if not compare_digest(expected, data[-6:]):
+        expected = hashlib.sha256(self._key + data[:-6]).digest()[:6]
+        if not hmac.compare_digest(expected, data[-6:]):
             return Verdict.BAD_SIGNATURE
         link_id = data[-13]
         timestamp = int.from_bytes(data[-12:-6], "little")
