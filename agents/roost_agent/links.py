@@ -1118,31 +1118,22 @@ class AutopilotLink:
             )
         )
 
+    def _send_to_autopilot(self, name: str, **values: int | float) -> bool:
+        """One message addressed to this autopilot's system and component."""
+        target = {"target_system": self.spec.sysid, "target_component": self.spec.component_id}
+        return self._send(lambda writer: writer.send(name, **target, **values))
+
     def send_command(self, command: int, params: Params, confirmation: int = 0) -> bool:
         """COMMAND_LONG addressed to this autopilot's system and component."""
         param = {f"param{i}": value for i, value in enumerate(params, start=1)}
-        return self._send(
-            lambda writer: writer.send(
-                "COMMAND_LONG",
-                target_system=self.spec.sysid,
-                target_component=self.spec.component_id,
-                command=command,
-                confirmation=confirmation,
-                **param,
-            )
+        return self._send_to_autopilot(
+            "COMMAND_LONG", command=command, confirmation=confirmation, **param
         )
 
     def request_data_stream(self, stream_id: int, hz: int) -> bool:
         """REQUEST_DATA_STREAM (start) for one MAV_DATA_STREAM group (ArduPilot)."""
-        return self._send(
-            lambda writer: writer.send(
-                "REQUEST_DATA_STREAM",
-                target_system=self.spec.sysid,
-                target_component=self.spec.component_id,
-                req_stream_id=stream_id,
-                req_message_rate=hz,
-                start_stop=1,
-            )
+        return self._send_to_autopilot(
+            "REQUEST_DATA_STREAM", req_stream_id=stream_id, req_message_rate=hz, start_stop=1
         )
 
     def command(

@@ -96,6 +96,7 @@ class Layout:
     size: int
     scalars: dict[str, tuple[int, struct.Struct]]
     arrays: dict[str, tuple[int, struct.Struct, bool]]
+    crc_byte: bytes  # CRC_EXTRA as the byte appended to what the CRC covers
 
     @property
     def fields(self) -> tuple[str, ...]:
@@ -113,7 +114,8 @@ def _declared_layout(message: MessageDef) -> Layout:
         else:
             scalars[f.name] = (offset, unit)
         offset += unit.size
-    return Layout(message.name, message.crc_extra, offset, scalars, arrays)
+    crc = message.crc_extra
+    return Layout(message.name, crc, offset, scalars, arrays, bytes((crc,)))
 
 
 def _checked_layout(msg_id: int) -> Layout | None:
@@ -122,7 +124,7 @@ def _checked_layout(msg_id: int) -> Layout | None:
         return None
     name, crc_extra, _, max_length, common = entry
     scalars = {field: (offset, struct.Struct("<" + code)) for field, offset, code in common}
-    return Layout(name, crc_extra, max_length, scalars, {})
+    return Layout(name, crc_extra, max_length, scalars, {}, bytes((crc_extra,)))
 
 
 _LAYOUTS: dict[int, Layout] = {}  # built on first sight: an autopilot sends a few dozen types
@@ -143,47 +145,39 @@ def layout(msg_id: int) -> Layout | None:
 class Frame:
     """One CRC-checked frame of a known message (see the module docstring)."""
 
-    __slots__ = (
-        "_at",
-        "_comp",
-        "_data",
-        "_end",
-        "_layout",
-        "_mlen",
-        "_msg_id",
-        "_seq",
-        "_start",
-        "_sys",
-    )
+    __slots__ = ("_at", "_data", "_end", "_header", "_layout", "_start")
 
-    def __init__(
+    def __init__(  # noqa: PLR0917 - built for every frame received: positional is cheaper
         self,
         data: bytes,
         start: int,
         end: int,
-        header: tuple[int, int, int, int, int, int],  # payload at, length, seq, sys, comp, id
+        header: tuple[int, ...],  # as a MAVLink 2 header unpacks (see _V2_HEADER)
         layout: Layout,
+        at: int,  # where the payload begins
     ) -> None:
         self._data = data
         self._start = start
         self._end = end
-        self._at, self._mlen, self._seq, self._sys, self._comp, self._msg_id = header
+        self._header = header
         self._layout = layout
+        self._at = at
 
     def get_type(self) -> str:
         return self._layout.name
 
     def get_msgId(self) -> int:  # noqa: N802 - the name MAVLink tools use
-        return self._msg_id
+        header = self._header
+        return int(header[7] | (header[8] << 16))
 
     def get_srcSystem(self) -> int:  # noqa: N802 - the name MAVLink tools use
-        return self._sys
+        return int(self._header[5])
 
     def get_srcComponent(self) -> int:  # noqa: N802 - the name MAVLink tools use
-        return self._comp
+        return int(self._header[6])
 
     def get_seq(self) -> int:
-        return self._seq
+        return int(self._header[4])
 
     def get_msgbuf(self) -> bytes:
         """The whole frame as received (signature included)."""
@@ -191,7 +185,7 @@ class Frame:
 
     def _padded(self) -> bytes:
         """The payload zero-padded to the message's full size (longer: as received)."""
-        at, mlen = self._at, self._mlen
+        at, mlen = self._at, self._header[1]
         raw = self._data[at : at + mlen]
         missing = self._layout.size - mlen
         return raw + bytes(missing) if missing > 0 else raw
@@ -201,7 +195,7 @@ class Frame:
         scalar = layout.scalars.get(name)
         if scalar is not None:
             offset, unit = scalar
-            if offset + unit.size <= self._mlen:
+            if offset + unit.size <= self._header[1]:
                 return unit.unpack_from(self._data, self._at + offset)[0]
             return unit.unpack_from(self._padded(), offset)[0]
         array = layout.arrays.get(name)
@@ -222,31 +216,25 @@ class Frame:
         """This frame with one scalar field set to ``value``: same sender, sequence and
         MAVLink version, unsigned (a signature covers what changed), CRC recomputed."""
         offset, unit = self._layout.scalars[name]
-        payload = bytearray(self._data[self._at : self._at + self._mlen])
+        _, mlen, _, compat, seq, sys, comp, _, _ = self._header
+        msg_id = self.get_msgId()
+        payload = bytearray(self._data[self._at : self._at + mlen])
         if len(payload) < offset + unit.size:
             payload += bytes(offset + unit.size - len(payload))
         unit.pack_into(payload, offset, value)
         if self._data[self._start] == V1_MAGIC:
-            body = _V1_HEADER.pack(
-                V1_MAGIC, len(payload), self._seq, self._sys, self._comp, self._msg_id
-            )[1:]
+            body = _V1_HEADER.pack(V1_MAGIC, len(payload), seq, sys, comp, msg_id)[1:]
         else:
             payload = _truncated(payload)
-            compat = self._data[self._start + 3]
             body = _v2_header(
-                mlen=len(payload),
-                compat=compat,
-                seq=self._seq,
-                sys=self._sys,
-                comp=self._comp,
-                msg_id=self._msg_id,
+                mlen=len(payload), compat=compat, seq=seq, sys=sys, comp=comp, msg_id=msg_id
             )
         body += payload
         magic = self._data[self._start]
         return bytes((magic,)) + body + _CRC.pack(frame_crc(body, self._layout.crc_extra))
 
     def __repr__(self) -> str:
-        return f"Frame({self._layout.name}, seq {self._seq})"
+        return f"Frame({self._layout.name}, seq {self.get_seq()})"
 
 
 class BadData:
@@ -293,48 +281,65 @@ class UnknownFrame:
 Parsed = Frame | UnknownFrame | BadData
 
 
-def _frame(data: bytes, start: int, end: int) -> Parsed:
-    """Judge the frame ``data[start:end]`` (its length already taken from its header)."""
-    if data[start] == V2_MAGIC:
-        _, mlen, incompat, _, seq, sys, comp, low, high = _V2_HEADER.unpack_from(data, start)
-        if incompat & ~IFLAG_SIGNED:
-            return BadData(data[start:end], f"incompatibility flags 0x{incompat:02x}")
-        msg_id, at = low | (high << 16), start + V2_HEADER
-    else:
-        _, mlen, seq, sys, comp, msg_id = _V1_HEADER.unpack_from(data, start)
-        at = start + V1_HEADER
+def _v1_frame(data: bytes, start: int, end: int) -> Parsed:
+    """Judge the MAVLink 1 frame ``data[start:end]``."""
+    _, mlen, seq, sys, comp, msg_id = _V1_HEADER.unpack_from(data, start)
     kind = _LAYOUTS.get(msg_id) or layout(msg_id)
     if kind is None:
         return UnknownFrame(data[start:end], msg_id)
-    crc_at = at + mlen
-    if frame_crc(data[start + 1 : crc_at], kind.crc_extra) != _CRC.unpack_from(data, crc_at)[0]:
+    crc_at = start + V1_HEADER + mlen
+    if _crc16(data[start + 1 : crc_at] + kind.crc_byte) != _CRC.unpack_from(data, crc_at)[0]:
         return BadData(data[start:end], f"bad CRC ({kind.name})")
-    return Frame(data, start, end, (at, mlen, seq, sys, comp, msg_id), kind)
+    header = (V1_MAGIC, mlen, 0, 0, seq, sys, comp, msg_id, 0)
+    return Frame(data, start, end, header, kind, start + V1_HEADER)
 
 
 def scan(data: bytes) -> tuple[list[Parsed], int]:
     """Everything ``data`` holds, in order, and how many bytes of it that used: less than
-    ``len(data)`` when it ends inside a frame (the rest is that frame's beginning)."""
+    ``len(data)`` when it ends inside a frame (the rest is that frame's beginning).
+
+    (The MAVLink 2 path is written out in the loop: it runs for every frame received.)"""
     out: list[Parsed] = []
+    append = out.append
     start, total = 0, len(data)
     while start < total:
         magic = data[start]
-        if magic not in (V2_MAGIC, V1_MAGIC):
-            found = _FRAME_START.search(data, start + 1)
-            stop = total if found is None else found.start()
-            out.append(BadData(data[start:stop], "bad prefix"))
-            start = stop
-            continue
-        if total - start < 3:
-            break
         if magic == V2_MAGIC:
-            signature = SIGNATURE_BYTES if data[start + 2] & IFLAG_SIGNED else 0
-            end = start + V2_HEADER + data[start + 1] + CRC_BYTES + signature
-        else:
+            if total - start < V2_HEADER + CRC_BYTES:  # the shortest frame ends past it
+                break
+            header = _V2_HEADER.unpack_from(data, start)
+            incompat = header[2]
+            end = start + V2_HEADER + header[1] + CRC_BYTES
+            if incompat & IFLAG_SIGNED:
+                end += SIGNATURE_BYTES
+            if end > total:
+                break
+            if incompat & ~IFLAG_SIGNED:
+                append(BadData(data[start:end], f"incompatibility flags 0x{incompat:02x}"))
+            else:
+                msg_id = header[7] | (header[8] << 16)
+                kind = _LAYOUTS.get(msg_id) or layout(msg_id)
+                crc_at = start + V2_HEADER + header[1]
+                if kind is None:
+                    append(UnknownFrame(data[start:end], msg_id))
+                elif (
+                    _crc16(data[start + 1 : crc_at] + kind.crc_byte)
+                    != _CRC.unpack_from(data, crc_at)[0]
+                ):
+                    append(BadData(data[start:end], f"bad CRC ({kind.name})"))
+                else:
+                    append(Frame(data, start, end, header, kind, start + V2_HEADER))
+        elif magic == V1_MAGIC:
+            if total - start < V1_HEADER + CRC_BYTES:  # the shortest frame ends past it
+                break
             end = start + V1_HEADER + data[start + 1] + CRC_BYTES
-        if end > total:
-            break
-        out.append(_frame(data, start, end))
+            if end > total:
+                break
+            append(_v1_frame(data, start, end))
+        else:
+            found = _FRAME_START.search(data, start + 1)
+            end = total if found is None else found.start()
+            append(BadData(data[start:end], "bad prefix"))
         start = end
     return out, start
 

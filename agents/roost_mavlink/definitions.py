@@ -1,22 +1,32 @@
-"""MAVLink messages real autopilots send that the agent's pymavlink dialect lacks.
+"""MAVLink messages declared field by field: what the agent reads and sends, and what PX4
+sends that pymavlink's dialect lacks.
 
-Why: PX4 v1.16 streams five messages, unasked, that pymavlink's generated
-``ardupilotmega`` dialect (2.4.x) does not define: CURRENT_MODE (436, 0.5 Hz),
+Why declarations (the agent's codec, :mod:`roost_mavlink.codec`, reads them): the agent
+decodes a few fields of a few messages (:data:`AGENT_MESSAGES`: HEARTBEAT, SYS_STATUS,
+ATTITUDE, GLOBAL_POSITION_INT, the estimator reports, EXTENDED_SYS_STATE, COMMAND_ACK,
+the hub's COMMAND_LONG/INT) and encodes three (HEARTBEAT, COMMAND_LONG,
+REQUEST_DATA_STREAM); pymavlink's generated dialect, which has them all, costs ~7 MB to
+import. Every other message id is only checked and counted, from the generated table
+:mod:`roost_mavlink.checked_messages`.
+
+:data:`EXTRA_MESSAGES`: PX4 v1.16 streams five messages, unasked, that pymavlink's
+generated ``ardupilotmega`` dialect (2.4.x) does not define: CURRENT_MODE (436, 0.5 Hz),
 LINK_NODE_STATUS (8), TIME_ESTIMATE_TO_TARGET (380), EVENT (410) and
-CURRENT_EVENT_SEQUENCE (411). A frame of an id the dialect does not know cannot have its
-CRC checked, so it was counted as bad data: real autopilot frames lost from the link's
-accounting, indistinguishable from corruption. The agent reads none of their fields; it
-needs to know them only to check them and count them as the autopilot's own traffic.
+CURRENT_EVENT_SEQUENCE (411). A frame of an id nobody declared cannot have its CRC
+checked, so it would be counted as unknown: real autopilot frames lost from the link's
+accounting, indistinguishable from corruption. The agent reads none of their fields.
 
 Each definition is what MAVLink's message XML says (``common.xml``; the four beside
 CURRENT_MODE were in ``development.xml`` when they were introduced): the fields in
-declaration order with their C types. From that the wire order (fields sorted by type
-size, largest first, stable; extension fields, none here, would stay last) and
-CRC_EXTRA (the CRC-16/MCRF4XX of ``"NAME "`` and ``"type name "`` of every wire-order
-field, plus the array length byte for arrays, folded to one byte) are computed, the
-way MAVLink's generators compute them, so a definition cannot drift from its checksum.
-``tests/unit/test_agent_frames.py`` checks the computation against pymavlink's dialect
-and every definition against the frames of the recorded PX4 flights.
+declaration order with their C types, then the extension fields. From that the wire
+order (base fields sorted by type size, largest first, stable; extension fields after
+them in declared order) and CRC_EXTRA (the CRC-16/MCRF4XX of ``"NAME "`` and
+``"type name "`` of every base field in wire order, plus the array length byte for
+arrays, folded to one byte) are computed, the way MAVLink's generators compute them, so
+a definition cannot drift from its checksum. ``tests/unit/test_mavlink_codec.py`` checks
+the computation against every message of pymavlink's dialect, each of
+:data:`AGENT_MESSAGES` against pymavlink's, and ``tests/unit/test_capture_replay.py``
+every definition against the frames of the recorded PX4 flights.
 """
 
 from __future__ import annotations
