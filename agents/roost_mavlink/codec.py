@@ -168,16 +168,16 @@ class Frame:
 
     def get_msgId(self) -> int:  # noqa: N802 - the name MAVLink tools use
         header = self._header
-        return int(header[7] | (header[8] << 16))
+        return header[7] | (header[8] << 16)
 
     def get_srcSystem(self) -> int:  # noqa: N802 - the name MAVLink tools use
-        return int(self._header[5])
+        return self._header[5]
 
     def get_srcComponent(self) -> int:  # noqa: N802 - the name MAVLink tools use
-        return int(self._header[6])
+        return self._header[6]
 
     def get_seq(self) -> int:
-        return int(self._header[4])
+        return self._header[4]
 
     def get_msgbuf(self) -> bytes:
         """The whole frame as received (signature included)."""
