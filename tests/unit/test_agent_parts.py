@@ -328,9 +328,9 @@ def _px4_frames() -> tuple[bytes, bytes, bytes]:
 def test_a_message_the_pymavlink_dialect_lacks_is_counted_as_the_autopilots(
     transport: str,
 ) -> None:
-    """PX4 v1.16's CURRENT_MODE is accepted like any message of the autopilot, on the
-    checked fast path (UDP datagrams) and behind pymavlink's parser (a TCP stream); a
-    frame of an id nobody defines is counted ``unknown`` and costs nothing after it."""
+    """PX4 v1.16's CURRENT_MODE (which pymavlink's dialect lacks) is accepted like any
+    message of the autopilot, in UDP datagrams and in a TCP stream; a frame of an id
+    nobody defines is counted ``unknown`` and costs nothing after it."""
     beat, mode, undefined = _px4_frames()
     peer = socket.socket(
         socket.AF_INET, socket.SOCK_DGRAM if transport == "udp" else socket.SOCK_STREAM
