@@ -4,9 +4,8 @@ Why one link per autopilot (not one shared socket): two autopilots behind one so
 merged by a MAVLink router and a command can reach both. Why a single reader: a stream
 parser holds the unfinished frame of the last read, so the reader is the only thing that
 ever parses; it feeds the health tracker and hands COMMAND_ACKs to whoever waits for
-them. One
-:class:`LinkReader` thread reads every link of the agent (a selector; a link started on
-its own gets a reader of its own), and the agent runs its decision loop on it too
+them. One :class:`LinkReader` thread reads every link of the agent (a selector; a link
+started on its own gets a reader of its own), and the agent runs its decision loop on it too
 (:meth:`LinkReader.drive`): a thread per link woke once per datagram, which cost more
 than parsing. Every frame is checked by header and CRC and decoded field by field on
 demand by the agent's own codec (:mod:`roost_mavlink.codec`, which judges bad data as
