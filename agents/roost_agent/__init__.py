@@ -1,8 +1,9 @@
 """Roost node agent: watches a vehicle's autopilots and keeps a healthy one on the motors.
 
 Modules, from the wire up: :mod:`~roost_agent.links` (one MAVLink connection per
-autopilot, one reader thread for them all), :mod:`~roost_agent.frames` (cheap MAVLink 2
-framing), :mod:`~roost_agent.health` (messages -> OK/WARN/ERROR/STALE),
+autopilot, one reader thread for them all; frames are read and written by
+:mod:`roost_mavlink.codec`, the agent never imports pymavlink),
+:mod:`~roost_agent.health` (messages -> OK/WARN/ERROR/STALE),
 :mod:`~roost_agent.arbiter` (pure failover state machine), :mod:`~roost_agent.bridge`
 (GPIO or simulated switch), :mod:`~roost_agent.safety` (hold, then land),
 :mod:`~roost_agent.state` (durable state) and :mod:`~roost_agent.agent` (the wiring).

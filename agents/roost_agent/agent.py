@@ -3,17 +3,17 @@
 Threads and why:
 
 - one reader thread (:class:`roost_agent.links.LinkReader`) reads every autopilot link,
-  feeds the health trackers and runs the decision loop: every ``tick_s``, at once when
-  a link saw something the arbiter acts on change or a command came, and exactly when
-  the last tick said a judgement turns with nothing arriving (a silence threshold, the
-  end of a confirm window), right after reading whatever arrived, it assesses every
-  autopilot, steps the pure arbiter and executes its actions. One thread, one wake-up per tick: on a companion computer the
-  wake-ups and GIL hand-offs of a thread per link and a separate loop cost more than
-  the parsing. Messages keep their kernel arrival times, so reading once per tick does
-  not age them; while a hub client is connected the reader wakes for every datagram
-  (routed frames are not held back). The switch path is local and immediate:
-  assessment, arbiter and the bridge write, with no logging, no network and no disk in
-  between. Everything slower happens after the bridge switched;
+  feeds the health trackers and runs the decision loop: every ``tick_s``, at once when a
+  link saw something the arbiter acts on change or a command came, and exactly when the
+  last tick said a judgement turns with nothing arriving (a silence threshold, the end
+  of a confirm window), right after reading whatever arrived, it assesses every
+  autopilot, steps the pure arbiter and executes its actions. One thread, one wake-up
+  per tick: on a companion computer the wake-ups and GIL hand-offs of a thread per link
+  and a separate loop cost more than the parsing. Messages keep their kernel arrival
+  times, so reading once per tick does not age them; while a hub client is connected the
+  reader wakes for every datagram (routed frames are not held back). The switch path is
+  local and immediate: assessment, arbiter and the bridge write, with no logging, no
+  network and no disk in between. Everything slower happens after the bridge switched;
 - a worker runs the safety routine, landing orders and the emergency stop one at a time
   (a newer job supersedes an older one, nothing supersedes an emergency stop), so the
   decision loop never waits for an autopilot to answer;

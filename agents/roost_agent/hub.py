@@ -56,8 +56,6 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
-
 from roost_api.autopilot import (
     AutopilotSpec,
     HubSpec,
@@ -66,16 +64,38 @@ from roost_api.autopilot import (
     StandbyLimits,
 )
 from roost_api.meta import Stack
-from roost_mavlink import AGENT_COMPONENT_ID, MavResult, mode_name
+from roost_mavlink import (
+    AGENT_COMPONENT_ID,
+    MAV_CMD_COMPONENT_ARM_DISARM,
+    MAV_CMD_DO_SET_MODE,
+    MAV_CMD_NAV_LAND,
+    MAV_CMD_NAV_RETURN_TO_LAUNCH,
+    MAV_CMD_NAV_TAKEOFF,
+    MAV_MODE_FLAG_SAFETY_ARMED,
+    MavResult,
+    mav_result_name,
+    mode_name,
+)
+from roost_mavlink.codec import (
+    CRC_BYTES,
+    V1_HEADER,
+    V1_MAGIC,
+    V2_HEADER,
+    V2_MAGIC,
+    BadData,
+    Frame,
+    Parsed,
+    StreamParser,
+    crc_extra_of,
+    frame_crc,
+    scan,
+)
 
 log = logging.getLogger(__name__)
 
 Address = tuple[str, int]
 
-MAVLINK2_MAGIC = 0xFD
-MAVLINK1_MAGIC = 0xFE
 SIGNED_FLAG = 0x01
-SIGNATURE_LEN = 13
 
 CLIENT_TIMEOUT_S = 30.0  # a UDP client not heard this long gets nothing more
 MAX_CLIENTS = 32
@@ -85,30 +105,30 @@ SELECT_WAIT_S = 0.1
 UDP_MAX = 65535
 TCP_SEND_BUFFER = 1 << 18
 
+MAV_CMD_DO_AUX_FUNCTION = 218
 AUX_FUNCTION_STANDBY = 76  # ArduPilot RC_OPTION / aux function "Standby"
 AUX_SWITCH_LOW = 0
 AUX_SWITCH_HIGH = 2
 
-# Flight-state commands a client sends that every standby must follow.
-MIRRORED_COMMANDS: frozenset[int] = frozenset(
-    {
-        mavlink.MAV_CMD_COMPONENT_ARM_DISARM,
-        mavlink.MAV_CMD_DO_SET_MODE,
-        mavlink.MAV_CMD_NAV_TAKEOFF,
-        mavlink.MAV_CMD_NAV_TAKEOFF_LOCAL,
-        mavlink.MAV_CMD_NAV_LAND,
-        mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH,
-        mavlink.MAV_CMD_NAV_LOITER_UNLIM,
-        mavlink.MAV_CMD_MISSION_START,
-        mavlink.MAV_CMD_DO_REPOSITION,
-        mavlink.MAV_CMD_DO_CHANGE_SPEED,
-        mavlink.MAV_CMD_DO_SET_HOME,
-        mavlink.MAV_CMD_DO_PAUSE_CONTINUE,
-        mavlink.MAV_CMD_DO_SET_MISSION_CURRENT,
-        mavlink.MAV_CMD_NAV_GUIDED_ENABLE,
-    }
-)
-MODE_COMMANDS: frozenset[int] = frozenset({mavlink.MAV_CMD_DO_SET_MODE})
+# Flight-state commands a client sends that every standby must follow (MAV_CMD numbers
+# of common.xml, with their names for the in-step messages).
+MIRRORED_COMMANDS: dict[int, str] = {
+    MAV_CMD_COMPONENT_ARM_DISARM: "MAV_CMD_COMPONENT_ARM_DISARM",
+    MAV_CMD_DO_SET_MODE: "MAV_CMD_DO_SET_MODE",
+    MAV_CMD_NAV_TAKEOFF: "MAV_CMD_NAV_TAKEOFF",
+    24: "MAV_CMD_NAV_TAKEOFF_LOCAL",
+    MAV_CMD_NAV_LAND: "MAV_CMD_NAV_LAND",
+    MAV_CMD_NAV_RETURN_TO_LAUNCH: "MAV_CMD_NAV_RETURN_TO_LAUNCH",
+    17: "MAV_CMD_NAV_LOITER_UNLIM",
+    300: "MAV_CMD_MISSION_START",
+    192: "MAV_CMD_DO_REPOSITION",
+    178: "MAV_CMD_DO_CHANGE_SPEED",
+    179: "MAV_CMD_DO_SET_HOME",
+    193: "MAV_CMD_DO_PAUSE_CONTINUE",
+    224: "MAV_CMD_DO_SET_MISSION_CURRENT",
+    92: "MAV_CMD_NAV_GUIDED_ENABLE",
+}
+MODE_COMMANDS: frozenset[int] = frozenset({MAV_CMD_DO_SET_MODE})
 
 # Whole messages mirrored to every standby.
 MIRRORED_MESSAGES: frozenset[str] = frozenset(
@@ -144,30 +164,29 @@ def rewrite_source(frame: bytes, sysid: int) -> bytes | None:
     if len(frame) < 8:
         return None
     magic = frame[0]
-    if magic == MAVLINK2_MAGIC:
-        header, sys_at = 10, 5
+    if magic == V2_MAGIC:
+        header, sys_at = V2_HEADER, 5
         msgid = frame[7] | frame[8] << 8 | frame[9] << 16
-    elif magic == MAVLINK1_MAGIC:
-        header, sys_at = 6, 3
+    elif magic == V1_MAGIC:
+        header, sys_at = V1_HEADER, 3
         msgid = frame[5]
     else:
         return None
     end = header + frame[1]
-    if len(frame) < end + 2:
+    if len(frame) < end + CRC_BYTES:
         return None
     if frame[sys_at] == sysid:
         return frame
-    kind = mavlink.mavlink_map.get(msgid)
-    if kind is None:
+    crc_extra = crc_extra_of(msgid)
+    if crc_extra is None:
         return None
-    out = bytearray(frame[: end + 2])
+    out = bytearray(frame[: end + CRC_BYTES])
     out[sys_at] = sysid
-    if magic == MAVLINK2_MAGIC and out[2] & SIGNED_FLAG:
+    if magic == V2_MAGIC and out[2] & SIGNED_FLAG:
         out[2] &= ~SIGNED_FLAG
-    crc = mavlink.x25crc(out[1:end])
-    crc.accumulate(bytes((kind.crc_extra,)))
-    out[end] = crc.crc & 0xFF
-    out[end + 1] = crc.crc >> 8
+    crc = frame_crc(out[1:end], crc_extra)
+    out[end] = crc & 0xFF
+    out[end + 1] = crc >> 8
     return bytes(out)
 
 
@@ -180,28 +199,15 @@ def target_of(msg: Any) -> int | None:
     return None
 
 
-def retarget(msg: Any, vehicle_sysid: int, sysid: int, packer: Any) -> bytes:
+def retarget(msg: Parsed, vehicle_sysid: int, sysid: int) -> bytes:
     """The client's frame for the autopilot with ``sysid``: a message addressed to the
-    vehicle is re-encoded addressed to that autopilot (sender ids and sequence kept);
-    anything else passes unchanged."""
+    vehicle is re-encoded addressed to that autopilot (sender ids and sequence kept,
+    unsigned); anything else passes unchanged."""
     frame = bytes(msg.get_msgbuf())
-    if sysid == vehicle_sysid or target_of(msg) != vehicle_sysid:
+    if sysid == vehicle_sysid or not isinstance(msg, Frame) or target_of(msg) != vehicle_sysid:
         return frame
     name = "target_system" if hasattr(msg, "target_system") else "target"
-    setattr(msg, name, sysid)
-    packer.srcSystem = msg.get_srcSystem()
-    packer.srcComponent = msg.get_srcComponent()
-    packer.seq = msg.get_seq()
-    try:
-        return bytes(msg.pack(packer, force_mavlink1=frame[0] == MAVLINK1_MAGIC))
-    finally:
-        setattr(msg, name, vehicle_sysid)
-
-
-def _new_parser() -> Any:
-    parser = mavlink.MAVLink(None)
-    parser.robust_parsing = True
-    return parser
+    return msg.with_field(name, sysid)
 
 
 # -- what the hub knows about each autopilot -------------------------------------------
@@ -243,8 +249,7 @@ def horizontal_m(lat1: float, lon1: float, lat2: float, lon2: float) -> float:
 
 
 def _command_text(command: int) -> str:
-    entry = mavlink.enums["MAV_CMD"].get(command)
-    return entry.name if entry is not None else str(command)
+    return MIRRORED_COMMANDS.get(command, str(command))
 
 
 def judge_standby(
@@ -375,7 +380,7 @@ class _Client:
     def __init__(self, address: Address, sock: socket.socket | None, now: float) -> None:
         self.address = address
         self.sock = sock  # TCP clients only
-        self.parser = _new_parser()
+        self.parser = StreamParser()  # TCP clients' stream (a UDP datagram stands alone)
         self.last_seen = now
         self.broken = False  # a TCP client whose stream could not be written whole
 
@@ -423,7 +428,6 @@ class Hub:
         self._clients: OrderedDict[Address, _Client] = OrderedDict()
         self._sinks: tuple[_Client, ...] = ()
         self._clients_lock = threading.Lock()
-        self._packer = mavlink.MAVLink(None)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -546,7 +550,7 @@ class Hub:
             return
         switch = AUX_SWITCH_HIGH if standby else AUX_SWITCH_LOW
         link.send_command(
-            mavlink.MAV_CMD_DO_AUX_FUNCTION,
+            MAV_CMD_DO_AUX_FUNCTION,
             (float(AUX_FUNCTION_STANDBY), float(switch), 0.0, 0.0, 0.0, 0.0, 0.0),
         )
 
@@ -558,7 +562,7 @@ class Hub:
         if kind == "HEARTBEAT":
             fresh = seen.heartbeat_at is None or now - seen.heartbeat_at > self.stale_s
             seen.heartbeat_at = now
-            seen.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+            seen.armed = bool(msg.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
             seen.mode = mode_name(seen.stack, int(msg.custom_mode))
             if fresh and seen.stack is Stack.ARDUPILOT:  # (re)connected: tell it its role
                 self._aux_standby(name, standby=name != self._active)
@@ -610,9 +614,7 @@ class Hub:
         if result == MavResult.ACCEPTED:
             seen.rejected.pop(command, None)
         else:
-            entry = mavlink.enums["MAV_RESULT"].get(result)
-            text = entry.name if entry is not None else str(result)
-            seen.rejected[command] = (f"answered {text}", now)
+            seen.rejected[command] = (f"answered {mav_result_name(result)}", now)
 
     # -- clients -> autopilots ---------------------------------------------------------
 
@@ -650,9 +652,8 @@ class Hub:
             if client is None:
                 client = self._add(_Client(peer, None, now))
             client.last_seen = now
-            self._from_client(client, data)
-            if client.parser.buf_len() > 0:  # a frame never continues in the next datagram
-                client.parser = _new_parser()
+            items, _ = scan(data)  # a frame never continues in the next datagram
+            self._from_client(items)
 
     def _accept(self, now: float) -> None:
         assert self._tcp is not None
@@ -679,7 +680,7 @@ class Hub:
             self._remove(client)
             return
         client.last_seen = now
-        self._from_client(client, data)
+        self._from_client(client.parser.feed(data))
 
     def _add(self, client: _Client) -> _Client:
         with self._clients_lock:
@@ -705,32 +706,28 @@ class Hub:
             if client.broken or (client.sock is None and now - client.last_seen > CLIENT_TIMEOUT_S):
                 self._remove(client)
 
-    def _from_client(self, client: _Client, data: bytes) -> None:
-        parser = client.parser
+    def _from_client(self, items: list[Parsed]) -> None:
+        """Route a client's frames (of unknown ids too: the autopilot may know them)."""
         try:
-            msg = parser.parse_char(data)
-            while msg is not None:
-                if msg.get_type() != "BAD_DATA":
+            for msg in items:
+                if not isinstance(msg, BadData):
                     self.route(msg)
-                msg = parser.parse_char(b"")
-        except Exception:  # a client's garbage costs only its own parser
-            client.parser = _new_parser()
+        except Exception:  # a client's odd frame costs only that client's read
+            log.debug("hub: routing a client's frame failed", exc_info=True)
 
-    def route(self, msg: Any) -> None:
+    def route(self, msg: Parsed) -> None:
         """Send one client message to the active autopilot, and to every standby when it
         changes flight state (and mirroring is on)."""
         active = self._active
         links = self._links
         link = links.get(active)
-        if link is not None and link.send_frame(
-            retarget(msg, self.sysid, link.spec.sysid, self._packer)
-        ):
+        if link is not None and link.send_frame(retarget(msg, self.sysid, link.spec.sysid)):
             self.counters.from_clients += 1
         if not self.settings.mirror:
             return
         kind = msg.get_type()
         command: int | None = None
-        if kind in COMMAND_MESSAGES:
+        if kind in COMMAND_MESSAGES and isinstance(msg, Frame):
             command = int(msg.command)
             if command not in MIRRORED_COMMANDS:
                 return
@@ -748,7 +745,7 @@ class Hub:
             seen = self._seen[name]
             if mode_change and seen.stack != active_stack:
                 continue
-            if standby.send_frame(retarget(msg, self.sysid, standby.spec.sysid, self._packer)):
+            if standby.send_frame(retarget(msg, self.sysid, standby.spec.sysid)):
                 self.counters.mirrored += 1
                 if command is not None:
                     seen.awaiting.setdefault(command, now)

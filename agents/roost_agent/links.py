@@ -1,30 +1,30 @@
 """One MAVLink link per autopilot: a transport, one reader for all links, locked writes.
 
 Why one link per autopilot (not one shared socket): two autopilots behind one socket are
-merged by a MAVLink router and a command can reach both. Why a single reader: the
-pymavlink parser is not thread-safe, so the reader is the only thing that ever parses;
-it feeds the health tracker and hands COMMAND_ACKs to whoever waits for them. One
-:class:`LinkReader` thread reads every link of the agent (a selector; a link started on
-its own gets a reader of its own), and the agent runs its decision loop on it too
+merged by a MAVLink router and a command can reach both. Why a single reader: a stream
+parser holds the unfinished frame of the last read, so the reader is the only thing that
+ever parses; it feeds the health tracker and hands COMMAND_ACKs to whoever waits for
+them. One :class:`LinkReader` thread reads every link of the agent (a selector; a link
+started on its own gets a reader of its own), and the agent runs its decision loop on it too
 (:meth:`LinkReader.drive`): a thread per link woke once per datagram, which cost more
-than parsing. Datagrams of good MAVLink 2 frames are checked by header and CRC and
-decoded field by field on demand (:mod:`roost_agent.frames`); anything else goes through
-pymavlink's parser, so hostile traffic meets the same rules either way. Writes (the
+than parsing. Every frame is checked by header and CRC and decoded field by field on
+demand by the agent's own codec (:mod:`roost_mavlink.codec`, which judges bad data as
+pymavlink's parser does); the agent's own frames are encoded by it too. Writes (the
 agent's heartbeat, safety commands) take a lock, which also keeps the MAVLink sequence
 numbers in order.
 
 Why our own transports instead of ``pymavlink.mavutil`` connections: mavutil imports
 numpy and a MAVLink 1 dialect (about 30 MB of the agent's memory, on a companion
 computer), prints to stdout, parses every sender's bytes with one parser and sends every
-reply to every address that ever sent it a datagram, spoofers included.
+reply to every address that ever sent it a datagram, spoofers included. (The agent does
+not import pymavlink at all: its generated dialect alone costs ~7 MB.)
 
 Trust, on UDP, where anyone who can reach the port can send:
 
-- **One parser per sender.** Each datagram is parsed by the parser of the address it came
-  from (at most :data:`MAX_SENDERS`, least recently used dropped), and whatever a
-  datagram leaves unfinished is discarded with it (MAVLink over UDP never splits a frame
-  across datagrams). Garbage, truncated or bad-CRC frames therefore cost only their own
-  sender; the autopilot's next frame always starts on a clean parser.
+- **Each datagram on its own.** A datagram is parsed by itself, and whatever it leaves
+  unfinished is discarded with it and counted ``truncated`` (MAVLink over UDP never
+  splits a frame across datagrams). Garbage, truncated or bad-CRC frames therefore cost
+  only their own datagram; the autopilot's next frame always starts clean.
 - **Source lock.** A link hears one address: the autopilot's. ``udpout://`` is locked to
   its destination, ``udp://HOST:PORT@PEER:PORT`` to the configured peer (``@PEER`` alone:
   any port of that host may prove itself). Otherwise the lock goes to the first address
@@ -76,15 +76,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
-
-from roost_agent.frames import known as known_frame
-from roost_agent.frames import split as split_frames
 from roost_agent.health import Fix, HealthTracker, Motion
 from roost_agent.signing import LinkSigning
 from roost_api.autopilot import AutopilotSpec
 from roost_api.meta import Stack
 from roost_mavlink import AGENT_COMPONENT_ID, MavResult, pymavlink_device
+from roost_mavlink.codec import MAVLINK_VERSION, BadData, Encoder, Frame, StreamParser, scan
 from roost_mavlink.signing import Signer, Verdict, Verifier
 from roost_mavlink.status import MAV_AUTOPILOT_INVALID, MAV_TYPE_ONBOARD_CONTROLLER, MavState
 
@@ -160,7 +157,7 @@ CONNECT_TIMEOUT_S = 2.0
 UDP_MAX = 65535
 RECEIVE_BUFFER_BYTES = 1 << 20  # absorbs a burst of foreign datagrams
 
-MAX_SENDERS = 16
+MAX_SENDERS = 16  # candidate addresses a source lock remembers
 PROOF_HEARTBEATS = 2
 ALERT_WINDOW_S = 10.0
 FOREIGN_ALERT_PER_S = 1.0
@@ -177,7 +174,7 @@ class LinkCounters:
     unlocked: int = 0  # parsed before any address proved itself (not used)
     other: int = 0  # from the locked address but another sysid or component
     bad: int = 0  # bytes that did not parse or failed their CRC (BAD_DATA)
-    unknown: int = 0  # framed, but a message id the dialect lacks: its CRC cannot be checked
+    unknown: int = 0  # framed, but a message id nobody declared: its CRC cannot be checked
     truncated: int = 0  # datagrams that ended inside a frame
     unsigned: int = 0  # dropped while signing is required: no signature
     bad_signature: int = 0  # dropped while signing is required: wrong or replayed
@@ -499,17 +496,22 @@ def _address_text(address: Address | None) -> str:
 
 
 class _Writer:
-    """The file object the pymavlink encoder writes finished frames to (signing them)."""
+    """Where the link's frames go: its own (encoded and numbered as the agent) and hub
+    clients' (as they are), signed when the link signs."""
 
-    def __init__(self, transport: Transport, signer: Signer | None) -> None:
+    def __init__(self, transport: Transport, signer: Signer | None, encoder: Encoder) -> None:
         self.transport = transport
         self.signer = signer
+        self.encoder = encoder
 
-    def write(self, data: bytes) -> None:
-        frame = bytes(data)
+    def write(self, frame: bytes) -> None:
         if self.signer is not None:
             frame = self.signer.sign(frame)
         self.transport.send(frame)
+
+    def send(self, name: str, **values: int | float) -> None:
+        """Encode one message from the agent and write it."""
+        self.write(self.encoder.encode(name, **values))
 
 
 class AckMailbox:
@@ -551,12 +553,6 @@ class AckMailbox:
                     return result if serial > after_serial else None
 
 
-def _new_parser() -> Any:
-    parser = mavlink.MAVLink(None)
-    parser.robust_parsing = True
-    return parser
-
-
 @dataclass
 class _Session:
     """What one opened transport needs while it reads."""
@@ -564,7 +560,7 @@ class _Session:
     transport: Transport
     lock: SourceLock
     verifier: Verifier | None
-    parsers: OrderedDict[Address | None, Any] = field(default_factory=OrderedDict)
+    parser: StreamParser = field(default_factory=StreamParser)  # streams (TCP, serial) only
     accepted_at_open: int = 0
     link: AutopilotLink | None = None
     fd: int = -1  # the descriptor the reader selects on
@@ -815,7 +811,7 @@ class AutopilotLink:
         self._clock = clock
         self._write_lock = threading.Lock()
         self._transport: Transport | None = None
-        self._mav: Any = None
+        self._writer: _Writer | None = None
         self._stop = threading.Event()
         # The reader this link is read by: shared by the agent's links, or its own.
         self._reader = reader
@@ -867,7 +863,7 @@ class AutopilotLink:
 
     def _close(self) -> None:
         with self._write_lock:
-            transport, self._transport, self._mav = self._transport, None, None
+            transport, self._transport, self._writer = self._transport, None, None
         if transport is not None:
             try:
                 transport.close()
@@ -954,16 +950,12 @@ class AutopilotLink:
             signing = self.signing
             signer = signing.signer(self.spec.bridge_channel) if signing is not None else None
             verifier = signing.verifier() if signing is not None and signing.require else None
-            mav = mavlink.MAVLink(
-                _Writer(transport, signer),
-                srcSystem=self.spec.sysid,
-                srcComponent=AGENT_COMPONENT_ID,
-            )
+            writer = _Writer(transport, signer, Encoder(self.spec.sysid, AGENT_COMPONENT_ID))
         except BaseException:
             transport.close()
             raise
         with self._write_lock:
-            self._transport, self._mav = transport, mav
+            self._transport, self._writer = transport, writer
         return _Session(transport, lock, verifier, accepted_at_open=self.counters.accepted)
 
     def _drain(self, session: _Session) -> None:
@@ -1002,44 +994,25 @@ class AutopilotLink:
                 )
             return
         if session.transport.datagrams:
-            frames = split_frames(data)
-            if frames is not None:  # all good MAVLink 2: no parser needed (roost_agent.frames)
-                try:
-                    for frame in frames:
-                        self._message(session, frame, sender, now)
-                except Exception:
-                    self.counters.errors += 1
-                return
-        parser = session.parsers.pop(sender, None)
-        if parser is None:
-            parser = _new_parser()
-            while len(session.parsers) >= MAX_SENDERS:
-                session.parsers.popitem(last=False)
-        session.parsers[sender] = parser
+            items, used = scan(data)
+            if used < len(data):  # a frame never continues in the next datagram
+                self.counters.truncated += 1
+        else:
+            items = session.parser.feed(data)
         try:
-            msg = parser.parse_char(data)
-            while msg is not None:
-                if msg.get_type().startswith("UNKNOWN_"):  # an id pymavlink's dialect lacks
-                    msg = known_frame(msg)  # one of ours (roost_agent.frames), checked
-                if msg is None:
-                    self.counters.unknown += 1
+            for item in items:
+                if isinstance(item, Frame):
+                    self._message(session, item, sender, now)
+                elif isinstance(item, BadData):
+                    self.counters.bad += 1
                 else:
-                    self._message(session, msg, sender, now)
-                msg = parser.parse_char(b"")
-        except Exception:  # the parser choked: this sender's parser starts over
+                    self.counters.unknown += 1
+        except Exception:  # a bug reading one message must not stop the reader
             self.counters.errors += 1
-            session.parsers.pop(sender, None)
-            return
-        if session.transport.datagrams and parser.buf_len() > 0:
-            self.counters.truncated += 1
-            session.parsers.pop(sender, None)  # a frame never continues in the next datagram
 
-    def _message(self, session: _Session, msg: Any, sender: Address | None, now: float) -> None:
+    def _message(self, session: _Session, msg: Frame, sender: Address | None, now: float) -> None:
         kind = msg.get_type()
         locked = sender is None or sender == session.lock.locked
-        if kind == "BAD_DATA":
-            self.counters.bad += 1
-            return
         if (
             msg.get_srcSystem() != self.spec.sysid
             or msg.get_srcComponent() != self.spec.component_id
@@ -1077,7 +1050,7 @@ class AutopilotLink:
         if self.tracker.observe(msg, now):
             self._on_change()
 
-    def _signed(self, verifier: Verifier, msg: Any, sender: Address | None, now: float) -> bool:
+    def _signed(self, verifier: Verifier, msg: Frame, sender: Address | None, now: float) -> bool:
         verdict = verifier.check(msg.get_msgbuf())
         if verdict is Verdict.GOOD:
             return True
@@ -1111,12 +1084,12 @@ class AutopilotLink:
 
     # -- writing ---------------------------------------------------------------------
 
-    def _send(self, write: Callable[[Any], None]) -> bool:
+    def _send(self, write: Callable[[_Writer], None]) -> bool:
         with self._write_lock:
-            if self._mav is None:
+            if self._writer is None:
                 return False
             try:
-                write(self._mav)
+                write(self._writer)
             except (OSError, ValueError) as exc:
                 log.debug("%s: write failed: %s", self.name, exc)
                 return False
@@ -1124,7 +1097,7 @@ class AutopilotLink:
 
     def send_frame(self, frame: bytes) -> bool:
         """Forward a finished MAVLink frame (a hub client's), signed like the agent's own."""
-        return self._send(lambda mav: mav.file.write(frame))
+        return self._send(lambda writer: writer.write(frame))
 
     def send_heartbeat(self) -> bool:
         """The agent's own 1 Hz heartbeat (onboard controller, not an autopilot).
@@ -1133,25 +1106,33 @@ class AutopilotLink:
         or TCP peer learn where to send.
         """
         return self._send(
-            lambda mav: mav.heartbeat_send(
-                MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, MavState.ACTIVE
+            lambda writer: writer.send(
+                "HEARTBEAT",
+                type=MAV_TYPE_ONBOARD_CONTROLLER,
+                autopilot=MAV_AUTOPILOT_INVALID,
+                base_mode=0,
+                custom_mode=0,
+                system_status=MavState.ACTIVE,
+                mavlink_version=MAVLINK_VERSION,
             )
         )
 
+    def _send_to_autopilot(self, name: str, **values: int | float) -> bool:
+        """One message addressed to this autopilot's system and component."""
+        target = {"target_system": self.spec.sysid, "target_component": self.spec.component_id}
+        return self._send(lambda writer: writer.send(name, **target, **values))
+
     def send_command(self, command: int, params: Params, confirmation: int = 0) -> bool:
         """COMMAND_LONG addressed to this autopilot's system and component."""
-        return self._send(
-            lambda mav: mav.command_long_send(
-                self.spec.sysid, self.spec.component_id, command, confirmation, *params
-            )
+        param = {f"param{i}": value for i, value in enumerate(params, start=1)}
+        return self._send_to_autopilot(
+            "COMMAND_LONG", command=command, confirmation=confirmation, **param
         )
 
     def request_data_stream(self, stream_id: int, hz: int) -> bool:
         """REQUEST_DATA_STREAM (start) for one MAV_DATA_STREAM group (ArduPilot)."""
-        return self._send(
-            lambda mav: mav.request_data_stream_send(
-                self.spec.sysid, self.spec.component_id, stream_id, hz, 1
-            )
+        return self._send_to_autopilot(
+            "REQUEST_DATA_STREAM", req_stream_id=stream_id, req_message_rate=hz, start_stop=1
         )
 
     def command(

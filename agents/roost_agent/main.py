@@ -15,7 +15,7 @@ unreachable).
 Output: one JSON object per line on stdout, ``{"event": ...}`` for every event and
 ``{"status": ..., "links": ...}`` (status and per-link message counters) every
 ``--status-interval`` seconds. Logs go to stderr (so does
-anything pymavlink prints). SIGHUP re-reads the config file (thresholds, policy,
+anything a library prints). SIGHUP re-reads the config file (thresholds, policy,
 primary, and a ``command`` executed once per id); SIGTERM/SIGINT stop the agent.
 
 A configuration the agent cannot fly with (an autopilot connection URL it could not
@@ -297,7 +297,7 @@ def main(argv: list[str] | None = None) -> int:
         stream=sys.stderr,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
-    # JSON goes to the real stdout; stray prints (pymavlink has some) go to stderr.
+    # JSON goes to the real stdout; stray prints of any library go to stderr.
     out = JsonLines(os.fdopen(os.dup(sys.stdout.fileno()), "w", buffering=1))
     sys.stdout = sys.stderr
     state = StateFile(args.state_dir / STATE_FILE_NAME)

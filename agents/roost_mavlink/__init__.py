@@ -69,6 +69,21 @@ class MavResult:
     UNSUPPORTED = 3
     FAILED = 4
     IN_PROGRESS = 5
+    CANCELLED = 6
+    COMMAND_LONG_ONLY = 7
+    COMMAND_INT_ONLY = 8
+
+
+_RESULT_NAMES = {
+    value: f"MAV_RESULT_{name}"
+    for name, value in vars(MavResult).items()
+    if name.isupper() and isinstance(value, int)
+}
+
+
+def mav_result_name(result: int) -> str:
+    """``MAV_RESULT_<NAME>`` of a COMMAND_ACK result (the number as text when unknown)."""
+    return _RESULT_NAMES.get(result, str(result))
 
 
 __all__ = [
@@ -102,6 +117,7 @@ __all__ = [
     "intent_mode",
     "is_manual_mode",
     "landed_state_name",
+    "mav_result_name",
     "mav_state_name",
     "mode_name",
     "pymavlink_device",

@@ -1,22 +1,32 @@
-"""MAVLink messages real autopilots send that the agent's pymavlink dialect lacks.
+"""MAVLink messages declared field by field: what the agent reads and sends, and what PX4
+sends that pymavlink's dialect lacks.
 
-Why: PX4 v1.16 streams five messages, unasked, that pymavlink's generated
-``ardupilotmega`` dialect (2.4.x) does not define: CURRENT_MODE (436, 0.5 Hz),
+Why declarations (the agent's codec, :mod:`roost_mavlink.codec`, reads them): the agent
+decodes a few fields of a few messages (:data:`AGENT_MESSAGES`: HEARTBEAT, SYS_STATUS,
+ATTITUDE, GLOBAL_POSITION_INT, the estimator reports, EXTENDED_SYS_STATE, COMMAND_ACK,
+the hub's COMMAND_LONG/INT) and encodes three (HEARTBEAT, COMMAND_LONG,
+REQUEST_DATA_STREAM); pymavlink's generated dialect, which has them all, costs ~7 MB to
+import. Every other message id is only checked and counted, from the generated table
+:mod:`roost_mavlink.checked_messages`.
+
+:data:`EXTRA_MESSAGES`: PX4 v1.16 streams five messages, unasked, that pymavlink's
+generated ``ardupilotmega`` dialect (2.4.x) does not define: CURRENT_MODE (436, 0.5 Hz),
 LINK_NODE_STATUS (8), TIME_ESTIMATE_TO_TARGET (380), EVENT (410) and
-CURRENT_EVENT_SEQUENCE (411). A frame of an id the dialect does not know cannot have its
-CRC checked, so it was counted as bad data: real autopilot frames lost from the link's
-accounting, indistinguishable from corruption. The agent reads none of their fields; it
-needs to know them only to check them and count them as the autopilot's own traffic.
+CURRENT_EVENT_SEQUENCE (411). A frame of an id nobody declared cannot have its CRC
+checked, so it would be counted as unknown: real autopilot frames lost from the link's
+accounting, indistinguishable from corruption. The agent reads none of their fields.
 
 Each definition is what MAVLink's message XML says (``common.xml``; the four beside
 CURRENT_MODE were in ``development.xml`` when they were introduced): the fields in
-declaration order with their C types. From that the wire order (fields sorted by type
-size, largest first, stable; extension fields, none here, would stay last) and
-CRC_EXTRA (the CRC-16/MCRF4XX of ``"NAME "`` and ``"type name "`` of every wire-order
-field, plus the array length byte for arrays, folded to one byte) are computed, the
-way MAVLink's generators compute them, so a definition cannot drift from its checksum.
-``tests/unit/test_agent_frames.py`` checks the computation against pymavlink's dialect
-and every definition against the frames of the recorded PX4 flights.
+declaration order with their C types, then the extension fields. From that the wire
+order (base fields sorted by type size, largest first, stable; extension fields after
+them in declared order) and CRC_EXTRA (the CRC-16/MCRF4XX of ``"NAME "`` and
+``"type name "`` of every base field in wire order, plus the array length byte for
+arrays, folded to one byte) are computed, the way MAVLink's generators compute them, so
+a definition cannot drift from its checksum. ``tests/unit/test_mavlink_codec.py`` checks
+the computation against every message of pymavlink's dialect, each of
+:data:`AGENT_MESSAGES` against pymavlink's, and ``tests/unit/test_capture_replay.py``
+every definition against the frames of the recorded PX4 flights.
 """
 
 from __future__ import annotations
@@ -65,20 +75,37 @@ class FieldDef:
 
 @dataclass(frozen=True)
 class MessageDef:
-    """One message as its XML declares it (fields in declaration order)."""
+    """One message as its XML declares it: base fields in declaration order, then the
+    extension fields (after ``<extensions/>``) in declaration order."""
 
     id: int
     name: str
     fields: tuple[FieldDef, ...]
+    extensions: tuple[FieldDef, ...] = ()
 
     @property
-    def wire_order(self) -> tuple[FieldDef, ...]:
-        """The fields as they sit in the payload: largest type first, stable."""
+    def base_order(self) -> tuple[FieldDef, ...]:
+        """The base fields as they sit in the payload: largest type first, stable."""
         return tuple(sorted(self.fields, key=lambda f: -TYPES[f.type][1]))
 
     @property
+    def wire_order(self) -> tuple[FieldDef, ...]:
+        """Every field as it sits in the payload: the sorted base, then the extensions."""
+        return self.base_order + self.extensions
+
+    @property
+    def min_length(self) -> int:
+        """Payload bytes of the base fields (a MAVLink 1 payload)."""
+        return sum(f.size for f in self.fields)
+
+    @property
+    def max_length(self) -> int:
+        """Payload bytes with every extension field (MAVLink 2 before zero truncation)."""
+        return self.min_length + sum(f.size for f in self.extensions)
+
+    @property
     def crc_extra(self) -> int:
-        return crc_extra(self.name, self.wire_order)
+        return crc_extra(self.name, self.base_order)
 
     @property
     def unpacker(self) -> struct.Struct:
@@ -96,8 +123,161 @@ def crc_extra(name: str, wire_order: tuple[FieldDef, ...]) -> int:
     return (crc & 0xFF) ^ (crc >> 8)
 
 
-def _message(msg_id: int, name: str, *fields: tuple[str, str] | tuple[str, str, int]) -> MessageDef:
-    return MessageDef(msg_id, name, tuple(FieldDef(*f) for f in fields))
+Declared = tuple[str, str] | tuple[str, str, int]
+
+
+def _message(
+    msg_id: int, name: str, *fields: Declared, extensions: tuple[Declared, ...] = ()
+) -> MessageDef:
+    return MessageDef(
+        msg_id,
+        name,
+        tuple(FieldDef(*f) for f in fields),
+        tuple(FieldDef(*f) for f in extensions),
+    )
+
+
+_PARAMS = tuple(("float", f"param{i}") for i in range(1, 8))
+
+# The messages whose fields the agent reads (health, hub, command acks) or writes (its
+# heartbeat, commands, ArduPilot stream requests), as common.xml / ardupilotmega.xml
+# declare them.
+AGENT_MESSAGES: dict[int, MessageDef] = {
+    m.id: m
+    for m in (
+        _message(
+            0,
+            "HEARTBEAT",
+            ("uint8_t", "type"),
+            ("uint8_t", "autopilot"),
+            ("uint8_t", "base_mode"),
+            ("uint32_t", "custom_mode"),
+            ("uint8_t", "system_status"),
+            ("uint8_t", "mavlink_version"),
+        ),
+        _message(
+            1,
+            "SYS_STATUS",
+            ("uint32_t", "onboard_control_sensors_present"),
+            ("uint32_t", "onboard_control_sensors_enabled"),
+            ("uint32_t", "onboard_control_sensors_health"),
+            ("uint16_t", "load"),
+            ("uint16_t", "voltage_battery"),
+            ("int16_t", "current_battery"),
+            ("int8_t", "battery_remaining"),
+            ("uint16_t", "drop_rate_comm"),
+            ("uint16_t", "errors_comm"),
+            ("uint16_t", "errors_count1"),
+            ("uint16_t", "errors_count2"),
+            ("uint16_t", "errors_count3"),
+            ("uint16_t", "errors_count4"),
+            extensions=(
+                ("uint32_t", "onboard_control_sensors_present_extended"),
+                ("uint32_t", "onboard_control_sensors_enabled_extended"),
+                ("uint32_t", "onboard_control_sensors_health_extended"),
+            ),
+        ),
+        _message(
+            30,
+            "ATTITUDE",
+            ("uint32_t", "time_boot_ms"),
+            ("float", "roll"),
+            ("float", "pitch"),
+            ("float", "yaw"),
+            ("float", "rollspeed"),
+            ("float", "pitchspeed"),
+            ("float", "yawspeed"),
+        ),
+        _message(
+            33,
+            "GLOBAL_POSITION_INT",
+            ("uint32_t", "time_boot_ms"),
+            ("int32_t", "lat"),
+            ("int32_t", "lon"),
+            ("int32_t", "alt"),
+            ("int32_t", "relative_alt"),
+            ("int16_t", "vx"),
+            ("int16_t", "vy"),
+            ("int16_t", "vz"),
+            ("uint16_t", "hdg"),
+        ),
+        _message(
+            66,
+            "REQUEST_DATA_STREAM",
+            ("uint8_t", "target_system"),
+            ("uint8_t", "target_component"),
+            ("uint8_t", "req_stream_id"),
+            ("uint16_t", "req_message_rate"),
+            ("uint8_t", "start_stop"),
+        ),
+        _message(
+            75,
+            "COMMAND_INT",
+            ("uint8_t", "target_system"),
+            ("uint8_t", "target_component"),
+            ("uint8_t", "frame"),
+            ("uint16_t", "command"),
+            ("uint8_t", "current"),
+            ("uint8_t", "autocontinue"),
+            *_PARAMS[:4],
+            ("int32_t", "x"),
+            ("int32_t", "y"),
+            ("float", "z"),
+        ),
+        _message(
+            76,
+            "COMMAND_LONG",
+            ("uint8_t", "target_system"),
+            ("uint8_t", "target_component"),
+            ("uint16_t", "command"),
+            ("uint8_t", "confirmation"),
+            *_PARAMS,
+        ),
+        _message(
+            77,
+            "COMMAND_ACK",
+            ("uint16_t", "command"),
+            ("uint8_t", "result"),
+            extensions=(
+                ("uint8_t", "progress"),
+                ("int32_t", "result_param2"),
+                ("uint8_t", "target_system"),
+                ("uint8_t", "target_component"),
+            ),
+        ),
+        _message(
+            193,
+            "EKF_STATUS_REPORT",
+            ("uint16_t", "flags"),
+            ("float", "velocity_variance"),
+            ("float", "pos_horiz_variance"),
+            ("float", "pos_vert_variance"),
+            ("float", "compass_variance"),
+            ("float", "terrain_alt_variance"),
+            extensions=(("float", "airspeed_variance"),),
+        ),
+        _message(
+            230,
+            "ESTIMATOR_STATUS",
+            ("uint64_t", "time_usec"),
+            ("uint16_t", "flags"),
+            ("float", "vel_ratio"),
+            ("float", "pos_horiz_ratio"),
+            ("float", "pos_vert_ratio"),
+            ("float", "mag_ratio"),
+            ("float", "hagl_ratio"),
+            ("float", "tas_ratio"),
+            ("float", "pos_horiz_accuracy"),
+            ("float", "pos_vert_accuracy"),
+        ),
+        _message(
+            245,
+            "EXTENDED_SYS_STATE",
+            ("uint8_t", "vtol_state"),
+            ("uint8_t", "landed_state"),
+        ),
+    )
+}
 
 
 EXTRA_MESSAGES: dict[int, MessageDef] = {

@@ -20,8 +20,9 @@ The rules are those of the MAVLink signing specification:
   rejects a frame that does not advance it; a stream it has not seen is accepted when its
   timestamp is no more than one minute behind the receiver's own clock.
 
-Unlike the rest of :mod:`roost_mavlink` this module needs pymavlink (for the CRC_EXTRA
-table of the dialect); both of its users have it anyway.
+CRC_EXTRA comes from :mod:`roost_mavlink.codec` (no pymavlink). SHA-256 stays
+``hashlib``'s: the standard library's OpenSSL-free ``_sha256`` was measured to save
+nothing in the agent, whose pydantic models import ``hashlib`` (via ``secrets``) anyway.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ import time
 from collections.abc import Callable
 from enum import StrEnum
 
-from pymavlink.dialects.v20 import ardupilotmega as dialect
+from roost_mavlink.codec import crc_extra_of, frame_crc
 
 KEY_BYTES = 32
 SIGNATURE_BLOCK = 13
@@ -94,12 +95,8 @@ def parse_key(text: str | bytes) -> bytes:
 
 
 def _crc(data: bytes, msg_id: int) -> int | None:
-    entry = dialect.mavlink_map.get(msg_id)
-    if entry is None:
-        return None
-    crc = dialect.x25crc(data)
-    crc.accumulate(struct.pack("B", entry.crc_extra))
-    return int(crc.crc)
+    crc_extra = crc_extra_of(msg_id)
+    return None if crc_extra is None else frame_crc(data, crc_extra)
 
 
 def frame_length(buf: bytes | bytearray, start: int = 0) -> int | None:

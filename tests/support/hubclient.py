@@ -53,6 +53,15 @@ class Received:
     msg: Any
 
 
+def _source_system(msg: Any) -> int:
+    """The sender's system id; read from the frame for an id pymavlink's dialect lacks
+    (PX4's CURRENT_MODE, EVENT...), whose header pymavlink leaves undecoded (0)."""
+    if msg.get_type().startswith("UNKNOWN_"):
+        frame = bytes(msg.get_msgbuf())
+        return frame[5] if frame[0] == mavlink.PROTOCOL_MARKER_V2 else frame[3]
+    return int(msg.get_srcSystem())
+
+
 class HubClient:
     """A ground station on ``address`` (the hub's UDP endpoint)."""
 
@@ -103,7 +112,7 @@ class HubClient:
             msg = parser.parse_char(data)
             while msg is not None:
                 if msg.get_type() != "BAD_DATA":
-                    item = Received(now, msg.get_type(), msg.get_srcSystem(), msg)
+                    item = Received(now, msg.get_type(), _source_system(msg), msg)
                     callback = self._on_message
                     if callback is not None:
                         callback(item)

@@ -237,6 +237,17 @@ def test_standalone_agent_imports_neither_kopf_nor_heavy_clients() -> None:
     assert out.stdout.strip() == "[]"
 
 
+def test_the_agent_never_imports_pymavlink() -> None:
+    """Its MAVLink is roost_mavlink.codec: pymavlink's generated dialect alone costs ~7 MB
+    of memory on a companion computer."""
+    probe = (
+        "import sys, roost_agent.main, roost_agent.agent, roost_agent.hub; "
+        "print(sorted(m for m in sys.modules if m.split('.')[0] == 'pymavlink'))"
+    )
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
 def test_the_agent_in_cluster_mode_never_imports_the_kubernetes_package() -> None:
     """Its API client goes through roost_kube's minimal transport (about 13 MB less)."""
     probe = (
@@ -317,9 +328,9 @@ def _px4_frames() -> tuple[bytes, bytes, bytes]:
 def test_a_message_the_pymavlink_dialect_lacks_is_counted_as_the_autopilots(
     transport: str,
 ) -> None:
-    """PX4 v1.16's CURRENT_MODE is accepted like any message of the autopilot, on the
-    checked fast path (UDP datagrams) and behind pymavlink's parser (a TCP stream); a
-    frame of an id nobody defines is counted ``unknown`` and costs nothing after it."""
+    """PX4 v1.16's CURRENT_MODE (which pymavlink's dialect lacks) is accepted like any
+    message of the autopilot, in UDP datagrams and in a TCP stream; a frame of an id
+    nobody defines is counted ``unknown`` and costs nothing after it."""
     beat, mode, undefined = _px4_frames()
     peer = socket.socket(
         socket.AF_INET, socket.SOCK_DGRAM if transport == "udp" else socket.SOCK_STREAM

@@ -30,7 +30,6 @@ os.environ.setdefault("MAVLINK20", "1")
 import pytest
 from pymavlink import mavutil
 
-from roost_agent.frames import known
 from roost_agent.health import Assessment, HealthTracker, Motion
 from roost_agent.report import conditions
 from roost_agent.safety import DEFAULT_TIMING, judge_hold
@@ -42,6 +41,7 @@ from roost_api.autopilot import (
 )
 from roost_api.meta import HealthLevel, Stack
 from roost_mavlink import MavState, custom_mode
+from roost_mavlink.codec import BadData, UnknownFrame, scan
 
 REPO = Path(__file__).resolve().parents[2]
 CAPTURES = Path(os.environ.get("ROOST_CAPTURES_DIR") or REPO.parent / "shared" / "captures")
@@ -64,7 +64,7 @@ class Replay:
     messages: list[tuple[float, Any]]
     timeline: list[Assessment]
     foreign: int
-    unknown: int  # the autopilot's frames of ids neither pymavlink's dialect nor ours defines
+    unknown: int  # frames of ids the agent's codec does not know
 
     @property
     def last_at(self) -> float:
@@ -112,20 +112,23 @@ def replay(
         while next_at < t:
             timeline.append(tracker.assess(next_at))
             next_at += STEP_S
-        if msg.get_type().startswith("UNKNOWN_"):  # as the link reads it: one of ours?
-            msg = known(msg)
-            if msg is None:
+        # the recording's framing and times, the agent's reading (as the link reads it)
+        for frame in scan(bytes(msg.get_msgbuf()))[0]:
+            if isinstance(frame, UnknownFrame):
                 unknown += 1
                 continue
-        if msg.get_type() == "BAD_DATA" or (msg.get_srcSystem(), msg.get_srcComponent()) != (1, 1):
-            foreign += 1
-            continue
-        if msg.get_type() == "HEARTBEAT":
-            heartbeats += 1
-            if heartbeats - 1 in lose_heartbeats:
+            if isinstance(frame, BadData) or (
+                frame.get_srcSystem(),
+                frame.get_srcComponent(),
+            ) != (1, 1):
+                foreign += 1
                 continue
-        tracker.observe(msg, t)
-        messages.append((t, msg))
+            if frame.get_type() == "HEARTBEAT":
+                heartbeats += 1
+                if heartbeats - 1 in lose_heartbeats:
+                    continue
+            tracker.observe(frame, t)
+            messages.append((t, frame))
     end = next_at + tail_s
     while next_at < end:
         timeline.append(tracker.assess(next_at))
@@ -168,7 +171,7 @@ def test_px4_boot_is_starting_and_ok_comes_only_after_the_first_heartbeat(name: 
 )
 def test_every_px4_frame_is_of_a_message_the_agent_knows(name: str) -> None:
     """PX4 v1.16 sends five messages pymavlink's dialect lacks; with the agent's added
-    definitions every one of the autopilot's frames passes its CRC and is counted as the
+    declarations every one of the autopilot's frames passes its CRC and is counted as the
     autopilot's own. CURRENT_MODE's layout is checked against what it reports: its
     custom_mode is the mode of the heartbeat before it (or, at a mode change, after it),
     its intended_custom_mode one the autopilot flew (after a failsafe: the mode the pilot

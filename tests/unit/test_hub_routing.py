@@ -17,6 +17,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from roost_agent.arbiter import ArbiterState, AutopilotView, Policy, SwitchBridge, step
 from roost_agent.hub import (
+    MAV_CMD_DO_AUX_FUNCTION,
+    MIRRORED_COMMANDS,
     Hub,
     InStepTracker,
     Snapshot,
@@ -34,6 +36,8 @@ from roost_api.autopilot import (
     StandbyLimits,
 )
 from roost_api.meta import HealthLevel, Stack
+from roost_mavlink import mav_result_name
+from roost_mavlink.codec import scan
 
 VEHICLE = 42
 R = StandbyInStepReason
@@ -91,14 +95,15 @@ def test_rewrite_source_refuses_what_is_not_a_known_frame(frame: bytes) -> None:
 
 
 def client_msg(msg: Any) -> Any:
-    return parse(encode(msg, sysid=255, component=190))
+    """A client's message as the hub reads it (the agent's codec)."""
+    ((frame,), _) = scan(encode(msg, sysid=255, component=190))
+    return frame
 
 
 def test_retarget_addresses_the_autopilot_and_keeps_the_sender() -> None:
     msg = client_msg(mavlink.MAVLink_command_long_message(VEHICLE, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0))
-    packer = mavlink.MAVLink(None)
     for sysid in (1, 2):
-        out = parse(retarget(msg, VEHICLE, sysid, packer))
+        out = parse(retarget(msg, VEHICLE, sysid))
         assert out.target_system == sysid and out.command == 400
         assert (out.get_srcSystem(), out.get_srcComponent()) == (255, 190)
         assert out.get_seq() == msg.get_seq()
@@ -106,16 +111,15 @@ def test_retarget_addresses_the_autopilot_and_keeps_the_sender() -> None:
 
 
 def test_retarget_leaves_broadcasts_and_other_systems_alone() -> None:
-    packer = mavlink.MAVLink(None)
     for target in (0, 9):
         msg = client_msg(
             mavlink.MAVLink_command_long_message(target, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)
         )
-        assert retarget(msg, VEHICLE, 1, packer) == bytes(msg.get_msgbuf())
+        assert retarget(msg, VEHICLE, 1) == bytes(msg.get_msgbuf())
     hb = client_msg(heartbeat())
-    assert retarget(hb, VEHICLE, 1, packer) == bytes(hb.get_msgbuf())
+    assert retarget(hb, VEHICLE, 1) == bytes(hb.get_msgbuf())
     manual = client_msg(mavlink.MAVLink_manual_control_message(VEHICLE, 0, 0, 500, 0, 0))
-    assert parse(retarget(manual, VEHICLE, 3, packer)).target == 3
+    assert parse(retarget(manual, VEHICLE, 3)).target == 3
 
 
 # -- StandbyInStep decision table ----------------------------------------------------------
@@ -393,3 +397,14 @@ def test_ardupilot_standbys_get_the_standby_aux_function(
     assert links["fc1"].commands == links["fc2"].commands == []  # PX4 has no such function
     hub.aux_standby("fc3")
     assert links["fc3"].commands[-1] == (218, (76.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+
+
+def test_the_hubs_command_and_result_names_are_mavlinks() -> None:
+    """The hub names mirrored commands and ack results itself (no pymavlink in the agent):
+    the same numbers and names as pymavlink's dialect."""
+    for number, name in MIRRORED_COMMANDS.items():
+        assert getattr(mavlink, name) == number
+    assert mavlink.MAV_CMD_DO_AUX_FUNCTION == MAV_CMD_DO_AUX_FUNCTION
+    for number, entry in mavlink.enums["MAV_RESULT"].items():
+        if not entry.name.endswith("ENUM_END"):
+            assert mav_result_name(number) == entry.name
