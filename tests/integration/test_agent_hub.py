@@ -319,7 +319,7 @@ def test_a_mirrored_standby_flies_the_clients_path_and_an_unmirrored_one_stays_b
         separations = fly_setpoint_circle(v, 12.0)
         if mirror:
             assert max(separations) < 1.0, separations
-            wait_until("fc2 in step", condition_is(v, "fc2", "True", "InStep"), 5, POLL_S)
+            wait_until("fc2 in step", condition_is(v, "fc2", "True", "InStep"), 15, POLL_S)
         else:
             assert separations[-1] > 10.0, separations  # 24 m along the circle, fc2 hovers
             wait_until(
