@@ -165,14 +165,25 @@ class Director(threading.Thread):
 
     # ---- steps -------------------------------------------------------------------------
     def _wait(self, what: Callable[[], bool], timeout_s: float) -> bool:
-        """Poll ``what`` until true (True) or ``timeout_s`` passes (False)."""
+        """Poll ``what`` until true (True) or ``timeout_s`` passes (False).
+
+        An API server too busy to answer one poll (a big sandbox on two cores) is asked
+        again at the next; only the timeout ends the wait.
+        """
         deadline = time.monotonic() + timeout_s
-        while not what():
+        while not self._answers(what):
             if time.monotonic() > deadline:
                 return False
             if self._stopping.wait(POLL_S):
                 raise _StoppedError
         return True
+
+    def _answers(self, what: Callable[[], bool]) -> bool:
+        try:
+            return what()
+        except CliError as error:
+            self._script.once(f"(retrying) {error}", "dim")
+            return False
 
     def _mission(self, fleet: Fleet) -> dict[str, Any] | None:
         for mission in fleet.missions(plan.MISSION_NAMESPACE):
