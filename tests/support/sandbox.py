@@ -23,6 +23,7 @@ from typing import Any
 import pytest
 
 from roost_cli.sandbox import state as sandbox_state
+from roost_cli.sandbox.director import vehicle_ready
 
 BIN = Path(sys.executable).parent
 UP_TIMEOUT_S = 240.0
@@ -74,14 +75,7 @@ class RunningSandbox:
             listed = json.loads(self.kubectl("get", "vehicles", "-o", "json"))
         except (subprocess.CalledProcessError, subprocess.TimeoutExpired):
             return set()
-        return {
-            v["metadata"]["name"]
-            for v in listed["items"]
-            if any(
-                c["type"] == "Ready" and c["status"] == "True"
-                for c in (v.get("status") or {}).get("conditions", [])
-            )
-        }
+        return {v["metadata"]["name"] for v in listed["items"] if vehicle_ready(v)}
 
     def failovers(self) -> dict[str, list[dict[str, Any]]]:
         """Each vehicle's failovers as its agent logged them (``{"event": "Failover"…}``).

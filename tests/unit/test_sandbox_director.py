@@ -158,3 +158,22 @@ def test_a_poll_that_never_answers_ends_at_the_timeout() -> None:
         raise CliError("the API server did not answer")
 
     assert directing._wait(poll, timeout_s=0.0) is False
+
+
+@pytest.mark.parametrize(
+    ("conditions", "ready"),
+    [
+        ([{"type": "Ready", "status": "True"}], True),
+        ([{"type": "Ready", "status": "False"}], False),
+        ([{"type": "Ready", "status": "Unknown"}], False),
+        ([{"type": "NodeBound", "status": "True"}], False),
+        (None, False),
+    ],
+)
+def test_a_vehicle_is_ready_only_when_its_ready_condition_is_true(
+    conditions: list[dict[str, str]] | None, ready: bool
+) -> None:
+    vehicle: dict[str, Any] = {"metadata": {"name": "drone-1"}}
+    if conditions is not None:
+        vehicle["status"] = {"conditions": conditions}
+    assert director.vehicle_ready(vehicle) is ready
