@@ -108,6 +108,10 @@ e2e-node: $(STAMP) cluster-build node-build ## the chart's real pods on real har
 	@docker/build-images.sh >/dev/null || echo "images: not built (above: why); the chart's real-node tests skip or fail with the reason"
 	$(BIN)/pytest tests/e2e_node
 
+.PHONY: sandbox-full
+sandbox-full: $(STAMP) cluster-build ## the largest sandbox (25 vehicles) end to end; both cores for ~10 min
+	ROOST_SANDBOX_FULL=1 $(BIN)/pytest tests/integration/test_sandbox_full_fleet.py
+
 .PHONY: e2e-kind
 e2e-kind: $(STAMP) ## end-to-end suite on KinD (skips where no container engine runs)
 	tests/e2e/kind/run.sh

@@ -97,6 +97,15 @@ class ManagedProcess:
             return int(proc.memory_info().rss)
         return 0
 
+    def terminate(self) -> None:
+        """SIGTERM the process group and return at once (:meth:`stop` waits for the end).
+
+        Stopping many processes, terminate them all first: each then shuts down while the
+        others do, instead of one grace period after another.
+        """
+        if self._process() is not None:
+            self._signal_group(signal.SIGTERM)
+
     def stop(self, grace_s: float = STOP_GRACE_S) -> None:
         """SIGTERM the process group, SIGKILL it after ``grace_s``, and wait for the end.
 

@@ -20,28 +20,21 @@ from typing import Any
 import pytest
 
 from roost_cli.sandbox import state as sandbox_state
-from tests.support.sandbox import BIN, RunningSandbox, await_running, await_step, running_sandbox
+from tests.support.sandbox import (
+    BIN,
+    RunningSandbox,
+    await_running,
+    await_step,
+    recorded_processes,
+    running_sandbox,
+    still_running,
+)
 
 pytestmark = [pytest.mark.cluster, pytest.mark.slow, pytest.mark.timeout(600)]
 
 VEHICLES = 2
 FAULT_VEHICLE = "drone-1"
 STEP_TIMEOUT_S = 90.0
-
-
-def _identities(directory: Path) -> dict[int, float]:
-    """pid → start time of every process the sandbox recorded, itself included."""
-    recorded = sandbox_state.load(directory)
-    assert recorded is not None
-    found = {recorded.pid: recorded.create_time}
-    found |= {p["pid"]: p["create_time"] for p in recorded.processes if p["pid"]}
-    plane = json.loads((recorded.cluster_dir / "state.json").read_text())
-    found |= {p["pid"]: p["create_time"] for p in plane["processes"] if p["pid"]}
-    return found
-
-
-def _still_running(identities: dict[int, float]) -> list[int]:
-    return [pid for pid, started in identities.items() if sandbox_state.process_alive(pid, started)]
 
 
 def mission_vehicle(sandbox: RunningSandbox, mission: str, vehicle: str) -> dict[str, Any]:
@@ -165,12 +158,12 @@ def test_sandbox_flies_a_mission_fails_over_and_leaves_nothing_behind(
         STEP_TIMEOUT_S,
     )
 
-    identities = _identities(sandbox.directory)
+    identities = recorded_processes(sandbox.directory)
     assert len(identities) >= 1 + VEHICLES * 2 + 1 + 5  # up, sims + agents, operator, plane
     down = sandbox.roost("sandbox", "down")
     assert "sandbox stopped" in down.stdout
     sandbox.process.wait(timeout=60)
-    assert _still_running(identities) == []
+    assert still_running(identities) == []
     assert sandbox_state.load(sandbox.directory) is None
 
 

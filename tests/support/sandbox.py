@@ -23,6 +23,7 @@ from typing import Any
 import pytest
 
 from roost_cli.sandbox import state as sandbox_state
+from roost_cli.sandbox.director import vehicle_ready
 
 BIN = Path(sys.executable).parent
 UP_TIMEOUT_S = 240.0
@@ -66,6 +67,48 @@ class RunningSandbox:
 
     def log(self) -> str:
         return self.output.read_text(errors="replace")
+
+    def ready_vehicles(self) -> set[str]:
+        """Names of the Vehicles whose ``Ready`` condition is True now (none while the API
+        server is too busy to answer: a loaded machine is no failure)."""
+        try:
+            listed = json.loads(self.kubectl("get", "vehicles", "-o", "json"))
+        except (subprocess.CalledProcessError, subprocess.TimeoutExpired):
+            return set()
+        return {v["metadata"]["name"] for v in listed["items"] if vehicle_ready(v)}
+
+    def failovers(self) -> dict[str, list[dict[str, Any]]]:
+        """Each vehicle's failovers as its agent logged them (``{"event": "Failover"…}``).
+
+        A record has ``onsetToSwitchMs``: the agent's own onset-to-switch time.
+        """
+        found: dict[str, list[dict[str, Any]]] = {}
+        for log in sorted((self.directory / "logs").glob(f"{AGENT_LOG_PREFIX}*.log")):
+            vehicle = log.stem.removeprefix(AGENT_LOG_PREFIX)
+            for line in log.read_text(errors="replace").splitlines():
+                if line.startswith('{"event": "Failover"'):
+                    with contextlib.suppress(ValueError):
+                        found.setdefault(vehicle, []).append(json.loads(line))
+        return found
+
+
+AGENT_LOG_PREFIX = "roost-agent-"
+
+
+def recorded_processes(directory: Path) -> dict[int, float]:
+    """pid → start time of every process the sandbox recorded, itself included."""
+    recorded = sandbox_state.load(directory)
+    assert recorded is not None
+    found = {recorded.pid: recorded.create_time}
+    found |= {p["pid"]: p["create_time"] for p in recorded.processes if p["pid"]}
+    plane = json.loads((recorded.cluster_dir / "state.json").read_text())
+    found |= {p["pid"]: p["create_time"] for p in plane["processes"] if p["pid"]}
+    return found
+
+
+def still_running(identities: dict[int, float]) -> list[int]:
+    """The pids of ``identities`` (pid → start time) that are still the same process."""
+    return [pid for pid, started in identities.items() if sandbox_state.process_alive(pid, started)]
 
 
 def await_step(

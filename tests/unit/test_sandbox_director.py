@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 
 from roost_cli.errors import CliError
-from roost_cli.sandbox import director, plan, sims
+from roost_cli.sandbox import director, plan, sims, state
 from roost_cli.sandbox.runner import announced_telemetry, port_free
 from roost_cli.tables import format_latency
 
@@ -127,3 +127,53 @@ def test_a_bound_port_is_not_free() -> None:
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         assert not port_free(taken.getsockname()[1])
+
+
+_NO_STATE = state.SandboxState(pid=1, create_time=0.0, directory="/nonexistent")
+"""A sandbox with no vehicles: the retry tests touch neither simulators nor cluster."""
+
+
+def test_a_poll_the_api_server_does_not_answer_is_asked_again() -> None:
+    script = director.Script()
+    directing = director.Director(lambda: pytest.fail("no fleet needed"), _NO_STATE, script, None)
+    answers: list[bool | CliError] = [CliError("the API server did not answer"), False, True]
+
+    def poll() -> bool:
+        answer = answers.pop(0)
+        if isinstance(answer, CliError):
+            raise answer
+        return answer
+
+    assert directing._wait(poll, timeout_s=30.0) is True
+    assert answers == []
+    assert [style for _, style in script.lines()] == ["dim"]
+
+
+def test_a_poll_that_never_answers_ends_at_the_timeout() -> None:
+    directing = director.Director(
+        lambda: pytest.fail("no fleet needed"), _NO_STATE, director.Script(), None
+    )
+
+    def poll() -> bool:
+        raise CliError("the API server did not answer")
+
+    assert directing._wait(poll, timeout_s=0.0) is False
+
+
+@pytest.mark.parametrize(
+    ("conditions", "ready"),
+    [
+        ([{"type": "Ready", "status": "True"}], True),
+        ([{"type": "Ready", "status": "False"}], False),
+        ([{"type": "Ready", "status": "Unknown"}], False),
+        ([{"type": "NodeBound", "status": "True"}], False),
+        (None, False),
+    ],
+)
+def test_a_vehicle_is_ready_only_when_its_ready_condition_is_true(
+    conditions: list[dict[str, str]] | None, ready: bool
+) -> None:
+    vehicle: dict[str, Any] = {"metadata": {"name": "drone-1"}}
+    if conditions is not None:
+        vehicle["status"] = {"conditions": conditions}
+    assert director.vehicle_ready(vehicle) is ready

@@ -5,7 +5,8 @@ cluster does in answer) through :class:`Script`, which the view draws under the 
 
 1. wait for the Mission to be Running, then take every vehicle off (kwok only pretends to
    run the onboard pod, so the director stands in for the mission's controller);
-2. wait until the fault vehicle's agent reports its active autopilot, let the fleet fly
+2. wait until the fault vehicle's agent reports its active autopilot and the Vehicle is
+   Ready, let the fleet fly
    for ``fault_after_s``, then inject the fault on that active autopilot;
 3. wait for the agent's record of the failover and the operator's reaction (Events,
    Vehicle and Mission status) and report them.
@@ -37,6 +38,9 @@ from roost_cli.tables import format_latency
 
 TAKEOFF_WAIT_S = 90.0
 AGENT_WAIT_S = 60.0
+VEHICLE_READY_WAIT_S = 600.0
+"""The fault waits for its Vehicle to be Ready (a failover of a vehicle that never was
+is no demonstration); 25 vehicles on two cores take minutes to get there."""
 FAILOVER_WAIT_S = 60.0
 SAFETY_ROUTINE_WAIT_S = 60.0
 POLL_S = 0.5
@@ -108,6 +112,12 @@ def active_autopilot(obj: Mapping[str, Any]) -> str | None:
     return status.active_autopilot if status else None
 
 
+def vehicle_ready(obj: Mapping[str, Any]) -> bool:
+    """Whether a Vehicle's ``Ready`` condition is True."""
+    conditions = (obj.get("status") or {}).get("conditions") or []
+    return any(c.get("type") == "Ready" and c.get("status") == "True" for c in conditions)
+
+
 def routine_done(phase: str | None) -> bool:
     """True once the safety routine has finished or was skipped (a pilot in manual mode)."""
     return phase in _FINAL_PHASES
@@ -165,14 +175,25 @@ class Director(threading.Thread):
 
     # ---- steps -------------------------------------------------------------------------
     def _wait(self, what: Callable[[], bool], timeout_s: float) -> bool:
-        """Poll ``what`` until true (True) or ``timeout_s`` passes (False)."""
+        """Poll ``what`` until true (True) or ``timeout_s`` passes (False).
+
+        An API server too busy to answer one poll (a big sandbox on two cores) is asked
+        again at the next; only the timeout ends the wait.
+        """
         deadline = time.monotonic() + timeout_s
-        while not what():
+        while not self._answers(what):
             if time.monotonic() > deadline:
                 return False
             if self._stopping.wait(POLL_S):
                 raise _StoppedError
         return True
+
+    def _answers(self, what: Callable[[], bool]) -> bool:
+        try:
+            return what()
+        except CliError as error:
+            self._script.once(f"(retrying) {error}", "dim")
+            return False
 
     def _mission(self, fleet: Fleet) -> dict[str, Any] | None:
         for mission in fleet.missions(plan.MISSION_NAMESPACE):
@@ -219,6 +240,18 @@ class Director(threading.Thread):
                 f"the agent of {cue.vehicle} has not reported an active autopilot after "
                 f"{AGENT_WAIT_S:.0f} s; see its log in the sandbox's logs directory. "
                 "Injecting the fault on the primary anyway."
+            )
+
+        def vehicle_is_ready() -> bool:
+            return any(
+                v.get("metadata", {}).get("name") == cue.vehicle and vehicle_ready(v)
+                for v in fleet.vehicles()
+            )
+
+        if not self._wait(vehicle_is_ready, VEHICLE_READY_WAIT_S):
+            self._script.warn(
+                f"Vehicle {cue.vehicle} is not Ready after {VEHICLE_READY_WAIT_S:.0f} s "
+                "(`roost status` says why); breaking it anyway."
             )
         vehicle = self._recorded.vehicle(cue.vehicle)
         assert vehicle is not None, "the cue names a sandbox vehicle"

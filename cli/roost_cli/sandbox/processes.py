@@ -56,8 +56,14 @@ class Launcher:
         self.on_change()
 
     def stop_all(self) -> list[int]:
-        """Stop every process, newest first; returns the pids stopped."""
+        """Stop every process, newest first; returns the pids stopped.
+
+        All are asked to stop before any is waited for: 25 vehicles are 50 processes,
+        and one grace period after another would outlast ``roost sandbox down``'s patience.
+        """
         pids = [proc.pid for proc in self.processes if proc.pid is not None]
+        for proc in reversed(self.processes):
+            proc.terminate()
         for proc in reversed(self.processes):
             proc.stop(grace_s=STOP_GRACE_S)
         self.processes.clear()

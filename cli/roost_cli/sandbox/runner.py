@@ -64,6 +64,9 @@ DOWN_TIMEOUT_S = 60.0
 HEADLESS_POLL_S = 1.0
 LIVE_EVENTS = 6
 ANNOUNCE_TIMEOUT_S = 30.0
+ANNOUNCE_PER_AGENT_S = 2.0
+"""More time per agent to announce its telemetry: 25 Python agents starting at once
+take the two cores of a small machine for tens of seconds."""
 DEFAULT_DASHBOARD_PORT = 8765
 DASHBOARD_ANNOUNCE = re.compile(r"Roost dashboard on (http://\S+/)")
 RUN_DIRECTORIES = ("agents", "sims", "logs", "cluster")
@@ -290,7 +293,8 @@ class Sandbox:
         logs = {
             v.name: self.directory / "logs" / f"roost-agent-{v.name}.log" for v in self.fleet_plan
         }
-        deadline = time.monotonic() + ANNOUNCE_TIMEOUT_S
+        patience = ANNOUNCE_TIMEOUT_S + ANNOUNCE_PER_AGENT_S * len(self.state.vehicles)
+        deadline = time.monotonic() + patience
         for vehicle in self.state.vehicles:
             while vehicle.telemetry is None and time.monotonic() < deadline:
                 with contextlib.suppress(OSError):
