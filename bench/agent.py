@@ -384,8 +384,8 @@ def cpu_figures() -> list[Figure]:
             "<= 150",
             COMMAND,
             f"roost-agent process user+system CPU over {CPU_S:.0f} s at {rate:.0f} msg/s (two "
-            "sims at PX4 onboard-like rates), including its decision loop (reads every 20 ms) and a status "
-            f"line per second; 1-min load {load2} (2 cores shared)",
+            "sims at PX4 onboard-like rates), including its decision loop (reads every 20 ms) "
+            f"and a status line per second; 1-min load {load2} (2 cores shared)",
         ),
         Figure(
             "agent.cpu_ms_per_10k_msgs_3_autopilots",
