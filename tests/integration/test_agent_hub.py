@@ -46,6 +46,7 @@ from tests.support.hubclient import (
     fly_setpoint_circle,
     hub_vehicle,
     repeating,
+    source_system,
 )
 from tests.support.waiting import wait_until
 
@@ -260,7 +261,7 @@ def test_a_tcp_ground_station_gets_the_vehicle_and_commands_it() -> None:
             deadline = time.monotonic() + 10
             while (ack is None or "HEARTBEAT" not in seen) and time.monotonic() < deadline:
                 for msg in parser.parse_buffer(sock.recv(65535)) or []:
-                    assert msg.get_srcSystem() == VEHICLE_SYSID
+                    assert source_system(msg) == VEHICLE_SYSID
                     seen.add(msg.get_type())
                     if msg.get_type() == "COMMAND_ACK" and msg.command == 400:
                         ack = msg

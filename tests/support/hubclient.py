@@ -53,7 +53,7 @@ class Received:
     msg: Any
 
 
-def _source_system(msg: Any) -> int:
+def source_system(msg: Any) -> int:
     """The sender's system id; read from the frame for an id pymavlink's dialect lacks
     (PX4's CURRENT_MODE, EVENT...), whose header pymavlink leaves undecoded (0)."""
     if msg.get_type().startswith("UNKNOWN_"):
@@ -112,7 +112,7 @@ class HubClient:
             msg = parser.parse_char(data)
             while msg is not None:
                 if msg.get_type() != "BAD_DATA":
-                    item = Received(now, msg.get_type(), _source_system(msg), msg)
+                    item = Received(now, msg.get_type(), source_system(msg), msg)
                     callback = self._on_message
                     if callback is not None:
                         callback(item)
