@@ -94,19 +94,23 @@ from roost_agent.state import (
     StateFile,
 )
 from roost_agent.streams import StreamKeeper, Why, send_requests
-from roost_api.autopilot import (
-    AutopilotCommand,
+from roost_api.autopilot_enums import (
     AutopilotEntryConditionType,
+    CommandResultKind,
+    FinalAction,
+    SafetyRoutinePhase,
+)
+from roost_api.core import ConditionStatus, HealthLevel, set_condition
+from roost_api.plain import (
+    AutopilotCommand,
     AutopilotHealth,
     AutopilotSpec,
     CommandResult,
-    CommandResultKind,
+    Condition,
     FailoverRecord,
-    FinalAction,
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
 )
-from roost_api.meta import ConditionStatus, HealthLevel, set_condition
 from roost_mavlink import MAV_CMD_SET_MESSAGE_INTERVAL, pymavlink_device
 
 log = logging.getLogger(__name__)
@@ -343,7 +347,7 @@ def _with_link_error(health: AutopilotHealth, error: str | None) -> AutopilotHea
     """The health entry with a failing link's last error first among its reasons."""
     if error is None:
         return health
-    return health.model_copy(update={"reasons": [f"link error: {error}", *health.reasons]})
+    return replace(health, reasons=[f"link error: {error}", *health.reasons])
 
 
 class Agent:
@@ -622,13 +626,14 @@ class Agent:
         )
         conditions = set_condition(
             before,
+            make=Condition,
             type=AutopilotEntryConditionType.STANDBY_IN_STEP.value,
             status=_in_step_status(verdict),
             reason=verdict.reason.value,
             message=verdict.message,
             at=self._wall_clock().replace(microsecond=0),
         )
-        return health.model_copy(update={"conditions": conditions})
+        return replace(health, conditions=conditions)
 
     # -- decision loop -------------------------------------------------------------------
 
@@ -788,8 +793,10 @@ class Agent:
             to_autopilot=action.to_autopilot,
             reason=action.reason,
             latency_ms=round((switched_at - action.detected_at) * 1000, 3),
-            trigger=action.trigger.value,
-            safety_routine=None if action.safety == SafetyPlan.NONE else action.safety.value,
+            trigger=action.trigger,
+            safety_routine=None
+            if action.safety == SafetyPlan.NONE
+            else SafetyRoutinePhase(action.safety.value),
             standby_in_step=action.in_step,
         )
         event = FailoverEvent(record, action.detected_at, switched_at, action.onset)
@@ -821,7 +828,7 @@ class Agent:
     def _command_done(self, done: CommandDone) -> None:
         result = CommandResult(
             id=done.command_id,
-            result=done.result.value,
+            result=done.result,
             message=done.message,
             time=self._wall_clock().replace(microsecond=0),
         )
@@ -849,7 +856,7 @@ class Agent:
             with self._lock:
                 record = self._last_failover
                 if record is not None and record.to_autopilot == autopilot:
-                    self._last_failover = record.model_copy(update={"safety_routine": phase.value})
+                    self._last_failover = replace(record, safety_routine=phase)
             self._persist()
             self._emit(
                 EventKind.SAFETY,
