@@ -111,6 +111,7 @@ from roost_api.plain import (
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
 )
+from roost_api.plain_check import ApiDocument
 from roost_mavlink import MAV_CMD_SET_MESSAGE_INTERVAL, pymavlink_device
 
 log = logging.getLogger(__name__)
@@ -355,7 +356,7 @@ class Agent:
 
     def __init__(
         self,
-        spec: RedundantAutopilotSpec,
+        spec: RedundantAutopilotSpec | ApiDocument,
         bridge: Bridge,
         *,
         state_file: StateFile | None = None,
@@ -375,6 +376,7 @@ class Agent:
         self._clock = clock
         self._wall_clock = wall_clock
         self._timing = timing
+        spec = RedundantAutopilotSpec.from_api(spec)  # the API model is taken too
         saved = state_file.load() if state_file is not None else None
         self._state = restore_state(spec, saved)
         self._restored = saved is not None and saved.active == self._state.active
@@ -535,12 +537,13 @@ class Agent:
 
         return unsubscribe
 
-    def submit(self, command: AutopilotCommand) -> Future[CommandResult]:
+    def submit(self, command: AutopilotCommand | ApiDocument) -> Future[CommandResult]:
         """Execute ``command`` at most once per id; the future resolves to its result.
 
         A command whose id was already executed (also before a restart: ids are kept on
         disk) resolves to the stored result without running again.
         """
+        command = AutopilotCommand.from_api(command)  # the API model is taken too
         with self._lock:
             done = self._processed.get(command.id)
             if done is not None:
@@ -556,7 +559,9 @@ class Agent:
         self._reader.poke()
         return future
 
-    def apply_spec(self, spec: RedundantAutopilotSpec, generation: int | None = None) -> str | None:
+    def apply_spec(
+        self, spec: RedundantAutopilotSpec | ApiDocument, generation: int | None = None
+    ) -> str | None:
         """Adopt a new spec (policy, thresholds, primary, command, connection details).
 
         Returns None when applied, else why it was refused: the set of autopilots and
@@ -565,6 +570,7 @@ class Agent:
         the ground (a reopened link starts without data). A command in the spec is
         submitted either way.
         """
+        spec = RedundantAutopilotSpec.from_api(spec)  # the API model is taken too
         refusal = self._apply_spec(spec, generation)
         if refusal is not None:
             self._emit(EventKind.SPEC, "SpecRejected", refusal, warning=True)

@@ -22,7 +22,7 @@ import re
 from collections.abc import Callable, Mapping
 from datetime import UTC, datetime, timedelta
 from enum import StrEnum
-from typing import Any, Final, TypeVar, get_args
+from typing import Any, Final, Protocol, TypeVar, get_args
 
 E = TypeVar("E", bound=StrEnum)
 T = TypeVar("T")
@@ -47,11 +47,25 @@ class PlainValidationError(ValueError):
         self.problem = problem
 
 
+class ApiDocument(Protocol):
+    """Anything that gives an API object's JSON: a pydantic model or a plain twin."""
+
+    def to_api(self) -> dict[str, Any]:
+        """camelCase, no nulls."""
+        ...
+
+
 def mapping(value: object, where: str, model: str) -> Mapping[str, Any]:
-    """The input of a model: a mapping (a dict from JSON or YAML)."""
-    if not isinstance(value, Mapping):
-        raise PlainValidationError(where, f"Input should be a valid dictionary or {model}")
-    return value
+    """The input of a model: a mapping (a dict from JSON or YAML), or an API object (a
+    pydantic model, say), read through its JSON."""
+    if isinstance(value, Mapping):
+        return value
+    to_api = getattr(value, "to_api", None)
+    if callable(to_api):
+        document = to_api()
+        if isinstance(document, Mapping):
+            return document
+    raise PlainValidationError(where, f"Input should be a valid dictionary or {model}")
 
 
 def get(doc: Mapping[str, Any], alias: str, name: str) -> object:

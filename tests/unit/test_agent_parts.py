@@ -51,7 +51,7 @@ NOW = datetime(2026, 5, 1, 12, 0, tzinfo=UTC)
 
 
 def saved(active: str = "fc2", **fields: object) -> PersistedState:
-    return PersistedState.model_validate(
+    return PersistedState.from_api(
         {"spec": SPEC.to_api(), "active": active, "savedAt": NOW, **fields}
     )
 
@@ -179,10 +179,12 @@ def test_config_file_takes_a_whole_object_or_a_bare_spec(tmp_path: Path) -> None
             {"kind": "RedundantAutopilot", "metadata": {"generation": 4}, "spec": SPEC.to_api()}
         )
     )
-    assert load_spec(whole) == (SPEC, 4)
+    spec, generation = load_spec(whole)
+    assert (spec.to_api(), generation) == (SPEC.to_api(), 4)
     bare = tmp_path / "spec.json"
     bare.write_text(json.dumps(SPEC.to_api()))
-    assert load_spec(bare) == (SPEC, None)
+    spec, generation = load_spec(bare)
+    assert (spec.to_api(), generation) == (SPEC.to_api(), None)
 
 
 # -- link plumbing -----------------------------------------------------------------------
