@@ -233,6 +233,7 @@ def member(value: object, where: str, enum: type[E]) -> E:
     raise PlainValidationError(where, f"Input should be one of {options}")
 
 
+_UNIX_TEXT = re.compile(r"[+-]?[0-9]+(\.[0-9]*)?")
 _UNIX_MS_ABOVE = 2e10  # pydantic reads larger Unix times as milliseconds
 
 
@@ -240,8 +241,8 @@ def moment(value: object, where: str) -> datetime:
     """A datetime field: an ISO 8601 string or a Unix time (seconds, or ms when large)."""
     if isinstance(value, datetime):
         return value
-    if isinstance(value, str) and _INT_TEXT.fullmatch(value.strip()):
-        value = float(value.strip())
+    if isinstance(value, str) and _UNIX_TEXT.fullmatch(value):
+        value = float(value)
     if isinstance(value, int | float) and not isinstance(value, bool):
         seconds = float(value)
         if not math.isfinite(seconds):
@@ -251,7 +252,7 @@ def moment(value: object, where: str) -> datetime:
         return datetime(1970, 1, 1, tzinfo=UTC) + timedelta(seconds=seconds)
     if isinstance(value, str):
         try:
-            parsed = datetime.fromisoformat(value.strip())
+            parsed = datetime.fromisoformat(value)
         except ValueError:
             pass
         else:
