@@ -17,6 +17,7 @@ operator cannot disagree about it; it works on any condition class (the pydantic
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from enum import StrEnum
 from typing import Literal, Protocol, TypeVar
@@ -29,6 +30,34 @@ CATEGORY = "roost"
 # DNS-1123 label: the shape of Kubernetes object names and of autopilot names.
 DNS_LABEL_PATTERN = r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$"
 DNS_SUBDOMAIN_PATTERN = r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?(\.[a-z0-9]([-a-z0-9]*[a-z0-9])?)*$"
+
+
+@dataclass(frozen=True)
+class KindName:
+    """Where a Roost kind lives in the API: its kind, plural and scope (group and version
+    are the API's). :mod:`roost_api.resources` adds the models and the CRD's details; the
+    agent's API client needs only this."""
+
+    kind: str
+    plural: str
+    scope: Literal["Cluster", "Namespaced"]
+
+    @property
+    def namespaced(self) -> bool:
+        return self.scope == "Namespaced"
+
+    @property
+    def group(self) -> str:
+        return GROUP
+
+    @property
+    def version(self) -> str:
+        return VERSION
+
+
+VEHICLE_KIND = KindName("Vehicle", "vehicles", "Cluster")
+REDUNDANT_AUTOPILOT_KIND = KindName("RedundantAutopilot", "redundantautopilots", "Cluster")
+MISSION_KIND = KindName("Mission", "missions", "Namespaced")
 
 
 class Stack(StrEnum):
