@@ -130,6 +130,17 @@ def set_condition(
     ``make`` builds a condition from the condition fields (the condition class). The
     list keeps its order; a new type is appended. Pure: the input is not modified.
     """
+
+    def made(since: datetime) -> C:
+        return make(
+            type=type,
+            status=status,
+            reason=reason,
+            message=message,
+            observed_generation=observed_generation,
+            last_transition_time=since,
+        )
+
     result: list[C] = []
     found = False
     for cond in conditions:
@@ -138,27 +149,9 @@ def set_condition(
             continue
         found = True
         moved = cond.status != status
-        result.append(
-            make(
-                type=type,
-                status=status,
-                reason=reason,
-                message=message,
-                observed_generation=observed_generation,
-                last_transition_time=(at or now()) if moved else cond.last_transition_time,
-            )
-        )
+        result.append(made((at or now()) if moved else cond.last_transition_time))
     if not found:
-        result.append(
-            make(
-                type=type,
-                status=status,
-                reason=reason,
-                message=message,
-                observed_generation=observed_generation,
-                last_transition_time=at or now(),
-            )
-        )
+        result.append(made(at or now()))
     return result
 
 
