@@ -41,8 +41,9 @@ from bench.agent import percentile, vehicle
 from bench.core import Figure
 from roost_agent.health import Fix
 from roost_agent.telemetry import TelemetryServer
-from roost_api.autopilot import FailoverRecord, FailoverTrigger, Thresholds
+from roost_api.autopilot import FailoverTrigger, Thresholds
 from roost_api.meta import HealthLevel
+from roost_api.plain import FailoverRecord
 from roost_api.telemetry import Origin
 from tests.support.browser import chromium, wait_for
 

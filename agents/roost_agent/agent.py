@@ -94,19 +94,24 @@ from roost_agent.state import (
     StateFile,
 )
 from roost_agent.streams import StreamKeeper, Why, send_requests
-from roost_api.autopilot import (
-    AutopilotCommand,
+from roost_api.autopilot_enums import (
     AutopilotEntryConditionType,
+    CommandResultKind,
+    FinalAction,
+    SafetyRoutinePhase,
+)
+from roost_api.core import ConditionStatus, HealthLevel, set_condition
+from roost_api.plain import (
+    AutopilotCommand,
     AutopilotHealth,
     AutopilotSpec,
     CommandResult,
-    CommandResultKind,
+    Condition,
     FailoverRecord,
-    FinalAction,
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
 )
-from roost_api.meta import ConditionStatus, HealthLevel, set_condition
+from roost_api.plain_check import ApiDocument
 from roost_mavlink import MAV_CMD_SET_MESSAGE_INTERVAL, pymavlink_device
 
 log = logging.getLogger(__name__)
@@ -343,7 +348,7 @@ def _with_link_error(health: AutopilotHealth, error: str | None) -> AutopilotHea
     """The health entry with a failing link's last error first among its reasons."""
     if error is None:
         return health
-    return health.model_copy(update={"reasons": [f"link error: {error}", *health.reasons]})
+    return replace(health, reasons=[f"link error: {error}", *health.reasons])
 
 
 class Agent:
@@ -351,7 +356,7 @@ class Agent:
 
     def __init__(
         self,
-        spec: RedundantAutopilotSpec,
+        spec: RedundantAutopilotSpec | ApiDocument,
         bridge: Bridge,
         *,
         state_file: StateFile | None = None,
@@ -371,6 +376,7 @@ class Agent:
         self._clock = clock
         self._wall_clock = wall_clock
         self._timing = timing
+        spec = RedundantAutopilotSpec.from_api(spec)  # the API model is taken too
         saved = state_file.load() if state_file is not None else None
         self._state = restore_state(spec, saved)
         self._restored = saved is not None and saved.active == self._state.active
@@ -531,12 +537,13 @@ class Agent:
 
         return unsubscribe
 
-    def submit(self, command: AutopilotCommand) -> Future[CommandResult]:
+    def submit(self, command: AutopilotCommand | ApiDocument) -> Future[CommandResult]:
         """Execute ``command`` at most once per id; the future resolves to its result.
 
         A command whose id was already executed (also before a restart: ids are kept on
         disk) resolves to the stored result without running again.
         """
+        command = AutopilotCommand.from_api(command)  # the API model is taken too
         with self._lock:
             done = self._processed.get(command.id)
             if done is not None:
@@ -552,7 +559,9 @@ class Agent:
         self._reader.poke()
         return future
 
-    def apply_spec(self, spec: RedundantAutopilotSpec, generation: int | None = None) -> str | None:
+    def apply_spec(
+        self, spec: RedundantAutopilotSpec | ApiDocument, generation: int | None = None
+    ) -> str | None:
         """Adopt a new spec (policy, thresholds, primary, command, connection details).
 
         Returns None when applied, else why it was refused: the set of autopilots and
@@ -561,6 +570,7 @@ class Agent:
         the ground (a reopened link starts without data). A command in the spec is
         submitted either way.
         """
+        spec = RedundantAutopilotSpec.from_api(spec)  # the API model is taken too
         refusal = self._apply_spec(spec, generation)
         if refusal is not None:
             self._emit(EventKind.SPEC, "SpecRejected", refusal, warning=True)
@@ -622,13 +632,14 @@ class Agent:
         )
         conditions = set_condition(
             before,
+            make=Condition,
             type=AutopilotEntryConditionType.STANDBY_IN_STEP.value,
             status=_in_step_status(verdict),
             reason=verdict.reason.value,
             message=verdict.message,
             at=self._wall_clock().replace(microsecond=0),
         )
-        return health.model_copy(update={"conditions": conditions})
+        return replace(health, conditions=conditions)
 
     # -- decision loop -------------------------------------------------------------------
 
@@ -788,8 +799,10 @@ class Agent:
             to_autopilot=action.to_autopilot,
             reason=action.reason,
             latency_ms=round((switched_at - action.detected_at) * 1000, 3),
-            trigger=action.trigger.value,
-            safety_routine=None if action.safety == SafetyPlan.NONE else action.safety.value,
+            trigger=action.trigger,
+            safety_routine=None
+            if action.safety == SafetyPlan.NONE
+            else SafetyRoutinePhase(action.safety.value),
             standby_in_step=action.in_step,
         )
         event = FailoverEvent(record, action.detected_at, switched_at, action.onset)
@@ -821,7 +834,7 @@ class Agent:
     def _command_done(self, done: CommandDone) -> None:
         result = CommandResult(
             id=done.command_id,
-            result=done.result.value,
+            result=done.result,
             message=done.message,
             time=self._wall_clock().replace(microsecond=0),
         )
@@ -849,7 +862,7 @@ class Agent:
             with self._lock:
                 record = self._last_failover
                 if record is not None and record.to_autopilot == autopilot:
-                    self._last_failover = record.model_copy(update={"safety_routine": phase.value})
+                    self._last_failover = replace(record, safety_routine=phase)
             self._persist()
             self._emit(
                 EventKind.SAFETY,

@@ -38,17 +38,16 @@ from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime, timedelta
 from enum import StrEnum
 
-from roost_api.autopilot import (
-    AutopilotCommand,
+from roost_api.autopilot_enums import (
     CommandAction,
     CommandResultKind,
     Failback,
     FailoverMode,
     FailoverTrigger,
-    RedundantAutopilotSpec,
     SafetyRoutinePhase,
 )
-from roost_api.meta import HealthLevel
+from roost_api.core import HealthLevel
+from roost_api.plain import AutopilotCommand, RedundantAutopilotSpec
 
 
 @dataclass(frozen=True)

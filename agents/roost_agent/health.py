@@ -62,8 +62,9 @@ import threading
 from dataclasses import dataclass, field
 from typing import Any
 
-from roost_api.autopilot import AutopilotHealth, Thresholds
-from roost_api.meta import HealthLevel, Stack
+from roost_api.autopilot_enums import LandedState as ApiLandedState
+from roost_api.core import HealthLevel, Stack
+from roost_api.plain import AutopilotHealth, Thresholds
 from roost_mavlink import (
     MAV_MODE_FLAG_SAFETY_ARMED,
     LandedState,
@@ -200,7 +201,7 @@ class Assessment:
             armed=self.armed,
             landed_state=None
             if self.landed_state is None
-            else landed_state_name(self.landed_state),
+            else ApiLandedState(landed_state_name(self.landed_state)),
             system_status=None
             if self.system_status is None
             else mav_state_name(self.system_status),

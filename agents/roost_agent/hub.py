@@ -56,14 +56,9 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from roost_api.autopilot import (
-    AutopilotSpec,
-    HubSpec,
-    RedundantAutopilotSpec,
-    StandbyInStepReason,
-    StandbyLimits,
-)
-from roost_api.meta import Stack
+from roost_api.autopilot_enums import StandbyInStepReason
+from roost_api.core import Stack
+from roost_api.plain import AutopilotSpec, HubSpec, RedundantAutopilotSpec, StandbyLimits
 from roost_mavlink import (
     AGENT_COMPONENT_ID,
     MAV_CMD_COMPONENT_ARM_DISARM,

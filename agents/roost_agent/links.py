@@ -78,8 +78,8 @@ from typing import Any
 
 from roost_agent.health import Fix, HealthTracker, Motion
 from roost_agent.signing import LinkSigning
-from roost_api.autopilot import AutopilotSpec
-from roost_api.meta import Stack
+from roost_api.core import Stack
+from roost_api.plain import AutopilotSpec
 from roost_mavlink import AGENT_COMPONENT_ID, MavResult, pymavlink_device
 from roost_mavlink.codec import MAVLINK_VERSION, BadData, Encoder, Frame, StreamParser, scan
 from roost_mavlink.signing import Signer, Verdict, Verifier

@@ -41,13 +41,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
 import yaml
-from pydantic import ValidationError
 
 from roost_agent.agent import Agent, connection_problems, restore_state
 from roost_agent.bridge import Bridge, GpioBridge, SimulatedBridge
 from roost_agent.signing import DEFAULT_KEY_DIR, SigningError, SigningMode, load_signing
 from roost_agent.state import STATE_FILE_NAME, StateFile
-from roost_api.autopilot import AutopilotSpec, RedundantAutopilotSpec
+from roost_api.plain import AutopilotSpec, RedundantAutopilotSpec
+from roost_api.plain_check import PlainValidationError
 
 if TYPE_CHECKING:
     from roost_agent.kube import AgentKube
@@ -68,7 +68,7 @@ def load_spec(path: Path) -> tuple[RedundantAutopilotSpec, int | None]:
         metadata = doc.get("metadata") or {}
         generation = metadata.get("generation")
         doc = doc["spec"]
-    return RedundantAutopilotSpec.model_validate(doc), generation
+    return RedundantAutopilotSpec.from_api(doc), generation
 
 
 def parse_autopilot(text: str) -> AutopilotSpec:
@@ -82,8 +82,8 @@ def parse_autopilot(text: str) -> AutopilotSpec:
     renames = {"channel": "bridge_channel", "component": "component_id"}
     fields = {renames.get(k, k): v for k, v in fields.items()}
     try:
-        return AutopilotSpec.model_validate(fields)
-    except ValidationError as exc:
+        return AutopilotSpec.from_api(fields)
+    except PlainValidationError as exc:
         raise argparse.ArgumentTypeError(f"bad --autopilot {text!r}: {exc}") from exc
 
 
@@ -231,9 +231,8 @@ def resolve_spec(
         return load_spec(args.config)
     if args.autopilot:
         primary = args.primary or args.autopilot[0].name
-        return RedundantAutopilotSpec(
-            vehicle_name=args.vehicle, autopilots=args.autopilot, primary=primary
-        ), None
+        flags = {"vehicleName": args.vehicle, "autopilots": args.autopilot, "primary": primary}
+        return RedundantAutopilotSpec.from_api(flags), None  # validated as a --config would be
     saved = state.load()
     if saved is None:
         raise SystemExit(f"no --config, no --autopilot and no saved spec in {state.path}")
@@ -305,7 +304,7 @@ def main(argv: list[str] | None = None) -> int:
     if kube is None:
         try:
             spec, generation = resolve_spec(args, state)
-        except (OSError, ValueError) as exc:  # pydantic's ValidationError is a ValueError
+        except (OSError, ValueError) as exc:  # PlainValidationError is a ValueError
             raise refuse(" ".join(str(exc).split())) from None
         target = None
     else:
@@ -343,7 +342,7 @@ def main(argv: list[str] | None = None) -> int:
             return
         try:
             new_spec, new_generation = load_spec(args.config)
-        except (OSError, ValueError, ValidationError) as exc:
+        except (OSError, ValueError) as exc:  # PlainValidationError is a ValueError
             log.error("cannot reload %s: %s", args.config, exc)
             return
         agent.apply_spec(new_spec, new_generation)

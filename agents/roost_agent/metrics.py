@@ -36,7 +36,7 @@ from prometheus_client.registry import Collector
 
 from roost_agent.agent import AgentEvent, EventKind
 from roost_agent.links import LinkCounters
-from roost_api.meta import HealthLevel
+from roost_api.core import HealthLevel
 
 if TYPE_CHECKING:
     from wsgiref.simple_server import WSGIServer

@@ -51,22 +51,22 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Protocol
-
-from pydantic import ValidationError
 
 from roost_agent.agent import AgentEvent, EventKind
 from roost_agent.kube import AgentKube
 from roost_agent.report import change_class, write_delay
 from roost_agent.state import StateFile
-from roost_api.autopilot import (
+from roost_api.core import set_condition
+from roost_api.plain import (
     AutopilotCommand,
     CommandResult,
+    Condition,
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
 )
-from roost_api.meta import Condition, set_condition
+from roost_api.plain_check import PlainValidationError
 from roost_api.wellknown import LABEL_NODE
 from roost_kube.errors import ApiError, ApiUnavailableError
 from roost_kube.patches import Obj, merge_patch_fields
@@ -144,7 +144,7 @@ class Target:
 
     def spec(self) -> RedundantAutopilotSpec:
         """Its spec, validated."""
-        return RedundantAutopilotSpec.model_validate(self.autopilot["spec"])
+        return RedundantAutopilotSpec.from_api(self.autopilot["spec"])
 
     @property
     def generation(self) -> int | None:
@@ -158,8 +158,8 @@ class Target:
         if not raw:
             return None
         try:
-            return RedundantAutopilotStatus.model_validate(raw)
-        except ValidationError:
+            return RedundantAutopilotStatus.from_api(raw)
+        except PlainValidationError:
             return None
 
 
@@ -195,7 +195,7 @@ def startup_spec(
             if target is not None:
                 return target.spec(), target.generation, target
             why = f"no Vehicle with spec.nodeName={node_name} and a RedundantAutopilot for it"
-        except (ApiUnavailableError, ValidationError) as exc:
+        except (ApiUnavailableError, PlainValidationError) as exc:
             why = f"cannot read the RedundantAutopilot: {exc}"
         saved = state_file.load()
         if saved is not None:
@@ -218,6 +218,7 @@ def carry_transitions(
     for cond in current:
         result = set_condition(
             result,
+            make=Condition,
             type=cond.type,
             status=cond.status,
             reason=cond.reason,
@@ -376,12 +377,9 @@ class Publisher:
         assert target is not None
         status = self._agent.status()
         if self._last_written is not None:
-            status = status.model_copy(
-                update={
-                    "conditions": carry_transitions(
-                        self._last_written.conditions, status.conditions
-                    )
-                }
+            status = replace(
+                status,
+                conditions=carry_transitions(self._last_written.conditions, status.conditions),
             )
         delay = write_delay(
             change_class(self._last_written, status),
@@ -480,7 +478,7 @@ class Publisher:
         target = Target(self._target.vehicle if self._target else "", obj)
         try:
             spec = target.spec()
-        except ValidationError as exc:
+        except PlainValidationError as exc:
             log.error("ignoring an invalid spec of %s: %s", target.name, exc)
             return
         key = (target.uid, target.generation)

@@ -40,18 +40,19 @@ from __future__ import annotations
 
 import re
 from collections.abc import Collection, Sequence
+from dataclasses import replace
 from datetime import datetime
 from enum import IntEnum
 
-from roost_api.autopilot import AutopilotConditionReason as R
-from roost_api.autopilot import (
-    AutopilotConditionType,
+from roost_api.autopilot_enums import AutopilotConditionReason as R
+from roost_api.autopilot_enums import AutopilotConditionType, FailoverTrigger
+from roost_api.core import ConditionStatus, HealthLevel, set_condition
+from roost_api.plain import (
     AutopilotHealth,
-    FailoverTrigger,
+    Condition,
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
 )
-from roost_api.meta import Condition, ConditionStatus, HealthLevel, set_condition
 
 _NUMBER = re.compile(r"-?\d+(\.\d+)?")
 
@@ -190,6 +191,7 @@ def conditions(
     for kind, (cond_status, reason, message) in values.items():
         result = set_condition(
             result,
+            make=Condition,
             type=kind.value,
             status=cond_status,
             reason=reason,
@@ -216,20 +218,19 @@ def report(
     times survive across reports and agent restarts.
     """
     prior = previous.conditions if previous is not None else []
-    return observed.model_copy(
-        update={
-            "conditions": conditions(
-                prior,
-                spec=spec,
-                status=observed,
-                left_behind=left_behind,
-                generation=generation,
-                now=now,
-            ),
-            "observed_generation": generation,
-            "node_name": node_name,
-            "reported_at": now,
-        }
+    return replace(
+        observed,
+        conditions=conditions(
+            prior,
+            spec=spec,
+            status=observed,
+            left_behind=left_behind,
+            generation=generation,
+            now=now,
+        ),
+        observed_generation=generation,
+        node_name=node_name,
+        reported_at=now,
     )
 
 

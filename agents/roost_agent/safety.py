@@ -52,8 +52,9 @@ from dataclasses import dataclass, replace
 from typing import Protocol
 
 from roost_agent.health import Motion
-from roost_api.autopilot import FinalAction, SafetyRoutine, SafetyRoutinePhase
-from roost_api.meta import Stack
+from roost_api.autopilot_enums import FinalAction, SafetyRoutinePhase
+from roost_api.core import Stack
+from roost_api.plain import SafetyRoutine
 from roost_mavlink import (
     FORCE_DISARM_MAGIC,
     MAV_CMD_COMPONENT_ARM_DISARM,

@@ -36,7 +36,7 @@ from enum import StrEnum
 from typing import Protocol
 
 from roost_agent.health import StreamFacts
-from roost_api.meta import Stack
+from roost_api.core import Stack
 from roost_mavlink import MAV_CMD_SET_MESSAGE_INTERVAL, MavResult
 
 CHECK_S = 1.0  # a measuring window

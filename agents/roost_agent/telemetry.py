@@ -46,8 +46,8 @@ from roost_api.telemetry import MAX_HZ, Origin, north_east_m
 
 if TYPE_CHECKING:
     from roost_agent.health import Fix
-    from roost_api.autopilot import FailoverRecord
-    from roost_api.meta import HealthLevel
+    from roost_api.core import HealthLevel
+    from roost_api.plain import FailoverRecord
 
 log = logging.getLogger(__name__)
 

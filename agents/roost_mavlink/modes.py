@@ -3,7 +3,7 @@
 Why one module: the simulator encodes modes into heartbeats, the agent decodes them and
 commands hold/land/RTL, and the operator shows them. If each spelled PX4's bit-packed
 ``custom_mode`` on its own, a typo would make the safety routine wait for a mode the
-autopilot never reports. Everything here is pure and keyed by :class:`roost_api.meta.Stack`.
+autopilot never reports. Everything here is pure and keyed by :class:`roost_api.core.Stack`.
 
 PX4 packs ``custom_mode = (sub_mode << 24) | (main_mode << 16)`` (``px4_custom_mode.h``);
 mode names follow PX4/QGroundControl spelling (``AUTO.LOITER`` is what PX4 calls "Hold").
@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from enum import StrEnum
 
-from roost_api.meta import Stack
+from roost_api.core import Stack
 
 MAV_MODE_FLAG_CUSTOM_MODE_ENABLED = 1
 MAV_MODE_FLAG_SAFETY_ARMED = 128

@@ -20,15 +20,13 @@ The rules are those of the MAVLink signing specification:
   rejects a frame that does not advance it; a stream it has not seen is accepted when its
   timestamp is no more than one minute behind the receiver's own clock.
 
-CRC_EXTRA comes from :mod:`roost_mavlink.codec` (no pymavlink). SHA-256 stays
-``hashlib``'s: the standard library's OpenSSL-free ``_sha256`` was measured to save
-nothing in the agent, whose pydantic models import ``hashlib`` (via ``secrets``) anyway.
+CRC_EXTRA comes from :mod:`roost_mavlink.codec` (no pymavlink). SHA-256 is ``hashlib``'s,
+imported on first use: ``hashlib`` (and ``hmac``, which imports it) maps libcrypto,
+about 3 MB of an agent's memory, which an agent without signing does not need.
 """
 
 from __future__ import annotations
 
-import hashlib
-import hmac
 import struct
 import threading
 import time
@@ -143,7 +141,14 @@ def sign_frame(frame: bytes, key: bytes, link_id: int, timestamp: int) -> bytes:
         return frame
     signed = bytes(body) + struct.pack("<H", crc) + bytes([link_id & 0xFF])
     signed += struct.pack("<Q", timestamp)[:6]
-    return signed + hashlib.sha256(key + signed).digest()[:6]
+    return signed + _signature(key + signed)
+
+
+def _signature(data: bytes) -> bytes:
+    """The first 6 bytes of SHA-256(``data``)."""
+    import hashlib  # noqa: PLC0415 - only with signing on (see the module docstring)
+
+    return hashlib.sha256(data).digest()[:6]
 
 
 class Verdict(StrEnum):
@@ -172,8 +177,9 @@ class Verifier:
         if not frame[2] & IFLAG_SIGNED:
             return Verdict.UNSIGNED
         data = bytes(frame)
-        expected = hashlib.sha256(self._key + data[:-6]).digest()[:6]
-        if not hmac.compare_digest(expected, data[-6:]):
+        import hmac  # noqa: PLC0415 - only with signing on (see the module docstring)
+
+        if not hmac.compare_digest(_signature(self._key + data[:-6]), data[-6:]):
             return Verdict.BAD_SIGNATURE
         link_id = data[-13]
         timestamp = int.from_bytes(data[-12:-6], "little")

@@ -36,7 +36,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from roost_api.meta import Stack
+from roost_api.core import Stack
 
 PX4_API_PORT_BASE = 14540
 PX4_LOCAL_PORT_BASE = 14580

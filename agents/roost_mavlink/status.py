@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum, IntFlag, StrEnum
 
-from roost_api.meta import Stack
+from roost_api.core import Stack
 
 MAV_AUTOPILOT_ARDUPILOTMEGA = 3
 MAV_AUTOPILOT_PX4 = 12

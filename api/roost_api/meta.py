@@ -4,30 +4,37 @@ Every resource model inherits :class:`ApiModel`, which maps snake_case Python na
 the camelCase JSON names Kubernetes uses, so one model serves the CRD generator, the
 operator and the agent alike.
 
-Conditions follow ``metav1.Condition``. :func:`set_condition` is the one place that
-decides when ``lastTransitionTime`` moves (only when ``status`` changes), so agent and
-operator cannot disagree about it.
+Identifiers, name patterns, the shared enums and the condition helpers live in the
+pydantic-free :mod:`roost_api.core` (the node agent runs without pydantic) and are
+re-exported here.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
-from datetime import UTC, datetime
-from enum import StrEnum
-from typing import Any, Literal
+from collections.abc import Sequence
+from datetime import datetime
+from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 from pydantic.alias_generators import to_camel
 from pydantic.config import JsonDict
 
-GROUP = "roost.dev"
-VERSION = "v1alpha1"
-API_VERSION = f"{GROUP}/{VERSION}"
-CATEGORY = "roost"
+from roost_api import core
 
-# DNS-1123 label: the shape of Kubernetes object names and of autopilot names.
-DNS_LABEL_PATTERN = r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$"
-DNS_SUBDOMAIN_PATTERN = r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?(\.[a-z0-9]([-a-z0-9]*[a-z0-9])?)*$"
+# Defined in the pydantic-free roost_api.core (the node agent runs without pydantic).
+API_VERSION = core.API_VERSION
+CATEGORY = core.CATEGORY
+DNS_LABEL_PATTERN = core.DNS_LABEL_PATTERN
+DNS_SUBDOMAIN_PATTERN = core.DNS_SUBDOMAIN_PATTERN
+GROUP = core.GROUP
+VERSION = core.VERSION
+ConditionStatus = core.ConditionStatus
+HealthLevel = core.HealthLevel
+Stack = core.Stack
+condition_is_true = core.condition_is_true
+find_condition = core.find_condition
+now = core.now
+same_conditions = core.same_conditions
 
 
 class ApiModel(BaseModel):
@@ -51,44 +58,16 @@ class ApiModel(BaseModel):
         """The JSON body Kubernetes expects: camelCase, no nulls."""
         return self.model_dump(by_alias=True, exclude_none=True, mode="json")
 
+    def api_dump(self) -> dict[str, Any]:
+        """Every field by its camelCase name, nulls included (as the plain twins give it)."""
+        return self.model_dump(by_alias=True, mode="json")
 
-class Stack(StrEnum):
-    """Autopilot flight stack; decides heartbeat, mode and sensor-bit conventions."""
-
-    PX4 = "px4"
-    ARDUPILOT = "ardupilot"
-
-
-class HealthLevel(StrEnum):
-    """Health of one autopilot, in the order of diagnostic_msgs levels (worse is larger)."""
-
-    OK = "OK"
-    WARN = "WARN"
-    STARTING = "STARTING"  # booting, estimator or GPS start-up: not failed, not usable yet
-    ERROR = "ERROR"
-    STALE = "STALE"
-
-    @property
-    def rank(self) -> int:
-        """0 for OK up to 4 for STALE, for comparisons."""
-        return _HEALTH_RANK[self]
-
-
-_HEALTH_RANK = {
-    HealthLevel.OK: 0,
-    HealthLevel.WARN: 1,
-    HealthLevel.STARTING: 2,
-    HealthLevel.ERROR: 3,
-    HealthLevel.STALE: 4,
-}
 
 # Conditions are a list map keyed by type, as in every built-in Kubernetes status.
 CONDITIONS_SCHEMA: JsonDict = {
     "x-kubernetes-list-type": "map",
     "x-kubernetes-list-map-keys": ["type"],
 }
-
-ConditionStatus = Literal["True", "False", "Unknown"]
 
 
 class Condition(ApiModel):
@@ -119,11 +98,6 @@ class Condition(ApiModel):
     )
 
 
-def now() -> datetime:
-    """The current time in UTC, truncated to seconds as Kubernetes stores it."""
-    return datetime.now(UTC).replace(microsecond=0)
-
-
 def set_condition(
     conditions: Sequence[Condition],
     *,
@@ -134,57 +108,17 @@ def set_condition(
     observed_generation: int | None = None,
     at: datetime | None = None,
 ) -> list[Condition]:
-    """Return ``conditions`` with ``type`` set, moving lastTransitionTime only on change.
-
-    The list keeps its order; a new type is appended. Pure: the input is not modified.
-    """
-    result: list[Condition] = []
-    found = False
-    for cond in conditions:
-        if cond.type != type:
-            result.append(cond)
-            continue
-        found = True
-        moved = cond.status != status
-        result.append(
-            Condition(
-                type=type,
-                status=status,
-                reason=reason,
-                message=message,
-                observed_generation=observed_generation,
-                last_transition_time=(at or now()) if moved else cond.last_transition_time,
-            )
-        )
-    if not found:
-        result.append(
-            Condition(
-                type=type,
-                status=status,
-                reason=reason,
-                message=message,
-                observed_generation=observed_generation,
-                last_transition_time=at or now(),
-            )
-        )
-    return result
-
-
-def find_condition(conditions: Iterable[Condition], type: str) -> Condition | None:
-    """The condition of this type, or None."""
-    return next((c for c in conditions if c.type == type), None)
-
-
-def condition_is_true(conditions: Iterable[Condition], type: str) -> bool:
-    """True only when the condition exists and its status is "True"."""
-    cond = find_condition(conditions, type)
-    return cond is not None and cond.status == "True"
-
-
-def same_conditions(a: Sequence[Condition], b: Sequence[Condition]) -> bool:
-    """Equal ignoring nothing but order-insensitive: used to skip no-op status writes."""
-    key = lambda c: c.type  # noqa: E731
-    return sorted(a, key=key) == sorted(b, key=key)
+    """:func:`roost_api.core.set_condition` for API model conditions."""
+    return core.set_condition(
+        conditions,
+        make=Condition,
+        type=type,
+        status=status,
+        reason=reason,
+        message=message,
+        observed_generation=observed_generation,
+        at=at,
+    )
 
 
 class ObjectReference(ApiModel):

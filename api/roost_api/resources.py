@@ -1,7 +1,8 @@
 """The three Roost kinds and how Kubernetes presents them.
 
-One :class:`ResourceKind` per kind ties the pydantic spec/status models to the names,
-scope, short names, printer columns and whole-spec CEL rules the CRD carries. The CRD
+One :class:`ResourceKind` per kind ties the pydantic spec/status models to the names and
+scope (:class:`roost_api.core.KindName`, which the node agent reads without pydantic),
+short names, printer columns and whole-spec CEL rules the CRD carries. The CRD
 generator, the operator's watches and the agent's API calls all read these, so a plural
 or a group is spelled in exactly one place.
 """
@@ -17,7 +18,15 @@ from roost_api.autopilot import (
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
 )
-from roost_api.meta import CATEGORY, GROUP, VERSION, ApiModel
+from roost_api.core import (
+    CATEGORY,
+    GROUP,
+    MISSION_KIND,
+    REDUNDANT_AUTOPILOT_KIND,
+    VEHICLE_KIND,
+    KindName,
+)
+from roost_api.meta import ApiModel
 from roost_api.mission import MISSION_ROOT_RULES, MISSION_SPEC_RULES, MissionSpec, MissionStatus
 from roost_api.vehicle import VEHICLE_ROOT_RULES, VehicleSpec, VehicleStatus
 
@@ -52,9 +61,7 @@ AGE = PrinterColumn("Age", ".metadata.creationTimestamp", "date")
 class ResourceKind:
     """A Roost custom resource kind."""
 
-    kind: str
-    plural: str
-    scope: Literal["Cluster", "Namespaced"]
+    name: KindName
     short_names: tuple[str, ...]
     description: str
     spec_model: type[ApiModel]
@@ -63,6 +70,18 @@ class ResourceKind:
     spec_rules: tuple[dict[str, str], ...] = field(default=())
     root_rules: tuple[dict[str, str], ...] = field(default=())
     """Rules on the whole object, the only place CEL sees ``metadata.name``."""
+
+    @property
+    def kind(self) -> str:
+        return self.name.kind
+
+    @property
+    def plural(self) -> str:
+        return self.name.plural
+
+    @property
+    def scope(self) -> Literal["Cluster", "Namespaced"]:
+        return self.name.scope
 
     @property
     def singular(self) -> str:
@@ -74,15 +93,15 @@ class ResourceKind:
 
     @property
     def namespaced(self) -> bool:
-        return self.scope == "Namespaced"
+        return self.name.namespaced
 
     @property
     def group(self) -> str:
-        return GROUP
+        return self.name.group
 
     @property
     def version(self) -> str:
-        return VERSION
+        return self.name.version
 
     @property
     def categories(self) -> tuple[str, ...]:
@@ -90,9 +109,7 @@ class ResourceKind:
 
 
 VEHICLE = ResourceKind(
-    kind="Vehicle",
-    plural="vehicles",
-    scope="Cluster",
+    name=VEHICLE_KIND,
     short_names=("veh",),
     description="A drone of the fleet: one physical or simulated vehicle whose companion "
     "computer is a Kubernetes node. Roost labels the node, writes the vehicle's config and "
@@ -116,9 +133,7 @@ VEHICLE = ResourceKind(
 )
 
 REDUNDANT_AUTOPILOT = ResourceKind(
-    kind="RedundantAutopilot",
-    plural="redundantautopilots",
-    scope="Cluster",
+    name=REDUNDANT_AUTOPILOT_KIND,
     short_names=("rap", "autopilots"),
     description="The redundant autopilots of one vehicle and its failover policy. The node "
     "agent on the vehicle writes the status: active autopilot, health of each, last "
@@ -142,9 +157,7 @@ REDUNDANT_AUTOPILOT = ResourceKind(
 )
 
 MISSION = ResourceKind(
-    kind="Mission",
-    plural="missions",
-    scope="Namespaced",
+    name=MISSION_KIND,
     short_names=("msn",),
     description="What to fly: which vehicles, the onboard workload run on each, an optional "
     "offboard workload, preflight checks, failover policy and abort.",

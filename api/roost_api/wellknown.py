@@ -6,7 +6,7 @@ that sets a label and the CLI or agent that reads it cannot drift apart.
 
 from __future__ import annotations
 
-from roost_api.meta import GROUP
+from roost_api.core import GROUP
 
 PREFIX = f"{GROUP}/"
 

@@ -19,12 +19,25 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Iterable, Mapping
-from typing import Any, Final
+from typing import Any, Final, Protocol
 
-from roost_api.meta import ApiModel
 from roost_api.wellknown import PREFIX
 
 Obj = dict[str, Any]
+
+
+class ApiDocument(Protocol):
+    """An API object as JSON: a pydantic :class:`roost_api.meta.ApiModel` or its plain twin
+    from :mod:`roost_api.plain` (the node agent's, which runs without pydantic)."""
+
+    def to_api(self) -> dict[str, Any]:
+        """camelCase, no nulls."""
+        ...
+
+    def api_dump(self) -> dict[str, Any]:
+        """camelCase, nulls included."""
+        ...
+
 
 ANNOTATION_APPLIED_HASH: Final = f"{PREFIX}applied-hash"
 """Annotation carrying the hash of the manifest Roost last applied to an object."""
@@ -87,7 +100,7 @@ def needs_apply(desired: Mapping[str, Any], actual: Mapping[str, Any] | None) ->
 
 
 def merge_patch_fields(
-    new: ApiModel, *, old: ApiModel | None = None, fields: Iterable[str] | None = None
+    new: ApiDocument, *, old: ApiDocument | None = None, fields: Iterable[str] | None = None
 ) -> Obj:
     """A JSON merge patch that makes the live object's ``fields`` equal to ``new``'s.
 
@@ -97,7 +110,7 @@ def merge_patch_fields(
     the module docstring.
     """
     compact = new.to_api()
-    with_nulls = new.model_dump(by_alias=True, mode="json")
+    with_nulls = new.api_dump()
     before = old.to_api() if old is not None else None
     names = list(with_nulls) if fields is None else list(fields)
     return {

@@ -1,7 +1,9 @@
 """Where each kind the Roost processes touch lives in the REST tree.
 
-Roost's own kinds are derived from :data:`roost_api.resources.KINDS` (plural, scope,
-group and version are spelled there and nowhere else); the built-in kinds are declared
+Roost's own kinds are derived from :mod:`roost_api.core`'s kind names (plural, scope,
+group and version are spelled there and nowhere else; :data:`roost_api.resources.KINDS`
+uses the same, and this module imports no pydantic model, so the node agent stays free of
+pydantic); the built-in kinds are declared
 below. Add a kind here when a process needs a new one, and list its verbs in
 ``charts/roost/RBAC.md``.
 """
@@ -10,10 +12,26 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Final
+from typing import Any, Final, Protocol
 from urllib.parse import quote
 
-from roost_api.resources import MISSION, REDUNDANT_AUTOPILOT, VEHICLE, ResourceKind
+from roost_api.core import MISSION_KIND, REDUNDANT_AUTOPILOT_KIND, VEHICLE_KIND
+
+
+class KindLike(Protocol):
+    """A Roost kind: :class:`roost_api.core.KindName` or a
+    :class:`roost_api.resources.ResourceKind`."""
+
+    @property
+    def group(self) -> str: ...
+    @property
+    def version(self) -> str: ...
+    @property
+    def plural(self) -> str: ...
+    @property
+    def kind(self) -> str: ...
+    @property
+    def namespaced(self) -> bool: ...
 
 
 @dataclass(frozen=True)
@@ -27,7 +45,7 @@ class Resource:
     namespaced: bool
 
     @classmethod
-    def of(cls, kind: ResourceKind) -> Resource:
+    def of(cls, kind: KindLike) -> Resource:
         """The REST location of a Roost custom resource kind."""
         return cls(kind.group, kind.version, kind.plural, kind.kind, kind.namespaced)
 
@@ -60,9 +78,9 @@ PODS: Final = Resource("", "v1", "pods", "Pod", namespaced=True)
 EVENTS: Final = Resource("", "v1", "events", "Event", namespaced=True)
 DEPLOYMENTS: Final = Resource("apps", "v1", "deployments", "Deployment", namespaced=True)
 JOBS: Final = Resource("batch", "v1", "jobs", "Job", namespaced=True)
-VEHICLES: Final = Resource.of(VEHICLE)
-REDUNDANT_AUTOPILOTS: Final = Resource.of(REDUNDANT_AUTOPILOT)
-MISSIONS: Final = Resource.of(MISSION)
+VEHICLES: Final = Resource.of(VEHICLE_KIND)
+REDUNDANT_AUTOPILOTS: Final = Resource.of(REDUNDANT_AUTOPILOT_KIND)
+MISSIONS: Final = Resource.of(MISSION_KIND)
 LEASES: Final = Resource("coordination.k8s.io", "v1", "leases", "Lease", namespaced=True)
 
 ALL: Final = (

@@ -27,7 +27,8 @@ from roost_api.autopilot import (
     SafetyRoutine,
     StandbyLimits,
 )
-from roost_api.meta import Condition, Stack
+from roost_api.meta import Stack
+from roost_api.plain import Condition
 from roost_mavlink import MAV_CMD_DO_SET_MODE, set_mode_params
 from roost_sim import (
     SimConfig,

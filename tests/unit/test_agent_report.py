@@ -3,25 +3,27 @@
 from __future__ import annotations
 
 from collections.abc import Collection
+from dataclasses import replace
 from datetime import UTC, datetime, timedelta
 
 import pytest
 
 from roost_agent.report import Change, change_class, conditions, report, write_delay
-from roost_api.autopilot import (
+from roost_api.core import HealthLevel, find_condition
+from roost_api.plain import (
     AutopilotHealth,
     CommandResult,
+    Condition,
     FailoverRecord,
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
 )
-from roost_api.meta import Condition, HealthLevel, find_condition
 
 NOW = datetime(2026, 5, 1, 12, 0, 0, tzinfo=UTC)
 OK, WARN, ERROR, STALE = HealthLevel.OK, HealthLevel.WARN, HealthLevel.ERROR, HealthLevel.STALE
 STARTING = HealthLevel.STARTING
 
-SPEC = RedundantAutopilotSpec.model_validate(
+SPEC = RedundantAutopilotSpec.from_api(
     {
         "vehicleName": "v1",
         "primary": "fc1",
@@ -52,7 +54,7 @@ def health(
 
 
 def switch(frm: str, to: str, trigger: str = "Automatic") -> FailoverRecord:
-    return FailoverRecord.model_validate(
+    return FailoverRecord.from_api(
         {
             "time": NOW,
             "from": frm,
@@ -278,7 +280,7 @@ BASE = report(
 def test_only_meaningful_changes_are_written_and_the_switch_goes_first(
     update: dict[str, object], change: Change
 ) -> None:
-    assert change_class(BASE, BASE.model_copy(update=update)) is change
+    assert change_class(BASE, replace(BASE, **update)) is change
 
 
 def test_a_standby_falling_out_of_step_is_written_its_message_alone_is_not() -> None:
@@ -290,10 +292,8 @@ def test_a_standby_falling_out_of_step_is_written_its_message_alone_is_not() -> 
             message=message,
             last_transition_time=NOW,
         )
-        fc2 = health("fc2", ERROR, "no heartbeat for 3.1 s").model_copy(
-            update={"conditions": [cond]}
-        )
-        return BASE.model_copy(update={"autopilots": [health("fc1", OK), fc2]})
+        fc2 = replace(health("fc2", ERROR, "no heartbeat for 3.1 s"), conditions=[cond])
+        return replace(BASE, autopilots=[health("fc1", OK), fc2])
 
     in_step = with_in_step("True", "InStep", "agree")
     assert change_class(in_step, with_in_step("True", "InStep", "agree again")) is Change.NONE
