@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import itertools
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -33,13 +33,14 @@ from pymavlink import mavutil
 from roost_agent.health import Assessment, HealthTracker, Motion
 from roost_agent.report import conditions
 from roost_agent.safety import DEFAULT_TIMING, judge_hold
-from roost_api.autopilot import (
+from roost_api.autopilot_enums import LandedState
+from roost_api.meta import HealthLevel, Stack
+from roost_api.plain import (
     AutopilotHealth,
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
     Thresholds,
 )
-from roost_api.meta import HealthLevel, Stack
 from roost_mavlink import MavState, custom_mode
 from roost_mavlink.codec import BadData, UnknownFrame, scan
 
@@ -241,7 +242,7 @@ def test_arducopter_heartbeat_only_is_never_a_usable_standby() -> None:
     assert ERROR not in levels(r.during(0, r.last_at))
     seen = r.at(r.last_at - 1)
     assert seen.armed is False and seen.landed_state is None
-    spec = RedundantAutopilotSpec.model_validate(
+    spec = RedundantAutopilotSpec.from_api(
         {
             "vehicleName": "v1",
             "primary": "fc1",
@@ -257,8 +258,8 @@ def test_arducopter_heartbeat_only_is_never_a_usable_standby() -> None:
             ],
         }
     )
-    active = AutopilotHealth(name="fc1", level=OK, armed=True, landed_state="InAir")
-    standby_health = seen.to_api().model_copy(update={"name": "fc2"})
+    active = AutopilotHealth(name="fc1", level=OK, armed=True, landed_state=LandedState.IN_AIR)
+    standby_health = replace(seen.to_api(), name="fc2")
     status = RedundantAutopilotStatus(active_autopilot="fc1", autopilots=[active, standby_health])
     (redundant,) = [
         c
