@@ -101,7 +101,7 @@ _HEARTBEAT = mavlink.MAVLINK_MSG_ID_HEARTBEAT
 _NOISE_PERIOD_S = 0.05
 _SPOOF_PERIOD_S = 0.1
 _GCS_PERIOD_S = 1.0
-_RX_POLL_S = 0.2
+_RX_POLL_S = 5.0  # stop() interrupts the wait: this only bounds a lost wake-up
 _MAX_SLEEP_S = 0.01
 # SET_POSITION_TARGET_* type_mask bits: x/y/z ignored, yaw ignored.
 _IGNORE_POSITION = 0b111
@@ -304,6 +304,7 @@ class SimulatedAutopilot:
         """Stop ticking and receiving and close the link; safe to call twice."""
         self._stop.set()
         self._scheduler.unregister(self)
+        self.link.interrupt()
         for thread in self._threads:
             thread.join(timeout=2)
         if self._threads:
