@@ -2,7 +2,7 @@
 
 The real command, headless and without the dashboard, in a directory of its own, with its
 scripted fault at the default time (``--fault-after`` 15 s): control plane, operator, 25
-agents and 25 ``roost-sim`` processes (two autopilots each).
+agents and three ``roost-sim`` processes (8, 8 and 9 vehicles of two autopilots).
 
 - ``sandbox.up_25_s``: from starting the command until every Vehicle has been ``Ready``
   (the scripted fault may come first, and the faulted vehicle is no longer redundant

@@ -34,7 +34,10 @@ API in short (see :mod:`roost_sim.autopilot`, :mod:`roost_sim.vehicle`)::
     stop_sims(sims)
 
 A running ``roost-sim run`` process is reached through a unix socket per autopilot in a
-state directory (:mod:`roost_sim.control`): ``roost-sim fault fc1 silence``.
+state directory (:mod:`roost_sim.control`): ``roost-sim fault fc1 silence``. One process
+can host many vehicles (``roost-sim run --config`` with a ``vehicles`` list; sockets
+``<vehicle>/<autopilot>``): every autopilot in a process is ticked by one scheduler thread
+in rounds on a 2.5 ms grid (:mod:`roost_sim.scheduler`), not by a thread of its own.
 
 Calibrated against recordings of PX4 v1.16 (SIH) and ArduCopter 4.7 (SITL), so the sim
 is not kinder than the firmware (details in :mod:`roost_sim.model`,

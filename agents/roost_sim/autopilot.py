@@ -1,8 +1,10 @@
 """One simulated autopilot on a real link: streams, command handling and fault injection.
 
-Threads: a tick thread advances the :class:`~roost_sim.model.AutopilotModel` and sends
-each stream when due; a receive thread parses MAVLink 2 and answers commands; the link
-owns a delay line for jitter. State is guarded by one lock; frames are encoded and sent
+Threads: the process's tick scheduler (:mod:`roost_sim.scheduler`, one thread for every
+autopilot in the process, rounds on a 2.5 ms grid) calls :meth:`SimulatedAutopilot.tick`,
+which advances the :class:`~roost_sim.model.AutopilotModel` and sends each stream when
+due; a receive thread per autopilot parses MAVLink 2 and answers commands; the link owns
+a delay line for jitter. State is guarded by one lock; frames are encoded and sent
 under a second so the MAVLink sequence number stays consistent.
 
 What goes on the wire follows the real firmware (:mod:`roost_sim.streams`): the PX4
@@ -70,6 +72,7 @@ from roost_sim.kinematics import ned_from_global
 from roost_sim.link import Link, PtyLink, UdpLink
 from roost_sim.model import AutopilotModel, ModeChange, SimConfig, Touchdown
 from roost_sim.params import ParamStore
+from roost_sim.scheduler import TickScheduler, shared_scheduler
 from roost_sim.streams import (
     ARDUPILOT_STREAM_GROUPS,
     ARDUPILOT_TIMESYNC_START_S,
@@ -98,7 +101,7 @@ _HEARTBEAT = mavlink.MAVLINK_MSG_ID_HEARTBEAT
 _NOISE_PERIOD_S = 0.05
 _SPOOF_PERIOD_S = 0.1
 _GCS_PERIOD_S = 1.0
-_RX_POLL_S = 0.2
+_RX_POLL_S = 5.0  # stop() interrupts the wait: this only bounds a lost wake-up
 _MAX_SLEEP_S = 0.01
 # SET_POSITION_TARGET_* type_mask bits: x/y/z ignored, yaw ignored.
 _IGNORE_POSITION = 0b111
@@ -216,6 +219,7 @@ class SimulatedAutopilot:
         config: SimConfig | None = None,
         rates: dict[int, float] | None = None,
         battery: Battery | None = None,
+        scheduler: TickScheduler | None = None,
     ) -> None:
         self.stack = Stack(stack)
         self.sysid = sysid
@@ -248,6 +252,7 @@ class SimulatedAutopilot:
         self._driving: bool | None = None
         self._setpoints = 0  # position setpoints received (any mode)
         self._standby_aux: bool | None = None
+        self._scheduler = scheduler or shared_scheduler()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
 
@@ -288,16 +293,18 @@ class SimulatedAutopilot:
         with self._lock:
             self._reboot(time.monotonic())
         self._threads = [
-            threading.Thread(target=self._run_tick, name=f"sim-{self.name}-tick", daemon=True),
-            threading.Thread(target=self._run_rx, name=f"sim-{self.name}-rx", daemon=True),
+            threading.Thread(target=self._run_rx, name=f"sim-{self.name}-rx", daemon=True)
         ]
         for thread in self._threads:
             thread.start()
+        self._scheduler.register(self)
         return self
 
     def stop(self) -> None:
-        """Stop the threads and close the link; safe to call twice."""
+        """Stop ticking and receiving and close the link; safe to call twice."""
         self._stop.set()
+        self._scheduler.unregister(self)
+        self.link.interrupt()
         for thread in self._threads:
             thread.join(timeout=2)
         if self._threads:
@@ -564,21 +571,22 @@ class SimulatedAutopilot:
     def _sending(self) -> bool:
         return not self._silent and self._reboot_at is None
 
-    # ---- tick thread: kinematics and streams -----------------------------------------
+    # ---- main loop (run by the scheduler): kinematics and streams ---------------------
 
-    def _run_tick(self) -> None:
-        while not self._stop.is_set():
-            now = time.monotonic()
-            try:
-                messages, noise, next_due = self._tick(now)
-            except Exception:  # a bug in one message must not silence the autopilot
-                _log.exception("%s: tick failed", self.name)
-                messages, noise, next_due = [], [], now + _MAX_SLEEP_S
-            for message in messages:
-                self._send(message)
-            for frame in noise:
-                self.link.write_noise(frame)
-            self._stop.wait(min(max(next_due - time.monotonic(), 0.0), _MAX_SLEEP_S))
+    def tick(self, now: float) -> float:
+        """One round of the main loop at ``now``: step the model, send what is due; the
+        time the next round is wanted (at most :data:`_MAX_SLEEP_S` away: the model steps
+        and reboots, noise and events are seen at least that often).
+
+        The scheduler logs an exception and retries later, so a bug in one message
+        cannot silence the autopilot nor its neighbours.
+        """
+        messages, noise, next_due = self._tick(now)
+        for message in messages:
+            self._send(message)
+        for frame in noise:
+            self.link.write_noise(frame)
+        return min(next_due, now + _MAX_SLEEP_S)
 
     def _tick(self, now: float) -> tuple[list[Any], list[bytes], float]:
         with self._lock:

@@ -23,7 +23,8 @@ charge_state turns EMERGENCY and the heartbeat CRITICAL after about 3.5 s, and P
 5 s before switching itself to AUTO.LAND. ArduCopter's default critical-battery action
 (``BATT_FS_CRT_ACT`` = 0) only reports: CRITICAL in the heartbeat, no mode change.
 
-Thread safety: a shared battery is read by several autopilots' tick threads; one lock.
+Thread safety: a shared battery is read by several autopilots (from the tick scheduler
+and control requests); one lock.
 """
 
 from __future__ import annotations

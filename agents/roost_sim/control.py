@@ -124,8 +124,7 @@ class ControlServer:
             self.path.unlink()
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         sock.bind(str(self.path))
-        sock.listen(4)
-        sock.settimeout(0.2)
+        sock.listen(4)  # blocking accept: stop() wakes it by shutting the socket down
         self._sock = sock
         self._thread = threading.Thread(target=self._serve, name="sim-control", daemon=True)
         self._thread.start()
@@ -134,6 +133,9 @@ class ControlServer:
     def stop(self) -> None:
         """Stop serving and remove the socket file."""
         self._stop.set()
+        if self._sock is not None:
+            with contextlib.suppress(OSError):
+                self._sock.shutdown(socket.SHUT_RDWR)  # wakes the accept
         if self._thread is not None:
             self._thread.join(timeout=2)
         if self._sock is not None:
@@ -146,8 +148,6 @@ class ControlServer:
         while not self._stop.is_set():
             try:
                 conn, _ = self._sock.accept()
-            except TimeoutError:
-                continue
             except OSError:
                 return
             with conn:

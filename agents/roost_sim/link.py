@@ -96,6 +96,7 @@ class Link(ABC):
         self._last_due = 0.0
         self._closed = threading.Event()
         self._delayer: threading.Thread | None = None
+        self._wake_read = self._wake_write = -1  # a pipe that interrupts a receive
         self._signing: _Signing | None = None
         self.frames_sent = 0  # frames handed to the transport (after loss)
 
@@ -125,6 +126,7 @@ class Link(ABC):
     def open(self) -> None:
         """Open the transport and start the jitter delay line."""
         self._closed.clear()
+        self._wake_read, self._wake_write = os.pipe()
         self._open()
         self._delayer = threading.Thread(
             target=self._run_delayer, name="sim-link-delay", daemon=True
@@ -140,6 +142,23 @@ class Link(ABC):
         if self._delayer is not None:
             self._delayer.join(timeout=2)
         self._close()
+        for fd in (self._wake_read, self._wake_write):
+            if fd >= 0:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        self._wake_read = self._wake_write = -1
+
+    def interrupt(self) -> None:
+        """Make a :meth:`receive` waiting now return at once (before :meth:`close`)."""
+        if self._wake_write >= 0:
+            with contextlib.suppress(OSError):
+                os.write(self._wake_write, b"x")
+
+    def _readable(self, fd: int, timeout: float) -> bool:
+        """Wait until ``fd`` has bytes (True), or ``timeout`` passed or :meth:`interrupt`
+        was called (False): a receive thread sleeps until there is work or it must stop."""
+        ready, _, _ = select.select([fd, self._wake_read], [], [], timeout)
+        return fd in ready
 
     def enable_signing(self, key: bytes, *, link_id: int = 0, require: bool = True) -> None:
         """Sign every frame from now on; with ``require`` hear only well-signed frames."""
@@ -193,7 +212,7 @@ class Link(ABC):
         while not self._closed.is_set():
             with self._queue_ready:
                 while not self._queue and not self._closed.is_set():
-                    self._queue_ready.wait(0.5)
+                    self._queue_ready.wait()  # send and close notify
                 if self._closed.is_set():
                     return
                 due, frame = self._queue[0]
@@ -275,8 +294,7 @@ class UdpLink(Link):
         if sock is None:
             return b""
         try:
-            ready, _, _ = select.select([sock], [], [], timeout)
-            if not ready:
+            if not self._readable(sock.fileno(), timeout):
                 return b""
             data, addr = sock.recvfrom(65535)
         except (OSError, ValueError):
@@ -335,8 +353,7 @@ class PtyLink(Link):
         if self._master < 0:
             return b""
         try:
-            ready, _, _ = select.select([self._master], [], [], timeout)
-            if not ready:
+            if not self._readable(self._master, timeout):
                 return b""
             return os.read(self._master, 4096)
         except (BlockingIOError, OSError, ValueError):

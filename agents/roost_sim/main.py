@@ -7,6 +7,8 @@
                                                    #   udp_out, udp_bind, pty}, ...],
                                                    # fast_boot, preset_streams, battery,
                                                    # home_lat_deg, home_lon_deg
+    roost-sim run --config fleet.yaml              # vehicles: [{name, autopilots: [...],
+                                                   #   battery, home_lat_deg, ...}, ...]
     roost-sim run --vehicle px4,px4 --fast-boot    # boots in <1 s (default: as the
                                                    #   firmware: PX4 4 s, ArduCopter 41 s)
     roost-sim run --stack ardupilot --preset-streams --gcs-heartbeat
@@ -14,7 +16,7 @@
     roost-sim fault fc1 sensor --value gyro
     roost-sim clear fc1 [sensor]                   # "all" as target: every autopilot
     roost-sim fly fc1 [--altitude 10]
-    roost-sim status fc1
+    roost-sim status fc1                           # drone-1/px4-a: in a vehicles file
     roost-sim list
 
 Timing options of ``run`` (also keys of the YAML file): ``--fast-boot``, ``--boot-s``,
@@ -23,8 +25,14 @@ Timing options of ``run`` (also keys of the YAML file): ``--fast-boot``, ``--boo
 heartbeat onto ArduPilot links; ``--battery shared|per-autopilot`` for ``--vehicle`` and
 config files (default shared).
 
-``run`` prints one JSON line per autopilot (name, stack, sysid, connection, device,
-control socket) and runs until SIGINT or SIGTERM. The other commands talk to the
+One process can host many vehicles (a ``vehicles`` list: each has its own home,
+battery and autopilots, and its autopilots' control sockets are
+``<state dir>/<vehicle>/<autopilot>.sock``, so autopilot names may repeat across
+vehicles): all its autopilots are ticked by one scheduler thread
+(:mod:`roost_sim.scheduler`), which is what makes a 25-vehicle sandbox fit on two cores.
+
+``run`` prints one JSON line per autopilot (vehicle when named, name, stack, sysid,
+connection, device, control socket) and runs until SIGINT or SIGTERM. The other commands talk to the
 autopilot's control socket (:mod:`roost_sim.control`) and print its state as JSON.
 """
 
@@ -35,6 +43,7 @@ import json
 import signal
 import sys
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -91,72 +100,132 @@ def _sim_from_entry(
 
 _OPTION_KEYS = ("fast_boot", "boot_s", "position_wait_s", "preset_streams", "gcs_heartbeat")
 _HOME_KEYS = ("home_lat_deg", "home_lon_deg")  # config files only: where the vehicle starts
+_VEHICLE_KEYS = (*_OPTION_KEYS, *_HOME_KEYS)  # a vehicle's own keys override the file's
 
 
-def build_sims(args: argparse.Namespace) -> list[SimulatedAutopilot]:
+@dataclass(frozen=True)
+class VehicleEntry:
+    """One vehicle of a ``run`` command: its autopilots share its options and battery."""
+
+    name: str | None  # None: the single unnamed vehicle of a command line or flat file
+    options: dict[str, Any]
+    battery: str
+    autopilots: list[dict[str, Any]]
+
+    def target(self, autopilot: str) -> str:
+        """The control-socket name of one of its autopilots (``vehicle/autopilot``)."""
+        return f"{self.name}/{autopilot}" if self.name else autopilot
+
+
+@dataclass(frozen=True)
+class HostedAutopilot:
+    """A started autopilot, its vehicle and the control target it is reached by."""
+
+    vehicle: str | None
+    target: str
+    sim: SimulatedAutopilot
+
+
+def vehicle_entries(
+    document: dict[str, Any], options: dict[str, Any], battery: str | None = None
+) -> list[VehicleEntry]:
+    """The vehicles a config document describes: a ``vehicles`` list (each with a
+    ``name``, its ``autopilots`` and optionally its own ``battery``, home and timing
+    keys), or a flat ``autopilots`` list (one unnamed vehicle). The file's top-level keys
+    apply to every vehicle; ``options`` and ``battery`` come from the command line."""
+    top = {**options, **{k: document[k] for k in _VEHICLE_KEYS if document.get(k) is not None}}
+    described = document.get("vehicles")
+    if described is None:
+        described = [{"autopilots": document.get("autopilots", [])}]
+    elif not described or not all(isinstance(v, dict) and v.get("name") for v in described):
+        raise SystemExit("'vehicles' must be a list of vehicles, each with a 'name'")
+    vehicles: list[VehicleEntry] = []
+    for raw in described:
+        name = str(raw["name"]) if raw.get("name") else None
+        layout = battery or raw.get("battery") or document.get("battery") or "shared"
+        if layout not in BATTERY_LAYOUTS:
+            layouts = ", ".join(BATTERY_LAYOUTS)
+            raise SystemExit(f"battery must be one of {layouts}, not {layout!r}")
+        own = {k: raw[k] for k in _VEHICLE_KEYS if raw.get(k) is not None}
+        autopilots = list(raw.get("autopilots") or [])
+        vehicles.append(VehicleEntry(name, {**top, **own}, layout, autopilots))
+    names = [v.name for v in vehicles]
+    if len(set(names)) != len(names) or any(n and ("/" in n or n == ALL_TARGETS) for n in names):
+        raise SystemExit(f"vehicle names must be unique, without '/', not {ALL_TARGETS!r}: {names}")
+    return vehicles
+
+
+def _check_unique(vehicle: VehicleEntry, sims: list[SimulatedAutopilot]) -> None:
+    names = [s.name for s in sims]
+    if len(set(names)) != len(names) or len({s.sysid for s in sims}) != len(sims):
+        raise SystemExit(f"autopilot names and sysids must be unique in a vehicle: {names}")
+    if ALL_TARGETS in (vehicle.target(n) for n in names) or any("/" in n for n in names):
+        raise SystemExit(f"{ALL_TARGETS!r} is reserved as a target and '/' separates: {names}")
+
+
+def build_sims(args: argparse.Namespace) -> list[HostedAutopilot]:
     """Start the autopilots a ``run`` command line (or its YAML config) describes."""
     options = {key: getattr(args, key) for key in _OPTION_KEYS}
-    layout = args.battery
     if args.vehicle:
-        return start_vehicle_sims(
+        sims = start_vehicle_sims(
             args.vehicle.split(","),
             transport="pty" if args.pty else "udp",
             config=sim_config(options),
-            battery=layout or "shared",
+            battery=args.battery or "shared",
         )
+        return [HostedAutopilot(None, sim.name, sim) for sim in sims]
     if args.config:
         document = yaml.safe_load(Path(args.config).read_text()) or {}
-        entries = document.get("autopilots", [])
-        keys = (*_OPTION_KEYS, *_HOME_KEYS)
-        options.update({k: document[k] for k in keys if document.get(k) is not None})
-        layout = layout or document.get("battery")
     else:
-        entries = [
-            {
-                "stack": args.stack,
-                "sysid": args.sysid,
-                "name": args.name,
-                "udp_out": args.udp_out,
-                "udp_bind": args.udp_bind,
-                "pty": args.pty,
-            }
+        document = {
+            "autopilots": [
+                {
+                    "stack": args.stack,
+                    "sysid": args.sysid,
+                    "name": args.name,
+                    "udp_out": args.udp_out,
+                    "udp_bind": args.udp_bind,
+                    "pty": args.pty,
+                }
+            ]
+        }
+    hosted: list[HostedAutopilot] = []
+    for vehicle in vehicle_entries(document, options, args.battery):
+        shared = Battery()
+        sims = [
+            _sim_from_entry(
+                entry, vehicle.options, shared if vehicle.battery == "shared" else Battery()
+            )
+            for entry in vehicle.autopilots
         ]
-    layout = layout or "shared"
-    if layout not in BATTERY_LAYOUTS:
-        raise SystemExit(f"battery must be one of {', '.join(BATTERY_LAYOUTS)}, not {layout!r}")
-    shared = Battery()
-    sims = [
-        _sim_from_entry(entry, options, shared if layout == "shared" else Battery())
-        for entry in entries
-    ]
-    names = [s.name for s in sims]
-    if len(set(names)) != len(names) or len({s.sysid for s in sims}) != len(sims):
-        raise SystemExit(f"autopilot names and sysids must be unique: {names}")
-    if ALL_TARGETS in names:
-        raise SystemExit(f"{ALL_TARGETS!r} is reserved as a target for every autopilot")
+        _check_unique(vehicle, sims)
+        hosted += [HostedAutopilot(vehicle.name, vehicle.target(s.name), s) for s in sims]
     started: list[SimulatedAutopilot] = []
     try:
-        for sim in sims:
-            started.append(sim.start())
+        for each in hosted:
+            started.append(each.sim.start())
     except BaseException:
         stop_sims(started)
         raise
-    return started
+    return hosted
 
 
 def _run(args: argparse.Namespace) -> int:
     directory = Path(args.state_dir) if args.state_dir else state_dir()
     directory.mkdir(mode=0o700, parents=True, exist_ok=True)
-    sims = build_sims(args)
+    hosted = build_sims(args)
     servers: list[ControlServer] = []
     done = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: done.set())
     try:
-        for sim in sims:
-            server = ControlServer(sim, socket_path(sim.name, directory)).start()
+        for each in hosted:
+            sim, path = each.sim, socket_path(each.target, directory)
+            path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+            server = ControlServer(sim, path).start()
             servers.append(server)
             line = {
+                **({"vehicle": each.vehicle} if each.vehicle else {}),
                 "name": sim.name,
                 "stack": sim.stack.value,
                 "sysid": sim.sysid,
@@ -169,17 +238,14 @@ def _run(args: argparse.Namespace) -> int:
     finally:
         for server in servers:
             server.stop()
-        stop_sims(sims)
+        stop_sims([each.sim for each in hosted])
     return 0
 
 
 def _control(args: argparse.Namespace, message: dict[str, Any]) -> int:
     wait = float(message.get("timeout") or 0.0)
     directory = Path(args.state_dir) if args.state_dir else state_dir()
-    if args.target == ALL_TARGETS:
-        targets = sorted(p.stem for p in directory.glob("*.sock"))
-    else:
-        targets = [args.target]
+    targets = _targets(directory) if args.target == ALL_TARGETS else [args.target]
     worst = 0
     for target in targets:
         path = socket_path(target, directory)
@@ -196,9 +262,14 @@ def _control(args: argparse.Namespace, message: dict[str, Any]) -> int:
 
 def _list(args: argparse.Namespace) -> int:
     directory = Path(args.state_dir) if args.state_dir else state_dir()
-    for path in sorted(directory.glob("*.sock")):
-        print(path.stem)
+    for target in _targets(directory):
+        print(target)
     return 0
+
+
+def _targets(directory: Path) -> list[str]:
+    """Every control target under ``directory``: ``name``, or ``vehicle/name``."""
+    return sorted(str(p.relative_to(directory).with_suffix("")) for p in directory.rglob("*.sock"))
 
 
 def build_parser() -> argparse.ArgumentParser:

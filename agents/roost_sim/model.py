@@ -320,6 +320,7 @@ class AutopilotModel:
     _contact_at: float | None = field(init=False, default=None)
     _battery_emergency_at: float | None = field(init=False, default=None)
     _announced: set[str] = field(init=False, default_factory=set)
+    _boot_times: tuple[tuple[object, ...], BootTimes] | None = field(init=False, default=None)
 
     def __post_init__(self) -> None:
         self.stack = Stack(self.stack)
@@ -360,8 +361,13 @@ class AutopilotModel:
 
     @property
     def boot_times(self) -> BootTimes:
-        """The start-up timeline in effect."""
-        return self.config.boot_times(self.stack)
+        """The start-up timeline in effect (worked out again only when the config's
+        timing changes: it is read for every stream in every round)."""
+        config = self.config
+        key = (config.fast_boot, config.boot_s, config.position_wait_s)
+        if self._boot_times is None or self._boot_times[0] != key:
+            self._boot_times = (key, config.boot_times(self.stack))
+        return self._boot_times[1]
 
     @property
     def booting(self) -> bool:

@@ -45,7 +45,7 @@ def test_a_lagging_vehicle_is_waited_for_and_transits_stay_planned(tmp_path: Pat
     for index, vehicle in enumerate(fleet):
         (trajectories / f"{vehicle.name}.csv").write_text(TRAJECTORY.format(n=index * 6))
     try:
-        running = [sims.start(launcher, vehicle, tmp_path) for vehicle in fleet]
+        running = sims.start(launcher, fleet, tmp_path)
         names = [vehicle.name for vehicle in running]
         connections = {  # straight to the primaries: no agents (and no hubs) here
             vehicle.name: missionrun.pymavlink_url(

@@ -5,7 +5,8 @@ simulators, whose own ephemeral sockets could then take one of them (an agent lo
 "Address already in use" forever). Now each simulator binds a free port itself and the
 RedundantAutopilot is written from what it reports. Here real ``roost-sim`` processes
 are started exactly as ``roost sandbox up`` starts them, and a real MAVLink client
-talks to the reported ports the way the agent's ``udpout://`` link does.
+talks to the reported ports the way the agent's ``udpout://`` link does; two vehicles
+share one process, as the sandbox groups them.
 """
 
 from __future__ import annotations
@@ -30,7 +31,12 @@ HEARTBEAT_TIMEOUT_S = 15.0
 def started(tmp_path: Path) -> Iterator[tuple[Launcher, list[state.SandboxVehicle]]]:
     launcher = Launcher(tmp_path / "logs", lambda: None)
     try:
-        recorded = [sims.start(launcher, v, tmp_path) for v in plan.plan_fleet(3)]
+        fleet = plan.plan_fleet(3)
+        recorded = [
+            v
+            for group in sims.process_groups(fleet, 2)
+            for v in sims.start(launcher, group, tmp_path)
+        ]
         yield launcher, recorded
     finally:
         launcher.stop_all()
@@ -41,9 +47,15 @@ def test_each_simulator_holds_the_port_it_reports_and_answers_there(
 ) -> None:
     launcher, recorded = started
     ports: list[int] = []
-    for vehicle, proc in zip(recorded, launcher.processes, strict=True):
+    processes = {}  # vehicle name -> the ports its simulator process holds
+    for proc in launcher.processes:  # two processes: drone-1; drone-2 with drone-3
         assert proc.pid is not None
         held = {c.laddr.port for c in psutil.Process(proc.pid).net_connections(kind="udp")}
+        first, _, last = proc.name.removeprefix("roost-sim-").partition("..")
+        processes.update({name: held for name in {first, last or first}})
+    assert sorted(processes) == ["drone-1", "drone-2", "drone-3"]
+    for vehicle in recorded:
+        held = processes[vehicle.name]
         for autopilot in vehicle.autopilots:
             match = re.fullmatch(r"udpout://127\.0\.0\.1:(\d+)", autopilot.connection)
             assert match, autopilot.connection

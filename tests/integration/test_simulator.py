@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import yaml
 from mavsdk import ComponentType, Configuration, Mavsdk
 from mavsdk.plugins.action import Action
 from mavsdk.plugins.telemetry import Telemetry
@@ -54,7 +55,7 @@ from roost_sim import (
     start_vehicle_sims,
     stop_sims,
 )
-from roost_sim.main import build_parser, build_sims
+from roost_sim.main import build_parser, build_sims, vehicle_entries
 from roost_sim.main import main as sim_cli
 from tests.support.waiting import wait_until
 
@@ -691,8 +692,10 @@ def test_cli_config_file_starts_several_autopilots(tmp_path: Path) -> None:
         f"  - {{name: a, stack: px4, sysid: 11, udp_out: '127.0.0.1:{port}'}}\n"
         "  - {name: b, stack: ardupilot, sysid: 12, pty: true}\n"
     )
-    sims = build_sims(build_parser().parse_args(["run", "--config", str(config)]))
+    hosted = build_sims(build_parser().parse_args(["run", "--config", str(config)]))
+    sims = [h.sim for h in hosted]
     try:
+        assert [h.target for h in hosted] == ["a", "b"]
         assert [(s.name, s.stack, s.sysid) for s in sims] == [
             ("a", Stack.PX4, 11),
             ("b", Stack.ARDUPILOT, 12),
@@ -705,6 +708,97 @@ def test_cli_config_file_starts_several_autopilots(tmp_path: Path) -> None:
     clash.write_text("autopilots: [{name: a, sysid: 1, pty: true}, {name: a, sysid: 2}]\n")
     with pytest.raises(SystemExit):
         build_sims(build_parser().parse_args(["run", "--config", str(clash)]))
+
+
+FLEET_CONFIG = """
+fast_boot: true
+home_lat_deg: 47.0
+vehicles:
+  - name: v1
+    home_lon_deg: 8.0
+    autopilots:
+      - {name: px4-a, stack: px4, sysid: 1, udp_out: '127.0.0.1:PORT1'}
+      - {name: px4-b, stack: px4, sysid: 2}
+  - name: v2
+    home_lon_deg: 8.001
+    battery: per-autopilot
+    boot_s: 7.5
+    autopilots:
+      - {name: px4-a, stack: px4, sysid: 1}
+      - {name: px4-b, stack: px4, sysid: 2}
+"""
+
+
+def test_one_config_hosts_several_vehicles_each_with_its_home_battery_and_sockets(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A ``vehicles`` file: autopilot names repeat across vehicles and are reached as
+    ``vehicle/autopilot``; a vehicle's autopilots share its battery (unless it says
+    otherwise), its home and its own options; a fault reaches one autopilot only."""
+    port = free_udp_port()
+    config = tmp_path / "fleet.yaml"
+    config.write_text(FLEET_CONFIG.replace("PORT1", str(port)))
+    states = tmp_path / "state"
+    client = Client(pymavlink_device(f"udp://127.0.0.1:{port}").device)
+    run = [sys.executable, "-m", "roost_sim.main", "--state-dir", str(states), "run"]
+    proc = subprocess.Popen([*run, "--config", str(config)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        lines = [json.loads(proc.stdout.readline()) for _ in range(4)]
+        assert [(line["vehicle"], line["name"]) for line in lines] == [
+            ("v1", "px4-a"), ("v1", "px4-b"), ("v2", "px4-a"), ("v2", "px4-b"),
+        ]  # fmt: skip
+        assert lines[0]["connection"] == f"udp://127.0.0.1:{port}"
+        assert lines[2]["control"] == str(states / "v2" / "px4-a.sock")
+        client.wait_for("HEARTBEAT", lambda m: m.get_srcSystem() == 1)
+
+        def cli(*args: str) -> tuple[int, str]:
+            code = sim_cli(["--state-dir", str(states), *args])
+            return code, capsys.readouterr().out
+
+        code, listed = cli("list")
+        assert listed.split() == ["v1/px4-a", "v1/px4-b", "v2/px4-a", "v2/px4-b"]
+        assert cli("fault", "v1/px4-a", "battery")[0] == 0  # v1 shares one pack
+        assert cli("fault", "v2/px4-a", "battery")[0] == 0  # v2 has one per autopilot
+        assert cli("fault", "v2/px4-b", "silence")[0] == 0
+        faults = {}
+        for target in ("v1/px4-a", "v1/px4-b", "v2/px4-a", "v2/px4-b"):
+            code, out = cli("status", target)
+            assert code == 0
+            faults[target] = json.loads(out)["state"]["faults"]
+        assert faults == {
+            "v1/px4-a": {"battery": "True"},
+            "v1/px4-b": {"battery": "True"},
+            "v2/px4-a": {"battery": "True"},
+            "v2/px4-b": {"silence": "True"},
+        }
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+        client.close()
+    assert proc.returncode == 0
+    assert not list(states.rglob("*.sock"))
+
+
+def test_vehicle_entries_apply_the_files_keys_then_each_vehicles_own() -> None:
+    document = yaml.safe_load(FLEET_CONFIG)
+    v1, v2 = vehicle_entries(document, {"preset_streams": True})
+    assert (v1.name, v1.battery, v2.battery) == ("v1", "shared", "per-autopilot")
+    assert v1.options["home_lat_deg"] == v2.options["home_lat_deg"] == 47.0
+    assert (v1.options["home_lon_deg"], v2.options["home_lon_deg"]) == (8.0, 8.001)
+    assert v1.options["preset_streams"] and v2.options["fast_boot"]
+    assert "boot_s" not in v1.options and v2.options["boot_s"] == 7.5
+    assert v2.target("px4-a") == "v2/px4-a"
+    [flat] = vehicle_entries({"autopilots": [{"name": "fc1"}]}, {}, "per-autopilot")
+    assert (flat.name, flat.battery, flat.target("fc1")) == (None, "per-autopilot", "fc1")
+    for bad in (
+        {"vehicles": [{"name": "v1"}, {"name": "v1"}]},
+        {"vehicles": [{"autopilots": []}]},
+        {"vehicles": [{"name": "a/b"}]},
+        {"vehicles": [{"name": "v1", "battery": "none"}]},
+    ):
+        with pytest.raises(SystemExit):
+            vehicle_entries(bad, {})
 
 
 # ---- an independent MAVLink implementation --------------------------------------------

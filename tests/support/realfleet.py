@@ -110,7 +110,7 @@ class RealFleet:
         self.vehicle_node = self.pool.add(self.vehicle.node, images=[archive(images, "agent")])
         self.timings.vehicle_start_to_ready_s = time.monotonic() - t0
         self.launcher = NamespaceLauncher(self.vehicle_node, self.directory / "logs")
-        self.simulated = sims.start(self.launcher, self.vehicle, self.directory)
+        [self.simulated] = sims.start(self.launcher, [self.vehicle], self.directory)
         self.install()
         self.timings.install_to_operator_ready_s = self.wait_operator_ready()
         self.timings.agent_pod_to_first_report_s = self.add_vehicle()

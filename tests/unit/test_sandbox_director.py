@@ -84,18 +84,35 @@ def test_latency_reads_well_at_every_scale(ms: float, text: str) -> None:
     assert format_latency(ms) == text
 
 
-def test_each_sim_binds_a_port_of_its_own_choosing() -> None:
-    [vehicle] = plan.plan_fleet(1)
-    assert sims.sim_config(vehicle) == {
+def test_each_sim_binds_a_port_of_its_own_choosing_at_its_vehicles_home() -> None:
+    fleet = plan.plan_fleet(2)
+    config = sims.sim_config(fleet)
+    assert (config["fast_boot"], config["preset_streams"]) == (True, True)
+    first, second = config["vehicles"]
+    assert first == {
+        "name": "drone-1",
         "home_lat_deg": 47.397742,
         "home_lon_deg": 8.545594,
-        "fast_boot": True,
-        "preset_streams": True,
         "autopilots": [
             {"name": "px4-a", "stack": "px4", "sysid": 1, "udp_bind": "127.0.0.1:0"},
             {"name": "px4-b", "stack": "px4", "sysid": 2, "udp_bind": "127.0.0.1:0"},
         ],
     }
+    assert second["name"] == "drone-2"
+    assert second["home_lon_deg"] == round(sims.home(1)[1], 9)
+    assert [a["sysid"] for a in second["autopilots"]] == [a.sysid for a in fleet[1].autopilots]
+
+
+@pytest.mark.parametrize(
+    ("count", "sizes"), [(1, [1]), (10, [10]), (11, [5, 6]), (21, [7, 7, 7]), (25, [8, 8, 9])]
+)
+def test_vehicles_share_few_simulator_processes_of_similar_size(
+    count: int, sizes: list[int]
+) -> None:
+    fleet = plan.plan_fleet(count)
+    groups = sims.process_groups(fleet)
+    assert [len(g) for g in groups] == sizes
+    assert [v for g in groups for v in g] == list(fleet)  # each vehicle once, in order
 
 
 def test_sandbox_vehicles_start_apart_on_an_east_west_line() -> None:

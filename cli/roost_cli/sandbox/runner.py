@@ -223,8 +223,8 @@ class Sandbox:
 
     def _start_sims(self) -> None:
         with self.console.status("Starting the simulated autopilots…"):
-            for vehicle in self.fleet_plan:
-                self.state.vehicles.append(sims.start(self.launcher, vehicle, self.directory))
+            for group in sims.process_groups(self.fleet_plan):
+                self.state.vehicles += sims.start(self.launcher, group, self.directory)
                 self._save()
         described = ", ".join(
             f"{v.name} ({'+'.join(a.name for a in v.autopilots)})" for v in self.state.vehicles

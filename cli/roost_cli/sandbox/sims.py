@@ -1,9 +1,13 @@
-"""The sandbox's simulated autopilots: one ``roost-sim run`` per vehicle, reached by socket.
+"""The sandbox's simulated autopilots: a few ``roost-sim run`` processes, reached by socket.
 
-Each vehicle's two autopilots run in one ``roost-sim`` process streaming MAVLink over UDP
-to the ports its agent listens on (the RedundantAutopilot's connection URLs). Control
-sockets live in ``<dir>/sims/<vehicle>/`` because autopilot names repeat across vehicles
-(every PX4 vehicle has a ``px4-a``) and ``roost_sim`` names a socket after its autopilot.
+The vehicles are split into groups of at most :data:`VEHICLES_PER_PROCESS`, and each
+group runs in one ``roost-sim`` process (a ``vehicles`` config: each vehicle with its
+own home, shared battery and two autopilots), streaming MAVLink over UDP to the ports
+the agents listen on (the RedundantAutopilot's connection URLs). One process ticks all
+its autopilots from one thread on a 2.5 ms grid (:mod:`roost_sim.scheduler`): a process
+per vehicle, each waking at every stream's own due time, was most of a 25-vehicle
+sandbox's CPU. Control sockets live in ``<dir>/sims/<vehicle>/`` because autopilot
+names repeat across vehicles (every PX4 vehicle has a ``px4-a``).
 
 Faults and take-off go through :mod:`roost_sim.control`, the same channel ``roost-sim
 fault`` uses, so ``roost fault`` and the sandbox's scripted fault mean exactly what the
@@ -12,8 +16,10 @@ simulator documents (:mod:`roost_sim.faults`).
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +34,9 @@ from roost_sim.faults import FaultKind, check_value
 from roost_sim.model import SimConfig
 
 READY_TIMEOUT_S = 30.0
+VEHICLES_PER_PROCESS = 10
+"""A process's autopilots share one thread and one interpreter lock: ten vehicles (twenty
+autopilots, about 8,000 MAVLink messages a second) keep it well under one core."""
 SPACING_M = 8.0
 """Vehicles start this far apart on an east-west line (the dashboard's arena shows them)."""
 CLEAR = "clear"
@@ -41,17 +50,23 @@ def home(index: int) -> tuple[float, float]:
     return base.home_lat_deg, base.home_lon_deg + index * SPACING_M / metres_per_degree
 
 
-def sim_config(vehicle: plan.VehiclePlan) -> dict[str, Any]:
-    """``roost-sim run --config`` for one vehicle: its autopilots, each on a port it picks."""
-    lat, lon = home(vehicle.index)
-    return {
-        "home_lat_deg": lat,
-        "home_lon_deg": round(lon, 9),
-        # A demo should not wait for GPS: sub-second start-up. ArduPilot streams as with
-        # its SRn_* stream-rate parameters set, for agents that do not request streams.
-        "fast_boot": True,
-        "preset_streams": True,
-        "autopilots": [
+def process_groups(
+    fleet: Sequence[plan.VehiclePlan], per_process: int = VEHICLES_PER_PROCESS
+) -> list[tuple[plan.VehiclePlan, ...]]:
+    """The fleet in order, split into as few groups of at most ``per_process`` as can be,
+    of sizes differing by at most one (25 vehicles: 8, 8 and 9)."""
+    count = -(-len(fleet) // per_process)
+    bounds = [k * len(fleet) // count for k in range(count + 1)]
+    return [tuple(fleet[a:b]) for a, b in itertools.pairwise(bounds)]
+
+
+def sim_config(vehicles: Sequence[plan.VehiclePlan]) -> dict[str, Any]:
+    """``roost-sim run --config`` for some vehicles: their autopilots, each on a port it
+    picks, each vehicle at its own home."""
+    described = []
+    for vehicle in vehicles:
+        lat, lon = home(vehicle.index)
+        autopilots = [
             {
                 "name": autopilot.name,
                 "stack": autopilot.stack.value,
@@ -59,23 +74,51 @@ def sim_config(vehicle: plan.VehiclePlan) -> dict[str, Any]:
                 "udp_bind": f"{BIND_HOST}:0",
             }
             for autopilot in vehicle.autopilots
-        ],
+        ]
+        described.append(
+            {
+                "name": vehicle.name,
+                "home_lat_deg": lat,
+                "home_lon_deg": round(lon, 9),
+                "autopilots": autopilots,
+            }
+        )
+    return {
+        # A demo should not wait for GPS: sub-second start-up. ArduPilot streams as with
+        # its SRn_* stream-rate parameters set, for agents that do not request streams.
+        "fast_boot": True,
+        "preset_streams": True,
+        "vehicles": described,
     }
 
 
-def start(launcher: Launcher, vehicle: plan.VehiclePlan, directory: Path) -> state.SandboxVehicle:
-    """Start the vehicle's simulators; return once each answers with the port it bound."""
-    sims_dir = directory / "sims" / vehicle.name
+def start(
+    launcher: Launcher, vehicles: Sequence[plan.VehiclePlan], directory: Path
+) -> list[state.SandboxVehicle]:
+    """Start one simulator process for ``vehicles``; return once each autopilot answers
+    with the port it bound."""
+    sims_dir = directory / "sims"
     sims_dir.mkdir(mode=0o700, parents=True, exist_ok=True)
-    config = sims_dir / "sims.yaml"
-    config.write_text(yaml.safe_dump(sim_config(vehicle), sort_keys=False))
+    first, last = vehicles[0].name, vehicles[-1].name
+    label = first if first == last else f"{first}..{last}"
+    config = sims_dir / f"{label}.yaml"
+    config.write_text(yaml.safe_dump(sim_config(vehicles), sort_keys=False))
     proc = launcher.start(
-        f"roost-sim-{vehicle.name}",
+        f"roost-sim-{label}",
         [console_script("roost-sim"), "--state-dir", str(sims_dir), "run", "--config", str(config)],
         {},
     )
-    controls = {a.name: socket_path(a.name, sims_dir) for a in vehicle.autopilots}
     deadline = time.monotonic() + READY_TIMEOUT_S
+    return [_recorded(proc, vehicle, sims_dir, deadline) for vehicle in vehicles]
+
+
+def _recorded(
+    proc: ManagedProcess, vehicle: plan.VehiclePlan, sims_dir: Path, deadline: float
+) -> state.SandboxVehicle:
+    """What the state file records of one vehicle's started simulators."""
+    controls = {
+        a.name: socket_path(f"{vehicle.name}/{a.name}", sims_dir) for a in vehicle.autopilots
+    }
     connections = {
         name: _reported_connection(proc, vehicle.name, name, control, deadline)
         for name, control in controls.items()
