@@ -110,7 +110,7 @@ e2e-node: $(STAMP) cluster-build node-build ## the chart's real pods on real har
 
 .PHONY: sandbox-full
 sandbox-full: $(STAMP) cluster-build ## the largest sandbox (25 vehicles) end to end; both cores for ~1.5 min
-	ROOST_SANDBOX_FULL=1 $(BIN)/pytest tests/integration/test_sandbox_full_fleet.py
+	$(BIN)/pytest tests/integration/test_sandbox_full_fleet.py
 
 .PHONY: e2e-kind
 e2e-kind: $(STAMP) ## end-to-end suite on KinD (skips where no container engine runs)
