@@ -16,33 +16,18 @@ The audit log costs the API server CPU, so no time is measured here; the timings
 
 from __future__ import annotations
 
-import json
 import os
-import tempfile
 import time
 from collections import Counter
 from dataclasses import replace
 from datetime import UTC, datetime
-from pathlib import Path
 
 from bench.controlplane import FLEET_SETTINGS
 from bench.core import Figure
-from bench.fleet import (
-    NAMESPACE,
-    READY_TIMEOUT_S,
-    _apply_streams,
-    _create_nodes,
-    _ready_count,
-    vehicle_manifest,
-    vehicle_name,
-)
+from bench.fleet import apply_until_ready, fleet_with_operator
 from roost_kube.client import Kube
 from roost_localcluster import binaries
 from roost_localcluster.audit import AUDIT_LOG, RequestKind, count_requests
-from roost_localcluster.cluster import Cluster
-from roost_localcluster.controlplane import ControlPlane
-from tests.support.operator import OperatorProcess
-from tests.support.waiting import wait_until
 
 COMMAND = "python -m bench fleetapi"
 SIZE = int(os.environ.get("ROOST_BENCH_FLEET_API", "200"))
@@ -60,30 +45,14 @@ def rollout_requests(count: int) -> Counter[RequestKind]:
     """Every request from applying ``count`` Vehicles until all are Ready."""
     settings = replace(FLEET_SETTINGS, audit=True)
     with (
-        tempfile.TemporaryDirectory(prefix="bench-fleetapi-") as tmp,
-        ControlPlane(Path(tmp), settings=settings) as plane,
+        fleet_with_operator(count, settings, "bench-fleetapi-") as fleet,
+        fleet.cluster.api_client() as api,
     ):
-        cluster = Cluster.of(plane)
-        cluster.install_crds()
-        _create_nodes(cluster, [(f"{vehicle_name(i)}-node", {}) for i in range(count)])
-        operator = OperatorProcess(cluster, Path(tmp) / "operator.log", namespace=NAMESPACE)
-        operator.start()
-        try:
-            with cluster.api_client() as api:
-                kube = Kube(api, "roost-bench")
-                since = _stamp()
-                _apply_streams(cluster, [json.dumps(vehicle_manifest(i)) for i in range(count)])
-                wait_until(
-                    f"{count} Vehicles Ready",
-                    lambda: _ready_count(kube) >= count,
-                    READY_TIMEOUT_S,
-                    poll_s=1.0,
-                )
-                until = _stamp()
-                time.sleep(AUDIT_FLUSH_S)
-        finally:
-            operator.stop()
-        return count_requests(plane.logs_dir / AUDIT_LOG, since=since, until=until)
+        since = _stamp()
+        apply_until_ready(fleet.cluster, Kube(api, "roost-bench"), count)
+        until = _stamp()
+        time.sleep(AUDIT_FLUSH_S)
+        return count_requests(fleet.plane.logs_dir / AUDIT_LOG, since=since, until=until)
 
 
 def table(counted: Counter[RequestKind], count: int) -> str:
