@@ -30,6 +30,7 @@ MODULES: tuple[str, ...] = (
     "node",
     "dashboard",
     "fleet",
+    "fleetapi",
     "sandbox",
 )
 

@@ -58,7 +58,7 @@ from roost_kube.client import Kube
 from roost_kube.resources import CONFIGMAPS, DEPLOYMENTS, NODES, VEHICLES
 from roost_localcluster import binaries, nodes
 from roost_localcluster.cluster import Cluster
-from roost_localcluster.controlplane import ControlPlane
+from roost_localcluster.controlplane import ControlPlane, Settings
 from tests.support.operator import OperatorProcess
 from tests.support.waiting import wait_until
 
@@ -269,45 +269,71 @@ def control_plane_floor(made: Made) -> tuple[float, str]:
             return time.monotonic() - started, _cpu_spent(cpu_before)
 
 
-def measure(count: int) -> tuple[dict[str, float], str, Made]:
-    """The figures at ``count`` vehicles, a note on how the run went, and what the
-    operator made."""
+@dataclass(frozen=True)
+class Fleet:
+    """A control plane with the fleet's nodes Ready and the operator running."""
+
+    cluster: Cluster
+    plane: ControlPlane
+    operator: OperatorProcess
+    operator_log: Path
+
+
+@contextmanager
+def fleet_with_operator(
+    count: int, settings: Settings = FLEET_SETTINGS, prefix: str = "bench-fleet-"
+) -> Iterator[Fleet]:
+    """A fresh control plane of ``settings`` with ``count`` Ready KWOK nodes (one per
+    vehicle) and the operator as its own process; all gone on leaving."""
     with (
-        tempfile.TemporaryDirectory(prefix="bench-fleet-") as tmp,
-        ControlPlane(Path(tmp), settings=FLEET_SETTINGS) as plane,
+        tempfile.TemporaryDirectory(prefix=prefix) as tmp,
+        ControlPlane(Path(tmp), settings=settings) as plane,
     ):
         cluster = Cluster.of(plane)
         cluster.install_crds()
         _create_nodes(cluster, [(f"{vehicle_name(i)}-node", {}) for i in range(count)])
-        reports_from = time.monotonic() + FLEET_SETTINGS.node_status_report_s * 1.1
-        operator = OperatorProcess(cluster, Path(tmp) / "operator.log", namespace=NAMESPACE)
+        log = Path(tmp) / "operator.log"
+        operator = OperatorProcess(cluster, log, namespace=NAMESPACE)
         operator.start()
         try:
-            proc = psutil.Process(operator.process.pid)
-            with Sampler(proc).running() as rss, cluster.api_client() as api:
-                kube = Kube(api, "roost-bench")
-                cpu_before = _cpu_by_program()
-                started = time.monotonic()
-                _apply_streams(cluster, [json.dumps(vehicle_manifest(i)) for i in range(count)])
-                applied_s = time.monotonic() - started
-                wait_until(
-                    f"{count} Vehicles Ready",
-                    lambda: _ready_count(kube) >= count,
-                    READY_TIMEOUT_S,
-                    poll_s=1.0,
-                )
-                ready_s = time.monotonic() - started
-                ready_cpu = _cpu_spent(cpu_before)
-                time.sleep(max(SETTLE_S, reports_from - time.monotonic()))
-                cpu0, t0 = _cpu_s(proc), time.monotonic()
-                time.sleep(IDLE_S)
-                idle_pct = (_cpu_s(proc) - cpu0) / (time.monotonic() - t0) * 100
-                changes = _single_changes(kube, count)
-                load = os.getloadavg()[0]
-                made = _made(kube)
-            log = (Path(tmp) / "operator.log").read_text(errors="replace")
+            yield Fleet(cluster, plane, operator, log)
         finally:
             operator.stop()
+
+
+def apply_until_ready(cluster: Cluster, kube: Kube, count: int) -> float:
+    """Apply ``count`` Vehicles and wait until every one is Ready; the seconds the apply
+    itself took."""
+    started = time.monotonic()
+    _apply_streams(cluster, [json.dumps(vehicle_manifest(i)) for i in range(count)])
+    applied_s = time.monotonic() - started
+    wait_until(
+        f"{count} Vehicles Ready", lambda: _ready_count(kube) >= count, READY_TIMEOUT_S, poll_s=1.0
+    )
+    return applied_s
+
+
+def measure(count: int) -> tuple[dict[str, float], str, Made]:
+    """The figures at ``count`` vehicles, a note on how the run went, and what the
+    operator made."""
+    with fleet_with_operator(count) as fleet:
+        reports_from = time.monotonic() + FLEET_SETTINGS.node_status_report_s * 1.1
+        proc = psutil.Process(fleet.operator.process.pid)
+        with Sampler(proc).running() as rss, fleet.cluster.api_client() as api:
+            kube = Kube(api, "roost-bench")
+            cpu_before = _cpu_by_program()
+            started = time.monotonic()
+            applied_s = apply_until_ready(fleet.cluster, kube, count)
+            ready_s = time.monotonic() - started
+            ready_cpu = _cpu_spent(cpu_before)
+            time.sleep(max(SETTLE_S, reports_from - time.monotonic()))
+            cpu0, t0 = _cpu_s(proc), time.monotonic()
+            time.sleep(IDLE_S)
+            idle_pct = (_cpu_s(proc) - cpu0) / (time.monotonic() - t0) * 100
+            changes = _single_changes(kube, count)
+            load = os.getloadavg()[0]
+            made = _made(kube)
+        log = fleet.operator_log.read_text(errors="replace")
     orphaned = log.count("Leaving it orphaned")
     figures = {
         "ready_s": ready_s,

@@ -29,10 +29,11 @@ selector keys/values    label keys and values (a selector with an invalid one ca
                         match; the API server rejects it when Roost lists Vehicles)
 ======================  ==============================================================
 
-Config size: the operator's kopf storage keeps the last handled spec as JSON in the
-annotation ``roost.dev/last-handled-configuration``, and ``kubectl apply`` keeps the whole
-manifest in ``kubectl.kubernetes.io/last-applied-configuration``; all annotations of an
-object share 256 KiB (262144 bytes). kopf's JSON escapes non-ASCII, so one character of a
+Config size: ``kubectl apply`` keeps the whole manifest in
+``kubectl.kubernetes.io/last-applied-configuration``, and Vehicles handled by operators
+before ``roost_operator.main.NoDiffBase`` still carry kopf's copy of the last handled
+spec as JSON in ``roost.dev/last-handled-configuration``; all annotations of an object
+share 256 KiB (262144 bytes). kopf's JSON escapes non-ASCII, so one character of a
 value can take up to 12 bytes there (a surrogate pair ``\\ud83d\\ude00``) and 6 in
 kubectl's copy (``\\u003c``). With :data:`CONFIG_TOTAL_MAX` characters of keys and values
 (and at most :data:`CONFIG_MAX_ENTRIES` entries, 6 bytes of JSON punctuation each) the two

@@ -150,7 +150,9 @@ class Kube:
             )
         if retries is not None:
             configuration.retries = retries
-        return cls(k8s_client.ApiClient(configuration), field_manager, timeout)
+        api = k8s_client.ApiClient(configuration)
+        api.user_agent = field_manager  # names the program in the API server's logs and audit
+        return cls(api, field_manager, timeout)
 
     @property
     def server(self) -> str:

@@ -46,6 +46,7 @@ from typing import Any, Self
 import yaml
 
 from roost_localcluster import binaries, kwoknodes, pki
+from roost_localcluster.audit import audit_args
 from roost_localcluster.processes import ManagedProcess
 
 KWOK_NODE_ANNOTATION = "kwok.x-k8s.io/node"
@@ -109,6 +110,11 @@ class Settings:
     (every 20 to 45 s, cheap with tens of nodes)."""
     datastore: str = "etcd"
     """``etcd``, or ``kine`` (SQLite behind kine's etcd API, as in K3s)."""
+    audit: bool = False
+    """Make the API server record every request's metadata (who, verb, resource, answer;
+    no bodies) in ``logs/audit.log``, for counting what each client asks of it
+    (:mod:`roost_localcluster.audit`). It costs the API server CPU: leave it off for
+    timings."""
 
     def __post_init__(self) -> None:
         if self.datastore not in DATASTORES:
@@ -404,7 +410,8 @@ class ControlPlane:
         while the other components (and clients) keep running.
         """
         bin_dir = bin_dir or self._bin_dir or binaries.bin_dir()
-        self._start("kube-apiserver", lambda p: _args_apiserver(bin_dir, p, self.pki))
+        audit = audit_args(self.state_dir, self.logs_dir) if self.settings.audit else []
+        self._start("kube-apiserver", lambda p: [*_args_apiserver(bin_dir, p, self.pki), *audit])
         if self.ports is not None and self.kubeconfig.exists():
             self._write_state()
 

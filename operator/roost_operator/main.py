@@ -3,9 +3,13 @@
 Settings are explicit rather than kopf's defaults, following operator practice:
 
 * finalizer and annotation prefixes under ``roost.dev`` (kopf's own markers would leak
-  ``kopf.zalando.org`` into users' objects); progress and the last handled
-  configuration are kept in annotations only, never in ``status`` (the Vehicle status
-  schema would prune them, and status is ours);
+  ``kopf.zalando.org`` into users' objects); a deletion handler's progress is kept in
+  annotations only, never in ``status`` (the Vehicle status schema would prune it, and
+  status is ours);
+* no diff base (:class:`NoDiffBase`): kopf would write the last handled configuration
+  into an annotation of every Vehicle and Mission (a PATCH per object, and one more per
+  spec change) for its create/update/resume handlers, and Roost registers none: its
+  handlers watch events, run daemons and timers, and clean up behind the finalizer;
 * a named peering (``Settings.peering``, default ``roost``) so two Roost deployments never
   pause each other, and peering is optional: without the peering CRD the operator runs
   standalone (the chart runs one replica with ``strategy: Recreate``);
@@ -32,9 +36,9 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import replace
-from typing import Any
+from typing import Any, cast
 
 import kopf
 
@@ -53,15 +57,36 @@ HANDLER_MODULES = (vehicle_handlers, mission_handlers)
 ANNOTATION_PREFIX = PREFIX.rstrip("/")
 
 
+class NoDiffBase(kopf.DiffBaseStorage):
+    """kopf's diff base, kept nowhere and never computed.
+
+    kopf compares an object with the diff base to tell its create, update and resume
+    handlers what changed, and stores a new one (a PATCH of the object) after handling.
+    Roost registers no such handler, so nothing reads it: with no stored base every
+    event is a "creation" with no handler to call, which kopf passes by without a write;
+    deletion is told by the deletion mark, not by the diff base. The essence is empty so
+    kopf does not deep-copy every object on every event to build one.
+    """
+
+    def build(
+        self, *, body: kopf.Body, extra_fields: Iterable[Any] | None = None
+    ) -> kopf.BodyEssence:
+        return cast(kopf.BodyEssence, {})
+
+    def fetch(self, *, body: kopf.Body) -> kopf.BodyEssence | None:
+        return None
+
+    def store(self, *, body: kopf.Body, patch: kopf.Patch, essence: kopf.BodyEssence) -> None:
+        return None
+
+
 def configure(settings: kopf.OperatorSettings, roost: Settings) -> None:
     """Apply Roost's kopf settings (see the module docstring for why each)."""
     settings.persistence.finalizer = FINALIZER
     settings.persistence.progress_storage = kopf.AnnotationsProgressStorage(
         prefix=ANNOTATION_PREFIX
     )
-    settings.persistence.diffbase_storage = kopf.AnnotationsDiffBaseStorage(
-        prefix=ANNOTATION_PREFIX, key="last-handled-configuration"
-    )
+    settings.persistence.diffbase_storage = NoDiffBase()
     settings.peering.name = roost.peering
     settings.peering.clusterwide = True
     settings.peering.mandatory = False

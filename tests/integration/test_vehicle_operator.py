@@ -23,10 +23,12 @@ import pytest
 from roost_api.wellknown import (
     ANNOTATION_CONFIG_HASH,
     ANNOTATION_MANAGED_LABELS,
+    FINALIZER,
     LABEL_NODE,
     LABEL_VEHICLE,
     LABEL_VEHICLE_CLASS,
     LABEL_VEHICLE_TYPE,
+    PREFIX,
     STARLING_LABEL_TYPE,
     TAINT_VEHICLE,
 )
@@ -216,6 +218,9 @@ def test_a_simulated_vehicle_gets_its_node_config_and_components(
 
         vehicle = kube.get(VEHICLES, name)
         assert vehicle is not None
+        # kopf's one write is its finalizer: Roost keeps no diff base on the object
+        assert FINALIZER in vehicle["metadata"]["finalizers"]
+        assert not any(key.startswith(PREFIX) for key in vehicle["metadata"].get("annotations", {}))
         status = vehicle["status"]
         assert status["nodeName"] == node
         assert status["observedGeneration"] == vehicle["metadata"]["generation"]
@@ -256,19 +261,8 @@ def test_a_simulated_vehicle_gets_its_node_config_and_components(
         env = {e["name"] for e in mavros["spec"]["containers"][0]["env"]}
         assert {"VEHICLE_NAME", "VEHICLE_MAVLINK_SYSID", "MISSION_AREA"} <= env
 
-        events = json.loads(
-            roost_crds.kubectl(
-                "get",
-                "events",
-                "-n",
-                "default",
-                "--field-selector",
-                f"involvedObject.name={name}",
-                "-o",
-                "json",
-            ).stdout
-        )["items"]
-        assert "NodeLabeled" in {e["reason"] for e in events}
+        # a condition appearing True is the vehicle starting as it should: no Event
+        assert "NodeLabeled" not in vehicle_events(roost_crds, name)
     finally:
         roost_crds.kubectl("delete", "redundantautopilot", name, "--ignore-not-found")
 
@@ -488,7 +482,7 @@ def test_hot_swap_moves_the_workloads_and_releases_the_old_node(
 
 
 def test_a_missing_node_is_reported_and_the_vehicle_converges_when_it_joins(
-    fake_nodes: AddNode, vehicles: Callable[..., str], kube: Kube
+    roost_crds: Cluster, fake_nodes: AddNode, vehicles: Callable[..., str], kube: Kube
 ) -> None:
     node = unique("veh-late")
     name = vehicles(unique("late"), node)
@@ -500,6 +494,15 @@ def test_a_missing_node_is_reported_and_the_vehicle_converges_when_it_joins(
     fake_nodes(node)
     wait_ready(kube, name)
     assert node_labels(kube, node)[LABEL_VEHICLE] == name
+
+    # Events: the problem from the start (NodeBound's, not Ready's repeat of it), then
+    # each condition turning True
+    def started() -> list[str] | None:
+        reasons = vehicle_events(roost_crds, name)
+        return reasons if "VehicleReady" in reasons else None
+
+    reasons = wait_until("the Events of the vehicle's start", started)
+    assert sorted(reasons) == ["NodeLabeled", "NodeNotFound", "VehicleReady"]
 
 
 def test_a_node_that_is_not_ready_is_reported_with_the_kubelets_words(

@@ -305,12 +305,35 @@ def test_conditions_keep_other_writers_types_and_transition_times() -> None:
     assert find_condition(after, "AutopilotsHealthy") == previous[0]
     ready = find_condition(after, "Ready")
     assert ready is not None and ready.status == "True"
-    assert [c.type for c in transitions(previous, after, ["Ready", "NodeBound"])] == ["Ready"]
-    all_types = ["Ready", "NodeBound", "ComponentsReady", "AutopilotsHealthy"]
-    assert [c.type for c in transitions(previous, after, all_types)] == [
-        "ComponentsReady",
-        "Ready",
-    ]
+
+
+@pytest.mark.parametrize(
+    ("before", "after", "news"),
+    [
+        # a first appearance: news only when a detail condition is False from the start
+        (None, ("NodeBound", "True"), False),
+        (None, ("NodeBound", "False"), True),
+        (None, ("AgentConnected", "Unknown"), False),
+        (None, ("Ready", "False"), False),  # rolling out, or NodeBound's own Event says why
+        (None, ("Ready", "True"), False),
+        # a change of status is always news; the same status never is
+        (("Ready", "False"), ("Ready", "True"), True),
+        (("Ready", "True"), ("Ready", "False"), True),
+        (("NodeBound", "True"), ("NodeBound", "Unknown"), True),
+        (("NodeBound", "False"), ("NodeBound", "False"), False),
+        # a type that is not chosen for Events never is
+        (None, ("ComponentsReady", "False"), False),
+        (("ComponentsReady", "False"), ("ComponentsReady", "True"), False),
+    ],
+)
+def test_which_condition_changes_are_worth_an_event(
+    before: tuple[str, str] | None, after: tuple[str, str], news: bool
+) -> None:
+    old = [cond(*before)] if before else []
+    new = [cond(*after)]
+    assert [c.type for c in transitions(old, new, ["Ready", "NodeBound", "AgentConnected"])] == (
+        [after[0]] if news else []
+    )
 
 
 def test_losing_the_node_makes_ready_false_with_the_node_reason() -> None:

@@ -14,7 +14,7 @@ from typing import Any
 
 import pytest
 
-from roost_api.wellknown import ANNOTATION_PAUSE_FAILOVER_ACTIONS, PREFIX
+from roost_api.wellknown import ANNOTATION_PAUSE_FAILOVER_ACTIONS, FINALIZER, PREFIX
 from roost_operator.settings import Settings
 from roost_operator.vehicles.handlers import (
     STALE_MARGIN_S,
@@ -44,6 +44,10 @@ def test_the_controllers_own_status_write_queues_nothing() -> None:
     assert not _changed(META, {**META, "resourceVersion": "101"})
 
 
+def test_another_controllers_finalizer_queues_nothing() -> None:
+    assert not _changed(META, {**META, "finalizers": ["example.org/keep"]})
+
+
 def test_kopfs_bookkeeping_annotation_queues_nothing() -> None:
     kopf_note = {f"{PREFIX}last-handled-configuration": "{...}"}
     assert not _changed(META, {**META, "annotations": kopf_note})
@@ -56,6 +60,7 @@ def test_kopfs_bookkeeping_annotation_queues_nothing() -> None:
         {"labels": {"fleet": "field"}},
         {"annotations": {ANNOTATION_PAUSE_FAILOVER_ACTIONS: "true"}},  # a guard
         {"deletionTimestamp": "2026-11-24T06:00:00Z"},
+        {"finalizers": [FINALIZER]},  # kopf's finalizer: the controller may now act
     ],
 )
 def test_what_the_controller_acts_on_queues_a_reconcile(change: dict[str, Any]) -> None:

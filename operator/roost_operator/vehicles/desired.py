@@ -463,7 +463,24 @@ EVENT_CONDITIONS: Final = (VehicleConditionType.READY, VehicleConditionType.NODE
 def transitions(
     before: Sequence[Condition], after: Sequence[Condition], types: Iterable[str]
 ) -> list[Condition]:
-    """Conditions of ``types`` whose status changed (or that are new): worth an Event."""
+    """Conditions of ``types`` worth an Event: those whose status changed, and a detail
+    condition that appears False (a problem from the start, such as a missing node).
+
+    Other first appearances are no news: a condition that appears True or Unknown is the
+    vehicle starting as it should, and Ready's first False says that its components are
+    still rolling out or repeats a detail condition's own Event. They were two of the
+    three Events every Vehicle posted on its way to Ready; the third, Ready turning
+    True, stays.
+    """
     wanted = set(types)
     old = {c.type: c.status for c in before}
-    return [c for c in after if c.type in wanted and old.get(c.type) != c.status]
+    return [
+        c
+        for c in after
+        if c.type in wanted
+        and (
+            old[c.type] != c.status
+            if c.type in old
+            else c.status == "False" and c.type != VehicleConditionType.READY
+        )
+    ]

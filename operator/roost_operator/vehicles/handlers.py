@@ -57,7 +57,7 @@ from typing import Any, Final
 import kopf
 
 from roost_api.meta import now
-from roost_api.wellknown import PREFIX
+from roost_api.wellknown import FINALIZER, PREFIX
 from roost_kube import resources
 from roost_operator.edge import at_the_edge, handler_edge
 from roost_operator.runtime import Runtime, runtime
@@ -74,7 +74,9 @@ STALE_MARGIN_S: Final = 1.1
 and the controller's clock are both whole seconds (as Kubernetes stores times), so a
 report is seen stale only in the second after it turns stale."""
 KOPF_ANNOTATIONS: Final = (f"{PREFIX}last-handled-configuration",)
-"""Annotations kopf keeps on Vehicles under Roost's prefix (not the user's input)."""
+"""Annotations kopf kept on Vehicles under Roost's prefix (not the user's input): the
+diff base of operators before :class:`~roost_operator.main.NoDiffBase`, still on the
+Vehicles they handled."""
 
 NodeClaims = kopf.Index[str, NodeClaim]
 AutopilotsByVehicle = kopf.Index[str, str]
@@ -169,13 +171,20 @@ def _stale_deadline(rt: Runtime, reported_at: str | None) -> float | None:
 
 
 def _vehicle_relevant(meta: Mapping[str, Any]) -> Any:
-    """What of a Vehicle's metadata Roost acts on (its spec is in the generation)."""
+    """What of a Vehicle's metadata Roost acts on (its spec is in the generation; the
+    controller waits for kopf's finalizer)."""
     annotations = {
         key: value
         for key, value in (meta.get("annotations") or {}).items()
         if key not in KOPF_ANNOTATIONS
     }
-    return [meta.get("generation"), meta.get("labels"), annotations, meta.get("deletionTimestamp")]
+    return [
+        meta.get("generation"),
+        meta.get("labels"),
+        annotations,
+        meta.get("deletionTimestamp"),
+        FINALIZER in (meta.get("finalizers") or ()),
+    ]
 
 
 async def vehicle_event(

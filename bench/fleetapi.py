@@ -1,0 +1,97 @@
+"""What the operator asks of the API server per Vehicle while a fleet rolls out.
+
+The same rollout as ``python -m bench fleet`` (N Vehicles, default components, one KWOK
+node each, the operator as its own process), on a control plane that writes an audit log
+(:mod:`roost_localcluster.audit`): every request from the first ``kubectl apply`` until
+every Vehicle is Ready, by client, verb and resource. The operator's requests are those
+of its two clients: Roost's own (user agent ``roost-operator``: reconciles, watches,
+Events) and kopf's (``kopf``: its watches, finalizer and annotation patches).
+
+- ``fleet.operator_requests_per_vehicle_<N>``: the operator's requests (both clients)
+  divided by N; the note has the breakdown, the other clients' totals and the load.
+
+The audit log costs the API server CPU, so no time is measured here; the timings are
+``python -m bench fleet``'s. Size: ``ROOST_BENCH_FLEET_API`` (default 200).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections import Counter
+from dataclasses import replace
+from datetime import UTC, datetime
+
+from bench.controlplane import FLEET_SETTINGS
+from bench.core import Figure
+from bench.fleet import apply_until_ready, fleet_with_operator
+from roost_kube.client import Kube
+from roost_localcluster import binaries
+from roost_localcluster.audit import AUDIT_LOG, RequestKind, count_requests
+
+COMMAND = "python -m bench fleetapi"
+SIZE = int(os.environ.get("ROOST_BENCH_FLEET_API", "200"))
+OPERATOR_CLIENTS = ("roost-operator", "kopf")
+AUDIT_FLUSH_S = 3.0
+"""The audit log is written in batches: wait this long after Ready before reading it."""
+
+
+def _stamp() -> str:
+    """Now as the audit log writes times (RFC 3339, microseconds, UTC)."""
+    return datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
+
+
+def rollout_requests(count: int) -> Counter[RequestKind]:
+    """Every request from applying ``count`` Vehicles until all are Ready."""
+    settings = replace(FLEET_SETTINGS, audit=True)
+    with (
+        fleet_with_operator(count, settings, "bench-fleetapi-") as fleet,
+        fleet.cluster.api_client() as api,
+    ):
+        since = _stamp()
+        apply_until_ready(fleet.cluster, Kube(api, "roost-bench"), count)
+        until = _stamp()
+        time.sleep(AUDIT_FLUSH_S)
+        return count_requests(fleet.plane.logs_dir / AUDIT_LOG, since=since, until=until)
+
+
+def table(counted: Counter[RequestKind], count: int) -> str:
+    """The operator's requests per Vehicle, as Markdown rows (client, verb, resource)."""
+    rows = ["| client | verb | resource | per Vehicle |", "|---|---|---|---|"]
+    for kind, n in sorted(counted.items()):
+        if kind.client in OPERATOR_CLIENTS:
+            error = f" ({kind.error})" if kind.error else ""
+            rows.append(
+                f"| {kind.client} | {kind.verb}{error} | {kind.resource} | {n / count:.2f} |"
+            )
+    return "\n".join(rows)
+
+
+def run() -> list[Figure]:
+    binaries.ensure_built()
+    counted = rollout_requests(SIZE)
+    load = os.getloadavg()[0]
+    print(table(counted, SIZE), flush=True)
+    by_client: Counter[str] = Counter()
+    for kind, n in counted.items():
+        by_client[kind.client] += n
+    ours = sum(n for kind, n in counted.items() if kind.client in OPERATOR_CLIENTS)
+    mine = "; ".join(
+        f"{kind.client} {kind.verb}{'(' + kind.error + ')' if kind.error else ''} "
+        f"{kind.resource} {n / SIZE:.2f}"
+        for kind, n in sorted(counted.items())
+        if kind.client in OPERATOR_CLIENTS
+    )
+    others = ", ".join(f"{client} {n}" for client, n in by_client.most_common())
+    return [
+        Figure(
+            f"fleet.operator_requests_per_vehicle_{SIZE}",
+            round(ours / SIZE, 2),
+            "requests",
+            "informational",
+            COMMAND,
+            f"{SIZE} Vehicles applied until all Ready, counted in the API server's audit "
+            f"log; per Vehicle: {mine}. All clients' requests in the window: {others}; "
+            f"1-min load average {load:.1f}",
+        )
+    ]
