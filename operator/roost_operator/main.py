@@ -20,7 +20,7 @@ Settings are explicit rather than kopf's defaults, following operator practice:
   reopened (kopf #955, #1276), and request timeouts on every API call;
 * a short ``background.cancellation_polling``: a deleted Vehicle whose (sync) timer
   happens to be running would otherwise keep its finalizer for a minute;
-* a bounded ``batching.worker_limit`` and ``execution.max_workers``
+* a bounded ``queueing.worker_limit`` and ``execution.max_workers``
   (:class:`~roost_operator.settings.KopfTimings`): back-pressure on the watch streams
   instead of a worker per object, and a fixed thread pool for the handlers that block.
   The Vehicle controller's reconciles run in its own work queue
@@ -99,7 +99,7 @@ def configure(settings: kopf.OperatorSettings, roost: Settings) -> None:
     settings.networking.request_timeout = timings.request_timeout_seconds
     settings.networking.connect_timeout = timings.connect_timeout_seconds
     settings.background.cancellation_polling = timings.cancellation_polling_seconds
-    settings.batching.worker_limit = timings.object_workers
+    settings.queueing.worker_limit = timings.object_workers
     settings.execution.max_workers = timings.handler_threads
 
 

@@ -75,7 +75,7 @@ class KopfTimings:
     was deleted (kopf's default is 60 s, which would hold the finalizer that long)."""
 
     object_workers: int = 200
-    """kopf's ``batching.worker_limit``: at most this many objects have their events
+    """kopf's ``queueing.worker_limit``: at most this many objects have their events
     processed at once (kopf's default is unbounded: a re-list of 3,000 objects would start
     3,000 workers). Beyond it kopf stops reading the watch until a worker frees up, which
     is back-pressure on the API server's stream instead of an unbounded backlog in memory.
