@@ -40,8 +40,8 @@ _log = logging.getLogger(__name__)
 GRID_S = 0.0025
 """Round period: ArduCopter's 400 Hz main loop; inside PX4's 1.5-10 ms MAVLink loop."""
 RETRY_S = 0.01
-_SAME_TIME_S = 1e-6  # due times this close to a round are due in it (floating-point sums)
 """After a failed tick, the autopilot is tried again this much later."""
+_SAME_TIME_S = 1e-6  # due times this close to a round are due in it (floating-point sums)
 
 
 class Tickable(Protocol):
