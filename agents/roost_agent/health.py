@@ -59,6 +59,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -344,68 +345,61 @@ class HealthTracker:
         Returns True when a fact the arbiter acts on changed (MAV_STATE, arming, landed
         state, sensor health, a reboot), so the caller can wake the decision loop at once
         instead of waiting for its next tick.
+
+        Runs for every message the autopilot sends (hundreds a second): the bulk of the
+        stream only updates its arrival time, counts, ``time_boot_ms`` and sequence
+        number here, with one lookup for the few types read further (:data:`_READERS`).
         """
         kind = msg.get_type()
+        carries_boot_time = _BOOT_TIME_KINDS.get(kind)
+        if carries_boot_time is None:
+            carries_boot_time = _learn_boot_time(kind, msg)
+        boot_ms: int | None = msg.time_boot_ms if carries_boot_time else None
+        seq: int = msg.get_seq()
         with self._lock:
             o = self._o
+            th = self.thresholds
             # Messages that can change a judgement other than by their arrival time are
             # compared before and after (a few a second); the stream's bulk is not.
             judged = o.claim is not None or o.boot_advanced_at is None or kind in _JUDGED_KINDS
-            before = _judged(o, self.thresholds) if judged else None
-            if o.first_at is None:
+            before = _judged(o, th) if judged else None
+            last_at = o.last_at
+            if last_at is None:
                 o.first_at = o.window_start = now
-            elif (
-                o.last_at is not None
-                and (now - o.last_at) * 1000 >= self.thresholds.message_error_ms
-            ):
+            elif (now - last_at) * 1000 >= th.message_error_ms:
                 # A silence ends: what is judged only while messages come (frozen
                 # telemetry) may apply from this message on.
                 o.version += 1
             o.last_at = now
-            o.counts[kind] = o.counts.get(kind, 0) + 1
+            counts = o.counts
+            counts[kind] = counts.get(kind, 0) + 1
             o.window_count += 1
             if now - o.window_start >= RATE_WINDOW_S:
-                fast = _fast_stream(o, self.thresholds)
-                o.stream_rate = o.window_count / (now - o.window_start)
-                o.window_start, o.window_count = now, 0
-                if _fast_stream(o, self.thresholds) != fast:
-                    o.version += 1
-            boot_ms = getattr(msg, "time_boot_ms", None)
-            boot_ms = boot_ms if isinstance(boot_ms, int) else None
-            seq = _seq(msg)
+                self._close_rate_window(now)
             changed = o.claim is not None and self._settle(msg, kind, boot_ms, seq)
             if boot_ms is not None and (o.claim is None or o.claim.status is not None):
-                changed = self._observe_boot_time(boot_ms, now, seq) or changed
+                high = o.boot_ms_max
+                if high is None or boot_ms > high:
+                    o.boot_ms_max, o.boot_advanced_at = boot_ms, now
+                elif boot_ms < high - REBOOT_BACKSTEP_MS and o.claim is None:
+                    reason = f"rebooted: time_boot_ms went back from {high} to {boot_ms}"
+                    o.claim = _Claim(now, seq, o.last_seq, reason, boot_ms=boot_ms)
             o.last_seq = seq
-            if kind == "HEARTBEAT":
-                changed = self._observe_heartbeat(msg, now) or changed
-            elif kind == "SYS_STATUS":
-                changed = self._observe_sys_status(msg, now) or changed
-            elif kind == "EXTENDED_SYS_STATE":
-                changed = self._observe_landed_state(int(msg.landed_state), now) or changed
-            elif kind == "ATTITUDE":
-                self._observe_attitude(float(msg.roll), float(msg.pitch), now)
-            elif kind in ("ESTIMATOR_STATUS", "EKF_STATUS_REPORT"):
-                self._observe_estimator(kind, int(msg.flags), now)
-            elif kind == "GLOBAL_POSITION_INT":
-                o.altitude_m = int(msg.relative_alt) / 1000.0
-                o.climb_mps = -int(msg.vz) / 100.0
-                o.motion_at = now
-                o.position_msg, o.position_at = msg, now
-            if judged and _judged(o, self.thresholds) != before:
+            read = _READERS.get(kind)
+            if read is not None:
+                changed = read(self, msg, now) or changed
+            if judged and _judged(o, th) != before:
                 o.version += 1
             return changed
 
-    def _observe_boot_time(self, boot_ms: int, now: float, seq: int | None) -> bool:
+    def _close_rate_window(self, now: float) -> None:
+        """End the message-rate window at ``now`` (once a second)."""
         o = self._o
-        if o.boot_ms_max is None or boot_ms > o.boot_ms_max:
-            o.boot_ms_max = boot_ms
-            o.boot_advanced_at = now
-            return False
-        if boot_ms < o.boot_ms_max - REBOOT_BACKSTEP_MS and o.claim is None:
-            reason = f"rebooted: time_boot_ms went back from {o.boot_ms_max} to {boot_ms}"
-            o.claim = _Claim(now, seq, o.last_seq, reason, boot_ms=boot_ms)
-        return False
+        fast = _fast_stream(o, self.thresholds)
+        o.stream_rate = o.window_count / (now - o.window_start)
+        o.window_start, o.window_count = now, 0
+        if _fast_stream(o, self.thresholds) != fast:
+            o.version += 1
 
     def _settle(self, msg: Any, kind: str, boot_ms: int | None, seq: int | None) -> bool:
         """Let the message after a claim confirm or refute it (module docstring)."""
@@ -474,7 +468,7 @@ class HealthTracker:
         rebooting = status == MavState.BOOT and o.was_up
         if o.claim is None and (rebooting or _newly_fatal(status, o.system_status)):
             reason = "rebooted: MAV_STATE BOOT after it was up" if rebooting else ""
-            o.claim = _Claim(now, _seq(msg), o.last_seq, reason, status=status)
+            o.claim = _Claim(now, msg.get_seq(), o.last_seq, reason, status=status)
             if rebooting:  # a reboot disarms: not "disarmed in the air" (judged once settled)
                 return (o.base_mode, o.custom_mode, o.system_status) != previous
         elif o.claim is None:
@@ -662,6 +656,52 @@ class HealthTracker:
 
 # Messages whose content a judgement reads beyond their arrival time (tilt from ATTITUDE,
 # at 100 Hz, is tracked by its own changes in HealthTracker._observe_attitude).
+def _read_landed_state(tracker: HealthTracker, msg: Any, now: float) -> bool:
+    return tracker._observe_landed_state(int(msg.landed_state), now)
+
+
+def _read_attitude(tracker: HealthTracker, msg: Any, now: float) -> bool:
+    tracker._observe_attitude(float(msg.roll), float(msg.pitch), now)
+    return False
+
+
+def _read_estimator(tracker: HealthTracker, msg: Any, now: float) -> bool:
+    tracker._observe_estimator(msg.get_type(), int(msg.flags), now)
+    return False
+
+
+def _read_position(tracker: HealthTracker, msg: Any, now: float) -> bool:
+    o = tracker._o
+    o.altitude_m = int(msg.relative_alt) / 1000.0
+    o.climb_mps = -int(msg.vz) / 100.0
+    o.motion_at = now
+    o.position_msg, o.position_at = msg, now
+    return False
+
+
+# The message types whose fields the tracker reads, each with what reads them (under the
+# tracker's lock; True: a fact the arbiter acts on changed). Every other type only counts.
+_READERS: dict[str, Callable[[HealthTracker, Any, float], bool]] = {
+    "HEARTBEAT": HealthTracker._observe_heartbeat,
+    "SYS_STATUS": HealthTracker._observe_sys_status,
+    "EXTENDED_SYS_STATE": _read_landed_state,
+    "ATTITUDE": _read_attitude,
+    "ESTIMATOR_STATUS": _read_estimator,
+    "EKF_STATUS_REPORT": _read_estimator,
+    "GLOBAL_POSITION_INT": _read_position,
+}
+
+# Whether a message type carries ``time_boot_ms``, learnt from its first message (asking
+# each message would cost a failed attribute lookup for every type without one).
+_BOOT_TIME_KINDS: dict[str, bool] = {}
+
+
+def _learn_boot_time(kind: str, msg: Any) -> bool:
+    carries = isinstance(getattr(msg, "time_boot_ms", None), int)
+    _BOOT_TIME_KINDS[kind] = carries
+    return carries
+
+
 _JUDGED_KINDS = frozenset(
     {"HEARTBEAT", "SYS_STATUS", "EXTENDED_SYS_STATE", "ESTIMATOR_STATUS", "EKF_STATUS_REPORT"}
 )
@@ -728,11 +768,6 @@ def _next_threshold(o: _Observed, th: Thresholds, after: float) -> float:
         times.append(o.tilt_over_since + TILT_PERSIST_S)
     upcoming = [t for t in times if t > after - _RECHECK_EARLY_S]
     return min(upcoming) - _RECHECK_EARLY_S if upcoming else math.inf
-
-
-def _seq(msg: Any) -> int | None:
-    get_seq = getattr(msg, "get_seq", None)
-    return int(get_seq()) if get_seq is not None else None
 
 
 def _newly_fatal(status: int, previous: int | None) -> bool:

@@ -252,12 +252,12 @@ class _Udp(Transport):
             data, ancillary, _, address = self._sock.recvmsg(UDP_MAX, 64)
         except (BlockingIOError, ConnectionRefusedError):
             return b"", None, None
-        stamp = None
-        for level, kind, value in ancillary:
-            if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
-                seconds, nanoseconds = _TIMESPEC.unpack_from(value)
-                stamp = seconds + nanoseconds * 1e-9
-        return data, (str(address[0]), int(address[1])), stamp
+        # The arrival stamp is the only ancillary item asked for; an IPv4 datagram
+        # socket's sender is already a (host, port) tuple.
+        if ancillary and ancillary[0][1] == SO_TIMESTAMPNS:
+            seconds, nanoseconds = _TIMESPEC.unpack_from(ancillary[0][2])
+            return data, address, seconds + nanoseconds * 1e-9
+        return data, address, None
 
     def close(self) -> None:
         self._sock.close()
@@ -801,6 +801,7 @@ class AutopilotLink:
         self.spec = spec
         self.name = spec.name
         self.stack = Stack(spec.stack)
+        self._source = (spec.sysid, spec.component_id)  # whose frames this link accepts
         self.tracker = tracker
         self.counters = LinkCounters()
         self.acks = AckMailbox()
@@ -1012,11 +1013,9 @@ class AutopilotLink:
 
     def _message(self, session: _Session, msg: Frame, sender: Address | None, now: float) -> None:
         kind = msg.get_type()
-        locked = sender is None or sender == session.lock.locked
-        if (
-            msg.get_srcSystem() != self.spec.sysid
-            or msg.get_srcComponent() != self.spec.component_id
-        ):
+        lock = session.lock
+        locked = sender is None or sender == lock.locked
+        if msg.get_source() != self._source:
             if locked:
                 self.counters.other += 1
             else:
@@ -1027,11 +1026,11 @@ class AutopilotLink:
         if not locked:
             assert sender is not None
             proof = kind == "HEARTBEAT" and int(msg.autopilot) != MAV_AUTOPILOT_INVALID
-            if not (proof and session.lock.prove(sender, now)):
+            if not (proof and lock.prove(sender, now)):
                 self.counters.unlocked += 1
                 return
             self._took_lock(session, sender)
-        session.lock.seen(now)
+        lock.seen(now)
         self.counters.accepted += 1
         if self.error is not None:
             self.error = None

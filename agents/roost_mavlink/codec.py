@@ -179,6 +179,11 @@ class Frame:
     def get_seq(self) -> int:
         return self._header[4]
 
+    def get_source(self) -> tuple[int, int]:
+        """(system id, component id) of the sender, in one call for the reader's check."""
+        header = self._header
+        return header[5], header[6]
+
     def get_msgbuf(self) -> bytes:
         """The whole frame as received (signature included)."""
         return self._data[self._start : self._end]
