@@ -129,6 +129,7 @@ def test_failover_keeps_the_client_connected_and_its_setpoint_stream_moves() -> 
         with repeating(lambda: v.client.setpoint(VEHICLE_SYSID, 0.0, 0.0, -5.0), 0.05):
             hub = v.agent.hub
             assert hub is not None
+            standby_before = v.in_step("fc2")
             v.sim("fc1").inject(FaultKind.SILENCE)
             wait_until("switched to fc2", lambda: v.agent.active == "fc2", 10, POLL_S)
             assert hub.active == "fc2"
@@ -144,7 +145,9 @@ def test_failover_keeps_the_client_connected_and_its_setpoint_stream_moves() -> 
                 POLL_S,
             )
             record = v.agent.status().last_failover
-            assert record is not None and record.standby_in_step is True
+            assert record is not None and record.standby_in_step is True, (
+                f"{record}; fc2 before the silence: {standby_before}"
+            )
             assert set_mode(v, "AUTO.LOITER") == MavResult.ACCEPTED  # answered by fc2
         assert {r.sysid for r in v.client.messages()} == {VEHICLE_SYSID}
 
