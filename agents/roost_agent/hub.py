@@ -740,10 +740,15 @@ class Hub:
             seen = self._seen[name]
             if mode_change and seen.stack != active_stack:
                 continue
+            # Awaited before it is sent: the standby's answer can be read (on the link
+            # reader's thread) before ``send_frame`` returns here.
+            awaited = None if command is None or command in seen.awaiting else command
+            if awaited is not None:
+                seen.awaiting[awaited] = now
             if standby.send_frame(retarget(msg, self.sysid, standby.spec.sysid)):
                 self.counters.mirrored += 1
-                if command is not None:
-                    seen.awaiting.setdefault(command, now)
+            elif awaited is not None:
+                seen.awaiting.pop(awaited, None)
 
 
 def hub_for(spec: RedundantAutopilotSpec, active: str, links: Mapping[str, HubLink]) -> Hub | None:

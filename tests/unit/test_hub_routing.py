@@ -388,6 +388,45 @@ def test_standby_answers_are_recorded_never_forwarded(
     assert not seen.rejected  # a later acceptance resolves it
 
 
+class PromptLink(RecordingLink):
+    """A standby that answers a mirrored command before ``send_frame`` returns: the link
+    reader's thread can read the answer while the hub's thread is still sending."""
+
+    def send_frame(self, frame: bytes) -> bool:
+        sent = super().send_frame(frame)
+        msg = self.frames[-1]
+        if msg.get_type() == "COMMAND_LONG":
+            ack = mavlink.MAVLink_command_ack_message(msg.command, 0, 0, 0, 255, 190)
+            self.tap(parse(encode(ack, sysid=self.spec.sysid)), 10.0)
+        return sent
+
+
+class RefusingLink(RecordingLink):
+    """A standby whose link cannot send (down, reopening)."""
+
+    def send_frame(self, frame: bytes) -> bool:
+        return False
+
+
+@pytest.mark.parametrize(
+    ("link", "awaited"), [(PromptLink, set()), (RefusingLink, set()), (RecordingLink, {400})]
+)
+def test_a_mirrored_command_is_awaited_until_its_answer_whenever_that_comes(
+    link: type[RecordingLink], awaited: set[int]
+) -> None:
+    spec = hub_spec(("px4", "px4"))
+    hub = Hub(spec, "fc1")
+    try:
+        for autopilot in spec.autopilots:
+            hub.attach((link if autopilot.name == "fc2" else RecordingLink)(autopilot))
+        arm = mavlink.MAVLink_command_long_message(VEHICLE, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)
+        hub.route(client_msg(arm))
+        seen = hub.snapshot("fc2")
+        assert seen is not None and set(seen.awaiting) == awaited
+    finally:
+        hub.close()
+
+
 def test_ardupilot_standbys_get_the_standby_aux_function(
     routed: tuple[Hub, dict[str, RecordingLink]],
 ) -> None:
