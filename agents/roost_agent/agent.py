@@ -76,7 +76,7 @@ from roost_agent.bridge import Bridge, BridgeError
 from roost_agent.health import Assessment, HealthTracker
 from roost_agent.hub import Hub, InStep, hub_for, hub_identity
 from roost_agent.links import AutopilotLink, LinkReader
-from roost_agent.report import report
+from roost_agent.report import report, set_condition
 from roost_agent.safety import (
     DEFAULT_TIMING,
     TERMINAL_PHASES,
@@ -100,13 +100,12 @@ from roost_api.autopilot_enums import (
     FinalAction,
     SafetyRoutinePhase,
 )
-from roost_api.core import ConditionStatus, HealthLevel, set_condition
+from roost_api.core import ConditionStatus, HealthLevel
 from roost_api.plain import (
     AutopilotCommand,
     AutopilotHealth,
     AutopilotSpec,
     CommandResult,
-    Condition,
     FailoverRecord,
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
@@ -632,7 +631,6 @@ class Agent:
         )
         conditions = set_condition(
             before,
-            make=Condition,
             type=AutopilotEntryConditionType.STANDBY_IN_STEP.value,
             status=_in_step_status(verdict),
             reason=verdict.reason.value,

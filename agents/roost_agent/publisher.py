@@ -56,9 +56,8 @@ from typing import Any, Protocol
 
 from roost_agent.agent import AgentEvent, EventKind
 from roost_agent.kube import AgentKube
-from roost_agent.report import change_class, write_delay
+from roost_agent.report import change_class, set_condition, write_delay
 from roost_agent.state import StateFile
-from roost_api.core import set_condition
 from roost_api.plain import (
     AutopilotCommand,
     CommandResult,
@@ -218,7 +217,6 @@ def carry_transitions(
     for cond in current:
         result = set_condition(
             result,
-            make=Condition,
             type=cond.type,
             status=cond.status,
             reason=cond.reason,

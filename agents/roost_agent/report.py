@@ -6,7 +6,7 @@ conditions — and stamps the report. Kept pure and separate from the publisher 
 the condition rules are unit-tested as a table and the publisher only moves data.
 
 Conditions (all written by the agent; ``lastTransitionTime`` moves only when a status
-changes, via :func:`roost_api.meta.set_condition`):
+changes, via :func:`set_condition`):
 
 ``ActiveHealthy``
     True when the active autopilot is OK (reason ``Healthy``) or only WARN (reason
@@ -43,16 +43,22 @@ from collections.abc import Collection, Sequence
 from dataclasses import replace
 from datetime import datetime
 from enum import IntEnum
+from functools import partial
 
+from roost_api import core
 from roost_api.autopilot_enums import AutopilotConditionReason as R
 from roost_api.autopilot_enums import AutopilotConditionType, FailoverTrigger
-from roost_api.core import ConditionStatus, HealthLevel, set_condition
+from roost_api.core import ConditionStatus, HealthLevel
 from roost_api.plain import (
     AutopilotHealth,
     Condition,
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
 )
+
+set_condition = partial(core.set_condition, make=Condition)
+"""The agent's :func:`roost_api.core.set_condition`: its conditions are always plain
+:class:`~roost_api.plain.Condition` (``make`` exists for the API's pydantic twin)."""
 
 _NUMBER = re.compile(r"-?\d+(\.\d+)?")
 
@@ -191,7 +197,6 @@ def conditions(
     for kind, (cond_status, reason, message) in values.items():
         result = set_condition(
             result,
-            make=Condition,
             type=kind.value,
             status=cond_status,
             reason=reason,

@@ -77,12 +77,14 @@ class TickScheduler:
         self._changed = threading.Condition()
         self._round = threading.RLock()  # held while ticking: unregister waits for it
         self._thread: threading.Thread | None = None
+        self._due_changed = False  # registrations changed since the next round was computed
         self.rounds = 0  # rounds run so far (how often the thread woke with work)
 
     def register(self, tickable: Tickable) -> None:
         """Tick ``tickable`` from the next round on (now)."""
         with self._changed:
             self._due[tickable] = self._clock()
+            self._due_changed = True
             if self._thread is None and self._threaded:
                 self._thread = threading.Thread(target=self._run, name="sim-ticks", daemon=True)
                 self._thread.start()
@@ -92,6 +94,7 @@ class TickScheduler:
         """Stop ticking ``tickable``; once this returns, its tick runs no more."""
         with self._changed:
             self._due.pop(tickable, None)
+            self._due_changed = True
             self._changed.notify()
         with self._round:  # a round that already picked it finishes first
             pass
@@ -125,19 +128,29 @@ class TickScheduler:
                         self._due[tickable] = following
             self.rounds += 1
         with self._changed:
-            if not self._due:
-                return None
-            return on_grid(min(self._due.values()), self.grid_s)
+            return self._next_round()
+
+    def _next_round(self) -> float | None:
+        """The grid time of the earliest due time, None when nothing is registered (called
+        with ``_changed`` held)."""
+        self._due_changed = False
+        if not self._due:
+            return None
+        return on_grid(min(self._due.values()), self.grid_s)
 
     def _run(self) -> None:
         while True:
-            self.run_round(self._clock())
+            next_round = self.run_round(self._clock())
             with self._changed:
                 while True:
-                    if not self._due:
+                    # A registration since the round ended (whose notify found no waiter)
+                    # or during the wait moves the next round: only then recompute it.
+                    if self._due_changed:
+                        next_round = self._next_round()
+                    if next_round is None:
                         self._thread = None  # the next register starts a new thread
                         return
-                    delay = on_grid(min(self._due.values()), self.grid_s) - self._clock()
+                    delay = next_round - self._clock()
                     if delay <= 0:
                         break
                     self._changed.wait(delay)

@@ -1,4 +1,5 @@
-"""The node agent's plain API classes against the pydantic models they are generated from.
+"""The node agent's plain API classes (and its state file's) against the pydantic models
+they are generated from.
 
 The agent runs without pydantic (:mod:`roost_api.plain_gen` says why), so these tests
 hold the generated module to its source: it must be what the generator renders now, its
@@ -20,10 +21,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from pydantic import BaseModel, ValidationError
 
+from roost_agent import state_model, state_plain
 from roost_agent.state import PersistedState
 from roost_api import autopilot, meta, plain
+from roost_api.autopilot_enums import FinalAction
 from roost_api.plain_check import PlainValidationError
-from roost_api.plain_gen import MODELS, TARGET, render
+from roost_api.plain_gen import MODELS, TARGET, render, render_declared
 
 SPEC = {
     "vehicleName": "v1",
@@ -85,6 +88,13 @@ def test_the_committed_module_is_what_the_generator_renders() -> None:
     assert TARGET.read_text() == render()
 
 
+def test_the_committed_state_module_is_what_the_generator_renders() -> None:
+    """Regenerate with ``python -m roost_api.plain_gen roost_agent.state_model``."""
+    target, text = render_declared("roost_agent.state_model")
+    assert target == state_model.TARGET
+    assert target.read_text() == text
+
+
 def _outcome(model: type[BaseModel], doc: object) -> tuple[str, Any]:
     try:
         return "ok", model.model_validate(doc).model_dump(
@@ -101,8 +111,14 @@ def _plain_outcome(cls: Any, doc: object) -> tuple[str, Any]:
         return "refused", None
 
 
+TWINS: dict[type[BaseModel], Any] = {m: getattr(plain, m.__name__) for m in MODELS} | {
+    m: getattr(state_plain, m.__name__) for m in state_model.MODELS
+}
+"""Each pydantic model and the plain class generated from it."""
+
+
 def _same(model: type[BaseModel], doc: object) -> None:
-    cls = getattr(plain, model.__name__)
+    cls = TWINS[model]
     assert _plain_outcome(cls, doc) == _outcome(model, doc), (model.__name__, doc)
 
 
@@ -197,7 +213,7 @@ def test_the_status_loader_accepts_and_refuses_as_the_model_does(doc: dict[str, 
     _same(autopilot.RedundantAutopilotStatus, doc)
 
 
-@given(st.sampled_from(MODELS), ODD_VALUES)
+@given(st.sampled_from(list(TWINS)), ODD_VALUES)
 def test_every_model_refuses_what_its_model_refuses(
     model: type[meta.ApiModel], doc: object
 ) -> None:
@@ -225,37 +241,66 @@ def test_a_refusal_names_the_field() -> None:
         raise AssertionError("sysid 256 accepted")
 
 
-def test_a_state_file_written_by_the_pydantic_agent_still_loads(tmp_path: Path) -> None:
-    """The shape the agent's pydantic PersistedState wrote (nulls included)."""
-    old = {
-        "spec": autopilot.RedundantAutopilotSpec.model_validate(SPEC).model_dump(
-            by_alias=True, mode="json"
-        ),
-        "generation": None,
-        "active": "fc2",
-        "latched": True,
-        "failedFrom": ["fc1"],
-        "failoverCount": 1,
-        "lastFailover": STATUS["lastFailover"] | {"standbyInStep": None},
-        "commands": [
-            {"id": "c-1", "result": "Executed", "message": "", "time": "2026-05-01T12:00:00Z"}
-        ],
-        "safety": {
-            "autopilot": "fc2",
-            "phase": "Holding",
-            "finalAction": "Land",
-            "holdSeconds": 3.0,
-            "holdStarted": 1777636800.5,
-            "landStarted": None,
-            "holds": True,
-        },
-        "savedAt": "2026-05-01T12:00:02Z",
-    }
-    state = PersistedState.from_api(old)
+PYDANTIC_AGENT_STATE = {
+    "spec": autopilot.RedundantAutopilotSpec.model_validate(SPEC).model_dump(
+        by_alias=True, mode="json"
+    ),
+    "generation": None,
+    "active": "fc2",
+    "latched": True,
+    "failedFrom": ["fc1"],
+    "failoverCount": 1,
+    "lastFailover": STATUS["lastFailover"] | {"standbyInStep": None},
+    "commands": [
+        {"id": "c-1", "result": "Executed", "message": "", "time": "2026-05-01T12:00:00Z"}
+    ],
+    "safety": {
+        "autopilot": "fc2",
+        "phase": "Holding",
+        "finalAction": "Land",
+        "holdSeconds": 3.0,
+        "holdStarted": 1777636800.5,
+        "landStarted": None,
+        "holds": True,
+    },
+    "savedAt": "2026-05-01T12:00:02Z",
+}
+"""The shape the agent's pydantic PersistedState wrote (nulls included)."""
+
+HAND_WRITTEN_AGENT_STATE = json.loads(
+    Path(__file__).with_name("agent-state-hand-written-loader.json").read_text()
+)
+"""A file the pydantic-free agent wrote before its state classes were generated (a
+landing order in progress, every optional field present)."""
+
+
+def test_a_state_file_written_by_the_pydantic_agent_still_loads() -> None:
+    state = PersistedState.from_api(PYDANTIC_AGENT_STATE)
     assert state.spec.to_api() == plain.RedundantAutopilotSpec.from_api(SPEC).to_api()
     assert (state.active, state.latched, state.failed_from) == ("fc2", True, ["fc1"])
     assert state.safety is not None and state.safety.hold_started == 1777636800.5
     assert PersistedState.from_api(json.loads(json.dumps(state.api_dump()))) == state
+
+
+def test_a_state_file_written_by_the_hand_written_loader_still_loads() -> None:
+    state = PersistedState.from_api(HAND_WRITTEN_AGENT_STATE)
+    assert (state.generation, state.failover_count, state.commands[0].id) == (7, 2, "c-1")
+    assert state.safety == state_plain.SafetyProgress(
+        autopilot="fc2",
+        phase="Landing",
+        final_action=FinalAction.LAND,
+        land_started=1777636801.25,
+        holds=False,
+    )
+    assert state.api_dump() == HAND_WRITTEN_AGENT_STATE  # written back unchanged
+
+
+@settings(max_examples=300, suppress_health_check=[HealthCheck.too_slow], deadline=None)
+@given(_mutations(PYDANTIC_AGENT_STATE) | _mutations(HAND_WRITTEN_AGENT_STATE))
+def test_the_state_loader_accepts_and_refuses_as_its_declaration_does(
+    doc: dict[str, Any],
+) -> None:
+    _same(state_model.PersistedState, doc)
 
 
 def _probe(code: str, *args: str) -> str:

@@ -145,3 +145,42 @@ def test_unregistering_from_inside_a_tick_does_not_deadlock() -> None:
     scheduler.register(Quitter())
     assert done.wait(10)
     wait_until("unregistered", lambda: scheduler.registered == 0, 10)
+
+
+class Sleepy(Stream):
+    """A stream due again only after a minute: the thread waits a long time after it."""
+
+    def __init__(self) -> None:
+        super().__init__("sleepy", 1 / 60)
+
+
+def test_a_registration_while_the_thread_waits_is_ticked_in_the_next_round() -> None:
+    scheduler = TickScheduler()
+    sleepy, late = Sleepy(), Stream("late", 100.0)
+    scheduler.register(sleepy)
+    wait_until("the first round", lambda: len(sleepy.ticks) == 1, 10)
+    scheduler.register(late)  # the thread now waits a minute for sleepy's next round
+    wait_until("the late one ticked", lambda: len(late.ticks) >= 5, 10)
+    scheduler.unregister(late)
+    scheduler.unregister(sleepy)
+
+
+def test_a_registration_between_a_round_and_the_wait_is_not_left_for_the_next_round() -> None:
+    """The thread waits for the next round run_round computed; a registration after that
+    computation (its notify finds no one waiting) must still move the next round."""
+    late = Stream("late", 100.0)
+
+    class RegisterAfterTheRound(TickScheduler):
+        def run_round(self, now: float) -> float | None:
+            following = super().run_round(now)
+            if not late.ticks and self.rounds == 1:
+                self.register(late)  # on the thread, after the next round was computed
+            return following
+
+    scheduler = RegisterAfterTheRound()
+    sleepy = Sleepy()
+    scheduler.register(sleepy)
+    wait_until("the late one ticked", lambda: len(late.ticks) >= 5, 10)
+    assert len(sleepy.ticks) == 1  # its next round is a minute away: not what woke the thread
+    scheduler.unregister(late)
+    scheduler.unregister(sleepy)
