@@ -225,6 +225,9 @@ class SimulatedAutopilot:
         self.sysid = sysid
         self.component_id = component_id
         self.name = name or f"{self.stack.value}-{sysid}"
+        # What logs, errors and thread names call it: ``vehicle/autopilot`` where one
+        # process hosts several vehicles (their autopilot names repeat).
+        self.label = self.name
         self.link = link
         self.config = config or SimConfig()
         self.battery = battery or Battery()
@@ -293,7 +296,7 @@ class SimulatedAutopilot:
         with self._lock:
             self._reboot(time.monotonic())
         self._threads = [
-            threading.Thread(target=self._run_rx, name=f"sim-{self.name}-rx", daemon=True)
+            threading.Thread(target=self._run_rx, name=f"sim-{self.label}-rx", daemon=True)
         ]
         for thread in self._threads:
             thread.start()
@@ -405,7 +408,7 @@ class SimulatedAutopilot:
             if predicate(snap):
                 return snap
             if time.monotonic() >= deadline:
-                raise TimeoutError(f"{self.name}: condition not met within {timeout}s: {snap}")
+                raise TimeoutError(f"{self.label}: condition not met within {timeout}s: {snap}")
             time.sleep(0.02)
 
     def wait_ready(self, timeout: float = 10.0) -> SimSnapshot:
@@ -434,7 +437,7 @@ class SimulatedAutopilot:
         result, _ = self._execute(command, params, (0, 0))
         if result != MavResult.ACCEPTED:
             why = f": {', '.join(reasons)}" if reasons else ""
-            raise RuntimeError(f"{self.name}: {command_name(command)} refused ({result}){why}")
+            raise RuntimeError(f"{self.label}: {command_name(command)} refused ({result}){why}")
         return result
 
     def set_driving(self, driving: bool) -> None:
@@ -467,7 +470,7 @@ class SimulatedAutopilot:
             for msg_id, hz in rates.items():
                 result = self._set_interval(msg_id, 1e6 / hz if hz > 0 else -1.0)
                 if result != MavResult.ACCEPTED:
-                    raise ValueError(f"{self.name}: cannot stream message {msg_id} ({result})")
+                    raise ValueError(f"{self.label}: cannot stream message {msg_id} ({result})")
 
     def set_throttle(self, stick: float | None) -> None:
         """The pilot's throttle stick, 0 (low) to 1 (high); None: no RC (reads low)."""
@@ -736,7 +739,7 @@ class SimulatedAutopilot:
             try:
                 self._mav.send(message)
             except (struct.error, TypeError, ValueError):  # a bad field must not stop the link
-                _log.exception("%s: cannot encode %s", self.name, message.get_type())
+                _log.exception("%s: cannot encode %s", self.label, message.get_type())
 
     # ---- receive thread: commands and protocol handshakes ----------------------------
 
@@ -758,7 +761,7 @@ class SimulatedAutopilot:
                 try:
                     self._handle(message)
                 except Exception:  # one odd message must not kill the autopilot
-                    _log.exception("%s: failed to handle %s", self.name, message)
+                    _log.exception("%s: failed to handle %s", self.label, message)
 
     def _handle(self, msg: Any) -> None:
         kind = msg.get_type()

@@ -199,7 +199,9 @@ def build_sims(args: argparse.Namespace) -> list[HostedAutopilot]:
             for entry in vehicle.autopilots
         ]
         _check_unique(vehicle, sims)
-        hosted += [HostedAutopilot(vehicle.name, vehicle.target(s.name), s) for s in sims]
+        for sim in sims:
+            sim.label = vehicle.target(sim.name)
+        hosted += [HostedAutopilot(vehicle.name, sim.label, sim) for sim in sims]
     started: list[SimulatedAutopilot] = []
     try:
         for each in hosted:

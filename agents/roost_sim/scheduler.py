@@ -47,7 +47,7 @@ _SAME_TIME_S = 1e-6  # due times this close to a round are due in it (floating-p
 class Tickable(Protocol):
     """What the scheduler drives: one autopilot's round of work."""
 
-    name: str
+    label: str  # what its log lines call it
 
     def tick(self, now: float) -> float:
         """Do what is due at ``now``; return the monotonic time it next has work."""
@@ -121,7 +121,7 @@ class TickScheduler:
                 try:
                     following = tickable.tick(now)
                 except Exception:  # one autopilot's bug must not stop the others
-                    _log.exception("%s: tick failed", tickable.name)
+                    _log.exception("%s: tick failed", tickable.label)
                     following = now + RETRY_S
                 with self._changed:
                     if tickable in self._due:  # not unregistered meanwhile

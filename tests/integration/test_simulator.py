@@ -780,6 +780,24 @@ def test_one_config_hosts_several_vehicles_each_with_its_home_battery_and_socket
     assert not list(states.rglob("*.sock"))
 
 
+def test_autopilots_sharing_a_process_are_named_by_vehicle_in_logs_and_errors(
+    tmp_path: Path,
+) -> None:
+    """Autopilot names repeat across the vehicles of one process: what it logs and
+    raises names ``vehicle/autopilot``."""
+    config = tmp_path / "fleet.yaml"
+    config.write_text(FLEET_CONFIG.replace("PORT1", str(free_udp_port())))
+    hosted = build_sims(build_parser().parse_args(["run", "--config", str(config)]))
+    sims = [h.sim for h in hosted]
+    try:
+        assert [s.label for s in sims] == ["v1/px4-a", "v1/px4-b", "v2/px4-a", "v2/px4-b"]
+        assert [s.name for s in sims] == ["px4-a", "px4-b", "px4-a", "px4-b"]
+        with pytest.raises(TimeoutError, match=r"^v2/px4-b: condition not met"):
+            sims[3].wait_until(lambda state: False, timeout=0.05)
+    finally:
+        stop_sims(sims)
+
+
 def test_vehicle_entries_apply_the_files_keys_then_each_vehicles_own() -> None:
     document = yaml.safe_load(FLEET_CONFIG)
     v1, v2 = vehicle_entries(document, {"preset_streams": True})

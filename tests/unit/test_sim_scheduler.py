@@ -21,7 +21,7 @@ class Stream:
     and after falling behind by a whole period it restarts from now (no burst)."""
 
     def __init__(self, name: str, hz: float, start: float = 0.0) -> None:
-        self.name = name
+        self.label = name
         self.period = 1.0 / hz
         self.due = start
         self.ticks: list[float] = []
@@ -36,7 +36,7 @@ class Stream:
 
 
 class Broken:
-    name = "broken"
+    label = "broken"
 
     def __init__(self) -> None:
         self.calls = 0
@@ -135,7 +135,7 @@ def test_unregistering_from_inside_a_tick_does_not_deadlock() -> None:
     done = threading.Event()
 
     class Quitter:
-        name = "quitter"
+        label = "quitter"
 
         def tick(self, now: float) -> float:
             scheduler.unregister(self)
