@@ -654,8 +654,6 @@ class HealthTracker:
             return StreamFacts(dict(o.counts), o.heartbeat_at, o.last_at, o.reboots)
 
 
-# Messages whose content a judgement reads beyond their arrival time (tilt from ATTITUDE,
-# at 100 Hz, is tracked by its own changes in HealthTracker._observe_attitude).
 def _read_landed_state(tracker: HealthTracker, msg: Any, now: float) -> bool:
     return tracker._observe_landed_state(int(msg.landed_state), now)
 
@@ -702,6 +700,8 @@ def _learn_boot_time(kind: str, msg: Any) -> bool:
     return carries
 
 
+# Messages whose content a judgement reads beyond their arrival time (tilt from ATTITUDE,
+# at 100 Hz, is tracked by its own changes in HealthTracker._observe_attitude).
 _JUDGED_KINDS = frozenset(
     {"HEARTBEAT", "SYS_STATUS", "EXTENDED_SYS_STATE", "ESTIMATOR_STATUS", "EKF_STATUS_REPORT"}
 )
