@@ -55,15 +55,21 @@ def rollout_requests(count: int) -> Counter[RequestKind]:
         return count_requests(fleet.plane.logs_dir / AUDIT_LOG, since=since, until=until)
 
 
+def _operator_counts(counted: Counter[RequestKind]) -> list[tuple[RequestKind, int]]:
+    """The operator's clients' request kinds and counts, in order."""
+    return [(kind, n) for kind, n in sorted(counted.items()) if kind.client in OPERATOR_CLIENTS]
+
+
+def _verb(kind: RequestKind) -> str:
+    """The verb, with the error code of a failed answer."""
+    return f"{kind.verb} ({kind.error})" if kind.error else kind.verb
+
+
 def table(counted: Counter[RequestKind], count: int) -> str:
     """The operator's requests per Vehicle, as Markdown rows (client, verb, resource)."""
     rows = ["| client | verb | resource | per Vehicle |", "|---|---|---|---|"]
-    for kind, n in sorted(counted.items()):
-        if kind.client in OPERATOR_CLIENTS:
-            error = f" ({kind.error})" if kind.error else ""
-            rows.append(
-                f"| {kind.client} | {kind.verb}{error} | {kind.resource} | {n / count:.2f} |"
-            )
+    for kind, n in _operator_counts(counted):
+        rows.append(f"| {kind.client} | {_verb(kind)} | {kind.resource} | {n / count:.2f} |")
     return "\n".join(rows)
 
 
@@ -75,12 +81,10 @@ def run() -> list[Figure]:
     by_client: Counter[str] = Counter()
     for kind, n in counted.items():
         by_client[kind.client] += n
-    ours = sum(n for kind, n in counted.items() if kind.client in OPERATOR_CLIENTS)
+    operator = _operator_counts(counted)
+    ours = sum(n for _, n in operator)
     mine = "; ".join(
-        f"{kind.client} {kind.verb}{'(' + kind.error + ')' if kind.error else ''} "
-        f"{kind.resource} {n / SIZE:.2f}"
-        for kind, n in sorted(counted.items())
-        if kind.client in OPERATOR_CLIENTS
+        f"{kind.client} {_verb(kind)} {kind.resource} {n / SIZE:.2f}" for kind, n in operator
     )
     others = ", ".join(f"{client} {n}" for client, n in by_client.most_common())
     return [

@@ -119,11 +119,15 @@ class VehicleEntry:
 
 @dataclass(frozen=True)
 class HostedAutopilot:
-    """A started autopilot, its vehicle and the control target it is reached by."""
+    """A started autopilot and its vehicle."""
 
     vehicle: str | None
-    target: str
     sim: SimulatedAutopilot
+
+    @property
+    def target(self) -> str:
+        """The control target it is reached by (``vehicle/autopilot``, its label)."""
+        return self.sim.label
 
 
 def vehicle_entries(
@@ -173,7 +177,7 @@ def build_sims(args: argparse.Namespace) -> list[HostedAutopilot]:
             config=sim_config(options),
             battery=args.battery or "shared",
         )
-        return [HostedAutopilot(None, sim.name, sim) for sim in sims]
+        return [HostedAutopilot(None, sim) for sim in sims]
     if args.config:
         document = yaml.safe_load(Path(args.config).read_text()) or {}
     else:
@@ -201,7 +205,7 @@ def build_sims(args: argparse.Namespace) -> list[HostedAutopilot]:
         _check_unique(vehicle, sims)
         for sim in sims:
             sim.label = vehicle.target(sim.name)
-        hosted += [HostedAutopilot(vehicle.name, sim.label, sim) for sim in sims]
+        hosted += [HostedAutopilot(vehicle.name, sim) for sim in sims]
     started: list[SimulatedAutopilot] = []
     try:
         for each in hosted:

@@ -275,13 +275,12 @@ def quiet_writes(cluster: Cluster, timeout_s: float = 60.0) -> int:
     Deployments, their Events) may still be landing. An operator that never stops
     writing never gets quiet, and the wait fails naming it.
     """
-    seen = [write_requests(cluster, VEHICLE_WRITE_TARGETS)]
+    last = [write_requests(cluster, VEHICLE_WRITE_TARGETS)]  # the previous window's count
 
     def quiet() -> tuple[int] | None:  # a tuple: a count of 0 is an answer too
         time.sleep(WINDOW_S)
         now = write_requests(cluster, VEHICLE_WRITE_TARGETS)
-        settled = now == seen[-1]
-        seen.append(now)
+        settled, last[0] = now == last[0], now
         return (now,) if settled else None
 
     return wait_until("a window without writes to Vehicle targets", quiet, timeout_s, 0.0)[0]

@@ -42,7 +42,7 @@ import threading
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from datetime import timedelta
-from typing import Final
+from typing import Any, Final
 
 from roost_api.autopilot import RedundantAutopilotSpec, RedundantAutopilotStatus
 from roost_api.meta import now
@@ -167,6 +167,11 @@ class Leftovers:
         return not self.problems
 
 
+def finalized(meta: Mapping[str, Any]) -> bool:
+    """Whether kopf's finalizer is on the object: only then is a Vehicle reconciled."""
+    return FINALIZER in (meta.get("finalizers") or ())
+
+
 @dataclass
 class VehicleController:
     """The one writer of Vehicle status; see the module docstring."""
@@ -261,7 +266,7 @@ class VehicleController:
         if vehicle is None or vehicle["metadata"].get("deletionTimestamp"):
             self.ledger.forget(name)
             return None
-        if FINALIZER not in (vehicle["metadata"].get("finalizers") or ()):
+        if not finalized(vehicle["metadata"]):
             return None  # kopf's finalizer comes first (see the module docstring)
         obs, autopilot = self._observe(vehicle, peers)
         ctx = Context(

@@ -57,12 +57,12 @@ from typing import Any, Final
 import kopf
 
 from roost_api.meta import now
-from roost_api.wellknown import FINALIZER, PREFIX
+from roost_api.wellknown import PREFIX
 from roost_kube import resources
 from roost_operator.edge import at_the_edge, handler_edge
 from roost_operator.runtime import Runtime, runtime
 from roost_operator.settings import Settings
-from roost_operator.vehicles.controller import Peers
+from roost_operator.vehicles.controller import Peers, finalized
 from roost_operator.vehicles.placement import NodeClaim
 from roost_operator.vehicles.plan import relevant_autopilot
 from roost_operator.watches import Fingerprints
@@ -183,7 +183,7 @@ def _vehicle_relevant(meta: Mapping[str, Any]) -> Any:
         meta.get("labels"),
         annotations,
         meta.get("deletionTimestamp"),
-        FINALIZER in (meta.get("finalizers") or ()),
+        finalized(meta),
     ]
 
 
