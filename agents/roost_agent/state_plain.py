@@ -47,19 +47,11 @@ class SafetyProgress:
         hold_seconds = 0.0 if v is check.MISSING else check.number(v, at + "holdSeconds")
         v = check.get(d, "holdStarted", "hold_started")
         hold_started = (
-            None
-            if v is check.MISSING
-            else None
-            if v is None
-            else check.number(v, at + "holdStarted")
+            None if v is None or v is check.MISSING else check.number(v, at + "holdStarted")
         )
         v = check.get(d, "landStarted", "land_started")
         land_started = (
-            None
-            if v is check.MISSING
-            else None
-            if v is None
-            else check.number(v, at + "landStarted")
+            None if v is None or v is check.MISSING else check.number(v, at + "landStarted")
         )
         v = check.get(d, "holds", "holds")
         holds = True if v is check.MISSING else check.boolean(v, at + "holds")
@@ -119,11 +111,7 @@ class PersistedState:
         spec = RedundantAutopilotSpec.from_api(v, at + "spec" + ".")
         v = check.get(d, "generation", "generation")
         generation = (
-            None
-            if v is check.MISSING
-            else None
-            if v is None
-            else check.integer(v, at + "generation")
+            None if v is None or v is check.MISSING else check.integer(v, at + "generation")
         )
         v = check.required(check.get(d, "active", "active"), at + "active")
         active = check.text(v, at + "active")
@@ -138,9 +126,7 @@ class PersistedState:
         v = check.get(d, "lastFailover", "last_failover")
         last_failover = (
             None
-            if v is check.MISSING
-            else None
-            if v is None
+            if v is None or v is check.MISSING
             else FailoverRecord.from_api(v, at + "lastFailover" + ".")
         )
         v = check.get(d, "commands", "commands")
@@ -152,9 +138,7 @@ class PersistedState:
         v = check.get(d, "safety", "safety")
         safety = (
             None
-            if v is check.MISSING
-            else None
-            if v is None
+            if v is None or v is check.MISSING
             else SafetyProgress.from_api(v, at + "safety" + ".")
         )
         v = check.required(check.get(d, "savedAt", "saved_at"), at + "savedAt")

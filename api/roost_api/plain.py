@@ -63,9 +63,7 @@ class Condition:
         v = check.get(d, "observedGeneration", "observed_generation")
         observed_generation = (
             None
-            if v is check.MISSING
-            else None
-            if v is None
+            if v is None or v is check.MISSING
             else check.integer(v, at + "observedGeneration", ge=0)
         )
         v = check.required(
@@ -130,9 +128,7 @@ class AutopilotSpec:
         v = check.get(d, "fcuUrl", "fcu_url")
         fcu_url = (
             None
-            if v is check.MISSING
-            else None
-            if v is None
+            if v is None or v is check.MISSING
             else check.text(v, at + "fcuUrl", max_length=256)
         )
         v = check.required(check.get(d, "sysid", "sysid"), at + "sysid")
@@ -375,9 +371,7 @@ class HubSpec:
         v = check.get(d, "sysid", "sysid")
         sysid = (
             None
-            if v is check.MISSING
-            else None
-            if v is None
+            if v is None or v is check.MISSING
             else check.integer(v, at + "sysid", ge=1, le=255)
         )
         v = check.get(d, "udp", "udp")
@@ -394,9 +388,7 @@ class HubSpec:
         v = check.get(d, "tcp", "tcp")
         tcp = (
             None
-            if v is check.MISSING
-            else None
-            if v is None
+            if v is None or v is check.MISSING
             else check.text(
                 v,
                 at + "tcp",
@@ -518,11 +510,7 @@ class AutopilotCommand:
         action = check.member(v, at + "action", CommandAction)
         v = check.get(d, "target", "target")
         target = (
-            None
-            if v is check.MISSING
-            else None
-            if v is None
-            else check.text(v, at + "target", max_length=58)
+            None if v is None or v is check.MISSING else check.text(v, at + "target", max_length=58)
         )
         v = check.required(check.get(d, "issuedAt", "issued_at"), at + "issuedAt")
         issued_at = check.moment(v, at + "issuedAt")
@@ -601,19 +589,11 @@ class RedundantAutopilotSpec:
         v = check.get(d, "command", "command")
         command = (
             None
-            if v is check.MISSING
-            else None
-            if v is None
+            if v is None or v is check.MISSING
             else AutopilotCommand.from_api(v, at + "command" + ".")
         )
         v = check.get(d, "hub", "hub")
-        hub = (
-            None
-            if v is check.MISSING
-            else None
-            if v is None
-            else HubSpec.from_api(v, at + "hub" + ".")
-        )
+        hub = None if v is None or v is check.MISSING else HubSpec.from_api(v, at + "hub" + ".")
         return cls(
             vehicle_name=vehicle_name,
             autopilots=autopilots,
@@ -673,41 +653,25 @@ class AutopilotHealth:
         reasons = list() if v is check.MISSING else check.items(v, at + "reasons", check.text)
         v = check.get(d, "heartbeatAgeMs", "heartbeat_age_ms")
         heartbeat_age_ms = (
-            None
-            if v is check.MISSING
-            else None
-            if v is None
-            else check.integer(v, at + "heartbeatAgeMs")
+            None if v is None or v is check.MISSING else check.integer(v, at + "heartbeatAgeMs")
         )
         v = check.get(d, "messageAgeMs", "message_age_ms")
         message_age_ms = (
-            None
-            if v is check.MISSING
-            else None
-            if v is None
-            else check.integer(v, at + "messageAgeMs")
+            None if v is None or v is check.MISSING else check.integer(v, at + "messageAgeMs")
         )
         v = check.get(d, "mode", "mode")
-        mode = None if v is check.MISSING else None if v is None else check.text(v, at + "mode")
+        mode = None if v is None or v is check.MISSING else check.text(v, at + "mode")
         v = check.get(d, "armed", "armed")
-        armed = (
-            None if v is check.MISSING else None if v is None else check.boolean(v, at + "armed")
-        )
+        armed = None if v is None or v is check.MISSING else check.boolean(v, at + "armed")
         v = check.get(d, "landedState", "landed_state")
         landed_state = (
             None
-            if v is check.MISSING
-            else None
-            if v is None
+            if v is None or v is check.MISSING
             else check.member(v, at + "landedState", LandedState)
         )
         v = check.get(d, "systemStatus", "system_status")
         system_status = (
-            None
-            if v is check.MISSING
-            else None
-            if v is None
-            else check.text(v, at + "systemStatus")
+            None if v is None or v is check.MISSING else check.text(v, at + "systemStatus")
         )
         v = check.get(d, "unhealthySensors", "unhealthy_sensors")
         unhealthy_sensors = (
@@ -792,18 +756,12 @@ class FailoverRecord:
         v = check.get(d, "safetyRoutine", "safety_routine")
         safety_routine = (
             None
-            if v is check.MISSING
-            else None
-            if v is None
+            if v is None or v is check.MISSING
             else check.member(v, at + "safetyRoutine", SafetyRoutinePhase)
         )
         v = check.get(d, "standbyInStep", "standby_in_step")
         standby_in_step = (
-            None
-            if v is check.MISSING
-            else None
-            if v is None
-            else check.boolean(v, at + "standbyInStep")
+            None if v is None or v is check.MISSING else check.boolean(v, at + "standbyInStep")
         )
         return cls(
             time=time,
@@ -904,11 +862,7 @@ class RedundantAutopilotStatus:
         d = check.mapping(doc, at.rstrip("."), "RedundantAutopilotStatus")
         v = check.get(d, "observedGeneration", "observed_generation")
         observed_generation = (
-            None
-            if v is check.MISSING
-            else None
-            if v is None
-            else check.integer(v, at + "observedGeneration")
+            None if v is None or v is check.MISSING else check.integer(v, at + "observedGeneration")
         )
         v = check.get(d, "conditions", "conditions")
         conditions = (
@@ -918,11 +872,7 @@ class RedundantAutopilotStatus:
         )
         v = check.get(d, "activeAutopilot", "active_autopilot")
         active_autopilot = (
-            None
-            if v is check.MISSING
-            else None
-            if v is None
-            else check.text(v, at + "activeAutopilot")
+            None if v is None or v is check.MISSING else check.text(v, at + "activeAutopilot")
         )
         v = check.get(d, "autopilots", "autopilots")
         autopilots = (
@@ -935,9 +885,7 @@ class RedundantAutopilotStatus:
         v = check.get(d, "lastFailover", "last_failover")
         last_failover = (
             None
-            if v is check.MISSING
-            else None
-            if v is None
+            if v is None or v is check.MISSING
             else FailoverRecord.from_api(v, at + "lastFailover" + ".")
         )
         v = check.get(d, "failoverCount", "failover_count")
@@ -947,22 +895,14 @@ class RedundantAutopilotStatus:
         v = check.get(d, "lastCommand", "last_command")
         last_command = (
             None
-            if v is check.MISSING
-            else None
-            if v is None
+            if v is None or v is check.MISSING
             else CommandResult.from_api(v, at + "lastCommand" + ".")
         )
         v = check.get(d, "nodeName", "node_name")
-        node_name = (
-            None if v is check.MISSING else None if v is None else check.text(v, at + "nodeName")
-        )
+        node_name = None if v is None or v is check.MISSING else check.text(v, at + "nodeName")
         v = check.get(d, "reportedAt", "reported_at")
         reported_at = (
-            None
-            if v is check.MISSING
-            else None
-            if v is None
-            else check.moment(v, at + "reportedAt")
+            None if v is None or v is check.MISSING else check.moment(v, at + "reportedAt")
         )
         return cls(
             observed_generation=observed_generation,

@@ -124,8 +124,11 @@ def _constraints(info: FieldInfo) -> str:
     return "".join(f", {c}" for c in out)
 
 
-def _check(annotation: Any, value: str, where: str, info: FieldInfo | None) -> str:
-    """An expression converting ``value`` (an object) to the field's type."""
+def _check(
+    annotation: Any, value: str, where: str, info: FieldInfo | None, *, absent: bool = False
+) -> str:
+    """An expression converting ``value`` (an object) to the field's type; with ``absent``,
+    an optional field's ``check.MISSING`` reads as None too."""
     inner, optional = _optional_inner(annotation)
     limits = _constraints(info) if info is not None else ""
     if get_origin(inner) is list:
@@ -145,7 +148,10 @@ def _check(annotation: Any, value: str, where: str, info: FieldInfo | None) -> s
     else:
         kind = {str: "text", int: "integer", float: "number", bool: "boolean"}[inner]
         expr = f"check.{kind}({value}, {where}{limits})"
-    return f"None if {value} is None else {expr}" if optional else expr
+    if not optional:
+        return expr
+    missing = f" or {value} is check.MISSING" if absent else ""
+    return f"None if {value} is None{missing} else {expr}"
 
 
 def _dump(annotation: Any, value: str) -> str:
@@ -223,8 +229,12 @@ def _render_model(model: type[BaseModel], mod: _Module) -> list[str]:
             lines.append(f"        {name} = {_check(info.annotation, 'v', where, info)}")
         else:
             lines.append(f'        v = check.get(d, "{alias}", "{name}")')
-            check_expr = _check(info.annotation, "v", where, info)
-            lines.append(f"        {name} = {default} if v is check.MISSING else {check_expr}")
+            if default == "None" and _optional_inner(info.annotation)[1]:
+                value = _check(info.annotation, "v", where, info, absent=True)
+            else:
+                checked = _check(info.annotation, "v", where, info)
+                value = f"{default} if v is check.MISSING else {checked}"
+            lines.append(f"        {name} = {value}")
     lines.append("        return cls(" + ", ".join(f"{n}={n}" for n in fields) + ")")
     lines += [
         "",
