@@ -17,28 +17,18 @@ The audit log costs the API server CPU, so no time is measured here; the timings
 from __future__ import annotations
 
 import os
-import time
 from collections import Counter
 from dataclasses import replace
-from datetime import UTC, datetime
 
 from bench.controlplane import FLEET_SETTINGS
 from bench.core import Figure
 from bench.fleet import apply_until_ready, fleet_with_operator
 from roost_kube.client import Kube
 from roost_localcluster import binaries
-from roost_localcluster.audit import AUDIT_LOG, RequestKind, count_requests
+from roost_localcluster.audit import OPERATOR_CLIENTS, RequestKind
 
 COMMAND = "python -m bench fleetapi"
 SIZE = int(os.environ.get("ROOST_BENCH_FLEET_API", "200"))
-OPERATOR_CLIENTS = ("roost-operator", "kopf")
-AUDIT_FLUSH_S = 3.0
-"""The audit log is written in batches: wait this long after Ready before reading it."""
-
-
-def _stamp() -> str:
-    """Now as the audit log writes times (RFC 3339, microseconds, UTC)."""
-    return datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
 
 
 def rollout_requests(count: int) -> Counter[RequestKind]:
@@ -48,11 +38,9 @@ def rollout_requests(count: int) -> Counter[RequestKind]:
         fleet_with_operator(count, settings, "bench-fleetapi-") as fleet,
         fleet.cluster.api_client() as api,
     ):
-        since = _stamp()
+        window = fleet.cluster.audit_window()
         apply_until_ready(fleet.cluster, Kube(api, "roost-bench"), count)
-        until = _stamp()
-        time.sleep(AUDIT_FLUSH_S)
-        return count_requests(fleet.plane.logs_dir / AUDIT_LOG, since=since, until=until)
+        return fleet.cluster.audited(window)
 
 
 def _operator_counts(counted: Counter[RequestKind]) -> list[tuple[RequestKind, int]]:

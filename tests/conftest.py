@@ -62,8 +62,9 @@ def cluster(tmp_path_factory: pytest.TempPathFactory, datastore: str) -> Iterato
     """A real control plane (etcd or kine, API server, controller manager, scheduler, kwok)
     for the whole session (``--datastore`` picks the datastore); builds the binaries first
     if they are missing. Component logs are in the session's temp dir under
-    ``control-plane*/logs``. See localcluster/README.md."""
-    settings = Settings(datastore=datastore)
+    ``control-plane*/logs``, with the audit log that lets tests count the operator's own
+    requests (``tests.support.apiwrites``). See localcluster/README.md."""
+    settings = Settings(datastore=datastore, audit=True)
     with ControlPlane(tmp_path_factory.mktemp("control-plane"), settings=settings) as plane:
         yield Cluster.of(plane)
 

@@ -8,15 +8,20 @@ counted on its own. ``Settings(audit=True)`` turns it on (:func:`audit_args`); i
 the API server CPU, so timings are taken without it.
 
 The policy records metadata only (no bodies) and one line per request, when its answer
-is complete (a watch is counted when it ends).
+is complete (a watch is counted when it ends). Lines land a moment after the answer, so a
+reader of "everything until now" first sends a request naming a marker and reads once the
+marker's line is there (:class:`Window`).
 """
 
 from __future__ import annotations
 
 import json
+import time
+import uuid
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 
 import yaml
@@ -28,6 +33,9 @@ POLICY = {
     "omitStages": ["RequestReceived", "ResponseStarted"],
     "rules": [{"level": "Metadata"}],
 }
+# The user agents of Roost's operator: its own API layer and kopf's watches and patches.
+OPERATOR_CLIENTS = frozenset({"roost-operator", "kopf"})
+WRITE_VERBS = frozenset({"create", "update", "patch", "delete", "deletecollection"})
 
 
 def audit_args(state_dir: Path, logs_dir: Path) -> list[str]:
@@ -60,10 +68,21 @@ def client_of(user_agent: str) -> str:
     return user_agent.split("/", 1)[0].split(" ", 1)[0] or "?"
 
 
-def requests(log: Path, *, since: str = "", until: str = "") -> Iterator[RequestKind]:
+def stamp() -> str:
+    """Now as the audit log writes times (RFC 3339, microseconds, UTC): a ``since`` or
+    ``until`` for :func:`requests`."""
+    return datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
+
+
+def requests(
+    log: Path, *, since: str = "", until: str = "", offset: int = 0
+) -> Iterator[RequestKind]:
     """Every resource request in ``log`` received in [``since``, ``until``) (RFC 3339
-    timestamps as the log writes them, compared as strings; empty: unbounded)."""
+    timestamps as the log writes them, compared as strings; empty: unbounded). Reading
+    starts ``offset`` bytes in: the log's size when the window began skips what came
+    before without parsing it."""
     with log.open() as lines:
+        lines.seek(offset)
         for line in lines:
             event = json.loads(line)
             received = event.get("requestReceivedTimestamp", "")
@@ -82,6 +101,46 @@ def requests(log: Path, *, since: str = "", until: str = "") -> Iterator[Request
             )
 
 
-def count_requests(log: Path, *, since: str = "", until: str = "") -> Counter[RequestKind]:
+def count_requests(
+    log: Path, *, since: str = "", until: str = "", offset: int = 0
+) -> Counter[RequestKind]:
     """How many requests of each kind :func:`requests` finds."""
-    return Counter(requests(log, since=since, until=until))
+    return Counter(requests(log, since=since, until=until, offset=offset))
+
+
+@dataclass(frozen=True)
+class Window:
+    """The requests received from :meth:`open` until :meth:`close`.
+
+    ``probe`` sends any request whose audit line names the string it is given (a GET of a
+    namespace by that name will do): :meth:`close` waits for that line, so every request
+    answered before the window closed has been written by then.
+    """
+
+    log: Path
+    offset: int
+    since: str
+
+    @classmethod
+    def open(cls, log: Path) -> Window:
+        return cls(log, log.stat().st_size if log.exists() else 0, stamp())
+
+    def close(
+        self, probe: Callable[[str], object], timeout_s: float = 30.0
+    ) -> Counter[RequestKind]:
+        until = stamp()
+        marker = f"roost-audit-marker-{uuid.uuid4().hex[:12]}"
+        probe(marker)
+        deadline = time.monotonic() + timeout_s
+        while not self._logged(marker):
+            if time.monotonic() > deadline:
+                raise TimeoutError(
+                    f"the audit log {self.log} did not show {marker} in {timeout_s} s"
+                )
+            time.sleep(0.05)
+        return count_requests(self.log, since=self.since, until=until, offset=self.offset)
+
+    def _logged(self, marker: str) -> bool:
+        with self.log.open() as lines:
+            lines.seek(self.offset)
+            return any(marker in line for line in lines)

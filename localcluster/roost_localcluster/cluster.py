@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import subprocess
 import time
+from collections import Counter
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +20,7 @@ import yaml
 from kubernetes import client, config
 
 from roost_localcluster import nodes
+from roost_localcluster.audit import AUDIT_LOG, RequestKind, Window
 from roost_localcluster.binaries import REPO_ROOT
 from roost_localcluster.clients import tool_path
 from roost_localcluster.controlplane import ControlPlane
@@ -46,6 +48,20 @@ class Cluster:
             config_file=str(self.kubeconfig), client_configuration=configuration
         )
         return client.ApiClient(configuration)
+
+    def audit_window(self) -> Window:
+        """Start counting requests (:meth:`audited`); the control plane must have been
+        started here with ``Settings(audit=True)``."""
+        plane = self.control_plane
+        if plane is None or not plane.settings.audit:
+            raise RuntimeError("counting requests needs a control plane with Settings(audit=True)")
+        return Window.open(plane.logs_dir / AUDIT_LOG)
+
+    def audited(self, window: Window) -> Counter[RequestKind]:
+        """The requests every client made from :meth:`audit_window` until now, by kind."""
+        return window.close(
+            lambda marker: self.kubectl("get", "namespace", marker, "--ignore-not-found")
+        )
 
     def _run(
         self, tool: str, args: Iterable[str], check: bool, input_text: str | None, timeout_s: float

@@ -45,7 +45,7 @@ from roost_kube.resources import (
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import KWOK_NODE_ANNOTATION
 from roost_localcluster.nodes import fake_node
-from tests.support.apiwrites import VEHICLE_WRITE_TARGETS, write_requests
+from tests.support.apiwrites import operator_writes
 from tests.support.operator import OperatorProcess
 from tests.support.waiting import unique, wait_until
 
@@ -267,23 +267,17 @@ def test_a_simulated_vehicle_gets_its_node_config_and_components(
         roost_crds.kubectl("delete", "redundantautopilot", name, "--ignore-not-found")
 
 
-def quiet_writes(cluster: Cluster, timeout_s: float = 60.0) -> int:
-    """The count of writes to Vehicle targets once a whole window passed without one.
+def wait_operator_quiet(cluster: Cluster, timeout_s: float = 60.0) -> None:
+    """Return once the operator made no write for a whole window (the rollout's last
+    status updates may still be landing). An operator that never stops writing never gets
+    quiet, and the wait fails naming it."""
 
-    The API server counts every client's writes: the rollout's last status updates, an
-    earlier test's teardown (the garbage collector deleting a removed Vehicle's
-    Deployments, their Events) may still be landing. An operator that never stops
-    writing never gets quiet, and the wait fails naming it.
-    """
-    last = [write_requests(cluster, VEHICLE_WRITE_TARGETS)]  # the previous window's count
-
-    def quiet() -> tuple[int] | None:  # a tuple: a count of 0 is an answer too
+    def quiet() -> bool:
+        window = cluster.audit_window()
         time.sleep(WINDOW_S)
-        now = write_requests(cluster, VEHICLE_WRITE_TARGETS)
-        settled, last[0] = now == last[0], now
-        return (now,) if settled else None
+        return not operator_writes(cluster, window)
 
-    return wait_until("a window without writes to Vehicle targets", quiet, timeout_s, 0.0)[0]
+    wait_until("a window without writes from the operator", quiet, timeout_s, 0.0)
 
 
 def test_an_idle_vehicle_costs_no_api_writes(
@@ -303,10 +297,11 @@ def test_an_idle_vehicle_costs_no_api_writes(
         meta = (kube.get(NODES, node) or {})["metadata"]
         return meta.get("labels"), meta.get("annotations"), roost_taints(kube, node)
 
-    writes_before = quiet_writes(roost_crds)
+    wait_operator_quiet(roost_crds)
     versions_before, node_before = versions(), node_state()
+    window = roost_crds.audit_window()
     time.sleep(WINDOW_S * 4)  # nothing happens: node heartbeats, Deployments
-    assert write_requests(roost_crds, VEHICLE_WRITE_TARGETS) == writes_before
+    assert not operator_writes(roost_crds, window)
     assert versions() == versions_before
     assert node_state() == node_before
 
@@ -562,9 +557,10 @@ def test_two_vehicles_on_one_node_the_older_keeps_it_without_a_fight(
     assert not deployments_of(kube, second)
     assert node_labels(kube, node)[LABEL_VEHICLE] == first
 
-    node_writes = write_requests(roost_crds, [("nodes", "")])
+    window = roost_crds.audit_window()
     time.sleep(WINDOW_S * 3)  # nothing happens: no fight over the node
-    assert write_requests(roost_crds, [("nodes", "")]) == node_writes, "the two vehicles fight"
+    node_writes = [kind for kind in operator_writes(roost_crds, window) if kind.resource == "nodes"]
+    assert not node_writes, "the two vehicles fight"
     assert node_labels(kube, node)[LABEL_VEHICLE] == first
     assert condition(kube, first, "Ready")["status"] == "True"  # type: ignore[index]
 

@@ -8,6 +8,11 @@ costs the server a request). Comparing resourceVersions would miss those.
 The counters are cluster-wide and include every client, so measure over a window in
 which the test itself writes nothing, and choose ``targets`` that other components do
 not write while idle (kwok heartbeats go to ``nodes/status``, leases to ``leases``).
+
+Where other components may write the same targets at any time (the scheduler's Events
+for a Pending pod of an earlier test, the node lifecycle controller's taints), count the
+operator's own writes from the audit log instead (:func:`operator_writes`), which names
+the client of every request.
 """
 
 from __future__ import annotations
@@ -17,6 +22,14 @@ from collections import Counter
 from collections.abc import Iterable
 
 from roost_kube.resources import CONFIGMAPS, DEPLOYMENTS, EVENTS, NODES, VEHICLES
+from roost_localcluster.audit import (
+    OPERATOR_CLIENTS,
+    RequestKind,
+    Window,
+)
+from roost_localcluster.audit import (
+    WRITE_VERBS as AUDIT_WRITE_VERBS,
+)
 from roost_localcluster.cluster import Cluster
 
 WRITE_VERBS = frozenset({"POST", "PUT", "PATCH", "APPLY", "DELETE", "DELETECOLLECTION"})
@@ -59,3 +72,15 @@ def write_requests(cluster: Cluster, targets: Iterable[Target]) -> int:
     """Write requests served so far to ``targets`` (a counter: diff two readings)."""
     counts = write_counts(cluster.kubectl("get", "--raw", "/metrics").stdout)
     return sum(counts[target] for target in set(targets))
+
+
+def operator_writes(cluster: Cluster, window: Window) -> Counter[RequestKind]:
+    """Close ``window`` (from ``cluster.audit_window()``) and return the writes Roost's
+    operator made in it, by kind."""
+    return Counter(
+        {
+            kind: n
+            for kind, n in cluster.audited(window).items()
+            if kind.client in OPERATOR_CLIENTS and kind.verb in AUDIT_WRITE_VERBS
+        }
+    )
