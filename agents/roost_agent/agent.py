@@ -121,6 +121,11 @@ decision loop reads and ticks this often. Judgements that turn with nothing arri
 (a silence crossing its threshold, the confirm window of a failure ending) are not
 held to it: :meth:`Agent.tick` says when the next one is due and the loop ticks then.
 Each wake-up costs the agent more than the messages it reads (docs/performance.md)."""
+STEERED_TICK_S = 0.1
+"""The read interval while every link is steered (:mod:`roost_agent.steering`): the
+kernel wakes the reader at once for a heartbeat or a command's answer, so only the bulk
+of the stream waits this long, and it is judged by its arrival stamps. While a claim
+waits for the message that settles it, the loop reads again after ``DEFAULT_TICK_S``."""
 JUDGE_LATE_S = 1e-4
 """A tick meant for a health threshold comes this much after it: the judgement there
 compares a difference of float times with the threshold and must see it crossed."""
@@ -362,6 +367,7 @@ class Agent:
         generation: int | None = None,
         node_name: str = "",
         tick_s: float = DEFAULT_TICK_S,
+        steered_tick_s: float = STEERED_TICK_S,
         clock: Callable[[], float] = time.monotonic,
         wall_clock: Callable[[], datetime] = _utc_now,
         timing: Timing = DEFAULT_TIMING,
@@ -402,7 +408,7 @@ class Agent:
         self._worker = _SafetyWorker()
         self._threads: list[threading.Thread] = []
         self._reader = LinkReader()
-        self._reader.drive(self._tick_while_running, tick_s)
+        self._reader.drive(self._tick_while_running, tick_s, steered_tick_s)
         self._cfg = _Running(
             spec=spec,
             generation=generation,
@@ -644,7 +650,11 @@ class Agent:
     def _tick_while_running(self) -> float | None:
         if self._stop.is_set():  # stopping: the links close, nothing is decided on that
             return None
-        return self.tick()
+        due = self.tick()
+        if any(link.tracker.claim_pending for link in self._cfg.links.values()):
+            soon = self._clock() + self._tick_s  # read the message that settles it soon
+            due = soon if due is None else min(due, soon)
+        return due
 
     def tick(self) -> float | None:
         """One decision: assess, step the arbiter, switch first, then everything else.

@@ -591,6 +591,12 @@ class HealthTracker:
             return _next_threshold(self._o, self.thresholds, judged.at)
 
     @property
+    def claim_pending(self) -> bool:
+        """A claim (reboot, fatal state) waits for the message that settles it."""
+        with self._lock:
+            return self._o.claim is not None
+
+    @property
     def refuted(self) -> int:
         """Claims (reboot, fatal state) the following messages contradicted."""
         with self._lock:

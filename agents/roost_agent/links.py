@@ -63,21 +63,25 @@ as a companion computer does, and addresses commands to the autopilot's componen
 from __future__ import annotations
 
 import contextlib
+import errno
 import heapq
 import logging
 import math
 import selectors
 import socket
 import struct
+import sys
 import threading
 import time
 from collections import OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 from roost_agent.health import Fix, HealthTracker, Motion
 from roost_agent.signing import LinkSigning
+from roost_agent.steering import steered_sockets
 from roost_api.core import Stack
 from roost_api.plain import AutopilotSpec
 from roost_mavlink import AGENT_COMPONENT_ID, MavResult, pymavlink_device
@@ -90,6 +94,7 @@ log = logging.getLogger(__name__)
 Params = tuple[float, float, float, float, float, float, float]
 Address = tuple[str, int]
 EventSink = Callable[[str, str, bool], None]  # (reason, message, warning)
+Received = tuple[bytes, Address | None, float | None]  # data, sender, kernel arrival stamp
 
 READ_WAIT_S = 0.5  # longest the reader blocks in select() (timers and stop wake it sooner)
 DRAIN_MAX = 256  # datagrams read from one transport per wake-up
@@ -196,10 +201,19 @@ class Transport:
         """Available bytes and who sent them (None where the transport has one peer)."""
         raise NotImplementedError
 
-    def receive_stamped(self) -> tuple[bytes, Address | None, float | None]:
+    def receive_stamped(self) -> Received:
         """:meth:`receive` plus the kernel's arrival time (CLOCK_REALTIME s) where known."""
         data, sender = self.receive()
         return data, sender, None
+
+    def receive_batch(self, limit: int) -> list[Received]:
+        """What is there to read, up to ``limit`` receives, in arrival order."""
+        return _read_all(self.receive_stamped, limit)
+
+    def urgent_fileno(self) -> int | None:
+        """A descriptor that becomes readable when something must be read at once (a
+        steered UDP link's urgent socket), or None: then every read is urgent."""
+        return None
 
     def send(self, data: bytes) -> None:
         raise NotImplementedError
@@ -216,26 +230,54 @@ _TIMESPEC = struct.Struct("@qq")
 
 
 class _Udp(Transport):
+    """A UDP socket, or a steered pair of them (:mod:`roost_agent.steering`) where the
+    kernel can steer: then heartbeats and command answers land on :attr:`urgent`."""
+
     datagrams = True
 
-    def __init__(self, bind: Address | None) -> None:
-        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    def __init__(self, bind: Address | None, *, steer: bool = False) -> None:
+        self.urgent: socket.socket | None = None
+        if steer and bind is not None and _STEERING_WORKS[0]:
+            try:
+                self._sock, self.urgent = steered_sockets(bind)
+            except OSError as exc:
+                if exc.errno == errno.EADDRINUSE:
+                    raise
+                _STEERING_WORKS[0] = False
+                log.warning(
+                    "the kernel does not steer UDP datagrams (%s): reading every link "
+                    "at the short interval",
+                    exc,
+                )
+        if self.urgent is None:
+            self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            try:
+                if bind is not None:
+                    self._sock.bind(bind)
+            except BaseException:
+                self._sock.close()
+                raise
+        self._stamped = all(self._prepare(sock) for sock in self._sockets())
+
+    def _sockets(self) -> list[socket.socket]:
+        return [self._sock] if self.urgent is None else [self._sock, self.urgent]
+
+    @staticmethod
+    def _prepare(sock: socket.socket) -> bool:
+        """Non-blocking, a deep buffer, kernel arrival stamps; whether stamps work."""
+        sock.setblocking(False)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER_BYTES)
         try:
-            self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER_BYTES)
-            if bind is not None:
-                self._sock.bind(bind)
-        except BaseException:
-            self._sock.close()
-            raise
-        self._sock.setblocking(False)
-        try:
-            self._sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
-            self._stamped = True
+            sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
         except OSError:  # not Linux: arrival is the time the reader reads it
-            self._stamped = False
+            return False
+        return True
 
     def fileno(self) -> int:
         return self._sock.fileno()
+
+    def urgent_fileno(self) -> int | None:
+        return None if self.urgent is None else self.urgent.fileno()
 
     def receive(self) -> tuple[bytes, Address | None]:
         try:
@@ -248,26 +290,64 @@ class _Udp(Transport):
         if not self._stamped:
             data, sender = self.receive()
             return data, sender, None
-        try:
-            data, ancillary, _, address = self._sock.recvmsg(UDP_MAX, 64)
-        except (BlockingIOError, ConnectionRefusedError):
-            return b"", None, None
-        # The arrival stamp is the only ancillary item asked for; an IPv4 datagram
-        # socket's sender is already a (host, port) tuple.
-        if ancillary and ancillary[0][1] == SO_TIMESTAMPNS:
-            seconds, nanoseconds = _TIMESPEC.unpack_from(ancillary[0][2])
-            return data, address, seconds + nanoseconds * 1e-9
-        return data, address, None
+        return _receive_stamped(self._sock)
+
+    def receive_batch(self, limit: int) -> list[Received]:
+        """Up to ``limit`` datagrams in arrival order. Steered: the urgent socket is read
+        before and after the bulk, and whatever it held is merged in by arrival stamp;
+        anything arriving on either socket after that read is later than all of these."""
+        urgent = self.urgent
+        if urgent is None or not self._stamped:
+            return super().receive_batch(limit)
+        first = _read_all(partial(_receive_stamped, urgent), limit)
+        bulk = _read_all(partial(_receive_stamped, self._sock), limit)
+        later = _read_all(partial(_receive_stamped, urgent), limit)
+        if not first and not later:
+            return bulk
+        return sorted(first + bulk + later, key=_arrival)
 
     def close(self) -> None:
-        self._sock.close()
+        for sock in self._sockets():
+            sock.close()
+
+
+_STEERING_WORKS = [sys.platform == "linux"]  # cleared by the first refusal, for the process
+
+
+def _receive_stamped(sock: socket.socket) -> Received:
+    try:
+        data, ancillary, _, address = sock.recvmsg(UDP_MAX, 64)
+    except (BlockingIOError, ConnectionRefusedError):
+        return b"", None, None
+    # The arrival stamp is the only ancillary item asked for; an IPv4 datagram socket's
+    # sender is already a (host, port) tuple.
+    if ancillary and ancillary[0][1] == SO_TIMESTAMPNS:
+        seconds, nanoseconds = _TIMESPEC.unpack_from(ancillary[0][2])
+        return data, address, seconds + nanoseconds * 1e-9
+    return data, address, None
+
+
+def _read_all(receive: Callable[[], Received], limit: int) -> list[Received]:
+    """Receive until there is nothing more (an empty datagram) or ``limit`` times."""
+    out = []
+    for _ in range(limit):
+        received = receive()
+        if not received[0]:
+            break
+        out.append(received)
+    return out
+
+
+def _arrival(received: Received) -> float:
+    stamp = received[2]
+    return math.inf if stamp is None else stamp
 
 
 class UdpListen(_Udp):
     """``udp://HOST:PORT``: listen; reply only to the locked autopilot address."""
 
-    def __init__(self, host: str, port: int) -> None:
-        super().__init__((host, port))
+    def __init__(self, host: str, port: int, *, steer: bool = False) -> None:
+        super().__init__((host, port), steer=steer)
         self._peer: Address | None = None
 
     def lock_to(self, address: Address) -> None:
@@ -281,13 +361,24 @@ class UdpListen(_Udp):
 class UdpOut(_Udp):
     """``udpout://HOST:PORT``: send there; datagrams from elsewhere are foreign."""
 
-    def __init__(self, host: str, port: int) -> None:
-        super().__init__(None)
-        self.fixed_peer = (socket.gethostbyname(host), port)
+    def __init__(self, host: str, port: int, *, steer: bool = False) -> None:
+        peer = (socket.gethostbyname(host), port)
+        # Steered: both sockets take one free port on the address the peer is reached
+        # from, as the first send would give one.
+        super().__init__((_local_address_to(peer), 0) if steer else None, steer=steer)
+        self.fixed_peer = peer
 
     def send(self, data: bytes) -> None:
         assert self.fixed_peer is not None
         self._sock.sendto(data, self.fixed_peer)
+
+
+def _local_address_to(peer: Address) -> str:
+    """The local address datagrams to ``peer`` leave from (a connected UDP socket is
+    routed at once; nothing is sent)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.connect(peer)
+        return str(probe.getsockname()[0])
 
 
 class TcpClient(Transport):
@@ -377,15 +468,16 @@ class SerialPort(Transport):
         self._port.close()
 
 
-def open_transport(connection: str) -> Transport:
-    """Open the transport an ``AutopilotSpec.connection`` URL names."""
+def open_transport(connection: str, *, steer: bool = False) -> Transport:
+    """Open the transport an ``AutopilotSpec.connection`` URL names; ``steer``: a UDP
+    link gets an urgent socket where the kernel can steer (:mod:`roost_agent.steering`)."""
     device = pymavlink_device(connection)
     kind, _, rest = device.device.partition(":")
     host, _, port = rest.rpartition(":")
     if kind == "udpin":
-        return UdpListen(host, int(port))
+        return UdpListen(host, int(port), steer=steer)
     if kind == "udpout":
-        return UdpOut(host, int(port))
+        return UdpOut(host, int(port), steer=steer)
     if kind == "tcp":
         return TcpClient(host, int(port))
     if kind == "tcpin":
@@ -564,6 +656,7 @@ class _Session:
     accepted_at_open: int = 0
     link: AutopilotLink | None = None
     fd: int = -1  # the descriptor the reader selects on
+    urgent_fd: int | None = None  # a steered link's urgent socket (it selects on it too)
     arrived: float = float("-inf")  # the time given to the last datagram read
 
 
@@ -610,16 +703,27 @@ class LinkReader:
         self._stopping = False
         self._thread: threading.Thread | None = None
         self._tick: Callable[[], float | None] | None = None
-        self._tick_s = 0.0
+        self._tick_s = self._short_tick_s = self._steered_tick_s = 0.0
         self._urgent = False
 
-    def drive(self, tick: Callable[[], float | None], tick_s: float) -> None:
+    def drive(
+        self, tick: Callable[[], float | None], tick_s: float, steered_tick_s: float | None = None
+    ) -> None:
         """Run ``tick`` on the reader thread every ``tick_s`` (and at once when :meth:`poke`
         d), right after reading: the agent's decision loop. Every datagram that arrived by
         then is read first, so one wake-up per tick serves reading and deciding. ``tick``
         returns when (``time.monotonic``) it is next due sooner than that, if it is.
+        While every link read is steered (an urgent socket wakes the reader for what must
+        be read at once: :mod:`roost_agent.steering`), the interval is ``steered_tick_s``.
         Call before :meth:`start`."""
-        self._tick, self._tick_s = tick, tick_s
+        self._tick, self._short_tick_s = tick, tick_s
+        self._steered_tick_s = tick_s if steered_tick_s is None else steered_tick_s
+        self._tick_s = tick_s
+
+    @property
+    def tick_s(self) -> float:
+        """The read interval now (it depends on whether every link read is steered)."""
+        return self._tick_s
 
     def poke(self) -> None:
         """Tick as soon as possible (from any thread; on the reader thread: after reading)."""
@@ -663,6 +767,11 @@ class LinkReader:
         self._sessions[fd] = session
         session.fd = fd
         self._selector.register(fd, selectors.EVENT_READ, session)
+        session.urgent_fd = session.transport.urgent_fileno()
+        if session.urgent_fd is not None:  # wakes the reader whether it hurries or not
+            self._selector.register(session.urgent_fd, selectors.EVENT_READ, session)
+            self._idle.register(session.urgent_fd, selectors.EVENT_READ, session)
+        self._choose_interval()
 
     def detach(self, session: _Session) -> None:
         """Stop reading ``session`` (reader thread only; closing it is the caller's)."""
@@ -671,6 +780,17 @@ class LinkReader:
                 del self._sessions[fd]
                 with contextlib.suppress(KeyError, ValueError):
                     self._selector.unregister(fd)
+        if session.urgent_fd is not None:
+            for selector in (self._selector, self._idle):
+                with contextlib.suppress(KeyError, ValueError):
+                    selector.unregister(session.urgent_fd)
+            session.urgent_fd = None
+        self._choose_interval()
+
+    def _choose_interval(self) -> None:
+        sessions = self._sessions.values()
+        steered = bool(sessions) and all(s.urgent_fd is not None for s in sessions)
+        self._tick_s = self._steered_tick_s if steered else self._short_tick_s
 
     def _wake(self) -> None:
         with contextlib.suppress(OSError):  # already awake (full), or closing
@@ -715,11 +835,13 @@ class LinkReader:
             self.detach(session)
 
     def _read(self, ready: list[tuple[selectors.SelectorKey, int]]) -> None:
+        drained: set[int] = set()  # a steered link can be ready on both of its sockets
         for key, _ in ready:
             session = key.data
             if session is None:
                 self._run_calls()
-            else:
+            elif id(session) not in drained:
+                drained.add(id(session))
                 self._drain(session)
 
     def _drain(self, session: _Session) -> None:
@@ -934,7 +1056,7 @@ class AutopilotLink:
     # -- reading ---------------------------------------------------------------------
 
     def _open(self) -> _Session:
-        transport = open_transport(self.spec.connection)
+        transport = open_transport(self.spec.connection, steer=True)
         try:
             peer = configured_peer(self.spec.connection)
             relock_s = self.tracker.thresholds.heartbeat_error_ms / 1000
@@ -961,13 +1083,9 @@ class AutopilotLink:
 
     def _drain(self, session: _Session) -> None:
         """Read what the transport has (up to :data:`DRAIN_MAX`); failures propagate."""
-        transport = session.transport
         stamps = self._stamps
         offset = recent_realtime_offset() if stamps else 0.0
-        for _ in range(DRAIN_MAX):
-            data, sender, stamp = transport.receive_stamped()
-            if not data:
-                return
+        for data, sender, stamp in session.transport.receive_batch(DRAIN_MAX):
             now = self._clock()
             if stamp is not None and stamps:
                 arrived = stamp - offset
