@@ -513,6 +513,12 @@ class Agent:
         """The vehicle the agent flies (its spec's ``vehicleName``)."""
         return self._cfg.spec.vehicle_name
 
+    @property
+    def read_interval_s(self) -> float:
+        """How long the bulk of the autopilots' streams may wait to be read now: the
+        steered interval while every link is steered, the short one otherwise."""
+        return self._reader.tick_s
+
     def failovers(self) -> list[FailoverEvent]:
         """Switches since start, oldest first (the last ``FAILOVER_HISTORY``)."""
         with self._lock:
@@ -527,7 +533,7 @@ class Agent:
             return self._current_assessments()
 
     def _current_assessments(self) -> dict[str, Assessment]:
-        links, now = self._cfg.links, self._clock()
+        links, now = self._cfg.links, self._reader.as_of(self._clock())
         return {n: links[n].tracker.assess(now) for n in self._assessments if n in links}
 
     def subscribe(self, listener: Listener) -> Callable[[], None]:

@@ -279,6 +279,11 @@ class _Udp(Transport):
     def urgent_fileno(self) -> int | None:
         return None if self.urgent is None else self.urgent.fileno()
 
+    def local_address(self) -> Address:
+        """Where this link receives (host, port)."""
+        host, port = self._sock.getsockname()[:2]
+        return str(host), int(port)
+
     def receive(self) -> tuple[bytes, Address | None]:
         try:
             data, address = self._sock.recvfrom(UDP_MAX)
@@ -705,6 +710,9 @@ class LinkReader:
         self._tick: Callable[[], float | None] | None = None
         self._tick_s = self._short_tick_s = self._steered_tick_s = 0.0
         self._urgent = False
+        # When (time.monotonic) the last read of every link began: what had arrived by
+        # then has been read (the ticking loop only).
+        self._read_at = -math.inf
 
     def drive(
         self, tick: Callable[[], float | None], tick_s: float, steered_tick_s: float | None = None
@@ -724,6 +732,16 @@ class LinkReader:
     def tick_s(self) -> float:
         """The read interval now (it depends on whether every link read is steered)."""
         return self._tick_s
+
+    def as_of(self, now: float) -> float:
+        """The time a health judgement made at ``now`` (``time.monotonic``) outside the
+        decision loop stands for: the start of the last read, as what arrived since is
+        not read yet, so a message age does not grow by up to a read interval between
+        reads. Never more than one read interval before ``now``: a stalled reader's
+        links still age."""
+        if self._thread is None or self._tick is None:
+            return now
+        return max(min(now, self._read_at), now - self._tick_s)
 
     def poke(self) -> None:
         """Tick as soon as possible (from any thread; on the reader thread: after reading)."""
@@ -887,10 +905,13 @@ class LinkReader:
         while not self._stopping:
             timeout = min(self._run_timers(), max(0.0, next_tick - time.monotonic()))
             if self.hurry():
-                self._read(self._select(self._selector, timeout))
+                ready = self._select(self._selector, timeout)
+                self._read_at = time.monotonic()
+                self._read(ready)
             else:
                 if timeout > 0 and not self._urgent:
                     self._read(self._select(self._idle, timeout))
+                self._read_at = time.monotonic()
                 self._drain_ready()
             now = time.monotonic()
             if now >= next_tick or self._urgent:

@@ -21,7 +21,8 @@ from typing import Any
 import pytest
 import yaml
 
-from roost_agent import Agent
+from roost_agent import Agent, links
+from roost_agent.agent import STEERED_TICK_S
 from roost_agent.bridge import SimulatedBridge
 from roost_agent.state import STATE_FILE_NAME, StateFile
 from roost_api.autopilot import (
@@ -70,6 +71,7 @@ def flying(
     transport: str = "udp",
     final_action: FinalAction = FinalAction.LAND,
     thresholds: Thresholds | None = None,
+    steered_tick_s: float = STEERED_TICK_S,
 ) -> Iterator[Flight]:
     """Sims started and airborne, an agent watching them, every standby ready.
 
@@ -88,7 +90,7 @@ def flying(
         spec = make_spec(sims, final_action, thresholds)
         bridge = SimulatedBridge(range(len(sims)))
         state_path = tmp_path / STATE_FILE_NAME
-        agent = Agent(spec, bridge, state_file=StateFile(state_path))
+        agent = Agent(spec, bridge, state_file=StateFile(state_path), steered_tick_s=steered_tick_s)
         agent.start()
         take_off(sims)
         names = [s.name for s in sims]
@@ -172,6 +174,47 @@ def test_fault_on_active_switches_bridge_and_runs_safety_routine(
         assert_held_then_landed(flight, "fc2", injected)
         assert flight.agent_commands("fc1", injected) == []
         assert len(flight.agent.failovers()) == 1
+
+
+# Far longer than the test waits: with no urgent socket the reader would not wake for
+# the fatal heartbeat, nor for the answers to the safety routine's commands, in that time.
+RARE_READ_S = 60.0
+
+
+@pytest.mark.parametrize("transport", ["udp", "udpout"])
+def test_a_fatal_heartbeat_and_command_answers_are_read_when_they_arrive(
+    tmp_path: Path, transport: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The kernel steers heartbeats and COMMAND_ACKs to the urgent socket
+    (roost_agent.steering). With the bulk read interval at a minute, a heartbeat claiming
+    EMERGENCY still wakes the reader, the claim is settled by the frames after it (read
+    soon after, as a claim waits) and the switch follows; the safety routine's first
+    command is answered within its 0.4 s wait, so it is sent once, not retried. (The
+    reader's longest sleep is raised to the same minute: nothing else wakes it.)"""
+    monkeypatch.setattr(links, "READ_WAIT_S", RARE_READ_S)
+    with flying(
+        ["px4", "px4"], tmp_path, transport=transport, steered_tick_s=RARE_READ_S
+    ) as flight:
+        assert flight.agent.read_interval_s == RARE_READ_S  # every link is steered
+        injected = time.monotonic()
+        flight.sim("fc1").inject(FaultKind.STATE, "EMERGENCY")
+        (event,) = wait_until("a failover", flight.agent.failovers, 10, POLL_S)
+        assert "MAV_STATE EMERGENCY" in event.record.reason
+        assert event.switched_at >= injected
+        assert flight.bridge.selected == 1
+        first = wait_until(
+            "the safety routine's first command",
+            lambda: flight.agent_commands("fc2", injected)[:1],
+            10,
+            POLL_S,
+        )[0]
+        time.sleep(1.0)  # past the routine's 0.4 s answer wait and its retry gap
+        again = [
+            c
+            for c in flight.agent_commands("fc2", injected)
+            if (c.command, c.params) == (first.command, first.params)
+        ]
+        assert (first.result, len(again)) == (0, 1), again
 
 
 # A heartbeat pause this long misses two or three heartbeats (a gap of 2.8-3.8 s, with the

@@ -1,0 +1,165 @@
+"""The kernel steers a UDP link's datagrams: heartbeats and command answers to the urgent
+socket, the bulk to the other (roost_agent.steering), and the link reads both in order.
+
+Real sockets on 127.0.0.1 and the real kernel: the BPF program runs where it will run in
+the agent. Skipped where the kernel cannot steer (not Linux).
+"""
+
+from __future__ import annotations
+
+import errno
+import select
+import socket
+import sys
+from collections.abc import Iterator
+
+import pytest
+
+from roost_agent.links import UdpListen, UdpOut
+from roost_agent.steering import (
+    COMMAND_ACK,
+    HEARTBEAT,
+    MAX_FRAMES,
+    _assemble,
+    _Op,
+    steered_sockets,
+    urgent_program,
+)
+from roost_mavlink.codec import Encoder
+from roost_mavlink.signing import sign_frame
+
+pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="steering is Linux's")
+
+ENCODER = Encoder(1, 1)
+HEARTBEAT_FRAME = ENCODER.encode(
+    "HEARTBEAT", type=2, autopilot=12, base_mode=0, custom_mode=0, system_status=4,
+    mavlink_version=3,
+)  # fmt: skip
+ACK_FRAME = ENCODER.encode("COMMAND_ACK", command=400, result=0)
+ATTITUDE_FRAME = ENCODER.encode(
+    "ATTITUDE", time_boot_ms=1, roll=0, pitch=0, yaw=0, rollspeed=0, pitchspeed=0, yawspeed=0
+)
+# MAVLink 1: magic, length 9, seq, sysid, compid, id 0, then payload and CRC (not checked
+# by the kernel: the link checks every frame after reading it).
+V1_HEARTBEAT = bytes((0xFE, 9, 0, 1, 1, 0)) + bytes(11)
+V1_ATTITUDE = bytes((0xFE, 28, 0, 1, 1, 30)) + bytes(30)
+
+
+@pytest.fixture
+def pair() -> Iterator[tuple[socket.socket, socket.socket, socket.socket, int]]:
+    bulk, urgent = steered_sockets(("127.0.0.1", 0))
+    sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        yield bulk, urgent, sender, bulk.getsockname()[1]
+    finally:
+        for sock in (bulk, urgent, sender):
+            sock.close()
+
+
+def landed_on(pair: tuple[socket.socket, socket.socket, socket.socket, int], data: bytes) -> str:
+    bulk, urgent, sender, port = pair
+    sender.sendto(data, ("127.0.0.1", port))
+    ready, _, _ = select.select([bulk, urgent], [], [], 5.0)
+    assert len(ready) == 1, ready
+    assert ready[0].recv(65535) == data
+    return "urgent" if ready[0] is urgent else "bulk"
+
+
+SIGNED_ATTITUDE = sign_frame(ATTITUDE_FRAME, bytes(32), 0, 1)
+
+
+@pytest.mark.parametrize(
+    ("data", "expected"),
+    [
+        pytest.param(HEARTBEAT_FRAME, "urgent", id="heartbeat"),
+        pytest.param(ACK_FRAME, "urgent", id="command-ack"),
+        pytest.param(ATTITUDE_FRAME, "bulk", id="attitude"),
+        pytest.param(V1_HEARTBEAT, "urgent", id="mavlink1-heartbeat"),
+        pytest.param(V1_ATTITUDE, "bulk", id="mavlink1-attitude"),
+        pytest.param(ATTITUDE_FRAME * 3 + HEARTBEAT_FRAME, "urgent", id="heartbeat-fourth"),
+        pytest.param(V1_ATTITUDE + ACK_FRAME, "urgent", id="v1-then-v2-ack"),
+        pytest.param(SIGNED_ATTITUDE + HEARTBEAT_FRAME, "urgent", id="after-a-signed-frame"),
+        pytest.param(
+            ATTITUDE_FRAME * (MAX_FRAMES - 1) + HEARTBEAT_FRAME, "urgent", id="last-frame-looked-at"
+        ),
+        pytest.param(ATTITUDE_FRAME * MAX_FRAMES + HEARTBEAT_FRAME, "bulk", id="beyond-max-frames"),
+        pytest.param(b"\x00garbage" + HEARTBEAT_FRAME, "bulk", id="garbage-first"),
+        pytest.param(HEARTBEAT_FRAME[:5], "bulk", id="truncated-header"),
+        pytest.param(b"\xfd", "bulk", id="magic-only"),
+        # An id whose low byte is a heartbeat's (256) is not a heartbeat.
+        pytest.param(bytes((0xFD, 0, 0, 0, 0, 1, 1, 0, 1, 0, 0, 0)), "bulk", id="id-256"),
+    ],
+)
+def test_the_kernel_steers_by_message_id(
+    pair: tuple[socket.socket, socket.socket, socket.socket, int], data: bytes, expected: str
+) -> None:
+    assert landed_on(pair, data) == expected
+
+
+def test_a_program_with_jumps_too_long_is_refused_when_built() -> None:
+    far = [_Op(0x15, 1, jt="end"), *[_Op(0x04, 1) for _ in range(300)], _Op(0x06, 0, label="end")]
+    with pytest.raises(ValueError, match="out of range"):
+        _assemble(far)
+    with pytest.raises(ValueError, match="below 256"):
+        urgent_program([HEARTBEAT, COMMAND_ACK, 300])
+
+
+def test_a_port_in_use_is_refused_as_a_single_socket_would_be() -> None:
+    holder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    holder.bind(("127.0.0.1", 0))
+    try:
+        with pytest.raises(OSError) as refused:
+            steered_sockets(holder.getsockname())
+        assert refused.value.errno == errno.EADDRINUSE
+    finally:
+        holder.close()
+    first = UdpListen("127.0.0.1", 0, steer=True)
+    try:  # a second agent on the same port cannot join the first one's group
+        with pytest.raises(OSError) as refused:
+            UdpListen("127.0.0.1", first.local_address()[1], steer=True)
+        assert refused.value.errno == errno.EADDRINUSE
+    finally:
+        first.close()
+
+
+def test_a_steered_link_reads_both_sockets_in_arrival_order() -> None:
+    """Claims are settled by the sequence numbers of the frames after them, so a
+    heartbeat read from the urgent socket must not jump the telemetry sent before it."""
+    listener = UdpListen("127.0.0.1", 0, steer=True)
+    sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        urgent = listener.urgent_fileno()
+        assert urgent is not None
+        port = listener.local_address()[1]
+        sent = [ATTITUDE_FRAME, ATTITUDE_FRAME, HEARTBEAT_FRAME, ATTITUDE_FRAME, ACK_FRAME]
+        sent = [frame + bytes((n,)) for n, frame in enumerate(sent)]  # tell them apart
+        for data in sent:
+            sender.sendto(data, ("127.0.0.1", port))
+        select.select([listener.fileno()], [], [], 5.0)
+        select.select([urgent], [], [], 5.0)
+        received = listener.receive_batch(256)
+        assert [data for data, _, _ in received] == sent
+        stamps = [stamp for _, _, stamp in received if stamp is not None]
+        assert len(stamps) == len(sent)
+        assert stamps == sorted(stamps)
+    finally:
+        listener.close()
+        sender.close()
+
+
+def test_a_udpout_link_is_steered_on_the_address_its_peer_is_reached_from() -> None:
+    peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    peer.bind(("127.0.0.1", 0))
+    out = UdpOut("127.0.0.1", peer.getsockname()[1], steer=True)
+    try:
+        urgent = out.urgent_fileno()
+        assert urgent is not None
+        out.send(b"hello")
+        _, source = peer.recvfrom(64)
+        assert source[0] == "127.0.0.1"
+        peer.sendto(HEARTBEAT_FRAME, source)
+        ready, _, _ = select.select([out.fileno(), urgent], [], [], 5.0)
+        assert ready == [urgent]
+    finally:
+        out.close()
+        peer.close()
