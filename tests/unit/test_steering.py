@@ -15,6 +15,7 @@ from collections.abc import Iterator
 
 import pytest
 
+from roost_agent import links
 from roost_agent.links import UdpListen, UdpOut
 from roost_agent.steering import (
     COMMAND_ACK,
@@ -163,3 +164,25 @@ def test_a_udpout_link_is_steered_on_the_address_its_peer_is_reached_from() -> N
     finally:
         out.close()
         peer.close()
+
+
+def test_where_the_kernel_refuses_to_steer_a_link_keeps_one_socket(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    def refuse(bind: tuple[str, int]) -> tuple[socket.socket, socket.socket]:
+        raise OSError(errno.ENOPROTOOPT, "Protocol not available")
+
+    monkeypatch.setattr(links, "steered_sockets", refuse)
+    monkeypatch.setattr(links, "_STEERING_WORKS", [True])
+    listener = UdpListen("127.0.0.1", 0, steer=True)
+    try:
+        assert listener.urgent_fileno() is None
+        assert "does not steer" in caplog.text
+        sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sender.sendto(HEARTBEAT_FRAME, listener.local_address())
+        select.select([listener.fileno()], [], [], 5.0)
+        assert [data for data, _, _ in listener.receive_batch(8)] == [HEARTBEAT_FRAME]
+        sender.close()
+    finally:
+        listener.close()
+    assert links._STEERING_WORKS == [False]  # asked once per process, not per link
