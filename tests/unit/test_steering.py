@@ -11,6 +11,7 @@ import errno
 import select
 import socket
 import sys
+import time
 from collections.abc import Iterator
 
 import pytest
@@ -136,8 +137,12 @@ def test_a_steered_link_reads_both_sockets_in_arrival_order() -> None:
         sent = [frame + bytes((n,)) for n, frame in enumerate(sent)]  # tell them apart
         for data in sent:
             sender.sendto(data, ("127.0.0.1", port))
+            # Loopback may deliver from another CPU's backlog: a gap keeps the arrival
+            # order the sending order, which the stamps then record.
+            time.sleep(0.005)
         select.select([listener.fileno()], [], [], 5.0)
         select.select([urgent], [], [], 5.0)
+        time.sleep(0.1)  # every datagram delivered (the kernel may defer delivery)
         received = listener.receive_batch(256)
         assert [data for data, _, _ in received] == sent
         stamps = [stamp for _, _, stamp in received if stamp is not None]
