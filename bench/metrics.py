@@ -68,7 +68,7 @@ def run() -> list[Figure]:
     scraper = threading.Thread(target=hammer, daemon=True)
     scraper.start()
     try:
-        detect, _ = failover_cycles(FAILOVERS, ("--metrics-port", str(port)))
+        detect = failover_cycles(FAILOVERS, ("--metrics-port", str(port))).detect_ms
     finally:
         stop.set()
         scraper.join()

@@ -17,7 +17,7 @@ from collections.abc import Iterator
 import pytest
 
 from roost_agent import links
-from roost_agent.links import UdpListen, UdpOut
+from roost_agent.links import LinkReader, SourceLock, UdpListen, UdpOut, _Session
 from roost_agent.steering import (
     COMMAND_ACK,
     HEARTBEAT,
@@ -29,6 +29,7 @@ from roost_agent.steering import (
 )
 from roost_mavlink.codec import Encoder
 from roost_mavlink.signing import sign_frame
+from tests.support.waiting import wait_until
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="steering is Linux's")
 
@@ -191,3 +192,41 @@ def test_where_the_kernel_refuses_to_steer_a_link_keeps_one_socket(
     finally:
         listener.close()
     assert links._STEERING_WORKS == [False]  # asked once per process, not per link
+
+
+def test_the_reader_reads_rarely_only_while_every_link_is_steered() -> None:
+    reader = LinkReader()
+    reader.drive(lambda: None, 0.02, 0.1)
+    steered = UdpListen("127.0.0.1", 0, steer=True)
+    plain = UdpListen("127.0.0.1", 0)
+    first = _Session(steered, SourceLock(relock_after_s=1.0), None)
+    second = _Session(plain, SourceLock(relock_after_s=1.0), None)
+    try:
+        assert reader.tick_s == 0.02  # nothing to read yet
+        reader.attach(first)
+        assert reader.tick_s == 0.1
+        reader.attach(second)  # a link nothing wakes the reader for
+        assert reader.tick_s == 0.02
+        reader.detach(second)
+        assert reader.tick_s == 0.1
+        reader.detach(first)
+        assert (first.urgent_fd, reader.tick_s) == (None, 0.02)
+    finally:
+        steered.close()
+        plain.close()
+
+
+def test_health_judged_between_reads_stands_for_the_last_read() -> None:
+    """Status and metrics judge at any time; what arrived since the last read is not read
+    yet, so the judgement is as of that read, but never more than one interval back."""
+    reader = LinkReader()
+    assert reader.as_of(100.0) == 100.0  # not reading: now is now
+    reader.drive(lambda: None, 0.02, 0.1)
+    reader.start()
+    try:
+        wait_until("a read", lambda: time.monotonic() - reader.as_of(time.monotonic()) < 0.05)
+        now = time.monotonic()
+        assert now - reader.tick_s <= reader.as_of(now) <= now
+        assert reader.as_of(now + 60.0) == now + 60.0 - reader.tick_s  # a stalled reader
+    finally:
+        reader.stop()
