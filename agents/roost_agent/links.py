@@ -300,7 +300,8 @@ class _Udp(Transport):
     def receive_batch(self, limit: int) -> list[Received]:
         """Up to ``limit`` datagrams in arrival order. Steered: the urgent socket is read
         before and after the bulk, and whatever it held is merged in by arrival stamp;
-        anything arriving on either socket after that read is later than all of these."""
+        once the bulk is read to its end, anything arriving on either socket after that
+        read is later than all of these."""
         urgent = self.urgent
         if urgent is None or not self._stamped:
             return super().receive_batch(limit)
@@ -701,9 +702,16 @@ class LinkReader:
         self._calls: deque[tuple[Callable[[], None], threading.Event]] = deque()
         self._timers: list[tuple[float, int, Callable[[], None]]] = []
         self._timer_serial = 0
-        # While nothing hurries it, the reader sleeps on the wake-up socket alone.
+        # While nothing hurries it, the reader sleeps on the wake-up socket and the
+        # steered links' urgent sockets; for the short interval after an urgent socket
+        # woke it, on the wake-up socket alone (_calls_only): a sender flooding the
+        # urgent socket (heartbeats are easy to forge) cannot make it wake more often
+        # than the unsteered reader would.
         self._idle = selectors.DefaultSelector()
         self._idle.register(self._wake_r, selectors.EVENT_READ, None)
+        self._calls_only = selectors.DefaultSelector()
+        self._calls_only.register(self._wake_r, selectors.EVENT_READ, None)
+        self._urgent_quiet_until = -math.inf
         self._sessions: dict[int, _Session] = {}
         self._stopping = False
         self._thread: threading.Thread | None = None
@@ -760,6 +768,7 @@ class LinkReader:
             self._thread.join(timeout=2)
         self._selector.close()
         self._idle.close()
+        self._calls_only.close()
         self._wake_r.close()
         self._wake_w.close()
 
@@ -897,6 +906,18 @@ class LinkReader:
             if self.batch_s > 0 and not self._calls and not self.hurry():
                 time.sleep(self.batch_s)
 
+    def _sleep(self, timeout: float) -> None:
+        """Wait up to ``timeout`` for a call, a timer or an urgent datagram (urgent
+        datagrams at most once per short interval), reading what woke the reader."""
+        now = time.monotonic()
+        if now < self._urgent_quiet_until:
+            self._read(self._select(self._calls_only, min(timeout, self._urgent_quiet_until - now)))
+            return
+        ready = self._select(self._idle, timeout)
+        if any(key.data is not None for key, _ in ready):
+            self._urgent_quiet_until = time.monotonic() + self._short_tick_s
+        self._read(ready)
+
     def _serve_ticking(self, tick: Callable[[], float | None]) -> None:
         """Read and decide: wake for the next tick (for data too while hurried), read
         everything that arrived, then tick when due or poked; the next tick is
@@ -910,7 +931,7 @@ class LinkReader:
                 self._read(ready)
             else:
                 if timeout > 0 and not self._urgent:
-                    self._read(self._select(self._idle, timeout))
+                    self._sleep(timeout)
                 self._read_at = time.monotonic()
                 self._drain_ready()
             now = time.monotonic()

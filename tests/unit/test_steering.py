@@ -11,6 +11,7 @@ import errno
 import select
 import socket
 import sys
+import threading
 import time
 from collections.abc import Iterator
 
@@ -230,3 +231,52 @@ def test_health_judged_between_reads_stands_for_the_last_read() -> None:
         assert reader.as_of(now + 60.0) == now + 60.0 - reader.tick_s  # a stalled reader
     finally:
         reader.stop()
+
+
+class _CountingLink:
+    """Stands in for an AutopilotLink: counts the reader's drains and empties the socket."""
+
+    def __init__(self) -> None:
+        self.drains = 0
+
+    def _drain(self, session: _Session) -> None:
+        self.drains += 1
+        session.transport.receive_batch(1 << 16)
+
+
+def test_a_flood_of_forged_heartbeats_wakes_the_reader_no_more_than_the_short_interval() -> None:
+    """Heartbeats are easy to forge, and each one lands on the urgent socket: the reader
+    still wakes at most about twice per short interval (the urgent wake, and the read at
+    the end of the quiet time after it), not once per datagram."""
+    reader = LinkReader()
+    short_s = 0.02
+    reader.drive(lambda: None, short_s, 60.0)
+    listener = UdpListen("127.0.0.1", 0, steer=True)
+    link = _CountingLink()
+    session = _Session(listener, SourceLock(relock_after_s=1.0), None)
+    session.link = link  # type: ignore[assignment]
+    flooding = threading.Event()
+    sent = [0]
+
+    def flood() -> None:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
+            while not flooding.is_set():
+                sender.sendto(HEARTBEAT_FRAME, listener.local_address())
+                sent[0] += 1
+                time.sleep(0.0002)
+
+    flooder = threading.Thread(target=flood)
+    reader.start()
+    try:
+        reader.call(lambda: reader.attach(session))
+        started, before = time.monotonic(), link.drains
+        flooder.start()
+        time.sleep(0.5)
+        flooding.set()
+        flooder.join()
+        elapsed, drains = time.monotonic() - started, link.drains - before
+    finally:
+        reader.stop()
+        listener.close()
+    assert sent[0] > 4 * elapsed / short_s  # many more datagrams than short intervals
+    assert drains <= 2 * elapsed / short_s + 5, (drains, sent[0])
