@@ -106,7 +106,14 @@ DRAIN_MAX = 256  # datagrams read from one transport per wake-up
 # (Linux turns arrival stamping on globally a moment after the first socket asks for it;
 # until then a datagram's stamp is its read time, which is what an unstamped read gets.)
 BATCH_S = 0.005
-STAMP_SLACK_S = 0.1  # a kernel timestamp older than the read by more is not trusted
+# A kernel arrival stamp older than the read by more is taken as only this old. Stamps
+# are CLOCK_REALTIME: a step of the wall clock between two offset readings shifts them,
+# and a shift backwards makes every message look older than it is. This bounds that to
+# 0.1 s (a silence is 0.2 s). A datagram really older than this (the bulk of a steered
+# link waits up to a 0.1 s read interval, a loaded machine oversleeps) is judged a few
+# milliseconds younger than it is, never a whole interval: taking the read time instead
+# would delay a silence by the interval.
+STAMP_SLACK_S = 0.1
 OFFSET_TRIES = 3
 OFFSET_TIGHT_S = 1e-4  # two clock reads this close together were not interrupted
 
@@ -1131,10 +1138,10 @@ class AutopilotLink:
             now = self._clock()
             if stamp is not None and stamps:
                 arrived = stamp - offset
-                if now - STAMP_SLACK_S <= arrived < now:
-                    # never before an earlier datagram's time (one read after a stall longer
-                    # than the slack got the read time)
-                    now = max(arrived, session.arrived)
+                if arrived < now:  # a stamp after the read is not believed at all
+                    # never before an earlier datagram's time, nor more than the slack
+                    # before the read
+                    now = max(arrived, now - STAMP_SLACK_S, session.arrived)
             session.arrived = now
             self._datagram(session, data, sender, now)
 

@@ -436,13 +436,17 @@ def _until_the_kernel_stamps_arrivals(timeout_s: float = 5.0) -> None:
     raise AssertionError("the kernel never stamped a datagram on arrival")
 
 
+@pytest.mark.parametrize("later_than_slack", [False, True])
 def test_a_datagram_read_late_keeps_its_kernel_arrival_time(
-    monkeypatch: pytest.MonkeyPatch,
+    monkeypatch: pytest.MonkeyPatch, later_than_slack: bool
 ) -> None:
     """The reader reads once per tick; the health tracker must see when a message arrived
-    (the kernel's receive timestamp), not when it was read. The slack beyond which a
-    stamp is distrusted is widened here: a loaded machine may oversleep the 50 ms."""
-    monkeypatch.setattr(links, "STAMP_SLACK_S", 10.0)
+    (the kernel's receive timestamp), not when it was read. Read 50 ms late with the
+    slack widened (a loaded machine may oversleep the 50 ms): its arrival. Read 300 ms
+    late, beyond the slack: the slack before the read, never the read time (which would
+    delay a silence by the whole wait)."""
+    if not later_than_slack:
+        monkeypatch.setattr(links, "STAMP_SLACK_S", 10.0)
     from pymavlink.dialects.v20 import common  # noqa: PLC0415
 
     autopilot_socket = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -468,12 +472,17 @@ def test_a_datagram_read_late_keeps_its_kernel_arrival_time(
         descriptors = [session.transport.fileno(), *([] if urgent is None else [urgent])]
         assert select.select(descriptors, [], [], 5.0)[0]
         delivered = time.monotonic()
-        time.sleep(0.05)
+        time.sleep(0.3 if later_than_slack else 0.05)
+        read_from = time.monotonic()
         link._drain(session)
+        read_until = time.monotonic()
         beat = link.heartbeat()
         assert beat is not None
-        # arrival (within the clock conversion's rounding), not the read 50 ms later
-        assert sent_at - 0.001 <= beat[2] <= delivered + 0.001
+        if later_than_slack:
+            slack = links.STAMP_SLACK_S
+            assert read_from - slack - 0.001 <= beat[2] <= read_until - slack + 0.001
+        else:  # arrival (within the clock conversion's rounding), not the read 50 ms later
+            assert sent_at - 0.001 <= beat[2] <= delivered + 0.001
     finally:
         link._close()
         autopilot_socket.close()
