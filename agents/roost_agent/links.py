@@ -953,6 +953,11 @@ class LinkReader:
                 next_tick = now + self._tick_s
                 if due is not None and now < due < next_tick:
                     next_tick = due
+                elif due is not None and due <= now:
+                    # A decision the tick waits for is already due (the active failed,
+                    # and no standby was a target yet): look again as soon as an
+                    # unsteered reader would, not a whole steered interval later.
+                    next_tick = now + self._short_tick_s
 
 
 class AutopilotLink:
