@@ -343,8 +343,9 @@ class HealthTracker:
         """Record one message from this autopilot received at ``now``.
 
         Returns True when a fact the arbiter acts on changed (MAV_STATE, arming, landed
-        state, sensor health, a reboot), so the caller can wake the decision loop at once
-        instead of waiting for its next tick.
+        state, sensor health, a reboot) or a silence ended, so the caller can wake the
+        decision loop at once instead of waiting for its next tick (a standby's time
+        free of failures starts when it is heard again, not a read interval later).
 
         Runs for every message the autopilot sends (hundreds a second): the bulk of the
         stream only updates its arrival time, counts, ``time_boot_ms`` and sequence
@@ -364,11 +365,13 @@ class HealthTracker:
             judged = o.claim is not None or o.boot_advanced_at is None or kind in _JUDGED_KINDS
             before = _judged(o, th) if judged else None
             last_at = o.last_at
+            silence_ended = last_at is not None and (now - last_at) * 1000 >= th.message_error_ms
             if last_at is None:
                 o.first_at = o.window_start = now
-            elif (now - last_at) * 1000 >= th.message_error_ms:
+            elif silence_ended:
                 # A silence ends: what is judged only while messages come (frozen
-                # telemetry) may apply from this message on.
+                # telemetry) may apply from this message on, and the decision loop
+                # should see the autopilot back now (its time free of failures starts).
                 o.version += 1
             o.last_at = now
             counts = o.counts
@@ -390,7 +393,7 @@ class HealthTracker:
                 changed = read(self, msg, now) or changed
             if judged and _judged(o, th) != before:
                 o.version += 1
-            return changed
+            return changed or silence_ended
 
     def _close_rate_window(self, now: float) -> None:
         """End the message-rate window at ``now`` (once a second)."""

@@ -751,12 +751,12 @@ class LinkReader:
     def as_of(self, now: float) -> float:
         """The time a health judgement made at ``now`` (``time.monotonic``) outside the
         decision loop stands for: the start of the last read, as what arrived since is
-        not read yet, so a message age does not grow by up to a read interval between
-        reads. Never more than one read interval before ``now``: a stalled reader's
-        links still age."""
+        not read yet, so a message age does not grow between reads, nor while a loaded
+        machine runs the reader late. Never more than :data:`READ_WAIT_S` before
+        ``now``: the links of a reader stalled longer than that still age."""
         if self._thread is None or self._tick is None:
             return now
-        return max(min(now, self._read_at), now - self._tick_s)
+        return max(min(now, self._read_at), now - READ_WAIT_S)
 
     def poke(self) -> None:
         """Tick as soon as possible (from any thread; on the reader thread: after reading)."""

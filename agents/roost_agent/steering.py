@@ -41,8 +41,19 @@ import struct
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
-HEARTBEAT = 0
-COMMAND_ACK = 77
+from roost_mavlink.codec import (
+    CRC_BYTES,
+    IFLAG_SIGNED,
+    SIGNATURE_BYTES,
+    V1_HEADER,
+    V1_MAGIC,
+    V2_HEADER,
+    V2_MAGIC,
+    message,
+)
+
+HEARTBEAT = message("HEARTBEAT").id
+COMMAND_ACK = message("COMMAND_ACK").id
 URGENT_MESSAGES: tuple[int, ...] = (HEARTBEAT, COMMAND_ACK)
 MAX_FRAMES = 8  # frames of one datagram the program looks at
 SO_ATTACH_REUSEPORT_CBPF = 51  # Linux, include/uapi/asm-generic/socket.h
@@ -59,11 +70,8 @@ _JSET_K = 0x45  # A & k ? jt : jf
 _RET_K = 0x06  # return k
 _INSTRUCTION = struct.Struct("=HBBI")
 
-V2_MAGIC, V1_MAGIC = 0xFD, 0xFE
-V2_OVERHEAD = 12  # header 10 + CRC 2
-V1_OVERHEAD = 8  # header 6 + CRC 2
-SIGNATURE_LEN = 13
-INCOMPAT_SIGNED = 0x01
+V2_OVERHEAD = V2_HEADER + CRC_BYTES
+V1_OVERHEAD = V1_HEADER + CRC_BYTES
 
 
 @dataclass(frozen=True)
@@ -91,9 +99,9 @@ def _frame_ops(i: int, ids: Sequence[int]) -> list[_Op]:
         _Op(_LDB_IND, 7, label=v2_low),
         *[_Op(_JEQ_K, msg_id, jt="urgent", jf=None) for msg_id in ids],
         _Op(_LDB_IND, 2, label=step2),
-        _Op(_JSET_K, INCOMPAT_SIGNED, jt=f"signed_{i}", jf=f"unsigned_{i}"),
+        _Op(_JSET_K, IFLAG_SIGNED, jt=f"signed_{i}", jf=f"unsigned_{i}"),
         _Op(_LDB_IND, 1, label=f"signed_{i}"),
-        _Op(_ADD_K, V2_OVERHEAD + SIGNATURE_LEN),
+        _Op(_ADD_K, V2_OVERHEAD + SIGNATURE_BYTES),
         _Op(_JA, jt=step),
         _Op(_LDB_IND, 1, label=f"unsigned_{i}"),
         _Op(_ADD_K, V2_OVERHEAD),

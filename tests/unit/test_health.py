@@ -741,3 +741,15 @@ def test_consecutive_lost_heartbeats_at_the_defaults(
     seen.append(v.tracker.assess(math.nextafter(gap_s, 0.0)))  # just before it arrives
     worst = max((a.level for a in seen), key=lambda lv: lv.rank)
     assert worst == level, [a.reasons for a in seen if a.level == worst][:1]
+
+
+def test_the_first_message_after_a_silence_tells_the_decision_loop() -> None:
+    """The arbiter's time free of failures for an autopilot starts at the tick that sees
+    it OK: the message that ends a silence wakes the loop, as a changed fact does."""
+    v = Vehicle()
+    v.fly(2.0)
+    v.t += TH.message_error_ms / 1000 + 0.1  # silent past the error threshold
+    assert v.at(0.0).level == ERROR
+    assert v.attitude_changes() is True  # heard again
+    v.t += 0.01
+    assert v.attitude_changes() is False  # and then nothing new

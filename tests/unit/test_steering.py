@@ -219,7 +219,7 @@ def test_the_reader_reads_rarely_only_while_every_link_is_steered() -> None:
 
 def test_health_judged_between_reads_stands_for_the_last_read() -> None:
     """Status and metrics judge at any time; what arrived since the last read is not read
-    yet, so the judgement is as of that read, but never more than one interval back."""
+    yet, so the judgement is as of that read, but never more than half a second back."""
     reader = LinkReader()
     assert reader.as_of(100.0) == 100.0  # not reading: now is now
     reader.drive(lambda: None, 0.02, 0.1)
@@ -227,8 +227,8 @@ def test_health_judged_between_reads_stands_for_the_last_read() -> None:
     try:
         wait_until("a read", lambda: time.monotonic() - reader.as_of(time.monotonic()) < 0.05)
         now = time.monotonic()
-        assert now - reader.tick_s <= reader.as_of(now) <= now
-        assert reader.as_of(now + 60.0) == now + 60.0 - reader.tick_s  # a stalled reader
+        assert now - links.READ_WAIT_S <= reader.as_of(now) <= now
+        assert reader.as_of(now + 60.0) == now + 60.0 - links.READ_WAIT_S  # a stalled reader
     finally:
         reader.stop()
 
