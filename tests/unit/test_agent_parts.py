@@ -7,7 +7,6 @@ import json
 import os
 import select
 import socket
-import struct
 import subprocess
 import sys
 import tempfile
@@ -29,6 +28,7 @@ from roost_api.autopilot import CommandResult, RedundantAutopilotSpec, Threshold
 from roost_api.meta import Stack
 from roost_mavlink import AGENT_COMPONENT_ID
 from roost_sim import free_udp_port
+from tests.support.kernelstamps import until_the_kernel_stamps_arrivals
 from tests.support.waiting import wait_until
 
 SPEC = RedundantAutopilotSpec.model_validate(
@@ -412,30 +412,6 @@ def _connected(port: int) -> socket.socket | None:
         return None
 
 
-def _until_the_kernel_stamps_arrivals(timeout_s: float = 5.0) -> None:
-    """Linux turns arrival stamping on (a global switch) a little after the first socket
-    asks for SO_TIMESTAMPNS; until then a datagram is stamped when it is read. Wait until
-    a probe datagram read 20 ms after it was sent carries the earlier time."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        probe.setsockopt(socket.SOL_SOCKET, links.SO_TIMESTAMPNS, 1)
-        probe.bind(("127.0.0.1", 0))
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            probe.sendto(b"probe", probe.getsockname())
-            time.sleep(0.02)
-            _, ancillary, _, _ = probe.recvmsg(64, 64)
-            read_at = time.time()
-            stamps = [
-                seconds + nanoseconds * 1e-9
-                for level, kind, value in ancillary
-                if level == socket.SOL_SOCKET and kind == links.SO_TIMESTAMPNS
-                for seconds, nanoseconds in [struct.unpack("qq", value[:16])]
-            ]
-            if stamps and read_at - stamps[0] > 0.01:
-                return
-    raise AssertionError("the kernel never stamped a datagram on arrival")
-
-
 @pytest.mark.parametrize("later_than_slack", [False, True])
 def test_a_datagram_read_late_keeps_its_kernel_arrival_time(
     monkeypatch: pytest.MonkeyPatch, later_than_slack: bool
@@ -459,7 +435,7 @@ def test_a_datagram_read_late_keeps_its_kernel_arrival_time(
     link = AutopilotLink(spec, HealthTracker("fc1", Stack.PX4, Thresholds()))
     session = link._open()
     try:
-        _until_the_kernel_stamps_arrivals()
+        until_the_kernel_stamps_arrivals()
         mav = common.MAVLink(None, srcSystem=1, srcComponent=1)
         sent_at = time.monotonic()
         autopilot_socket.sendto(

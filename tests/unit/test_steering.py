@@ -30,6 +30,7 @@ from roost_agent.steering import (
 )
 from roost_mavlink.codec import Encoder
 from roost_mavlink.signing import sign_frame
+from tests.support.kernelstamps import until_the_kernel_stamps_arrivals
 from tests.support.waiting import wait_until
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="steering is Linux's")
@@ -134,6 +135,7 @@ def test_a_steered_link_reads_both_sockets_in_arrival_order() -> None:
     try:
         urgent = listener.urgent_fileno()
         assert urgent is not None
+        until_the_kernel_stamps_arrivals()  # before, a datagram is stamped when read
         port = listener.local_address()[1]
         sent = [ATTITUDE_FRAME, ATTITUDE_FRAME, HEARTBEAT_FRAME, ATTITUDE_FRAME, ACK_FRAME]
         sent = [frame + bytes((n,)) for n, frame in enumerate(sent)]  # tell them apart
