@@ -170,10 +170,12 @@ def steered_sockets(bind: Address) -> tuple[socket.socket, socket.socket]:
     :func:`urgent_program`; raises OSError where the kernel cannot steer.
 
     A port already in use is refused, as a single socket's bind would be: a plain socket
-    binds it first, since members of a reuseport group would let another agent in."""
-    if bind[1]:
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-            probe.bind(bind)
+    binds it first, since members of a reuseport group would let another agent in. For
+    port 0 the plain socket picks the port too: the kernel would give a reuseport socket
+    a port another reuseport group of the same user holds, and join that group."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(bind)
+        bind = (bind[0], int(probe.getsockname()[1]))
     bulk = _member(bind)
     try:
         urgent = _member((bind[0], bulk.getsockname()[1]))

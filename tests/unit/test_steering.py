@@ -282,3 +282,17 @@ def test_a_flood_of_forged_heartbeats_wakes_the_reader_no_more_than_the_short_in
         listener.close()
     assert sent[0] > 4 * elapsed / short_s  # many more datagrams than short intervals
     assert drains <= 2 * elapsed / short_s + 5, (drains, sent[0])
+
+
+def test_steered_pairs_on_port_zero_never_join_another_group() -> None:
+    """Autobinding a reuseport socket may pick a port another group of the same user
+    holds (and join that group); two links would then share one pair's datagrams."""
+    pairs = [steered_sockets(("127.0.0.1", 0)) for _ in range(200)]
+    try:
+        ports = [bulk.getsockname()[1] for bulk, _ in pairs]
+        assert len(set(ports)) == len(ports)
+        assert all(urgent.getsockname()[1] == bulk.getsockname()[1] for bulk, urgent in pairs)
+    finally:
+        for bulk, urgent in pairs:
+            bulk.close()
+            urgent.close()
