@@ -25,9 +25,9 @@ frame past :data:`MAX_FRAMES`) goes to the bulk socket: the steering only decide
 soon a datagram is read, never whether it is, and every datagram still passes the
 link's source lock, CRC and signature checks after it is read.
 
-Order: the two sockets are read together and merged by arrival stamp
-(:class:`SteeredUdp`), because claims are settled by the sequence numbers of the frames
-that follow them (:mod:`roost_agent.health`).
+Order: the two sockets are read together and merged by arrival stamp (the UDP
+transport's ``receive_batch`` in :mod:`roost_agent.links`), because claims are settled
+by the sequence numbers of the frames that follow them (:mod:`roost_agent.health`).
 
 Linux only; elsewhere, and where the kernel refuses the program, a link keeps one
 socket and the reader the short read interval.
@@ -154,6 +154,9 @@ def _assemble(ops: list[_Op]) -> bytes:
     return b"".join(out)
 
 
+_PROGRAM = urgent_program()  # the same for every link: built once
+
+
 def attach(sock: socket.socket, program: bytes) -> None:
     """Attach ``program`` to the reuseport group ``sock`` belongs to."""
     count = len(program) // _INSTRUCTION.size
@@ -183,7 +186,7 @@ def steered_sockets(bind: Address) -> tuple[socket.socket, socket.socket]:
         bulk.close()
         raise
     try:
-        attach(bulk, urgent_program())
+        attach(bulk, _PROGRAM)
     except BaseException:
         bulk.close()
         urgent.close()
