@@ -3,11 +3,14 @@ MAVProxy, false failovers under loss and jitter, CPU time and resident memory.
 
 How it measures: the simulated autopilots (``roost_sim``) run in this process and the
 agent runs as its own process (``roost-agent``, standalone, simulated bridge), as on a
-vehicle. The agent prints every failover as a JSON line that carries CLOCK_MONOTONIC
-timestamps (``time.monotonic()`` is that clock in every process on one host), so a fault
-onset taken here when the fault is injected and the bridge switch taken there are
-compared directly. Commands (ClearLatch, Switch) reach the agent the standalone way: a
-new ``command`` in its config file and SIGHUP.
+vehicle. The agent is the build the image ships: its per-message path compiled by mypyc
+(``tests.support.compiled``); ``agent.cpu_ms_per_10k_msgs_interpreted`` measures the same
+agent from the checkout's Python modules, for comparison. The agent prints every failover
+as a JSON line that carries CLOCK_MONOTONIC timestamps (``time.monotonic()`` is that
+clock in every process on one host), so a fault onset taken here when the fault is
+injected and the bridge switch taken there are compared directly. Commands (ClearLatch,
+Switch) reach the agent the standalone way: a new ``command`` in its config file and
+SIGHUP.
 
 Knobs (environment): ``ROOST_BENCH_FAILOVERS`` (failovers for the latency figures,
 default 100), ``ROOST_BENCH_HEARTBEAT_FAILOVERS`` (default 12), ``ROOST_BENCH_PEER_SAMPLES``
@@ -58,6 +61,8 @@ from roost_sim import (
 )
 from roost_sim.streams import PX4_STREAMS
 from tests.support.agent import AgentProcess
+from tests.support.compiled import compiled_tree
+from tests.support.compiled import environment as compiled_environment
 from tests.support.flight import take_off
 
 FAILOVERS = int(os.environ.get("ROOST_BENCH_FAILOVERS", "100"))
@@ -385,9 +390,35 @@ def _soak_note(th: Thresholds, soak: Soak) -> str:
     )
 
 
+def _set_environment(values: dict[str, str | None]) -> None:
+    for name, value in values.items():
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value
+
+
+_BEFORE_COMPILED: dict[str, str | None] = {}
+"""The variables :func:`run` changed to run the compiled build, as they were before."""
+
+
+@contextmanager
+def _interpreted() -> Iterator[None]:
+    """Agents started inside run from the checkout's Python modules, not compiled ones."""
+    compiled = {name: os.environ.get(name) for name in _BEFORE_COMPILED}
+    _set_environment(_BEFORE_COMPILED)
+    try:
+        yield
+    finally:
+        _set_environment(compiled)
+
+
 def cpu_figures() -> list[Figure]:
     cpu_ms, rss_mb, rate = cpu_and_memory()
     load2 = _load()
+    with _interpreted():
+        interpreted_ms, _, interpreted_rate = cpu_and_memory()
+    load_interpreted = _load()
     cpu3_ms, rss3_mb, rate3 = cpu_and_memory(("px4", "px4", "px4"))
     load3 = _load()
     return [
@@ -400,8 +431,18 @@ def cpu_figures() -> list[Figure]:
             f"roost-agent process user+system CPU over {CPU_S:.0f} s at {rate:.0f} msg/s (two "
             "sims at PX4 onboard-like rates), including its decision loop (the bulk read every "
             f"{STEERED_TICK_S * 1000:.0f} ms; heartbeats and command answers, steered to an "
-            f"urgent socket, at once) and a status line per second; 1-min load {load2} "
-            "(2 cores shared)",
+            f"urgent socket, at once) and a status line per second; the image's build (codec, "
+            f"links and health compiled by mypyc); 1-min load {load2} (2 cores shared)",
+        ),
+        Figure(
+            "agent.cpu_ms_per_10k_msgs_interpreted",
+            round(interpreted_ms, 1),
+            "ms",
+            "",
+            COMMAND,
+            "as agent.cpu_ms_per_10k_msgs, measured right after it, with the agent running from "
+            f"the checkout's Python modules (nothing compiled): {interpreted_rate:.0f} msg/s; "
+            f"1-min load {load_interpreted}",
         ),
         Figure(
             "agent.cpu_ms_per_10k_msgs_3_autopilots",
@@ -630,6 +671,10 @@ def run() -> list[Figure]:
     unknown = sorted(set(SELECTED) - set(parts))
     if unknown:
         raise SystemExit(f"ROOST_BENCH_AGENT_PARTS: unknown {', '.join(unknown)} (of {PARTS})")
+    # Every agent started from here on runs the image's compiled build.
+    compiled = compiled_environment(compiled_tree())
+    _BEFORE_COMPILED.update({name: os.environ.get(name) for name in compiled})
+    os.environ.update(compiled)
     figures: list[Figure] = []
     for name in PARTS:
         if name in SELECTED:

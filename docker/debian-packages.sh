@@ -4,8 +4,9 @@
 #
 #   docker/debian-packages.sh COMMAND=PACKAGE ...
 #
-# Each argument names a command and the Debian package that provides it; the package is
-# installed only when the command is not on PATH (a warm run touches nothing). Installing
+# Each argument names a command (or, starting with /, a file) and the Debian package that
+# provides it; the package is installed only when the command is not on PATH or the file
+# does not exist (a warm run touches nothing). Installing
 # needs root (or sudo without a password) and apt-get; without them the script names what
 # is missing and exits 1, so callers can skip with that message.
 set -euo pipefail
@@ -14,7 +15,11 @@ missing=()
 for spec in "$@"; do
   cmd=${spec%%=*}
   pkg=${spec#*=}
-  command -v "$cmd" >/dev/null 2>&1 || missing+=("$pkg")
+  if [[ $cmd == /* ]]; then
+    [[ -e $cmd ]] || missing+=("$pkg")
+  else
+    command -v "$cmd" >/dev/null 2>&1 || missing+=("$pkg")
+  fi
 done
 [[ ${#missing[@]} -eq 0 ]] && exit 0
 

@@ -11,6 +11,7 @@ import pytest
 from roost_kube.client import Kube
 from roost_localcluster.cluster import Cluster, FakeNodes
 from roost_localcluster.controlplane import DATASTORES, ControlPlane, Settings
+from tests.support.compiled import check_compiled_imports
 from tests.support.operator import OperatorProcess
 
 
@@ -24,8 +25,22 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     )
 
 
-def pytest_report_header(config: pytest.Config) -> str:
-    return f"control-plane datastore: {config.getoption('--datastore')}"
+_COMPILED_MODULES = pytest.StashKey[list[str]]()
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """A run against Roost's compiled build (``ROOST_COMPILED_TREE``) proves it is one."""
+    try:
+        config.stash[_COMPILED_MODULES] = check_compiled_imports()
+    except RuntimeError as error:
+        raise pytest.UsageError(str(error)) from error
+
+
+def pytest_report_header(config: pytest.Config) -> list[str]:
+    lines = [f"control-plane datastore: {config.getoption('--datastore')}"]
+    if compiled := config.stash.get(_COMPILED_MODULES, []):
+        lines.append(f"compiled (mypyc): {', '.join(compiled)}")
+    return lines
 
 
 @pytest.fixture(autouse=True)
@@ -44,11 +59,17 @@ def _no_collector_pause() -> None:
     gc.freeze()
 
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Every test that uses the control plane is marked ``cluster`` (run/skip as a group)."""
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Every test that uses the control plane is marked ``cluster`` (run/skip as a group);
+    against the compiled build, tests marked ``interpreted_only`` are skipped."""
+    compiled = config.stash.get(_COMPILED_MODULES, [])
     for item in items:
         if "cluster" in getattr(item, "fixturenames", ()):
             item.add_marker(pytest.mark.cluster)
+        if compiled and item.get_closest_marker("interpreted_only"):
+            item.add_marker(
+                pytest.mark.skip(reason="a stand-in in a class the compiled build makes native")
+            )
 
 
 @pytest.fixture(scope="session")

@@ -721,7 +721,7 @@ class LinkReader:
         self._urgent_quiet_until = -math.inf
         self._sessions: dict[int, _Session] = {}
         self._stopping = False
-        self._thread: threading.Thread | None = None
+        self._serving_thread: threading.Thread | None = None
         self._tick: Callable[[], float | None] | None = None
         self._tick_s = self._short_tick_s = self._steered_tick_s = 0.0
         self._urgent = False
@@ -754,25 +754,25 @@ class LinkReader:
         not read yet, so a message age does not grow between reads, nor while a loaded
         machine runs the reader late. Never more than :data:`READ_WAIT_S` before
         ``now``: the links of a reader stalled longer than that still age."""
-        if self._thread is None or self._tick is None:
+        if self._serving_thread is None or self._tick is None:
             return now
         return max(min(now, self._read_at), now - READ_WAIT_S)
 
     def poke(self) -> None:
         """Tick as soon as possible (from any thread; on the reader thread: after reading)."""
         self._urgent = True
-        if threading.current_thread() is not self._thread:
+        if threading.current_thread() is not self._serving_thread:
             self._wake()
 
     def start(self) -> None:
-        self._thread = threading.Thread(target=self._serve, name=self._name, daemon=True)
-        self._thread.start()
+        self._serving_thread = threading.Thread(target=self._serve, name=self._name, daemon=True)
+        self._serving_thread.start()
 
     def stop(self) -> None:
         self._stopping = True
         self._wake()
-        if self._thread is not None:
-            self._thread.join(timeout=2)
+        if self._serving_thread is not None:
+            self._serving_thread.join(timeout=2)
         self._selector.close()
         self._idle.close()
         self._calls_only.close()
@@ -781,7 +781,7 @@ class LinkReader:
 
     def call(self, fn: Callable[[], None], timeout_s: float = 2.0) -> None:
         """Run ``fn`` on the reader thread and wait for it (at once when already there)."""
-        thread = self._thread
+        thread = self._serving_thread
         if thread is None or threading.current_thread() is thread or not thread.is_alive():
             fn()
             return

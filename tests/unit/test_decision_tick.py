@@ -135,6 +135,7 @@ ROWS: list[tuple[str, list[Fault], str]] = [
 ]
 
 
+@pytest.mark.interpreted_only  # counts full ticks by wrapping HealthTracker.assess
 @pytest.mark.parametrize(("what", "faults", "active"), ROWS, ids=[r[0] for r in ROWS])
 def test_skipped_ticks_decide_what_full_ticks_decide(
     what: str, faults: list[Fault], active: str
@@ -148,6 +149,7 @@ def test_skipped_ticks_decide_what_full_ticks_decide(
     assert skipping.full_ticks < full.ticks / 2  # most ticks of these flights skip
 
 
+@pytest.mark.interpreted_only  # counts full ticks by wrapping HealthTracker.assess
 def test_a_silent_active_autopilot_is_judged_at_its_threshold_without_any_message() -> None:
     """fc1's last message arrives at 2.98 s. Nothing from fc1 arrives after it; the
     switch comes at the first tick past message_error_ms (200 ms) plus confirm_ms

@@ -1,0 +1,73 @@
+"""The agent's suites, run again against the build the image ships.
+
+The image's wheel has the agent's per-message path compiled by mypyc (``setup.py``). A
+compiled module checks its annotations at run time and its classes refuse attributes
+they do not declare, so a wrong annotation on the message path would drop messages in
+the image while the interpreted checkout passed every test. This test builds that wheel
+(``docker/build-images.sh --compiled-tree``, cached), then runs the suites that drive the
+compiled modules in a pytest of their own with the compiled build first on
+``PYTHONPATH``; ``tests/conftest.py`` fails that run unless each compiled module really
+imports from it. Tests that put stand-ins into a compiled class are marked
+``interpreted_only`` and skip there.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from roost_localcluster.binaries import REPO_ROOT
+from tests.support.compiled import compiled_modules, compiled_tree, environment
+
+SUITES = (
+    # the compiled modules' own tests
+    "tests/unit/test_mavlink_codec.py",
+    "tests/unit/test_health.py",
+    "tests/unit/test_steering.py",
+    "tests/unit/test_link_lock_and_signing.py",
+    "tests/unit/test_capture_replay.py",
+    # their callers: the agent's parts, its decisions, its routine, its outputs
+    "tests/unit/test_agent_parts.py",
+    "tests/unit/test_arbiter.py",
+    "tests/unit/test_decision_tick.py",
+    "tests/unit/test_claims.py",
+    "tests/unit/test_autopilot_failover_decisions.py",
+    "tests/unit/test_safety_routine.py",
+    "tests/unit/test_streams.py",
+    "tests/unit/test_hub_routing.py",
+    "tests/unit/test_agent_metrics.py",
+    "tests/unit/test_agent_telemetry.py",
+    # the agent as a process, over real UDP, against simulated autopilots
+    "tests/integration/test_agent_failover.py",
+    "tests/integration/test_firmware_truth.py",
+    "tests/integration/test_link_trust.py",
+)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1500)
+def test_the_agent_suites_pass_against_the_compiled_build() -> None:
+    tree = compiled_tree()
+    assert {"roost_mavlink.codec", "roost_agent.health", "roost_agent.links"} <= set(
+        compiled_modules(tree)
+    )
+    run = subprocess.run(
+        [sys.executable, "-m", "pytest", "-p", "no:cacheprovider", *SUITES],
+        cwd=REPO_ROOT,
+        env={**_without_pytest_state(), **environment(tree)},
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=1500,
+    )
+    report = run.stdout[-6000:] + run.stderr[-2000:]
+    assert run.returncode == 0, report
+    assert "compiled (mypyc): " in run.stdout, report  # the header tests/conftest.py writes
+
+
+def _without_pytest_state() -> dict[str, str]:
+    """This process's environment without what pytest set for its own run."""
+    return {k: v for k, v in os.environ.items() if not k.startswith("PYTEST_")}
