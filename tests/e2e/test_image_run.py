@@ -3,7 +3,8 @@
 The OCI archives ``make images`` exports are loaded into a fresh podman image store and
 run with a read-only root filesystem and no network: the agent prints its usage, both
 run as the non-root uid the chart expects, the modules each entry point needs import
-from the image's ahead-of-time bytecode, and no file in the image keeps a setuid or
+from the image's ahead-of-time bytecode, the agent's per-message path is the compiled
+one, and no file in the image keeps a setuid or
 setgid bit. Skipped where buildah/podman are not installed (``make images`` installs
 them on Debian; other systems need a container engine for ``make e2e-kind`` instead).
 """
@@ -95,6 +96,23 @@ def test_image_modules_import_from_bytecode_on_a_read_only_root(
     done = store.run(images["agent"], "-c", probe, entrypoint="python3")
     assert done.stdout.strip() == "V1Node", done.stderr
     assert "Read-only file system" in done.stderr, done.stderr
+
+
+def test_agent_image_runs_the_compiled_per_message_path(
+    podman: tuple[Podman, dict[str, str]],
+) -> None:
+    """The modules every MAVLink datagram passes through import as extension modules
+    (setup.py compiles them for the image), and the parser works in them."""
+    store, images = podman
+    probe = (
+        "import roost_mavlink.codec as c, roost_agent.links as l, roost_agent.health as h;"
+        "print(*(m.__file__.rsplit('.', 1)[-1] for m in (c, l, h)));"
+        "f = c.Encoder(1, 1).encode('HEARTBEAT', type=2, autopilot=12, base_mode=0,"
+        " custom_mode=0, system_status=4, mavlink_version=3);"
+        "(frame,), used = c.scan(f); print(frame.get_type(), used == len(f))"
+    )
+    done = store.run(images["agent"], "-c", probe, entrypoint="python3")
+    assert done.stdout.split() == ["so", "so", "so", "HEARTBEAT", "True"], done.stdout + done.stderr
 
 
 def test_image_has_no_setuid_files(podman: tuple[Podman, dict[str, str]]) -> None:
