@@ -241,6 +241,7 @@ class SimulatedAutopilot:
         self._telemetry = Telemetry(self._mav, self.stack, sysid, self.config)
         self._commands: list[CommandRecord] = []
         self._unhandled: Counter[str] = Counter()
+        self._heartbeats_heard: Counter[tuple[int, int]] = Counter()
         self._silent = False
         self._frozen: View | None = None
         self._reboot_at: float | None = None
@@ -391,6 +392,13 @@ class SimulatedAutopilot:
         """Current stream rates in Hz by message id (requested or the flavour's default)."""
         with self._lock:
             return {k: v for k, v in self._streams.rates.items() if v > 0}
+
+    @property
+    def heartbeats_heard(self) -> dict[tuple[int, int], int]:
+        """HEARTBEATs received, by sender (system, component): a real autopilot watches
+        these for its companion-computer and ground-station failsafes."""
+        with self._lock:
+            return dict(self._heartbeats_heard)
 
     @property
     def unhandled_messages(self) -> dict[str, int]:
@@ -805,7 +813,10 @@ class SimulatedAutopilot:
                     self.config.throttle = min(1.0, max(0.0, (raw - 1000) / 1000.0))
                 elif raw == 0:
                     self.config.throttle = None
-            elif kind != "HEARTBEAT":
+            elif kind == "HEARTBEAT":
+                # what a real autopilot's companion / ground-station failsafe watches
+                self._heartbeats_heard[msg.get_srcSystem(), msg.get_srcComponent()] += 1
+            else:
                 self._unhandled[kind] += 1
         for reply in replies:
             self._send(reply)

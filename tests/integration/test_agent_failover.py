@@ -32,6 +32,7 @@ from roost_api.autopilot import (
 )
 from roost_api.meta import HealthLevel, Stack
 from roost_mavlink import (
+    AGENT_COMPONENT_ID,
     MAV_CMD_DO_SET_MODE,
     MAV_CMD_NAV_LAND,
     ModeIntent,
@@ -305,6 +306,32 @@ def test_garbage_and_spoofed_traffic_never_cause_a_failover(tmp_path: Path, stac
         for sim in flight.sims:
             sim.clear()
         wait_until("both OK", lambda: all_ok(flight.agent, ["fc1", "fc2"]), 3, POLL_S)
+
+
+@pytest.mark.parametrize("transport", ["udp", "pty"])
+def test_every_autopilot_hears_the_agent_beat_while_the_reader_sleeps(
+    tmp_path: Path, transport: str
+) -> None:
+    """The agent's heartbeat (what an autopilot's companion failsafe watches) goes out
+    from the reader's thread between reads: on every link, once a second, while the
+    reader sleeps a whole steered interval between reads (udp) or reads every 20 ms
+    (serial)."""
+    with flying(["px4", "ardupilot"], tmp_path, transport=transport) as flight:
+        sysid = {a.name: a.sysid for a in flight.spec.autopilots}
+
+        def beats() -> dict[str, int]:
+            return {
+                sim.name: sim.heartbeats_heard.get((sysid[sim.name], AGENT_COMPONENT_ID), 0)
+                for sim in flight.sims
+            }
+
+        before = beats()
+        wait_until(
+            "three more heartbeats on every link",
+            lambda: all(beats()[name] >= count + 3 for name, count in before.items()),
+            10,
+            POLL_S,
+        )
 
 
 def test_serial_link_over_a_pseudo_terminal(tmp_path: Path) -> None:
