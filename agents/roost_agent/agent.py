@@ -17,11 +17,9 @@ Threads and why:
 - a worker runs the safety routine, landing orders and the emergency stop one at a time
   (a newer job supersedes an older one, nothing supersedes an emergency stop), so the
   decision loop never waits for an autopilot to answer;
-- the same reader thread, between reads, sends the agent's 1 Hz heartbeat on every link
-  and, every :data:`STREAM_CHECK_S`, lets each link's stream keeper
-  (:mod:`roost_agent.streams`) request the telemetry the health model needs. This used
-  to be a thread of its own, waking ten times a second: with the reader awake that often
-  anyway, the extra wake-ups were about an eighth of the agent's CPU;
+- a heartbeat thread sends the agent's 1 Hz heartbeat on every link and, on the same
+  beat (faster: every :data:`STREAM_CHECK_S`), lets each link's stream keeper
+  (:mod:`roost_agent.streams`) request the telemetry the health model needs;
 - a notifier delivers :class:`AgentEvent` objects to subscribers (the standalone JSON
   printer now, the Kubernetes publisher later) so a slow subscriber cannot stall a switch.
 
@@ -397,8 +395,6 @@ class Agent:
         self._last_failover: FailoverRecord | None = saved.last_failover if saved else None
         self._safety: SafetyProgress | None = saved.safety if saved else None
         self._keepers: dict[str, tuple[AutopilotLink, StreamKeeper]] = {}
-        self._next_beat = 0.0  # when the next heartbeat goes out (reader thread)
-        self._next_keep = 0.0  # when the stream keepers step next (reader thread)
         self._last_command: CommandResult | None = (
             next(reversed(self._processed.values())) if self._processed else None
         )
@@ -447,9 +443,13 @@ class Agent:
             self._hub.aux_standby(self._state.active)
         self._worker.start()
         self._resume_safety(cfg)
-        notifier = threading.Thread(target=self._notify_forever, name="event-notifier", daemon=True)
-        notifier.start()
-        self._threads.append(notifier)
+        for target, name in (
+            (self._heartbeat_forever, "agent-heartbeat"),
+            (self._notify_forever, "event-notifier"),
+        ):
+            thread = threading.Thread(target=target, name=name, daemon=True)
+            thread.start()
+            self._threads.append(thread)
         how = "restored from the state file" if self._restored else "primary"
         latch = ", latched" if self._state.latched else ""
         self._emit(
@@ -660,8 +660,7 @@ class Agent:
         if any(link.tracker.claim_pending for link in self._cfg.links.values()):
             soon = self._clock() + self._tick_s  # read the message that settles it soon
             due = soon if due is None else min(due, soon)
-        keep = self._keep_links()  # after the decision: a switch never waits for sends
-        return keep if due is None else min(due, keep)
+        return due
 
     def tick(self) -> float | None:
         """One decision: assess, step the arbiter, switch first, then everything else.
@@ -1100,24 +1099,20 @@ class Agent:
             except OSError:
                 log.exception("cannot write the state file %s", self._state_file.path)
 
-    def _keep_links(self) -> float:
-        """Send the heartbeat when due and step the stream keepers when due (reader
-        thread, after a tick); when either is due next."""
-        now = self._clock()
-        if now < self._next_keep:
-            return min(self._next_keep, self._next_beat)
-        links = self._cfg.links
-        if now >= self._next_beat:
-            self._next_beat = now + HEARTBEAT_PERIOD_S
+    def _heartbeat_forever(self) -> None:
+        next_beat = 0.0
+        while not self._stop.is_set():
+            links = self._cfg.links
+            if self._clock() >= next_beat:
+                next_beat = self._clock() + HEARTBEAT_PERIOD_S
+                for link in links.values():
+                    link.send_heartbeat()
             for link in links.values():
-                link.send_heartbeat()
-        for link in links.values():
-            try:
-                self._keep_streams(link)
-            except Exception:  # a stream request must never stop the heartbeats
-                log.exception("%s: stream keeping failed", link.name)
-        self._next_keep = now + STREAM_CHECK_S
-        return min(self._next_keep, self._next_beat)
+                try:
+                    self._keep_streams(link)
+                except Exception:  # a stream request must never stop the heartbeats
+                    log.exception("%s: stream keeping failed", link.name)
+            self._stop.wait(STREAM_CHECK_S)
 
     def _keep_streams(self, link: AutopilotLink) -> None:
         """Step this link's stream keeper and send what it asks for."""
