@@ -67,8 +67,8 @@ from roost_agent.arbiter import (
     SafetyPlan,
     SwitchBridge,
     Trigger,
-    deadline,
     handle_command,
+    next_due,
     settled,
     step,
 )
@@ -668,8 +668,9 @@ class Agent:
         A tick in which nothing can have changed returns at once (:meth:`_nothing_new`):
         most ticks of a healthy flight. Returns when, on this clock, the next decision is
         due even if no message arrives (None: nothing sooner than the next read): the
-        first health threshold any autopilot crosses while the arbiter is settled, the
-        end of a running confirm window otherwise.
+        first health threshold any autopilot crosses while the arbiter is settled, when
+        the arbiter may act next otherwise (:func:`~roost_agent.arbiter.next_due`: the end
+        of a confirm window, or of a standby's time free of failures).
         """
         cfg = self._cfg
         now = self._clock()
@@ -705,7 +706,7 @@ class Agent:
             due = min(link.tracker.next_threshold(assessments[n]) for n, link in cfg.links.items())
             return due + JUDGE_LATE_S
         self._settled_with = None
-        return deadline(self._state, cfg.policy)
+        return next_due(self._state, cfg.policy, now)
 
     def _nothing_new(
         self, cfg: _Running, now: float, in_step: Mapping[str, InStep]

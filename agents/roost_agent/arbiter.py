@@ -211,7 +211,7 @@ def _is_target(view: AutopilotView | None, state: ArbiterState, policy: Policy, 
         and not view.failing
         and view.flying
         and since is not None
-        and now - since >= policy.clear_s
+        and now >= since + policy.clear_s  # the sum next_due wakes at: no rounding between
     )
 
 
@@ -271,12 +271,34 @@ def settled(state: ArbiterState, views: Mapping[str, AutopilotView], policy: Pol
 
 
 def deadline(state: ArbiterState, policy: Policy) -> float | None:
-    """When :func:`step` would act with the views unchanged: the end of the confirm
-    window of a failing active autopilot (None: no such timer runs). The decision loop
-    ticks then, not at its next read, so a confirmed failure switches on time."""
+    """The end of the confirm window of a failing active autopilot (None: no such timer
+    runs): from then on :func:`step` switches to a target if there is one."""
     if not policy.automatic or state.failing_since is None:
         return None
     return state.failing_since + policy.confirm_s
+
+
+def next_due(state: ArbiterState, policy: Policy, now: float) -> float | None:
+    """When, after ``now``, :func:`step` may act with the views unchanged (None: not
+    before they change). The decision loop ticks then, not at its next read.
+
+    While a failing active autopilot's confirm window runs, its end. Once confirmed with
+    no standby a target yet, the earliest end of a standby's time free of failures
+    (T_off) still running: the standby becomes a target then, and a loop that waited for
+    its next read would switch up to a read interval late. A standby not free of
+    failures has no such time; hearing it again changes the views, which wakes the loop.
+    """
+    confirmed_at = deadline(state, policy)
+    if confirmed_at is None:
+        return None
+    if now < confirmed_at:
+        return confirmed_at
+    ends = (
+        since + policy.clear_s
+        for name, since in state.ok_since.items()
+        if name != state.active and name not in state.failed_from
+    )
+    return min((end for end in ends if end > now), default=None)
 
 
 def step(
@@ -369,7 +391,7 @@ def _failback(
         primary is None
         or primary.level != HealthLevel.OK
         or since is None
-        or now - since < policy.clear_s
+        or now < since + policy.clear_s
         or not on_ground
     ):
         return Decision(state)

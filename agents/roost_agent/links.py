@@ -954,9 +954,9 @@ class LinkReader:
                 if due is not None and now < due < next_tick:
                     next_tick = due
                 elif due is not None and due <= now:
-                    # A decision the tick waits for is already due (the active failed,
-                    # and no standby was a target yet): look again as soon as an
-                    # unsteered reader would, not a whole steered interval later.
+                    # A decision the tick waits for is already due (the tick ran late,
+                    # or the time it named passed while it ran): look again as soon as
+                    # an unsteered reader would, not a whole steered interval later.
                     next_tick = now + self._short_tick_s
 
 

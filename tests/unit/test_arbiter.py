@@ -31,6 +31,7 @@ from roost_agent.arbiter import (
     Trigger,
     deadline,
     handle_command,
+    next_due,
     step,
 )
 from roost_agent.arbiter import settled as step_settled
@@ -155,6 +156,85 @@ def test_the_deadline_is_the_end_of_the_confirm_window_and_switching_at_it_switc
     assert any(isinstance(a, SwitchBridge) for a in on_time.actions)
     assert on_time.state.active == "fc2" and deadline(on_time.state, pol) is None
     assert deadline(failing, policy(automatic=False)) is None  # manual: never acts alone
+
+
+# When the arbiter may act next with the views unchanged (the decision loop ticks then):
+# (case, state, now, due). fc1 active and failing since 5.0 unless said otherwise; a
+# standby's time free of failures (T_off, CLEAR = 1 s) ends at its ok_since + CLEAR.
+_FAILING = settled("fc1", "fc2")
+NEXT_DUE = [
+    ("healthy: nothing to wake for", settled("fc1", "fc1", "fc2"), 5.0, None),
+    (
+        "failing, confirm window running: its end",
+        replace(_FAILING, failing_since=5.0, ok_since={"fc2": 0.0}),
+        5.05,
+        5.0 + CONFIRM,
+    ),
+    (
+        "confirmed, the standby's T_off still running: its end",
+        replace(_FAILING, failing_since=5.0, ok_since={"fc2": 4.8}),
+        5.2,
+        4.8 + CLEAR,
+    ),
+    (
+        "confirmed, two standbys in T_off: the earlier end",
+        replace(_FAILING, failing_since=5.0, ok_since={"fc2": 4.9, "fc3": 4.7}),
+        5.2,
+        4.7 + CLEAR,
+    ),
+    (
+        "confirmed, no standby free of failures: not before the views change",
+        replace(_FAILING, failing_since=5.0, ok_since={}),
+        5.2,
+        None,
+    ),
+    (
+        "confirmed, T_off already over (the standby is no target for another reason)",
+        replace(_FAILING, failing_since=5.0, ok_since={"fc2": 1.0}),
+        5.2,
+        None,
+    ),
+    (
+        "confirmed, only a standby left this flight is in T_off: nothing",
+        replace(_FAILING, failing_since=5.0, ok_since={"fc2": 4.8}, failed_from=frozenset({"fc2"})),
+        5.2,
+        None,
+    ),
+    (
+        "the active's own T_off is no reason to wake",
+        replace(_FAILING, failing_since=5.0, ok_since={"fc1": 4.9}),
+        5.2,
+        None,
+    ),
+]
+
+
+@pytest.mark.parametrize(("case", "state", "now", "due"), NEXT_DUE, ids=[c[0] for c in NEXT_DUE])
+def test_next_due_is_when_the_arbiter_may_act_with_the_views_unchanged(
+    case: str, state: ArbiterState, now: float, due: float | None
+) -> None:
+    assert next_due(state, policy(("fc1", "fc2", "fc3")), now) == due, case
+    assert next_due(state, policy(("fc1", "fc2", "fc3"), automatic=False), now) is None
+
+
+def test_a_confirmed_failure_switches_at_the_end_of_the_standbys_t_off() -> None:
+    """The active fails while the standby's T_off runs: ticking only at next_due (no
+    message read in between), the switch comes at the very end of T_off, not a read
+    interval later (the landing ordered meanwhile is the active's, which it leaves)."""
+    pol = policy()
+    failing_views = views(view("fc1", ERROR), view("fc2"))
+    state = step(settled("fc1", "fc1"), views(view("fc1"), view("fc2")), pol, 4.5).state
+    state = step(state, failing_views, pol, 5.0).state  # fc1 fails; fc2 free since 4.5
+    now = next_due(state, pol, 5.0)
+    assert now == 5.0 + CONFIRM
+    confirmed = step(state, failing_views, pol, now)
+    # fc2 is not a target yet (its T_off runs until 5.5): the failing active lands
+    assert [type(a) for a in confirmed.actions] == [LandInPlace]
+    now = next_due(confirmed.state, pol, now)
+    assert now == 4.5 + CLEAR
+    assert step(confirmed.state, failing_views, pol, now - 1e-6).actions == ()
+    (switch,) = step(confirmed.state, failing_views, pol, now).actions
+    assert isinstance(switch, SwitchBridge) and switch.to_autopilot == "fc2"
 
 
 @pytest.mark.parametrize("level", [OK, WARN])
