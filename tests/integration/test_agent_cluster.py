@@ -3,9 +3,9 @@
 Every part is real: ``roost-agent`` processes (chart-style: ``NODE_NAME`` and a
 kubeconfig, no config file) supervise simulated autopilots (``roost_sim``, in this test
 process) over UDP; a ``roost-operator`` process reconciles Vehicles and the cluster side
-of failover; kube-apiserver/etcd store everything, the operator replaces the
-mavros Pods (bound to the vehicle's node) and kwok runs them on fake vehicle nodes. The API server is
-stopped and started for the partition tests.
+of failover; kube-apiserver/etcd store everything, the operator replaces the mavros
+Pods (bound to the vehicle's node) and kwok runs them on fake vehicle nodes. The API
+server is stopped and started for the partition tests.
 
 Each test flies a fresh vehicle (its own node, sims, agent, Vehicle and
 RedundantAutopilot). The agents report every 2 s and the operator calls a report stale
