@@ -443,6 +443,29 @@ def test_deleted_pods_come_back_and_disabled_components_go_away(
             if p["metadata"]["uid"] != pod["metadata"]["uid"]
         ],
     )
+    # An ended pod (here: vicon, as the kubelet reports an eviction) is replaced too.
+    (vicon,) = pods_of(kube, name, "vicon")
+    roost_crds.kubectl(
+        "patch",
+        "pod",
+        "-n",
+        NAMESPACE,
+        vicon["metadata"]["name"],
+        "--subresource=status",
+        "--type=merge",
+        "-p",
+        '{"status":{"phase":"Failed","reason":"Evicted","message":"the node ran out of memory"}}',
+    )
+    wait_until(
+        "a replacement vicon pod, Running",
+        lambda: [
+            p
+            for p in pods_of(kube, name, "vicon")
+            if p["metadata"]["uid"] != vicon["metadata"]["uid"]
+            and p["status"].get("phase") == "Running"
+        ],
+    )
+    wait_ready(kube, name)
     roost_crds.kubectl(
         "patch",
         "vehicle",
