@@ -228,6 +228,6 @@ def run() -> list[Figure]:
             "<= 2000",
             COMMAND,
             note=f"slowest of {len(to_mavros)}; p50 {statistics.median(to_mavros):.1f} ms; "
-            "bridge switch to mavros rolled out on the new FCU URL (50 ms polling)",
+            "bridge switch to the new mavros Pod Ready on the new FCU URL (50 ms polling)",
         ),
     ]
