@@ -12,9 +12,9 @@ automatic failover.
   the new ``activeAutopilot`` arriving on a watch held by this process — i.e. visible in
   the API to any client. p99 over the samples (with few samples, close to the maximum).
 - ``cluster.switch_to_mavros_ms``: from the same bridge switch until the vehicle's mavros
-  runs on the new autopilot: its config carries the new FCU URL, the mavros Deployment's
-  pod template carries that config and the rollout is complete (new pod available, kwok
-  playing the kubelet). The slowest of the samples. Polled every 50 ms.
+  runs on the new autopilot: its config carries the new FCU URL, and the new mavros Pod
+  (the operator deleted the old one first) carries that config and is Running and Ready
+  (kwok playing the kubelet). The slowest of the samples. Polled every 50 ms.
 
 Agent, operator, control plane and sims share this machine's two cores; the latch guard
 is raised for the run (``ROOST_FAILOVER_LATCH_AFTER``) because the vehicle deliberately
@@ -38,7 +38,7 @@ from bench.core import Figure
 from roost_api.autopilot import CommandAction
 from roost_api.commands import command_patch, new_command
 from roost_kube.client import Kube
-from roost_kube.resources import CONFIGMAPS, DEPLOYMENTS, REDUNDANT_AUTOPILOTS, VEHICLES
+from roost_kube.resources import CONFIGMAPS, PODS, REDUNDANT_AUTOPILOTS, VEHICLES
 from roost_localcluster import binaries
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import ControlPlane
@@ -134,7 +134,7 @@ def _apply_vehicle(cluster: Cluster, sims: list[SimulatedAutopilot]) -> None:
 
 def _mavros_on(kube: Kube, url: str) -> bool:
     config = kube.get(CONFIGMAPS, config_map_name(VEHICLE), NAMESPACE)
-    mavros = kube.get(DEPLOYMENTS, workload_name(VEHICLE, "mavros"), NAMESPACE)
+    mavros = kube.get(PODS, workload_name(VEHICLE, "mavros"), NAMESPACE)
     return mavros_follows(url, config, mavros)
 
 
@@ -228,6 +228,6 @@ def run() -> list[Figure]:
             "<= 2000",
             COMMAND,
             note=f"slowest of {len(to_mavros)}; p50 {statistics.median(to_mavros):.1f} ms; "
-            "bridge switch to mavros rolled out on the new FCU URL (50 ms polling)",
+            "bridge switch to the new mavros Pod Ready on the new FCU URL (50 ms polling)",
         ),
     ]

@@ -2,14 +2,14 @@
 
 A real control plane (``FLEET_SETTINGS``: sized for a thousand nodes) with one KWOK node
 per vehicle, and the operator as its own process, as the chart runs it. Each Vehicle has
-the default components (mavros, as a Deployment KWOK "runs") and no RedundantAutopilot,
+the default components (mavros, as a Pod KWOK "runs") and no RedundantAutopilot,
 so no agent writes anything: once the fleet is Ready, nothing changes in the cluster and
 any CPU the operator spends is its own overhead.
 
 - ``fleet.ready_<N>_s``: ``kubectl apply --server-side`` of N Vehicles (one request
   each, in ``APPLY_STREAMS`` kubectl processes at once, as ``xargs -P`` would; nodes
   already Ready) until every Vehicle's ``Ready`` condition is True (labels and taint on
-  its node, its ConfigMap, its mavros Deployment available). The Ready poll lists
+  its node, its ConfigMap, its mavros Pod Running and Ready). The Ready poll lists
   Vehicles every second. The note says how long the apply alone took and where the CPU
   went meanwhile, by program.
 - ``fleet.operator_rss_mb_<N>``: the operator's peak resident memory over the run.
@@ -19,12 +19,13 @@ any CPU the operator spends is its own overhead.
   ``roost_localcluster.kwoknodes``), so the window holds the steady trickle of node
   events a real fleet sends.
 - ``fleet.single_change_p99_s``: with the fleet idle, one Vehicle's spec changes (its
-  mavros image) until its Deployment carries the new image; p99 over ``CHANGES``.
+  mavros image) until its mavros Pod carries the new image (the operator deleted the
+  old pod and created the new one); p99 over ``CHANGES``.
 - ``fleet.control_plane_floor_<N>_s``: what the control plane alone needs for the same
   outcome. A fresh control plane of the same settings gets the same N nodes (with the
   labels the operator gave them) and, by the same ``kubectl apply`` streams, the very
-  ConfigMaps and Deployments the operator made, with no operator running; the figure is
-  apply → every Deployment available. No operator can make the fleet Ready sooner on
+  ConfigMaps and Pods the operator made (bound to their nodes), with no operator running;
+  the figure is apply → every Pod Running and Ready. No operator can make the fleet Ready sooner on
   this machine, so it is the yardstick for ``fleet.ready_<N>_s``.
 
 Sizes: ``ROOST_BENCH_FLEET`` (default 1000; ``1000,3000`` runs both, the larger one is
@@ -55,10 +56,11 @@ from bench.controlplane import FLEET_SETTINGS
 from bench.core import Figure
 from roost_api.wellknown import LABEL_VEHICLE
 from roost_kube.client import Kube
-from roost_kube.resources import CONFIGMAPS, DEPLOYMENTS, NODES, VEHICLES
+from roost_kube.resources import CONFIGMAPS, NODES, PODS, VEHICLES
 from roost_localcluster import binaries, nodes
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import ControlPlane, Settings
+from roost_operator.vehicles.desired import pod_state, workload_name
 from tests.support.operator import OperatorProcess
 from tests.support.waiting import wait_until
 
@@ -182,7 +184,7 @@ def _cpu_spent(before: dict[str, float]) -> str:
 
 
 def _single_changes(kube: Kube, count: int) -> list[float]:
-    """Change one Vehicle's mavros image at a time; seconds until its Deployment has it."""
+    """Change one Vehicle's mavros image at a time; seconds until its mavros Pod has it."""
     seconds: list[float] = []
     for attempt in range(CHANGES):
         index = (attempt * 37) % count
@@ -193,12 +195,9 @@ def _single_changes(kube: Kube, count: int) -> list[float]:
         kube.merge_patch(VEHICLES, name, patch)
 
         def rolled(name: str = name, image: str = image) -> bool:
-            return any(
-                c.get("image") == image
-                for deployment in kube.list_objects(
-                    DEPLOYMENTS, namespace=NAMESPACE, labels={LABEL_VEHICLE: name}
-                )
-                for c in deployment["spec"]["template"]["spec"]["containers"]
+            pod = kube.get(PODS, workload_name(name, "mavros"), NAMESPACE)
+            return pod is not None and any(
+                c.get("image") == image for c in pod["spec"]["containers"]
             )
 
         wait_until(f"{name}'s mavros image", rolled, CHANGE_TIMEOUT_S, poll_s=0.02)
@@ -211,7 +210,7 @@ class Made:
     """What the operator made for the fleet, as manifests to apply elsewhere."""
 
     node_labels: dict[str, dict[str, str]]
-    objects: list[dict[str, Any]]  # ConfigMaps and Deployments, server fields removed
+    objects: list[dict[str, Any]]  # ConfigMaps and Pods, server fields removed
 
 
 def _as_manifest(obj: dict[str, Any]) -> dict[str, Any]:
@@ -219,7 +218,25 @@ def _as_manifest(obj: dict[str, Any]) -> dict[str, Any]:
     Vehicles are not there to own it)."""
     meta = obj["metadata"]
     kept = {k: meta[k] for k in ("name", "namespace", "labels", "annotations") if k in meta}
-    return {k: v for k, v in obj.items() if k not in ("status", "metadata")} | {"metadata": kept}
+    manifest = {k: v for k, v in obj.items() if k not in ("status", "metadata")}
+    if obj.get("kind") == "Pod":  # the service-account token volume admission added
+        manifest["spec"] = _without_token_volume(obj["spec"])
+    return manifest | {"metadata": kept}
+
+
+def _without_token_volume(spec: dict[str, Any]) -> dict[str, Any]:
+    """A pod spec without the ``kube-api-access-*`` volume admission adds (it adds it
+    again on the other control plane)."""
+
+    def ours(volume: dict[str, Any]) -> bool:
+        return not str(volume.get("name", "")).startswith("kube-api-access-")
+
+    containers = [
+        {**c, "volumeMounts": [m for m in c.get("volumeMounts") or [] if ours(m)]}
+        for c in spec.get("containers") or []
+    ]
+    volumes = [v for v in spec.get("volumes") or [] if ours(v)]
+    return {**spec, "containers": containers, "volumes": volumes}
 
 
 def _made(kube: Kube) -> Made:
@@ -229,25 +246,24 @@ def _made(kube: Kube) -> Made:
     }
     objects = [
         _as_manifest(obj)
-        for resource in (CONFIGMAPS, DEPLOYMENTS)
+        for resource in (CONFIGMAPS, PODS)
         for obj in kube.list_objects(resource, namespace=NAMESPACE)
         if LABEL_VEHICLE in (obj["metadata"].get("labels") or {})
     ]
     return Made(node_labels, objects)
 
 
-def _available_count(kube: Kube) -> int:
+def _pods_ready(kube: Kube) -> int:
+    """Pods Running and Ready (as the operator judges a component)."""
     return sum(
-        1
-        for d in kube.list_objects(DEPLOYMENTS, namespace=NAMESPACE)
-        if (d.get("status") or {}).get("availableReplicas", 0) >= 1
+        1 for pod in kube.list_objects(PODS, namespace=NAMESPACE) if pod_state("", pod).ready
     )
 
 
 def control_plane_floor(made: Made) -> tuple[float, str]:
     """Seconds from applying ``made`` to a fresh control plane (same nodes, no operator)
-    until every Deployment is available, and where the CPU went."""
-    deployments = sum(1 for obj in made.objects if obj["kind"] == "Deployment")
+    until every Pod is Running and Ready, and where the CPU went."""
+    pods = sum(1 for obj in made.objects if obj["kind"] == "Pod")
     with (
         tempfile.TemporaryDirectory(prefix="bench-fleet-floor-") as tmp,
         ControlPlane(Path(tmp), settings=FLEET_SETTINGS) as plane,
@@ -261,8 +277,8 @@ def control_plane_floor(made: Made) -> tuple[float, str]:
             started = time.monotonic()
             _apply_streams(cluster, [json.dumps(obj) for obj in made.objects])
             wait_until(
-                f"{deployments} Deployments available",
-                lambda: _available_count(kube) >= deployments,
+                f"{pods} Pods Running and Ready",
+                lambda: _pods_ready(kube) >= pods,
                 READY_TIMEOUT_S,
                 poll_s=1.0,
             )
@@ -367,10 +383,10 @@ def run() -> list[Figure]:
                 "s",
                 "informational",
                 COMMAND,
-                f"the {len(made.objects)} ConfigMaps and Deployments the operator made for "
+                f"the {len(made.objects)} ConfigMaps and Pods the operator made for "
                 f"{count} Vehicles, applied in {APPLY_STREAMS} kubectl streams to a fresh "
                 f"control plane with the same {count} KWOK nodes and no operator, until "
-                f"every Deployment is available (fleet.ready_{count}_s: "
+                f"every Pod is Running and Ready (fleet.ready_{count}_s: "
                 f"{figures['ready_s']:.1f} s); 1-min load average {os.getloadavg()[0]:.1f}; "
                 f"CPU: {floor_cpu}",
             )
@@ -399,7 +415,7 @@ def run() -> list[Figure]:
                     "s",
                     "<= 1",
                     COMMAND,
-                    f"{CHANGES} mavros image changes, one at a time, until the Deployment "
+                    f"{CHANGES} mavros image changes, one at a time, until the mavros Pod "
                     f"has the image (median {figures['single_change_median_s']:.3f} s); "
                     f"{note}",
                 )

@@ -2,7 +2,8 @@
 
 - ``vehicle.apply_to_ready_s``: from ``kubectl apply`` of a simulated Vehicle (mavros and
   one SITL) on a fresh fake node until its ``Ready`` condition is True: node labelled and
-  tainted, ConfigMap written, both Deployments scheduled, "run" by kwok and available.
+  tainted, ConfigMap written, both component Pods created on the node, "run" by kwok
+  and Ready.
   Median over several vehicles applied one after another; the readiness poll runs every
   50 ms, so the figure is at most that much late.
 - ``vehicle.idle_writes_per_min``: API write requests (counted by the API server itself,
@@ -105,7 +106,7 @@ def run() -> list[Figure]:
             "== 0",
             COMMAND,
             note=f"{writes} write requests to vehicles, vehicles/status, nodes, configmaps, "
-            f"deployments, events in {IDLE_WINDOW_S:.0f} s with {VEHICLE_COUNT} idle vehicles, "
+            f"pods, events in {IDLE_WINDOW_S:.0f} s with {VEHICLE_COUNT} idle vehicles, "
             f"resync every {RESYNC_S} s",
         ),
     ]

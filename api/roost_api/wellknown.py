@@ -52,8 +52,11 @@ ANNOTATION_PAUSE_FAILOVER_ACTIONS = f"{PREFIX}pause-failover-actions"
 # records the token it honoured in status, so one token clears one latch.
 ANNOTATION_CLEAR_FAILOVER_LATCH = f"{PREFIX}clear-failover-latch"
 
-# Annotation on pod templates carrying a hash of the vehicle config, so edits roll pods.
+# Annotation on component pods carrying a hash of the vehicle config, so edits replace them.
 ANNOTATION_CONFIG_HASH = f"{PREFIX}config-hash"
+# Annotation on each vehicle component Pod: a hash of the Pod as the operator built it
+# (spec, labels, annotations); a different desired hash makes the operator replace it.
+ANNOTATION_POD_HASH = f"{PREFIX}pod-hash"
 
 # Where the per-vehicle config is mounted in every Roost-managed pod.
 VEHICLE_CONFIG_FILE = "vehicle.config"

@@ -76,7 +76,6 @@ NAMESPACES: Final = Resource("", "v1", "namespaces", "Namespace", namespaced=Fal
 CONFIGMAPS: Final = Resource("", "v1", "configmaps", "ConfigMap", namespaced=True)
 PODS: Final = Resource("", "v1", "pods", "Pod", namespaced=True)
 EVENTS: Final = Resource("", "v1", "events", "Event", namespaced=True)
-DEPLOYMENTS: Final = Resource("apps", "v1", "deployments", "Deployment", namespaced=True)
 JOBS: Final = Resource("batch", "v1", "jobs", "Job", namespaced=True)
 VEHICLES: Final = Resource.of(VEHICLE_KIND)
 REDUNDANT_AUTOPILOTS: Final = Resource.of(REDUNDANT_AUTOPILOT_KIND)
@@ -89,7 +88,6 @@ ALL: Final = (
     CONFIGMAPS,
     PODS,
     EVENTS,
-    DEPLOYMENTS,
     JOBS,
     VEHICLES,
     REDUNDANT_AUTOPILOTS,

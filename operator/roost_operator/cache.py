@@ -1,8 +1,8 @@
 """Reads from watch caches, writes to the API server: the Vehicle controller's view.
 
 A first reconcile of a vehicle used to cost about ten requests, most of them reads
-(its node, the nodes labelled for it, its claim, its ConfigMap, its Deployments, each
-once more inside ``apply``), and a vehicle is reconciled several times while its
+(its node, the nodes labelled for it, its claim, its ConfigMap, its component pods,
+each once more inside ``apply``), and a vehicle is reconciled several times while its
 components roll out. :class:`CachedView` answers those reads from the
 :class:`~roost_operator.watches.Store` of a :class:`~roost_operator.watches.Watcher`
 the operator runs anyway, and keeps each store current with the answers to its own
@@ -106,6 +106,12 @@ class CachedView:
         if wrote:
             store.remember(live)
         return live, wrote
+
+    def create(self, manifest: Mapping[str, Any]) -> Obj:
+        """Create an object (:class:`~roost_kube.errors.ConflictError` if it exists)."""
+        created = self.kube.create(manifest)
+        self.remember(created)
+        return created
 
     def merge_patch(
         self,

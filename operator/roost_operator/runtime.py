@@ -25,13 +25,13 @@ import kopf
 from roost_api.wellknown import LABEL_COMPONENT, LABEL_MANAGED_BY, LABEL_VEHICLE, MANAGED_BY
 from roost_kube.client import Kube
 from roost_kube.errors import ApiError
-from roost_kube.resources import CONFIGMAPS, DEPLOYMENTS, LEASES, NODES, VEHICLES
+from roost_kube.resources import CONFIGMAPS, LEASES, NODES, PODS, VEHICLES
 from roost_operator.cache import Cached
 from roost_operator.claims import CLAIM_COMPONENT, Claim, claim_of
 from roost_operator.edge import HandlerTiming, error_kind
 from roost_operator.settings import Settings
 from roost_operator.vehicles.controller import Peers, VehicleController
-from roost_operator.vehicles.watched import node_kept, node_watcher, owned_watchers
+from roost_operator.vehicles.watched import node_kept, node_watcher, owned_watchers, pod_kept
 from roost_operator.watches import Store, Watcher
 from roost_operator.workqueue import Backoff, WorkQueue
 
@@ -92,7 +92,7 @@ class Runtime:
             NODES.kind: Store(index_label=LABEL_VEHICLE, trim=node_kept),
             LEASES.kind: Store(),
             CONFIGMAPS.kind: Store(index_label=LABEL_VEHICLE),
-            DEPLOYMENTS.kind: Store(index_label=LABEL_VEHICLE),
+            PODS.kind: Store(index_label=LABEL_VEHICLE, trim=pod_kept),
         }
         controller = VehicleController(
             kube=kube,

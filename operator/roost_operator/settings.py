@@ -93,7 +93,7 @@ class Settings:
 
     namespace: str = "roost-system"
     """Namespace of the objects the operator owns for vehicles: config ConfigMaps,
-    component Deployments, mission claim Leases (``ROOST_NAMESPACE``). Created at
+    component Pods, mission claim Leases (``ROOST_NAMESPACE``). Created at
     startup when missing."""
 
     peering: str = "roost"
@@ -116,7 +116,7 @@ class Settings:
     def api_connections(self) -> int:
         """Connections Roost's API client keeps open: one per thread that may send at
         once — the reconcile workers, kopf's handler threads, and Roost's own watches
-        (nodes, claims, ConfigMaps, Deployments), each holding one for its whole length —
+        (nodes, claims, ConfigMaps, component Pods), each holding one for its whole length —
         plus a few for the rest. A request beyond the pool opens, and then throws away,
         a connection of its own: a TLS handshake per request on both ends."""
         return self.reconcile_workers + self.kopf.handler_threads + 8

@@ -2,7 +2,7 @@
 
 Why: kopf calls a handler per watch event, in a thread of its executor, and each Roost
 handler used to reconcile right there. At fleet scale that means one full reconcile per
-event (a Deployment's rollout alone sends several), handlers of one vehicle queueing up
+event (a component pod's way to Ready alone sends several), handlers of one vehicle queueing up
 behind its lock in kopf's threads, and a periodic timer per Vehicle to catch what an
 event handler dropped (kopf never retries event handlers). This queue is the model of
 controller-runtime's: handlers only *add the vehicle's name*, and a fixed pool of

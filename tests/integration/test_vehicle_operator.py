@@ -1,7 +1,7 @@
 """The Vehicle operator, running as a real ``roost-operator`` process, on the real control
-plane (localcluster/): kube-apiserver and etcd store the objects, kube-controller-manager
-runs the Deployments, kube-scheduler places their pods and kwok's fake kubelets run them on
-fake vehicle nodes.
+plane (localcluster/): kube-apiserver and etcd store the objects, the operator creates each
+vehicle component's Pod bound to the vehicle's node (no Deployment, no scheduler) and
+kwok's fake kubelets run them on fake vehicle nodes.
 
 The operator gets its own namespace and runs as shipped: no fleet sweep, so everything
 below (hand edits put back, a freed node handed on, nothing written while idle) happens
@@ -23,7 +23,9 @@ import pytest
 from roost_api.wellknown import (
     ANNOTATION_CONFIG_HASH,
     ANNOTATION_MANAGED_LABELS,
+    ANNOTATION_POD_HASH,
     FINALIZER,
+    LABEL_COMPONENT,
     LABEL_NODE,
     LABEL_VEHICLE,
     LABEL_VEHICLE_CLASS,
@@ -36,7 +38,6 @@ from roost_kube.client import Kube
 from roost_kube.patches import Obj
 from roost_kube.resources import (
     CONFIGMAPS,
-    DEPLOYMENTS,
     NODES,
     PODS,
     REDUNDANT_AUTOPILOTS,
@@ -45,6 +46,7 @@ from roost_kube.resources import (
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import KWOK_NODE_ANNOTATION
 from roost_localcluster.nodes import fake_node
+from roost_operator.vehicles.desired import is_component_pod
 from tests.support.apiwrites import operator_writes
 from tests.support.operator import OperatorProcess
 from tests.support.waiting import unique, wait_until
@@ -126,12 +128,12 @@ def wait_condition(kube: Kube, vehicle: str, type_: str, status: str, reason: st
     return result
 
 
-def deployments_of(kube: Kube, vehicle: str) -> dict[str, Obj]:
+def component_pods(kube: Kube, vehicle: str) -> dict[str, Obj]:
+    """The vehicle's component pods by component, terminating ones included."""
     return {
-        d["metadata"]["labels"]["roost.dev/component"]: d
-        for d in kube.list_objects(
-            DEPLOYMENTS, namespace=NAMESPACE, labels={LABEL_VEHICLE: vehicle}
-        )
+        p["metadata"]["labels"]["roost.dev/component"]: p
+        for p in kube.list_objects(PODS, namespace=NAMESPACE, labels={LABEL_VEHICLE: vehicle})
+        if is_component_pod(p)
     }
 
 
@@ -243,15 +245,18 @@ def test_a_simulated_vehicle_gets_its_node_config_and_components(
         ):
             assert line in text.splitlines()
 
-        deps = deployments_of(kube, name)
-        assert set(deps) == {"mavros", "vicon", "sitl-fc-a", "sitl-fc-b"}
-        for dep in deps.values():
-            assert dep["metadata"]["ownerReferences"][0]["uid"] == vehicle["metadata"]["uid"]
-            assert dep["spec"]["strategy"]["type"] == "Recreate"
-            assert ANNOTATION_CONFIG_HASH in dep["spec"]["template"]["metadata"]["annotations"]
-        assert deps["vicon"]["spec"]["template"]["spec"]["containers"][0]["image"] == (
-            "example.org/vicon:7"
-        )
+        pods = component_pods(kube, name)
+        assert set(pods) == {"mavros", "vicon", "sitl-fc-a", "sitl-fc-b"}
+        for pod in pods.values():
+            assert pod["metadata"]["ownerReferences"][0]["uid"] == vehicle["metadata"]["uid"]
+            assert pod["metadata"]["name"] == f"{name}-{pod['metadata']['labels'][LABEL_COMPONENT]}"
+            assert {ANNOTATION_CONFIG_HASH, ANNOTATION_POD_HASH} <= set(
+                pod["metadata"]["annotations"]
+            )
+            assert pod["spec"]["nodeName"] == node
+            assert pod["spec"]["nodeSelector"][LABEL_VEHICLE] == name
+            assert pod["spec"]["restartPolicy"] == "Always"
+        assert pods["vicon"]["spec"]["containers"][0]["image"] == "example.org/vicon:7"
 
         (mavros,) = pods_of(kube, name, "mavros")
         assert mavros["spec"]["nodeName"] == node
@@ -290,7 +295,7 @@ def test_an_idle_vehicle_costs_no_api_writes(
 
     def versions() -> list[str]:
         objs = [kube.get(VEHICLES, name), kube.get(CONFIGMAPS, f"roost-vehicle-{name}", NAMESPACE)]
-        objs += list(deployments_of(kube, name).values())
+        objs += list(component_pods(kube, name).values())
         return [o["metadata"]["resourceVersion"] for o in objs if o]
 
     def node_state() -> Any:
@@ -300,7 +305,7 @@ def test_an_idle_vehicle_costs_no_api_writes(
     wait_operator_quiet(roost_crds)
     versions_before, node_before = versions(), node_state()
     window = roost_crds.audit_window()
-    time.sleep(WINDOW_S * 4)  # nothing happens: node heartbeats, Deployments
+    time.sleep(WINDOW_S * 4)  # nothing happens: node heartbeats, kwok's pod status
     assert not operator_writes(roost_crds, window)
     assert versions() == versions_before
     assert node_state() == node_before
@@ -341,7 +346,7 @@ def test_hand_edits_are_put_back_and_others_labels_survive_deletion(
     assert ANNOTATION_MANAGED_LABELS not in node_obj["metadata"].get("annotations", {})
     assert node_obj["spec"]["taints"] == [foreign_taint]
     assert kube.get(CONFIGMAPS, f"roost-vehicle-{name}", NAMESPACE) is None
-    wait_until("the workloads to be deleted", lambda: not deployments_of(kube, name))
+    wait_until("the workloads to be deleted", lambda: not component_pods(kube, name))
 
 
 # ---- config changes, failover input, self-healing ---------------------------------------
@@ -359,9 +364,7 @@ def test_config_changes_roll_pods_and_a_new_active_autopilot_repoints_only_mavro
         wait_components_ready(kube, name)
         (mavros_before,) = pods_of(kube, name, "mavros")
         sitl_before = {
-            p["metadata"]["name"]
-            for c in ("sitl-fc-a", "sitl-fc-b")
-            for p in pods_of(kube, name, c)
+            p["metadata"]["uid"] for c in ("sitl-fc-a", "sitl-fc-b") for p in pods_of(kube, name, c)
         }
 
         roost_crds.kubectl(
@@ -381,7 +384,7 @@ def test_config_changes_roll_pods_and_a_new_active_autopilot_repoints_only_mavro
             lambda: [
                 p
                 for p in pods_of(kube, name, "mavros")
-                if p["metadata"]["name"] != mavros_before["metadata"]["name"]
+                if p["metadata"]["uid"] != mavros_before["metadata"]["uid"]
                 and p["status"].get("phase") == "Running"
             ],
         )
@@ -393,9 +396,7 @@ def test_config_changes_roll_pods_and_a_new_active_autopilot_repoints_only_mavro
 
         # The node agent reports a failover to fc-b: mavros follows, the SITLs stay up.
         sitl_before = {
-            p["metadata"]["name"]
-            for c in ("sitl-fc-a", "sitl-fc-b")
-            for p in pods_of(kube, name, c)
+            p["metadata"]["uid"] for c in ("sitl-fc-a", "sitl-fc-b") for p in pods_of(kube, name, c)
         }
         roost_crds.kubectl(
             "patch",
@@ -418,9 +419,7 @@ def test_config_changes_roll_pods_and_a_new_active_autopilot_repoints_only_mavro
         assert cm["data"]["ROOST_ACTIVE_AUTOPILOT"] == "fc-b"
         wait_components_ready(kube, name)
         sitl_after = {
-            p["metadata"]["name"]
-            for c in ("sitl-fc-a", "sitl-fc-b")
-            for p in pods_of(kube, name, c)
+            p["metadata"]["uid"] for c in ("sitl-fc-a", "sitl-fc-b") for p in pods_of(kube, name, c)
         }
         assert sitl_after == sitl_before
     finally:
@@ -444,6 +443,29 @@ def test_deleted_pods_come_back_and_disabled_components_go_away(
             if p["metadata"]["uid"] != pod["metadata"]["uid"]
         ],
     )
+    # An ended pod (here: vicon, as the kubelet reports an eviction) is replaced too.
+    (vicon,) = pods_of(kube, name, "vicon")
+    roost_crds.kubectl(
+        "patch",
+        "pod",
+        "-n",
+        NAMESPACE,
+        vicon["metadata"]["name"],
+        "--subresource=status",
+        "--type=merge",
+        "-p",
+        '{"status":{"phase":"Failed","reason":"Evicted","message":"the node ran out of memory"}}',
+    )
+    wait_until(
+        "a replacement vicon pod, Running",
+        lambda: [
+            p
+            for p in pods_of(kube, name, "vicon")
+            if p["metadata"]["uid"] != vicon["metadata"]["uid"]
+            and p["status"].get("phase") == "Running"
+        ],
+    )
+    wait_ready(kube, name)
     roost_crds.kubectl(
         "patch",
         "vehicle",
@@ -452,9 +474,7 @@ def test_deleted_pods_come_back_and_disabled_components_go_away(
         "-p",
         '{"spec":{"components":{"vicon":{"enabled":false}}}}',
     )
-    wait_until(
-        "the vicon Deployment to be removed", lambda: set(deployments_of(kube, name)) == {"mavros"}
-    )
+    wait_until("the vicon pod to be removed", lambda: set(component_pods(kube, name)) == {"mavros"})
     wait_ready(kube, name)
 
 
@@ -554,7 +574,7 @@ def test_two_vehicles_on_one_node_the_older_keeps_it_without_a_fight(
 
     cond = wait_condition(kube, second, "NodeBound", "False", "NodeClaimedByOtherVehicle")
     assert first in cond["message"]
-    assert not deployments_of(kube, second)
+    assert not component_pods(kube, second)
     assert node_labels(kube, node)[LABEL_VEHICLE] == first
 
     window = roost_crds.audit_window()
@@ -573,19 +593,19 @@ def test_two_vehicles_on_one_node_the_older_keeps_it_without_a_fight(
 
 
 @pytest.fixture
-def deployments_refused(roost_crds: Cluster) -> Iterator[Callable[[], None]]:
-    """A ResourceQuota allowing no new Deployments in the operator's namespace; call to lift it."""
+def pods_refused(roost_crds: Cluster) -> Iterator[Callable[[], None]]:
+    """A ResourceQuota allowing no new Pods in the operator's namespace; call to lift it."""
     quota = {
         "apiVersion": "v1",
         "kind": "ResourceQuota",
-        "metadata": {"name": "it-no-deployments", "namespace": NAMESPACE},
-        "spec": {"hard": {"count/deployments.apps": "0"}},
+        "metadata": {"name": "it-no-pods", "namespace": NAMESPACE},
+        "spec": {"hard": {"count/pods": "0"}},
     }
     roost_crds.kubectl("apply", "-f", "-", input_text=json.dumps(quota))
 
     def lift() -> None:
         roost_crds.kubectl(
-            "delete", "resourcequota", "-n", NAMESPACE, "it-no-deployments", "--ignore-not-found"
+            "delete", "resourcequota", "-n", NAMESPACE, "it-no-pods", "--ignore-not-found"
         )
 
     yield lift
@@ -597,30 +617,30 @@ def test_an_operator_killed_mid_reconcile_converges_after_restart(
     vehicles: Callable[..., str],
     kube: Kube,
     operator: OperatorProcess,
-    deployments_refused: Callable[[], None],
+    pods_refused: Callable[[], None],
 ) -> None:
     cluster = operator.cluster
     node = unique("veh-node")
     fake_nodes(node)
     name = vehicles(unique("crash"), node)
 
-    # Half-way: node labelled and config written, the Deployment refused by the quota.
+    # Half-way: node labelled and config written, the Pod refused by the quota.
     cond = wait_condition(kube, name, "ComponentsReady", "False", "ComponentsNotReady")
     assert "refused" in cond["message"] and "quota" in cond["message"]
     assert node_labels(kube, node)[LABEL_VEHICLE] == name
     assert kube.get(CONFIGMAPS, f"roost-vehicle-{name}", NAMESPACE) is not None
-    assert not deployments_of(kube, name)
+    assert not component_pods(kube, name)
 
     operator.crash()
     cluster.kubectl(
         "patch", "vehicle", name, "--type=merge", "-p", '{"spec":{"vehicleType":"hexarotor"}}'
     )
-    deployments_refused()
+    pods_refused()
     operator.start()
 
     wait_ready(kube, name)
     assert node_labels(kube, node)[LABEL_VEHICLE_TYPE] == "hexarotor"
-    assert set(deployments_of(kube, name)) == {"mavros"}
+    assert set(component_pods(kube, name)) == {"mavros"}
     assert len(pods_of(kube, name, "mavros")) == 1
     vehicle = kube.get(VEHICLES, name)
     assert vehicle is not None

@@ -21,7 +21,7 @@ import re
 from collections import Counter
 from collections.abc import Iterable
 
-from roost_kube.resources import CONFIGMAPS, DEPLOYMENTS, EVENTS, NODES, VEHICLES
+from roost_kube.resources import CONFIGMAPS, EVENTS, NODES, PODS, VEHICLES
 from roost_localcluster.audit import (
     OPERATOR_CLIENTS,
     RequestKind,
@@ -42,13 +42,13 @@ Target = tuple[str, str]
 
 # What Roost's operator writes for Vehicles. Nothing else writes these while a vehicle is
 # idle: kwok's node heartbeats go to nodes/status, leader election to leases, and the
-# Deployment controller writes deployments/status only when a rollout moves.
+# kubelet (kwok) writes pods/status, never the pod itself.
 VEHICLE_WRITE_TARGETS: tuple[Target, ...] = (
     (VEHICLES.plural, ""),
     (VEHICLES.plural, "status"),
     (NODES.plural, ""),
     (CONFIGMAPS.plural, ""),
-    (DEPLOYMENTS.plural, ""),
+    (PODS.plural, ""),
     (EVENTS.plural, ""),
 )
 

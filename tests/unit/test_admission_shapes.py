@@ -26,8 +26,8 @@ from roost_operator.missions.workloads import offboard_job_name, onboard_job_nam
 from roost_operator.vehicles.config import config_map_name, vehicle_config, vehicle_config_map
 from roost_operator.vehicles.desired import (
     autopilots_of,
+    component_pod,
     component_workloads,
-    deployment,
 )
 from roost_operator.vehicles.placement import desired_node_labels, vehicle_taint
 
@@ -233,22 +233,16 @@ def test_the_longest_names_fit_every_object_label_and_container_roost_derives() 
         active_autopilot=derived[0].name,
     )  # fmt: skip
     config_map = vehicle_config_map(name, values, namespace="roost-system")
-    deployments = [
-        deployment(name, spec.node_name, w, values, namespace="roost-system", owners=[])
+    pods = [
+        component_pod(name, spec.node_name, w, values, namespace="roost-system", owners=[])
         for w in component_workloads(spec, derived)
     ]
-    assert any(d["metadata"]["name"].endswith("-sitl-" + "b" * 58) for d in deployments)
-    for obj in [config_map, *deployments]:
+    assert any(p["metadata"]["name"].endswith("-sitl-" + "b" * 58) for p in pods)
+    for obj in [config_map, *pods]:
         assert DNS_SUBDOMAIN.fullmatch(obj["metadata"]["name"])
         assert len(obj["metadata"]["name"]) <= 253
-        for labels in (
-            labels_of(obj),
-            obj.get("spec", {}).get("template", {}).get("metadata", {}).get("labels", {}),
-        ):
-            assert all(len(v) <= 63 and LABEL_VALUE.fullmatch(v) for v in labels.values())
-        for container in (
-            obj.get("spec", {}).get("template", {}).get("spec", {}).get("containers", [])
-        ):
+        assert all(len(v) <= 63 and LABEL_VALUE.fullmatch(v) for v in labels_of(obj).values())
+        for container in obj.get("spec", {}).get("containers", []):
             assert len(container["name"]) <= 63 and DNS_LABEL.fullmatch(container["name"])
     assert config_map_name(name) == config_map["metadata"]["name"]
     node_labels = desired_node_labels(name, spec)

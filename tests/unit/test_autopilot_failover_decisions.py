@@ -514,28 +514,26 @@ def config_map(url: str) -> dict[str, Any]:
     return {"data": {"vehicle.config": f"VEHICLE_FCU_URL={url}\n", "VEHICLE_FCU_URL": url}}
 
 
-def mavros(config_hash_value: str, *, generation: int = 2, observed: int = 2) -> dict[str, Any]:
+def mavros(
+    config_hash_value: str, *, ready: str = "True", deleting: bool = False
+) -> dict[str, Any]:
+    meta: dict[str, Any] = {"annotations": {"roost.dev/config-hash": config_hash_value}}
+    if deleting:
+        meta["deletionTimestamp"] = "2024-01-01T00:00:00Z"
     return {
-        "metadata": {"generation": generation},
-        "spec": {
-            "template": {"metadata": {"annotations": {"roost.dev/config-hash": config_hash_value}}}
-        },
-        "status": {
-            "observedGeneration": observed,
-            "replicas": 1,
-            "updatedReplicas": 1,
-            "availableReplicas": 1,
-        },
+        "metadata": meta,
+        "status": {"phase": "Running", "conditions": [{"type": "Ready", "status": ready}]},
     }
 
 
-def test_mavros_follows_only_once_its_pods_come_from_the_new_config_and_are_rolled_out() -> None:
+def test_mavros_follows_only_once_its_pod_comes_from_the_new_config_and_is_ready() -> None:
     new_hash = config_hash({"VEHICLE_FCU_URL": URL2})
     assert mavros_follows(URL2, config_map(URL2), mavros(new_hash))
     assert not mavros_follows(URL2, config_map(URL1), mavros(new_hash))  # config not yet
     old_hash = config_hash({"VEHICLE_FCU_URL": URL1})
-    assert not mavros_follows(URL2, config_map(URL2), mavros(old_hash))  # template not yet
-    assert not mavros_follows(URL2, config_map(URL2), mavros(new_hash, observed=1))  # rolling
+    assert not mavros_follows(URL2, config_map(URL2), mavros(old_hash))  # old pod
+    assert not mavros_follows(URL2, config_map(URL2), mavros(new_hash, ready="False"))  # starting
+    assert not mavros_follows(URL2, config_map(URL2), mavros(new_hash, deleting=True))  # leaving
     assert not mavros_follows(URL2, None, mavros(new_hash))
     assert not mavros_follows(URL2, config_map(URL2), None)
 

@@ -7,9 +7,10 @@ import pytest
 from roost_api.resources import KINDS
 from roost_kube.resources import (
     CONFIGMAPS,
-    DEPLOYMENTS,
+    JOBS,
     MISSIONS,
     NODES,
+    PODS,
     VEHICLES,
     Resource,
     resource_of,
@@ -20,7 +21,8 @@ def test_paths_for_core_grouped_namespaced_and_cluster_scoped_kinds() -> None:
     assert NODES.object_path("n1") == "/api/v1/nodes/n1"
     assert CONFIGMAPS.collection_path("ns") == "/api/v1/namespaces/ns/configmaps"
     assert CONFIGMAPS.collection_path() == "/api/v1/configmaps"
-    assert DEPLOYMENTS.object_path("d", "ns") == "/apis/apps/v1/namespaces/ns/deployments/d"
+    assert PODS.object_path("p", "ns") == "/api/v1/namespaces/ns/pods/p"
+    assert JOBS.object_path("j", "ns") == "/apis/batch/v1/namespaces/ns/jobs/j"
     assert VEHICLES.object_path("v") == "/apis/roost.dev/v1alpha1/vehicles/v"
     assert MISSIONS.object_path("m", "ns") == "/apis/roost.dev/v1alpha1/namespaces/ns/missions/m"
     with pytest.raises(ValueError, match="namespaced"):
@@ -28,9 +30,10 @@ def test_paths_for_core_grouped_namespaced_and_cluster_scoped_kinds() -> None:
 
 
 def test_resource_of_a_manifest_and_an_unknown_kind() -> None:
-    assert resource_of({"apiVersion": "apps/v1", "kind": "Deployment"}) is DEPLOYMENTS
+    assert resource_of({"apiVersion": "v1", "kind": "Pod"}) is PODS
+    assert resource_of({"apiVersion": "batch/v1", "kind": "Job"}) is JOBS
     with pytest.raises(KeyError, match=r"declare it in roost_kube\.resources"):
-        resource_of({"apiVersion": "v1", "kind": "Secret"})
+        resource_of({"apiVersion": "apps/v1", "kind": "Deployment"})  # no process needs it
 
 
 @pytest.mark.parametrize("kind", KINDS, ids=lambda k: k.kind)

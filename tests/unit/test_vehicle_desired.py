@@ -11,19 +11,29 @@ import pytest
 from roost_api.autopilot import RedundantAutopilotSpec
 from roost_api.meta import Stack, find_condition, set_condition
 from roost_api.vehicle import VehicleSpec, VehicleStatus
-from roost_api.wellknown import ANNOTATION_CONFIG_HASH, LABEL_VEHICLE, TAINT_VEHICLE
+from roost_api.wellknown import (
+    ANNOTATION_CONFIG_HASH,
+    ANNOTATION_POD_HASH,
+    LABEL_MISSION,
+    LABEL_VEHICLE,
+    TAINT_VEHICLE,
+)
 from roost_operator.vehicles.config import vehicle_config
 from roost_operator.vehicles.desired import (
     DEFAULT_IMAGES,
     Autopilot,
     ComponentState,
     NodeBinding,
+    PodStep,
     active_autopilot,
     autopilots_of,
+    component_pod,
     component_workloads,
     components_condition,
-    deployment,
-    deployment_state,
+    is_component_pod,
+    pod_hash,
+    pod_state,
+    pod_step,
     ready_condition,
     transitions,
     vehicle_conditions,
@@ -177,73 +187,141 @@ def manifests(reported_active: str | None) -> dict[str, dict[str, Any]]:
     aps = autopilots_of(s, redundant())
     values = config_for(s, active_autopilot(aps, reported_active=reported_active, primary="fc1"))
     return {
-        w.component: deployment(
+        w.component: component_pod(
             "drone1", "node-a", w, values, namespace="roost-system", owners=[{"uid": "v"}]
         )
         for w in component_workloads(s, aps)
     }
 
 
-def test_deployment_is_one_recreated_replica_pinned_to_the_vehicle() -> None:
-    d = manifests(None)["mavros"]
-    assert d["metadata"]["name"] == "drone1-mavros"
-    assert d["metadata"]["namespace"] == "roost-system"
-    assert d["metadata"]["ownerReferences"] == [{"uid": "v"}]
-    assert d["spec"]["replicas"] == 1
-    assert d["spec"]["strategy"] == {"type": "Recreate"}
-    pod = d["spec"]["template"]["spec"]
-    assert pod["nodeSelector"] == {LABEL_VEHICLE: "drone1"}
+def test_a_component_is_one_pod_bound_to_the_vehicles_node() -> None:
+    p = manifests(None)["mavros"]
+    assert (p["apiVersion"], p["kind"]) == ("v1", "Pod")
+    assert p["metadata"]["name"] == "drone1-mavros"
+    assert p["metadata"]["namespace"] == "roost-system"
+    assert p["metadata"]["ownerReferences"] == [{"uid": "v"}]
+    assert is_component_pod(p)
+    pod = p["spec"]
+    assert pod["nodeName"] == "node-a"  # no scheduler
+    assert pod["restartPolicy"] == "Always"
+    assert pod["nodeSelector"] == {LABEL_VEHICLE: "drone1"}  # the kubelet still checks it
     assert pod["tolerations"][0]["key"] == TAINT_VEHICLE
     container = pod["containers"][0]
     assert container["resources"]["requests"]["cpu"] == "100m"
     env = {e["name"] for e in container["env"]}
     assert {"VEHICLE_NAME", "VEHICLE_FCU_URL"} <= env
-    selector = d["spec"]["selector"]["matchLabels"]
-    assert selector.items() <= d["spec"]["template"]["metadata"]["labels"].items()
+    assert pod_hash(p)
 
 
-def test_a_failover_rolls_mavros_but_not_the_simulated_autopilots() -> None:
+def test_a_missions_onboard_pod_is_not_a_component_pod() -> None:
+    p = manifests(None)["mavros"]
+    labels = {**p["metadata"]["labels"], LABEL_MISSION: "survey"}
+    assert not is_component_pod({"metadata": {"labels": labels}})
+
+
+def test_a_failover_changes_mavros_but_not_the_simulated_autopilots() -> None:
     before, after = manifests(None), manifests("fc2")
 
-    def config_hash_of(d: dict[str, Any]) -> str:
-        return str(d["spec"]["template"]["metadata"]["annotations"][ANNOTATION_CONFIG_HASH])
+    def annotation(p: dict[str, Any], key: str) -> str:
+        return str(p["metadata"]["annotations"][key])
 
-    assert config_hash_of(before["mavros"]) != config_hash_of(after["mavros"])
+    for key in (ANNOTATION_CONFIG_HASH, ANNOTATION_POD_HASH):
+        assert annotation(before["mavros"], key) != annotation(after["mavros"], key)
     for sitl in ("sitl-fc1", "sitl-fc2"):
         assert before[sitl] == after[sitl]
 
 
-def test_a_node_change_rolls_every_workload() -> None:
+def test_a_node_change_replaces_every_workload() -> None:
     s = spec()
     (mavros,) = component_workloads(s, [])
     values = config_for(s, None)
-    a = deployment("drone1", "node-a", mavros, values, namespace="n", owners=[])
-    b = deployment("drone1", "node-b", mavros, values, namespace="n", owners=[])
-    assert a["spec"]["template"] != b["spec"]["template"]
-    assert a["spec"]["selector"] == b["spec"]["selector"]
+    a = component_pod("drone1", "node-a", mavros, values, namespace="n", owners=[])
+    b = component_pod("drone1", "node-b", mavros, values, namespace="n", owners=[])
+    assert pod_hash(a) != pod_hash(b)
+    assert a["metadata"]["name"] == b["metadata"]["name"]
+
+
+# -- replacing pods --------------------------------------------------------------------
+
+DESIRED: dict[str, Any] = {"metadata": {"annotations": {ANNOTATION_POD_HASH: "new"}}}
+
+
+def live_pod(
+    hash_: str = "new", phase: str = "Running", *, deleting: bool = False
+) -> dict[str, Any]:
+    meta: dict[str, Any] = {"annotations": {ANNOTATION_POD_HASH: hash_}}
+    if deleting:
+        meta["deletionTimestamp"] = "2024-01-01T00:00:00Z"
+    return {"metadata": meta, "status": {"phase": phase}}
+
+
+@pytest.mark.parametrize(
+    ("live", "node_exists", "step"),
+    [
+        # no pod: create it, once its node exists
+        (None, True, PodStep.CREATE),
+        (None, False, PodStep.WAIT),
+        # the desired pod: keep it, whatever its phase short of an end
+        (live_pod(), True, PodStep.KEEP),
+        (live_pod(phase="Pending"), True, PodStep.KEEP),
+        (live_pod(), False, PodStep.KEEP),
+        # an outdated pod: delete it first (its successor follows its deletion)
+        (live_pod("old"), True, PodStep.REPLACE),
+        (live_pod("old", "Failed"), True, PodStep.REPLACE),
+        ({"metadata": {}, "status": {"phase": "Running"}}, True, PodStep.REPLACE),
+        # an ended pod (evicted, failed, succeeded): delete it, then recreate it
+        (live_pod(phase="Failed"), True, PodStep.RESTART),
+        (live_pod(phase="Succeeded"), True, PodStep.RESTART),
+        # a pod on its way out: never a second one beside it
+        (live_pod(deleting=True), True, PodStep.WAIT),
+        (live_pod("old", deleting=True), True, PodStep.WAIT),
+        (live_pod(phase="Failed", deleting=True), True, PodStep.WAIT),
+    ],
+)
+def test_pod_replacement_decision_table(
+    live: dict[str, Any] | None, node_exists: bool, step: PodStep
+) -> None:
+    assert pod_step(live, DESIRED, node_exists=node_exists) is step
 
 
 # -- readiness and conditions --------------------------------------------------------
 
 
-def dep(generation: int = 2, **status: int) -> dict[str, Any]:
-    return {"metadata": {"generation": generation}, "status": status}
+def pod(
+    phase: str = "Running", ready: str = "True", hash_: str = "new", *, deleting: bool = False
+) -> dict[str, Any]:
+    body = live_pod(hash_, phase, deleting=deleting)
+    body["status"]["conditions"] = [{"type": "Ready", "status": ready}]
+    return body
 
 
 @pytest.mark.parametrize(
-    ("live", "ready"),
+    ("live", "ready", "detail"),
     [
-        (None, False),
-        (dep(observedGeneration=1, updatedReplicas=1, availableReplicas=1, replicas=1), False),
-        (dep(observedGeneration=2, updatedReplicas=1, availableReplicas=0, replicas=1), False),
-        (dep(observedGeneration=2, updatedReplicas=1, availableReplicas=1, replicas=2), False),
-        (dep(observedGeneration=2, updatedReplicas=1, availableReplicas=1, replicas=1), True),
+        (None, False, "does not exist"),
+        (pod(deleting=True), False, "terminating"),
+        (pod(hash_="old"), False, "outdated"),
+        (pod("Pending", "False"), False, "Pending"),
+        (pod("Failed", "False"), False, "ended (Failed"),
+        (pod("Running", "False"), False, "not Ready"),
+        (pod(), True, ""),
     ],
 )
-def test_deployment_state_follows_rollout_status(live: dict[str, Any] | None, ready: bool) -> None:
-    state = deployment_state("mavros", live)
+def test_pod_state_says_what_is_missing(
+    live: dict[str, Any] | None, ready: bool, detail: str
+) -> None:
+    state = pod_state("mavros", live, "new")
     assert state.ready is ready
+    assert detail in state.detail
     assert bool(state.detail) is not ready
+
+
+def test_pod_state_names_a_container_that_cannot_start() -> None:
+    live = pod("Pending", "False")
+    live["status"]["containerStatuses"] = [
+        {"state": {"waiting": {"reason": "ImagePullBackOff", "message": "no such image"}}}
+    ]
+    assert "ImagePullBackOff: no such image" in pod_state("mavros", live, "new").detail
 
 
 def test_components_condition_names_each_component_that_is_not_ready() -> None:

@@ -122,13 +122,13 @@ def test_node_binding_decision_table(
 
 def test_a_vehicle_that_cannot_have_its_node_labels_nothing_and_runs_nothing() -> None:
     plan = plan_vehicle(observed(node_claims=[NodeClaim("older", "2026-05-01T09:00:00Z")]), CTX)
-    assert plan.node_state is None and plan.deployments == {}
+    assert plan.node_state is None and plan.pods == {}
     assert plan.status.node_name is None and plan.status.managed_labels == []
 
 
-def test_a_missing_node_still_gets_its_workloads_declared() -> None:
+def test_a_missing_node_still_gets_its_workloads_declared_and_the_controller_waits() -> None:
     plan = plan_vehicle(observed(node=None), CTX)
-    assert plan.runs_workloads and "mavros" in plan.deployments
+    assert plan.runs_workloads and "mavros" in plan.pods
     assert plan.node_state is None, "no node to label"
 
 

@@ -22,7 +22,7 @@ from roost_operator.vehicles.handlers import (
     _stale_deadline,
     _vehicle_relevant,
 )
-from roost_operator.vehicles.watched import owned_relevant
+from roost_operator.vehicles.watched import owned_relevant, pod_relevant
 
 META: dict[str, Any] = {
     "name": "drone-1",
@@ -101,27 +101,31 @@ def test_a_report_already_stale_is_due_now() -> None:
     assert deadline - time.monotonic() <= STALE_MARGIN_S
 
 
-def _deployment(**status: Any) -> dict[str, Any]:
-    conditions = status.pop("conditions", [])
+def _pod(phase: str = "Running", ready: str = "True", **extra: Any) -> dict[str, Any]:
     return {
-        "metadata": {"generation": 1, "labels": {"app": "mavros"}, "annotations": {}},
-        "status": {"observedGeneration": 1, **status, "conditions": conditions},
+        "metadata": {"labels": {"app": "mavros"}, "annotations": {}},
+        "status": {
+            "phase": phase,
+            "conditions": [
+                {"type": "Ready", "status": ready, "lastTransitionTime": extra.pop("at", "t0")}
+            ],
+            **extra,
+        },
     }
 
 
-def test_a_rollout_heartbeat_of_a_deployment_queues_nothing() -> None:
-    progressing = {"type": "Progressing", "status": "True", "reason": "NewReplicaSetAvailable"}
-    before = _deployment(
-        replicas=1, availableReplicas=1, conditions=[{**progressing, "lastUpdateTime": "t0"}]
-    )
-    after = _deployment(
-        replicas=1, availableReplicas=1, conditions=[{**progressing, "lastUpdateTime": "t1"}]
-    )
-    assert owned_relevant(before) == owned_relevant(after)
+def test_a_pods_status_noise_queues_nothing() -> None:
+    before = _pod(at="t0", podIP="10.0.0.1")
+    after = _pod(at="t1", podIP="10.0.0.2", containerStatuses=[{"restartCount": 1}])
+    assert pod_relevant(before) == pod_relevant(after)
 
 
-def test_rollout_progress_and_hand_edits_queue_a_reconcile() -> None:
-    base = _deployment(replicas=1)
-    assert owned_relevant(base) != owned_relevant(_deployment(replicas=1, availableReplicas=1))
+def test_pod_progress_and_hand_edits_queue_a_reconcile() -> None:
+    base = _pod("Pending", "False")
+    assert pod_relevant(base) != pod_relevant(_pod("Running", "False"))
+    assert pod_relevant(_pod("Running", "False")) != pod_relevant(_pod())
+    leaving = _pod()
+    leaving["metadata"]["deletionTimestamp"] = "t2"
+    assert pod_relevant(_pod()) != pod_relevant(leaving)
     edited = {"metadata": {"labels": {}}, "data": {"vehicle.yaml": "edited by hand"}}
     assert owned_relevant({"metadata": {"labels": {}}, "data": {}}) != owned_relevant(edited)

@@ -6,12 +6,14 @@ from typing import Any
 
 from roost_api.wellknown import LABEL_VEHICLE
 from roost_operator.vehicles.controller import Peers
+from roost_operator.vehicles.desired import COMPONENT_POD_SELECTOR
 from roost_operator.vehicles.placement import NodeClaim
 from roost_operator.vehicles.watched import (
+    OWNED_SELECTOR,
     VehicleTrigger,
     labelled_vehicle,
     node_relevant,
-    owned_relevant,
+    pod_relevant,
     vehicles_of,
 )
 
@@ -81,23 +83,31 @@ def test_a_relist_queues_what_changed_or_vanished_meanwhile() -> None:
     assert seen.take() == ["v-n2", "v-n3"]
 
 
-def test_a_rollout_heartbeat_of_an_owned_deployment_queues_nothing() -> None:
+def test_status_noise_of_a_component_pod_queues_nothing() -> None:
     queued: list[str] = []
-    trigger = VehicleTrigger(owned_relevant, labelled_vehicle, queued.append)
+    trigger = VehicleTrigger(pod_relevant, labelled_vehicle, queued.append)
 
-    def deployment(available: int, at: str) -> Any:
+    def pod(phase: str, ready: str, at: str) -> Any:
         return {
             "metadata": {"name": "drone-1-mavros", "labels": {LABEL_VEHICLE: "drone-1"}},
             "status": {
-                "availableReplicas": available,
-                "conditions": [{"type": "Available", "status": "True", "lastUpdateTime": at}],
+                "phase": phase,
+                "podIP": at,
+                "conditions": [{"type": "Ready", "status": ready, "lastProbeTime": at}],
             },
         }
 
-    trigger.on_event("ADDED", deployment(0, "t0"))
-    trigger.on_event("MODIFIED", deployment(0, "t1"))
-    trigger.on_event("MODIFIED", deployment(1, "t2"))
-    assert queued == ["drone-1", "drone-1"]
+    trigger.on_event("ADDED", pod("Pending", "False", "t0"))
+    trigger.on_event("MODIFIED", pod("Pending", "False", "t1"))
+    trigger.on_event("MODIFIED", pod("Running", "True", "t2"))
+    trigger.on_event("MODIFIED", pod("Running", "True", "t3"))
+    trigger.on_event("DELETED", pod("Running", "True", "t3"))
+    assert queued == ["drone-1", "drone-1", "drone-1"]
+
+
+def test_only_component_pods_are_watched_not_a_missions_onboard_pods() -> None:
+    assert "!roost.dev/mission" in COMPONENT_POD_SELECTOR
+    assert OWNED_SELECTOR in COMPONENT_POD_SELECTOR
 
 
 def test_a_node_concerns_the_vehicles_claiming_it_and_the_one_it_is_labelled_for() -> None:

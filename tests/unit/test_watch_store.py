@@ -1,6 +1,6 @@
 """The watch cache the Vehicle controller reads: ordering of watch events and own writes.
 
-A reconcile reads nodes, claims and its own ConfigMaps and Deployments from a
+A reconcile reads nodes, claims and its own ConfigMaps and component Pods from a
 ``roost_operator.watches.Store``; these are the rules that keep it from going back in
 time (a write's answer racing the watch) or bringing back what was deleted.
 """

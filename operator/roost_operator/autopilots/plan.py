@@ -67,7 +67,7 @@ from roost_operator.autopilots.guards import (
     observe_failovers,
 )
 from roost_operator.vehicles.config import config_hash, config_values_of
-from roost_operator.vehicles.desired import autopilots_of, deployment_state
+from roost_operator.vehicles.desired import autopilots_of, pod_state
 
 REPOINT_MAVROS = FailoverActionKind.REPOINT_MAVROS
 
@@ -107,20 +107,19 @@ def mavros_follows(
 ) -> bool:
     """Whether the vehicle's mavros runs with ``fcu_url`` (ends a re-point action).
 
-    Three things must hold: the vehicle's config carries the URL, the mavros
-    Deployment's pod template carries that config's hash (so its pods were made from
-    it), and the rollout is complete (the new pod available, the old one gone).
+    Three things must hold: the vehicle's config carries the URL, the mavros Pod
+    carries that config's hash (so it was made from it), and it runs and is Ready (the
+    old pod gone: a terminating pod does not count).
     """
     if fcu_url is None or config_map is None or mavros is None:
         return False
     values = config_values_of(config_map)
     if values.get("VEHICLE_FCU_URL") != fcu_url:
         return False
-    template = (mavros.get("spec") or {}).get("template") or {}
-    annotations = (template.get("metadata") or {}).get("annotations") or {}
+    annotations = (mavros.get("metadata") or {}).get("annotations") or {}
     if annotations.get(ANNOTATION_CONFIG_HASH) != config_hash(values):
         return False
-    return deployment_state("mavros", mavros).ready
+    return pod_state("mavros", mavros).ready
 
 
 def plan(

@@ -2,7 +2,7 @@
 
 ``config``, ``placement``, ``desired``
     Pure desired state: the vehicle's config values and ConfigMap, node labels and
-    taint, component and SITL Deployments, conditions and Ready.
+    taint, component and SITL Pods (and when to replace them), conditions and Ready.
 ``plan``
     The whole decision about one Vehicle (failover side included), pure.
 ``controller``

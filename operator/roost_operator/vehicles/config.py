@@ -9,7 +9,7 @@ the pod spec.
 Namespace decision: a ConfigMap can only be mounted in its own namespace. The operator
 keeps the authoritative copy, ``roost-vehicle-<vehicle>``, in its namespace
 (``ROOST_NAMESPACE``, default ``roost-system``), owned by the Vehicle, next to the
-component Deployments. A Mission's onboard pods live in the Mission's namespace, so
+component Pods. A Mission's onboard pods live in the Mission's namespace, so
 the Mission handler applies a copy there with the same name and the same data
 (``vehicle_config_map(name, config_values_of(authoritative), namespace=...,
   owners=[mission])``),

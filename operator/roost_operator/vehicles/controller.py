@@ -1,7 +1,7 @@
 """The Vehicle controller: observe → :func:`~.plan.plan_vehicle` → apply → one status write.
 
 Every kopf trigger that concerns a Vehicle (its own events, its node's, its component
-Deployments', its RedundantAutopilot's reports and silences, its claim Lease, the
+Pods', its RedundantAutopilot's reports and silences, its claim Lease, the
 guard annotations, the periodic resync) ends in :meth:`VehicleController.reconcile`,
 so there is exactly one path from "what the cluster looks like" to "what it should look
 like", and exactly one writer of ``Vehicle.status``. It does not import kopf.
@@ -30,6 +30,11 @@ Why it is safe to run at any time, any number of times, and to be killed half-wa
   condition transitions after it (see :mod:`roost_operator.autopilots.plan`);
 * the fleet-wide cap on failover actions is race-free within the operator: counting
   other vehicles' actions and recording this one's happen under the ledger's lock.
+
+Component pods are managed directly (no Deployment): :meth:`VehicleController._converge_pod`
+takes the step :func:`~roost_operator.vehicles.desired.pod_step` decides — create a
+missing pod, delete an outdated or ended one and create its successor only after the
+deletion event of the old one has queued the next reconcile, never patch a live pod.
 
 Deletion (:meth:`VehicleController.release`) removes what Roost made for the vehicle
 and reports what it could not remove instead of failing for ever.
@@ -60,9 +65,9 @@ from roost_kube.errors import ApiError, ConflictError, PermanentApiError, Tempor
 from roost_kube.patches import Obj, owner_reference
 from roost_kube.resources import (
     CONFIGMAPS,
-    DEPLOYMENTS,
     LEASES,
     NODES,
+    PODS,
     REDUNDANT_AUTOPILOTS,
     VEHICLES,
 )
@@ -72,7 +77,7 @@ from roost_operator.autopilots.guards import FleetGuards
 from roost_operator.autopilots.plan import PlannedEvent, mavros_follows
 from roost_operator.cache import Cached, CachedView
 from roost_operator.vehicles.config import config_map_name
-from roost_operator.vehicles.desired import workload_name
+from roost_operator.vehicles.desired import PodStep, is_component_pod, pod_step, workload_name
 from roost_operator.vehicles.placement import NodeClaim, NodeState, plan_node
 from roost_operator.vehicles.plan import (
     EVENT_CONDITIONS,
@@ -254,7 +259,7 @@ class VehicleController:
         if not spec.components.mavros.enabled:
             return True
         config_map = self.cluster.get(CONFIGMAPS, config_map_name(vehicle), self.namespace)
-        mavros = self.cluster.get(DEPLOYMENTS, workload_name(vehicle, "mavros"), self.namespace)
+        mavros = self.cluster.get(PODS, workload_name(vehicle, "mavros"), self.namespace)
         return mavros_follows(fcu_url, config_map, mavros)
 
     def _reconcile_once(self, name: str, peers: Peers, *, fresh: bool) -> Outcome | None:
@@ -329,7 +334,7 @@ class VehicleController:
     def _apply(
         self, obs: Observed, plan: VehiclePlan, autopilot: Obj | None
     ) -> tuple[dict[str, Obj | None], dict[str, ApiError]]:
-        """Carry out ``plan``; the live Deployments and those the API server refused."""
+        """Carry out ``plan``; the live component Pods and those the API server refused."""
         cluster = self.cluster
         refused: dict[str, ApiError] = {}
 
@@ -353,22 +358,48 @@ class VehicleController:
             )
         attempt(REFUSED_CONFIG, lambda: cluster.apply(plan.config_map))
         live: dict[str, Obj | None] = {}
-        for component, manifest in plan.deployments.items():
+        for component, manifest in plan.pods.items():
             try:
-                live[component], _ = cluster.apply(manifest)
+                live[component] = self._converge_pod(manifest, node_exists=obs.node is not None)
             except ConflictError:
                 raise
             except ApiError as err:
                 refused[component] = err
-        owned = {LABEL_MANAGED_BY: MANAGED_BY, LABEL_VEHICLE: obs.name}
-        stale = [
-            d
-            for d in cluster.list_objects(DEPLOYMENTS, namespace=self.namespace, labels=owned)
-            if d["metadata"].get("labels", {}).get(LABEL_COMPONENT) not in plan.deployments
-        ]
-        for deployment in stale:
-            cluster.delete(DEPLOYMENTS, deployment["metadata"]["name"], self.namespace)
+        for pod in self._pods_of(obs.name):
+            meta = pod["metadata"]
+            if (meta.get("labels") or {}).get(LABEL_COMPONENT) not in plan.pods and not meta.get(
+                "deletionTimestamp"
+            ):
+                cluster.delete(PODS, meta["name"], self.namespace)
         return live, refused
+
+    def _pods_of(self, vehicle: str) -> list[Obj]:
+        """The vehicle's component pods (not its Missions' onboard Job pods)."""
+        owned = {LABEL_MANAGED_BY: MANAGED_BY, LABEL_VEHICLE: vehicle}
+        listed = self.cluster.list_objects(PODS, namespace=self.namespace, labels=owned)
+        return [pod for pod in listed if is_component_pod(pod)]
+
+    def _converge_pod(self, desired: Obj, *, node_exists: bool) -> Obj | None:
+        """One step of a component's pod towards ``desired`` (see :func:`pod_step`); the
+        pod as it is after the step (None: none yet)."""
+        name, namespace = desired["metadata"]["name"], desired["metadata"]["namespace"]
+        live = self.cluster.get(PODS, name, namespace)
+        step = pod_step(live, desired, node_exists=node_exists)
+        if step is PodStep.CREATE:
+            try:
+                return self.cluster.create(desired)
+            except ConflictError as error:
+                if not error.already_exists:
+                    raise
+                # The cache had not seen the old pod yet (or its deletion is not over):
+                # judge the pod that exists; its events queue the next reconcile.
+                return self.cluster.fresh(PODS, name, namespace)
+        if step in (PodStep.REPLACE, PodStep.RESTART):
+            log.info(
+                "pod %s/%s: %s (deleting it; its successor follows)", namespace, name, step.value
+            )
+            self.cluster.delete(PODS, name, namespace)
+        return live
 
     def _label_autopilot(self, autopilot: Obj, node_name: str) -> None:
         """Keep the RedundantAutopilot's ``roost.dev/node`` label on the vehicle's node:
@@ -425,8 +456,10 @@ class VehicleController:
                 except PermanentApiError as error:
                     problems.append(f"node {node['metadata']['name']}: {error.message}")
             owned = {LABEL_MANAGED_BY: MANAGED_BY, LABEL_VEHICLE: name}
-            for resource in (DEPLOYMENTS, CONFIGMAPS):
-                for obj in self.kube.list_objects(resource, namespace=self.namespace, labels=owned):
+            for resource in (PODS, CONFIGMAPS):
+                listed = self.kube.list_objects(resource, namespace=self.namespace, labels=owned)
+                # A Mission's onboard Job pods carry the vehicle's label too: not ours.
+                for obj in [o for o in listed if resource is not PODS or is_component_pod(o)]:
                     try:
                         self.kube.delete(resource, obj["metadata"]["name"], self.namespace)
                     except PermanentApiError as error:

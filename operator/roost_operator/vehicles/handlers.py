@@ -4,7 +4,7 @@ kopf watches; :class:`~roost_operator.workqueue.WorkQueue` reconciles. Each hand
 below only decides *which vehicle* an event concerns and whether anything Roost reads
 changed, then adds that vehicle's name to the queue and returns: handlers are async and
 never touch the API, so kopf's event loop never waits on a thread, and a burst of
-events about one vehicle (a Deployment's rollout) costs one reconcile. The queue's
+events about one vehicle (a component pod on its way to Ready) costs one reconcile. The queue's
 workers run :meth:`~roost_operator.vehicles.controller.VehicleController.reconcile`,
 retry temporary failures with a backoff, and report a permanent one once.
 
@@ -15,8 +15,9 @@ Triggers, and why each exists:
   deletion mark changed; its status (which only this controller writes) is ignored;
 * its node — a node appearing, turning Ready/NotReady or losing a Roost label queues
   the vehicles that claim it or that it is labelled for;
-* what Roost made for it (its ConfigMap and component Deployments) — rollout progress,
-  and a hand edit is put back at once. Nodes and these are watched by Roost's own
+* what Roost made for it (its ConfigMap and component Pods) — a pod's progress to Ready,
+  its end, its deletion (which lets its successor be created), and a hand edit is put
+  back at once. Nodes and these are watched by Roost's own
   threads (:mod:`~roost_operator.vehicles.watched`), not by kopf: node heartbeats and
   rollout steps are most of a fleet's watch events, and they are dropped there by a
   fingerprint before any of kopf's per-event work, into stores the controller reads;

@@ -2,7 +2,7 @@
 
 The vehicle controller (:mod:`.controller`) is the only writer of ``Vehicle.status``.
 It observes, calls :func:`plan_vehicle`, applies the plan, then calls :func:`report`
-on what the apply left (the live Deployments) for the one status write. Both functions
+on what the apply left (the live component Pods) for the one status write. Both functions
 take everything as arguments, ``now`` included, so the same observation always gives
 the same plan.
 
@@ -17,7 +17,7 @@ What :func:`plan_vehicle` decides, in order:
    real vehicle's default serial link).
 2. The node binding: the node named in the spec, unless the name cannot be a label
    value, an older Vehicle claims the node, the node does not exist or is not Ready.
-3. The vehicle's config values, its ConfigMap and its component Deployments (none while
+3. The vehicle's config values, its ConfigMap and its component Pods (none while
    the node is claimed by another Vehicle or the name is invalid).
 4. The mission claim mirrored into ``status.claimedBy`` (the claim itself is a Lease
    the mission controller writes, see :mod:`roost_operator.claims`).
@@ -54,10 +54,11 @@ from roost_operator.vehicles.desired import (
     Workload,
     active_autopilot,
     autopilots_of,
+    component_pod,
     component_workloads,
     components_condition,
-    deployment,
-    deployment_state,
+    pod_hash,
+    pod_state,
     vehicle_conditions,
 )
 from roost_operator.vehicles.placement import (
@@ -117,8 +118,8 @@ class VehiclePlan:
     node_state: NodeState | None
     """What to put on the target node; None: the vehicle labels no node."""
     config_map: Obj
-    deployments: dict[str, Obj]
-    """Desired component Deployments by component."""
+    pods: dict[str, Obj]
+    """Desired component Pods by component."""
     failover: FailoverPlan | None
     events: tuple[PlannedEvent, ...]
     followed: Autopilot | None
@@ -234,8 +235,8 @@ def plan_vehicle(obs: Observed, ctx: Context) -> VehiclePlan:
         VehicleConditionReason.NODE_NOT_READY,
     )
     wanted: list[Workload] = component_workloads(obs.spec, autopilots) if labels_node else []
-    deployments = {
-        w.component: deployment(
+    pods = {
+        w.component: component_pod(
             obs.name,
             obs.spec.node_name,
             w,
@@ -266,7 +267,7 @@ def plan_vehicle(obs: Observed, ctx: Context) -> VehiclePlan:
         config_map=vehicle_config_map(
             obs.name, values, namespace=ctx.namespace, owners=list(ctx.owners)
         ),
-        deployments=deployments,
+        pods=pods,
         failover=failover,
         events=failover.events if failover else (),
         followed=followed,
@@ -279,7 +280,7 @@ def plan_vehicle(obs: Observed, ctx: Context) -> VehiclePlan:
 REFUSED_NODE = "node"
 REFUSED_AUTOPILOT_LABEL = "autopilot-label"
 REFUSED_CONFIG = "config"
-"""Keys of :func:`report`'s ``refused`` for writes other than component Deployments."""
+"""Keys of :func:`report`'s ``refused`` for writes other than component Pods."""
 
 
 def _binding_after(plan: VehiclePlan, refused: Mapping[str, ApiError]) -> NodeBinding:
@@ -312,15 +313,15 @@ def report(
 ) -> VehicleStatus:
     """The status to write once the plan is applied: NodeBound, ComponentsReady, Ready.
 
-    ``live`` maps each desired component to its Deployment as the apply left it,
+    ``live`` maps each desired component to its Pod as the apply left it,
     ``refused`` the writes the API server refused, by component or by one of the
     ``REFUSED_*`` keys, with its answer: each shows in a condition with what to change.
     """
     states = [
-        ComponentState(c, False, f"its Deployment was refused: {refused[c].message}")
+        ComponentState(c, False, f"its Pod was refused: {refused[c].message}")
         if c in refused
-        else deployment_state(c, live.get(c))
-        for c in plan.deployments
+        else pod_state(c, live.get(c), pod_hash(desired))
+        for c, desired in plan.pods.items()
     ]
     components = components_condition(
         states, blocked=None if plan.runs_workloads else plan.binding.message

@@ -1,8 +1,8 @@
 """Roost's own watches that queue Vehicle reconciles: Nodes, and what Roost made.
 
 Why not kopf handlers: every node's kubelet (or KWOK) rewrites the Node's status every
-few seconds, and the Deployment controller writes a component's status several times per
-rollout; kopf processes each of those events in full (its per-object worker, cause
+few seconds, and a component pod's kubelet writes its status several times on its way
+to Ready; kopf processes each of those events in full (its per-object worker, cause
 detection, a deep copy for the diff base) before a handler can say "nothing I read
 changed" — about 3 ms per event here, which at 1,000 vehicles was most of the
 operator's CPU. A :class:`~roost_operator.watches.Watcher` lists and watches with
@@ -10,8 +10,10 @@ Roost's own client (owned objects with a server-side label selector, in the oper
 namespace only), keeps every object in a :class:`~roost_operator.watches.Store` the
 controller reads instead of the API server (:mod:`roost_operator.cache`), and a
 :class:`VehicleTrigger` queues the vehicles an object concerns only when the part Roost
-reads changed (:func:`node_relevant`, :func:`owned_relevant`), it appeared, or it went
-away.
+reads changed (:func:`node_relevant`, :func:`owned_relevant`, :func:`pod_relevant`),
+it appeared, or it went away. Component pods are selected by
+:data:`~roost_operator.vehicles.desired.COMPONENT_POD_SELECTOR`: a Mission's onboard Job
+pods carry a vehicle's label too, and are not the vehicle controller's.
 
 Which vehicles a node concerns comes from kopf's index of Vehicles by node
 (:class:`~roost_operator.vehicles.controller.Peers`) plus the vehicle the node is
@@ -31,13 +33,13 @@ from typing import Any, Final
 
 from roost_api.wellknown import LABEL_COMPONENT, LABEL_MANAGED_BY, LABEL_VEHICLE, MANAGED_BY
 from roost_kube.client import Kube
-from roost_kube.resources import CONFIGMAPS, DEPLOYMENTS, NODES
+from roost_kube.resources import CONFIGMAPS, NODES, PODS
 from roost_operator.vehicles.controller import Peers
+from roost_operator.vehicles.desired import COMPONENT_POD_SELECTOR
 from roost_operator.watches import Fingerprints, Store, Watcher, key_of, without_managed_fields
 
 OWNED_SELECTOR: Final = f"{LABEL_MANAGED_BY}={MANAGED_BY},{LABEL_VEHICLE},{LABEL_COMPONENT}"
-"""What the Vehicle controller made for a vehicle (its ConfigMap, its component
-Deployments), selected by the API server."""
+"""The vehicle's ConfigMap the Vehicle controller made, selected by the API server."""
 
 Relevant = Callable[[Mapping[str, Any]], Any]
 Concerns = Callable[[Mapping[str, Any]], Iterable[str]]
@@ -60,19 +62,40 @@ def node_relevant(body: Mapping[str, Any]) -> Any:
 
 
 def owned_relevant(body: Mapping[str, Any]) -> Any:
-    """What the controller reads of a ConfigMap or Deployment it made: its content (in the
-    generation, or the data) and labels, and a Deployment's rollout counts and conditions
-    — not the timestamps the Deployment controller refreshes on every status write."""
+    """What the controller reads of a ConfigMap it made: its data, labels, annotations."""
+    meta = body.get("metadata") or {}
+    return [meta.get("labels"), meta.get("annotations"), body.get("data")]
+
+
+def _ready(status: Mapping[str, Any]) -> Any:
+    return [
+        (c.get("status"), c.get("reason"))
+        for c in status.get("conditions") or []
+        if c.get("type") == "Ready"
+    ]
+
+
+def pod_relevant(body: Mapping[str, Any]) -> Any:
+    """What the controller reads of a component pod: its labels and annotations (the
+    hashes), whether it is being deleted, its phase and its Ready condition — not the
+    timestamps, IPs and container details the kubelet rewrites on its way to Ready."""
     meta = body.get("metadata") or {}
     status = body.get("status") or {}
     return [
-        meta.get("generation"),
         meta.get("labels"),
         meta.get("annotations"),
-        body.get("data"),
-        {key: value for key, value in status.items() if key != "conditions"},
-        [(c.get("type"), c.get("status"), c.get("reason")) for c in status.get("conditions") or []],
+        meta.get("deletionTimestamp"),
+        status.get("phase"),
+        _ready(status),
     ]
+
+
+def pod_kept(pod: Mapping[str, Any]) -> Mapping[str, Any]:
+    """What the pod store keeps of a component pod: its metadata and its status (phase,
+    conditions, container states for the detail strings), not its spec."""
+    return without_managed_fields(
+        {k: pod[k] for k in ("apiVersion", "kind", "metadata", "status") if k in pod}
+    )
 
 
 def node_kept(node: Mapping[str, Any]) -> Mapping[str, Any]:
@@ -149,17 +172,20 @@ def node_watcher(
 def owned_watchers(
     kube: Kube, namespace: str, enqueue: Callable[[str], None], stores: Mapping[str, Store]
 ) -> list[Watcher]:
-    """The vehicles' ConfigMaps and Deployments (``stores`` by kind) in ``namespace``."""
+    """The vehicles' ConfigMaps and component Pods (``stores`` by kind) in ``namespace``."""
     return [
         Watcher(
             kube,
             resource,
             trigger.on_event,
             trigger.on_list,
-            label_selector=OWNED_SELECTOR,
+            label_selector=selector,
             namespace=namespace,
             store=stores[resource.kind],
         )
-        for resource in (CONFIGMAPS, DEPLOYMENTS)
-        for trigger in [VehicleTrigger(owned_relevant, labelled_vehicle, enqueue)]
+        for resource, relevant, selector in (
+            (CONFIGMAPS, owned_relevant, OWNED_SELECTOR),
+            (PODS, pod_relevant, COMPONENT_POD_SELECTOR),
+        )
+        for trigger in [VehicleTrigger(relevant, labelled_vehicle, enqueue)]
     ]
