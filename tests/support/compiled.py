@@ -18,28 +18,17 @@ from __future__ import annotations
 
 import importlib
 import os
-import subprocess
 from collections.abc import Mapping
 from pathlib import Path
 
-from roost_localcluster.binaries import REPO_ROOT
+from tests.support.images import run_build_script
 
-BUILD_SCRIPT = REPO_ROOT / "docker" / "build-images.sh"
 TREE_VARIABLE = "ROOST_COMPILED_TREE"
 
 
 def compiled_tree() -> Path:
     """Build Roost's compiled wheel into the cache unless it is current; its directory."""
-    done = subprocess.run(
-        [str(BUILD_SCRIPT), "--compiled-tree"],
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=900,
-    )
-    if done.returncode != 0:
-        raise RuntimeError(f"{BUILD_SCRIPT} --compiled-tree failed:\n{done.stderr[-3000:]}")
-    return Path(done.stdout.strip().splitlines()[-1])
+    return run_build_script("--compiled-tree", timeout_s=900)
 
 
 def compiled_modules(tree: Path) -> list[str]:

@@ -29,14 +29,20 @@ def missing_tools() -> list[str]:
     return [tool for tool in TOOLS if shutil.which(tool) is None]
 
 
-def build_images() -> Path:
-    """Build both images unless cached; the directory holding ``roost-<target>.oci.tar``."""
+def run_build_script(*args: str, timeout_s: float = 1800) -> Path:
+    """Run ``docker/build-images.sh`` with ``args``; the directory it prints last."""
     done = subprocess.run(
-        [str(BUILD_SCRIPT)], check=False, capture_output=True, text=True, timeout=1800
+        [str(BUILD_SCRIPT), *args], check=False, capture_output=True, text=True, timeout=timeout_s
     )
     if done.returncode != 0:
-        raise RuntimeError(f"{BUILD_SCRIPT} failed:\n{done.stderr[-3000:]}")
+        command = " ".join([str(BUILD_SCRIPT), *args])
+        raise RuntimeError(f"{command} failed:\n{done.stderr[-3000:]}")
     return Path(done.stdout.strip().splitlines()[-1])
+
+
+def build_images() -> Path:
+    """Build both images unless cached; the directory holding ``roost-<target>.oci.tar``."""
+    return run_build_script()
 
 
 def archive(images_dir: Path, target: str) -> Path:
