@@ -165,7 +165,7 @@ def _args_apiserver(bin_dir: Path, ports: Ports, keys: pki.Pki) -> list[str]:
         f"--tls-cert-file={keys.serving_cert}",
         f"--tls-private-key-file={keys.serving_key}",
         f"--client-ca-file={keys.ca_cert}",
-        f"--requestheader-client-ca-file={keys.ca_cert}",
+        f"--requestheader-client-ca-file={keys.front_proxy_ca_cert}",
         f"--requestheader-allowed-names={pki.FRONT_PROXY.user}",
         "--requestheader-username-headers=X-Remote-User",
         "--requestheader-group-headers=X-Remote-Group",
