@@ -99,6 +99,7 @@ class Runtime:
             namespace=namespace,
             guards=settings.guards,
             stale_after=settings.agent_stale_after,
+            first_report_hold=settings.first_report_hold,
             caches={
                 **{
                     kind: Cached(store, "" if kind == NODES.kind else namespace)

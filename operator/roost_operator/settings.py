@@ -129,6 +129,13 @@ class Settings:
     max_backoff_seconds: float = 60.0
     """Longest wait between retries of a failing Vehicle reconcile."""
 
+    first_report_hold: timedelta = timedelta(seconds=5)
+    """How long after its creation a new Vehicle whose components are only starting may
+    go without a status (``ROOST_FIRST_REPORT_HOLD_SECONDS``; 0 writes every report at
+    once): usually its pods are Ready by then and its first status is its only write on
+    the way to Ready. Any problem is written at once
+    (:func:`~roost_operator.vehicles.plan.first_report_due`)."""
+
     agent_stale_after: timedelta = DEFAULT_AGENT_STALE_AFTER
     """Age of an agent's last report after which its Vehicle's ``AgentConnected`` turns
     Unknown (``ROOST_AGENT_STALE_SECONDS``); keep it at least three times the agents'
@@ -203,6 +210,9 @@ def load_settings(environ: Mapping[str, str]) -> Settings:
         reconcile_workers=int(environ.get("ROOST_RECONCILE_WORKERS", defaults.reconcile_workers)),
         agent_stale_after=_seconds(
             environ, "ROOST_AGENT_STALE_SECONDS", defaults.agent_stale_after
+        ),
+        first_report_hold=_seconds(
+            environ, "ROOST_FIRST_REPORT_HOLD_SECONDS", defaults.first_report_hold
         ),
         guards=load_guards(environ),
         missions=MissionTimings(

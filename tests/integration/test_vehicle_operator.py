@@ -311,6 +311,25 @@ def test_an_idle_vehicle_costs_no_api_writes(
     assert node_state() == node_before
 
 
+def test_a_new_vehicle_whose_pods_start_at_once_is_reported_once(
+    roost_crds: Cluster, fake_nodes: AddNode, vehicles: Callable[..., str], kube: Kube
+) -> None:
+    """Its "components starting" report waits for its pods (the operator's default
+    first-report hold), so the way to Ready costs one status write. A Vehicle whose first
+    status is Ready started as it should: that is no Event's news."""
+    node = unique("veh-node")
+    fake_nodes(node)
+    window = roost_crds.audit_window()
+    name = vehicles(unique("once"), node)
+    wait_ready(kube, name)
+    wait_operator_quiet(roost_crds)
+    writes = operator_writes(roost_crds, window)
+    by_resource = {kind.resource: n for kind, n in writes.items() if not kind.error}
+    assert by_resource.get("vehicles/status") == 1, writes
+    assert not by_resource.get("events"), writes
+    assert vehicle_events(roost_crds, name) == []
+
+
 # ---- node labels: only Roost's own keys ------------------------------------------------
 
 

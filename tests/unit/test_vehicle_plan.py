@@ -2,8 +2,8 @@
 
 Covers what the controller decides in one place: the node binding, which autopilot the
 vehicle's workloads follow (with and without a RedundantAutopilot, with a fleet guard
-holding a re-point back), the claim mirrored into status, and how refusals of the API
-server become conditions.
+holding a re-point back), the claim mirrored into status, how refusals of the API
+server become conditions, and when a new Vehicle's first report may wait for its pods.
 """
 
 from __future__ import annotations
@@ -19,13 +19,14 @@ from roost_api.meta import ObjectReference, find_condition
 from roost_api.vehicle import VehicleFailover, VehicleSpec, VehicleStatus
 from roost_kube.errors import error_for_status
 from roost_operator.autopilots.guards import FleetGuards
-from roost_operator.vehicles.desired import DEFAULT_FCU_URL
+from roost_operator.vehicles.desired import DEFAULT_FCU_URL, ComponentState, pod_state
 from roost_operator.vehicles.placement import NodeClaim
 from roost_operator.vehicles.plan import (
     REFUSED_AUTOPILOT_LABEL,
     REFUSED_CONFIG,
     Context,
     Observed,
+    first_report_due,
     node_binding,
     plan_vehicle,
     refusal_time,
@@ -224,3 +225,109 @@ def test_agent_reports_that_only_tick_do_not_change_the_fingerprint() -> None:
     switched = {"spec": {"vehicleName": "d"}, "status": {"activeAutopilot": "fc2"}}
     assert relevant_autopilot(body) == relevant_autopilot(later)
     assert relevant_autopilot(body) != relevant_autopilot(switched)
+
+
+# -- a new Vehicle's first report --------------------------------------------------------
+
+HOLD = timedelta(seconds=5)
+NEW = "2026-05-01T11:59:58Z"  # two seconds before NOW: inside the hold
+STARTING = ComponentState("mavros", False, "its Pod is Pending", starting=True)
+PULLING = ComponentState("mavros", False, "its Pod is Pending (ErrImagePull: no such image)")
+READY = ComponentState("mavros", True, "")
+
+
+def pending_pod(*waiting: str) -> dict[str, Any]:
+    return {
+        "metadata": {"name": "drone1-mavros"},
+        "status": {
+            "phase": "Pending",
+            "containerStatuses": [{"state": {"waiting": {"reason": why}}} for why in waiting],
+        },
+    }
+
+
+def first_report(
+    states: list[ComponentState], hold: timedelta = HOLD, **overrides: Any
+) -> datetime | None:
+    """first_report_due of a Vehicle ``observed(**overrides)`` whose pods are ``states``."""
+    obs = observed(**({"created": NEW} | overrides))
+    plan = plan_vehicle(obs, CTX)
+    status = report(
+        plan,
+        live={},
+        refused={},
+        generation=3,
+        agent_expected=obs.autopilot_spec is not None,
+    )
+    return first_report_due(obs, status, states, hold)
+
+
+SURVEY = ObjectReference(namespace="flights", name="survey")
+
+
+@pytest.mark.parametrize(
+    ("case", "states", "overrides", "held"),
+    [
+        ("new, its pod only starting: held", [STARTING], {}, True),
+        ("new, one pod Ready and one starting: held", [READY, STARTING], {}, True),
+        ("new, every pod Ready already: written", [READY], {}, False),
+        ("new, no components at all: written", [], {}, False),
+        ("a pod waits for an image: written", [PULLING], {}, False),
+        ("the node is missing: written", [STARTING], {"node": None}, False),
+        ("the node is not Ready: written", [STARTING], {"node": node(ready=False)}, False),
+        ("a status exists already: written", [STARTING], {"status": "written"}, False),
+        (
+            "created longer ago than the hold: written",
+            [STARTING],
+            {"created": "2026-05-01T11:59:55Z"},
+            False,
+        ),
+        ("a RedundantAutopilot: written", [STARTING], with_agent("fc1"), False),
+        ("a Mission's claim to mirror: written", [STARTING], {"claimed_by": SURVEY}, False),
+        (
+            "a creation time that does not parse: written",
+            [STARTING],
+            {"created": "yesterday"},
+            False,
+        ),
+    ],
+)
+def test_first_report_due_decision_table(
+    case: str, states: list[ComponentState], overrides: dict[str, Any], held: bool
+) -> None:
+    if overrides.get("status") == "written":
+        earlier = report(
+            plan_vehicle(observed(), CTX), live={}, refused={}, generation=3, agent_expected=False
+        )
+        overrides = {"status": earlier}
+    due = first_report(states, **overrides)
+    assert (due is not None) is held, case
+    if held:
+        assert due == datetime(2026, 5, 1, 12, 0, 3, tzinfo=UTC), "creation + the hold"
+
+
+def test_no_hold_writes_every_first_report_at_once() -> None:
+    assert first_report([STARTING], hold=timedelta(0)) is None
+
+
+@pytest.mark.parametrize(
+    ("waiting", "starting"),
+    [
+        ((), True),
+        (("ContainerCreating",), True),
+        (("PodInitializing", "ContainerCreating"), True),
+        (("ImagePullBackOff",), False),
+        (("ContainerCreating", "CreateContainerConfigError"), False),
+    ],
+)
+def test_a_pending_pod_is_only_starting_while_its_containers_wait_for_their_start(
+    waiting: tuple[str, ...], starting: bool
+) -> None:
+    state = pod_state("mavros", pending_pod(*waiting))
+    assert not state.ready
+    assert state.starting is starting
+
+
+def test_an_ended_pod_is_not_starting() -> None:
+    ended = {"metadata": {"name": "m"}, "status": {"phase": "Failed", "reason": "Evicted"}}
+    assert not pod_state("mavros", ended).starting

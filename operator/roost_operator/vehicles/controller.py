@@ -46,7 +46,7 @@ import logging
 import threading
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from datetime import timedelta
+from datetime import datetime, timedelta
 from typing import Any, Final
 
 from roost_api.autopilot import RedundantAutopilotSpec, RedundantAutopilotStatus
@@ -88,6 +88,8 @@ from roost_operator.vehicles.plan import (
     Observed,
     VehiclePlan,
     acting,
+    component_states,
+    first_report_due,
     plan_vehicle,
     refusal_time,
     report,
@@ -159,6 +161,8 @@ class Outcome:
     agent_connected: str | None
     acting: bool
     blocked: str | None
+    report_due: datetime | None = None
+    """A held first report (:func:`~.plan.first_report_due`): reconcile again then."""
 
 
 @dataclass(frozen=True)
@@ -185,6 +189,8 @@ class VehicleController:
     namespace: str
     guards: FleetGuards = field(default_factory=FleetGuards)
     stale_after: timedelta = DEFAULT_AGENT_STALE_AFTER
+    first_report_hold: timedelta = timedelta(0)
+    """See :func:`~roost_operator.vehicles.plan.first_report_due`."""
     ledger: ActionLedger = field(default_factory=ActionLedger)
     caches: Mapping[str, Cached] = field(default_factory=dict)
     """Watch caches (by kind) of nodes, claims and owned objects; others are read from
@@ -295,14 +301,18 @@ class VehicleController:
                 agent_expected=autopilot is not None,
             )
             self._post(vehicle, plan.events)
-            written = write_vehicle_status(
-                kube,
-                vehicle,
-                obs.status,
-                status,
-                fields=STATUS_FIELDS,
-                event_types=EVENT_CONDITIONS,
-            )
+            states = component_states(plan, live=live, refused=refused)
+            report_due = first_report_due(obs, status, states, self.first_report_hold)
+            written = None
+            if report_due is None:
+                written = write_vehicle_status(
+                    kube,
+                    vehicle,
+                    obs.status,
+                    status,
+                    fields=STATUS_FIELDS,
+                    event_types=EVENT_CONDITIONS,
+                )
             if written is not None:
                 self.cluster.remember(written)
         except Exception:
@@ -329,6 +339,7 @@ class VehicleController:
             agent_connected=failover.conditions[0].status if failover else None,
             acting=acting(plan),
             blocked=failover.failover.blocked if failover else None,
+            report_due=report_due,
         )
 
     def _apply(

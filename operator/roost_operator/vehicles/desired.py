@@ -379,6 +379,27 @@ class ComponentState:
     component: str
     ready: bool
     detail: str
+    starting: bool = False
+    """Not Ready yet, and nothing is wrong: the desired pod is Pending or not yet Ready,
+    and no container waits for anything but its own start (:data:`STARTING_REASONS`)."""
+
+
+STARTING_REASONS: Final = frozenset({"ContainerCreating", "PodInitializing"})
+"""Why a container waits while its pod starts as it should (the kubelet's words)."""
+
+
+def _only_starting(status: Mapping[str, Any]) -> bool:
+    """Whether nothing but the pod's own start keeps it from running: no container has
+    ended or waits for another reason, and the pod carries no reason of its own."""
+    if status.get("reason"):
+        return False
+    for container in status.get("containerStatuses") or []:
+        state = container.get("state") or {}
+        if "terminated" in state:
+            return False
+        if "waiting" in state and state["waiting"].get("reason") not in STARTING_REASONS:
+            return False
+    return True
 
 
 def _pod_problem(status: Mapping[str, Any]) -> str:
@@ -418,12 +439,18 @@ def pod_state(
     )
     if phase != "Running":
         return ComponentState(
-            component, False, f"its Pod is {phase}" + (f" ({problem})" if problem else "")
+            component,
+            False,
+            f"its Pod is {phase}" + (f" ({problem})" if problem else ""),
+            starting=_only_starting(status),
         )
     if ready.get("status") != "True":
         why = ready.get("message") or problem
         return ComponentState(
-            component, False, "its Pod runs but is not Ready" + (f" ({why})" if why else "")
+            component,
+            False,
+            "its Pod runs but is not Ready" + (f" ({why})" if why else ""),
+            starting=_only_starting(status),
         )
     return ComponentState(component, True, "")
 
@@ -563,9 +590,9 @@ def transitions(
 
     Other first appearances are no news: a condition that appears True or Unknown is the
     vehicle starting as it should, and Ready's first False says that its components are
-    still rolling out or repeats a detail condition's own Event. They were two of the
-    three Events every Vehicle posted on its way to Ready; the third, Ready turning
-    True, stays.
+    still rolling out or repeats a detail condition's own Event. Ready turning True is
+    news; a Vehicle whose first status is already Ready (its "starting" report was held
+    until its pods were Ready, see :func:`~.plan.first_report_due`) posts no Event.
     """
     wanted = set(types)
     old = {c.type: c.status for c in before}

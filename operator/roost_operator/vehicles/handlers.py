@@ -145,8 +145,11 @@ def reconcile_vehicle(rt: Runtime, vehicle: str) -> None:
         outcome = rt.vehicles.reconcile(vehicle, peers)
     if outcome is None:
         rt.connected.pop(vehicle, None)
-    else:
-        rt.connected[vehicle] = outcome.agent_connected
+        return
+    rt.connected[vehicle] = outcome.agent_connected
+    if outcome.report_due is not None:  # a held first report: write it then at the latest
+        wait = (outcome.report_due - now()).total_seconds()
+        rt.vehicle_queue.add_at(vehicle, time.monotonic() + max(0.0, wait))
 
 
 def enqueue(memo: Any, vehicle: str, indexes: Mapping[str, Any]) -> None:

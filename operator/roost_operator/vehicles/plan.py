@@ -317,12 +317,7 @@ def report(
     ``refused`` the writes the API server refused, by component or by one of the
     ``REFUSED_*`` keys, with its answer: each shows in a condition with what to change.
     """
-    states = [
-        ComponentState(c, False, f"its Pod was refused: {refused[c].message}")
-        if c in refused
-        else pod_state(c, live.get(c), pod_hash(desired))
-        for c, desired in plan.pods.items()
-    ]
+    states = component_states(plan, live=live, refused=refused)
     components = components_condition(
         states, blocked=None if plan.runs_workloads else plan.binding.message
     )
@@ -341,6 +336,55 @@ def report(
         agent_expected=agent_expected,
     )
     return plan.status.model_copy(update={"conditions": conditions})
+
+
+def component_states(
+    plan: VehiclePlan, *, live: Mapping[str, Obj | None], refused: Mapping[str, ApiError]
+) -> list[ComponentState]:
+    """Each desired component's state once the plan is applied (see :func:`report`)."""
+    return [
+        ComponentState(c, False, f"its Pod was refused: {refused[c].message}")
+        if c in refused
+        else pod_state(c, live.get(c), pod_hash(desired))
+        for c, desired in plan.pods.items()
+    ]
+
+
+HELD_CONDITIONS = (VehicleConditionType.READY, VehicleConditionType.COMPONENTS_READY)
+"""The conditions a held first report may have False: its components are still starting."""
+
+
+def first_report_due(
+    obs: Observed,
+    status: VehicleStatus,
+    states: Sequence[ComponentState],
+    hold: timedelta,
+) -> datetime | None:
+    """When to write the first status of a new Vehicle whose components are only
+    starting, or None to write ``status`` now.
+
+    A new Vehicle's components are usually Ready moments after its pods are created, and
+    a status saying "starting" written in between is the most expensive request of its
+    rollout (a write of the whole custom object, sent to every watcher of Vehicles), so
+    that report waits until ``hold`` after the Vehicle's creation. Any other news is
+    written at once: an existing status, a condition other than Ready and
+    ComponentsReady that is not True, a component that is not merely starting (refused,
+    ended, waiting for a reason such as an image pull), anything of failover or claims,
+    a Vehicle with a RedundantAutopilot, or a Vehicle older than ``hold``.
+    """
+    if hold <= timedelta(0) or obs.status.conditions or obs.autopilot_spec is not None:
+        return None
+    if status.failover is not None or status.claimed_by is not None:
+        return None
+    if any(c.status != "True" for c in status.conditions if c.type not in HELD_CONDITIONS):
+        return None
+    if not any(not s.ready for s in states) or not all(s.ready or s.starting for s in states):
+        return None
+    try:
+        due = datetime.fromisoformat(obs.created) + hold
+    except ValueError:
+        return None
+    return due if obs.now < due else None
 
 
 def refusal_time(status: VehicleStatus, refused: Mapping[str, ApiError]) -> datetime | None:
