@@ -62,5 +62,6 @@ ANNOTATION_POD_HASH = f"{PREFIX}pod-hash"
 VEHICLE_CONFIG_FILE = "vehicle.config"
 VEHICLE_CONFIG_MOUNTS = ("/etc/roost", "/etc/starling")
 
-# Finalizer on Vehicles so deletion removes labels and taint from the node first.
+# Finalizer on Missions (kopf's), so deletion stops their work and releases claims first.
+# Vehicles of earlier versions carry it too; kopf removes it, as no handler needs it.
 FINALIZER = f"{PREFIX}cleanup"

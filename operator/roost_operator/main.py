@@ -9,7 +9,8 @@ Settings are explicit rather than kopf's defaults, following operator practice:
 * no diff base (:class:`NoDiffBase`): kopf would write the last handled configuration
   into an annotation of every Vehicle and Mission (a PATCH per object, and one more per
   spec change) for its create/update/resume handlers, and Roost registers none: its
-  handlers watch events, run daemons and timers, and clean up behind the finalizer;
+  handlers watch events, run daemons and timers, and clean up behind the finalizer
+  (Missions only: a Vehicle's leftovers carry its label and are found without one);
 * a named peering (``Settings.peering``, default ``roost``) so two Roost deployments never
   pause each other, and peering is optional: without the peering CRD the operator runs
   standalone (the chart runs one replica with ``strategy: Recreate``);
@@ -18,8 +19,8 @@ Settings are explicit rather than kopf's defaults, following operator practice:
   Roost posts its own Events on meaningful transitions;
 * watch ``server_timeout`` below the client timeout so a silently stalled watch is
   reopened (kopf #955, #1276), and request timeouts on every API call;
-* a short ``background.cancellation_polling``: a deleted Vehicle whose (sync) timer
-  happens to be running would otherwise keep its finalizer for a minute;
+* a short ``background.cancellation_polling``: a deleted Mission whose (sync) timer or
+  daemon happens to be running would otherwise keep its finalizer for a minute;
 * a bounded ``queueing.worker_limit`` and ``execution.max_workers``
   (:class:`~roost_operator.settings.KopfTimings`): back-pressure on the watch streams
   instead of a worker per object, and a fixed thread pool for the handlers that block.

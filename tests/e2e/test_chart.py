@@ -564,8 +564,12 @@ def test_operator_with_the_chart_service_account_reconciles_a_vehicle(
     finally:
         installed.kubectl("delete", "vehicle", OPERATED_VEHICLE, "--wait=false")
     wait_until(
-        "the finalizer to release the deleted Vehicle",
-        lambda: installed.kubectl("get", "vehicle", OPERATED_VEHICLE, check=False).returncode != 0,
+        "the deleted Vehicle gone and its node released by the operator",
+        lambda: (
+            installed.kubectl("get", "vehicle", OPERATED_VEHICLE, check=False).returncode != 0
+            and LABEL_VEHICLE
+            not in _get(installed, "node", NODE_OPERATED)["metadata"].get("labels", {})
+        ),
     )
     _operator_log_is_clean(process)
 
@@ -637,7 +641,7 @@ def test_operator_with_the_chart_service_account_labels_the_autopilot_and_flies_
         installed.kubectl("delete", "namespace", MISSION_NAMESPACE, "--wait=false")
         installed.kubectl("delete", "redundantautopilot,vehicle", MISSION_VEHICLE, "--wait=false")
     wait_until(
-        "the vehicle's finalizer to finish",
+        "the Vehicle to be gone",
         lambda: installed.kubectl("get", "vehicle", MISSION_VEHICLE, check=False).returncode != 0,
         timeout_s=120,
     )

@@ -7,7 +7,8 @@ The operator gets its own namespace and runs as shipped: no fleet sweep, so ever
 below (hand edits put back, a freed node handed on, nothing written while idle) happens
 on watch events alone. Vehicles are cluster-scoped and
 the cluster is shared by the session, so every test uses unique names and deletes its
-Vehicles while the operator still runs (their finalizer needs it).
+Vehicles while the operator still runs (it releases their nodes; Vehicles carry no
+finalizer, so deletion itself never waits for it).
 """
 
 from __future__ import annotations
@@ -24,7 +25,6 @@ from roost_api.wellknown import (
     ANNOTATION_CONFIG_HASH,
     ANNOTATION_MANAGED_LABELS,
     ANNOTATION_POD_HASH,
-    FINALIZER,
     LABEL_COMPONENT,
     LABEL_NODE,
     LABEL_VEHICLE,
@@ -220,8 +220,9 @@ def test_a_simulated_vehicle_gets_its_node_config_and_components(
 
         vehicle = kube.get(VEHICLES, name)
         assert vehicle is not None
-        # kopf's one write is its finalizer: Roost keeps no diff base on the object
-        assert FINALIZER in vehicle["metadata"]["finalizers"]
+        # No write to the Vehicle itself: no finalizer (leftovers carry its label), no
+        # diff base
+        assert not vehicle["metadata"].get("finalizers")
         assert not any(key.startswith(PREFIX) for key in vehicle["metadata"].get("annotations", {}))
         status = vehicle["status"]
         assert status["nodeName"] == node
@@ -355,6 +356,10 @@ def test_hand_edits_are_put_back_and_others_labels_survive_deletion(
     assert node_labels(kube, node)["team"] == "red"
 
     roost_crds.kubectl("delete", "vehicle", name, "--wait=true", "--timeout=60s")
+    wait_until(
+        "the operator to release the node",
+        lambda: LABEL_VEHICLE not in node_labels(kube, node),
+    )
     labels = node_labels(kube, node)
     assert labels["team"] == "red"
     assert labels["roost.dev/hand-set"] == "keep"
@@ -606,6 +611,29 @@ def test_two_vehicles_on_one_node_the_older_keeps_it_without_a_fight(
     roost_crds.kubectl("delete", "vehicle", first, "--wait=true", "--timeout=60s")
     wait_ready(kube, second)
     assert node_labels(kube, node)[LABEL_VEHICLE] == second
+
+
+def test_a_vehicle_deleted_while_the_operator_is_down_is_released_when_it_is_back(
+    fake_nodes: AddNode, vehicles: Callable[..., str], kube: Kube, operator: OperatorProcess
+) -> None:
+    cluster = operator.cluster
+    node = unique("veh-node")
+    fake_nodes(node)
+    name = vehicles(unique("gone"), node)
+    wait_ready(kube, name)
+    operator.stop()
+    # Nothing waits for the operator: the Vehicle is gone at once.
+    cluster.kubectl("delete", "vehicle", name, "--wait=true", "--timeout=30s")
+    assert node_labels(kube, node)[LABEL_VEHICLE] == name
+    assert roost_taints(kube, node)
+    operator.start()
+    # Its node still carries its label: the operator's first listing of nodes finds it.
+    wait_until(
+        "the deleted Vehicle's node released",
+        lambda: LABEL_VEHICLE not in node_labels(kube, node) and not roost_taints(kube, node),
+    )
+    wait_until("its pods gone", lambda: not component_pods(kube, name))
+    assert kube.get(CONFIGMAPS, f"roost-vehicle-{name}", NAMESPACE) is None
 
 
 # ---- crash in the middle of a reconcile ------------------------------------------------

@@ -235,12 +235,6 @@ class RealFleet:
 
     def stop(self) -> None:
         objects = ("redundantautopilot,vehicle", VEHICLE)
-        if not self.installed:
-            # The operator is gone with the chart: nobody releases the Vehicle's finalizer.
-            unfinalized = json.dumps({"metadata": {"finalizers": None}})
-            self.cluster.kubectl(
-                "patch", "vehicle", VEHICLE, "--type=merge", "-p", unfinalized, check=False
-            )
         self.cluster.kubectl("delete", *objects, "--ignore-not-found", "--timeout=60s", check=False)
         if self.installed:
             self.uninstall()

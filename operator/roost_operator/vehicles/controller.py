@@ -15,11 +15,13 @@ Why it is safe to run at any time, any number of times, and to be killed half-wa
   other Vehicles, nodes, the claim and what Roost made for the vehicle come from watch
   caches that this controller's own writes update at once, and a retry after a conflict
   reads fresh (:class:`~roost_operator.cache.CachedView` says why that is safe);
-* **nothing before the finalizer**: a Vehicle is reconciled only once kopf's finalizer
-  (:data:`~roost_api.wellknown.FINALIZER`) is on it, so whatever Roost makes for it is
-  cleaned up when it is deleted, and the first status write does not race kopf's
-  finalizer patch (a 409 and a second try for about one new Vehicle in six at fleet
-  scale); the event that brings the finalizer queues the reconcile;
+* **a Vehicle that is gone is released**: when the Vehicle no longer exists (asked of
+  the API server, never concluded from a cache) or is being deleted, the reconcile
+  removes what Roost made for it (:meth:`VehicleController.release`). Everything Roost
+  makes for a vehicle can be found again by its label, so no finalizer is needed: the
+  Vehicle's deletion event queues the release, and after a restart the node watcher's
+  first listing queues every vehicle a node is still labelled for. Deletion never waits
+  for the operator;
 * everything is computed from what was just read and written only where it differs
   (node patch planned by :func:`~roost_operator.vehicles.placement.plan_node`, objects
   through :meth:`~roost_kube.client.Kube.apply`, status compared before patching);
@@ -36,8 +38,9 @@ takes the step :func:`~roost_operator.vehicles.desired.pod_step` decides — cre
 missing pod, delete an outdated or ended one and create its successor only after the
 deletion event of the old one has queued the next reconcile, never patch a live pod.
 
-Deletion (:meth:`VehicleController.release`) removes what Roost made for the vehicle
-and reports what it could not remove instead of failing for ever.
+Release (:meth:`VehicleController.release`) removes what Roost made for the vehicle
+and reports what it could not remove, once, in a Warning Event, instead of failing for
+ever.
 """
 
 from __future__ import annotations
@@ -47,13 +50,12 @@ import threading
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timedelta
-from typing import Any, Final
+from typing import Final
 
 from roost_api.autopilot import RedundantAutopilotSpec, RedundantAutopilotStatus
 from roost_api.meta import now
 from roost_api.vehicle import VehicleSpec, VehicleStatus
 from roost_api.wellknown import (
-    FINALIZER,
     LABEL_COMPONENT,
     LABEL_MANAGED_BY,
     LABEL_NODE,
@@ -176,11 +178,6 @@ class Leftovers:
         return not self.problems
 
 
-def finalized(meta: Mapping[str, Any]) -> bool:
-    """Whether kopf's finalizer is on the object: only then is a Vehicle reconciled."""
-    return FINALIZER in (meta.get("finalizers") or ())
-
-
 @dataclass
 class VehicleController:
     """The one writer of Vehicle status; see the module docstring."""
@@ -275,10 +272,8 @@ class VehicleController:
         else:
             vehicle = self.cluster.get(VEHICLES, name)
         if vehicle is None or vehicle["metadata"].get("deletionTimestamp"):
-            self.ledger.forget(name)
+            self._release_gone(name, vehicle)
             return None
-        if not finalized(vehicle["metadata"]):
-            return None  # kopf's finalizer comes first (see the module docstring)
         obs, autopilot = self._observe(vehicle, peers)
         ctx = Context(
             namespace=self.namespace,
@@ -452,31 +447,69 @@ class VehicleController:
 
     # -- deletion ----------------------------------------------------------------------
 
+    def release_if_gone(self, name: str) -> bool:
+        """Release Vehicle ``name`` if the API server says it is gone or being deleted
+        (for a vehicle queued before the controller can reconcile one that exists);
+        whether it was."""
+        with self.lock(name):
+            vehicle = self.cluster.fresh(VEHICLES, name)
+            if vehicle is not None and not vehicle["metadata"].get("deletionTimestamp"):
+                return False
+            self._release_gone(name, vehicle)
+            return True
+
+    def _release_gone(self, name: str, vehicle: Obj | None) -> None:
+        """The Vehicle is gone (``None``) or being deleted: release what Roost made for
+        it, and say once, in a Warning Event, what could not be removed."""
+        leftovers = self._release_locked(name)
+        if leftovers.clean:
+            return
+        log.warning("Vehicle %s: deleted, but left behind: %s", name, leftovers.problems)
+        regarding = vehicle or {
+            "apiVersion": VEHICLES.api_version,
+            "kind": VEHICLES.kind,
+            "metadata": {"name": name},
+        }
+        self.kube.post_event(
+            regarding,
+            reason="CleanupIncomplete",
+            message="deleted, but left behind: " + "; ".join(leftovers.problems),
+            type="Warning",
+            at=now().isoformat().replace("+00:00", "Z"),
+        )
+
     def release(self, name: str) -> Leftovers:
         """Remove what Roost made for Vehicle ``name`` (labels, taint, config, workloads).
 
         Every part is attempted even when another is refused for good; what could not be
-        removed is returned, so deletion finishes and an Event can say what was left. A
-        temporary error is raised: the deletion is retried.
+        removed is returned, so the caller can say what was left. A temporary error is
+        raised: the release is retried. Finding nothing to remove costs no request: the
+        nodes, ConfigMaps and Pods are read from the watch caches.
         """
-        problems: list[str] = []
         with self.lock(name):
-            for node in self.kube.list_objects(NODES, labels={LABEL_VEHICLE: name}):
+            return self._release_locked(name)
+
+    def _release_locked(self, name: str) -> Leftovers:
+        problems: list[str] = []
+        cluster = self.cluster
+        for node in cluster.list_objects(NODES, labels={LABEL_VEHICLE: name}):
+            try:
+                self._converge_node(node, NodeState.released())
+            except PermanentApiError as error:
+                problems.append(f"node {node['metadata']['name']}: {error.message}")
+        owned = {LABEL_MANAGED_BY: MANAGED_BY, LABEL_VEHICLE: name}
+        for resource in (PODS, CONFIGMAPS):
+            listed = cluster.list_objects(resource, namespace=self.namespace, labels=owned)
+            # A Mission's onboard Job pods carry the vehicle's label too: not ours.
+            for obj in [o for o in listed if resource is not PODS or is_component_pod(o)]:
+                if obj["metadata"].get("deletionTimestamp"):
+                    continue
                 try:
-                    self._converge_node(node, NodeState.released())
+                    cluster.delete(resource, obj["metadata"]["name"], self.namespace)
                 except PermanentApiError as error:
-                    problems.append(f"node {node['metadata']['name']}: {error.message}")
-            owned = {LABEL_MANAGED_BY: MANAGED_BY, LABEL_VEHICLE: name}
-            for resource in (PODS, CONFIGMAPS):
-                listed = self.kube.list_objects(resource, namespace=self.namespace, labels=owned)
-                # A Mission's onboard Job pods carry the vehicle's label too: not ours.
-                for obj in [o for o in listed if resource is not PODS or is_component_pod(o)]:
-                    try:
-                        self.kube.delete(resource, obj["metadata"]["name"], self.namespace)
-                    except PermanentApiError as error:
-                        problems.append(
-                            f"{resource.kind} {self.namespace}/{obj['metadata']['name']}: "
-                            f"{error.message}"
-                        )
+                    problems.append(
+                        f"{resource.kind} {self.namespace}/{obj['metadata']['name']}: "
+                        f"{error.message}"
+                    )
         self.ledger.forget(name)
         return Leftovers(tuple(problems))

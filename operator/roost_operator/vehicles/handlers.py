@@ -37,10 +37,13 @@ Triggers, and why each exists:
 * optionally a fleet sweep every ``resync_seconds`` (off by default: everything above is
   event-driven, and a sweep at fleet scale is work that almost always finds nothing).
 
-Deletion goes through the Roost finalizer (``roost.dev/cleanup``): labels, taint,
-config and workloads are removed before the Vehicle disappears; what cannot be removed
-is reported in an Event and the finalizer is released anyway. Other Vehicles waiting
-for the freed node are queued next.
+Deletion needs no finalizer: a Vehicle's deletion event queues its reconcile, which
+finds it gone and removes its labels, taint, config and workloads (what cannot be
+removed is reported in an Event), and queues the other Vehicles waiting for the freed
+node. Everything Roost makes for a vehicle carries its label, so an operator that was
+down while a Vehicle was deleted finds the leftovers on its first listing of nodes.
+Vehicles that still carry the finalizer of earlier versions (``roost.dev/cleanup``)
+lose it to kopf on their next event: no handler requires it any more.
 
 Handlers are registered by :func:`register` with the operator's settings; the
 :class:`~roost_operator.vehicles.controller.VehicleController`, the queue and the view
@@ -63,7 +66,7 @@ from roost_kube import resources
 from roost_operator.edge import at_the_edge, handler_edge
 from roost_operator.runtime import Runtime, runtime
 from roost_operator.settings import Settings
-from roost_operator.vehicles.controller import Peers, finalized
+from roost_operator.vehicles.controller import Peers
 from roost_operator.vehicles.placement import NodeClaim
 from roost_operator.vehicles.plan import relevant_autopilot
 from roost_operator.watches import Fingerprints
@@ -139,7 +142,12 @@ def reconcile_vehicle(rt: Runtime, vehicle: str) -> None:
     """One queued reconcile (a worker thread): API errors leave as kopf's error types,
     which the queue sorts into retried (temporary) and reported once (permanent)."""
     peers = rt.peers
-    if peers is None:  # nothing was queued before a handler bound the indexes
+    if peers is None:
+        # Queued by a node or a pod before kopf delivered any Vehicle event: a vehicle
+        # that exists is queued again by its first event; one deleted while the operator
+        # was down is released now.
+        with at_the_edge("Vehicle", vehicle):
+            rt.vehicles.release_if_gone(vehicle)
         return
     with at_the_edge("Vehicle", vehicle):
         outcome = rt.vehicles.reconcile(vehicle, peers)
@@ -175,8 +183,7 @@ def _stale_deadline(rt: Runtime, reported_at: str | None) -> float | None:
 
 
 def _vehicle_relevant(meta: Mapping[str, Any]) -> Any:
-    """What of a Vehicle's metadata Roost acts on (its spec is in the generation; the
-    controller waits for kopf's finalizer)."""
+    """What of a Vehicle's metadata Roost acts on (its spec is in the generation)."""
     annotations = {
         key: value
         for key, value in (meta.get("annotations") or {}).items()
@@ -187,7 +194,6 @@ def _vehicle_relevant(meta: Mapping[str, Any]) -> Any:
         meta.get("labels"),
         annotations,
         meta.get("deletionTimestamp"),
-        finalized(meta),
     ]
 
 
@@ -215,7 +221,13 @@ async def vehicle_event(
     rt.vehicles_seen.observe(type or "ADDED", event["object"])
     if type == "DELETED":
         _vehicle_prints.forget(name)
-        rt.vehicle_queue.forget(name)
+        rt.vehicle_queue.forget(name)  # its deadlines and backoff: the release is queued
+        enqueue(memo, name, indexes)
+        node = (event["object"].get("spec") or {}).get("nodeName", "")
+        claims: NodeClaims = indexes["vehicle_node_claims"]
+        for claim in claims.get(node, []):
+            if claim.vehicle != name:
+                enqueue(memo, claim.vehicle, indexes)
         return
     if _vehicle_prints.changed(name, _vehicle_relevant(meta)):
         enqueue(memo, name, indexes)
@@ -229,33 +241,6 @@ async def failover_pending(*, name: str, memo: Any, **indexes: Any) -> None:
 def _pending(status: kopf.Status, **_: Any) -> bool:
     failover = status.get("failover") or {}
     return bool(failover.get("action") or failover.get("blocked"))
-
-
-def vehicle_deleted(
-    *, name: str, spec: kopf.Spec, body: kopf.Body, memo: Any, **indexes: Any
-) -> None:
-    """Remove the vehicle's labels, taint, config and workloads; hand its node on.
-
-    What cannot be removed is named in a Warning Event and the deletion goes on: a
-    Vehicle that cannot be deleted is worse than a leftover a human can remove.
-    """
-    rt = runtime(memo)
-    with at_the_edge("Vehicle", name):
-        leftovers = rt.vehicles.release(name)
-    if not leftovers.clean:
-        log.warning("Vehicle %s: deleted, but left behind: %s", name, leftovers.problems)
-        rt.kube.post_event(
-            body,
-            reason="CleanupIncomplete",
-            message="deleted, but left behind: " + "; ".join(leftovers.problems),
-            type="Warning",
-            at=now().isoformat().replace("+00:00", "Z"),
-        )
-    rt.connected.pop(name, None)
-    claims: NodeClaims = indexes["vehicle_node_claims"]
-    for claim in claims.get(spec.get("nodeName", ""), []):
-        if claim.vehicle != name:
-            enqueue(memo, claim.vehicle, indexes)
 
 
 # -- other objects' triggers ---------------------------------------------------------------
@@ -300,5 +285,4 @@ def register(registry: kopf.OperatorRegistry, settings: Settings) -> None:
         backoff=backoff,
         registry=registry,
     )(handler_edge(failover_pending))
-    kopf.on.delete(*VEHICLES, backoff=backoff, registry=registry)(handler_edge(vehicle_deleted))
     kopf.on.event(*AUTOPILOTS, registry=registry)(handler_edge(autopilot_reported))
