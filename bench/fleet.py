@@ -9,9 +9,9 @@ any CPU the operator spends is its own overhead.
 - ``fleet.ready_<N>_s``: ``kubectl apply --server-side`` of N Vehicles (one request
   each, in ``APPLY_STREAMS`` kubectl processes at once, as ``xargs -P`` would; nodes
   already Ready) until every Vehicle's ``Ready`` condition is True (labels and taint on
-  its node, its ConfigMap, its mavros Pod Running and Ready). The Ready poll lists
-  Vehicles every second. The note says how long the apply alone took and where the CPU
-  went meanwhile, by program.
+  its node, its ConfigMap, its mavros Pod Running and Ready), seen by a watch of the
+  fleet's Vehicles (:func:`wait_all_ready`). The note says how long the apply alone
+  took and where the CPU went meanwhile, by program.
 - ``fleet.operator_rss_mb_<N>``: the operator's peak resident memory over the run.
 - ``fleet.idle_cpu_pct_<N>``: the operator's CPU (user + system, % of one core) over
   ``IDLE_S`` once the fleet has been Ready for ``SETTLE_S`` and every node has started
@@ -56,6 +56,7 @@ from bench.controlplane import FLEET_SETTINGS
 from bench.core import Figure
 from roost_api.wellknown import LABEL_VEHICLE
 from roost_kube.client import Kube
+from roost_kube.errors import ApiError
 from roost_kube.resources import CONFIGMAPS, NODES, PODS, VEHICLES
 from roost_localcluster import binaries, nodes
 from roost_localcluster.cluster import Cluster
@@ -121,15 +122,45 @@ def _apply_streams(cluster: Cluster, documents: list[str]) -> None:
         list(pool.map(apply, range(APPLY_STREAMS)))
 
 
-def _ready_count(kube: Kube) -> int:
-    return sum(
-        1
-        for v in kube.list_objects(VEHICLES, labels={"fleet": FLEET_LABEL})
-        if any(
-            c["type"] == "Ready" and c["status"] == "True"
-            for c in (v.get("status") or {}).get("conditions", [])
-        )
+def _is_ready(vehicle: dict[str, Any]) -> bool:
+    return any(
+        c["type"] == "Ready" and c["status"] == "True"
+        for c in (vehicle.get("status") or {}).get("conditions", [])
     )
+
+
+def wait_all_ready(kube: Kube, count: int, timeout_s: float = READY_TIMEOUT_S) -> None:
+    """Return once ``count`` of the fleet's Vehicles are Ready, seen by a watch: the moment
+    the last one turns Ready is when its status write arrives (a poll would add up to its
+    period), and the API server sends one event per status write instead of the whole
+    fleet on every poll."""
+    selector = f"fleet={FLEET_LABEL}"
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        listed, version = kube.list_with_version(VEHICLES, label_selector=selector)
+        ready = {v["metadata"]["name"] for v in listed if _is_ready(v)}
+        if len(ready) >= count:
+            return
+        try:
+            for kind, vehicle in kube.watch_collection(
+                VEHICLES,
+                resource_version=version,
+                label_selector=selector,
+                timeout_s=max(1, int(deadline - time.monotonic())),
+            ):
+                if kind == "BOOKMARK":
+                    continue
+                name = vehicle["metadata"]["name"]
+                if kind != "DELETED" and _is_ready(vehicle):
+                    ready.add(name)
+                else:
+                    ready.discard(name)
+                if len(ready) >= count:
+                    return
+        except ApiError as error:
+            if error.status != 410:  # 410: the version is gone, list again
+                raise
+    raise TimeoutError(f"{count} Vehicles Ready: not within {timeout_s:.0f} s")
 
 
 @dataclass
@@ -323,9 +354,7 @@ def apply_until_ready(cluster: Cluster, kube: Kube, count: int) -> float:
     started = time.monotonic()
     _apply_streams(cluster, [json.dumps(vehicle_manifest(i)) for i in range(count)])
     applied_s = time.monotonic() - started
-    wait_until(
-        f"{count} Vehicles Ready", lambda: _ready_count(kube) >= count, READY_TIMEOUT_S, poll_s=1.0
-    )
+    wait_all_ready(kube, count)
     return applied_s
 
 
