@@ -306,6 +306,16 @@ def test_first_report_due_decision_table(
         assert due == datetime(2026, 5, 1, 12, 0, 3, tzinfo=UTC), "creation + the hold"
 
 
+def test_a_refused_config_is_written_at_once() -> None:
+    obs = observed(created=NEW)
+    plan = plan_vehicle(obs, CTX)
+    too_big = error_for_status(422, "PATCH", "/x", '{"message":"ConfigMap is too long"}')
+    status = report(
+        plan, live={}, refused={REFUSED_CONFIG: too_big}, generation=3, agent_expected=False
+    )
+    assert first_report_due(obs, status, [STARTING], HOLD) is None
+
+
 def test_no_hold_writes_every_first_report_at_once() -> None:
     assert first_report([STARTING], hold=timedelta(0)) is None
 

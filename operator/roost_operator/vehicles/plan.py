@@ -378,6 +378,11 @@ def first_report_due(
         return None
     if any(c.status != "True" for c in status.conditions if c.type not in HELD_CONDITIONS):
         return None
+    components = next(
+        (c for c in status.conditions if c.type == VehicleConditionType.COMPONENTS_READY), None
+    )
+    if components is None or components.reason != VehicleConditionReason.COMPONENTS_NOT_READY:
+        return None  # ready, or its config was refused: news
     if not any(not s.ready for s in states) or not all(s.ready or s.starting for s in states):
         return None
     try:
