@@ -66,6 +66,8 @@ class Runtime:
     hands its live index objects only to handlers)."""
     connected: dict[str, str | None] = field(default_factory=dict)
     """Each vehicle's ``AgentConnected`` status as its last reconcile wrote it."""
+    held_reports: dict[str, float] = field(default_factory=dict)
+    """The queue deadline of each new Vehicle's held first report (dropped once written)."""
     timing: HandlerTiming | None = None
     """Where each queued reconcile's duration goes (the operator's metrics), if anywhere."""
     watchers: list[Watcher] = field(default_factory=list)

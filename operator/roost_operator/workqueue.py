@@ -108,6 +108,12 @@ class WorkQueue:
             heapq.heappush(self._timers, (when, key))
             self._cond.notify_all()
 
+    def cancel_at(self, key: str, when: float) -> None:
+        """Drop ``key``'s deadline if it is still ``when`` (one moved since stays)."""
+        with self._cond:
+            if self._deadlines.get(key) == when:
+                del self._deadlines[key]
+
     def forget(self, key: str) -> None:
         """The object is gone: drop its deadline and backoff (a queued run still happens)."""
         with self._cond:

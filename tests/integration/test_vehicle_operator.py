@@ -57,7 +57,10 @@ NAMESPACE = "roost-it-vehicles"
 WINDOW_S = 2
 """The idle windows below are counted in these."""
 OPERATOR_NAMESPACE = NAMESPACE
-OPERATOR_ENV: dict[str, str] = {}
+OPERATOR_ENV = {"ROOST_FIRST_REPORT_HOLD_SECONDS": "120"}
+"""A first-report hold no starting pod outlasts, however busy the machine: a new
+Vehicle's way to Ready is then exactly one status write. Nothing here waits for a held
+report: the tests wait for Ready, or for a problem, which is never held."""
 WAIT_S = 60.0
 AddNode = Callable[..., dict[str, Any]]
 

@@ -145,6 +145,24 @@ def test_a_forgotten_name_loses_its_deadline() -> None:
         queue.stop()
 
 
+def test_a_cancelled_deadline_never_fires_but_one_moved_since_does() -> None:
+    runs: list[str] = []
+    queue = WorkQueue(runs.append, workers=1)
+    queue.start()
+    try:
+        start = time.monotonic()
+        queue.add_at("held", start + 0.05)
+        queue.cancel_at("held", start + 0.05)  # its report was written before the deadline
+        queue.add_at("moved", start + 0.05)
+        queue.add_at("moved", start + 0.1)  # moved by someone else since
+        queue.cancel_at("moved", start + 0.05)
+        _until(lambda: runs == ["moved"], "the moved deadline")
+        time.sleep(0.1)
+        assert runs == ["moved"]
+    finally:
+        queue.stop()
+
+
 @pytest.mark.parametrize(("failures", "delay"), [(1, 1.0), (2, 2.0), (3, 4.0), (10, 60.0)])
 def test_backoff_doubles_up_to_its_cap(failures: int, delay: float) -> None:
     assert Backoff(base_s=1.0, cap_s=60.0).delay(failures) == delay

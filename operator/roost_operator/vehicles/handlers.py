@@ -151,13 +151,18 @@ def reconcile_vehicle(rt: Runtime, vehicle: str) -> None:
         return
     with at_the_edge("Vehicle", vehicle):
         outcome = rt.vehicles.reconcile(vehicle, peers)
+    held = rt.held_reports.pop(vehicle, None)
+    if outcome is not None and outcome.report_due is not None:
+        # A held first report: write it then at the latest.
+        wait = (outcome.report_due - now()).total_seconds()
+        rt.held_reports[vehicle] = when = time.monotonic() + max(0.0, wait)
+        rt.vehicle_queue.add_at(vehicle, when)
+    elif held is not None:  # written (or gone) before its deadline: nothing left to do then
+        rt.vehicle_queue.cancel_at(vehicle, held)
     if outcome is None:
         rt.connected.pop(vehicle, None)
-        return
-    rt.connected[vehicle] = outcome.agent_connected
-    if outcome.report_due is not None:  # a held first report: write it then at the latest
-        wait = (outcome.report_due - now()).total_seconds()
-        rt.vehicle_queue.add_at(vehicle, time.monotonic() + max(0.0, wait))
+    else:
+        rt.connected[vehicle] = outcome.agent_connected
 
 
 def enqueue(memo: Any, vehicle: str, indexes: Mapping[str, Any]) -> None:
