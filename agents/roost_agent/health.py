@@ -61,7 +61,7 @@ import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Final
 
 from roost_api.autopilot_enums import LandedState as ApiLandedState
 from roost_api.core import HealthLevel, Stack
@@ -78,6 +78,7 @@ from roost_mavlink import (
     mode_name,
     stack_from_heartbeat,
 )
+from roost_mavlink.codec import Fields, Frame, fields
 from roost_mavlink.status import MAV_AUTOPILOT_INVALID, is_airborne, sensor_name
 
 # The any-message age only means "silent" on a link that normally streams several
@@ -86,33 +87,33 @@ from roost_mavlink.status import MAV_AUTOPILOT_INVALID, is_airborne, sensor_name
 # window brings at least FACTOR messages per warn interval. Counting per window, not
 # averaging gaps, keeps bursts (heartbeat, status and landed state sent together) from
 # looking like a fast stream.
-FAST_STREAM_FACTOR = 4.0
-RATE_WINDOW_S = 1.0
+FAST_STREAM_FACTOR: Final = 4.0
+RATE_WINDOW_S: Final = 1.0
 
 # time_boot_ms may step back a little when UDP reorders packets (jitter); a reboot
 # restarts it near zero. Only a step back larger than this counts as a reboot.
-REBOOT_BACKSTEP_MS = 1000
+REBOOT_BACKSTEP_MS: Final = 1000
 # A reboot stays an error this long: an autopilot that restarted mid-flight is not a
 # failover target again until it has proven itself for a while.
-REBOOT_REMEMBERED_S = 10.0
+REBOOT_REMEMBERED_S: Final = 10.0
 
 # How far ahead of a claim's sequence number the corroborating message may be (lost frames).
-SEQ_WINDOW = 8
+SEQ_WINDOW: Final = 8
 
-TILT_WARN_DEG = 35.0
-TILT_PERSIST_S = 0.3
+TILT_WARN_DEG: Final = 35.0
+TILT_PERSIST_S: Final = 0.3
 
 # Estimator status flags shared by PX4 ESTIMATOR_STATUS and ArduPilot EKF_STATUS_REPORT
 # (common.xml ESTIMATOR_STATUS_FLAGS / ardupilotmega.xml EKF_STATUS_FLAGS).
-ESTIMATOR_ATTITUDE = 0x1
-ESTIMATOR_POS_HORIZ_ABS = 0x10
-ESTIMATOR_ACCEL_ERROR = 0x800  # ESTIMATOR_STATUS only
-EKF_UNINITIALIZED = 0x400  # EKF_STATUS_REPORT only
-UNKNOWN_HEADING = 65535  # GLOBAL_POSITION_INT.hdg when the autopilot has none
+ESTIMATOR_ATTITUDE: Final = 0x1
+ESTIMATOR_POS_HORIZ_ABS: Final = 0x10
+ESTIMATOR_ACCEL_ERROR: Final = 0x800  # ESTIMATOR_STATUS only
+EKF_UNINITIALIZED: Final = 0x400  # EKF_STATUS_REPORT only
+UNKNOWN_HEADING: Final = 65535  # GLOBAL_POSITION_INT.hdg when the autopilot has none
 
-_FATAL_STATES = {MavState.EMERGENCY, MavState.POWEROFF, MavState.FLIGHT_TERMINATION}
-_NOT_FLYING_STATES = {MavState.UNINIT, MavState.BOOT, MavState.CALIBRATING}
-_UP_STATES = {MavState.STANDBY, MavState.ACTIVE, MavState.CRITICAL}
+_FATAL_STATES: Final = {MavState.EMERGENCY, MavState.POWEROFF, MavState.FLIGHT_TERMINATION}
+_NOT_FLYING_STATES: Final = {MavState.UNINIT, MavState.BOOT, MavState.CALIBRATING}
+_UP_STATES: Final = {MavState.STANDBY, MavState.ACTIVE, MavState.CRITICAL}
 
 
 @dataclass(frozen=True)
@@ -351,49 +352,63 @@ class HealthTracker:
         stream only updates its arrival time, counts, ``time_boot_ms`` and sequence
         number here, with one lookup for the few types read further (:data:`_READERS`).
         """
-        kind = msg.get_type()
-        carries_boot_time = _BOOT_TIME_KINDS.get(kind)
-        if carries_boot_time is None:
-            carries_boot_time = _learn_boot_time(kind, msg)
-        boot_ms: int | None = msg.time_boot_ms if carries_boot_time else None
-        seq: int = msg.get_seq()
-        with self._lock:
-            o = self._o
-            th = self.thresholds
-            # Messages that can change a judgement other than by their arrival time are
-            # compared before and after (a few a second); the stream's bulk is not.
-            judged = o.claim is not None or o.boot_advanced_at is None or kind in _JUDGED_KINDS
-            before = _judged(o, th) if judged else None
-            last_at = o.last_at
-            silence_ended = last_at is not None and (now - last_at) * 1000 >= th.message_error_ms
-            if last_at is None:
-                o.first_at = o.window_start = now
-            elif silence_ended:
-                # A silence ends: what is judged only while messages come (frozen
-                # telemetry) may apply from this message on, and the decision loop
-                # should see the autopilot back now (its time free of failures starts).
-                o.version += 1
-            o.last_at = now
-            counts = o.counts
-            counts[kind] = counts.get(kind, 0) + 1
-            o.window_count += 1
-            if now - o.window_start >= RATE_WINDOW_S:
-                self._close_rate_window(now)
-            changed = o.claim is not None and self._settle(msg, kind, boot_ms, seq)
-            if boot_ms is not None and (o.claim is None or o.claim.status is not None):
-                high = o.boot_ms_max
-                if high is None or boot_ms > high:
-                    o.boot_ms_max, o.boot_advanced_at = boot_ms, now
-                elif boot_ms < high - REBOOT_BACKSTEP_MS and o.claim is None:
-                    reason = f"rebooted: time_boot_ms went back from {high} to {boot_ms}"
-                    o.claim = _Claim(now, seq, o.last_seq, reason, boot_ms=boot_ms)
-            o.last_seq = seq
-            read = _READERS.get(kind)
-            if read is not None:
-                changed = read(self, msg, now) or changed
-            if judged and _judged(o, th) != before:
-                o.version += 1
-            return changed or silence_ended
+        boot_ms: int | None
+        if isinstance(msg, Frame):  # the agent's own codec: read natively
+            kind, boot_ms, seq = msg.get_type(), msg.boot_time(), msg.get_seq()
+        else:  # any message with pymavlink's surface (replays, tests)
+            kind = msg.get_type()
+            carries_boot_time = _BOOT_TIME_KINDS.get(kind)
+            if carries_boot_time is None:
+                carries_boot_time = _learn_boot_time(kind, msg)
+            boot_ms = msg.time_boot_ms if carries_boot_time else None
+            seq = msg.get_seq()
+        # acquire/release rather than ``with``: compiled, ``with`` looks __enter__ and
+        # __exit__ up on the lock's type and calls each with an argument tuple.
+        lock = self._lock
+        lock.acquire()
+        try:
+            return self._record(msg, kind, boot_ms, seq, now)
+        finally:
+            lock.release()
+
+    def _record(self, msg: Any, kind: str, boot_ms: int | None, seq: int, now: float) -> bool:
+        """:meth:`observe` under the lock, the message's type, time and number read."""
+        o = self._o
+        th = self.thresholds
+        # Messages that can change a judgement other than by their arrival time are
+        # compared before and after (a few a second); the stream's bulk is not.
+        judged = o.claim is not None or o.boot_advanced_at is None or kind in _JUDGED_KINDS
+        before = _judged(o, th) if judged else None
+        last_at = o.last_at
+        silence_ended = last_at is not None and (now - last_at) * 1000 >= th.message_error_ms
+        if last_at is None:
+            o.first_at = o.window_start = now
+        elif silence_ended:
+            # A silence ends: what is judged only while messages come (frozen
+            # telemetry) may apply from this message on, and the decision loop
+            # should see the autopilot back now (its time free of failures starts).
+            o.version += 1
+        o.last_at = now
+        counts = o.counts
+        counts[kind] = counts.get(kind, 0) + 1
+        o.window_count += 1
+        if now - o.window_start >= RATE_WINDOW_S:
+            self._close_rate_window(now)
+        changed = o.claim is not None and self._settle(msg, kind, boot_ms, seq)
+        if boot_ms is not None and (o.claim is None or o.claim.status is not None):
+            high = o.boot_ms_max
+            if high is None or boot_ms > high:
+                o.boot_ms_max, o.boot_advanced_at = boot_ms, now
+            elif boot_ms < high - REBOOT_BACKSTEP_MS and o.claim is None:
+                reason = f"rebooted: time_boot_ms went back from {high} to {boot_ms}"
+                o.claim = _Claim(now, seq, o.last_seq, reason, boot_ms=boot_ms)
+        o.last_seq = seq
+        read = _READERS.get(kind)
+        if read is not None:
+            changed = read(self, msg, now) or changed
+        if judged and _judged(o, th) != before:
+            o.version += 1
+        return changed or silence_ended
 
     def _close_rate_window(self, now: float) -> None:
         """End the message-rate window at ``now`` (once a second)."""
@@ -663,12 +678,26 @@ class HealthTracker:
             return StreamFacts(dict(o.counts), o.heartbeat_at, o.last_at, o.reboots)
 
 
+def _values(msg: Any, wanted: Fields) -> tuple[Any, ...]:
+    """The fields ``wanted`` of ``msg``: read at their offsets from the agent's own frames,
+    by name from any other message (replays, tests)."""
+    if isinstance(msg, Frame):
+        return msg.read_fields(wanted)
+    return tuple(getattr(msg, name) for name in wanted.names)
+
+
+# The fields read from the stream's fast messages (100 and 50 Hz), in wire order.
+_TILT: Final = fields("ATTITUDE", "roll", "pitch")
+_VERTICAL: Final = fields("GLOBAL_POSITION_INT", "relative_alt", "vz")
+
+
 def _read_landed_state(tracker: HealthTracker, msg: Any, now: float) -> bool:
     return tracker._observe_landed_state(int(msg.landed_state), now)
 
 
 def _read_attitude(tracker: HealthTracker, msg: Any, now: float) -> bool:
-    tracker._observe_attitude(float(msg.roll), float(msg.pitch), now)
+    roll, pitch = _values(msg, _TILT)
+    tracker._observe_attitude(float(roll), float(pitch), now)
     return False
 
 
@@ -679,8 +708,9 @@ def _read_estimator(tracker: HealthTracker, msg: Any, now: float) -> bool:
 
 def _read_position(tracker: HealthTracker, msg: Any, now: float) -> bool:
     o = tracker._o
-    o.altitude_m = int(msg.relative_alt) / 1000.0
-    o.climb_mps = -int(msg.vz) / 100.0
+    relative_alt, vz = _values(msg, _VERTICAL)
+    o.altitude_m = int(relative_alt) / 1000.0
+    o.climb_mps = -int(vz) / 100.0
     o.motion_at = now
     o.position_msg, o.position_at = msg, now
     return False
@@ -688,7 +718,7 @@ def _read_position(tracker: HealthTracker, msg: Any, now: float) -> bool:
 
 # The message types whose fields the tracker reads, each with what reads them (under the
 # tracker's lock; True: a fact the arbiter acts on changed). Every other type only counts.
-_READERS: dict[str, Callable[[HealthTracker, Any, float], bool]] = {
+_READERS: Final[dict[str, Callable[[HealthTracker, Any, float], bool]]] = {
     "HEARTBEAT": HealthTracker._observe_heartbeat,
     "SYS_STATUS": HealthTracker._observe_sys_status,
     "EXTENDED_SYS_STATE": _read_landed_state,
@@ -700,7 +730,7 @@ _READERS: dict[str, Callable[[HealthTracker, Any, float], bool]] = {
 
 # Whether a message type carries ``time_boot_ms``, learnt from its first message (asking
 # each message would cost a failed attribute lookup for every type without one).
-_BOOT_TIME_KINDS: dict[str, bool] = {}
+_BOOT_TIME_KINDS: Final[dict[str, bool]] = {}
 
 
 def _learn_boot_time(kind: str, msg: Any) -> bool:
@@ -711,12 +741,12 @@ def _learn_boot_time(kind: str, msg: Any) -> bool:
 
 # Messages whose content a judgement reads beyond their arrival time (tilt from ATTITUDE,
 # at 100 Hz, is tracked by its own changes in HealthTracker._observe_attitude).
-_JUDGED_KINDS = frozenset(
+_JUDGED_KINDS: Final = frozenset(
     {"HEARTBEAT", "SYS_STATUS", "EXTENDED_SYS_STATE", "ESTIMATOR_STATUS", "EKF_STATUS_REPORT"}
 )
 # Thresholds are compared with ``>=`` on differences of floats; a recheck this much
 # early costs one judgement, a recheck late would miss one.
-_RECHECK_EARLY_S = 1e-6
+_RECHECK_EARLY_S: Final = 1e-6
 
 
 def _judged(o: _Observed, th: Thresholds) -> tuple[object, ...]:

@@ -77,7 +77,7 @@ from collections import OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
-from typing import Any
+from typing import Any, Final
 
 from roost_agent.health import Fix, HealthTracker, Motion
 from roost_agent.signing import LinkSigning
@@ -97,7 +97,7 @@ EventSink = Callable[[str, str, bool], None]  # (reason, message, warning)
 Received = tuple[bytes, Address | None, float | None]  # data, sender, kernel arrival stamp
 
 READ_WAIT_S = 0.5  # longest the reader blocks in select() (timers and stop wake it sooner)
-DRAIN_MAX = 256  # datagrams read from one transport per wake-up
+DRAIN_MAX: Final = 256  # datagrams read from one transport per wake-up
 # While no hub client waits for routed frames, the reader lets datagrams gather this long
 # after each wake-up: one wake-up then reads several (a PX4 onboard stream is ~400 a
 # second), which is most of the agent's CPU time. Arrival times come from the kernel's
@@ -114,8 +114,8 @@ BATCH_S = 0.005
 # milliseconds younger than it is, never a whole interval: taking the read time instead
 # would delay a silence by the interval.
 STAMP_SLACK_S = 0.1
-OFFSET_TRIES = 3
-OFFSET_TIGHT_S = 1e-4  # two clock reads this close together were not interrupted
+OFFSET_TRIES: Final = 3
+OFFSET_TIGHT_S: Final = 1e-4  # two clock reads this close together were not interrupted
 
 
 def realtime_offset() -> float:
@@ -139,7 +139,7 @@ def realtime_offset() -> float:
     return best_offset
 
 
-OFFSET_REUSE_S = 0.5
+OFFSET_REUSE_S: Final = 0.5
 
 
 class RecentOffset:
@@ -160,20 +160,20 @@ class RecentOffset:
         return self._offset
 
 
-recent_realtime_offset = RecentOffset()
+recent_realtime_offset: Final = RecentOffset()
 
 
-REOPEN_DELAY_S = 0.5
-REOPEN_MAX_S = 30.0
+REOPEN_DELAY_S: Final = 0.5
+REOPEN_MAX_S: Final = 30.0
 CONNECT_TIMEOUT_S = 2.0
-UDP_MAX = 65535
+UDP_MAX: Final = 65535
 RECEIVE_BUFFER_BYTES = 1 << 20  # absorbs a burst of foreign datagrams
 
-MAX_SENDERS = 16  # candidate addresses a source lock remembers
-PROOF_HEARTBEATS = 2
-ALERT_WINDOW_S = 10.0
-FOREIGN_ALERT_PER_S = 1.0
-ALERT_QUIET_S = 60.0
+MAX_SENDERS: Final = 16  # candidate addresses a source lock remembers
+PROOF_HEARTBEATS: Final = 2
+ALERT_WINDOW_S: Final = 10.0
+FOREIGN_ALERT_PER_S: Final = 1.0
+ALERT_QUIET_S: Final = 60.0
 
 
 @dataclass
@@ -232,8 +232,8 @@ class Transport:
         raise NotImplementedError
 
 
-SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux; the module lacks the name
-_TIMESPEC = struct.Struct("@qq")
+SO_TIMESTAMPNS: Final = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux; the module lacks the name
+_TIMESPEC: Final = struct.Struct("@qq")
 
 
 class _Udp(Transport):
@@ -977,7 +977,9 @@ class AutopilotLink:
         self.spec = spec
         self.name = spec.name
         self.stack = Stack(spec.stack)
-        self._source = (spec.sysid, spec.component_id)  # whose frames this link accepts
+        # Whose frames this link accepts.
+        self._sysid: int = spec.sysid
+        self._component: int = spec.component_id
         self.tracker = tracker
         self.counters = LinkCounters()
         self.acks = AckMailbox()
@@ -1145,15 +1147,19 @@ class AutopilotLink:
                 arrived = stamp - offset
                 if arrived < now:  # a stamp after the read is not believed at all
                     # never before an earlier datagram's time, nor more than the slack
-                    # before the read
-                    now = max(arrived, now - STAMP_SLACK_S, session.arrived)
+                    # before the read (compared one by one: max() would box the floats)
+                    earliest = now - STAMP_SLACK_S
+                    now = arrived if arrived > earliest else earliest
+                    last = session.arrived
+                    now = last if last > now else now
             session.arrived = now
             self._datagram(session, data, sender, now)
 
     def _datagram(self, session: _Session, data: bytes, sender: Address | None, now: float) -> None:
         self.counters.bytes += len(data)
         lock = session.lock
-        if sender is not None and sender != lock.locked and not lock.hears(sender, now):
+        locked = sender is None or sender == lock.locked
+        if not locked and sender is not None and not lock.hears(sender, now):
             self.counters.foreign += 1
             fired = self._foreign_alarm.note(now, _address_text(sender))
             if fired is not None:
@@ -1175,7 +1181,9 @@ class AutopilotLink:
         try:
             for item in items:
                 if isinstance(item, Frame):
-                    self._message(session, item, sender, now)
+                    # A frame of this datagram may have taken the lock for its sender.
+                    locked = locked or sender == lock.locked
+                    self._message(session, item, sender, now, locked)
                 elif isinstance(item, BadData):
                     self.counters.bad += 1
                 else:
@@ -1183,11 +1191,13 @@ class AutopilotLink:
         except Exception:  # a bug reading one message must not stop the reader
             self.counters.errors += 1
 
-    def _message(self, session: _Session, msg: Frame, sender: Address | None, now: float) -> None:
+    def _message(
+        self, session: _Session, msg: Frame, sender: Address | None, now: float, locked: bool
+    ) -> None:
+        """One frame of a datagram; ``locked``: from the address the link is locked to."""
         kind = msg.get_type()
         lock = session.lock
-        locked = sender is None or sender == lock.locked
-        if msg.get_source() != self._source:
+        if msg.get_srcSystem() != self._sysid or msg.get_srcComponent() != self._component:
             if locked:
                 self.counters.other += 1
             else:

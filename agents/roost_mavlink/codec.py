@@ -42,31 +42,36 @@ import re
 import struct
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Final
 
 import fastcrc
 
 from roost_mavlink.checked_messages import CHECKED_MESSAGES
 from roost_mavlink.definitions import AGENT_MESSAGES, EXTRA_MESSAGES, MessageDef
 
-V2_MAGIC = 0xFD
-V1_MAGIC = 0xFE
-V2_HEADER = 10
-V1_HEADER = 6
-CRC_BYTES = 2
-SIGNATURE_BYTES = 13
-IFLAG_SIGNED = 0x01
+V2_MAGIC: Final = 0xFD
+V1_MAGIC: Final = 0xFE
+V2_HEADER: Final = 10
+V1_HEADER: Final = 6
+CRC_BYTES: Final = 2
+SIGNATURE_BYTES: Final = 13
+IFLAG_SIGNED: Final = 0x01
 MAVLINK_VERSION = 3  # HEARTBEAT.mavlink_version of every MAVLink 2 sender
 
 # Every message declared field by field (definitions.py), by id.
 DECLARED: dict[int, MessageDef] = {**EXTRA_MESSAGES, **AGENT_MESSAGES}
 _BY_NAME = {m.name: m for m in DECLARED.values()}
 
-_crc16 = fastcrc.crc16.mcrf4xx
-_V2_HEADER = struct.Struct("<BBBBBBBHB")  # magic len incompat compat seq sys comp id_lo id_hi
-_V1_HEADER = struct.Struct("<BBBBBB")  # magic len seq sys comp id
-_CRC = struct.Struct("<H")
-_FRAME_START = re.compile(b"[\xfd\xfe]")
+# Final: the compiled build reads them as native globals, not from the module's dict.
+_crc16: Final = fastcrc.crc16.mcrf4xx
+_V2_HEADER: Final = struct.Struct(
+    "<BBBBBBBHB"
+)  # magic len incompat compat seq sys comp id_lo id_hi
+_V1_HEADER: Final = struct.Struct("<BBBBBB")  # magic len seq sys comp id
+_CRC: Final = struct.Struct("<H")
+_FRAME_START: Final = re.compile(b"[\xfd\xfe]")
+_BOOT_TIME: Final = "<I"  # time_boot_ms, wherever a message carries it
+_U32: Final = struct.Struct(_BOOT_TIME)
 
 
 def message(name: str) -> MessageDef:
@@ -92,15 +97,21 @@ class Layout:
     where each readable field sits (payload offset, struct; ``text`` for char arrays)."""
 
     name: str
+    msg_id: int
     crc_extra: int
     size: int
     scalars: dict[str, tuple[int, struct.Struct]]
     arrays: dict[str, tuple[int, struct.Struct, bool]]
-    crc_byte: bytes  # CRC_EXTRA as the byte appended to what the CRC covers
+    boot_at: int = -1  # payload offset of ``time_boot_ms`` (uint32); -1: the message has none
 
     @property
     def fields(self) -> tuple[str, ...]:
         return (*self.scalars, *self.arrays)
+
+
+def _boot_at(scalars: dict[str, tuple[int, struct.Struct]]) -> int:
+    found = scalars.get("time_boot_ms")
+    return found[0] if found is not None and found[1].format == _BOOT_TIME else -1
 
 
 def _declared_layout(message: MessageDef) -> Layout:
@@ -115,7 +126,7 @@ def _declared_layout(message: MessageDef) -> Layout:
             scalars[f.name] = (offset, unit)
         offset += unit.size
     crc = message.crc_extra
-    return Layout(message.name, crc, offset, scalars, arrays, bytes((crc,)))
+    return Layout(message.name, message.id, crc, offset, scalars, arrays, _boot_at(scalars))
 
 
 def _checked_layout(msg_id: int) -> Layout | None:
@@ -124,10 +135,11 @@ def _checked_layout(msg_id: int) -> Layout | None:
         return None
     name, crc_extra, _, max_length, common = entry
     scalars = {field: (offset, struct.Struct("<" + code)) for field, offset, code in common}
-    return Layout(name, crc_extra, max_length, scalars, {}, bytes((crc_extra,)))
+    return Layout(name, msg_id, crc_extra, max_length, scalars, {}, _boot_at(scalars))
 
 
-_LAYOUTS: dict[int, Layout] = {}  # built on first sight: an autopilot sends a few dozen types
+# Built on first sight: an autopilot sends a few dozen types.
+_LAYOUTS: Final[dict[int, Layout]] = {}
 
 
 def layout(msg_id: int) -> Layout | None:
@@ -142,55 +154,118 @@ def layout(msg_id: int) -> Layout | None:
     return known
 
 
+@dataclass(frozen=True)
+class Fields:
+    """Scalar fields of one message type read together (:meth:`Frame.read_fields`): one
+    unpack at an offset worked out once, instead of a lookup by name for each."""
+
+    layout: Layout
+    names: tuple[str, ...]
+    offset: int  # of the first field in the payload
+    end: int  # payload offset after the last field
+    unit: struct.Struct  # the fields, and pad bytes for what lies between them
+
+
+def fields(name: str, *names: str) -> Fields:
+    """Scalar fields ``names`` of the declared message ``name``, in wire order."""
+    known = layout(message(name).id)
+    assert known is not None
+    places = [known.scalars[n] for n in names]  # KeyError: not a scalar field of it
+    code, at = "<", places[0][0]
+    for offset, unit in places:
+        if offset < at:
+            raise ValueError(f"{name}: {', '.join(names)} are not in wire order")
+        code += (f"{offset - at}x" if offset > at else "") + unit.format.lstrip("<")
+        at = offset + unit.size
+    return Fields(known, tuple(names), places[0][0], at, struct.Struct(code))
+
+
 class Frame:
     """One CRC-checked frame of a known message (see the module docstring)."""
 
-    __slots__ = ("_at", "_data", "_end", "_header", "_layout", "_start")
+    __slots__ = (
+        "_at",
+        "_comp",
+        "_compat",
+        "_data",
+        "_end",
+        "_layout",
+        "_mlen",
+        "_seq",
+        "_start",
+        "_sys",
+    )
 
     def __init__(  # noqa: PLR0917 - built for every frame received: positional is cheaper
         self,
         data: bytes,
         start: int,
         end: int,
-        header: tuple[int, ...],  # as a MAVLink 2 header unpacks (see _V2_HEADER)
         layout: Layout,
         at: int,  # where the payload begins
+        mlen: int,  # the payload's length as received
+        seq: int,
+        sys: int,
+        comp: int,
+        compat: int,  # MAVLink 2 compatibility flags (MAVLink 1: 0)
     ) -> None:
         self._data = data
         self._start = start
         self._end = end
-        self._header = header
         self._layout = layout
         self._at = at
+        self._mlen = mlen
+        self._seq = seq
+        self._sys = sys
+        self._comp = comp
+        self._compat = compat
 
     def get_type(self) -> str:
         return self._layout.name
 
     def get_msgId(self) -> int:  # noqa: N802 - the name MAVLink tools use
-        header = self._header
-        return header[7] | (header[8] << 16)
+        return self._layout.msg_id
 
     def get_srcSystem(self) -> int:  # noqa: N802 - the name MAVLink tools use
-        return self._header[5]
+        return self._sys
 
     def get_srcComponent(self) -> int:  # noqa: N802 - the name MAVLink tools use
-        return self._header[6]
+        return self._comp
 
     def get_seq(self) -> int:
-        return self._header[4]
+        return self._seq
 
     def get_source(self) -> tuple[int, int]:
-        """(system id, component id) of the sender, in one call for the reader's check."""
-        header = self._header
-        return header[5], header[6]
+        """(system id, component id) of the sender."""
+        return self._sys, self._comp
 
     def get_msgbuf(self) -> bytes:
         """The whole frame as received (signature included)."""
         return self._data[self._start : self._end]
 
+    def boot_time(self) -> int | None:
+        """``time_boot_ms``, or None for a message without one: the field every frame is
+        asked for, read from its offset without a lookup by name."""
+        at = self._layout.boot_at
+        if at < 0:
+            return None
+        if at + 4 > self._mlen:  # MAVLink 2 dropped trailing zeros: from the padding
+            return int(_U32.unpack_from(self._padded(), at)[0])
+        data, at = self._data, self._at + at
+        return data[at] | (data[at + 1] << 8) | (data[at + 2] << 16) | (data[at + 3] << 24)
+
+    def read_fields(self, fields: Fields) -> tuple[Any, ...]:
+        """The values of ``fields`` (a :func:`fields` of this frame's type), as the
+        attributes of the same names read them."""
+        if fields.layout is not self._layout:
+            raise ValueError(f"{fields.layout.name} fields asked of a {self._layout.name}")
+        if fields.end <= self._mlen:
+            return fields.unit.unpack_from(self._data, self._at + fields.offset)
+        return fields.unit.unpack_from(self._padded(), fields.offset)
+
     def _padded(self) -> bytes:
         """The payload zero-padded to the message's full size (longer: as received)."""
-        at, mlen = self._at, self._header[1]
+        at, mlen = self._at, self._mlen
         raw = self._data[at : at + mlen]
         missing = self._layout.size - mlen
         return raw + bytes(missing) if missing > 0 else raw
@@ -200,7 +275,7 @@ class Frame:
         scalar = layout.scalars.get(name)
         if scalar is not None:
             offset, unit = scalar
-            if offset + unit.size <= self._header[1]:
+            if offset + unit.size <= self._mlen:
                 return unit.unpack_from(self._data, self._at + offset)[0]
             return unit.unpack_from(self._padded(), offset)[0]
         array = layout.arrays.get(name)
@@ -221,7 +296,7 @@ class Frame:
         """This frame with one scalar field set to ``value``: same sender, sequence and
         MAVLink version, unsigned (a signature covers what changed), CRC recomputed."""
         offset, unit = self._layout.scalars[name]
-        _, mlen, _, compat, seq, sys, comp, _, _ = self._header
+        mlen, compat, seq, sys, comp = self._mlen, self._compat, self._seq, self._sys, self._comp
         msg_id = self.get_msgId()
         payload = bytearray(self._data[self._at : self._at + mlen])
         if len(payload) < offset + unit.size:
@@ -292,11 +367,20 @@ def _v1_frame(data: bytes, start: int, end: int) -> Parsed:
     kind = _LAYOUTS.get(msg_id) or layout(msg_id)
     if kind is None:
         return UnknownFrame(data[start:end], msg_id)
-    crc_at = start + V1_HEADER + mlen
-    if _crc16(data[start + 1 : crc_at] + kind.crc_byte) != _CRC.unpack_from(data, crc_at)[0]:
+    if not _crc_ok(data, start, start + V1_HEADER + mlen, kind.crc_extra):
         return BadData(data[start:end], f"bad CRC ({kind.name})")
-    header = (V1_MAGIC, mlen, 0, 0, seq, sys, comp, msg_id, 0)
-    return Frame(data, start, end, header, kind, start + V1_HEADER)
+    return Frame(data, start, end, kind, start + V1_HEADER, mlen, seq, sys, comp, 0)
+
+
+def _crc_ok(data: bytes, start: int, crc_at: int, crc_extra: int) -> bool:
+    """Whether the frame at ``start`` carries the right CRC at ``crc_at``: X.25 over the
+    header after the magic and the payload, then CRC_EXTRA (MAVLink's crc_accumulate of
+    one byte, worked out here rather than appended to a copy of the frame)."""
+    crc: int = _crc16(data[start + 1 : crc_at])
+    tmp = (crc_extra ^ crc) & 0xFF
+    tmp = (tmp ^ (tmp << 4)) & 0xFF
+    crc = ((crc >> 8) ^ (tmp << 8) ^ (tmp << 3) ^ (tmp >> 4)) & 0xFFFF
+    return crc == data[crc_at] | (data[crc_at + 1] << 8)
 
 
 def scan(data: bytes) -> tuple[list[Parsed], int]:
@@ -305,46 +389,45 @@ def scan(data: bytes) -> tuple[list[Parsed], int]:
 
     (The MAVLink 2 path is written out in the loop: it runs for every frame received.)"""
     out: list[Parsed] = []
-    append = out.append
     start, total = 0, len(data)
     while start < total:
         magic = data[start]
         if magic == V2_MAGIC:
             if total - start < V2_HEADER + CRC_BYTES:  # the shortest frame ends past it
                 break
-            header = _V2_HEADER.unpack_from(data, start)
-            incompat = header[2]
-            end = start + V2_HEADER + header[1] + CRC_BYTES
+            # The header read byte by byte: magic len incompat compat seq sys comp id (3)
+            mlen, incompat = data[start + 1], data[start + 2]
+            end = start + V2_HEADER + mlen + CRC_BYTES
             if incompat & IFLAG_SIGNED:
                 end += SIGNATURE_BYTES
             if end > total:
                 break
             if incompat & ~IFLAG_SIGNED:
-                append(BadData(data[start:end], f"incompatibility flags 0x{incompat:02x}"))
+                out.append(BadData(data[start:end], f"incompatibility flags 0x{incompat:02x}"))
             else:
-                msg_id = header[7] | (header[8] << 16)
+                msg_id = data[start + 7] | (data[start + 8] << 8) | (data[start + 9] << 16)
                 kind = _LAYOUTS.get(msg_id) or layout(msg_id)
-                crc_at = start + V2_HEADER + header[1]
+                crc_at = start + V2_HEADER + mlen
                 if kind is None:
-                    append(UnknownFrame(data[start:end], msg_id))
-                elif (
-                    _crc16(data[start + 1 : crc_at] + kind.crc_byte)
-                    != _CRC.unpack_from(data, crc_at)[0]
-                ):
-                    append(BadData(data[start:end], f"bad CRC ({kind.name})"))
+                    out.append(UnknownFrame(data[start:end], msg_id))
+                elif not _crc_ok(data, start, crc_at, kind.crc_extra):
+                    out.append(BadData(data[start:end], f"bad CRC ({kind.name})"))
                 else:
-                    append(Frame(data, start, end, header, kind, start + V2_HEADER))
+                    seq, sys, comp = data[start + 4], data[start + 5], data[start + 6]
+                    compat = data[start + 3]
+                    at = start + V2_HEADER
+                    out.append(Frame(data, start, end, kind, at, mlen, seq, sys, comp, compat))
         elif magic == V1_MAGIC:
             if total - start < V1_HEADER + CRC_BYTES:  # the shortest frame ends past it
                 break
             end = start + V1_HEADER + data[start + 1] + CRC_BYTES
             if end > total:
                 break
-            append(_v1_frame(data, start, end))
+            out.append(_v1_frame(data, start, end))
         else:
             found = _FRAME_START.search(data, start + 1)
             end = total if found is None else found.start()
-            append(BadData(data[start:end], "bad prefix"))
+            out.append(BadData(data[start:end], "bad prefix"))
         start = end
     return out, start
 
@@ -437,6 +520,7 @@ __all__ = [
     "V2_MAGIC",
     "BadData",
     "Encoder",
+    "Fields",
     "Frame",
     "Layout",
     "Parsed",
@@ -444,6 +528,7 @@ __all__ = [
     "UnknownFrame",
     "crc_extra_of",
     "encode",
+    "fields",
     "frame_crc",
     "layout",
     "message",

@@ -24,6 +24,7 @@ from roost_api.autopilot import (
 )
 from roost_api.meta import Stack
 from roost_mavlink import LandedState, MavState, SensorBit, custom_mode
+from roost_mavlink.codec import scan
 from roost_mavlink.status import MAV_AUTOPILOT_PX4, stack_sensors
 
 ARMED = 128 | 1
@@ -35,11 +36,13 @@ class Feed:
     """Feeds one tracker the messages of a PX4-like autopilot at chosen times.
 
     Every message goes through a real encode and decode, so it carries the next MAVLink
-    sequence number of the autopilot's stream (the corroboration rules read it).
+    sequence number of the autopilot's stream (the corroboration rules read it). Decoded
+    by pymavlink, or with ``codec`` by the agent's own codec, as the link reader decodes.
     """
 
-    def __init__(self, tracker: HealthTracker) -> None:
+    def __init__(self, tracker: HealthTracker, *, codec: bool = False) -> None:
         self.tracker = tracker
+        self.codec = codec
         self.boot_ms = 100_000
         self.t = 0.0
         self.sensors_health = SENSORS
@@ -56,6 +59,9 @@ class Feed:
             self.encoder.seq = (self.encoder.seq + 1) % 256
         else:
             self.encoder.seq = saved
+        if self.codec:
+            (msg,), _ = scan(bytes(frame))
+            return self.tracker.observe(msg, self.t)
         return self.tracker.observe(self.decoder.decode(bytearray(frame)), self.t)
 
     def heartbeat(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from collections.abc import Callable
@@ -39,8 +40,10 @@ TH = Thresholds(message_warn_ms=200, message_error_ms=500, confirm_ms=100, **HEA
 class Vehicle(Feed):
     """A feed into a tracker of its own with this module's thresholds."""
 
-    def __init__(self, stack: Stack = Stack.PX4, thresholds: Thresholds | None = None) -> None:
-        super().__init__(HealthTracker("fc1", stack, thresholds or TH))
+    def __init__(
+        self, stack: Stack = Stack.PX4, thresholds: Thresholds | None = None, *, codec: bool = False
+    ) -> None:
+        super().__init__(HealthTracker("fc1", stack, thresholds or TH), codec=codec)
 
 
 def codes(a: Assessment) -> set[str]:
@@ -653,6 +656,55 @@ def test_a_judgement_that_holds_is_the_judgement_made_afresh(
             tick += 0.01
         v.t = end
         _act(v, action)
+
+
+def _position(v: Vehicle, relative_alt: int, vz: int, hdg: int) -> None:
+    """GLOBAL_POSITION_INT; zero ``vz`` and ``hdg`` end a MAVLink 2 payload early."""
+    v.observe(
+        mav.MAVLink_global_position_int_message(
+            v.boot_ms, 473_977_418, 85_455_938, 500_000, relative_alt, 0, 0, vz, hdg
+        )
+    )
+
+
+def observed(v: Vehicle) -> dict[str, object]:
+    """Everything the tracker remembers but the last position message itself."""
+    o = v.tracker._o
+    return {f.name: getattr(o, f.name) for f in dataclasses.fields(o) if f.name != "position_msg"}
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    st.lists(STEP, min_size=1, max_size=30),
+    st.lists(
+        st.tuples(
+            st.integers(-(2**31), 2**31 - 1),
+            st.integers(-(2**15), 2**15 - 1),
+            st.sampled_from([0, 9000, 65535]),
+        ),
+        min_size=1,
+        max_size=5,
+    ),
+)
+def test_the_agents_frames_are_judged_as_pymavlinks_messages(
+    steps: list[tuple[float, str]], positions: list[tuple[int, int, int]]
+) -> None:
+    """The tracker reads the link's frames natively (``time_boot_ms``, attitude and
+    vertical state at precomputed offsets, also from payloads MAVLink 2 cut short) and
+    any other message by field name: the same flight either way leaves the same
+    observations, judgements, motion and fix."""
+    theirs, ours = Vehicle(), Vehicle(codec=True)
+    for v in (theirs, ours):
+        v.fly(1.5, roll=0.3, pitch=-0.2)
+    for i, (dt, action) in enumerate(steps):
+        for v in (theirs, ours):
+            v.t += dt
+            _act(v, action)
+            _position(v, *positions[i % len(positions)])
+        assert observed(ours) == observed(theirs), action
+        assert judgement(ours.at(0.01)) == judgement(theirs.at(0.01))
+        assert ours.tracker.motion() == theirs.tracker.motion()
+        assert ours.tracker.fix() == theirs.tracker.fix()
 
 
 # -- the default thresholds: decision tables at their boundaries ---------------------------

@@ -30,6 +30,7 @@ from roost_mavlink.codec import (
     UnknownFrame,
     crc_extra_of,
     encode,
+    fields,
     layout,
     scan,
 )
@@ -129,6 +130,22 @@ def _same(frame: Any, msg: Any) -> None:
         assert got == want, (msg.get_type(), name)
     for name in set(msg.fieldnames) - set(names):
         assert getattr(frame, name, None) is None, (msg.get_type(), name)
+    _same_natively(frame, msg, names)
+
+
+def _same_natively(frame: Frame, msg: Any, names: list[str]) -> None:
+    """What the link and the health tracker read without a lookup by name
+    (``Frame.boot_time``, ``Frame.read_fields``) is what the attributes read."""
+    boot_ms = msg.time_boot_ms if "time_boot_ms" in names else None
+    assert frame.boot_time() == boot_ms, msg.get_type()
+    declared = DECLARED.get(msg.get_msgId())
+    if declared is None:
+        return
+    scalars = [f.name for f in declared.wire_order if not f.array and f.type != "char"]
+    for name in scalars:
+        assert frame.read_fields(fields(declared.name, name)) == (getattr(frame, name),)
+    every = fields(declared.name, *scalars)
+    assert frame.read_fields(every) == tuple(getattr(frame, name) for name in scalars)
 
 
 @pytest.mark.parametrize(
@@ -242,6 +259,23 @@ def test_a_field_the_message_lacks_raises_attribute_error() -> None:
     assert frame.to_dict()["mavpackettype"] == "HEARTBEAT"
     with pytest.raises(AttributeError):
         _ = frame.lat
+
+
+def test_fields_are_read_in_wire_order_and_only_from_their_own_message() -> None:
+    values = dict.fromkeys(("yaw", "rollspeed", "pitchspeed", "yawspeed"), 0.0)
+    values |= {"time_boot_ms": 5, "roll": 0.5, "pitch": 0.25}
+    attitude = encode(DECLARED[30], values, seq=0, system=1, component=1)
+    ((frame,), _) = scan(attitude)
+    assert len(frame.get_msgbuf()) < 12 + 28  # yaw and the rates are zero: cut off
+    assert frame.read_fields(fields("ATTITUDE", "roll", "pitch")) == (0.5, 0.25)
+    assert frame.read_fields(fields("ATTITUDE", "time_boot_ms", "yawspeed")) == (5, 0.0)
+    assert frame.boot_time() == 5
+    with pytest.raises(ValueError, match="wire order"):
+        fields("ATTITUDE", "pitch", "roll")
+    with pytest.raises(KeyError):
+        fields("ATTITUDE", "lat")
+    with pytest.raises(ValueError, match="GLOBAL_POSITION_INT fields asked of a ATTITUDE"):
+        frame.read_fields(fields("GLOBAL_POSITION_INT", "relative_alt", "vz"))
 
 
 # -- what the agent sends -----------------------------------------------------------------
