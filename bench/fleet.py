@@ -42,7 +42,7 @@ import statistics
 import tempfile
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -56,12 +56,12 @@ from bench.controlplane import FLEET_SETTINGS
 from bench.core import Figure
 from roost_api.wellknown import LABEL_VEHICLE
 from roost_kube.client import Kube
-from roost_kube.errors import ApiError
 from roost_kube.resources import CONFIGMAPS, NODES, PODS, VEHICLES
 from roost_localcluster import binaries, nodes
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import ControlPlane, Settings
 from roost_operator.vehicles.desired import pod_state, workload_name
+from roost_operator.watches import Watcher
 from tests.support.operator import OperatorProcess
 from tests.support.waiting import wait_until
 
@@ -122,7 +122,7 @@ def _apply_streams(cluster: Cluster, documents: list[str]) -> None:
         list(pool.map(apply, range(APPLY_STREAMS)))
 
 
-def _is_ready(vehicle: dict[str, Any]) -> bool:
+def _is_ready(vehicle: Mapping[str, Any]) -> bool:
     return any(
         c["type"] == "Ready" and c["status"] == "True"
         for c in (vehicle.get("status") or {}).get("conditions", [])
@@ -130,37 +130,35 @@ def _is_ready(vehicle: dict[str, Any]) -> bool:
 
 
 def wait_all_ready(kube: Kube, count: int, timeout_s: float = READY_TIMEOUT_S) -> None:
-    """Return once ``count`` of the fleet's Vehicles are Ready, seen by a watch: the moment
-    the last one turns Ready is when its status write arrives (a poll would add up to its
-    period), and the API server sends one event per status write instead of the whole
-    fleet on every poll."""
-    selector = f"fleet={FLEET_LABEL}"
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        listed, version = kube.list_with_version(VEHICLES, label_selector=selector)
-        ready = {v["metadata"]["name"] for v in listed if _is_ready(v)}
+    """Return once ``count`` of the fleet's Vehicles are Ready, seen by a watch (the
+    operator's own :class:`~roost_operator.watches.Watcher`): the moment the last one
+    turns Ready is when its status write arrives (a poll would add up to its period), and
+    the API server sends one event per status write instead of the whole fleet on every
+    poll."""
+    ready: set[str] = set()
+    done = threading.Event()
+
+    def on_event(kind: str, vehicle: Mapping[str, Any], news: bool = True) -> None:
+        name = vehicle["metadata"]["name"]
+        if kind != "DELETED" and _is_ready(vehicle):
+            ready.add(name)
+        else:
+            ready.discard(name)
         if len(ready) >= count:
-            return
-        try:
-            for kind, vehicle in kube.watch_collection(
-                VEHICLES,
-                resource_version=version,
-                label_selector=selector,
-                timeout_s=max(1, int(deadline - time.monotonic())),
-            ):
-                if kind == "BOOKMARK":
-                    continue
-                name = vehicle["metadata"]["name"]
-                if kind != "DELETED" and _is_ready(vehicle):
-                    ready.add(name)
-                else:
-                    ready.discard(name)
-                if len(ready) >= count:
-                    return
-        except ApiError as error:
-            if error.status != 410:  # 410: the version is gone, list again
-                raise
-    raise TimeoutError(f"{count} Vehicles Ready: not within {timeout_s:.0f} s")
+            done.set()
+
+    def on_list(listed: list[Mapping[str, Any]], vanished: list[Mapping[str, Any]]) -> None:
+        ready.clear()
+        for vehicle in listed:
+            on_event("ADDED", vehicle)
+
+    watcher = Watcher(kube, VEHICLES, on_event, on_list, label_selector=f"fleet={FLEET_LABEL}")
+    watcher.start()
+    try:
+        if not done.wait(timeout_s):
+            raise TimeoutError(f"{count} Vehicles Ready: not within {timeout_s:.0f} s")
+    finally:
+        watcher.stop()
 
 
 @dataclass

@@ -17,7 +17,7 @@ Why it is safe to run at any time, any number of times, and to be killed half-wa
   reads fresh (:class:`~roost_operator.cache.CachedView` says why that is safe);
 * **a Vehicle that is gone is released**: when the Vehicle no longer exists (asked of
   the API server, never concluded from a cache) or is being deleted, the reconcile
-  removes what Roost made for it (:meth:`VehicleController.release`). Everything Roost
+  removes what Roost made for it (:meth:`VehicleController._release_gone`). Everything Roost
   makes for a vehicle can be found again by its label, so no finalizer is needed: the
   Vehicle's deletion event queues the release, and after a restart the node watcher's
   first listing queues every vehicle a node is still labelled for. Deletion never waits
@@ -38,9 +38,9 @@ takes the step :func:`~roost_operator.vehicles.desired.pod_step` decides — cre
 missing pod, delete an outdated or ended one and create its successor only after the
 deletion event of the old one has queued the next reconcile, never patch a live pod.
 
-Release (:meth:`VehicleController.release`) removes what Roost made for the vehicle
-and reports what it could not remove, once, in a Warning Event, instead of failing for
-ever.
+A release (a reconcile that finds the Vehicle gone, or
+:meth:`VehicleController.release_if_gone`) removes what Roost made for the vehicle and
+reports what it could not remove, once, in a Warning Event, instead of failing for ever.
 """
 
 from __future__ import annotations
@@ -475,21 +475,18 @@ class VehicleController:
             reason="CleanupIncomplete",
             message="deleted, but left behind: " + "; ".join(leftovers.problems),
             type="Warning",
-            at=now().isoformat().replace("+00:00", "Z"),
+            at=now(),
         )
 
-    def release(self, name: str) -> Leftovers:
-        """Remove what Roost made for Vehicle ``name`` (labels, taint, config, workloads).
+    def _release_locked(self, name: str) -> Leftovers:
+        """Remove what Roost made for Vehicle ``name`` (labels, taint, config, workloads),
+        under its lock.
 
         Every part is attempted even when another is refused for good; what could not be
         removed is returned, so the caller can say what was left. A temporary error is
         raised: the release is retried. Finding nothing to remove costs no request: the
         nodes, ConfigMaps and Pods are read from the watch caches.
         """
-        with self.lock(name):
-            return self._release_locked(name)
-
-    def _release_locked(self, name: str) -> Leftovers:
         problems: list[str] = []
         cluster = self.cluster
         for node in cluster.list_objects(NODES, labels={LABEL_VEHICLE: name}):
