@@ -63,17 +63,16 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Final
 
-from roost_api.autopilot_enums import LandedState as ApiLandedState
 from roost_api.core import HealthLevel, Stack
 from roost_api.plain import AutopilotHealth, Thresholds
 from roost_mavlink import (
     MAV_MODE_FLAG_SAFETY_ARMED,
-    LandedState,
+    MavLandedState,
     MavState,
     SensorReport,
+    api_landed_state,
     classify_sensors,
     is_manual_mode,
-    landed_state_name,
     mav_state_name,
     mode_name,
     stack_from_heartbeat,
@@ -176,7 +175,7 @@ class Assessment:
     @property
     def in_air(self) -> bool | None:
         """From EXTENDED_SYS_STATE: True in air/takeoff/landing, None when unknown."""
-        if self.landed_state is None or self.landed_state == LandedState.UNDEFINED:
+        if self.landed_state is None or self.landed_state == MavLandedState.UNDEFINED:
             return None
         return is_airborne(self.landed_state)
 
@@ -201,9 +200,7 @@ class Assessment:
             message_age_ms=_ms(self.message_age_s),
             mode=self.mode,
             armed=self.armed,
-            landed_state=None
-            if self.landed_state is None
-            else ApiLandedState(landed_state_name(self.landed_state)),
+            landed_state=None if self.landed_state is None else api_landed_state(self.landed_state),
             system_status=None
             if self.system_status is None
             else mav_state_name(self.system_status),
@@ -520,7 +517,7 @@ class HealthTracker:
         o = self._o
         changed = landed != o.landed_state
         o.landed_state = landed
-        if landed == LandedState.ON_GROUND:
+        if landed == MavLandedState.ON_GROUND:
             o.disarmed_in_air_at = None
         return changed
 

@@ -62,7 +62,7 @@ from roost_mavlink import (
     MAV_CMD_NAV_LAND,
     MAV_CMD_NAV_RETURN_TO_LAUNCH,
     MAV_MODE_FLAG_SAFETY_ARMED,
-    LandedState,
+    MavLandedState,
     MavResult,
     MavState,
     ModeIntent,
@@ -312,7 +312,7 @@ class SafetyRunner:
 
     def landed(self, since: float) -> str | None:
         """How the vehicle says it is on the ground (None while it does not)."""
-        if self.link.landed_state() == LandedState.ON_GROUND:
+        if self.link.landed_state() == MavLandedState.ON_GROUND:
             return "landed state ON_GROUND"
         beat = self.link.heartbeat()
         if beat is None or beat[2] < since:

@@ -9,8 +9,8 @@ it cheaply and the tables are unit-tested without a link.
   hold/land/RTL mode per stack, which modes a pilot flies.
 - :mod:`roost_mavlink.status`: heartbeat ``autopilot`` per stack, MAV_STATE, landed
   state, SYS_STATUS sensor bits and their failover severity.
-- :mod:`roost_mavlink.sitl`: sysid/port derivation for simulated autopilots and the
-  connection-URL scheme (``udp://`` = the agent listens, the autopilot sends there).
+- :mod:`roost_mavlink.connection`: the connection-URL scheme (``udp://`` = the agent
+  listens, the autopilot sends there). The SITL port scheme is :mod:`roost_api.sitl`.
 
 Every simulator speaks MAVLink 2. A pymavlink ``mavutil`` user must set the environment
 variable ``MAVLINK20=1`` before importing ``pymavlink.mavutil`` (or call
@@ -19,6 +19,7 @@ variable ``MAVLINK20=1`` before importing ``pymavlink.mavutil`` (or call
 
 from __future__ import annotations
 
+from roost_mavlink.connection import PymavlinkDevice, pymavlink_device
 from roost_mavlink.modes import (
     MAV_CMD_DO_SET_MODE,
     MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
@@ -33,16 +34,15 @@ from roost_mavlink.modes import (
     mode_name,
     set_mode_params,
 )
-from roost_mavlink.sitl import PymavlinkDevice, SitlEndpoint, pymavlink_device, sitl_endpoint
 from roost_mavlink.status import (
-    LandedState,
+    MavLandedState,
     MavState,
     SensorBit,
     SensorReport,
     SensorSeverity,
+    api_landed_state,
     classify_sensors,
     heartbeat_autopilot,
-    landed_state_name,
     mav_state_name,
     sensor_severity,
     stack_from_heartbeat,
@@ -99,7 +99,7 @@ __all__ = [
     "MAV_CMD_SET_MESSAGE_INTERVAL",
     "MAV_MODE_FLAG_CUSTOM_MODE_ENABLED",
     "MAV_MODE_FLAG_SAFETY_ARMED",
-    "LandedState",
+    "MavLandedState",
     "MavResult",
     "MavState",
     "ModeIntent",
@@ -107,7 +107,7 @@ __all__ = [
     "SensorBit",
     "SensorReport",
     "SensorSeverity",
-    "SitlEndpoint",
+    "api_landed_state",
     "classify_sensors",
     "custom_mode",
     "custom_mode_from_set_mode",
@@ -116,13 +116,11 @@ __all__ = [
     "hold_modes",
     "intent_mode",
     "is_manual_mode",
-    "landed_state_name",
     "mav_result_name",
     "mav_state_name",
     "mode_name",
     "pymavlink_device",
     "sensor_severity",
     "set_mode_params",
-    "sitl_endpoint",
     "stack_from_heartbeat",
 ]

@@ -5,8 +5,9 @@ into failover-critical, warn-only and ignored follows the health model in
 ``docs/health-model.md``. The sim sets bits the way each stack does and the
 agent judges them with :func:`classify_sensors`, so both read the same table.
 
-Landed-state names are the strings ``roost_api.autopilot.AutopilotHealth.landed_state``
-documents (OnGround, InAir, Takeoff, Landing).
+Landed states are numbers here (MAV_LANDED_STATE, :class:`MavLandedState`) and names in the
+API (:class:`roost_api.autopilot_enums.LandedState`); :func:`api_landed_state` is the one
+translation between the two.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum, IntFlag, StrEnum
 
+from roost_api.autopilot_enums import LandedState
 from roost_api.core import Stack
 
 MAV_AUTOPILOT_ARDUPILOTMEGA = 3
@@ -63,7 +65,7 @@ def mav_state_name(value: int) -> str:
         return f"UNKNOWN({value})"
 
 
-class LandedState(IntEnum):
+class MavLandedState(IntEnum):
     """MAV_LANDED_STATE from EXTENDED_SYS_STATE."""
 
     UNDEFINED = 0
@@ -73,26 +75,23 @@ class LandedState(IntEnum):
     LANDING = 4
 
 
-_LANDED_NAMES = {
-    LandedState.UNDEFINED: "Undefined",
-    LandedState.ON_GROUND: "OnGround",
-    LandedState.IN_AIR: "InAir",
-    LandedState.TAKEOFF: "Takeoff",
-    LandedState.LANDING: "Landing",
+_API_LANDED_STATES: dict[int, LandedState] = {
+    MavLandedState.UNDEFINED: LandedState.UNDEFINED,
+    MavLandedState.ON_GROUND: LandedState.ON_GROUND,
+    MavLandedState.IN_AIR: LandedState.IN_AIR,
+    MavLandedState.TAKEOFF: LandedState.TAKEOFF,
+    MavLandedState.LANDING: LandedState.LANDING,
 }
 
 
-def landed_state_name(value: int) -> str:
-    """OnGround, InAir, Takeoff, Landing or Undefined, as in AutopilotHealth.landedState."""
-    try:
-        return _LANDED_NAMES[LandedState(value)]
-    except ValueError:
-        return "Undefined"
+def api_landed_state(value: int) -> LandedState:
+    """The API's landed state (``autopilots[].landedState``) for a MAV_LANDED_STATE number."""
+    return _API_LANDED_STATES.get(value, LandedState.UNDEFINED)
 
 
 def is_airborne(value: int) -> bool:
     """True for InAir, Takeoff and Landing: the vehicle may be off the ground."""
-    return value in (LandedState.IN_AIR, LandedState.TAKEOFF, LandedState.LANDING)
+    return value in (MavLandedState.IN_AIR, MavLandedState.TAKEOFF, MavLandedState.LANDING)
 
 
 class SensorBit(IntFlag):

@@ -45,8 +45,8 @@ from roost_mavlink import (
     MAV_CMD_REQUEST_MESSAGE,
     MAV_CMD_SET_MESSAGE_INTERVAL,
     MavResult,
+    api_landed_state,
     heartbeat_autopilot,
-    landed_state_name,
     mav_state_name,
 )
 from roost_mavlink.modes import custom_mode, custom_mode_from_set_mode
@@ -350,7 +350,7 @@ class SimulatedAutopilot:
                 connection=self.connection if self._threads else "",
                 armed=model.armed,
                 mode=model.mode,
-                landed_state=landed_state_name(model.landed_state),
+                landed_state=api_landed_state(model.landed_state).value,
                 altitude_m=round(model.altitude_m, 3),
                 climb_mps=round(model.climb_mps, 3),
                 system_status=mav_state_name(model.system_status()),

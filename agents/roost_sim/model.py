@@ -69,7 +69,7 @@ from roost_mavlink.modes import ModeIntent, custom_mode, default_mode, intent_mo
 from roost_mavlink.status import (
     CRITICAL_SENSORS,
     IGNORED_SENSORS,
-    LandedState,
+    MavLandedState,
     MavState,
     SensorBit,
     stack_normally_unhealthy,
@@ -302,7 +302,7 @@ class AutopilotModel:
     custom_mode: int = field(init=False, default=0)
     altitude_m: float = field(init=False, default=0.0)
     climb_mps: float = field(init=False, default=0.0)
-    landed_state: LandedState = field(init=False, default=LandedState.ON_GROUND)
+    landed_state: MavLandedState = field(init=False, default=MavLandedState.ON_GROUND)
     takeoff_target_m: float | None = field(init=False, default=None)
     horizontal: Horizontal = field(init=False, default_factory=Horizontal)
     setpoint: PositionSetpoint | None = field(init=False, default=None)
@@ -338,7 +338,7 @@ class AutopilotModel:
         self.armed = False
         self.altitude_m = 0.0
         self.climb_mps = 0.0
-        self.landed_state = LandedState.ON_GROUND
+        self.landed_state = MavLandedState.ON_GROUND
         self.takeoff_target_m = None
         self.horizontal = Horizontal()
         self.setpoint = None
@@ -404,7 +404,7 @@ class AutopilotModel:
     @property
     def on_ground(self) -> bool:
         """The vehicle rests on the ground (as its landing detector reports it)."""
-        return self.landed_state is LandedState.ON_GROUND
+        return self.landed_state is MavLandedState.ON_GROUND
 
     # ---- derived state ---------------------------------------------------------------
 
@@ -721,7 +721,7 @@ class AutopilotModel:
         else:
             self._contact_at = None
             self._on_ground_armed_since = None
-            self.landed_state = LandedState.IN_AIR
+            self.landed_state = MavLandedState.IN_AIR
 
     def _settle(self, now: float) -> None:
         """On the ground outside a land mode: the landing detector needs its time."""
@@ -730,7 +730,7 @@ class AutopilotModel:
         if self._contact_at is None:
             self._contact_at = now
         if now - self._contact_at >= self.config.landing(self.stack).detect_s:
-            self.landed_state = LandedState.ON_GROUND
+            self.landed_state = MavLandedState.ON_GROUND
             self._contact_at = None
 
     def _touch_down(self, now: float, speed: float) -> None:
@@ -743,16 +743,16 @@ class AutopilotModel:
         self.horizontal.stop()
         if self.altitude_m <= 0.0:
             self.climb_mps = 0.0
-            self.landed_state = LandedState.ON_GROUND
+            self.landed_state = MavLandedState.ON_GROUND
             return
         self.climb_mps = -_FALL_RATE_MPS
         self.altitude_m = max(0.0, self.altitude_m - _FALL_RATE_MPS * dt)
         if self.altitude_m <= 0.0:
             self._touch_down(now, _FALL_RATE_MPS)
             self.climb_mps = 0.0
-            self.landed_state = LandedState.ON_GROUND
+            self.landed_state = MavLandedState.ON_GROUND
         else:
-            self.landed_state = LandedState.IN_AIR
+            self.landed_state = MavLandedState.IN_AIR
 
     def _climb(self, dt: float) -> None:
         target = self.takeoff_target_m
@@ -761,11 +761,11 @@ class AutopilotModel:
         self._contact_at = None
         self.altitude_m = min(target, self.altitude_m + self.config.climb_rate_mps * dt)
         self.climb_mps = self.config.climb_rate_mps
-        self.landed_state = LandedState.TAKEOFF
+        self.landed_state = MavLandedState.TAKEOFF
         if self.altitude_m >= target:
             self.takeoff_target_m = None
             self.climb_mps = 0.0
-            self.landed_state = LandedState.IN_AIR
+            self.landed_state = MavLandedState.IN_AIR
             if self.stack is Stack.PX4:
                 self._enter_mode(custom_mode(self.stack, intent_mode(self.stack, ModeIntent.HOLD)))
 
@@ -780,7 +780,7 @@ class AutopilotModel:
             rate = self.config.landing(self.stack).descent_mps
             self.altitude_m = max(0.0, self.altitude_m - rate * dt)
             self.climb_mps = -rate
-            self.landed_state = LandedState.LANDING
+            self.landed_state = MavLandedState.LANDING
             if self.altitude_m <= 0.0:
                 self._touch_down(now, rate)
         if self.altitude_m <= 0.0:

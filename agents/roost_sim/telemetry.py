@@ -22,7 +22,7 @@ from roost_mavlink import (
     MAV_MODE_FLAG_SAFETY_ARMED,
     heartbeat_autopilot,
 )
-from roost_mavlink.status import MAV_TYPE_QUADROTOR, LandedState, MavState
+from roost_mavlink.status import MAV_TYPE_QUADROTOR, MavLandedState, MavState
 from roost_sim.battery import BatteryReading
 from roost_sim.kinematics import global_from_ned
 from roost_sim.model import Sensors, SimConfig
@@ -128,7 +128,7 @@ class Telemetry:
         """Roll, pitch, yaw and their rates: the heading with a gentle wobble that changes
         every sample (yaw in -pi..pi, as the stacks send it)."""
         t = v.time_boot_ms / 1000.0
-        amp = 0.03 if v.landed_state != LandedState.ON_GROUND else 0.002
+        amp = 0.03 if v.landed_state != MavLandedState.ON_GROUND else 0.002
         roll, pitch = amp * math.sin(1.3 * t), amp * math.sin(0.9 * t + 1.0)
         yaw = math.remainder(v.yaw_rad + 0.01 * math.sin(0.2 * t), math.tau)
         return (
@@ -153,7 +153,7 @@ class Telemetry:
         ]
 
     def _flying(self, v: View) -> bool:
-        return v.landed_state != LandedState.ON_GROUND
+        return v.landed_state != MavLandedState.ON_GROUND
 
     # ---- messages --------------------------------------------------------------------
 

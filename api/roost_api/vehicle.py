@@ -24,7 +24,7 @@ from roost_api.meta import (
 )
 
 # SITL instances per node: each vehicle instance takes DEFAULT_SLOTS_PER_VEHICLE (4)
-# consecutive global instances and PX4's port ranges allow 40 (roost_mavlink.sitl).
+# consecutive global instances and PX4's port ranges allow 40 (roost_api.sitl).
 MAX_SIM_INSTANCE = 9
 
 Image = Annotated[

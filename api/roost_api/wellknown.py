@@ -40,7 +40,8 @@ LABEL_MISSION = f"{PREFIX}mission"
 # (Vehicle.spec.nodeName). An admission policy cannot look up the Vehicle, so the
 # chart's node-restriction policy compares this label with the node name in the agent's
 # service-account token; the agent also lists its RedundantAutopilots by this label.
-# Only the operator writes it; the agent can write status only, never metadata.
+# Only the operator writes it; the agent can write status only, never metadata. The same
+# key annotates each component pod with the node it was made for.
 LABEL_NODE = f"{PREFIX}node"
 
 # Fleet guards on the cluster side of failover (re-pointing mavros, mission consequences,

@@ -23,7 +23,7 @@ from roost_api.autopilot import (
     Thresholds,
 )
 from roost_api.meta import Stack
-from roost_mavlink import LandedState, MavState, SensorBit, custom_mode
+from roost_mavlink import MavLandedState, MavState, SensorBit, custom_mode
 from roost_mavlink.codec import scan
 from roost_mavlink.status import MAV_AUTOPILOT_PX4, stack_sensors
 
@@ -75,7 +75,7 @@ class Feed:
         msg = mav.MAVLink_heartbeat_message(2, autopilot, base_mode, mode, state, 3)
         return self.observe(msg)
 
-    def landed(self, state: int = LandedState.IN_AIR) -> bool:
+    def landed(self, state: int = MavLandedState.IN_AIR) -> bool:
         return self.observe(mav.MAVLink_extended_sys_state_message(0, state))
 
     def sys_status(self, health: int | None = None, enabled: int | None = None) -> bool:

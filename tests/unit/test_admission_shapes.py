@@ -18,10 +18,10 @@ import pytest
 from roost_api import shapes
 from roost_api.autopilot import RedundantAutopilotSpec
 from roost_api.meta import Stack
+from roost_api.sitl import DEFAULT_SLOTS_PER_VEHICLE, MAX_SITL_INSTANCES, sitl_endpoint
 from roost_api.vehicle import MAX_SIM_INSTANCE, VehicleSpec
 from roost_kube.events import event_manifest
 from roost_mavlink import pymavlink_device
-from roost_mavlink.sitl import DEFAULT_SLOTS_PER_VEHICLE, MAX_SITL_INSTANCES, sitl_endpoint
 from roost_operator.missions.workloads import offboard_job_name, onboard_job_name
 from roost_operator.vehicles.config import config_map_name, vehicle_config, vehicle_config_map
 from roost_operator.vehicles.desired import (

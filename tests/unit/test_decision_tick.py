@@ -23,7 +23,7 @@ from roost_agent.bridge import SimulatedBridge
 from roost_api.autopilot import (
     Thresholds,
 )
-from roost_mavlink import LandedState, MavState, SensorBit
+from roost_mavlink import MavLandedState, MavState, SensorBit
 from tests.support.feed import SENSORS, Feed, two_px4_spec
 
 TICK_S = 0.01
@@ -93,7 +93,7 @@ def _fly(faults: list[Fault], seconds: float, *, skipping: bool) -> Run:
             if step % 100 == 0:
                 status = MavState.EMERGENCY if state == "emergency" else MavState.ACTIVE
                 feed.heartbeat(state=status)
-                feed.landed(LandedState.IN_AIR)
+                feed.landed(MavLandedState.IN_AIR)
             if step % 20 == 0:
                 gyro = state == "gyro"
                 feed.sys_status(health=SENSORS & ~int(SensorBit.GYRO) if gyro else SENSORS)
@@ -180,7 +180,7 @@ def test_a_loop_ticking_only_when_due_judges_a_silence_at_its_threshold() -> Non
         feed.attitude()
         if step % 50 == 0:
             feed.heartbeat()
-            feed.landed(LandedState.IN_AIR)
+            feed.landed(MavLandedState.IN_AIR)
         if step % 10 == 0:
             feed.sys_status()
 

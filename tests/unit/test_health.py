@@ -23,7 +23,7 @@ from roost_agent.health import (
 )
 from roost_api.autopilot import Thresholds
 from roost_api.meta import HealthLevel, Stack
-from roost_mavlink import LandedState, MavState, SensorBit, custom_mode
+from roost_mavlink import MavLandedState, MavState, SensorBit, custom_mode
 from roost_mavlink.status import (
     MAV_AUTOPILOT_ARDUPILOTMEGA,
     MAV_AUTOPILOT_INVALID,
@@ -186,7 +186,7 @@ def test_boot_like_state_in_the_air_is_an_error_on_the_ground_it_is_not() -> Non
     v.heartbeat(state=MavState.CALIBRATING)
     assert "mav-state" in failing_codes(v.at(0.0))
     ground = Vehicle()
-    ground.landed(LandedState.ON_GROUND)
+    ground.landed(MavLandedState.ON_GROUND)
     ground.heartbeat(state=MavState.CALIBRATING, base_mode=1)
     assert "mav-state" not in codes(ground.at(0.0))
 
@@ -230,7 +230,7 @@ def test_disarmed_in_the_air_until_it_reports_the_ground() -> None:
     v.fly(1.0)
     v.heartbeat(base_mode=1)
     assert "disarmed-in-air" in failing_codes(v.at(0.0))
-    v.landed(LandedState.ON_GROUND)
+    v.landed(MavLandedState.ON_GROUND)
     assert "disarmed-in-air" not in codes(v.at(0.0))
 
 
@@ -388,7 +388,7 @@ def test_booting_on_the_ground_is_starting(stack: Stack, state: int, level: Heal
     autopilot = MAV_AUTOPILOT_PX4 if stack == Stack.PX4 else MAV_AUTOPILOT_ARDUPILOTMEGA
     mode = custom_mode(stack, "AUTO.LOITER" if stack == Stack.PX4 else "STABILIZE")
     v.heartbeat(state=state, base_mode=DISARMED, mode=mode, autopilot=autopilot)
-    v.landed(LandedState.ON_GROUND)
+    v.landed(MavLandedState.ON_GROUND)
     a = v.at(0.01)
     assert a.level == level and not a.failing
 
@@ -410,7 +410,7 @@ def test_estimator_start_up_is_starting_then_a_later_loss_is_an_error(
 ) -> None:
     v = Vehicle()
     v.heartbeat(state=MavState.STANDBY, base_mode=DISARMED)
-    v.landed(LandedState.ON_GROUND)
+    v.landed(MavLandedState.ON_GROUND)
     estimator(v, flags, kind)
     v.t += 5.0  # far beyond sensor_persist_ms: still only starting
     v.heartbeat(state=MavState.STANDBY, base_mode=DISARMED)
@@ -433,7 +433,7 @@ def test_gps_wait_is_starting_and_losing_position_later_only_warns() -> None:
         mode=custom_mode(Stack.ARDUPILOT, "STABILIZE"),
         autopilot=MAV_AUTOPILOT_ARDUPILOTMEGA,
     )
-    v.landed(LandedState.ON_GROUND)
+    v.landed(MavLandedState.ON_GROUND)
     estimator(v, 0x1 | 0x2 | 0x4, "EKF_STATUS_REPORT")  # attitude, no absolute position
     a = v.at(0.0)
     assert a.level == STARTING and a.reasons == ("waiting for an absolute position estimate (GPS)",)
@@ -447,7 +447,7 @@ def test_px4_uninit_after_a_failsafe_landing_is_not_a_reboot() -> None:
     """PX4 v1.16 reports UNINIT once disarmed after a battery-failsafe landing."""
     v = Vehicle()
     v.fly(1.0)
-    v.landed(LandedState.ON_GROUND)
+    v.landed(MavLandedState.ON_GROUND)
     v.heartbeat(state=MavState.UNINIT, base_mode=DISARMED)
     a = v.at(0.0)
     assert "reboot" not in codes(a) and v.tracker.stream_facts().reboots == 0
@@ -494,7 +494,7 @@ def test_a_reboot_in_the_air_is_reported_as_the_reboot_not_as_a_disarm() -> None
     """A rebooting autopilot comes back disarmed: the reason is the reboot."""
     v = Vehicle()
     v.fly(1.0)
-    v.landed(LandedState.IN_AIR)
+    v.landed(MavLandedState.IN_AIR)
     v.heartbeat(state=MavState.BOOT, base_mode=DISARMED)
     v.heartbeat(state=MavState.BOOT, base_mode=DISARMED)
     a = v.at(0.0)
@@ -532,7 +532,7 @@ HOLD_TABLE: list[tuple[str, Any, float, bool]] = [
         0.05,
         False,
     ),
-    ("landed", lambda v: v.landed(LandedState.ON_GROUND), 0.05, False),
+    ("landed", lambda v: v.landed(MavLandedState.ON_GROUND), 0.05, False),
     ("tilted past the warning", lambda v: v.attitude(roll=math.radians(40)), 0.05, False),
     ("a small tilt", lambda v: v.attitude(roll=math.radians(5)), 0.05, True),
     ("estimator flags change", lambda v: _estimator(v, GOOD_ESTIMATOR & ~0x10), 0.05, False),
@@ -620,8 +620,8 @@ def _act(v: Vehicle, action: str) -> None:
         "disarm": lambda: v.heartbeat(base_mode=0),
         "gyro": lambda: v.sys_status(health=SENSORS & ~int(SensorBit.GYRO)),
         "sensors": lambda: v.sys_status(health=SENSORS),
-        "landed": lambda: v.landed(LandedState.ON_GROUND),
-        "airborne": lambda: v.landed(LandedState.IN_AIR),
+        "landed": lambda: v.landed(MavLandedState.ON_GROUND),
+        "airborne": lambda: v.landed(MavLandedState.IN_AIR),
         "estimator-bad": lambda: _estimator(v, 0),
         "estimator-good": lambda: _estimator(v, GOOD_ESTIMATOR),
         "reboot": lambda: v.observe(mav.MAVLink_attitude_message(50, 0, 0, 0, 0, 0, 0)),

@@ -3,7 +3,9 @@
     roost_api  ←  roost_kube  ←  roost_agent / roost_operator / roost_cli
 
 ``roost_api`` (the contract) imports no other Roost package; the Kubernetes layer only
-the API; the agent, the operator and the CLI never each other. The sandbox
+the API; the agent, the operator and the CLI never each other, and the operator never the
+MAVLink package (what it needs of the vehicles, such as landed-state names and the SITL
+port scheme, is part of the contract). The sandbox
 (``roost_cli.sandbox``) is the one product part that may start the local control plane
 and the simulators. Nothing shipped imports ``tests`` or ``bench``; kopf is the
 operator's alone, and the Kubernetes layer imports the ``kubernetes`` client at module
@@ -35,7 +37,7 @@ ALLOWED: dict[str, set[str]] = {
     "roost_mavlink": {"roost_api"},
     "roost_sim": {"roost_api", "roost_mavlink"},
     "roost_agent": {"roost_api", "roost_kube", "roost_mavlink"},
-    "roost_operator": {"roost_api", "roost_kube", "roost_mavlink"},
+    "roost_operator": {"roost_api", "roost_kube"},
     "roost_cli": {"roost_api", "roost_kube"},
     "roost_cli.sandbox": {
         "roost_api",

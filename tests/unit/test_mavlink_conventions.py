@@ -13,13 +13,15 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from roost_api.meta import Stack
+from roost_api.sitl import sitl_endpoint, sitl_instance
 from roost_mavlink import (
     AGENT_COMPONENT_ID,
     FORCE_DISARM_MAGIC,
-    LandedState,
+    MavLandedState,
     ModeIntent,
     SensorBit,
     SensorSeverity,
+    api_landed_state,
     classify_sensors,
     custom_mode,
     custom_mode_from_set_mode,
@@ -27,17 +29,14 @@ from roost_mavlink import (
     hold_modes,
     intent_mode,
     is_manual_mode,
-    landed_state_name,
     mav_state_name,
     mode_name,
     pymavlink_device,
     sensor_severity,
     set_mode_params,
-    sitl_endpoint,
     stack_from_heartbeat,
 )
 from roost_mavlink.modes import mode_names
-from roost_mavlink.sitl import sitl_instance
 from roost_mavlink.status import (
     sensor_from_name,
     stack_normally_unhealthy,
@@ -160,15 +159,15 @@ def test_state_names() -> None:
     assert mav_state_name(5) == "CRITICAL"
     assert mav_state_name(8) == "FLIGHT_TERMINATION"
     assert mav_state_name(42) == "UNKNOWN(42)"
-    assert [landed_state_name(v) for v in range(5)] == [
+    assert [api_landed_state(v) for v in range(5)] == [
         "Undefined",
         "OnGround",
         "InAir",
         "Takeoff",
         "Landing",
     ]
-    assert landed_state_name(9) == "Undefined"
-    assert int(LandedState.ON_GROUND) == 1
+    assert api_landed_state(9) == "Undefined"
+    assert int(MavLandedState.ON_GROUND) == 1
 
 
 def test_sensor_bits_and_severity_follow_the_reference_table() -> None:

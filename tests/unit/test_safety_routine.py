@@ -23,7 +23,7 @@ from roost_mavlink import (
     MAV_CMD_DO_SET_MODE,
     MAV_CMD_NAV_LAND,
     MAV_CMD_NAV_RETURN_TO_LAUNCH,
-    LandedState,
+    MavLandedState,
     MavResult,
     MavState,
     custom_mode,
@@ -69,7 +69,7 @@ class ScriptedAutopilot:
         self.script = {k: list(v) for k, v in (script or {}).items()}
         self.mode = custom_mode(stack, mode or ("POSCTL" if stack == Stack.PX4 else "GUIDED"))
         self.armed = True
-        self.landed = LandedState.IN_AIR
+        self.landed = MavLandedState.IN_AIR
         self.ignores_modes = ignores_modes
         self.climb_in = climb_in or {}
         self.telemetry = telemetry
@@ -101,7 +101,7 @@ class ScriptedAutopilot:
         elif command == MAV_CMD_NAV_LAND:
             self.mode = custom_mode(self.stack, "AUTO.LAND" if self.stack == Stack.PX4 else "LAND")
             if self.touches_down:
-                self.landed = LandedState.ON_GROUND
+                self.landed = MavLandedState.ON_GROUND
         elif command == MAV_CMD_NAV_RETURN_TO_LAUNCH:
             self.mode = custom_mode(self.stack, "AUTO.RTL" if self.stack == Stack.PX4 else "RTL")
         elif command == MAV_CMD_COMPONENT_ARM_DISARM:
@@ -356,12 +356,12 @@ def test_judge_hold_table() -> None:
 @pytest.mark.parametrize(
     ("stack", "landed", "armed", "status", "touched"),
     [
-        (Stack.PX4, LandedState.ON_GROUND, True, MavState.ACTIVE, True),
-        (Stack.PX4, LandedState.LANDING, False, MavState.STANDBY, True),  # auto-disarmed
-        (Stack.PX4, LandedState.LANDING, True, MavState.STANDBY, False),  # PX4: no such rule
+        (Stack.PX4, MavLandedState.ON_GROUND, True, MavState.ACTIVE, True),
+        (Stack.PX4, MavLandedState.LANDING, False, MavState.STANDBY, True),  # auto-disarmed
+        (Stack.PX4, MavLandedState.LANDING, True, MavState.STANDBY, False),  # PX4: no such rule
         (Stack.ARDUPILOT, None, True, MavState.STANDBY, True),  # land detector, still armed
         (Stack.ARDUPILOT, None, True, MavState.ACTIVE, False),
-        (Stack.ARDUPILOT, LandedState.IN_AIR, True, MavState.ACTIVE, False),
+        (Stack.ARDUPILOT, MavLandedState.IN_AIR, True, MavState.ACTIVE, False),
     ],
 )
 def test_landed_is_what_the_vehicle_reports(
@@ -459,7 +459,7 @@ WALL = 1_000_000.0
         (
             Progress("fc2", Phase.STARTED, FinalAction.LAND, 0.05),
             "POSCTL",
-            LandedState.IN_AIR,
+            MavLandedState.IN_AIR,
             [MAV_CMD_DO_SET_MODE, MAV_CMD_NAV_LAND],
             Phase.LANDED,
         ),
@@ -467,7 +467,7 @@ WALL = 1_000_000.0
         (
             Progress("fc2", Phase.HOLDING, FinalAction.LAND, 60.0, hold_started=WALL - 59.9),
             "AUTO.LOITER",
-            LandedState.IN_AIR,
+            MavLandedState.IN_AIR,
             [MAV_CMD_DO_SET_MODE, MAV_CMD_NAV_LAND],
             Phase.LANDED,
         ),
@@ -475,14 +475,14 @@ WALL = 1_000_000.0
         (
             Progress("fc2", Phase.HOLDING, FinalAction.LAND, 3.0, hold_started=WALL - 10),
             "AUTO.LOITER",
-            LandedState.IN_AIR,
+            MavLandedState.IN_AIR,
             [MAV_CMD_NAV_LAND],
             Phase.LANDED,
         ),
         (
             Progress("fc2", Phase.CONFIRMING_HOLD, FinalAction.HOLD, 3.0, hold_started=WALL - 10),
             "AUTO.LOITER",
-            LandedState.IN_AIR,
+            MavLandedState.IN_AIR,
             [],
             Phase.HELD,
         ),
@@ -490,7 +490,7 @@ WALL = 1_000_000.0
         (
             Progress("fc2", Phase.LANDING, FinalAction.LAND, 3.0, land_started=WALL - 1),
             "AUTO.LAND",
-            LandedState.ON_GROUND,
+            MavLandedState.ON_GROUND,
             [],
             Phase.LANDED,
         ),
@@ -498,7 +498,7 @@ WALL = 1_000_000.0
         (
             Progress("fc2", Phase.LANDING, FinalAction.LAND, 3.0, land_started=WALL - 1),
             "AUTO.LOITER",
-            LandedState.IN_AIR,
+            MavLandedState.IN_AIR,
             [MAV_CMD_NAV_LAND],
             Phase.LANDED,
         ),
@@ -506,7 +506,7 @@ WALL = 1_000_000.0
         (
             Progress("fc2", Phase.HOLD_FAILED, FinalAction.HOLD, 3.0, hold_started=WALL - 1),
             "AUTO.LOITER",
-            LandedState.IN_AIR,
+            MavLandedState.IN_AIR,
             [MAV_CMD_NAV_LAND],
             Phase.LANDED,
         ),
@@ -514,7 +514,7 @@ WALL = 1_000_000.0
         (
             Progress("fc2", Phase.STARTED, FinalAction.LAND, 0.0, holds=False),
             "POSCTL",
-            LandedState.IN_AIR,
+            MavLandedState.IN_AIR,
             [MAV_CMD_NAV_LAND],
             Phase.LANDED,
         ),
@@ -522,7 +522,7 @@ WALL = 1_000_000.0
         (
             Progress("fc2", Phase.LANDED, FinalAction.LAND, 3.0),
             "AUTO.LAND",
-            LandedState.ON_GROUND,
+            MavLandedState.ON_GROUND,
             [],
             Phase.LANDED,
         ),

@@ -18,7 +18,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from roost_api.meta import Stack
 from roost_mavlink import FORCE_DISARM_MAGIC, MavResult, custom_mode
-from roost_mavlink.status import LandedState, MavState, SensorBit
+from roost_mavlink.status import MavLandedState, MavState, SensorBit
 from roost_sim.autopilot import SimulatedAutopilot
 from roost_sim.control import handle_request
 from roost_sim.faults import FaultKind, parse_number, parse_sensor, parse_state
@@ -56,7 +56,7 @@ def airborne(stack: Stack) -> tuple[AutopilotModel, FakeClock]:
     assert model.arm(arm=True) == MavResult.ACCEPTED
     assert model.takeoff(math.nan) == MavResult.ACCEPTED
     run(model, clock, 2.0)
-    assert model.landed_state is LandedState.IN_AIR
+    assert model.landed_state is MavLandedState.IN_AIR
     return model, clock
 
 
@@ -191,7 +191,7 @@ def test_takeoff_hold_land_and_auto_disarm(stack: Stack) -> None:
     assert model.altitude_m == pytest.approx(2.5)
     assert model.land() == MavResult.ACCEPTED
     run(model, clock, 0.5)
-    assert model.landed_state is LandedState.LANDING
+    assert model.landed_state is MavLandedState.LANDING
     run(model, clock, 1.5)
     assert model.on_ground and model.armed  # touched down; disarms a moment later
     run(model, clock, 1.1)
@@ -207,7 +207,7 @@ def test_px4_takeoff_goes_to_hold_and_uses_amsl_param7() -> None:
     assert model.takeoff(model.config.home_amsl_m + 4.0) == MavResult.ACCEPTED
     assert model.mode == "AUTO.TAKEOFF"
     run(model, clock, 0.5)
-    assert model.landed_state is LandedState.TAKEOFF
+    assert model.landed_state is MavLandedState.TAKEOFF
     run(model, clock, 2.0)
     assert model.altitude_m == pytest.approx(4.0)
     assert model.mode == "AUTO.LOITER"
@@ -358,7 +358,7 @@ def test_a_disarmed_vehicle_never_climbs_and_the_landed_state_matches_altitude(
         assert (
             model.altitude_m > 0.0
             or model.detecting_landing  # still LANDING / IN_AIR, as the firmware reports
-            or model.landed_state in (LandedState.ON_GROUND, LandedState.TAKEOFF)
+            or model.landed_state in (MavLandedState.ON_GROUND, MavLandedState.TAKEOFF)
         )
 
 

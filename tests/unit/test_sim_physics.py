@@ -15,7 +15,7 @@ import pytest
 
 from roost_api.meta import Stack
 from roost_mavlink import MavResult, custom_mode
-from roost_mavlink.status import LandedState, MavState, SensorBit
+from roost_mavlink.status import MavLandedState, MavState, SensorBit
 from roost_sim.autopilot import SimulatedAutopilot
 from roost_sim.battery import Battery, ChargeState
 from roost_sim.control import handle_request
@@ -105,7 +105,7 @@ def test_ardupilot_loiter_without_rc_flies_into_the_ground_as_recorded() -> None
     assert any(text.startswith("SIM Hit ground at 2.") for _, text in model.texts)
     # Landing detector: still "in air" for 2.3 s, then landed (STANDBY while armed).
     run(model, clock, 2.0)
-    assert model.landed_state is LandedState.IN_AIR and model.armed
+    assert model.landed_state is MavLandedState.IN_AIR and model.armed
     run(model, clock, 0.5)
     assert model.on_ground and model.armed
     assert model.system_status() is MavState.STANDBY
@@ -241,9 +241,9 @@ def test_realistic_landing_rate_detector_and_disarm(
     while not model.touchdowns:
         run(model, clock, 0.02)
     assert model.touchdowns[0].at - started == pytest.approx(2.0 / descent, abs=0.05)
-    assert model.landed_state is LandedState.LANDING  # the detector is not sure yet
+    assert model.landed_state is MavLandedState.LANDING  # the detector is not sure yet
     run(model, clock, detect - 0.1)
-    assert model.landed_state is LandedState.LANDING
+    assert model.landed_state is MavLandedState.LANDING
     run(model, clock, 0.2)
     assert model.on_ground and model.armed
     run(model, clock, disarm + 0.1)

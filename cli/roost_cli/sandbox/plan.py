@@ -4,7 +4,7 @@ Pure, so what the sandbox applies is unit-tested against the API models without 
 cluster. Vehicles alternate PX4 and ArduPilot so both stacks' conventions are on screen;
 each has two simulated autopilots of its stack behind a simulated bridge.
 
-No port is chosen here. Fixed SITL ports (:mod:`roost_mavlink.sitl`, 14540 + i) would
+No port is chosen here. Fixed SITL ports (:mod:`roost_api.sitl`, 14540 + i) would
 collide with other people's tests and sandboxes on the same machine, and a port found free
 by binding and closing a socket can be taken by any process before its user binds it (a
 simulator's own ephemeral socket once took an agent's port). So each simulator binds a
@@ -14,7 +14,7 @@ is written from those reports (:func:`autopilot_manifest`). The agents' MAVLink 
 the exception: a client (a mission's follower, MAVProxy) must know where to connect before
 the agent starts, so :func:`hub_ports` picks them below the kernel's ephemeral range, where
 no program is ever given a port it did not ask for. System ids do follow
-:func:`roost_mavlink.sitl.sitl_instance` (one global numbering, ``instance + 1``) so no two
+:func:`roost_api.sitl.sitl_instance` (one global numbering, ``instance + 1``) so no two
 autopilots of the sandbox ever share one.
 """
 
@@ -26,9 +26,9 @@ from typing import Any
 
 from roost_api.meta import API_VERSION, Stack
 from roost_api.resources import MISSION, REDUNDANT_AUTOPILOT, VEHICLE
+from roost_api.sitl import sitl_instance
 from roost_api.vehicle import MAX_SIM_INSTANCE
 from roost_cli.sandbox.kwok import RUNTIME_ANNOTATION
-from roost_mavlink.sitl import sitl_instance
 
 MAX_VEHICLES = 25
 """Two cores run an agent and two simulated autopilots per vehicle next to a control

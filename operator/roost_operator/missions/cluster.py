@@ -94,10 +94,6 @@ def _each(write: Callable[[T], object], items: Sequence[T]) -> None:
             pass
 
 
-def _timestamp(at: datetime) -> str:
-    return at.astimezone(UTC).replace(microsecond=0).isoformat().replace("+00:00", "Z")
-
-
 def _parse_all(items: Iterable[Obj], parse: Callable[[Obj], T], what: str) -> list[T]:
     """Parse each object; one malformed object is logged and skipped, not fatal."""
     parsed = []
@@ -247,7 +243,7 @@ def release_vehicle(kube: Kube, namespace: str, name: str, mission: MissionRef) 
                 vehicle,
                 reason="Released",
                 message=f"released by mission {mission.key}",
-                at=_timestamp(datetime.now(UTC)),
+                at=datetime.now(UTC),
             )
         return True
     raise ConflictError(409, "DELETE", f"leases/{name}", "release kept conflicting")
@@ -271,7 +267,7 @@ def _claim_all(
             vehicle_body(view),
             reason="Claimed",
             message=f"claimed by mission {obs.mission.key}",
-            at=_timestamp(obs.now),
+            at=obs.now,
         ),
         list(claimed.values()),
     )
@@ -413,7 +409,7 @@ def _create(kube: Kube, manifest: Obj) -> None:
 
 
 def _post(kube: Kube, obs: Observation, events: list[MissionEvent]) -> None:
-    at = _timestamp(obs.now)
+    at = obs.now
 
     def post(event: MissionEvent) -> None:
         kube.post_event(

@@ -160,7 +160,7 @@ async def mission_deleted(
             reason="CleanupIncomplete",
             message="deleted, but: " + "; ".join(leftovers),
             type="Warning",
-            at=now().isoformat().replace("+00:00", "Z"),
+            at=now(),
         )
 
 

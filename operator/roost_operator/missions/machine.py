@@ -76,6 +76,7 @@ from roost_api.autopilot import (
     CommandAction,
     RedundantAutopilotStatus,
 )
+from roost_api.autopilot_enums import LandedState
 from roost_api.commands import CommandOutcome, command_outcome, new_command
 from roost_api.meta import ConditionStatus, find_condition, set_condition
 from roost_api.mission import (
@@ -96,7 +97,6 @@ from roost_api.mission import (
 )
 from roost_api.wellknown import ANNOTATION_CLEAR_FAILOVER_LATCH, ANNOTATION_PAUSE_FAILOVER_ACTIONS
 from roost_kube.patches import Obj
-from roost_mavlink.status import LandedState, landed_state_name
 from roost_operator.autopilots.guards import FleetGuards, Verdict, consequence_verdict
 from roost_operator.missions.observed import (
     AutopilotView,
@@ -123,8 +123,6 @@ ABORT_POLL_SECONDS = 2.0
 
 VEHICLE_EVENTS_MAX = 5
 """More vehicles than this making one transition together get one Event, not one each."""
-
-ON_GROUND = landed_state_name(LandedState.ON_GROUND)
 
 Severity = Literal["Normal", "Warning"]
 
@@ -1015,7 +1013,7 @@ def stopped(action: CommandAction, status: RedundantAutopilotStatus) -> bool:
         return False
     if CommandAction(action) is CommandAction.EMERGENCY_STOP:
         return all(h.armed is False for h in health)
-    return all(h.landed_state == ON_GROUND or h.armed is False for h in health)
+    return all(h.landed_state == LandedState.ON_GROUND or h.armed is False for h in health)
 
 
 def _reported_since(status: RedundantAutopilotStatus, command: AutopilotCommand) -> bool:

@@ -442,7 +442,7 @@ class VehicleController:
                 reason=event.reason,
                 message=event.message,
                 type=event.type,
-                at=event.at.isoformat().replace("+00:00", "Z"),
+                at=event.at,
             )
 
     # -- deletion ----------------------------------------------------------------------

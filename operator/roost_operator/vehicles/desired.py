@@ -50,6 +50,7 @@ from typing import Any, Final
 
 from roost_api.autopilot import RedundantAutopilotSpec, hub_client_url
 from roost_api.meta import Condition, ConditionStatus, Stack, set_condition
+from roost_api.sitl import sitl_endpoint
 from roost_api.vehicle import (
     ComponentSpec,
     VehicleConditionReason,
@@ -62,16 +63,13 @@ from roost_api.wellknown import (
     LABEL_COMPONENT,
     LABEL_MANAGED_BY,
     LABEL_MISSION,
+    LABEL_NODE,
     LABEL_VEHICLE,
     MANAGED_BY,
-    PREFIX,
 )
 from roost_kube.patches import Obj, content_hash
-from roost_mavlink.sitl import sitl_endpoint
 from roost_operator.vehicles.config import config_hash, mount_vehicle_config
 from roost_operator.vehicles.placement import place_on_vehicle
-
-ANNOTATION_NODE: Final = f"{PREFIX}node"
 
 # Starling's default for a real vehicle without a RedundantAutopilot: the flight
 # controller's USB serial device.
@@ -218,7 +216,7 @@ def component_workloads(spec: VehicleSpec, autopilots: Sequence[Autopilot]) -> l
 def sitl_workload(spec: VehicleSpec, index: int, autopilot: Autopilot) -> Workload:
     """The SITL of one autopilot of a simulated vehicle.
 
-    Ports come from :func:`roost_mavlink.sitl.sitl_endpoint` (vehicle instance, autopilot
+    Ports come from :func:`roost_api.sitl.sitl_endpoint` (vehicle instance, autopilot
     index), so two autopilots on one node never share a port; the sysid is the
     autopilot's declared one, which the node agent filters on. ArduPilot's SITL serves
     TCP, which gives it a readiness probe; PX4's SITL speaks UDP only, so it has none.
@@ -306,7 +304,7 @@ def component_pod(
         ANNOTATION_CONFIG_HASH: config_hash(
             config_values, include_failover_keys=workload.follows_failover
         ),
-        ANNOTATION_NODE: node_name,
+        LABEL_NODE: node_name,
     }
     spec: Obj = {**pod_spec, "nodeName": node_name, "restartPolicy": "Always"}
     return {
@@ -575,11 +573,6 @@ def with_ready(
         observed_generation=generation,
         at=at,
     )
-
-
-# Condition types whose transitions are recorded as Events. ComponentsReady is not:
-# its problems reach Ready's message, and a rollout would otherwise post an Event per step.
-EVENT_CONDITIONS: Final = (VehicleConditionType.READY, VehicleConditionType.NODE_BOUND)
 
 
 def transitions(

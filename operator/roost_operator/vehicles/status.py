@@ -61,7 +61,7 @@ def write_vehicle_status(
         {"metadata": {"resourceVersion": meta["resourceVersion"]}, "status": patch},
         subresource="status",
     )
-    at = now().isoformat().replace("+00:00", "Z")
+    at = now()
     for cond in transitions(old.conditions, new.conditions, event_types):
         kube.post_event(
             vehicle,
