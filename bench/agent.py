@@ -575,7 +575,6 @@ def cluster_rss(seconds: float = CPU_S) -> float:
     """Peak RSS (MB) of an agent in cluster mode: the local control plane, the
     operator, two flying PX4 sims at onboard rates; measured once the Vehicle is Ready."""
     from bench import cluster as rig  # noqa: PLC0415 - the control plane only for this part
-    from roost_kube.client import Kube  # noqa: PLC0415
     from roost_localcluster import binaries  # noqa: PLC0415
     from roost_localcluster.cluster import Cluster  # noqa: PLC0415
     from roost_localcluster.controlplane import ControlPlane  # noqa: PLC0415
@@ -598,8 +597,7 @@ def cluster_rss(seconds: float = CPU_S) -> float:
             rig._fly(sims)
             rig._apply_vehicle(cluster, sims)
             agent.start()
-            with cluster.api_client() as api:
-                kube = Kube(api, "roost-bench")
+            with cluster.kube("roost-bench") as kube:
                 wait_until("the vehicle Ready", lambda: rig._ready(kube), rig.WAIT_S)
             proc = psutil.Process(agent.pid)
             t0, peak = time.monotonic(), 0.0

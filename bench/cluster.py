@@ -32,8 +32,6 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from kubernetes import client, watch
-
 from bench.core import Figure
 from roost_api.autopilot import CommandAction
 from roost_api.commands import command_patch, new_command
@@ -62,7 +60,7 @@ class StatusWatch:
     """Records when each new ``activeAutopilot`` of the RedundantAutopilot arrives."""
 
     def __init__(self, cluster: Cluster) -> None:
-        self._api = cluster.api_client()
+        self._kube = cluster.kube("roost-bench")
         self._stop = threading.Event()
         self.arrivals: list[tuple[float, str]] = []
         self._lock = threading.Lock()
@@ -75,23 +73,14 @@ class StatusWatch:
     def __exit__(self, *exc: object) -> None:
         self._stop.set()
         self._thread.join(timeout=70)
-        self._api.close()  # type: ignore[no-untyped-call]
+        self._kube.close()
 
     def _run(self) -> None:
-        custom = client.CustomObjectsApi(self._api)
         last = None
         while not self._stop.is_set():
-            stream = watch.Watch().stream(  # type: ignore[no-untyped-call]
-                custom.list_cluster_custom_object,
-                "roost.dev",
-                "v1alpha1",
-                REDUNDANT_AUTOPILOTS.plural,
-                field_selector=f"metadata.name={VEHICLE}",
-                timeout_seconds=5,
-            )
-            for event in stream:
+            for _, obj in self._kube.watch(REDUNDANT_AUTOPILOTS, VEHICLE, timeout_s=5):
                 arrived = time.time()
-                active = (event["object"].get("status") or {}).get("activeAutopilot")
+                active = (obj.get("status") or {}).get("activeAutopilot")
                 if active and active != last:
                     last = active
                     with self._lock:
@@ -201,8 +190,7 @@ def run() -> list[Figure]:
             _fly(sims)
             _apply_vehicle(cluster, sims)
             agent.start()
-            with cluster.api_client() as api, StatusWatch(cluster) as statuses:
-                kube = Kube(api, "roost-bench")
+            with cluster.kube("roost-bench") as kube, StatusWatch(cluster) as statuses:
                 wait_until("the vehicle Ready", lambda: _ready(kube), WAIT_S)
                 to_status, to_mavros = _measure(kube, agent, sims, statuses)
         finally:

@@ -22,9 +22,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from kubernetes import client
-
 from bench.core import Figure
+from roost_kube.resources import PODS
 from roost_localcluster import binaries, nodes
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import ControlPlane, Settings
@@ -99,10 +98,7 @@ def _create_fleet(cluster: Cluster, start: int, stop: int) -> list[str]:
 
     def create(name: str) -> None:
         manifest = nodes.fake_node(name, labels={VEHICLE_LABEL: "bench"})
-        with cluster.api_client() as api:
-            node = client.V1Node.from_dict(manifest)
-            assert node is not None
-            client.CoreV1Api(api).create_node(node)
+        cluster.kube("roost-bench").create(manifest)
 
     with ThreadPoolExecutor(max_workers=4) as pool:
         list(pool.map(create, names))
@@ -111,16 +107,15 @@ def _create_fleet(cluster: Cluster, start: int, stop: int) -> list[str]:
 
 def _wait_agents_running(cluster: Cluster, count: int, timeout_s: float) -> None:
     deadline = time.monotonic() + timeout_s
-    with cluster.api_client() as api:
-        core = client.CoreV1Api(api)
-        while True:
-            pods = core.list_namespaced_pod("default", label_selector=f"app={AGENT_DS}").items
-            running = sum(1 for p in pods if p.status and p.status.phase == "Running")
-            if running >= count:
-                return
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"{running}/{count} agent pods Running after {timeout_s} s")
-            time.sleep(2)
+    kube = cluster.kube("roost-bench")
+    while True:
+        pods = kube.list_objects(PODS, namespace="default", labels={"app": AGENT_DS})
+        running = sum(1 for p in pods if (p.get("status") or {}).get("phase") == "Running")
+        if running >= count:
+            return
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"{running}/{count} agent pods Running after {timeout_s} s")
+        time.sleep(2)
 
 
 def _agent_daemonset() -> str:

@@ -50,7 +50,6 @@ from pathlib import Path
 from typing import Any
 
 import psutil
-from kubernetes import client
 
 from bench.controlplane import FLEET_SETTINGS
 from bench.core import Figure
@@ -98,10 +97,7 @@ def _create_nodes(cluster: Cluster, labelled: list[tuple[str, dict[str, str]]]) 
 
     def create(node: tuple[str, dict[str, str]]) -> None:
         manifest = nodes.fake_node(node[0], labels=node[1])
-        with cluster.api_client() as api:
-            body = client.V1Node.from_dict(manifest)
-            assert body is not None
-            client.CoreV1Api(api).create_node(body)
+        cluster.kube("roost-bench").create(manifest)
 
     with ThreadPoolExecutor(max_workers=4) as pool:
         list(pool.map(create, labelled))
@@ -300,8 +296,7 @@ def control_plane_floor(made: Made) -> tuple[float, str]:
         cluster = Cluster.of(plane)
         cluster.kubectl("create", "namespace", NAMESPACE)
         _create_nodes(cluster, list(made.node_labels.items()))
-        with cluster.api_client() as api:
-            kube = Kube(api, "roost-bench")
+        with cluster.kube("roost-bench") as kube:
             cpu_before = _cpu_by_program()
             started = time.monotonic()
             _apply_streams(cluster, [json.dumps(obj) for obj in made.objects])
@@ -362,8 +357,7 @@ def measure(count: int) -> tuple[dict[str, float], str, Made]:
     with fleet_with_operator(count) as fleet:
         reports_from = time.monotonic() + FLEET_SETTINGS.node_status_report_s * 1.1
         proc = psutil.Process(fleet.operator.process.pid)
-        with Sampler(proc).running() as rss, fleet.cluster.api_client() as api:
-            kube = Kube(api, "roost-bench")
+        with Sampler(proc).running() as rss, fleet.cluster.kube("roost-bench") as kube:
             cpu_before = _cpu_by_program()
             started = time.monotonic()
             applied_s = apply_until_ready(fleet.cluster, kube, count)

@@ -23,7 +23,6 @@ from dataclasses import replace
 from bench.controlplane import FLEET_SETTINGS
 from bench.core import Figure
 from bench.fleet import apply_until_ready, fleet_with_operator
-from roost_kube.client import Kube
 from roost_localcluster import binaries
 from roost_localcluster.audit import OPERATOR_CLIENTS, RequestKind
 
@@ -36,10 +35,10 @@ def rollout_requests(count: int) -> Counter[RequestKind]:
     settings = replace(FLEET_SETTINGS, audit=True)
     with (
         fleet_with_operator(count, settings, "bench-fleetapi-") as fleet,
-        fleet.cluster.api_client() as api,
+        fleet.cluster.kube("roost-bench") as kube,
     ):
         window = fleet.cluster.audit_window()
-        apply_until_ready(fleet.cluster, Kube(api, "roost-bench"), count)
+        apply_until_ready(fleet.cluster, kube, count)
         return fleet.cluster.audited(window)
 
 

@@ -176,8 +176,7 @@ def run() -> list[Figure]:
         )
         operator.start()
         try:
-            with cluster.api_client() as api, FakeAgents(cluster, AGENT_PERIOD_S) as agents:
-                kube = Kube(api, "roost-bench")
+            with cluster.kube("roost-bench") as kube, FakeAgents(cluster, AGENT_PERIOD_S) as agents:
                 _fleet(cluster, kube, agents)
                 times = {count: _rollout(cluster, kube, count) for count in SIZES}
                 load = os.getloadavg()[0]

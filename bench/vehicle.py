@@ -76,8 +76,7 @@ def run() -> list[Figure]:
         )
         operator.start()
         try:
-            with cluster.api_client() as api:
-                kube = Kube(api, "roost-bench")
+            with cluster.kube("roost-bench") as kube:
                 times = [
                     _apply_to_ready(cluster, kube, f"bench-vehicle-{i}", 10 + i)
                     for i in range(VEHICLE_COUNT)

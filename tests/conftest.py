@@ -111,8 +111,7 @@ def fake_nodes(cluster: Cluster) -> Iterator[FakeNodes]:
 def kube(roost_crds: Cluster) -> Iterator[Kube]:
     """Roost's own API access layer (:class:`roost_kube.client.Kube`) as the cluster's
     admin, for tests that read and write objects the way the operator does."""
-    with roost_crds.api_client() as api:
-        yield Kube(api, "roost-tests")
+    yield roost_crds.kube("roost-tests")
 
 
 @pytest.fixture(scope="module")

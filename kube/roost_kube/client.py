@@ -154,6 +154,17 @@ class Kube:
         api.user_agent = field_manager  # names the program in the API server's logs and audit
         return cls(api, field_manager, timeout)
 
+    def close(self) -> None:
+        """Close the connections; a short-lived client (a test, a benchmark) is used as a
+        context manager instead."""
+        self._transport.close()
+
+    def __enter__(self) -> Kube:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
     @property
     def server(self) -> str:
         """The API server's URL."""

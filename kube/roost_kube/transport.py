@@ -81,6 +81,10 @@ class Transport(Protocol):
         """One request; urllib3's exceptions propagate."""
         ...
 
+    def close(self) -> None:
+        """Close the connections (the transport is not used afterwards)."""
+        ...
+
 
 class ApiClientTransport:
     """Through the ``kubernetes`` client's ``ApiClient`` (its auth and TLS settings)."""
@@ -110,6 +114,9 @@ class ApiClientTransport:
             _request_timeout=request.timeout,
         )
         return Response(int(answer.status), answer.response)
+
+    def close(self) -> None:
+        self.api.close()
 
 
 @dataclass(frozen=True)
@@ -182,6 +189,9 @@ class DirectTransport:
             preload_content=False,
         )
         return Response(int(raw.status), raw)
+
+    def close(self) -> None:
+        self._pool.clear()
 
 
 def _ssl_context(c: Credentials) -> ssl.SSLContext:

@@ -17,8 +17,9 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from kubernetes import client, config
 
+from roost_kube.client import Kube
+from roost_kube.resources import NODES
 from roost_localcluster import nodes
 from roost_localcluster.audit import AUDIT_LOG, RequestKind, Window
 from roost_localcluster.binaries import REPO_ROOT
@@ -37,17 +38,10 @@ class Cluster:
     def of(cls, plane: ControlPlane) -> Cluster:
         return cls(plane.kubeconfig, plane)
 
-    def api_client(self) -> client.ApiClient:
-        """A new kubernetes ``ApiClient`` for this cluster (use it as a context manager).
-
-        The process-wide default configuration of the kubernetes package is left alone.
-        """
-        configuration = client.Configuration()
-        # The kube-config loader is the one untyped corner of the kubernetes package.
-        config.load_kube_config(  # type: ignore[no-untyped-call]
-            config_file=str(self.kubeconfig), client_configuration=configuration
-        )
-        return client.ApiClient(configuration)
+    def kube(self, field_manager: str = "roost-localcluster") -> Kube:
+        """A :class:`~roost_kube.client.Kube` for this cluster: the one client layer every
+        Roost process, test and benchmark uses."""
+        return Kube.from_environment(field_manager, kubeconfig=self.kubeconfig)
 
     def audit_window(self) -> Window:
         """Start counting requests (:meth:`audited`); the control plane must have been
@@ -170,22 +164,17 @@ class Cluster:
             pods=pods,
             taints=taints,
         )
-        with self.api_client() as api:
-            core = client.CoreV1Api(api)
-            node = client.V1Node.from_dict(manifest)
-            assert node is not None
-            core.create_node(node)
-            if wait:
-                nodes.wait_nodes_ready(core, [name], timeout_s)
+        kube = self.kube()
+        kube.create(manifest)
+        if wait:
+            nodes.wait_nodes_ready(kube, [name], timeout_s)
         return manifest
 
     def wait_nodes_ready(self, names: Iterable[str], timeout_s: float = 120.0) -> None:
-        with self.api_client() as api:
-            nodes.wait_nodes_ready(client.CoreV1Api(api), names, timeout_s)
+        nodes.wait_nodes_ready(self.kube(), names, timeout_s)
 
     def delete_node(self, name: str) -> None:
-        with self.api_client() as api:
-            client.CoreV1Api(api).delete_node(name)
+        self.kube().delete(NODES, name)
 
 
 class FakeNodes:

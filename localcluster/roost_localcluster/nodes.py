@@ -13,8 +13,9 @@ import time
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from kubernetes import client
-
+from roost_kube.client import Kube
+from roost_kube.patches import Obj
+from roost_kube.resources import NODES
 from roost_localcluster.controlplane import KWOK_NODE_ANNOTATION, KWOK_NODE_ANNOTATION_VALUE
 
 # Taints the node lifecycle controller keeps on a node until it is Ready and reachable.
@@ -61,22 +62,20 @@ def fake_node(
     }
 
 
-def node_is_ready(node: client.V1Node) -> bool:
+def node_is_ready(node: Obj) -> bool:
     """Ready=True and free of the lifecycle taints that would block scheduling."""
-    conditions = (node.status and node.status.conditions) or []
-    ready = any(c.type == "Ready" and c.status == "True" for c in conditions)
-    taints = {t.key for t in ((node.spec and node.spec.taints) or [])}
+    conditions = (node.get("status") or {}).get("conditions") or []
+    ready = any(c.get("type") == "Ready" and c.get("status") == "True" for c in conditions)
+    taints = {t.get("key") for t in ((node.get("spec") or {}).get("taints") or [])}
     return ready and not taints & _LIFECYCLE_TAINTS
 
 
-def wait_nodes_ready(
-    core: client.CoreV1Api, names: Iterable[str], timeout_s: float = 120.0
-) -> None:
+def wait_nodes_ready(kube: Kube, names: Iterable[str], timeout_s: float = 120.0) -> None:
     """Block until every named node is ready (see :func:`node_is_ready`)."""
     pending = set(names)
     deadline = time.monotonic() + timeout_s
     while pending:
-        ready = {n.metadata.name for n in core.list_node().items if n.metadata and node_is_ready(n)}
+        ready = {n["metadata"]["name"] for n in kube.list_objects(NODES) if node_is_ready(n)}
         pending -= ready
         if not pending:
             return

@@ -60,8 +60,9 @@ from typing import Any, Self
 
 import psutil
 import yaml
-from kubernetes import client
 
+from roost_kube.errors import ApiError
+from roost_kube.resources import NODES
 from roost_localcluster import binaries, nodes, pki
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import ControlPlane
@@ -605,12 +606,11 @@ class RealNodes:
 
     def _wait_ready(self, node: RealNode, timeout_s: float) -> None:
         def ready() -> bool:
-            with self.cluster.api_client() as api:
-                try:
-                    found = client.CoreV1Api(api).read_node(node.name)
-                except client.ApiException:
-                    return False
-            return nodes.node_is_ready(found)
+            try:
+                found = self.cluster.kube().get(NODES, node.name)
+            except ApiError:
+                return False
+            return found is not None and nodes.node_is_ready(found)
 
         _wait_for(ready, timeout_s, f"node {node.name} Ready", list(node.processes.values()))
 

@@ -47,8 +47,7 @@ def kube(roost_crds: Cluster, request: pytest.FixtureRequest) -> Iterator[Kube]:
             "roost-tests", kubeconfig=roost_crds.kubeconfig, timeout=(5.0, 30.0), direct=True
         )
         return
-    with roost_crds.api_client() as api:
-        yield Kube(api, "roost-tests")
+    yield roost_crds.kube("roost-tests")
 
 
 def config_map(name: str, **data: str) -> dict[str, Any]:
@@ -132,12 +131,12 @@ def test_a_server_that_is_not_there_is_unavailable(roost_crds: Cluster) -> None:
     with socket.socket() as probe:  # a port nobody listens on
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
-    with roost_crds.api_client() as api:
-        api.configuration.host = f"https://127.0.0.1:{port}"
-        api.configuration.retries = 0
-        kube = Kube(api, "roost-tests", timeout=(2.0, 2.0))
-        with pytest.raises(ApiUnavailableError) as error:
-            kube.get(CONFIGMAPS, "x", NAMESPACE)
+    kube = roost_crds.kube("roost-tests")
+    kube.api.configuration.host = f"https://127.0.0.1:{port}"
+    kube.api.configuration.retries = 0
+    kube.timeout = (2.0, 2.0)
+    with pytest.raises(ApiUnavailableError) as error:
+        kube.get(CONFIGMAPS, "x", NAMESPACE)
     assert error.value.transport == "refused" and error.value.status is None
 
 

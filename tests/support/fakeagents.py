@@ -23,7 +23,6 @@ from typing import Any
 
 from roost_api.autopilot import CommandAction
 from roost_api.meta import GROUP, VERSION, Condition, set_condition
-from roost_kube.client import Kube
 from roost_kube.errors import NotFoundError
 from roost_kube.resources import REDUNDANT_AUTOPILOTS
 from roost_localcluster.cluster import Cluster
@@ -139,8 +138,7 @@ class FakeAgents:
 
     def __init__(self, cluster: Cluster, period_s: float = 1.0) -> None:
         self.period_s = period_s
-        self._api = cluster.api_client()
-        self._kube = Kube(self._api, "roost-agent", timeout=(5.0, 30.0))
+        self._kube = cluster.kube("roost-agent")
         self._states: dict[str, AgentState] = {}
         self._lock = threading.Lock()
         self._stopping = threading.Event()
@@ -215,4 +213,4 @@ class FakeAgents:
     def __exit__(self, *_: object) -> None:
         self._stopping.set()
         self._thread.join()
-        self._api.close()  # type: ignore[no-untyped-call]
+        self._kube.close()

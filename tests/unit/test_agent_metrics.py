@@ -12,7 +12,6 @@ import sys
 from dataclasses import fields
 from datetime import UTC, datetime
 
-from kubernetes import client as k8s_client
 from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.parser import text_string_to_metric_families
 
@@ -30,6 +29,7 @@ from roost_agent.metrics import (
 from roost_agent.publisher import Publisher, PublisherSettings
 from roost_api.autopilot import CommandResult, FailoverRecord
 from roost_kube.client import Kube
+from roost_kube.transport import Credentials, DirectTransport
 from tests.support.feed import two_px4_spec
 from tests.support.waiting import wait_until
 
@@ -136,10 +136,8 @@ def test_publisher_queue_and_api_errors_while_the_api_is_unreachable() -> None:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]  # closed again when the block ends: connections refused
-    configuration = k8s_client.Configuration()
-    configuration.host = f"http://127.0.0.1:{port}"
-    configuration.retries = 0
-    kube = AgentKube(Kube(k8s_client.ApiClient(configuration), "roost-agent", (1.0, 1.0)))
+    transport = DirectTransport(Credentials(host=f"http://127.0.0.1:{port}"), retries=0)
+    kube = AgentKube(Kube(transport, "roost-agent", (1.0, 1.0)))
     agent = make_agent()
     publisher = Publisher(
         agent,

@@ -9,7 +9,9 @@ port scheme, is part of the contract). The sandbox
 (``roost_cli.sandbox``) is the one product part that may start the local control plane
 and the simulators. Nothing shipped imports ``tests`` or ``bench``; kopf is the
 operator's alone, and the Kubernetes layer imports the ``kubernetes`` client at module
-level only in the modules the agent loads in cluster mode.
+level only in the modules the agent loads in cluster mode. Every request goes through
+``roost_kube.Kube``: only the Kubernetes layer (and the CLI's kubeconfig loading) imports
+the ``kubernetes`` package.
 """
 
 from __future__ import annotations
@@ -46,11 +48,15 @@ ALLOWED: dict[str, set[str]] = {
         "roost_mavlink",
         "roost_sim",
     },
-    "roost_localcluster": set(),
+    "roost_localcluster": {"roost_api", "roost_kube"},
 }
 NEVER_SHIPPED = {"tests", "bench"}
 KOPF_USERS = {"roost_operator"}
 CLIENT_AT_MODULE_LEVEL = {"roost_kube.client"}
+# One Kubernetes layer: requests go through roost_kube.Kube everywhere. The CLI builds
+# the ``kubernetes`` package's configuration itself (to word kubeconfig errors for a user)
+# and hands it to Kube; no other module outside roost_kube touches the package.
+KUBERNETES_PACKAGE_USERS = {"roost_cli.cluster"}
 
 
 def modules() -> list[tuple[str, Path]]:
@@ -99,6 +105,8 @@ def test_imports_go_one_way(module: str, path: Path) -> None:
     assert not tops & NEVER_SHIPPED, f"{module} imports {sorted(tops & NEVER_SHIPPED)}"
     if own not in KOPF_USERS:
         assert "kopf" not in tops, f"{module} imports kopf"
+    if own != "roost_kube" and module not in KUBERNETES_PACKAGE_USERS:
+        assert "kubernetes" not in tops, f"{module} talks to the API server beside roost_kube"
     if own == "roost_kube" and module not in CLIENT_AT_MODULE_LEVEL:
         top_level = {n.split(".")[0] for n in imports(path, module_level_only=True)}
         assert "kubernetes" not in top_level, f"{module} imports the client at module level"

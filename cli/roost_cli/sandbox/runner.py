@@ -39,8 +39,6 @@ from typing import Any
 
 import psutil
 import yaml
-from kubernetes import client
-from kubernetes.client.exceptions import ApiException
 from rich.console import Console, Group, RenderableType
 from rich.text import Text
 
@@ -51,6 +49,7 @@ from roost_cli.sandbox import kwok, missionrun, plan, sims, state
 from roost_cli.sandbox.director import Cue, Director, Script
 from roost_cli.sandbox.processes import Launcher, console_script
 from roost_cli.sandbox.progress import build_control_plane, start_control_plane
+from roost_kube.errors import ApiError
 from roost_localcluster import nodes
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import ControlPlane, Settings
@@ -171,7 +170,7 @@ class Sandbox:
             raise CliError(
                 f"`{command}` failed (exit {error.returncode}):\n{error.stderr or error.output}"
             ) from error
-        except (TimeoutError, subprocess.TimeoutExpired, ApiException) as error:
+        except (TimeoutError, subprocess.TimeoutExpired, ApiError) as error:
             logs = self.plane.logs_dir if self.plane is not None else self.directory
             raise CliError(
                 f"the sandbox did not come up: {error}. Logs: {self.directory / 'logs'} and {logs}"
@@ -217,8 +216,7 @@ class Sandbox:
         with self.console.status(f"Creating {len(names)} fake vehicle nodes (kwok)…"):
             for name in names:
                 cluster.add_node(name, labels={plan.FLEET_LABEL: plan.FLEET_VALUE}, wait=False)
-            with cluster.api_client() as api:
-                nodes.wait_nodes_ready(client.CoreV1Api(api), names, NODES_READY_TIMEOUT_S)
+            nodes.wait_nodes_ready(cluster.kube(), names, NODES_READY_TIMEOUT_S)
         self._step(f"nodes Ready: {', '.join(names)}")
 
     def _start_sims(self) -> None:
