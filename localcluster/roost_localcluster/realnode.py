@@ -614,6 +614,13 @@ class RealNodes:
 
         _wait_for(ready, timeout_s, f"node {node.name} Ready", list(node.processes.values()))
 
+    # ---- faults ----------------------------------------------------------------------------
+    def set_link(self, name: str, *, up: bool) -> None:
+        """Cut (``up=False``) or restore node ``name``'s link to the harness: a vehicle's
+        WiFi drop. Its programs and pods keep running; nothing but its network changes."""
+        assert self.network is not None, "no node was added"
+        self.network.set_link(self.nodes[name].index, up=up)
+
     # ---- teardown ------------------------------------------------------------------------
     def remove(self, name: str, delete_node: bool = True) -> None:
         """Stop node ``name``: its programs, pods and mounts, cgroups and namespace."""

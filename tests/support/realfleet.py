@@ -99,6 +99,8 @@ class RealFleet:
     simulated: state.SandboxVehicle | None = None
     launcher: NamespaceLauncher | None = None
     installed: bool = False
+    components: dict[str, Any] = field(default_factory=lambda: {"mavros": {"enabled": False}})
+    """The Vehicle's ``spec.components`` (by default none: see :meth:`vehicle_manifest`)."""
 
     # ---- bring-up ------------------------------------------------------------------------
     def start(self) -> None:
@@ -158,7 +160,7 @@ class RealFleet:
         and neither SITL nor mavros images exist on the node."""
         manifest = plan.vehicle_manifest(self.vehicle)
         manifest["spec"].pop("simulation", None)
-        manifest["spec"]["components"] = {"mavros": {"enabled": False}}
+        manifest["spec"]["components"] = self.components
         return manifest
 
     # ---- reading -------------------------------------------------------------------------

@@ -1,0 +1,173 @@
+"""A vehicle's WiFi drop and its bad cases, on real harness nodes with the chart's real pods.
+
+The control plane here is this module's own, started with a 20 s node-monitor grace
+period and a 5 s eviction window (:mod:`tests.support.partition`), so a cut longer than
+both takes under a minute. The vehicle node runs the chart's agent, a component pod the
+operator made (vicon), a Mission's onboard pod, and a bare witness pod that has only the
+API server's default tolerations.
+
+* A cut longer than the grace period plus the eviction window, with a failover inside
+  it: the witness is evicted (the window passed), nothing of Roost's is — zero container
+  restarts, the same pod UIDs; the Vehicle says NodeUnreachable since when, the Mission
+  shows the vehicle unreachable and keeps flying; once the link is back the status shows
+  the failover with the time it happened, within seconds.
+* A node that never comes back and whose Vehicle is deleted meanwhile: the Vehicle's
+  pods are removed at once (they would otherwise wait for a kubelet that never answers),
+  its node keeps no Roost label; when the link does return, the kubelet stops what the
+  API server no longer has: nothing is left on the node.
+
+About four minutes with the images cached (two cuts of about a minute, the fleet's start).
+The tests run in file order on one fleet.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from datetime import datetime, timedelta
+
+import pytest
+
+from roost_api.wellknown import LABEL_VEHICLE
+from roost_localcluster.cluster import Cluster
+from roost_localcluster.controlplane import ControlPlane
+from roost_localcluster.nodenet import missing_prerequisites
+from roost_localcluster.realnode import RealNodes
+from tests.support import partition
+from tests.support.images import missing_tools
+from tests.support.realfleet import VEHICLE, WAIT_S, RealFleet
+from tests.support.waiting import wait_until
+
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.timeout(1800),  # builds the images first when they are not cached
+    pytest.mark.skipif(
+        bool(missing_prerequisites() or missing_tools()),
+        reason="real nodes or image tools missing: "
+        + "; ".join(missing_prerequisites() + missing_tools()),
+    ),
+]
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RealFleet]:
+    directory = tmp_path_factory.mktemp("partition")
+    with (
+        ControlPlane(directory / "control-plane", settings=partition.plane_settings()) as plane,
+        RealNodes(Cluster.of(plane), directory / "nodes") as pool,
+    ):
+        running = RealFleet(
+            Cluster.of(plane), pool, directory / "fleet", components=partition.vicon_components()
+        )
+        try:
+            running.start()
+            partition.start_workloads(running)
+            yield running
+        finally:
+            partition.stop_workloads(running)
+            running.stop()
+
+
+@pytest.fixture(scope="module")
+def cut(fleet: RealFleet) -> partition.PartitionRun:
+    return partition.cut_and_restore(fleet)
+
+
+def _at(stamp: str) -> datetime:
+    return datetime.fromisoformat(stamp.replace("Z", "+00:00"))
+
+
+def test_the_cut_outlasted_the_eviction_window(cut: partition.PartitionRun) -> None:
+    assert cut.cut_s >= partition.CUT_S
+    assert cut.cut_s > partition.GRACE_S + partition.EVICTION_S
+
+
+def test_nothing_of_roost_is_evicted_restarted_or_replaced(
+    fleet: RealFleet, cut: partition.PartitionRun
+) -> None:
+    keys = set(cut.before)
+    assert any(k.startswith(f"{fleet.namespace}/{VEHICLE}-vicon") for k in keys), keys
+    assert any(k.startswith(f"{partition.MISSION_NAMESPACE}/{partition.MISSION}") for k in keys)
+    assert any("roost-agent" in k for k in keys), keys
+    assert cut.pods_replaced == 0, (cut.before, cut.after)
+    assert cut.pod_restarts == 0, (cut.before, cut.after)
+
+
+def test_the_vehicle_said_since_when_its_node_was_unreachable(
+    cut: partition.PartitionRun,
+) -> None:
+    bound = cut.vehicle_node_bound
+    assert (bound["status"], bound["reason"]) == ("False", "NodeUnreachable")
+    since = _at(bound["lastTransitionTime"])
+    # The node controller notices within its grace period (and its next look).
+    assert cut.cut_at - timedelta(seconds=1) <= since <= cut.restored_at
+    assert "unreachable since" in bound["message"]
+
+
+def test_the_mission_showed_the_vehicle_unreachable_and_flew_on(
+    fleet: RealFleet, cut: partition.PartitionRun
+) -> None:
+    entry = cut.mission_vehicle
+    assert entry["phase"] == "Running" and entry["unreachableSince"]
+    mission = json.loads(
+        fleet.cluster.kubectl(
+            "get", "mission", partition.MISSION, "-n", partition.MISSION_NAMESPACE, "-o", "json"
+        ).stdout
+    )
+    assert mission["status"]["phase"] == "Running"
+    now = partition.mission_vehicle(fleet)
+    assert not now.get("unreachableSince"), now
+
+
+def test_the_failover_in_the_cut_is_recorded_with_its_true_time(
+    cut: partition.PartitionRun,
+) -> None:
+    last = cut.last_failover
+    assert (last["from"], last["to"]) == ("px4-a", "px4-b")
+    happened = _at(last["time"])
+    # Made by the agent during the cut (whole seconds in the API), not when reported.
+    assert cut.silenced_at - timedelta(seconds=1) <= happened <= cut.restored_at
+    assert cut.catchup_s > 0
+
+
+def test_a_vehicle_deleted_while_its_node_never_returns_leaves_nothing(
+    fleet: RealFleet, cut: partition.PartitionRun
+) -> None:
+    assert fleet.vehicle_node is not None
+    node = fleet.vehicle_node.name
+    partition.stop_workloads(fleet)  # the mission first: its pods are the Job controller's
+    vicon = f"{VEHICLE}-vicon"
+    fleet.pool.set_link(node, up=False)
+    try:
+        wait_until(
+            "the Vehicle's NodeBound to say NodeUnreachable",
+            lambda: partition.node_bound(fleet).get("reason") == "NodeUnreachable",
+            partition.GRACE_S + WAIT_S,
+        )
+        fleet.cluster.kubectl("delete", "redundantautopilot,vehicle", VEHICLE, "--wait=false")
+
+        def pod_gone() -> bool:
+            found = fleet.cluster.kubectl(
+                "get", "pod", vicon, "-n", fleet.namespace, "--ignore-not-found", "-o", "name"
+            )
+            return not found.stdout.strip()
+
+        wait_until("the vicon pod removed without its kubelet", pod_gone, WAIT_S)
+        wait_until(
+            "the Vehicle gone",
+            lambda: (
+                not fleet.cluster.kubectl(
+                    "get", "vehicle", VEHICLE, "--ignore-not-found", "-o", "name"
+                ).stdout.strip()
+            ),
+            WAIT_S,
+        )
+        labels = fleet.get("node", node)["metadata"].get("labels", {})
+        assert LABEL_VEHICLE not in labels
+    finally:
+        fleet.pool.set_link(node, up=True)
+    wait_until(
+        "the kubelet back to stop the removed pod's containers",
+        lambda: not partition.pod_containers(fleet, vicon),
+        WAIT_S,
+    )
