@@ -83,6 +83,7 @@ def run() -> list[Figure]:
                 pool,
                 directory / "fleet",
                 components=partition.vicon_components(),
+                agent_values=partition.TELEMETRY_VALUES,
             )
             try:
                 fleet.start()

@@ -1,5 +1,8 @@
 """A vehicle's WiFi drop and its bad cases, on real harness nodes with the chart's real pods.
 
+The agent serves its telemetry stream on the node's address and announces it on its
+Vehicle; ``roost dashboard`` follows the vehicle through the API server's pod proxy.
+
 The control plane here is this module's own, started with a 20 s node-monitor grace
 period and a 5 s eviction window (:mod:`tests.support.partition`), so a cut longer than
 both takes under a minute. The vehicle node runs the chart's agent, a component pod the
@@ -23,20 +26,29 @@ The tests run in file order on one fleet.
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
+import time
 from collections.abc import Iterator
 from datetime import datetime, timedelta
+from pathlib import Path
+from typing import Any
 
 import pytest
+from websockets.exceptions import WebSocketException
+from websockets.sync.client import connect
 
-from roost_api.wellknown import LABEL_VEHICLE
+from roost_api.wellknown import ANNOTATION_TELEMETRY_POD, LABEL_VEHICLE
 from roost_localcluster.cluster import Cluster
-from roost_localcluster.controlplane import ControlPlane
+from roost_localcluster.controlplane import ControlPlane, free_port
 from roost_localcluster.nodenet import missing_prerequisites
 from roost_localcluster.realnode import RealNodes
 from tests.support import partition
 from tests.support.images import missing_tools
 from tests.support.realfleet import VEHICLE, WAIT_S, RealFleet
 from tests.support.waiting import wait_until
+
+BIN = Path(sys.executable).parent
 
 pytestmark = [
     pytest.mark.slow,
@@ -57,7 +69,11 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RealFleet]:
         RealNodes(Cluster.of(plane), directory / "nodes") as pool,
     ):
         running = RealFleet(
-            Cluster.of(plane), pool, directory / "fleet", components=partition.vicon_components()
+            Cluster.of(plane),
+            pool,
+            directory / "fleet",
+            components=partition.vicon_components(),
+            agent_values=partition.TELEMETRY_VALUES,
         )
         try:
             running.start()
@@ -71,6 +87,53 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RealFleet]:
 @pytest.fixture(scope="module")
 def cut(fleet: RealFleet) -> partition.PartitionRun:
     return partition.cut_and_restore(fleet)
+
+
+def test_the_agent_announces_its_stream_and_the_dashboard_follows_it_via_the_api(
+    fleet: RealFleet, tmp_path: Path
+) -> None:
+    """Runs before the cut. The agent annotated its Vehicle itself; ``roost dashboard``
+    with the admin kubeconfig reads the stream through the API server's pod proxy (the
+    agent pod's name is in the annotation) and shows the vehicle live."""
+    agent = fleet.agent_pod()
+    assert agent is not None
+    annotations = fleet.get("vehicle", VEHICLE)["metadata"].get("annotations", {})
+    assert annotations.get(ANNOTATION_TELEMETRY_POD) == (
+        f"{fleet.namespace}/{agent['metadata']['name']}:9467"
+    )
+    port = free_port()
+    log = tmp_path / "dashboard.log"
+    argv = [str(BIN / "roost"), "--kubeconfig", str(fleet.cluster.kubeconfig), "dashboard"]
+    argv += ["--read-only", "--port", str(port)]
+    with log.open("w") as out:
+        dashboard = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT)
+    try:
+        vehicle = wait_until(
+            "the dashboard showing the vehicle's live telemetry",
+            lambda: _live(port, VEHICLE),
+            WAIT_S,
+            poll_s=1.0,
+        )
+        assert vehicle["active"] == "px4-a"
+    finally:
+        dashboard.terminate()
+        dashboard.wait(timeout=30)
+    assert "Traceback" not in log.read_text(), log.read_text()[-3000:]
+
+
+def _live(port: int, name: str) -> dict[str, Any] | None:
+    """The dashboard's fleet document entry of ``name`` once its telemetry is live."""
+    try:
+        with connect(f"ws://127.0.0.1:{port}/ws", open_timeout=2) as ws:
+            deadline = time.monotonic() + 5
+            while time.monotonic() < deadline:
+                doc = json.loads(ws.recv(timeout=5))
+                entry = next((v for v in doc.get("vehicles", []) if v.get("name") == name), None)
+                if entry is not None and entry.get("telemetry") == "live":
+                    return dict(entry)
+    except (OSError, TimeoutError, WebSocketException):
+        return None
+    return None
 
 
 def _at(stamp: str) -> datetime:

@@ -66,6 +66,11 @@ def vicon_components() -> dict[str, Any]:
     }
 
 
+TELEMETRY_VALUES = {"telemetry": {"enabled": True, "port": 9467, "bindNodeAddress": True}}
+"""The agent's telemetry stream on the node's address: announced on its Vehicle, and
+followed by ``roost dashboard`` through the API server's pod proxy."""
+
+
 @dataclass(frozen=True)
 class PodMark:
     """What must not change across the cut: the pod's identity and its restarts."""

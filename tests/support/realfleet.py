@@ -101,6 +101,8 @@ class RealFleet:
     installed: bool = False
     components: dict[str, Any] = field(default_factory=lambda: {"mavros": {"enabled": False}})
     """The Vehicle's ``spec.components`` (by default none: see :meth:`vehicle_manifest`)."""
+    agent_values: dict[str, Any] = field(default_factory=dict)
+    """Extra chart values under ``agent`` (e.g. its telemetry stream)."""
 
     # ---- bring-up ------------------------------------------------------------------------
     def start(self) -> None:
@@ -124,7 +126,7 @@ class RealFleet:
 
     def install(self) -> None:
         assert self.ground is not None
-        self.helm(chart_values(self.ground.name))
+        self.helm(chart_values(self.ground.name, **self.agent_values))
         self.installed = True
 
     def wait_operator_ready(self) -> float:
