@@ -6,6 +6,9 @@ checks), measured.
 - ``partition.pods_replaced``: those pods gone or replaced by another (another UID).
 - ``partition.status_catchup_s``: from the link back up to the RedundantAutopilot's
   status showing the failover the agent made during the cut.
+- ``reboot.node_restart_to_report_s``: right after, the vehicle node loses power mid
+  safety routine and boots again: from containerd and the kubelet starting to the
+  agent's first report (informational).
 
 The cut lasts :data:`~tests.support.partition.CUT_S` (45 s) on a control plane with a
 20 s node-monitor grace period and a 5 s eviction window, so it outlasts both; a bare
@@ -89,7 +92,22 @@ def run() -> list[Figure]:
                 fleet.start()
                 partition.start_workloads(fleet)
                 measured = partition.cut_and_restore(fleet)
+                rebooted = partition.power_cycle(fleet)
             finally:
                 partition.stop_workloads(fleet)
                 fleet.stop()
-    return figures(measured)
+    return [*figures(measured), reboot_figure(rebooted)]
+
+
+def reboot_figure(run: partition.RebootRun) -> Figure:
+    return Figure(
+        "reboot.node_restart_to_report_s",
+        run.restart_to_report_s,
+        "s",
+        "informational",
+        COMMAND,
+        note="the vehicle node powered off mid safety routine (every process killed, "
+        "containerd/runc runtime state gone) and started again: containerd + kubelet "
+        "start to the agent's first report (same pod, new containers; it resumed the "
+        f"routine from {run.routine_before} on {run.active_after}, no switch back)",
+    )

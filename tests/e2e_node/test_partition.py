@@ -14,12 +14,18 @@ API server's default tolerations.
   restarts, the same pod UIDs; the Vehicle says NodeUnreachable since when, the Mission
   shows the vehicle unreachable and keeps flying; once the link is back the status shows
   the failover with the time it happened, within seconds.
+* A reboot of the vehicle's computer mid-routine (every process killed at once,
+  containerd's and runc's runtime state gone, then containerd and the kubelet started
+  again): the same agent pod comes back and resumes the safety routine from its state
+  directory, without switching back; three power cuts in a row end the same way, with
+  one sandbox and one container running per pod.
 * A node that never comes back and whose Vehicle is deleted meanwhile: the Vehicle's
   pods are removed at once (they would otherwise wait for a kubelet that never answers),
   its node keeps no Roost label; when the link does return, the kubelet stops what the
   API server no longer has: nothing is left on the node.
 
-About four minutes with the images cached (two cuts of about a minute, the fleet's start).
+About six minutes with the images cached (two cuts of about a minute, four boots, the
+fleet's start).
 The tests run in file order on one fleet.
 """
 
@@ -30,7 +36,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
-from datetime import datetime, timedelta
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
@@ -191,6 +197,52 @@ def test_the_failover_in_the_cut_is_recorded_with_its_true_time(
     # Made by the agent during the cut (whole seconds in the API), not when reported.
     assert cut.silenced_at - timedelta(seconds=1) <= happened <= cut.restored_at
     assert cut.catchup_s > 0
+
+
+@pytest.fixture(scope="module")
+def reboot(fleet: RealFleet, cut: partition.PartitionRun) -> partition.RebootRun:
+    return partition.power_cycle(fleet)
+
+
+def test_a_reboot_mid_routine_resumes_from_the_state_directory(
+    reboot: partition.RebootRun,
+) -> None:
+    """The safety routine of the failover in the cut (a 120 s hold) still ran when the
+    power went; the agent pod came back (same pod, new containers) and resumed it from
+    its state directory, on the autopilot it had switched to."""
+    assert reboot.routine_before in ("Started", "ConfirmingHold", "Holding"), reboot
+    assert reboot.agent_after.uid == reboot.agent_before.uid
+    assert (reboot.active_before, reboot.active_after) == ("px4-b", "px4-b"), "no switch back"
+    assert any(m.startswith("px4-b: resuming the safety routine") for m in reboot.resumed)
+    assert reboot.restart_to_report_s > 0
+
+
+def test_a_reboot_loop_ends_with_the_same_pods_reporting_and_nothing_left(
+    fleet: RealFleet, reboot: partition.RebootRun
+) -> None:
+    """Three power cuts in a row, each before the node came up: in the end the same pods
+    run their containers once each, and the agent reports, still on px4-b."""
+    assert fleet.vehicle_node is not None
+    node = fleet.vehicle_node.name
+    before = partition.marks(fleet)
+    for _ in range(3):
+        fleet.pool.power_off(node)
+        fleet.pool.power_on(node, wait_ready=False)
+    booted_at = datetime.now(UTC)
+    status = wait_until(
+        "the agent's first report after the last boot",
+        lambda: partition.reported_since(fleet, booted_at),
+        WAIT_S,
+    )
+    assert status["activeAutopilot"] == "px4-b"
+    wait_until("every pod on the vehicle node Ready", lambda: partition.all_ready(fleet), WAIT_S)
+    after = partition.marks(fleet)
+    assert {k: m.uid for k, m in after.items()} == {k: m.uid for k, m in before.items()}
+    for key in after:
+        name = key.split("/", 1)[1]
+        assert partition.running_tasks(fleet, name) == 2, f"{key}: one sandbox, one container"
+    bound = partition.node_bound(fleet)
+    assert bound.get("status") == "True", bound
 
 
 def test_a_vehicle_deleted_while_its_node_never_returns_leaves_nothing(

@@ -48,6 +48,10 @@ CUT_S = GRACE_S + MONITOR_PERIOD_S + EVICTION_S + 15
 """How long the link stays down at least: past the grace period, the node controller's
 next look and the eviction window, with a margin."""
 
+HOLD_S = 120
+"""The safety routine's hold after the failover in the cut (the API's maximum): it still
+runs when the node reboots after the cut."""
+
 MISSION = "partition-flight"
 MISSION_NAMESPACE = "default"
 WITNESS = "partition-witness"
@@ -218,8 +222,26 @@ def witness_evicted(fleet: RealFleet) -> bool:
     return bool(json.loads(found.stdout)["metadata"].get("deletionTimestamp"))
 
 
+def long_hold(fleet: RealFleet) -> None:
+    """Make the safety routine after a failover hold for :data:`HOLD_S` (still running
+    when the node reboots after the cut); returns once the agent applied it."""
+    patch = {"spec": {"failoverPolicy": {"safetyRoutine": {"holdSeconds": HOLD_S}}}}
+    fleet.cluster.kubectl(
+        "patch", "redundantautopilot", VEHICLE, "--type=merge", "-p", json.dumps(patch)
+    )
+
+    def applied() -> bool:
+        found = fleet.get("redundantautopilot", VEHICLE)
+        observed = (found.get("status") or {}).get("observedGeneration")
+        return bool(observed == found["metadata"]["generation"])
+
+    wait_until("the agent to apply the long hold", applied, WAIT_S)
+
+
 def start_workloads(fleet: RealFleet) -> None:
-    """The Mission and the witness on the vehicle node, each running, the vehicle flying."""
+    """The Mission and the witness on the vehicle node, each running, the vehicle flying
+    with a long hold after a failover."""
+    long_hold(fleet)
     text = "\n---\n".join(yaml.safe_dump(m) for m in (mission_manifest(), witness_manifest(fleet)))
     fleet.cluster.kubectl("apply", "-f", "-", input_text=text)
     wait_until(
@@ -330,3 +352,103 @@ def cut_and_restore(fleet: RealFleet, silence: str = "px4-a") -> PartitionRun:
         vehicle_node_bound=dict(bound),
         mission_vehicle=dict(entry),
     )
+
+
+# -- reboots ---------------------------------------------------------------------------------
+
+
+@dataclass
+class RebootRun:
+    """What one power cycle of the vehicle's computer showed."""
+
+    agent_before: PodMark
+    agent_after: PodMark
+    active_before: str
+    active_after: str
+    routine_before: str
+    """The safety routine's phase when the power went (lastFailover.safetyRoutine)."""
+    booted_at: datetime
+    restart_to_report_s: float
+    """From starting containerd and the kubelet again to the agent's first report."""
+    resumed: list[str]
+    """Messages of the agent's SafetyRoutineResumed Events after the boot."""
+
+
+def _agent_mark(fleet: RealFleet) -> PodMark:
+    pod = fleet.agent_pod()
+    assert pod is not None
+    return next(m for m in marks(fleet).values() if m.uid == pod["metadata"]["uid"])
+
+
+def reported_since(fleet: RealFleet, since: datetime) -> dict[str, Any] | None:
+    """The RedundantAutopilot status once the agent reported at or after ``since`` (the
+    API keeps whole seconds)."""
+    status = fleet.autopilot_status()
+    stamp = status.get("reportedAt")
+    if stamp and datetime.fromisoformat(stamp.replace("Z", "+00:00")) >= since.replace(
+        microsecond=0
+    ):
+        return status
+    return None
+
+
+def resumed_events(fleet: RealFleet, since: datetime) -> list[str]:
+    """Messages of the agent's SafetyRoutineResumed Events at or after ``since``."""
+    found = _json(fleet, "get", "events", "-A", "--field-selector", "reason=SafetyRoutineResumed")
+    messages = []
+    for event in found["items"]:
+        stamp = event.get("eventTime") or event.get("lastTimestamp") or ""
+        when = datetime.fromisoformat(stamp.replace("Z", "+00:00")) if stamp else None
+        if when is not None and when >= since.replace(microsecond=0):
+            messages.append(str(event.get("message") or event.get("note") or ""))
+    return messages
+
+
+def power_cycle(fleet: RealFleet, *, down_s: float = 2.0) -> RebootRun:
+    """The vehicle's computer loses power for ``down_s`` and boots again (kubelet and
+    containerd started anew, every container gone); timed to the agent's first report."""
+    assert fleet.vehicle_node is not None
+    node = fleet.vehicle_node.name
+    before = fleet.autopilot_status()
+    agent_before = _agent_mark(fleet)
+    routine = str((before.get("lastFailover") or {}).get("safetyRoutine") or "")
+    fleet.pool.power_off(node)
+    time.sleep(down_s)  # the computer stays off a moment (not a limit on anything)
+    booted_at = _utc_now()
+    started = time.monotonic()
+    fleet.pool.power_on(node)
+    after = wait_until(
+        "the agent's first report after the boot",
+        lambda: reported_since(fleet, booted_at),
+        WAIT_S,
+        poll_s=0.05,
+    )
+    restart_to_report_s = time.monotonic() - started
+    resumed = wait_until(
+        "the agent's SafetyRoutineResumed Event",
+        lambda: resumed_events(fleet, booted_at),
+        WAIT_S,
+    )
+    wait_until("every pod on the vehicle node Ready again", lambda: all_ready(fleet), WAIT_S)
+    return RebootRun(
+        agent_before=agent_before,
+        agent_after=_agent_mark(fleet),
+        active_before=str(before.get("activeAutopilot")),
+        active_after=str(after.get("activeAutopilot")),
+        routine_before=routine,
+        booted_at=booted_at,
+        restart_to_report_s=restart_to_report_s,
+        resumed=resumed,
+    )
+
+
+def running_tasks(fleet: RealFleet, pod: str) -> int:
+    """How many of the pod's containers (sandbox included) have a running process."""
+    assert fleet.vehicle_node is not None
+    done = subprocess.run(
+        fleet.vehicle_node.ctr("tasks", "list"), capture_output=True, text=True, check=True
+    )
+    running = {
+        line.split()[0] for line in done.stdout.splitlines()[1:] if line.split()[-1:] == ["RUNNING"]
+    }
+    return len(running & set(pod_containers(fleet, pod)))
