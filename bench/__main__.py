@@ -28,6 +28,7 @@ MODULES: tuple[str, ...] = (
     "standby",
     "sync",
     "node",
+    "partition",
     "dashboard",
     "fleet",
     "fleetapi",

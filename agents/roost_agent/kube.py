@@ -14,10 +14,11 @@ moment (Wi-Fi gone, control plane restarting) and must never hold the agent up:
 
 What the agent may do is exactly what the chart's RBAC grants (see ``charts/roost/RBAC.md``):
 read Vehicles and RedundantAutopilots, patch ``redundantautopilots/status``, create
-Events. Identity: the Vehicle whose ``spec.nodeName`` is this node (``NODE_NAME`` from
-the downward API), and the RedundantAutopilot whose ``spec.vehicleName`` is that
-Vehicle. RedundantAutopilots are listed by the operator-maintained ``roost.dev/node``
-label first (the node-restriction admission policy checks that label), then without it,
+Events, and patch its own Vehicle's telemetry annotations. Identity: the Vehicle whose
+``spec.nodeName`` is this node (``NODE_NAME`` from the downward API), and the
+RedundantAutopilot whose ``spec.vehicleName`` is that Vehicle. RedundantAutopilots are
+listed by the operator-maintained ``roost.dev/node`` label first (the node-restriction
+admission policy checks that label), then without it,
 so a freshly created object is found before the operator has labelled it.
 """
 
@@ -111,6 +112,13 @@ class AgentKube:
             at=at,
             type="Warning" if warning else "Normal",
             instance=node_name,
+        )
+
+    def annotate_vehicle(self, name: str, annotations: Mapping[str, str]) -> Obj:
+        """Merge ``annotations`` into Vehicle ``name``'s (the telemetry announcement; the
+        chart's admission policy lets the agent change nothing else of its Vehicle)."""
+        return self.kube.merge_patch(
+            VEHICLES, name, {"metadata": {"annotations": dict(annotations)}}
         )
 
     # -- following the spec -----------------------------------------------------------

@@ -351,14 +351,30 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGHUP, lambda *_: threading.Thread(target=reload, daemon=True).start())
     agent.start()
+    telemetry = start_telemetry(args, agent, out)
     publisher = None
     if kube is not None:
         from roost_agent.publisher import Publisher, PublisherSettings  # noqa: PLC0415
 
         given = {"refresh_s": args.report_interval, "retry_max_s": args.api_retry_max}
         settings = PublisherSettings(**{k: v for k, v in given.items() if v is not None})
+        announce: dict[str, str] = {}
+        if telemetry is not None:
+            from roost_api.telemetry import telemetry_annotations  # noqa: PLC0415
+
+            announce = telemetry_annotations(
+                telemetry.address,
+                telemetry.port,
+                pod=os.environ.get("POD_NAME"),
+                namespace=os.environ.get("POD_NAMESPACE"),
+            )
         publisher = Publisher(
-            agent, kube, node_name=args.node_name, target=target, settings=settings
+            agent,
+            kube,
+            node_name=args.node_name,
+            target=target,
+            settings=settings,
+            announce=announce,
         )
         publisher.start()
     metrics = None
@@ -380,7 +396,6 @@ def main(argv: list[str] | None = None) -> int:
             )
         else:
             log.info("metrics on http://%s:%d/metrics", args.metrics_address, metrics.port)
-    telemetry = start_telemetry(args, agent, out)
     try:
         while not stop.wait(args.status_interval or None):
             links = {name: asdict(link.counters) for name, link in agent.links.items()}

@@ -27,6 +27,11 @@ the state is never queued, only the latest is sent. Condition transition times c
 over from what was last written (read back at discovery), so an agent restart does not
 reset them.
 
+**Telemetry announcement.** With ``announce`` (the live stream served where a dashboard
+off the vehicle can reach it, :func:`roost_api.telemetry.telemetry_annotations`), the
+Vehicle is annotated with it once discovered, unless it already carries it, so nobody
+has to annotate Vehicles by hand and a new agent pod corrects a stale pod name.
+
 **Events.** One Kubernetes Event per failover, and per command result, landing order,
 emergency stop, safety-routine phase, refused spec and bridge error — never per health
 change (those are conditions; Events for them would be a storm under a flapping link).
@@ -49,9 +54,9 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures import Future
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 from roost_agent.agent import AgentEvent, EventKind
@@ -114,8 +119,11 @@ class PublisherSettings:
     """Routine (non-urgent) changes are coalesced to at most one write per interval."""
     retry_min_s: float = 0.5
     """First retry delay after a failed API call; doubles up to ``retry_max_s``."""
-    retry_max_s: float = 10.0
-    """Longest retry delay while the API is unreachable."""
+    retry_max_s: float = 4.0
+    """Longest retry delay while the API is unreachable. It bounds how far the status
+    lags behind a link that comes back (a WiFi drop: with the 2 s connect timeout the
+    status shows what happened during the drop within about 6 s); a retry costs one
+    connection attempt."""
     rediscover_s: float = 5.0
     """How often to look again for a Vehicle/RedundantAutopilot that does not exist yet."""
     watch_timeout_s: int = 60
@@ -130,6 +138,8 @@ class Target:
 
     vehicle: str
     autopilot: Obj
+    vehicle_annotations: Mapping[str, str] = field(default_factory=dict)
+    """The Vehicle's annotations as read at discovery (the telemetry announcement)."""
 
     @property
     def name(self) -> str:
@@ -169,7 +179,14 @@ def discover(kube: AgentKube, node_name: str) -> Target | None:
         return None
     name = str(vehicle["metadata"]["name"])
     autopilot = kube.find_autopilot(name, node_name)
-    return Target(name, autopilot) if autopilot is not None else None
+    annotations = dict(vehicle["metadata"].get("annotations") or {})
+    return Target(name, autopilot, annotations) if autopilot is not None else None
+
+
+def announcement(current: Mapping[str, str], wanted: Mapping[str, str]) -> dict[str, str]:
+    """The annotations to write on the Vehicle so that it carries ``wanted`` (empty: it
+    already does)."""
+    return {key: value for key, value in wanted.items() if current.get(key) != value}
 
 
 def startup_spec(
@@ -251,8 +268,11 @@ class Publisher:
         target: Target | None = None,
         settings: PublisherSettings | None = None,
         clock: Callable[[], float] = time.monotonic,
+        announce: Mapping[str, str] | None = None,
     ) -> None:
         self._agent = agent
+        self._announce = dict(announce or {})
+        self._announced: str | None = None  # the Vehicle that carries the announcement
         self._kube = kube
         self._node_name = node_name
         self._settings = settings or PublisherSettings()
@@ -373,6 +393,10 @@ class Publisher:
             self._adopt(target, applied=False)
         target = self._target
         assert target is not None
+        if self._announced != target.vehicle:
+            wait = self._announce_step(target)
+            if wait is not None:
+                return wait
         status = self._agent.status()
         if self._last_written is not None:
             status = replace(
@@ -394,6 +418,7 @@ class Publisher:
                 if exc.status == 404:
                     log.warning("RedundantAutopilot %s is gone; looking again", target.name)
                     self._target = None
+                    self._announced = None  # its Vehicle may be a new one too
                     self._target_ready.clear()
                     return 0.0
                 return self._failed("status write", exc)
@@ -404,6 +429,28 @@ class Publisher:
         if not self._post_events(target):
             return self._backoff
         return delay
+
+    def _announce_step(self, target: Target) -> float | None:
+        """Write the telemetry announcement on the Vehicle when it lacks it; a wait when
+        the API is away (retried), None otherwise. A refusal (an installation without
+        the RBAC for it) is logged once and not retried: the stream is only for eyes."""
+        patch = announcement(target.vehicle_annotations, self._announce)
+        if patch:
+            try:
+                self._kube.annotate_vehicle(target.vehicle, patch)
+            except ApiUnavailableError as exc:
+                return self._failed("telemetry announcement", exc)
+            except ApiError as exc:
+                log.warning(
+                    "cannot announce the telemetry stream on Vehicle %s (%s); "
+                    "annotate it by hand for the dashboard",
+                    target.vehicle,
+                    exc,
+                )
+            else:
+                log.info("telemetry announced on Vehicle %s: %s", target.vehicle, patch)
+        self._announced = target.vehicle
+        return None
 
     def _post_events(self, target: Target) -> bool:
         """Post queued Events in order; False when the API failed (they stay queued)."""
@@ -473,7 +520,7 @@ class Publisher:
             self._target_ready.clear()
             self._target = None
             return
-        target = Target(self._target.vehicle if self._target else "", obj)
+        target = replace(self._target, autopilot=obj) if self._target else Target("", obj)
         try:
             spec = target.spec()
         except PlainValidationError as exc:

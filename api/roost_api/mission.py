@@ -79,6 +79,8 @@ class MissionReason(StrEnum):
     RUNNING = "Running"
     VEHICLE_FAILED_OVER = "VehicleFailedOver"
     VEHICLE_DELETED = "VehicleDeleted"
+    VEHICLE_UNREACHABLE = "VehicleUnreachable"
+    VEHICLES_REACHABLE = "VehiclesReachable"
     VEHICLE_WORKLOAD_FAILED = "VehicleWorkloadFailed"
     OFFBOARD_WORKLOAD_FAILED = "OffboardWorkloadFailed"
     COMPLETED = "Completed"
@@ -117,6 +119,7 @@ class MissionVehicleReason(StrEnum):
     # failovers, deletion and aborts
     FAILED_OVER = "FailedOver"
     VEHICLE_DELETED = "VehicleDeleted"
+    VEHICLE_UNREACHABLE = "VehicleUnreachable"
     ABORTED_BEFORE_START = "AbortedBeforeStart"
     NO_REDUNDANT_AUTOPILOT = "NoRedundantAutopilot"
     LANDED = "Landed"
@@ -171,6 +174,14 @@ class OnFailover(StrEnum):
 
     CONTINUE = "Continue"
     ABORT_VEHICLE = "AbortVehicle"
+    ABORT_MISSION = "AbortMission"
+
+
+class OnUnreachable(StrEnum):
+    """What a mission does while one of its vehicles' node cannot be reached (its link
+    is lost). The vehicle's pods are kept either way and fly on."""
+
+    CONTINUE = "Continue"
     ABORT_MISSION = "AbortMission"
 
 
@@ -286,6 +297,12 @@ class MissionSpec(ApiModel):
         "AbortMission, when a vehicle fails over mid-mission. The abort waits while the "
         "fleet guards' pause switch or the vehicle's failover latch is on.",
     )
+    on_unreachable: OnUnreachable = Field(
+        default=OnUnreachable.CONTINUE,
+        description="Continue (the default: the vehicle flies on with its pods, the "
+        "mission shows it unreachable and goes on Degraded) or AbortMission, while a "
+        "vehicle's node cannot be reached (its link is lost).",
+    )
     abort: bool = Field(
         default=False,
         description="Set true to abort: every vehicle runs its safety routine. Cannot be undone.",
@@ -351,6 +368,11 @@ class MissionVehicleStatus(ApiModel):
         description="The fleet guard (Paused or Latched) holding back the spec.onFailover "
         "consequence of the failover at failedOverAt; unset once it is applied. The "
         "vehicle's agent runs its own safety routine after a failover regardless.",
+    )
+    unreachable_since: datetime | None = Field(
+        default=None,
+        description="Set while the vehicle's node cannot be reached: since when (its "
+        "Vehicle's NodeBound condition, reason NodeUnreachable).",
     )
     command: AutopilotCommand | None = Field(
         default=None,

@@ -79,6 +79,7 @@ class VehicleConditionReason(StrEnum):
     NODE_CLAIMED_BY_OTHER_VEHICLE = "NodeClaimedByOtherVehicle"
     NODE_NOT_FOUND = "NodeNotFound"
     NODE_NOT_READY = "NodeNotReady"
+    NODE_UNREACHABLE = "NodeUnreachable"
     NODE_LABELED = "NodeLabeled"
     NODE_REFUSED = "NodeRefused"
     AUTOPILOT_LABEL_REFUSED = "AutopilotLabelRefused"

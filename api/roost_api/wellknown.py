@@ -26,6 +26,9 @@ STARLING_LABEL_VEHICLE_TYPE = "starling.dev/vehicle-type"
 ANNOTATION_MANAGED_LABELS = f"{PREFIX}managed-labels"
 # A Vehicle's agent telemetry stream (ws://HOST:PORT/), read by `roost dashboard`.
 ANNOTATION_TELEMETRY = f"{PREFIX}telemetry"
+# The agent pod serving it (NAMESPACE/POD:PORT): the dashboard's way in through the
+# API server's pod proxy. Both written by the agent itself.
+ANNOTATION_TELEMETRY_POD = f"{PREFIX}telemetry-pod"
 
 # Taint keeping ordinary workloads off vehicle nodes.
 TAINT_VEHICLE = f"{PREFIX}vehicle"

@@ -14,16 +14,20 @@ failure, missing CRDs, a missing object.
 
 from __future__ import annotations
 
+import ssl
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Final, TypeVar
+from typing import TYPE_CHECKING, Any, Final, TypeVar
 
 from roost_api.resources import MISSION, REDUNDANT_AUTOPILOT, VEHICLE, ResourceKind
 from roost_cli.errors import CliError
 from roost_kube import kubeconfig
 from roost_kube.errors import ApiError, ApiUnavailableError, ForbiddenError
 from roost_kube.resources import EVENTS, NAMESPACES, Resource
+
+if TYPE_CHECKING:
+    from roost_cli.dashboard.sources import ApiProxy
 
 FIELD_MANAGER: Final = "roost-cli"
 REQUEST_TIMEOUT_S: Final = 10.0
@@ -122,6 +126,26 @@ class Fleet:
             timeout=(REQUEST_TIMEOUT_S, REQUEST_TIMEOUT_S),
         )
         self.server: str = configuration.host
+        self.configuration = configuration
+
+    def api_proxy(self) -> ApiProxy:
+        """The API server's pod proxy with this fleet's credentials (the dashboard's way
+        to the agents' telemetry streams)."""
+        from roost_cli.dashboard.sources import ApiProxy  # noqa: PLC0415 - websockets
+
+        c = self.configuration
+        context = ssl.create_default_context(cafile=c.ssl_ca_cert)
+        if not c.verify_ssl:
+            context.check_hostname = False
+            context.verify_mode = ssl.CERT_NONE
+        if c.cert_file and c.key_file:
+            context.load_cert_chain(c.cert_file, c.key_file)
+
+        def headers() -> dict[str, str]:
+            token = c.get_api_key_with_prefix("authorization")
+            return {"Authorization": token} if token else {}
+
+        return ApiProxy(self.server, context, headers)
 
     def _call(self, what: str, kind: ResourceKind | None, fn: Callable[[], T]) -> T:
         """``fn()``; ``kind`` (None for core objects) shapes the errors."""

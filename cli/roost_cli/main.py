@@ -397,7 +397,7 @@ def dashboard(
         server.serve(
             fleet,
             settings,
-            Endpoints(flags, sandbox_endpoints),
+            Endpoints(flags, sandbox_endpoints, fleet.api_proxy() if fleet else None),
             announce=lambda url: console.print(
                 f"Roost dashboard on {url} — {where}, {mode}. Ctrl-C stops it.",
                 highlight=False,

@@ -425,13 +425,23 @@ class Kube:
         assert created is not None
         return created
 
-    def delete(self, resource: Resource, name: str, namespace: str | None = None) -> bool:
-        """Delete an object in the background; False when it was already gone."""
-        gone = self.request(
-            "DELETE",
-            resource.object_path(name, namespace),
-            body={"propagationPolicy": "Background"},
-        )
+    def delete(
+        self,
+        resource: Resource,
+        name: str,
+        namespace: str | None = None,
+        *,
+        grace_period_s: int | None = None,
+    ) -> bool:
+        """Delete an object in the background; False when it was already gone.
+
+        ``grace_period_s`` 0 removes a pod at once, without its kubelet's confirmation
+        (for a pod whose node cannot be reached).
+        """
+        body: dict[str, Any] = {"propagationPolicy": "Background"}
+        if grace_period_s is not None:
+            body["gracePeriodSeconds"] = grace_period_s
+        gone = self.request("DELETE", resource.object_path(name, namespace), body=body)
         return gone is not None
 
     def delete_all(self, resource: Resource, objects: Sequence[Mapping[str, Any]]) -> list[str]:

@@ -99,6 +99,11 @@ class Settings:
 
     node_lease_duration_s: int = 40
     node_monitor_grace_period_s: int = 50
+    eviction_toleration_s: int | None = None
+    """The tolerations the API server gives every pod of ``node.kubernetes.io/unreachable``
+    and ``not-ready`` (``--default-*-toleration-seconds``; None: its 300 s). With a short
+    node-monitor grace period this makes the eviction of pods from a node whose link is
+    lost a matter of seconds, for tests of what survives it."""
     ready_timeout_s: float = 120.0
     kube_api_qps: int = 100
     kwok_config: Path | None = None
@@ -154,7 +159,18 @@ def _args_kine(bin_dir: Path, ports: Ports, data_dir: Path) -> list[str]:
     ]
 
 
-def _args_apiserver(bin_dir: Path, ports: Ports, keys: pki.Pki) -> list[str]:
+def _args_apiserver(
+    bin_dir: Path, ports: Ports, keys: pki.Pki, settings: Settings | None = None
+) -> list[str]:
+    toleration = settings.eviction_toleration_s if settings is not None else None
+    evictions = (
+        [
+            f"--default-not-ready-toleration-seconds={toleration}",
+            f"--default-unreachable-toleration-seconds={toleration}",
+        ]
+        if toleration is not None
+        else []
+    )
     return [
         str(bin_dir / "kube-apiserver"),
         f"--etcd-servers=http://127.0.0.1:{ports.etcd_client}",
@@ -189,6 +205,7 @@ def _args_apiserver(bin_dir: Path, ports: Ports, keys: pki.Pki) -> list[str]:
         # needs this: the default reconciler's lease keys break on a loopback address).
         "--endpoint-reconciler-type=none",
         "--profiling=false",
+        *evictions,
     ]
 
 
@@ -411,7 +428,10 @@ class ControlPlane:
         """
         bin_dir = bin_dir or self._bin_dir or binaries.bin_dir()
         audit = audit_args(self.state_dir, self.logs_dir) if self.settings.audit else []
-        self._start("kube-apiserver", lambda p: [*_args_apiserver(bin_dir, p, self.pki), *audit])
+        self._start(
+            "kube-apiserver",
+            lambda p: [*_args_apiserver(bin_dir, p, self.pki, self.settings), *audit],
+        )
         if self.ports is not None and self.kubeconfig.exists():
             self._write_state()
 

@@ -151,6 +151,12 @@ class NodeNetwork:
             raise
         return namespace
 
+    def set_link(self, index: int, *, up: bool) -> None:
+        """Bring node ``index``'s link up or down (its host end of the veth): down, the node
+        loses the API server and the rest of the harness, as a vehicle loses its WiFi,
+        while everything inside its namespace (its loopback) keeps working."""
+        ip("link", "set", self.host_veth(index), "up" if up else "down")
+
     def remove_node(self, index: int) -> None:
         ip("link", "del", self.host_veth(index), check=False)
         ip("netns", "del", self.namespace(index), check=False)

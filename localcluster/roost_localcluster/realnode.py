@@ -380,6 +380,7 @@ class RealNodes:
         self.network: NodeNetwork | None = None
         self.relay: ManagedProcess | None = None
         self.nodes: dict[str, RealNode] = {}
+        self._registrations: dict[str, tuple[dict[str, str], list[dict[str, str]]]] = {}
         self._next_index = 0
         sweep_stale()
         atexit.register(self.cleanup)
@@ -468,6 +469,7 @@ class RealNodes:
             cgroup=f"/roost-{self.tag}-{index}",
         )
         self.nodes[name] = node
+        self._registrations[name] = (dict(labels or {}), [dict(t) for t in taints])
         self._record()
         try:
             network.add_node(index)
@@ -614,10 +616,46 @@ class RealNodes:
 
         _wait_for(ready, timeout_s, f"node {node.name} Ready", list(node.processes.values()))
 
+    # ---- faults ----------------------------------------------------------------------------
+    def set_link(self, name: str, *, up: bool) -> None:
+        """Cut (``up=False``) or restore node ``name``'s link to the harness: a vehicle's
+        WiFi drop. Its programs and pods keep running; nothing but its network changes."""
+        assert self.network is not None, "no node was added"
+        self.network.set_link(self.nodes[name].index, up=up)
+
+    def power_off(self, name: str) -> None:
+        """Node ``name``'s computer loses power: every process of it (containerd, kubelet,
+        kube-proxy, the containers and their shims) is killed at once, its mounts go and
+        so does what lives in ``/run`` on a real machine (containerd's and runc's runtime
+        state). What a disk keeps stays: images, the kubelet's pod directories (emptyDir
+        volumes), certificates. :meth:`power_on` boots it again."""
+        node = self.nodes[name]
+        _kill_cgroup_tree(_tracking_hierarchy() / node.cgroup.lstrip("/"))
+        for proc in node.processes.values():
+            proc.stop(grace_s=0.0)  # already dead: reaped
+        node.processes.clear()
+        _unmount_all(node.directory, node.runtime_dir)
+        for volatile in ("state", "runc"):
+            shutil.rmtree(node.runtime_dir / volatile, ignore_errors=True)
+        node.containerd_socket.unlink(missing_ok=True)
+
+    def power_on(self, name: str, *, wait_ready: bool = True) -> None:
+        """Boot node ``name`` again after :meth:`power_off`: containerd, the kubelet (which
+        finds its pods in the API and starts their containers anew) and kube-proxy;
+        returns once the Node is Ready (``wait_ready``) or at once."""
+        node = self.nodes[name]
+        labels, taints = self._registrations.get(name, ({}, []))
+        self._start_containerd(node)
+        self._start_kubelet(node, labels, taints)
+        self._start_kube_proxy(node)
+        if wait_ready:
+            self._wait_ready(node, START_TIMEOUT_S)
+
     # ---- teardown ------------------------------------------------------------------------
     def remove(self, name: str, delete_node: bool = True) -> None:
         """Stop node ``name``: its programs, pods and mounts, cgroups and namespace."""
         node = self.nodes.pop(name, None)
+        self._registrations.pop(name, None)
         if node is None:
             return
         for program in reversed(_PROGRAMS):

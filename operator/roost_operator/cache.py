@@ -127,8 +127,15 @@ class CachedView:
             store.remember(patched)
         return patched
 
-    def delete(self, resource: Resource, name: str, namespace: str | None = None) -> bool:
-        gone = self.kube.delete(resource, name, namespace)
+    def delete(
+        self,
+        resource: Resource,
+        name: str,
+        namespace: str | None = None,
+        *,
+        grace_period_s: int | None = None,
+    ) -> bool:
+        gone = self.kube.delete(resource, name, namespace, grace_period_s=grace_period_s)
         store = self._store(resource, namespace)
         if store is not None:
             store.forget(name, namespace)

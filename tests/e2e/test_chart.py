@@ -24,7 +24,14 @@ from typing import Any
 import pytest
 import yaml
 
-from roost_api.wellknown import LABEL_NODE, LABEL_VEHICLE, TAINT_VEHICLE
+from roost_api.wellknown import (
+    ANNOTATION_PAUSE_FAILOVER_ACTIONS,
+    ANNOTATION_TELEMETRY,
+    ANNOTATION_TELEMETRY_POD,
+    LABEL_NODE,
+    LABEL_VEHICLE,
+    TAINT_VEHICLE,
+)
 from roost_localcluster.binaries import REPO_ROOT
 from roost_localcluster.cluster import Cluster, FakeNodes
 from roost_localcluster.processes import ManagedProcess
@@ -353,6 +360,8 @@ def agent_over_granted(installed: Cluster) -> Iterator[Cluster]:
                 "resources": ["vehicles/status"],
                 "verbs": ["get", "patch"],
             },
+            # What the chart grants with agent.telemetry.enabled (its announcement).
+            {"apiGroups": ["roost.dev"], "resources": ["vehicles"], "verbs": ["patch"]},
             {"apiGroups": ["events.k8s.io"], "resources": ["events"], "verbs": ["create"]},
         ],
     }
@@ -405,6 +414,36 @@ def test_agent_vehicle_status_writes_granted_later_are_still_node_scoped(
     other = _as_agent(agent_over_granted, NODE_A, *_status_patch("vehicle", VEHICLE_B, NODE_A))
     assert other.returncode != 0
     assert POLICY in other.stderr and "Vehicle bound to its node" in other.stderr
+
+
+def _metadata_patch(name: str, **metadata: dict[str, str | None]) -> list[str]:
+    return ["patch", "vehicle", name, "--type=merge", "-p", json.dumps({"metadata": metadata})]
+
+
+@pytest.mark.parametrize(
+    ("vehicle", "metadata", "allowed"),
+    [
+        # whose     what it changes                                          → allowed
+        (VEHICLE_A, {"annotations": {ANNOTATION_TELEMETRY: "ws://10.0.0.5:9467/",
+                                     ANNOTATION_TELEMETRY_POD: "ns/pod:9467"}}, True),
+        (VEHICLE_A, {"annotations": {ANNOTATION_TELEMETRY_POD: None}}, True),
+        (VEHICLE_A, {"annotations": {ANNOTATION_PAUSE_FAILOVER_ACTIONS: "true"}}, False),
+        (VEHICLE_A, {"annotations": {ANNOTATION_TELEMETRY: "ws://x:1/", "other": "x"}}, False),
+        (VEHICLE_A, {"labels": {"fleet": "stolen"}}, False),
+        (VEHICLE_B, {"annotations": {ANNOTATION_TELEMETRY: "ws://10.0.0.6:9467/"}}, False),
+    ],
+)  # fmt: skip
+def test_agent_may_patch_only_its_own_vehicles_telemetry_annotations(
+    agent_over_granted: Cluster,
+    vehicle: str,
+    metadata: dict[str, dict[str, str | None]],
+    *,
+    allowed: bool,
+) -> None:
+    result = _as_agent(agent_over_granted, NODE_A, *_metadata_patch(vehicle, **metadata))
+    assert (result.returncode == 0) == allowed, result.stderr
+    if not allowed:
+        assert POLICY in result.stderr
 
 
 def test_agent_events_must_name_its_own_node(agent_over_granted: Cluster) -> None:

@@ -11,6 +11,7 @@ needs: the same ones docker/buildah.sh uses.
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 from dataclasses import dataclass
@@ -41,7 +42,14 @@ def run_build_script(*args: str, timeout_s: float = 1800) -> Path:
 
 
 def build_images() -> Path:
-    """Build both images unless cached; the directory holding ``roost-<target>.oci.tar``."""
+    """Build both images unless cached; the directory holding ``roost-<target>.oci.tar``.
+
+    ``$ROOST_IMAGES_DIR`` names a directory of archives built before (of this checkout)
+    to use instead, e.g. a copy taken while other checkouts rebuild the shared cache.
+    """
+    given = os.environ.get("ROOST_IMAGES_DIR")
+    if given:
+        return Path(given)
     return run_build_script()
 
 

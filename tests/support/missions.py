@@ -62,13 +62,18 @@ def vehicle(
     deleting: bool = False,
     annotations: dict[str, str] | None = None,
     failover: VehicleFailover | None = None,
+    unreachable_since: datetime | None = None,
 ) -> VehicleView:
-    """A Vehicle as the operator reports it; ``ready`` is the node/components side."""
-    flag = "True" if ready else "False"
+    """A Vehicle as the operator reports it; ``ready`` is the node/components side,
+    ``unreachable_since`` its node's lost link (NodeBound False, NodeUnreachable)."""
+    flag = "True" if ready and unreachable_since is None else "False"
+    node_reason = "NodeLabeled" if ready else "NodeNotReady"
+    if unreachable_since is not None:
+        node_reason = "NodeUnreachable"
     conditions = [
-        cond("NodeBound", flag, "NodeLabeled" if ready else "NodeNotReady"),
+        cond("NodeBound", flag, node_reason, at=unreachable_since or T0),
         cond("ComponentsReady", "True", "NoComponents"),
-        cond("Ready", flag, "VehicleReady" if ready else "NodeNotReady"),
+        cond("Ready", flag, "VehicleReady" if flag == "True" else node_reason),
     ]
     if agent is not None:
         conditions.append(cond("AgentConnected", "True" if agent else "False", "Reporting"))

@@ -99,6 +99,10 @@ class RealFleet:
     simulated: state.SandboxVehicle | None = None
     launcher: NamespaceLauncher | None = None
     installed: bool = False
+    components: dict[str, Any] = field(default_factory=lambda: {"mavros": {"enabled": False}})
+    """The Vehicle's ``spec.components`` (by default none: see :meth:`vehicle_manifest`)."""
+    agent_values: dict[str, Any] = field(default_factory=dict)
+    """Extra chart values under ``agent`` (e.g. its telemetry stream)."""
 
     # ---- bring-up ------------------------------------------------------------------------
     def start(self) -> None:
@@ -122,7 +126,7 @@ class RealFleet:
 
     def install(self) -> None:
         assert self.ground is not None
-        self.helm(chart_values(self.ground.name))
+        self.helm(chart_values(self.ground.name, **self.agent_values))
         self.installed = True
 
     def wait_operator_ready(self) -> float:
@@ -158,7 +162,7 @@ class RealFleet:
         and neither SITL nor mavros images exist on the node."""
         manifest = plan.vehicle_manifest(self.vehicle)
         manifest["spec"].pop("simulation", None)
-        manifest["spec"]["components"] = {"mavros": {"enabled": False}}
+        manifest["spec"]["components"] = self.components
         return manifest
 
     # ---- reading -------------------------------------------------------------------------

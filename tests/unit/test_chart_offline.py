@@ -330,6 +330,25 @@ def test_agent_role_writes_autopilot_status_and_new_events_only() -> None:
     assert all("*" not in r["verbs"] for r in rules)
 
 
+def test_agent_role_may_patch_vehicles_only_with_its_telemetry_stream_on() -> None:
+    """To announce the stream on its Vehicle; the admission policy narrows the patch to
+    its own Vehicle's roost.dev/telemetry* annotations. The pod proxy way in for
+    dashboards comes with it (a Role in the release's namespace)."""
+    docs = render({"agent": {"telemetry": {"enabled": True}}})
+    rules = _rules(docs, "-agent")
+    assert _grants(rules, "roost.dev", "vehicles", "patch")
+    assert not _grants(rules, "roost.dev", "vehicles", "update")
+    (role,) = [
+        d
+        for d in docs
+        if d["kind"] == "Role" and d["metadata"]["name"].endswith("-agent-telemetry")
+    ]
+    assert role["rules"] == [{"apiGroups": [""], "resources": ["pods/proxy"], "verbs": ["get"]}]
+    policy = next(d for d in docs if d["kind"] == "ValidatingAdmissionPolicy")
+    variables = {v["name"]: v["expression"] for v in policy["spec"]["variables"]}
+    assert "roost.dev/telemetry" in variables["telemetryOnly"]
+
+
 def test_agent_drives_the_gpio_bridge_on_hardware_and_a_simulated_one_otherwise() -> None:
     assert "--bridge=simulated" in _agent_pod("defaults")["containers"][0]["args"]
     args = _agent_pod("hardware")["containers"][0]["args"]

@@ -762,3 +762,69 @@ def test_a_deleted_vehicle_still_landing_is_followed_until_it_is_down() -> None:
     a = vehicle_status(later, "a")
     assert (a.phase, a.reason) == (MissionVehiclePhase.ABORTED, "VehicleDeleted")
     assert later.commands == {}, "the command is written once"
+
+
+# -- a vehicle whose node cannot be reached ------------------------------------------------
+
+
+def _unreachable_mid_mission(policy: str | None, since: datetime | None) -> Observation:
+    """Mission on a and b running; a's node unreachable since ``since`` (None: reachable)."""
+    extra = {} if policy is None else {"onUnreachable": policy}
+    spec = mission_spec(vehicles={"names": ["a", "b"], "count": 2}, **extra)
+    status, _ = started(["a", "b"], spec=spec)
+    vehicles = [*claimed("a", unreachable_since=since), *claimed("b")]
+    return observe(
+        vehicles,
+        spec=spec,
+        status=status,
+        jobs=[job("a", ready=1, active=1), job("b", ready=1, active=1)],
+        now=T0 + timedelta(seconds=90),
+    )
+
+
+@pytest.mark.parametrize(
+    ("policy", "mission_phase", "commanded"),
+    [
+        # spec.onUnreachable → mission     safety routine to
+        (None, "Running", []),  # the default keeps flying
+        ("Continue", "Running", []),
+        ("AbortMission", "Aborting", ["a", "b"]),
+    ],
+)
+def test_an_unreachable_vehicle_is_shown_and_flies_on_unless_the_policy_aborts(
+    policy: str | None, mission_phase: str, commanded: list[str]
+) -> None:
+    since = T0 + timedelta(seconds=40)
+    plan = plan_mission(_unreachable_mid_mission(policy, since))
+    assert plan.status.phase == mission_phase
+    assert sorted(plan.commands) == commanded
+    a = vehicle_status(plan, "a")
+    assert a.unreachable_since == since
+    if mission_phase == "Running":
+        assert plan.jobs_to_delete == [], "nothing is stopped for a lost link"
+        assert (a.phase, a.reason) == ("Running", "VehicleUnreachable")
+        assert "2026-03-01T12:00:40Z" in a.message
+        degraded = find_condition(plan.status.conditions, "Degraded")
+        assert degraded is not None and (degraded.status, degraded.reason) == (
+            "True",
+            "VehicleUnreachable",
+        )
+    assert vehicle_status(plan, "b").unreachable_since is None
+    assert "VehicleUnreachable" in [e.reason for e in plan.events]
+
+
+def test_an_unreachable_vehicle_is_reported_once_and_its_return_clears_degraded() -> None:
+    obs = _unreachable_mid_mission(None, T0 + timedelta(seconds=40))
+    first = plan_mission(obs)
+    again = plan_mission(replace(obs, status=first.status))
+    assert again.events == [], "one lost link, one Event"
+    back = _unreachable_mid_mission(None, None)
+    returned = plan_mission(replace(back, status=again.status))
+    a = vehicle_status(returned, "a")
+    assert a.unreachable_since is None and a.reason == "PodRunning"
+    assert [e.reason for e in returned.events] == ["VehicleReachable"]
+    degraded = find_condition(returned.status.conditions, "Degraded")
+    assert degraded is not None and (degraded.status, degraded.reason) == (
+        "False",
+        "VehiclesReachable",
+    )

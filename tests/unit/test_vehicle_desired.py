@@ -25,6 +25,7 @@ from roost_operator.vehicles.desired import (
     ComponentState,
     NodeBinding,
     PodStep,
+    ReleaseStep,
     active_autopilot,
     autopilots_of,
     component_pod,
@@ -32,9 +33,11 @@ from roost_operator.vehicles.desired import (
     components_condition,
     is_component_pod,
     pod_hash,
+    pod_node,
     pod_state,
     pod_step,
     ready_condition,
+    release_step,
     transitions,
     vehicle_conditions,
 )
@@ -441,3 +444,32 @@ def test_status_patch_sends_only_changed_owned_fields_with_nulls_for_removals() 
     fields = ("nodeName", "fcuUrl", "managedLabels")
     assert status_patch(old, new, fields) == {"nodeName": None, "managedLabels": []}
     assert status_patch(new, new, fields) is None
+
+
+# -- releasing a gone Vehicle's pods -------------------------------------------------------
+
+
+def _node(ready: str) -> dict[str, Any]:
+    return {"status": {"conditions": [{"type": "Ready", "status": ready}]}}
+
+
+@pytest.mark.parametrize(
+    ("terminating", "node", "step"),
+    [
+        # pod terminating  its node           → step
+        (False, _node("True"), ReleaseStep.DELETE),
+        (True, _node("True"), ReleaseStep.LEAVE),  # its kubelet is finishing it
+        (False, _node("False"), ReleaseStep.DELETE),  # NotReady, yet heard from
+        (False, _node("Unknown"), ReleaseStep.FORCE),  # unreachable: never confirmed
+        (True, _node("Unknown"), ReleaseStep.FORCE),  # the garbage collector was first
+        (False, None, ReleaseStep.FORCE),  # no node left to confirm it
+    ],
+)
+def test_release_step_decision_table(
+    *, terminating: bool, node: dict[str, Any] | None, step: ReleaseStep
+) -> None:
+    pod = manifests(None)["mavros"]
+    if terminating:
+        pod["metadata"]["deletionTimestamp"] = "2026-05-01T12:00:00Z"
+    assert release_step(pod, node) is step
+    assert pod_node(pod) == "node-a"

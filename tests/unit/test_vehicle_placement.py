@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -18,12 +19,14 @@ from roost_api.wellknown import (
     TAINT_VEHICLE,
 )
 from roost_operator.vehicles.placement import (
+    LINK_TOLERATIONS,
     NodeClaim,
     NodeState,
     claim_winner,
     desired_node_labels,
     managed_keys,
     managed_label_keys,
+    node_reachability,
     node_readiness,
     place_on_vehicle,
     plan_node,
@@ -205,8 +208,74 @@ def test_placement_selects_the_vehicle_label_and_tolerates_only_its_taint() -> N
     assert pod["tolerations"] == [
         {"key": "other"},
         {"key": TAINT_VEHICLE, "operator": "Equal", "value": "drone1", "effect": "NoSchedule"},
+        *LINK_TOLERATIONS,
     ]
     assert place_on_vehicle(pod, "drone1") == pod
+
+
+def test_pods_on_a_vehicle_tolerate_a_lost_link_for_as_long_as_they_exist() -> None:
+    """No tolerationSeconds: the taint manager never evicts them; a template's own
+    toleration of a lost link (with a deadline) is replaced."""
+    template = {
+        "tolerations": [
+            {
+                "key": "node.kubernetes.io/unreachable",
+                "operator": "Exists",
+                "effect": "NoExecute",
+                "tolerationSeconds": 300,
+            }
+        ]
+    }
+    lost_link = [
+        t for t in place_on_vehicle(template, "drone1")["tolerations"] if t["effect"] == "NoExecute"
+    ]
+    assert {t["key"] for t in lost_link} == {
+        "node.kubernetes.io/unreachable",
+        "node.kubernetes.io/not-ready",
+    }
+    assert all(t["operator"] == "Exists" and "tolerationSeconds" not in t for t in lost_link)
+
+
+@pytest.mark.parametrize(
+    ("ready", "taints", "unreachable", "since"),
+    [
+        # Ready condition             taints                  → unreachable  since
+        (("True", None), [], False, None),
+        (("False", None), [], False, None),  # the kubelet's own NotReady: heard from
+        (("Unknown", "2026-05-01T10:00:00Z"), [], True, "2026-05-01T10:00:00+00:00"),
+        (
+            None,
+            [("node.kubernetes.io/unreachable", "2026-05-01T10:00:05Z")],
+            True,
+            "2026-05-01T10:00:05+00:00",
+        ),
+        (
+            ("Unknown", "2026-05-01T10:00:00Z"),
+            [("node.kubernetes.io/unreachable", "2026-05-01T10:00:05Z")],
+            True,
+            "2026-05-01T10:00:00+00:00",
+        ),
+        (("Unknown", None), [], True, None),
+    ],
+)
+def test_node_reachability_decision_table(
+    ready: tuple[str, str | None] | None,
+    taints: list[tuple[str, str]],
+    *,
+    unreachable: bool,
+    since: str | None,
+) -> None:
+    conditions = []
+    if ready is not None:
+        conditions.append({"type": "Ready", "status": ready[0], "lastTransitionTime": ready[1]})
+    node = {
+        "status": {"conditions": conditions},
+        "spec": {"taints": [{"key": k, "effect": "NoExecute", "timeAdded": t} for k, t in taints]},
+    }
+    found = node_reachability(node)
+    assert (found is not None) == unreachable
+    if found is not None:
+        assert (found.since.isoformat() if found.since else None) == since
 
 
 def test_node_readiness_quotes_the_kubelet() -> None:

@@ -46,6 +46,28 @@ def node(ready: bool = True) -> dict[str, Any]:
     }
 
 
+LOST_AT = "2026-05-01T11:58:20Z"
+
+
+def unreachable(*, condition: bool = True, taint: bool = True) -> dict[str, Any]:
+    """node-a as the node controller leaves it when the kubelet's link is lost."""
+    body = node()
+    if condition:
+        body["status"]["conditions"] = [
+            {
+                "type": "Ready",
+                "status": "Unknown",
+                "reason": "NodeStatusUnknown",
+                "message": "Kubelet stopped posting node status.",
+                "lastTransitionTime": LOST_AT,
+            }
+        ]
+    if taint:
+        key = "node.kubernetes.io/unreachable"
+        body["spec"] = {"taints": [{"key": key, "effect": "NoExecute", "timeAdded": LOST_AT}]}
+    return body
+
+
 def ra_spec() -> RedundantAutopilotSpec:
     return RedundantAutopilotSpec.model_validate(
         {
@@ -105,6 +127,9 @@ def with_agent(active: str, **status: Any) -> dict[str, Any]:
         ({}, "NodeLabeled", True),
         ({"node": None}, "NodeNotFound", False),
         ({"node": node(ready=False)}, "NodeNotReady", False),
+        ({"node": unreachable()}, "NodeUnreachable", False),
+        ({"node": unreachable(taint=False)}, "NodeUnreachable", False),
+        ({"node": unreachable(condition=False)}, "NodeUnreachable", False),
         ({"name": "d" * 64}, "InvalidVehicleName", False),
         (
             {"node_claims": [NodeClaim("older", "2026-05-01T09:00:00Z")]},
@@ -131,6 +156,24 @@ def test_a_missing_node_still_gets_its_workloads_declared_and_the_controller_wai
     plan = plan_vehicle(observed(node=None), CTX)
     assert plan.runs_workloads and "mavros" in plan.pods
     assert plan.node_state is None, "no node to label"
+
+
+def test_an_unreachable_node_keeps_every_pod_and_says_since_when_in_ready() -> None:
+    """A lost link changes nothing Roost runs on the vehicle: same pods (same hashes),
+    the node keeps its labels; NodeBound and Ready say since when it is unreachable."""
+    reachable = plan_vehicle(observed(), CTX)
+    lost = plan_vehicle(observed(node=unreachable()), CTX)
+    assert lost.runs_workloads and lost.node_state == reachable.node_state
+    assert lost.pods == reachable.pods
+    status = report(lost, live={}, refused={}, generation=3, agent_expected=False)
+    bound = find_condition(status.conditions, "NodeBound")
+    ready = find_condition(status.conditions, "Ready")
+    assert bound is not None and ready is not None
+    assert (bound.status, bound.reason) == ("False", "NodeUnreachable")
+    assert bound.last_transition_time == datetime(2026, 5, 1, 11, 58, 20, tzinfo=UTC)
+    assert f"unreachable since {LOST_AT}" in bound.message
+    assert (ready.status, ready.reason) == ("False", "NodeUnreachable")
+    assert f"unreachable since {LOST_AT}" in ready.message
 
 
 # -- which autopilot mavros follows ------------------------------------------------------

@@ -37,7 +37,14 @@ class FakeApi:
         self.pods[name] = {**manifest, "status": {"phase": "Pending"}}
         return self.pods[name]
 
-    def delete(self, resource: Resource, name: str, namespace: str | None = None) -> bool:
+    def delete(
+        self,
+        resource: Resource,
+        name: str,
+        namespace: str | None = None,
+        *,
+        grace_period_s: int | None = None,
+    ) -> bool:
         self.writes.append(("delete", name))
         return self.pods.pop(name, None) is not None
 

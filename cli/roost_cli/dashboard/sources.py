@@ -8,7 +8,10 @@
 * **Telemetry** (one asyncio task per vehicle): a WebSocket client of the vehicle's agent
   (:mod:`roost_agent.telemetry`) feeding each sample into the model, reconnecting with a
   growing pause while the agent is unreachable. The set of endpoints is re-read every
-  second (a Vehicle annotated later is picked up), see :class:`Endpoints`.
+  second (a Vehicle annotated later is picked up), see :class:`Endpoints`. On a real
+  cluster the agents are reached through the API server's pod proxy
+  (:class:`ApiProxy`), with the same credentials as the watches: the dashboard needs no
+  route to the vehicles' network, and the cluster's RBAC (``get pods/proxy``) decides.
 """
 
 from __future__ import annotations
@@ -17,15 +20,18 @@ import asyncio
 import contextlib
 import json
 import logging
+import ssl
 import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 from websockets.asyncio.client import connect
 from websockets.exceptions import WebSocketException
 
 from roost_api.meta import API_VERSION
-from roost_api.wellknown import ANNOTATION_TELEMETRY
+from roost_api.telemetry import pod_proxy_path
+from roost_api.wellknown import ANNOTATION_TELEMETRY, ANNOTATION_TELEMETRY_POD
 from roost_cli.dashboard.model import FleetModel
 from roost_kube.client import Kube
 from roost_kube.errors import ApiError, ApiUnavailableError
@@ -99,22 +105,62 @@ class Watcher:
         return version
 
 
+@dataclass(frozen=True)
+class ApiProxy:
+    """The API server as a way to the agents (its pod proxy), with the dashboard's
+    credentials: ``server`` (``https://…``), the TLS context and the headers (a bearer
+    token, re-read on every connection as kubectl does)."""
+
+    server: str
+    ssl: ssl.SSLContext
+    headers: Callable[[], Mapping[str, str]] = dict
+
+    @property
+    def base(self) -> str:
+        """The server's address as a WebSocket URL prefix (``wss://host:port``)."""
+        return "wss://" + self.server.rstrip("/").split("://", 1)[-1]
+
+    def url(self, pod_reference: str) -> str | None:
+        """The stream's URL through the pod proxy (None: a malformed reference)."""
+        path = pod_proxy_path(pod_reference)
+        return None if path is None else self.base + path
+
+    def options(self, url: str) -> dict[str, Any]:
+        """What ``connect`` needs for ``url``: TLS and credentials when it is ours."""
+        if not url.startswith(self.base + "/"):
+            return {}
+        return {"ssl": self.ssl, "additional_headers": dict(self.headers())}
+
+
 @dataclass
 class Endpoints:
     """Which URL each vehicle's telemetry is read from, by precedence:
 
     ``--agent VEHICLE=URL`` flags, then a running sandbox's record (its agents announce
-    their URLs), then the Vehicle's ``roost.dev/telemetry`` annotation.
+    their URLs), then the agent pod the Vehicle's ``roost.dev/telemetry-pod`` annotation
+    names, through the API server's pod proxy (``proxy``: the dashboard has a cluster),
+    then the Vehicle's ``roost.dev/telemetry`` annotation (a direct connection, for a
+    dashboard on the vehicles' network). Both annotations are written by the agent.
     """
 
     flags: Mapping[str, str] = field(default_factory=dict)
     sandbox: Callable[[], Mapping[str, str]] = dict
+    proxy: ApiProxy | None = None
 
     def resolve(self, model: FleetModel) -> dict[str, str]:
         found = model.telemetry_endpoints(TELEMETRY_ANNOTATION)
+        if self.proxy is not None:
+            for vehicle, reference in model.telemetry_endpoints(ANNOTATION_TELEMETRY_POD).items():
+                url = self.proxy.url(reference)
+                if url is not None:
+                    found[vehicle] = url
         found.update(self.sandbox())
         found.update(self.flags)
         return found
+
+    def options(self, url: str) -> dict[str, Any]:
+        """Extra arguments of ``connect`` for ``url`` (see :meth:`ApiProxy.options`)."""
+        return self.proxy.options(url) if self.proxy is not None else {}
 
 
 class TelemetryClients:
@@ -147,7 +193,8 @@ class TelemetryClients:
         pause = 0.2
         while True:
             try:
-                async with connect(url, compression=None, open_timeout=3) as ws:
+                options = self._endpoints.options(url)
+                async with connect(url, compression=None, open_timeout=3, **options) as ws:
                     pause = 0.2
                     async for message in ws:
                         self._model.telemetry(vehicle, json.loads(message))

@@ -52,6 +52,11 @@ Phases::
   after an AbortVehicle: it stays claimed and followed until it is down.
 * A Mission deleted while it runs (:func:`plan_deletion`) sends the abort command to its
   vehicles and releases them without waiting for the landing.
+* A vehicle whose **node cannot be reached** (its link is lost; its Vehicle's NodeBound
+  says NodeUnreachable) stays in the mission: its pod is kept and it flies on; its
+  entry shows since when (``unreachableSince``, reason VehicleUnreachable) and the
+  mission goes Degraded until it is back — or aborts, when ``spec.onUnreachable`` is
+  AbortMission.
 * A **Vehicle deleted** while the mission runs leaves it at once: its Job is stopped,
   its config copy removed, its agent (if its RedundantAutopilot is still there) asked
   for the safety routine, and the mission goes on Degraded (``VehicleDeleted``) — or
@@ -91,6 +96,7 @@ from roost_api.mission import (
     MissionVehicleReason,
     MissionVehicleStatus,
     OnFailover,
+    OnUnreachable,
     WorkloadPhase,
     abort_command_reason,
     failover_action_held_reason,
@@ -559,6 +565,7 @@ def _run(obs: Observation, plan: Plan) -> None:
             if policy is OnFailover.ABORT_MISSION:
                 abort_mission_because = f"{vehicle.name}: {what} (onFailover=AbortMission)"
         _follow_job(obs, plan, vehicle, job, assigned)
+        abort_mission_because = _reachability(obs, plan, vehicle) or abort_mission_because
         updated.append(vehicle)
     status.vehicles = updated
     _follow_offboard(obs, plan, assigned)
@@ -570,6 +577,61 @@ def _run(obs: Observation, plan: Plan) -> None:
         _abort(obs, plan)
         return
     _aggregate(obs, plan)
+
+
+def _stamp(at: datetime) -> str:
+    return at.isoformat().replace("+00:00", "Z")
+
+
+def _reachability(obs: Observation, plan: Plan, vehicle: MissionVehicleStatus) -> str | None:
+    """Show a running vehicle whose node cannot be reached (its link is lost), with an
+    Event when that starts and when it ends; why to abort the mission, when
+    ``spec.onUnreachable`` is AbortMission.
+
+    Nothing else changes: its onboard pod is kept (it tolerates the lost link), its Job
+    is not stopped, and the vehicle flies on; a failover during the drop is seen, with
+    its own time, once the agent's report gets through.
+    """
+    view = obs.vehicles.get(vehicle.name)
+    since = view.unreachable_since if view is not None else None
+    before = vehicle.unreachable_since
+    if vehicle.phase != MissionVehiclePhase.RUNNING:
+        since = None
+    vehicle.unreachable_since = since
+    if since is None:
+        if before is not None:
+            plan.events.append(
+                MissionEvent(
+                    "Normal",
+                    "VehicleReachable",
+                    f"{vehicle.name}: its node is reachable again "
+                    f"(unreachable since {_stamp(before)})",
+                    vehicle=vehicle.name,
+                )
+            )
+        return None
+    policy = OnUnreachable(obs.spec.on_unreachable)
+    node = view.node_name if view is not None else "?"
+    vehicle.reason = MissionVehicleReason.VEHICLE_UNREACHABLE
+    vehicle.message = (
+        f"node {node} unreachable since {_stamp(since)}; its onboard pod is kept and the "
+        f"vehicle flies on (onUnreachable={policy}); last seen: {vehicle.message}"
+    )
+    if before is None:
+        plan.events.append(
+            MissionEvent(
+                "Warning",
+                "VehicleUnreachable",
+                f"{vehicle.name}: node {node} unreachable since {_stamp(since)} "
+                f"(onUnreachable={policy})",
+                vehicle=vehicle.name,
+            )
+        )
+    if policy is OnUnreachable.ABORT_MISSION:
+        return f"{vehicle.name}: node {node} unreachable since {_stamp(since)} " + (
+            "(onUnreachable=AbortMission)"
+        )
+    return None
 
 
 def vehicle_lost(obs: Observation, name: str) -> bool:
@@ -772,6 +834,7 @@ def _degraded(obs: Observation, status: MissionStatus) -> None:
         )
         return
     if not failed_over:
+        _unreachable_degraded(obs, status)
         return
     names = ", ".join(v.name for v in failed_over)
     policy = OnFailover(obs.spec.on_failover)
@@ -791,6 +854,34 @@ def _degraded(obs: Observation, status: MissionStatus) -> None:
         reason=reason,
         message=message,
     )
+
+
+def _unreachable_degraded(obs: Observation, status: MissionStatus) -> None:
+    """Degraded while a vehicle's node cannot be reached (and nothing worse happened);
+    False again once every vehicle is reachable."""
+    out = [v for v in status.vehicles if v.unreachable_since is not None]
+    degraded = find_condition(status.conditions, MissionConditionType.DEGRADED)
+    if out:
+        _condition(
+            obs,
+            status,
+            MissionConditionType.DEGRADED,
+            "True",
+            reason=MissionReason.VEHICLE_UNREACHABLE,
+            message="node unreachable (the vehicle flies on): "
+            + ", ".join(
+                f"{v.name} since {_stamp(v.unreachable_since)}" for v in out if v.unreachable_since
+            ),
+        )
+    elif degraded is not None and degraded.reason == MissionReason.VEHICLE_UNREACHABLE:
+        _condition(
+            obs,
+            status,
+            MissionConditionType.DEGRADED,
+            "False",
+            reason=MissionReason.VEHICLES_REACHABLE,
+            message="every vehicle's node is reachable again",
+        )
 
 
 def _aggregate(obs: Observation, plan: Plan) -> None:

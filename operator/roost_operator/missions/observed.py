@@ -14,8 +14,13 @@ from enum import StrEnum
 from typing import Any
 
 from roost_api.autopilot import RedundantAutopilotSpec, RedundantAutopilotStatus
-from roost_api.meta import ObjectReference
-from roost_api.vehicle import VehicleSpec, VehicleStatus
+from roost_api.meta import ObjectReference, find_condition
+from roost_api.vehicle import (
+    VehicleConditionReason,
+    VehicleConditionType,
+    VehicleSpec,
+    VehicleStatus,
+)
 from roost_operator.claims import Claim
 
 
@@ -65,6 +70,15 @@ class VehicleView:
     def claimed_by(self) -> ObjectReference | None:
         """The Mission holding the vehicle, if any."""
         return self.claim.holder if self.claim is not None else None
+
+    @property
+    def unreachable_since(self) -> datetime | None:
+        """Since when the vehicle's node cannot be reached (its NodeBound condition says
+        NodeUnreachable), or None while it can."""
+        bound = find_condition(self.status.conditions, VehicleConditionType.NODE_BOUND)
+        if bound is None or bound.reason != VehicleConditionReason.NODE_UNREACHABLE:
+            return None
+        return bound.last_transition_time
 
     @property
     def node_name(self) -> str:

@@ -21,7 +21,8 @@ Why it is safe to run at any time, any number of times, and to be killed half-wa
   makes for a vehicle can be found again by its label, so no finalizer is needed: the
   Vehicle's deletion event queues the release, and after a restart the node watcher's
   first listing queues every vehicle a node is still labelled for. Deletion never waits
-  for the operator;
+  for the operator, nor for a node that cannot be reached: the pods of a gone Vehicle
+  on such a node are removed at once (:func:`~.desired.release_step`);
 * everything is computed from what was just read and written only where it differs
   (node patch planned by :func:`~roost_operator.vehicles.placement.plan_node`, objects
   through :meth:`~roost_kube.client.Kube.apply`, status compared before patching);
@@ -79,7 +80,15 @@ from roost_operator.autopilots.guards import FleetGuards
 from roost_operator.autopilots.plan import PlannedEvent, mavros_follows
 from roost_operator.cache import Cached, CachedView
 from roost_operator.vehicles.config import config_map_name
-from roost_operator.vehicles.desired import PodStep, is_component_pod, pod_step, workload_name
+from roost_operator.vehicles.desired import (
+    PodStep,
+    ReleaseStep,
+    is_component_pod,
+    pod_node,
+    pod_step,
+    release_step,
+    workload_name,
+)
 from roost_operator.vehicles.placement import NodeClaim, NodeState, plan_node
 from roost_operator.vehicles.plan import (
     EVENT_CONDITIONS,
@@ -499,10 +508,19 @@ class VehicleController:
             listed = cluster.list_objects(resource, namespace=self.namespace, labels=owned)
             # A Mission's onboard Job pods carry the vehicle's label too: not ours.
             for obj in [o for o in listed if resource is not PODS or is_component_pod(o)]:
-                if obj["metadata"].get("deletionTimestamp"):
+                step = ReleaseStep.LEAVE if obj["metadata"].get("deletionTimestamp") else None
+                if resource is PODS:
+                    on = pod_node(obj)
+                    step = release_step(obj, cluster.get(NODES, on) if on else None)
+                if step is ReleaseStep.LEAVE:
                     continue
                 try:
-                    cluster.delete(resource, obj["metadata"]["name"], self.namespace)
+                    cluster.delete(
+                        resource,
+                        obj["metadata"]["name"],
+                        self.namespace,
+                        grace_period_s=0 if step is ReleaseStep.FORCE else None,
+                    )
                 except PermanentApiError as error:
                     problems.append(
                         f"{resource.kind} {self.namespace}/{obj['metadata']['name']}: "

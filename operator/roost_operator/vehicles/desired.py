@@ -69,7 +69,7 @@ from roost_api.wellknown import (
 )
 from roost_kube.patches import Obj, content_hash
 from roost_operator.vehicles.config import config_hash, mount_vehicle_config
-from roost_operator.vehicles.placement import place_on_vehicle
+from roost_operator.vehicles.placement import node_reachability, place_on_vehicle
 
 # Starling's default for a real vehicle without a RedundantAutopilot: the flight
 # controller's USB serial device.
@@ -367,6 +367,39 @@ def pod_step(
     return PodStep.KEEP
 
 
+class ReleaseStep(StrEnum):
+    """What a release (the Vehicle is gone) does about one of its component pods."""
+
+    DELETE = "delete"
+    """Delete it; its kubelet stops it within its grace period."""
+    FORCE = "force"
+    """Its node cannot be reached (or is gone): remove it at once (grace period 0)."""
+    LEAVE = "leave"
+    """Already terminating on a reachable node: its kubelet is finishing it."""
+
+
+def release_step(pod: Mapping[str, Any], node: Mapping[str, Any] | None) -> ReleaseStep:
+    """How to remove a gone Vehicle's pod, given its node as read (None: no such node).
+
+    A pod on an unreachable node would stay Terminating until the link returns — for
+    ever, if it never does — so it is removed without the kubelet's confirmation, even
+    when someone (the garbage collector) already asked for its graceful end. Nothing of
+    the vehicle can use it any more, and a kubelet that comes back stops the containers
+    of pods the API server no longer has.
+    """
+    if node is None or node_reachability(node) is not None:
+        return ReleaseStep.FORCE
+    if (pod.get("metadata") or {}).get("deletionTimestamp"):
+        return ReleaseStep.LEAVE
+    return ReleaseStep.DELETE
+
+
+def pod_node(pod: Mapping[str, Any]) -> str | None:
+    """The node a component pod was made for (its ``roost.dev/node`` annotation; the pod
+    stores keep no spec)."""
+    return ((pod.get("metadata") or {}).get("annotations") or {}).get(LABEL_NODE)
+
+
 # -- readiness and conditions --------------------------------------------------------
 
 
@@ -460,6 +493,9 @@ class NodeBinding:
     bound: bool
     reason: str
     message: str
+    since: datetime | None = None
+    """When the problem began, if known (an unreachable node: when the node controller
+    noticed); NodeBound's transition time when it changes."""
 
 
 def components_condition(
@@ -541,6 +577,7 @@ def vehicle_conditions(
         reason=binding.reason,
         message=binding.message,
         observed_generation=generation,
+        at=binding.since,
     )
     status, reason, message = components
     conditions = set_condition(

@@ -19,6 +19,14 @@ vehicle's taint (:func:`place_on_vehicle`), not with ``spec.nodeName``: the sche
 (and its taint checks) stays in charge, and a pod can only land on the node that
 currently carries the vehicle's label.
 
+Every pod placed on a vehicle also tolerates ``node.kubernetes.io/unreachable`` and
+``node.kubernetes.io/not-ready`` (NoExecute) with no ``tolerationSeconds``
+(:data:`LINK_TOLERATIONS`). Why: a vehicle's computer joins the cluster over WiFi, and a
+drop longer than the default 300 s toleration would have the taint manager delete
+mavros and the mission's pods, and the kubelet kill them when the link returns — in
+flight. They cannot run anywhere else anyway, so they are kept for as long as the
+vehicle exists; the vehicle reports the lost link instead (:func:`node_reachability`).
+
 Two Vehicles naming the same node: the one created first keeps it (ties broken by
 name), see :func:`claim_winner`; the other is reported, never fought over.
 """
@@ -27,6 +35,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from datetime import datetime
 from typing import Any, Final
 
 from roost_api.vehicle import VehicleSpec
@@ -81,16 +90,33 @@ def vehicle_toleration(vehicle_name: str) -> dict[str, str]:
     }
 
 
-def place_on_vehicle(pod_spec: Mapping[str, Any], vehicle_name: str) -> Obj:
-    """``pod_spec`` pinned to the node carrying the vehicle's label, tolerating its taint.
+TAINT_UNREACHABLE: Final = "node.kubernetes.io/unreachable"
+TAINT_NOT_READY: Final = "node.kubernetes.io/not-ready"
+LINK_TOLERATIONS: Final = tuple(
+    {"key": key, "operator": "Exists", "effect": "NoExecute"}
+    for key in (TAINT_UNREACHABLE, TAINT_NOT_READY)
+)
+"""Tolerations of a lost link, for as long as the pod exists (no ``tolerationSeconds``)."""
 
-    Pure. Existing node selectors and tolerations are kept.
+
+def place_on_vehicle(pod_spec: Mapping[str, Any], vehicle_name: str) -> Obj:
+    """``pod_spec`` pinned to the node carrying the vehicle's label, tolerating its taint
+    and a lost link (:data:`LINK_TOLERATIONS`) for good.
+
+    Pure. Existing node selectors and other tolerations are kept; a toleration of the
+    vehicle taint or of a lost link the template brings (with its own
+    ``tolerationSeconds``, say) is replaced: the pod cannot run anywhere else.
     """
-    tolerations = [t for t in pod_spec.get("tolerations", []) if t.get("key") != TAINT_VEHICLE]
+    ours = {TAINT_VEHICLE, TAINT_UNREACHABLE, TAINT_NOT_READY}
+    tolerations = [t for t in pod_spec.get("tolerations", []) if t.get("key") not in ours]
     return {
         **pod_spec,
         "nodeSelector": {**pod_spec.get("nodeSelector", {}), LABEL_VEHICLE: vehicle_name},
-        "tolerations": [*tolerations, vehicle_toleration(vehicle_name)],
+        "tolerations": [
+            *tolerations,
+            vehicle_toleration(vehicle_name),
+            *(dict(t) for t in LINK_TOLERATIONS),
+        ],
     }
 
 
@@ -186,6 +212,54 @@ def plan_node(node: Mapping[str, Any], want: NodeState) -> Obj | None:
     if taints_change:
         patch["spec"] = {"taints": new_taints or None}
     return patch
+
+
+@dataclass(frozen=True)
+class Unreachable:
+    """The node's link is lost: the node controller could not hear its kubelet."""
+
+    since: datetime | None
+    """When the node controller noticed (its Ready condition's last transition, else the
+    unreachable taint's ``timeAdded``); None when neither says."""
+    detail: str
+
+
+def node_reachability(node: Mapping[str, Any]) -> Unreachable | None:
+    """Whether the node's kubelet is out of reach (None: it is heard from).
+
+    Unreachable is the node controller's verdict: ``Ready=Unknown`` (the kubelet stopped
+    posting its status), or its ``node.kubernetes.io/unreachable`` taint. A node whose
+    kubelet says ``Ready=False`` is reachable, just not Ready.
+    """
+    ready = next(
+        (c for c in (node.get("status") or {}).get("conditions") or [] if c.get("type") == "Ready"),
+        None,
+    )
+    taint = next(
+        (
+            t
+            for t in (node.get("spec") or {}).get("taints") or []
+            if t.get("key") == TAINT_UNREACHABLE
+        ),
+        None,
+    )
+    unknown = ready is not None and ready.get("status") == "Unknown"
+    if not unknown and taint is None:
+        return None
+    stamps = [ready.get("lastTransitionTime") if unknown and ready else None]
+    stamps.append(taint.get("timeAdded") if taint else None)
+    since = next((parsed for s in stamps if (parsed := _time(s)) is not None), None)
+    detail = (ready or {}).get("message") or (ready or {}).get("reason") or "tainted unreachable"
+    return Unreachable(since, str(detail))
+
+
+def _time(stamp: Any) -> datetime | None:
+    if not isinstance(stamp, str) or not stamp:
+        return None
+    try:
+        return datetime.fromisoformat(stamp)
+    except ValueError:
+        return None
 
 
 def node_readiness(node: Mapping[str, Any]) -> tuple[bool, str]:

@@ -16,7 +16,9 @@ What :func:`plan_vehicle` decides, in order:
    RedundantAutopilot the vehicle follows its primary autopilot (or the first, or a
    real vehicle's default serial link).
 2. The node binding: the node named in the spec, unless the name cannot be a label
-   value, an older Vehicle claims the node, the node does not exist or is not Ready.
+   value, an older Vehicle claims the node, the node does not exist, is unreachable
+   (its link is lost: reported with the time the node controller noticed, and nothing
+   of the vehicle's is taken away or replaced for it) or is not Ready.
 3. The vehicle's config values, its ConfigMap and its component Pods (none while
    the node is claimed by another Vehicle or the name is invalid).
 4. The mission claim mirrored into ``status.claimedBy`` (the claim itself is a Lease
@@ -65,6 +67,7 @@ from roost_operator.vehicles.placement import (
     NodeClaim,
     NodeState,
     claim_winner,
+    node_reachability,
     node_readiness,
     vehicle_name_problem,
 )
@@ -160,6 +163,16 @@ def node_binding(obs: Observed) -> NodeBinding:
             f"node {node_name} does not exist; join the vehicle's computer to the cluster "
             "as that node, or correct spec.nodeName",
         )
+    lost = node_reachability(obs.node)
+    if lost is not None:
+        since = lost.since.isoformat().replace("+00:00", "Z") if lost.since else "an unknown time"
+        return NodeBinding(
+            False,
+            VehicleConditionReason.NODE_UNREACHABLE,
+            f"node {node_name} unreachable since {since} ({lost.detail}); the vehicle's pods "
+            "are kept there and run on when its link is back (they tolerate the lost link)",
+            since=lost.since,
+        )
     ready, detail = node_readiness(obs.node)
     if not ready:
         return NodeBinding(
@@ -233,6 +246,7 @@ def plan_vehicle(obs: Observed, ctx: Context) -> VehiclePlan:
     labels_node = binding.bound or binding.reason in (
         VehicleConditionReason.NODE_NOT_FOUND,
         VehicleConditionReason.NODE_NOT_READY,
+        VehicleConditionReason.NODE_UNREACHABLE,
     )
     wanted: list[Workload] = component_workloads(obs.spec, autopilots) if labels_node else []
     pods = {
