@@ -15,6 +15,7 @@ from __future__ import annotations
 from datetime import datetime
 
 from pydantic import Field
+from pydantic.config import JsonDict
 
 from roost_api import autopilot_enums, shapes
 from roost_api.core import DNS_LABEL_PATTERN, DNS_SUBDOMAIN_PATTERN, HealthLevel, Stack
@@ -30,11 +31,13 @@ AutopilotConditionType = autopilot_enums.AutopilotConditionType
 AutopilotEntryConditionType = autopilot_enums.AutopilotEntryConditionType
 CommandAction = autopilot_enums.CommandAction
 CommandResultKind = autopilot_enums.CommandResultKind
+DriftPolicy = autopilot_enums.DriftPolicy
 Failback = autopilot_enums.Failback
 FailoverMode = autopilot_enums.FailoverMode
 FailoverTrigger = autopilot_enums.FailoverTrigger
 FinalAction = autopilot_enums.FinalAction
 LandedState = autopilot_enums.LandedState
+ParametersReason = autopilot_enums.ParametersReason
 SafetyRoutinePhase = autopilot_enums.SafetyRoutinePhase
 StandbyInStepReason = autopilot_enums.StandbyInStepReason
 hub_client_url = autopilot_enums.hub_client_url
@@ -206,6 +209,53 @@ class HubSpec(ApiModel):
     )
 
 
+PARAMETER_NAME_PATTERN = r"^[A-Za-z0-9_]{1,16}$"
+MAX_PARAMETERS = 512
+
+
+class ParameterValue(ApiModel):
+    """One autopilot parameter and the value it must hold."""
+
+    name: str = Field(
+        max_length=16,
+        pattern=PARAMETER_NAME_PATTERN,
+        description="The firmware's parameter name (at most 16 characters, as MAVLink's "
+        "param_id), e.g. MIS_TAKEOFF_ALT on PX4, PILOT_TKOFF_ALT on ArduPilot.",
+    )
+    value: float = Field(
+        description="The value in the parameter's own unit; an integer parameter takes a "
+        "whole number within its type's range."
+    )
+
+
+_BY_NAME: JsonDict = {"x-kubernetes-list-type": "map", "x-kubernetes-list-map-keys": ["name"]}
+
+
+class ParametersSpec(ApiModel):
+    """Autopilot parameters as declared state, per flight stack (names and units differ
+    between PX4 and ArduPilot). The agent writes them to every autopilot of that stack,
+    reads them back and keeps watching them."""
+
+    px4: list[ParameterValue] = Field(
+        default_factory=list,
+        max_length=MAX_PARAMETERS,
+        description="Parameters of every PX4 autopilot of the vehicle.",
+        json_schema_extra=_BY_NAME,
+    )
+    ardupilot: list[ParameterValue] = Field(
+        default_factory=list,
+        max_length=MAX_PARAMETERS,
+        description="Parameters of every ArduPilot autopilot of the vehicle.",
+        json_schema_extra=_BY_NAME,
+    )
+    on_drift: DriftPolicy = Field(
+        default=DriftPolicy.REPORT,
+        description="A parameter changed on an autopilot by someone else after the agent "
+        "set it: Report (the ParametersInSync condition names it) or Restore (written back "
+        "too). Never written while the vehicle is armed.",
+    )
+
+
 class FailoverPolicy(ApiModel):
     """How the agent decides and what it does after deciding."""
 
@@ -286,6 +336,11 @@ class RedundantAutopilotSpec(ApiModel):
         description="Serve the vehicle's MAVLink endpoint from the agent, routed to the "
         "active autopilot (clients then never reconnect on a failover).",
     )
+    parameters: ParametersSpec | None = Field(
+        default=None,
+        description="Autopilot parameters the agent keeps on every autopilot of the "
+        "vehicle (written while disarmed, read back, watched for drift).",
+    )
 
 
 # On the whole object: metadata.name is only visible to CEL from the root.
@@ -357,7 +412,9 @@ class AutopilotHealth(ApiModel):
     conditions: list[Condition] = Field(
         default_factory=list,
         description="Per-autopilot conditions: StandbyInStep (with the hub: whether this "
-        "standby follows the active autopilot's armed state, mode and position).",
+        "standby follows the active autopilot's armed state, mode and position); "
+        "ParametersInSync (with spec.parameters: whether it holds them, naming any that "
+        "differ with both values).",
         json_schema_extra=CONDITIONS_SCHEMA,
     )
 

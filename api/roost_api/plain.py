@@ -14,6 +14,7 @@ from roost_api import plain_check as check
 from roost_api.autopilot_enums import (
     CommandAction,
     CommandResultKind,
+    DriftPolicy,
     Failback,
     FailoverMode,
     FailoverTrigger,
@@ -542,6 +543,99 @@ class AutopilotCommand:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class ParameterValue:
+    """One autopilot parameter and the value it must hold.
+
+    Plain twin of :class:`roost_api.autopilot.ParameterValue`.
+    """
+
+    name: str
+    value: float
+
+    @classmethod
+    def from_api(cls, doc: object, at: str = "") -> ParameterValue:
+        """Validate a camelCase mapping as the API model would; ``at`` prefixes field
+        paths in errors."""
+        if isinstance(doc, cls):
+            return doc
+        d = check.mapping(doc, at.rstrip("."), "ParameterValue")
+        v = check.required(check.get(d, "name", "name"), at + "name")
+        name = check.text(v, at + "name", max_length=16, pattern="^[A-Za-z0-9_]{1,16}$")
+        v = check.required(check.get(d, "value", "value"), at + "value")
+        value = check.number(v, at + "value")
+        return cls(name=name, value=value)
+
+    def api_dump(self) -> dict[str, Any]:
+        """Every field by its camelCase name, None included."""
+        return {
+            "name": self.name,
+            "value": self.value,
+        }
+
+    def to_api(self) -> dict[str, Any]:
+        """The JSON body Kubernetes expects: camelCase, no nulls (as the model's)."""
+        return check.without_nones(self.api_dump())
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ParametersSpec:
+    """Autopilot parameters as declared state, per flight stack (names and units differ
+
+    Plain twin of :class:`roost_api.autopilot.ParametersSpec`.
+    """
+
+    px4: list[ParameterValue] = field(default_factory=list)
+    ardupilot: list[ParameterValue] = field(default_factory=list)
+    on_drift: DriftPolicy = DriftPolicy.REPORT
+
+    @classmethod
+    def from_api(cls, doc: object, at: str = "") -> ParametersSpec:
+        """Validate a camelCase mapping as the API model would; ``at`` prefixes field
+        paths in errors."""
+        if isinstance(doc, cls):
+            return doc
+        d = check.mapping(doc, at.rstrip("."), "ParametersSpec")
+        v = check.get(d, "px4", "px4")
+        px4 = (
+            list()
+            if v is check.MISSING
+            else check.items(
+                v, at + "px4", lambda x, w: ParameterValue.from_api(x, w + "."), max_length=512
+            )
+        )
+        v = check.get(d, "ardupilot", "ardupilot")
+        ardupilot = (
+            list()
+            if v is check.MISSING
+            else check.items(
+                v,
+                at + "ardupilot",
+                lambda x, w: ParameterValue.from_api(x, w + "."),
+                max_length=512,
+            )
+        )
+        v = check.get(d, "onDrift", "on_drift")
+        on_drift = (
+            DriftPolicy.REPORT
+            if v is check.MISSING
+            else check.member(v, at + "onDrift", DriftPolicy)
+        )
+        return cls(px4=px4, ardupilot=ardupilot, on_drift=on_drift)
+
+    def api_dump(self) -> dict[str, Any]:
+        """Every field by its camelCase name, None included."""
+        return {
+            "px4": [x.api_dump() for x in self.px4],
+            "ardupilot": [x.api_dump() for x in self.ardupilot],
+            "onDrift": self.on_drift.value,
+        }
+
+    def to_api(self) -> dict[str, Any]:
+        """The JSON body Kubernetes expects: camelCase, no nulls (as the model's)."""
+        return check.without_nones(self.api_dump())
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class RedundantAutopilotSpec:
     """Desired state of a RedundantAutopilot.
 
@@ -554,6 +648,7 @@ class RedundantAutopilotSpec:
     failover_policy: FailoverPolicy = field(default_factory=FailoverPolicy)
     command: AutopilotCommand | None = None
     hub: HubSpec | None = None
+    parameters: ParametersSpec | None = None
 
     @classmethod
     def from_api(cls, doc: object, at: str = "") -> RedundantAutopilotSpec:
@@ -594,6 +689,12 @@ class RedundantAutopilotSpec:
         )
         v = check.get(d, "hub", "hub")
         hub = None if v is None or v is check.MISSING else HubSpec.from_api(v, at + "hub" + ".")
+        v = check.get(d, "parameters", "parameters")
+        parameters = (
+            None
+            if v is None or v is check.MISSING
+            else ParametersSpec.from_api(v, at + "parameters" + ".")
+        )
         return cls(
             vehicle_name=vehicle_name,
             autopilots=autopilots,
@@ -601,6 +702,7 @@ class RedundantAutopilotSpec:
             failover_policy=failover_policy,
             command=command,
             hub=hub,
+            parameters=parameters,
         )
 
     def api_dump(self) -> dict[str, Any]:
@@ -612,6 +714,7 @@ class RedundantAutopilotSpec:
             "failoverPolicy": self.failover_policy.api_dump(),
             "command": None if self.command is None else self.command.api_dump(),
             "hub": None if self.hub is None else self.hub.api_dump(),
+            "parameters": None if self.parameters is None else self.parameters.api_dump(),
         }
 
     def to_api(self) -> dict[str, Any]:

@@ -55,6 +55,8 @@ MODELS: tuple[type[meta.ApiModel], ...] = (
     autopilot.HubSpec,
     autopilot.FailoverPolicy,
     autopilot.AutopilotCommand,
+    autopilot.ParameterValue,
+    autopilot.ParametersSpec,
     autopilot.RedundantAutopilotSpec,
     autopilot.AutopilotHealth,
     autopilot.FailoverRecord,
