@@ -26,6 +26,7 @@ MODULES: tuple[str, ...] = (
     "vehicle",
     "hub",
     "standby",
+    "params",
     "sync",
     "node",
     "dashboard",

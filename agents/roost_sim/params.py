@@ -61,7 +61,8 @@ def _stored(values: dict[str, float], name: str, ptype: int, default: float) -> 
 
 def _px4_extras(values: dict[str, float]) -> list[Param]:
     """Real PX4 v1.16 parameters the simulation stores: the RC calibration of 18
-    channels (RCn_MIN/TRIM/MAX/REV/DZ, all FLOAT in PX4) and the geofence's."""
+    channels (RCn_MIN/TRIM/MAX/REV/DZ, all FLOAT in PX4), the channel count and mapping
+    (RC_CHAN_CNT, RC_MAP_*: INT32) and the geofence's."""
     params = []
     for n in range(1, 19):
         for suffix, default in (("MIN", 1000.0), ("TRIM", 1500.0), ("MAX", 2000.0)):
@@ -69,6 +70,11 @@ def _px4_extras(values: dict[str, float]) -> list[Param]:
         params.append(_stored(values, f"RC{n}_REV", REAL32, 1.0))
         params.append(_stored(values, f"RC{n}_DZ", REAL32, 0.0))
     params += [
+        _stored(values, "RC_CHAN_CNT", INT32, 0.0),
+        *(
+            _stored(values, f"RC_MAP_{axis}", INT32, 0.0)
+            for axis in ("ROLL", "PITCH", "YAW", "THROTTLE")
+        ),
         _stored(values, "GF_ACTION", INT32, 2.0),
         _stored(values, "GF_MAX_HOR_DIST", REAL32, 0.0),
         _stored(values, "GF_MAX_VER_DIST", REAL32, 0.0),
