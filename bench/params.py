@@ -72,7 +72,7 @@ def wait_for(predicate: object, timeout: float) -> float:
 def apply_100() -> float:
     with hub_vehicle(["px4", "px4"]) as v:
         start = time.monotonic()
-        assert v.agent.apply_spec(v.spec_with(spec_of(hundred()))) is None
+        assert v.agent.apply_spec(v.spec_with(parameters=spec_of(hundred()))) is None
         wait_for(lambda: reasons(v) == ["InSync", "InSync"], 60)
         return time.monotonic() - start
 

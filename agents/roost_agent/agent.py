@@ -53,6 +53,7 @@ from datetime import UTC, datetime
 from enum import StrEnum
 from typing import Any
 
+from roost_agent import firmware
 from roost_agent.arbiter import (
     Action,
     ArbiterState,
@@ -109,12 +110,14 @@ from roost_api.plain import (
     AutopilotSpec,
     CommandResult,
     FailoverRecord,
+    FirmwareInfo,
     ParametersSpec,
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
 )
 from roost_api.plain_check import ApiDocument
 from roost_mavlink import (
+    MAV_CMD_REQUEST_MESSAGE,
     MAV_CMD_SET_MESSAGE_INTERVAL,
     MAV_MODE_FLAG_SAFETY_ARMED,
     pymavlink_device,
@@ -419,6 +422,11 @@ class Agent:
         # their ParametersInSync verdicts are read by status() under the lock.
         self._param_keepers: dict[str, tuple[AutopilotLink, ParamKeeper]] = {}
         self._param_verdicts: dict[str, Verdict] = {}
+        # Each autopilot's AUTOPILOT_VERSION as read (frame, what it says, its capability
+        # bits, the reboots seen when it came) and when it was last asked for
+        # (roost_agent.firmware).
+        self._firmware: dict[str, tuple[object, FirmwareInfo, int, int]] = {}
+        self._version_asked: dict[str, tuple[AutopilotLink, float]] = {}
         self._last_command: CommandResult | None = (
             next(reversed(self._processed.values())) if self._processed else None
         )
@@ -627,7 +635,9 @@ class Agent:
             assessments = self._current_assessments()
             healths = [
                 self._with_entry_conditions(
-                    _with_link_error(assessments[a.name].to_api(), cfg.links[a.name].error)
+                    self._with_firmware(
+                        _with_link_error(assessments[a.name].to_api(), cfg.links[a.name].error)
+                    )
                 )
                 for a in cfg.spec.autopilots
                 if a.name in assessments
@@ -650,6 +660,11 @@ class Agent:
                 now=self._wall_clock().replace(microsecond=0),
             )
             return self._last_status
+
+    def _with_firmware(self, health: AutopilotHealth) -> AutopilotHealth:
+        """The health entry with what the autopilot's AUTOPILOT_VERSION said."""
+        known = self._firmware.get(health.name)
+        return health if known is None else replace(health, firmware=known[1])
 
     def _with_entry_conditions(self, health: AutopilotHealth) -> AutopilotHealth:
         """The health entry with its StandbyInStep (with the hub only) and
@@ -1152,11 +1167,45 @@ class Agent:
                     self._keep_streams(link)
                 except Exception:  # a stream request must never stop the heartbeats
                     log.exception("%s: stream keeping failed", link.name)
+            for link in links.values():
+                try:
+                    self._keep_firmware(link)
+                except Exception:  # nor a firmware question
+                    log.exception("%s: asking for the firmware version failed", link.name)
             try:
                 self._keep_params(self._cfg)
             except Exception:  # nor a parameter read or write
                 log.exception("parameter keeping failed")
             self._stop.wait(STREAM_CHECK_S)
+
+    def _keep_firmware(self, link: AutopilotLink) -> None:
+        """Ask a heard autopilot for AUTOPILOT_VERSION until it answers, and again after
+        it rebooted (a firmware update reboots it); take each answer."""
+        frame = link.version
+        reboots = link.tracker.reboots()
+        known = self._firmware.get(link.name)
+        if frame is not None and (known is None or known[0] is not frame):
+            fw = firmware.info(frame)
+            with self._lock:
+                self._firmware[link.name] = (frame, fw, firmware.capabilities_of(frame), reboots)
+            self._emit(
+                EventKind.LINK,
+                "FirmwareReported",
+                f"{link.name}: {link.stack.value} {fw.version} ({fw.version_type}"
+                + (f", build {fw.git_hash}" if fw.git_hash else "")
+                + f"), board {fw.board_version}",
+                autopilot=link.name,
+            )
+            return
+        if (known is not None and known[3] == reboots) or link.heartbeat() is None:
+            return
+        now = self._clock()
+        asked = self._version_asked.get(link.name)
+        if asked is not None and asked[0] is link and now - asked[1] < firmware.REQUEST_EVERY_S:
+            return
+        self._version_asked[link.name] = (link, now)
+        request = float(firmware.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
+        link.send_command(MAV_CMD_REQUEST_MESSAGE, (request, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
 
     def _keep_params(self, cfg: _Running) -> None:
         """Step every autopilot's parameter keeper: take the PARAM_VALUEs its link
@@ -1173,6 +1222,9 @@ class Agent:
                 known = self._param_keepers[link.name] = (link, ParamKeeper(link.stack))
             keeper = known[1]
             keeper.declare(want)
+            fw = self._firmware.get(link.name)
+            if fw is not None:  # the encoding the firmware announces
+                keeper.set_capabilities(fw[2])
             if not keeper.declared:
                 if self._param_verdicts.pop(link.name, None) is not None:
                     self._reader.poke()

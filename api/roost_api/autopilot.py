@@ -256,6 +256,32 @@ class ParametersSpec(ApiModel):
     )
 
 
+VERSION_PATTERN = r"^[0-9]{1,3}\.[0-9]{1,3}\.[0-9]{1,3}$"
+
+
+class FirmwareRequirement(ApiModel):
+    """What firmware the autopilots must run (checked by the agent from each one's
+    AUTOPILOT_VERSION; a Mission's preflight refuses a vehicle that breaks it)."""
+
+    px4_minimum: str | None = Field(
+        default=None,
+        max_length=11,
+        pattern=VERSION_PATTERN,
+        description="Lowest PX4 version every PX4 autopilot must run, MAJOR.MINOR.PATCH.",
+    )
+    ardupilot_minimum: str | None = Field(
+        default=None,
+        max_length=11,
+        pattern=VERSION_PATTERN,
+        description="Lowest ArduPilot version every ArduPilot autopilot must run.",
+    )
+    identical: bool = Field(
+        default=False,
+        description="Every autopilot of a stack runs the same version and build (the git "
+        "hash in AUTOPILOT_VERSION): a standby flies as the active would.",
+    )
+
+
 class FailoverPolicy(ApiModel):
     """How the agent decides and what it does after deciding."""
 
@@ -336,6 +362,11 @@ class RedundantAutopilotSpec(ApiModel):
         description="Serve the vehicle's MAVLink endpoint from the agent, routed to the "
         "active autopilot (clients then never reconnect on a failover).",
     )
+    firmware: FirmwareRequirement | None = Field(
+        default=None,
+        description="Firmware the autopilots must run (reported as the FirmwareAcceptable "
+        "condition).",
+    )
     parameters: ParametersSpec | None = Field(
         default=None,
         description="Autopilot parameters the agent keeps on every autopilot of the "
@@ -389,6 +420,24 @@ REDUNDANT_AUTOPILOT_RULES = [
 ]
 
 
+class FirmwareInfo(ApiModel):
+    """What one autopilot's AUTOPILOT_VERSION says about its firmware and board."""
+
+    version: str = Field(max_length=11, description="Flight software version MAJOR.MINOR.PATCH.")
+    version_type: str = Field(
+        max_length=16, description="dev, alpha, beta, rc or official (FIRMWARE_VERSION_TYPE)."
+    )
+    git_hash: str = Field(default="", max_length=16, description="The build's git hash (8 bytes).")
+    board_version: int = Field(default=0, description="Board (hardware) version.")
+    vendor_id: int = Field(default=0, description="USB vendor id of the board (0: unknown).")
+    product_id: int = Field(default=0, description="USB product id of the board (0: unknown).")
+    capabilities: list[str] = Field(
+        default_factory=list,
+        max_length=64,
+        description="MAV_PROTOCOL_CAPABILITY flags the firmware announces.",
+    )
+
+
 class AutopilotHealth(ApiModel):
     """One autopilot's health as the agent last judged it."""
 
@@ -408,6 +457,9 @@ class AutopilotHealth(ApiModel):
     system_status: str | None = Field(default=None, description="MAV_STATE from the heartbeat.")
     unhealthy_sensors: list[str] = Field(
         default_factory=list, description="Enabled SYS_STATUS sensors reported unhealthy."
+    )
+    firmware: FirmwareInfo | None = Field(
+        default=None, description="Firmware and board, from AUTOPILOT_VERSION."
     )
     conditions: list[Condition] = Field(
         default_factory=list,
@@ -458,7 +510,8 @@ class RedundantAutopilotStatus(ApiModel):
     conditions: list[Condition] = Field(
         default_factory=list,
         json_schema_extra=CONDITIONS_SCHEMA,
-        description="Ready, ActiveHealthy, Redundant, FailedOver.",
+        description="Ready, ActiveHealthy, Redundant, FailedOver; FirmwareAcceptable with "
+        "spec.firmware.",
     )
     active_autopilot: str | None = Field(
         default=None, description="Autopilot currently connected to the motors."

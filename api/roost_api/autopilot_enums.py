@@ -20,6 +20,7 @@ class AutopilotConditionType(StrEnum):
     ACTIVE_HEALTHY = "ActiveHealthy"
     REDUNDANT = "Redundant"
     FAILED_OVER = "FailedOver"
+    FIRMWARE_ACCEPTABLE = "FirmwareAcceptable"
 
 
 class AutopilotConditionReason(StrEnum):
@@ -51,6 +52,11 @@ class AutopilotConditionReason(StrEnum):
     SWITCHED_BY_COMMAND = "SwitchedByCommand"
     # Ready
     READY = "Ready"
+    # FirmwareAcceptable (with spec.firmware)
+    FIRMWARE_ACCEPTABLE = "FirmwareAcceptable"
+    FIRMWARE_BELOW_MINIMUM = "FirmwareBelowMinimum"
+    FIRMWARE_VERSIONS_DIFFER = "FirmwareVersionsDiffer"
+    NO_FIRMWARE_DATA = "NoFirmwareData"
 
 
 class AutopilotEntryConditionType(StrEnum):

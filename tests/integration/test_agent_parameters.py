@@ -132,7 +132,7 @@ def test_writes_wait_while_armed_and_happen_after_landing() -> None:
         for sim in v.sims:
             sim.wait_until(lambda s: s.landed_state == "InAir", timeout=15)
         # a new declared value while flying
-        assert v.agent.apply_spec(v.spec_with(declared({"GF_ACTION": 4}, {}))) is None
+        assert v.agent.apply_spec(v.spec_with(parameters=declared({"GF_ACTION": 4}, {}))) is None
         for sim in v.sims:
             wait_until(
                 f"{sim.name} deferred", lambda s=sim: reason_is(v, s.name, "DeferredWhileArmed"), 10
@@ -153,7 +153,7 @@ def test_unknown_names_and_values_the_type_cannot_hold_are_reported_not_written(
         cond = v.condition("fc1", KIND)
         assert cond is not None and "NO_SUCH_PARAM" in cond.message
         assert v.sim("fc1").params.get("GF_ACTION") == 2  # PX4's default: 2.5 never written
-        v.agent.apply_spec(v.spec_with(declared({"GF_ACTION": 2.5}, {})))
+        v.agent.apply_spec(v.spec_with(parameters=declared({"GF_ACTION": 2.5}, {})))
         wait_until("fc1 invalid", lambda: reason_is(v, "fc1", "InvalidValue"), 10)
         cond = v.condition("fc1", KIND)
         assert cond is not None and "2.5 is not a whole number (INT32 parameter)" in cond.message

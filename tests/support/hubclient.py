@@ -206,9 +206,9 @@ class HubVehicle:
     def sim(self, name: str) -> SimulatedAutopilot:
         return next(s for s in self.sims if s.name == name)
 
-    def spec_with(self, parameters: ParametersSpec | None) -> RedundantAutopilotSpec:
-        """The agent's spec with other declared parameters."""
-        return self.spec.model_copy(update={"parameters": parameters})
+    def spec_with(self, **changes: object) -> RedundantAutopilotSpec:
+        """The agent's spec with some fields changed (``parameters=``, ``firmware=``)."""
+        return RedundantAutopilotSpec.model_validate(self.spec.model_copy(update=changes))
 
     def in_step(self, name: str) -> Condition | None:
         """The autopilot's StandbyInStep condition as the agent reports it."""

@@ -112,7 +112,7 @@ def test_bytewise_is_the_integers_bytes_and_c_cast_the_number() -> None:
 
 
 def test_capabilities_choose_the_encoding() -> None:
-    assert bytewise_from_capabilities(1 << 12, Stack.ARDUPILOT)
+    assert bytewise_from_capabilities(1 << 4, Stack.ARDUPILOT)
     assert not bytewise_from_capabilities(1 << 17, Stack.PX4)
     assert bytewise_from_capabilities(0, Stack.PX4)
     assert not bytewise_from_capabilities(0, Stack.ARDUPILOT)

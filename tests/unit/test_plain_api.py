@@ -293,7 +293,7 @@ def test_a_state_file_written_by_the_hand_written_loader_still_loads() -> None:
         holds=False,
     )
     # written back unchanged but for the spec fields added since, written as null
-    added = {"parameters": None}
+    added = {"firmware": None, "parameters": None}
     spec = {**HAND_WRITTEN_AGENT_STATE["spec"], **added}
     assert state.api_dump() == {**HAND_WRITTEN_AGENT_STATE, "spec": spec}
 
