@@ -27,6 +27,7 @@ MODULES: tuple[str, ...] = (
     "hub",
     "standby",
     "params",
+    "disruption",
     "sync",
     "node",
     "dashboard",

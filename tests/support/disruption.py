@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 from roost_kube.client import Kube
 from roost_kube.patches import Obj
-from roost_kube.resources import PODDISRUPTIONBUDGETS, PODS, VEHICLES
+from roost_kube.resources import PODDISRUPTIONBUDGETS, PODS, REDUNDANT_AUTOPILOTS, VEHICLES
 from roost_localcluster.cluster import Cluster
 from roost_operator.vehicles.desired import is_component_pod
 from tests.support.waiting import wait_until
@@ -38,18 +38,12 @@ class FlightOutcome:
     budget_left: bool
 
 
-def autopilot_report(vehicle: str, *, armed: bool) -> str:
-    """A RedundantAutopilot status patch as the agent writes it (both autopilots)."""
-    healths = [
-        {
-            "name": name,
-            "level": "OK",
-            "armed": armed,
-            "landedState": "InAir" if armed else "OnGround",
-        }
-        for name in ("fc-a", "fc-b")
-    ]
-    return json.dumps({"status": {"activeAutopilot": "fc-a", "autopilots": healths}})
+def autopilot_report(names: list[str], *, armed: bool) -> str:
+    """A RedundantAutopilot status patch as the agent writes it (every autopilot armed or
+    disarmed, the first active)."""
+    landed = "InAir" if armed else "OnGround"
+    healths = [{"name": n, "level": "OK", "armed": armed, "landedState": landed} for n in names]
+    return json.dumps({"status": {"activeAutopilot": names[0], "autopilots": healths}})
 
 
 def _pod_uids(kube: Kube, vehicle: str, namespace: str) -> dict[str, str]:
@@ -84,8 +78,10 @@ def fly_change_and_drain(
     fc-b) takes off, gets a config change, its node is drained; it lands, the node is
     drained again."""
     patch_status = ("patch", "redundantautopilot", vehicle, "--subresource=status", "--type=merge")
+    spec = (kube.get(REDUNDANT_AUTOPILOTS, vehicle) or {})["spec"]
+    names = [a["name"] for a in spec["autopilots"]]
     before = _pod_uids(kube, vehicle, namespace)
-    cluster.kubectl(*patch_status, "-p", autopilot_report(vehicle, armed=True))
+    cluster.kubectl(*patch_status, "-p", autopilot_report(names, armed=True))
     budget = f"roost-vehicle-{vehicle}-in-flight"
     wait_until("the in-flight budget", lambda: kube.get(PODDISRUPTIONBUDGETS, budget, namespace))
     change = json.dumps({"spec": {"config": {"IN_FLIGHT_CHANGE": "1"}}})
@@ -99,7 +95,7 @@ def fly_change_and_drain(
     reason = (_hold(kube, vehicle) or {}).get("reason", "")
     cluster.kubectl("uncordon", node)
 
-    cluster.kubectl(*patch_status, "-p", autopilot_report(vehicle, armed=False))
+    cluster.kubectl(*patch_status, "-p", autopilot_report(names, armed=False))
     wait_until("the hold to be released", lambda: _hold(kube, vehicle) is None)
     replaced = wait_until(
         "the deferred replacement after landing",
