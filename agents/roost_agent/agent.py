@@ -426,7 +426,7 @@ class Agent:
         # bits, the reboots seen when it came) and when it was last asked for
         # (roost_agent.firmware).
         self._firmware: dict[str, tuple[object, FirmwareInfo, int, int]] = {}
-        self._version_asked: dict[str, tuple[AutopilotLink, float]] = {}
+        self._version_asked: dict[str, tuple[AutopilotLink, float, int, int]] = {}
         self._last_command: CommandResult | None = (
             next(reversed(self._processed.values())) if self._processed else None
         )
@@ -1201,9 +1201,13 @@ class Agent:
             return
         now = self._clock()
         asked = self._version_asked.get(link.name)
-        if asked is not None and asked[0] is link and now - asked[1] < firmware.REQUEST_EVERY_S:
-            return
-        self._version_asked[link.name] = (link, now)
+        if asked is None or asked[0] is not link or asked[3] != reboots:
+            tries = 1  # a new link, or the autopilot rebooted
+        elif now - asked[1] < firmware.REQUEST_EVERY_S or asked[2] >= firmware.MAX_REQUESTS:
+            return  # asked recently, or often enough until the next reboot
+        else:
+            tries = asked[2] + 1
+        self._version_asked[link.name] = (link, now, tries, reboots)
         request = float(firmware.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
         link.send_command(MAV_CMD_REQUEST_MESSAGE, (request, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
 

@@ -1,10 +1,10 @@
 """Firmware as a fact and a constraint: each autopilot's AUTOPILOT_VERSION, judged.
 
 The agent asks every autopilot for AUTOPILOT_VERSION (MAV_CMD_REQUEST_MESSAGE, param1
-148, every :data:`REQUEST_EVERY_S` until it comes: PX4 and ArduPilot both answer it, and
-neither sends it unasked) and reports what it says per autopilot
-(``status.autopilots[].firmware``): the flight software version, its build (git hash),
-the board and the MAV_PROTOCOL_CAPABILITY flags. A RedundantAutopilot's
+148, every :data:`REQUEST_EVERY_S` until it comes, at most :data:`MAX_REQUESTS` times per
+boot: PX4 and ArduPilot both answer it, and neither sends it unasked) and reports what it
+says per autopilot (``status.autopilots[].firmware``): the flight software version, its
+build (git hash), the board and the MAV_PROTOCOL_CAPABILITY flags. A RedundantAutopilot's
 ``spec.firmware`` can require a minimum version per stack and identical builds on every
 autopilot of a stack; :func:`judge` gives the ``FirmwareAcceptable`` condition that
 names the autopilot that breaks it (a Mission's preflight reads it).
@@ -27,6 +27,8 @@ from roost_api.plain import AutopilotHealth, FirmwareInfo, FirmwareRequirement
 
 MAVLINK_MSG_ID_AUTOPILOT_VERSION = 148
 REQUEST_EVERY_S = 2.0
+MAX_REQUESTS = 5
+"""Unanswered requests before the agent stops asking (until the autopilot reboots)."""
 
 _VERSION_TYPES = {0: "dev", 64: "alpha", 128: "beta", 192: "rc", 255: "official"}
 
