@@ -26,6 +26,8 @@ MODULES: tuple[str, ...] = (
     "vehicle",
     "hub",
     "standby",
+    "params",
+    "disruption",
     "sync",
     "node",
     "partition",

@@ -53,6 +53,7 @@ from datetime import UTC, datetime
 from enum import StrEnum
 from typing import Any
 
+from roost_agent import firmware
 from roost_agent.arbiter import (
     Action,
     ArbiterState,
@@ -76,6 +77,7 @@ from roost_agent.bridge import Bridge, BridgeError
 from roost_agent.health import Assessment, HealthTracker
 from roost_agent.hub import Hub, InStep, hub_for, hub_identity
 from roost_agent.links import AutopilotLink, LinkReader
+from roost_agent.params import ParamKeeper, Read, Verdict
 from roost_agent.report import report, set_condition
 from roost_agent.safety import (
     DEFAULT_TIMING,
@@ -97,21 +99,29 @@ from roost_agent.streams import StreamKeeper, Why, send_requests
 from roost_api.autopilot_enums import (
     AutopilotEntryConditionType,
     CommandResultKind,
+    DriftPolicy,
     FinalAction,
     SafetyRoutinePhase,
 )
-from roost_api.core import ConditionStatus, HealthLevel
+from roost_api.core import ConditionStatus, HealthLevel, Stack
 from roost_api.plain import (
     AutopilotCommand,
     AutopilotHealth,
     AutopilotSpec,
     CommandResult,
     FailoverRecord,
+    FirmwareInfo,
+    ParametersSpec,
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
 )
 from roost_api.plain_check import ApiDocument
-from roost_mavlink import MAV_CMD_SET_MESSAGE_INTERVAL, pymavlink_device
+from roost_mavlink import (
+    MAV_CMD_REQUEST_MESSAGE,
+    MAV_CMD_SET_MESSAGE_INTERVAL,
+    MAV_MODE_FLAG_SAFETY_ARMED,
+    pymavlink_device,
+)
 
 log = logging.getLogger(__name__)
 
@@ -152,6 +162,7 @@ class EventKind(StrEnum):
     SPEC = "Spec"
     BRIDGE_ERROR = "BridgeError"
     LINK = "Link"
+    PARAMETERS = "Parameters"
 
 
 @dataclass(frozen=True)
@@ -337,6 +348,18 @@ def _in_step_status(verdict: InStep) -> ConditionStatus:
     return "True" if verdict.status else "False"
 
 
+def _armed(link: AutopilotLink) -> bool:
+    """Whether the autopilot's last heartbeat said armed."""
+    beat = link.heartbeat()
+    return beat is not None and bool(beat[1] & MAV_MODE_FLAG_SAFETY_ARMED)
+
+
+def _declared_for(declared: ParametersSpec, stack: Stack) -> dict[str, float]:
+    """The parameters declared for the autopilots of ``stack``."""
+    entries = declared.px4 if stack is Stack.PX4 else declared.ardupilot
+    return {p.name: p.value for p in entries}
+
+
 def connection_problems(spec: RedundantAutopilotSpec) -> list[str]:
     """One line per autopilot whose connection URL the agent could not open."""
     problems = []
@@ -395,6 +418,15 @@ class Agent:
         self._last_failover: FailoverRecord | None = saved.last_failover if saved else None
         self._safety: SafetyProgress | None = saved.safety if saved else None
         self._keepers: dict[str, tuple[AutopilotLink, StreamKeeper]] = {}
+        # Declared parameters per autopilot (roost_agent.params), on the heartbeat thread;
+        # their ParametersInSync verdicts are read by status() under the lock.
+        self._param_keepers: dict[str, tuple[AutopilotLink, ParamKeeper]] = {}
+        self._param_verdicts: dict[str, Verdict] = {}
+        # Each autopilot's AUTOPILOT_VERSION as read (frame, what it says, its capability
+        # bits, the reboots seen when it came) and when it was last asked for
+        # (roost_agent.firmware).
+        self._firmware: dict[str, tuple[object, FirmwareInfo, int, int]] = {}
+        self._version_asked: dict[str, tuple[AutopilotLink, float, int, int]] = {}
         self._last_command: CommandResult | None = (
             next(reversed(self._processed.values())) if self._processed else None
         )
@@ -602,8 +634,10 @@ class Agent:
             state = self._state
             assessments = self._current_assessments()
             healths = [
-                self._with_in_step(
-                    _with_link_error(assessments[a.name].to_api(), cfg.links[a.name].error)
+                self._with_entry_conditions(
+                    self._with_firmware(
+                        _with_link_error(assessments[a.name].to_api(), cfg.links[a.name].error)
+                    )
                 )
                 for a in cfg.spec.autopilots
                 if a.name in assessments
@@ -627,13 +661,16 @@ class Agent:
             )
             return self._last_status
 
-    def _with_in_step(self, health: AutopilotHealth) -> AutopilotHealth:
-        """The health entry with its StandbyInStep condition (with the hub only)."""
-        verdict = self._in_step.get(health.name)
-        if verdict is None:
-            return health
+    def _with_firmware(self, health: AutopilotHealth) -> AutopilotHealth:
+        """The health entry with what the autopilot's AUTOPILOT_VERSION said."""
+        known = self._firmware.get(health.name)
+        return health if known is None else replace(health, firmware=known[1])
+
+    def _with_entry_conditions(self, health: AutopilotHealth) -> AutopilotHealth:
+        """The health entry with its StandbyInStep (with the hub only) and
+        ParametersInSync (with declared parameters only) conditions."""
         previous = self._last_status
-        before = next(
+        conditions = next(
             (
                 h.conditions
                 for h in (previous.autopilots if previous else [])
@@ -641,15 +678,32 @@ class Agent:
             ),
             [],
         )
-        conditions = set_condition(
-            before,
-            type=AutopilotEntryConditionType.STANDBY_IN_STEP.value,
-            status=_in_step_status(verdict),
-            reason=verdict.reason.value,
-            message=verdict.message,
-            at=self._wall_clock().replace(microsecond=0),
-        )
-        return replace(health, conditions=conditions)
+        at = self._wall_clock().replace(microsecond=0)
+        verdict = self._in_step.get(health.name)
+        if verdict is not None:
+            conditions = set_condition(
+                conditions,
+                type=AutopilotEntryConditionType.STANDBY_IN_STEP.value,
+                status=_in_step_status(verdict),
+                reason=verdict.reason.value,
+                message=verdict.message,
+                at=at,
+            )
+        params = self._param_verdicts.get(health.name)
+        if params is not None:
+            conditions = set_condition(
+                conditions,
+                type=AutopilotEntryConditionType.PARAMETERS_IN_SYNC.value,
+                status=params.status,
+                reason=params.reason.value,
+                message=params.message,
+                at=at,
+            )
+        kept = {AutopilotEntryConditionType.STANDBY_IN_STEP.value} if verdict else set()
+        if params is not None:
+            kept.add(AutopilotEntryConditionType.PARAMETERS_IN_SYNC.value)
+        conditions = [c for c in conditions if c.type in kept]
+        return replace(health, conditions=conditions) if conditions or health.conditions else health
 
     # -- decision loop -------------------------------------------------------------------
 
@@ -1113,7 +1167,102 @@ class Agent:
                     self._keep_streams(link)
                 except Exception:  # a stream request must never stop the heartbeats
                     log.exception("%s: stream keeping failed", link.name)
+            for link in links.values():
+                try:
+                    self._keep_firmware(link)
+                except Exception:  # nor a firmware question
+                    log.exception("%s: asking for the firmware version failed", link.name)
+            try:
+                self._keep_params(self._cfg)
+            except Exception:  # nor a parameter read or write
+                log.exception("parameter keeping failed")
             self._stop.wait(STREAM_CHECK_S)
+
+    def _keep_firmware(self, link: AutopilotLink) -> None:
+        """Ask a heard autopilot for AUTOPILOT_VERSION until it answers, and again after
+        it rebooted (a firmware update reboots it); take each answer."""
+        frame = link.version
+        reboots = link.tracker.reboots()
+        known = self._firmware.get(link.name)
+        if frame is not None and (known is None or known[0] is not frame):
+            fw = firmware.info(frame)
+            with self._lock:
+                self._firmware[link.name] = (frame, fw, firmware.capabilities_of(frame), reboots)
+            self._emit(
+                EventKind.LINK,
+                "FirmwareReported",
+                f"{link.name}: {link.stack.value} {fw.version} ({fw.version_type}"
+                + (f", build {fw.git_hash}" if fw.git_hash else "")
+                + f"), board {fw.board_version}",
+                autopilot=link.name,
+            )
+            return
+        if (known is not None and known[3] == reboots) or link.heartbeat() is None:
+            return
+        now = self._clock()
+        asked = self._version_asked.get(link.name)
+        if asked is None or asked[0] is not link or asked[3] != reboots:
+            tries = 1  # a new link, or the autopilot rebooted
+        elif now - asked[1] < firmware.REQUEST_EVERY_S or asked[2] >= firmware.MAX_REQUESTS:
+            return  # asked recently, or often enough until the next reboot
+        else:
+            tries = asked[2] + 1
+        self._version_asked[link.name] = (link, now, tries, reboots)
+        request = float(firmware.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
+        link.send_command(MAV_CMD_REQUEST_MESSAGE, (request, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+
+    def _keep_params(self, cfg: _Running) -> None:
+        """Step every autopilot's parameter keeper: take the PARAM_VALUEs its link
+        received, send the reads and writes it asks for, report what changed."""
+        declared = cfg.spec.parameters
+        restore = declared is not None and declared.on_drift == DriftPolicy.RESTORE
+        armed = any(_armed(link) for link in cfg.links.values())
+        now = self._clock()
+        for link in cfg.links.values():
+            values = link.params.take()
+            want = {} if declared is None else _declared_for(declared, link.stack)
+            known = self._param_keepers.get(link.name)
+            if known is None or known[0] is not link:  # a new link: a new keeper
+                known = self._param_keepers[link.name] = (link, ParamKeeper(link.stack))
+            keeper = known[1]
+            keeper.declare(want)
+            fw = self._firmware.get(link.name)
+            if fw is not None:  # the encoding the firmware announces
+                keeper.set_capabilities(fw[2])
+            if not keeper.declared:
+                if self._param_verdicts.pop(link.name, None) is not None:
+                    self._reader.poke()
+                continue
+            for name, wire, ptype, at in values:
+                drift = keeper.observe(name, wire, ptype, at)
+                if drift is not None:
+                    self._emit(
+                        EventKind.PARAMETERS,
+                        "ParameterDrifted",
+                        f"{link.name}: {drift.name} is {drift.observed:g}, declared "
+                        f"{drift.desired:g}"
+                        + ("; writing it back" if restore else "; reported only (onDrift Report)"),
+                        warning=True,
+                        autopilot=link.name,
+                    )
+            if link.heartbeat() is not None:  # nobody to ask before the autopilot is heard
+                for op in keeper.step(now, armed=armed, restore=restore):
+                    if isinstance(op, Read):
+                        link.read_param(op.name)
+                    else:
+                        link.write_param(op.name, op.wire, int(op.ptype))
+            verdict = keeper.verdict()
+            with self._lock:
+                before = self._param_verdicts.get(link.name)
+                self._param_verdicts[link.name] = verdict
+            if before is None or (before.status, before.reason) != (verdict.status, verdict.reason):
+                self._emit(
+                    EventKind.PARAMETERS,
+                    f"Parameters{verdict.reason.value}",
+                    f"{link.name}: {verdict.message}",
+                    warning=verdict.status == "False",
+                    autopilot=link.name,
+                )
 
     def _keep_streams(self, link: AutopilotLink) -> None:
         """Step this link's stream keeper and send what it asks for."""

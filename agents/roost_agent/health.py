@@ -668,6 +668,11 @@ class HealthTracker:
             at=at,
         )
 
+    def reboots(self) -> int:
+        """How many reboots of the autopilot were seen (re-read what a reboot may change)."""
+        with self._lock:
+            return self._o.reboots
+
     def stream_facts(self) -> StreamFacts:
         """Per-type counts, last heartbeat, last message and reboots (for the keeper)."""
         with self._lock:

@@ -26,15 +26,15 @@ is for clients on the vehicle itself.
 
 Standbys in step. What clients send that changes flight state (:data:`MIRRORED_COMMANDS`
 inside COMMAND_LONG/INT, and :data:`MIRRORED_MESSAGES`: modes, mission items, setpoints,
-the ground station's heartbeat so no standby triggers a GCS failsafe) goes to every
-standby too; their answers never reach the client but are recorded, so a standby that
+parameter writes, the ground station's heartbeat so no standby triggers a GCS failsafe)
+goes to every standby too; their answers never reach the client but are recorded, so a standby that
 rejects a mirrored command or does not answer is seen at once. :func:`judge_standby`
 compares each standby with the active (armed state, mode, position and altitude within
 ``HubSpec.standby_limits``) and :class:`InStepTracker` confirms a difference over
 ``confirm_ms`` before it counts, which gives the ``StandbyInStep`` condition and the
-arbiter's preference for standbys in step. Mode commands are mirrored only between
-autopilots of the same stack (a custom mode number means something else on the other
-stack), and modes are compared only there.
+arbiter's preference for standbys in step. Mode commands and parameter writes are
+mirrored only between autopilots of the same stack (a custom mode number or a parameter
+name means something else on the other stack), and modes are compared only there.
 
 ArduPilot standbys: ArduPilot's auxiliary function 76 (STANDBY) tells a flight controller
 its outputs are not on the motors, so it relaxes its controllers' integrators instead of
@@ -141,9 +141,12 @@ MIRRORED_MESSAGES: frozenset[str] = frozenset(
         "MISSION_CLEAR_ALL",
         "MISSION_SET_CURRENT",
         "SET_HOME_POSITION",
+        "PARAM_SET",
     }
 )
-MODE_MESSAGES: frozenset[str] = frozenset({"SET_MODE"})
+# Mirrored only to standbys of the active autopilot's stack: a custom mode number, a
+# parameter name and its unit mean something else (or nothing) on the other stack.
+SAME_STACK_MESSAGES: frozenset[str] = frozenset({"SET_MODE", "PARAM_SET"})
 COMMAND_MESSAGES: frozenset[str] = frozenset({"COMMAND_LONG", "COMMAND_INT"})
 
 
@@ -731,14 +734,14 @@ class Hub:
         target = target_of(msg)
         if target not in (None, 0, self.sysid):
             return  # addressed to another system on the client's network
-        mode_change = kind in MODE_MESSAGES or command in MODE_COMMANDS
+        same_stack_only = kind in SAME_STACK_MESSAGES or command in MODE_COMMANDS
         active_stack = self._seen[active].stack if active in self._seen else None
         now = self._clock()
         for name, standby in links.items():
             if name == active:
                 continue
             seen = self._seen[name]
-            if mode_change and seen.stack != active_stack:
+            if same_stack_only and seen.stack != active_stack:
                 continue
             # Awaited before it is sent: the standby's answer can be read (on the link
             # reader's thread) before ``send_frame`` returns here.

@@ -85,7 +85,7 @@ from roost_agent.steering import steered_sockets
 from roost_api.core import Stack
 from roost_api.plain import AutopilotSpec
 from roost_mavlink import AGENT_COMPONENT_ID, MavResult, pymavlink_device
-from roost_mavlink.codec import MAVLINK_VERSION, BadData, Encoder, Frame, StreamParser, scan
+from roost_mavlink.codec import MAVLINK_VERSION, BadData, Encoder, Frame, StreamParser, Value, scan
 from roost_mavlink.signing import Signer, Verdict, Verifier
 from roost_mavlink.status import MAV_AUTOPILOT_INVALID, MAV_TYPE_ONBOARD_CONTROLLER, MavState
 
@@ -614,7 +614,7 @@ class _Writer:
             frame = self.signer.sign(frame)
         self.transport.send(frame)
 
-    def send(self, name: str, **values: int | float) -> None:
+    def send(self, name: str, **values: Value) -> None:
         """Encode one message from the agent and write it."""
         self.write(self.encoder.encode(name, **values))
 
@@ -656,6 +656,29 @@ class AckMailbox:
                 if remaining <= 0 or not self._cond.wait(remaining):
                     serial, result = self._acks.get(command, (0, 0))
                     return result if serial > after_serial else None
+
+
+PARAM_INBOX_MAX: Final = 4096  # a client's full parameter list is about 1,000 on PX4
+
+
+class ParamInbox:
+    """PARAM_VALUEs from the autopilot (name, wire value, type, arrival), for the
+    parameter keeper on another thread; the oldest go first when nobody takes them."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._items: deque[tuple[str, float, int, float]] = deque(maxlen=PARAM_INBOX_MAX)
+
+    def put(self, name: str, wire: float, ptype: int, at: float) -> None:
+        with self._lock:
+            self._items.append((name, wire, ptype, at))
+
+    def take(self) -> list[tuple[str, float, int, float]]:
+        """Everything received since the last take, oldest first."""
+        with self._lock:
+            items = list(self._items)
+            self._items.clear()
+        return items
 
 
 @dataclass
@@ -1004,6 +1027,9 @@ class AutopilotLink:
         self._locked: Address | None = None
         # Called by the reader with every accepted message (the hub routes them to clients).
         self.tap: Callable[[Any, float], None] | None = None
+        self.params = ParamInbox()
+        # The autopilot's last AUTOPILOT_VERSION (roost_agent.firmware reads it).
+        self.version: Frame | None = None
 
     @property
     def locked_address(self) -> Address | None:
@@ -1228,6 +1254,11 @@ class AutopilotLink:
                 AGENT_COMPONENT_ID,
             ):
                 self.acks.put(int(msg.command), int(msg.result))
+        elif kind == "PARAM_VALUE":
+            name = bytes(msg.param_id).decode("ascii", "replace")
+            self.params.put(name, float(msg.param_value), int(msg.param_type), now)
+        elif kind == "AUTOPILOT_VERSION":
+            self.version = msg
         if self.tracker.observe(msg, now):
             self._on_change()
 
@@ -1298,7 +1329,7 @@ class AutopilotLink:
             )
         )
 
-    def _send_to_autopilot(self, name: str, **values: int | float) -> bool:
+    def _send_to_autopilot(self, name: str, **values: Value) -> bool:
         """One message addressed to this autopilot's system and component."""
         target = {"target_system": self.spec.sysid, "target_component": self.spec.component_id}
         return self._send(lambda writer: writer.send(name, **target, **values))
@@ -1308,6 +1339,17 @@ class AutopilotLink:
         param = {f"param{i}": value for i, value in enumerate(params, start=1)}
         return self._send_to_autopilot(
             "COMMAND_LONG", command=command, confirmation=confirmation, **param
+        )
+
+    def read_param(self, name: str) -> bool:
+        """PARAM_REQUEST_READ of one parameter by name (answered by a PARAM_VALUE)."""
+        return self._send_to_autopilot("PARAM_REQUEST_READ", param_id=name, param_index=-1)
+
+    def write_param(self, name: str, wire: float, ptype: int) -> bool:
+        """PARAM_SET of one parameter (answered by a PARAM_VALUE with what it now holds);
+        ``wire``: the value as the float field carries it (roost_agent.params.to_wire)."""
+        return self._send_to_autopilot(
+            "PARAM_SET", param_id=name, param_value=wire, param_type=ptype
         )
 
     def request_data_stream(self, stream_id: int, hz: int) -> bool:

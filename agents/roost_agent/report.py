@@ -27,6 +27,10 @@ changes, via :func:`set_condition`):
 ``Ready``
     ``ActiveHealthy`` and ``Redundant`` both True; otherwise the first that is not, with
     its status (False or Unknown) and reason.
+``FirmwareAcceptable`` (only with ``spec.firmware``)
+    Whether every autopilot's AUTOPILOT_VERSION meets the requirement, naming the one
+    that does not (:func:`roost_agent.firmware.judge`). Not part of ``Ready``: a
+    Mission's preflight checks it.
 
 :func:`change_class` and :func:`write_delay` tell the publisher whether a new report
 must go out at once (``URGENT``: the active autopilot, a failover, the latch or a
@@ -45,10 +49,11 @@ from datetime import datetime
 from enum import IntEnum
 from functools import partial
 
+from roost_agent import firmware
 from roost_api import core
 from roost_api.autopilot_enums import AutopilotConditionReason as R
 from roost_api.autopilot_enums import AutopilotConditionType, FailoverTrigger
-from roost_api.core import ConditionStatus, HealthLevel
+from roost_api.core import ConditionStatus, HealthLevel, Stack
 from roost_api.plain import (
     AutopilotHealth,
     Condition,
@@ -194,6 +199,13 @@ def conditions(
         AutopilotConditionType.READY: _ready(active_healthy, redundant),
     }
     result = list(previous)
+    if spec.firmware is not None:
+        stacks = {a.name: Stack(a.stack) for a in spec.autopilots}
+        values[AutopilotConditionType.FIRMWARE_ACCEPTABLE] = firmware.judge(
+            spec.firmware, stacks, status.autopilots
+        )
+    else:
+        result = [c for c in result if c.type != AutopilotConditionType.FIRMWARE_ACCEPTABLE]
     for kind, (cond_status, reason, message) in values.items():
         result = set_condition(
             result,
@@ -250,6 +262,7 @@ def _health_key(health: AutopilotHealth) -> tuple[object, ...]:
         tuple(sorted(health.unhealthy_sensors)),
         tuple(_NUMBER.sub("#", r) for r in health.reasons),
         tuple((c.type, c.status, c.reason) for c in health.conditions),  # StandbyInStep
+        health.firmware,
     )
 
 

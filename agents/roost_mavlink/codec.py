@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import re
 import struct
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Final
 
@@ -465,21 +465,32 @@ def _v2_header(*, mlen: int, compat: int, seq: int, sys: int, comp: int, msg_id:
     )[1:]
 
 
+Value = int | float | str | bytes | Sequence[int] | Sequence[float]
+"""A field's value to encode: a number, text for a char array, numbers for an array."""
+
+
 def encode(
-    message: MessageDef, values: Mapping[str, int | float], *, seq: int, system: int, component: int
+    message: MessageDef, values: Mapping[str, Value], *, seq: int, system: int, component: int
 ) -> bytes:
     """One unsigned MAVLink 2 frame of ``message``. Every base field must be given;
-    extension fields not given are zero. Arrays are not written (the agent sends none)."""
-    args: list[int | float] = []
+    extension fields not given are zero. A char array takes text (str or bytes, padded
+    with zeros), any other array a sequence of its length."""
+    args: list[Any] = []
     for f in message.wire_order:
-        if f.array or f.type == "char":
-            raise ValueError(f"{message.name}.{f.name}: arrays are not encoded")
         if f.name in values:
-            args.append(values[f.name])
+            value = values[f.name]
         elif f in message.extensions:
-            args.append(0)
+            value = bytes(0) if f.type == "char" else [0] * f.array if f.array else 0
         else:
             raise ValueError(f"{message.name}: no value for {f.name}")
+        if f.type == "char":
+            args.append(value.encode() if isinstance(value, str) else value)
+        elif f.array:
+            if isinstance(value, (int, float, str, bytes)) or len(value) != f.array:
+                raise ValueError(f"{message.name}.{f.name}: {f.array} values expected")
+            args.extend(value)
+        else:
+            args.append(value)
     unknown = set(values) - {f.name for f in message.wire_order}
     if unknown:
         raise ValueError(f"{message.name} has no field {sorted(unknown)}")
@@ -500,7 +511,7 @@ class Encoder:
         self.component = component
         self.seq = 0
 
-    def encode(self, name: str, **values: int | float) -> bytes:
+    def encode(self, name: str, **values: Value) -> bytes:
         frame = encode(
             message(name), values, seq=self.seq, system=self.system, component=self.component
         )
@@ -526,6 +537,7 @@ __all__ = [
     "Parsed",
     "StreamParser",
     "UnknownFrame",
+    "Value",
     "crc_extra_of",
     "encode",
     "fields",

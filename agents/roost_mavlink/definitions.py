@@ -4,9 +4,10 @@ sends that pymavlink's dialect lacks.
 Why declarations (the agent's codec, :mod:`roost_mavlink.codec`, reads them): the agent
 decodes a few fields of a few messages (:data:`AGENT_MESSAGES`: HEARTBEAT, SYS_STATUS,
 ATTITUDE, GLOBAL_POSITION_INT, the estimator reports, EXTENDED_SYS_STATE, COMMAND_ACK,
-the hub's COMMAND_LONG/INT) and encodes three (HEARTBEAT, COMMAND_LONG,
-REQUEST_DATA_STREAM); pymavlink's generated dialect, which has them all, costs ~7 MB to
-import. Every other message id is only checked and counted, from the generated table
+the hub's COMMAND_LONG/INT, PARAM_VALUE, AUTOPILOT_VERSION) and encodes a few
+(HEARTBEAT, COMMAND_LONG, REQUEST_DATA_STREAM, PARAM_REQUEST_READ, PARAM_SET);
+pymavlink's generated dialect, which has them all, costs ~7 MB to import. Every other
+message id is only checked and counted, from the generated table
 :mod:`roost_mavlink.checked_messages`.
 
 :data:`EXTRA_MESSAGES`: PX4 v1.16 streams five messages, unasked, that pymavlink's
@@ -139,9 +140,9 @@ def _message(
 
 _PARAMS = tuple(("float", f"param{i}") for i in range(1, 8))
 
-# The messages whose fields the agent reads (health, hub, command acks) or writes (its
-# heartbeat, commands, ArduPilot stream requests), as common.xml / ardupilotmega.xml
-# declare them.
+# The messages whose fields the agent reads (health, hub, command acks, parameters,
+# firmware) or writes (its heartbeat, commands, ArduPilot stream requests, parameter reads
+# and writes), as common.xml / ardupilotmega.xml declare them.
 AGENT_MESSAGES: dict[int, MessageDef] = {
     m.id: m
     for m in (
@@ -176,6 +177,32 @@ AGENT_MESSAGES: dict[int, MessageDef] = {
                 ("uint32_t", "onboard_control_sensors_enabled_extended"),
                 ("uint32_t", "onboard_control_sensors_health_extended"),
             ),
+        ),
+        _message(
+            20,
+            "PARAM_REQUEST_READ",
+            ("uint8_t", "target_system"),
+            ("uint8_t", "target_component"),
+            ("char", "param_id", 16),
+            ("int16_t", "param_index"),
+        ),
+        _message(
+            22,
+            "PARAM_VALUE",
+            ("char", "param_id", 16),
+            ("float", "param_value"),
+            ("uint8_t", "param_type"),
+            ("uint16_t", "param_count"),
+            ("uint16_t", "param_index"),
+        ),
+        _message(
+            23,
+            "PARAM_SET",
+            ("uint8_t", "target_system"),
+            ("uint8_t", "target_component"),
+            ("char", "param_id", 16),
+            ("float", "param_value"),
+            ("uint8_t", "param_type"),
         ),
         _message(
             30,
@@ -244,6 +271,22 @@ AGENT_MESSAGES: dict[int, MessageDef] = {
                 ("uint8_t", "target_system"),
                 ("uint8_t", "target_component"),
             ),
+        ),
+        _message(
+            148,
+            "AUTOPILOT_VERSION",
+            ("uint64_t", "capabilities"),
+            ("uint32_t", "flight_sw_version"),
+            ("uint32_t", "middleware_sw_version"),
+            ("uint32_t", "os_sw_version"),
+            ("uint32_t", "board_version"),
+            ("uint8_t", "flight_custom_version", 8),
+            ("uint8_t", "middleware_custom_version", 8),
+            ("uint8_t", "os_custom_version", 8),
+            ("uint16_t", "vendor_id"),
+            ("uint16_t", "product_id"),
+            ("uint64_t", "uid"),
+            extensions=(("uint8_t", "uid2", 18),),
         ),
         _message(
             193,

@@ -112,6 +112,9 @@ _RC_RELEASE = (0, 65535)  # RC_CHANNELS_OVERRIDE: hand the channel back / ignore
 # Version each flavour claims in AUTOPILOT_VERSION: (major, minor, patch), official build.
 _FIRMWARE: dict[Stack, tuple[int, int, int]] = {Stack.PX4: (1, 16, 0), Stack.ARDUPILOT: (4, 7, 0)}
 _FIRMWARE_VERSION_TYPE_OFFICIAL = 255
+# The build's git hash, 8 bytes in flight_custom_version: ArduPilot writes the hash's
+# first 8 characters, PX4 its first 8 bytes as a little-endian number.
+_BUILD: dict[Stack, str] = {Stack.PX4: "d4a3b3c2e1f00abc", Stack.ARDUPILOT: "90700977"}
 _CAPABILITIES = (
     mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
     | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
@@ -235,6 +238,9 @@ class SimulatedAutopilot:
         self._tx_lock = threading.Lock()
         self._model = AutopilotModel(self.stack, self.config, battery=self.battery)
         self.params = ParamStore(self.stack, sysid=sysid, config=self.config)
+        # What AUTOPILOT_VERSION says (tests set other versions and builds).
+        self.firmware_version: tuple[int, int, int] = _FIRMWARE[self.stack]
+        self.firmware_build = _BUILD[self.stack]
         self._rate_overrides = dict(rates or {})
         self._streams = _Streams(rates=self._initial_rates())
         self._mav = mavlink.MAVLink(_LinkWriter(link), srcSystem=sysid, srcComponent=component_id)
@@ -973,15 +979,21 @@ class SimulatedAutopilot:
         return MavResult.ACCEPTED, [self._telemetry.builders[msg_id](self._frozen or self._view())]
 
     def _autopilot_version(self) -> Any:
-        major, minor, patch = _FIRMWARE[self.stack]
+        major, minor, patch = self.firmware_version
         version = (major << 24) | (minor << 16) | (patch << 8) | _FIRMWARE_VERSION_TYPE_OFFICIAL
+        build = self.firmware_build
+        custom = (
+            int(build, 16).to_bytes(8, "big")[::-1]
+            if self.stack is Stack.PX4
+            else build.encode()[:8].ljust(8, b"\0")
+        )
         return self._mav.autopilot_version_encode(
             _CAPABILITIES | _PARAM_ENCODING[self.stack],
             version,
             0,
             0,
             0,
-            list(b"roostsim"),
+            list(custom),
             [0] * 8,
             [0] * 8,
             0,

@@ -15,6 +15,7 @@ from __future__ import annotations
 from datetime import datetime
 
 from pydantic import Field
+from pydantic.config import JsonDict
 
 from roost_api import autopilot_enums, shapes
 from roost_api.core import DNS_LABEL_PATTERN, DNS_SUBDOMAIN_PATTERN, HealthLevel, Stack
@@ -30,11 +31,13 @@ AutopilotConditionType = autopilot_enums.AutopilotConditionType
 AutopilotEntryConditionType = autopilot_enums.AutopilotEntryConditionType
 CommandAction = autopilot_enums.CommandAction
 CommandResultKind = autopilot_enums.CommandResultKind
+DriftPolicy = autopilot_enums.DriftPolicy
 Failback = autopilot_enums.Failback
 FailoverMode = autopilot_enums.FailoverMode
 FailoverTrigger = autopilot_enums.FailoverTrigger
 FinalAction = autopilot_enums.FinalAction
 LandedState = autopilot_enums.LandedState
+ParametersReason = autopilot_enums.ParametersReason
 SafetyRoutinePhase = autopilot_enums.SafetyRoutinePhase
 StandbyInStepReason = autopilot_enums.StandbyInStepReason
 hub_client_url = autopilot_enums.hub_client_url
@@ -206,6 +209,79 @@ class HubSpec(ApiModel):
     )
 
 
+PARAMETER_NAME_PATTERN = r"^[A-Za-z0-9_]{1,16}$"
+MAX_PARAMETERS = 512
+
+
+class ParameterValue(ApiModel):
+    """One autopilot parameter and the value it must hold."""
+
+    name: str = Field(
+        max_length=16,
+        pattern=PARAMETER_NAME_PATTERN,
+        description="The firmware's parameter name (at most 16 characters, as MAVLink's "
+        "param_id), e.g. MIS_TAKEOFF_ALT on PX4, PILOT_TKOFF_ALT on ArduPilot.",
+    )
+    value: float = Field(
+        description="The value in the parameter's own unit; an integer parameter takes a "
+        "whole number within its type's range."
+    )
+
+
+_BY_NAME: JsonDict = {"x-kubernetes-list-type": "map", "x-kubernetes-list-map-keys": ["name"]}
+
+
+class ParametersSpec(ApiModel):
+    """Autopilot parameters as declared state, per flight stack (names and units differ
+    between PX4 and ArduPilot). The agent writes them to every autopilot of that stack,
+    reads them back and keeps watching them."""
+
+    px4: list[ParameterValue] = Field(
+        default_factory=list,
+        max_length=MAX_PARAMETERS,
+        description="Parameters of every PX4 autopilot of the vehicle.",
+        json_schema_extra=_BY_NAME,
+    )
+    ardupilot: list[ParameterValue] = Field(
+        default_factory=list,
+        max_length=MAX_PARAMETERS,
+        description="Parameters of every ArduPilot autopilot of the vehicle.",
+        json_schema_extra=_BY_NAME,
+    )
+    on_drift: DriftPolicy = Field(
+        default=DriftPolicy.REPORT,
+        description="A parameter changed on an autopilot by someone else after the agent "
+        "set it: Report (the ParametersInSync condition names it) or Restore (written back "
+        "too). Never written while the vehicle is armed.",
+    )
+
+
+VERSION_PATTERN = r"^[0-9]{1,3}\.[0-9]{1,3}\.[0-9]{1,3}$"
+
+
+class FirmwareRequirement(ApiModel):
+    """What firmware the autopilots must run (checked by the agent from each one's
+    AUTOPILOT_VERSION; a Mission's preflight refuses a vehicle that breaks it)."""
+
+    px4_minimum: str | None = Field(
+        default=None,
+        max_length=11,
+        pattern=VERSION_PATTERN,
+        description="Lowest PX4 version every PX4 autopilot must run, MAJOR.MINOR.PATCH.",
+    )
+    ardupilot_minimum: str | None = Field(
+        default=None,
+        max_length=11,
+        pattern=VERSION_PATTERN,
+        description="Lowest ArduPilot version every ArduPilot autopilot must run.",
+    )
+    identical: bool = Field(
+        default=False,
+        description="Every autopilot of a stack runs the same version and build (the git "
+        "hash in AUTOPILOT_VERSION): a standby flies as the active would.",
+    )
+
+
 class FailoverPolicy(ApiModel):
     """How the agent decides and what it does after deciding."""
 
@@ -286,6 +362,16 @@ class RedundantAutopilotSpec(ApiModel):
         description="Serve the vehicle's MAVLink endpoint from the agent, routed to the "
         "active autopilot (clients then never reconnect on a failover).",
     )
+    firmware: FirmwareRequirement | None = Field(
+        default=None,
+        description="Firmware the autopilots must run (reported as the FirmwareAcceptable "
+        "condition).",
+    )
+    parameters: ParametersSpec | None = Field(
+        default=None,
+        description="Autopilot parameters the agent keeps on every autopilot of the "
+        "vehicle (written while disarmed, read back, watched for drift).",
+    )
 
 
 # On the whole object: metadata.name is only visible to CEL from the root.
@@ -334,6 +420,24 @@ REDUNDANT_AUTOPILOT_RULES = [
 ]
 
 
+class FirmwareInfo(ApiModel):
+    """What one autopilot's AUTOPILOT_VERSION says about its firmware and board."""
+
+    version: str = Field(max_length=11, description="Flight software version MAJOR.MINOR.PATCH.")
+    version_type: str = Field(
+        max_length=16, description="dev, alpha, beta, rc or official (FIRMWARE_VERSION_TYPE)."
+    )
+    git_hash: str = Field(default="", max_length=16, description="The build's git hash (8 bytes).")
+    board_version: int = Field(default=0, description="Board (hardware) version.")
+    vendor_id: int = Field(default=0, description="USB vendor id of the board (0: unknown).")
+    product_id: int = Field(default=0, description="USB product id of the board (0: unknown).")
+    capabilities: list[str] = Field(
+        default_factory=list,
+        max_length=64,
+        description="MAV_PROTOCOL_CAPABILITY flags the firmware announces.",
+    )
+
+
 class AutopilotHealth(ApiModel):
     """One autopilot's health as the agent last judged it."""
 
@@ -354,10 +458,15 @@ class AutopilotHealth(ApiModel):
     unhealthy_sensors: list[str] = Field(
         default_factory=list, description="Enabled SYS_STATUS sensors reported unhealthy."
     )
+    firmware: FirmwareInfo | None = Field(
+        default=None, description="Firmware and board, from AUTOPILOT_VERSION."
+    )
     conditions: list[Condition] = Field(
         default_factory=list,
         description="Per-autopilot conditions: StandbyInStep (with the hub: whether this "
-        "standby follows the active autopilot's armed state, mode and position).",
+        "standby follows the active autopilot's armed state, mode and position); "
+        "ParametersInSync (with spec.parameters: whether it holds them, naming any that "
+        "differ with both values).",
         json_schema_extra=CONDITIONS_SCHEMA,
     )
 
@@ -401,7 +510,8 @@ class RedundantAutopilotStatus(ApiModel):
     conditions: list[Condition] = Field(
         default_factory=list,
         json_schema_extra=CONDITIONS_SCHEMA,
-        description="Ready, ActiveHealthy, Redundant, FailedOver.",
+        description="Ready, ActiveHealthy, Redundant, FailedOver; FirmwareAcceptable with "
+        "spec.firmware.",
     )
     active_autopilot: str | None = Field(
         default=None, description="Autopilot currently connected to the motors."

@@ -20,6 +20,7 @@ class AutopilotConditionType(StrEnum):
     ACTIVE_HEALTHY = "ActiveHealthy"
     REDUNDANT = "Redundant"
     FAILED_OVER = "FailedOver"
+    FIRMWARE_ACCEPTABLE = "FirmwareAcceptable"
 
 
 class AutopilotConditionReason(StrEnum):
@@ -51,12 +52,18 @@ class AutopilotConditionReason(StrEnum):
     SWITCHED_BY_COMMAND = "SwitchedByCommand"
     # Ready
     READY = "Ready"
+    # FirmwareAcceptable (with spec.firmware)
+    FIRMWARE_ACCEPTABLE = "FirmwareAcceptable"
+    FIRMWARE_BELOW_MINIMUM = "FirmwareBelowMinimum"
+    FIRMWARE_VERSIONS_DIFFER = "FirmwareVersionsDiffer"
+    NO_FIRMWARE_DATA = "NoFirmwareData"
 
 
 class AutopilotEntryConditionType(StrEnum):
     """Condition types on one autopilot's entry in ``status.autopilots``."""
 
     STANDBY_IN_STEP = "StandbyInStep"
+    PARAMETERS_IN_SYNC = "ParametersInSync"
 
 
 class StandbyInStepReason(StrEnum):
@@ -72,6 +79,26 @@ class StandbyInStepReason(StrEnum):
     ALTITUDE_DIFFERS = "AltitudeDiffers"
     REJECTED_MIRRORED = "RejectedMirroredCommand"
     NOT_MIRRORED = "NotMirrored"
+
+
+class ParametersReason(StrEnum):
+    """Reasons of the per-autopilot ``ParametersInSync`` condition (first that applies)."""
+
+    IN_SYNC = "InSync"  # every declared parameter reads back as declared
+    MISSING = "UnknownParameter"  # the firmware has no parameter of that name
+    INVALID = "InvalidValue"  # the value does not fit the parameter's type
+    REFUSED = "WriteRefused"  # written and retried, the autopilot kept its value
+    DRIFTED = "Drifted"  # set once, changed since by someone else (policy Report)
+    DEFERRED = "DeferredWhileArmed"  # a write waits for the vehicle to be disarmed
+    WRITING = "Writing"  # being read or written
+    NO_DATA = "NoData"  # the autopilot has not answered yet
+
+
+class DriftPolicy(StrEnum):
+    """What the agent does when a parameter it set is changed by someone else."""
+
+    RESTORE = "Restore"
+    REPORT = "Report"
 
 
 class FailoverMode(StrEnum):

@@ -108,6 +108,7 @@ class MissionVehicleReason(StrEnum):
     AGENT_NOT_CONNECTED = "AgentNotConnected"
     ACTIVE_AUTOPILOT_UNHEALTHY = "ActiveAutopilotUnhealthy"
     NOT_REDUNDANT = "NotRedundant"
+    FIRMWARE_UNACCEPTABLE = "FirmwareUnacceptable"
     VEHICLE_CONFIG_MISSING = "VehicleConfigMissing"
     # the onboard workload
     JOB_CREATED = "JobCreated"

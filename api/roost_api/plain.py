@@ -14,6 +14,7 @@ from roost_api import plain_check as check
 from roost_api.autopilot_enums import (
     CommandAction,
     CommandResultKind,
+    DriftPolicy,
     Failback,
     FailoverMode,
     FailoverTrigger,
@@ -542,6 +543,158 @@ class AutopilotCommand:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class ParameterValue:
+    """One autopilot parameter and the value it must hold.
+
+    Plain twin of :class:`roost_api.autopilot.ParameterValue`.
+    """
+
+    name: str
+    value: float
+
+    @classmethod
+    def from_api(cls, doc: object, at: str = "") -> ParameterValue:
+        """Validate a camelCase mapping as the API model would; ``at`` prefixes field
+        paths in errors."""
+        if isinstance(doc, cls):
+            return doc
+        d = check.mapping(doc, at.rstrip("."), "ParameterValue")
+        v = check.required(check.get(d, "name", "name"), at + "name")
+        name = check.text(v, at + "name", max_length=16, pattern="^[A-Za-z0-9_]{1,16}$")
+        v = check.required(check.get(d, "value", "value"), at + "value")
+        value = check.number(v, at + "value")
+        return cls(name=name, value=value)
+
+    def api_dump(self) -> dict[str, Any]:
+        """Every field by its camelCase name, None included."""
+        return {
+            "name": self.name,
+            "value": self.value,
+        }
+
+    def to_api(self) -> dict[str, Any]:
+        """The JSON body Kubernetes expects: camelCase, no nulls (as the model's)."""
+        return check.without_nones(self.api_dump())
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ParametersSpec:
+    """Autopilot parameters as declared state, per flight stack (names and units differ
+
+    Plain twin of :class:`roost_api.autopilot.ParametersSpec`.
+    """
+
+    px4: list[ParameterValue] = field(default_factory=list)
+    ardupilot: list[ParameterValue] = field(default_factory=list)
+    on_drift: DriftPolicy = DriftPolicy.REPORT
+
+    @classmethod
+    def from_api(cls, doc: object, at: str = "") -> ParametersSpec:
+        """Validate a camelCase mapping as the API model would; ``at`` prefixes field
+        paths in errors."""
+        if isinstance(doc, cls):
+            return doc
+        d = check.mapping(doc, at.rstrip("."), "ParametersSpec")
+        v = check.get(d, "px4", "px4")
+        px4 = (
+            list()
+            if v is check.MISSING
+            else check.items(
+                v, at + "px4", lambda x, w: ParameterValue.from_api(x, w + "."), max_length=512
+            )
+        )
+        v = check.get(d, "ardupilot", "ardupilot")
+        ardupilot = (
+            list()
+            if v is check.MISSING
+            else check.items(
+                v,
+                at + "ardupilot",
+                lambda x, w: ParameterValue.from_api(x, w + "."),
+                max_length=512,
+            )
+        )
+        v = check.get(d, "onDrift", "on_drift")
+        on_drift = (
+            DriftPolicy.REPORT
+            if v is check.MISSING
+            else check.member(v, at + "onDrift", DriftPolicy)
+        )
+        return cls(px4=px4, ardupilot=ardupilot, on_drift=on_drift)
+
+    def api_dump(self) -> dict[str, Any]:
+        """Every field by its camelCase name, None included."""
+        return {
+            "px4": [x.api_dump() for x in self.px4],
+            "ardupilot": [x.api_dump() for x in self.ardupilot],
+            "onDrift": self.on_drift.value,
+        }
+
+    def to_api(self) -> dict[str, Any]:
+        """The JSON body Kubernetes expects: camelCase, no nulls (as the model's)."""
+        return check.without_nones(self.api_dump())
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class FirmwareRequirement:
+    """What firmware the autopilots must run (checked by the agent from each one's
+
+    Plain twin of :class:`roost_api.autopilot.FirmwareRequirement`.
+    """
+
+    px4_minimum: str | None = None
+    ardupilot_minimum: str | None = None
+    identical: bool = False
+
+    @classmethod
+    def from_api(cls, doc: object, at: str = "") -> FirmwareRequirement:
+        """Validate a camelCase mapping as the API model would; ``at`` prefixes field
+        paths in errors."""
+        if isinstance(doc, cls):
+            return doc
+        d = check.mapping(doc, at.rstrip("."), "FirmwareRequirement")
+        v = check.get(d, "px4Minimum", "px4_minimum")
+        px4_minimum = (
+            None
+            if v is None or v is check.MISSING
+            else check.text(
+                v,
+                at + "px4Minimum",
+                max_length=11,
+                pattern="^[0-9]{1,3}\\.[0-9]{1,3}\\.[0-9]{1,3}$",
+            )
+        )
+        v = check.get(d, "ardupilotMinimum", "ardupilot_minimum")
+        ardupilot_minimum = (
+            None
+            if v is None or v is check.MISSING
+            else check.text(
+                v,
+                at + "ardupilotMinimum",
+                max_length=11,
+                pattern="^[0-9]{1,3}\\.[0-9]{1,3}\\.[0-9]{1,3}$",
+            )
+        )
+        v = check.get(d, "identical", "identical")
+        identical = False if v is check.MISSING else check.boolean(v, at + "identical")
+        return cls(
+            px4_minimum=px4_minimum, ardupilot_minimum=ardupilot_minimum, identical=identical
+        )
+
+    def api_dump(self) -> dict[str, Any]:
+        """Every field by its camelCase name, None included."""
+        return {
+            "px4Minimum": self.px4_minimum,
+            "ardupilotMinimum": self.ardupilot_minimum,
+            "identical": self.identical,
+        }
+
+    def to_api(self) -> dict[str, Any]:
+        """The JSON body Kubernetes expects: camelCase, no nulls (as the model's)."""
+        return check.without_nones(self.api_dump())
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class RedundantAutopilotSpec:
     """Desired state of a RedundantAutopilot.
 
@@ -554,6 +707,8 @@ class RedundantAutopilotSpec:
     failover_policy: FailoverPolicy = field(default_factory=FailoverPolicy)
     command: AutopilotCommand | None = None
     hub: HubSpec | None = None
+    firmware: FirmwareRequirement | None = None
+    parameters: ParametersSpec | None = None
 
     @classmethod
     def from_api(cls, doc: object, at: str = "") -> RedundantAutopilotSpec:
@@ -594,6 +749,18 @@ class RedundantAutopilotSpec:
         )
         v = check.get(d, "hub", "hub")
         hub = None if v is None or v is check.MISSING else HubSpec.from_api(v, at + "hub" + ".")
+        v = check.get(d, "firmware", "firmware")
+        firmware = (
+            None
+            if v is None or v is check.MISSING
+            else FirmwareRequirement.from_api(v, at + "firmware" + ".")
+        )
+        v = check.get(d, "parameters", "parameters")
+        parameters = (
+            None
+            if v is None or v is check.MISSING
+            else ParametersSpec.from_api(v, at + "parameters" + ".")
+        )
         return cls(
             vehicle_name=vehicle_name,
             autopilots=autopilots,
@@ -601,6 +768,8 @@ class RedundantAutopilotSpec:
             failover_policy=failover_policy,
             command=command,
             hub=hub,
+            firmware=firmware,
+            parameters=parameters,
         )
 
     def api_dump(self) -> dict[str, Any]:
@@ -612,6 +781,75 @@ class RedundantAutopilotSpec:
             "failoverPolicy": self.failover_policy.api_dump(),
             "command": None if self.command is None else self.command.api_dump(),
             "hub": None if self.hub is None else self.hub.api_dump(),
+            "firmware": None if self.firmware is None else self.firmware.api_dump(),
+            "parameters": None if self.parameters is None else self.parameters.api_dump(),
+        }
+
+    def to_api(self) -> dict[str, Any]:
+        """The JSON body Kubernetes expects: camelCase, no nulls (as the model's)."""
+        return check.without_nones(self.api_dump())
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class FirmwareInfo:
+    """What one autopilot's AUTOPILOT_VERSION says about its firmware and board.
+
+    Plain twin of :class:`roost_api.autopilot.FirmwareInfo`.
+    """
+
+    version: str
+    version_type: str
+    git_hash: str = ""
+    board_version: int = 0
+    vendor_id: int = 0
+    product_id: int = 0
+    capabilities: list[str] = field(default_factory=list)
+
+    @classmethod
+    def from_api(cls, doc: object, at: str = "") -> FirmwareInfo:
+        """Validate a camelCase mapping as the API model would; ``at`` prefixes field
+        paths in errors."""
+        if isinstance(doc, cls):
+            return doc
+        d = check.mapping(doc, at.rstrip("."), "FirmwareInfo")
+        v = check.required(check.get(d, "version", "version"), at + "version")
+        version = check.text(v, at + "version", max_length=11)
+        v = check.required(check.get(d, "versionType", "version_type"), at + "versionType")
+        version_type = check.text(v, at + "versionType", max_length=16)
+        v = check.get(d, "gitHash", "git_hash")
+        git_hash = "" if v is check.MISSING else check.text(v, at + "gitHash", max_length=16)
+        v = check.get(d, "boardVersion", "board_version")
+        board_version = 0 if v is check.MISSING else check.integer(v, at + "boardVersion")
+        v = check.get(d, "vendorId", "vendor_id")
+        vendor_id = 0 if v is check.MISSING else check.integer(v, at + "vendorId")
+        v = check.get(d, "productId", "product_id")
+        product_id = 0 if v is check.MISSING else check.integer(v, at + "productId")
+        v = check.get(d, "capabilities", "capabilities")
+        capabilities = (
+            list()
+            if v is check.MISSING
+            else check.items(v, at + "capabilities", check.text, max_length=64)
+        )
+        return cls(
+            version=version,
+            version_type=version_type,
+            git_hash=git_hash,
+            board_version=board_version,
+            vendor_id=vendor_id,
+            product_id=product_id,
+            capabilities=capabilities,
+        )
+
+    def api_dump(self) -> dict[str, Any]:
+        """Every field by its camelCase name, None included."""
+        return {
+            "version": self.version,
+            "versionType": self.version_type,
+            "gitHash": self.git_hash,
+            "boardVersion": self.board_version,
+            "vendorId": self.vendor_id,
+            "productId": self.product_id,
+            "capabilities": [x for x in self.capabilities],
         }
 
     def to_api(self) -> dict[str, Any]:
@@ -636,6 +874,7 @@ class AutopilotHealth:
     landed_state: LandedState | None = None
     system_status: str | None = None
     unhealthy_sensors: list[str] = field(default_factory=list)
+    firmware: FirmwareInfo | None = None
     conditions: list[Condition] = field(default_factory=list)
 
     @classmethod
@@ -677,6 +916,12 @@ class AutopilotHealth:
         unhealthy_sensors = (
             list() if v is check.MISSING else check.items(v, at + "unhealthySensors", check.text)
         )
+        v = check.get(d, "firmware", "firmware")
+        firmware = (
+            None
+            if v is None or v is check.MISSING
+            else FirmwareInfo.from_api(v, at + "firmware" + ".")
+        )
         v = check.get(d, "conditions", "conditions")
         conditions = (
             list()
@@ -694,6 +939,7 @@ class AutopilotHealth:
             landed_state=landed_state,
             system_status=system_status,
             unhealthy_sensors=unhealthy_sensors,
+            firmware=firmware,
             conditions=conditions,
         )
 
@@ -710,6 +956,7 @@ class AutopilotHealth:
             "landedState": None if self.landed_state is None else self.landed_state.value,
             "systemStatus": self.system_status,
             "unhealthySensors": [x for x in self.unhealthy_sensors],
+            "firmware": None if self.firmware is None else self.firmware.api_dump(),
             "conditions": [x.api_dump() for x in self.conditions],
         }
 

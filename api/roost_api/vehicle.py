@@ -275,6 +275,21 @@ class VehicleFailover(ApiModel):
     )
 
 
+class FlightHold(ApiModel):
+    """What the operator holds back while an autopilot of the vehicle is armed."""
+
+    reason: str = Field(description="Why, e.g. 'autopilot fc1 is armed'.")
+    disruption_budget: str = Field(
+        description="The PodDisruptionBudget (maxUnavailable 0) that refuses evictions of "
+        "the vehicle's pods (kubectl drain) until it is on the ground."
+    )
+    deferred: list[str] = Field(
+        default_factory=list,
+        description="Components whose pod replacement (a config or image change) waits "
+        "for the landing.",
+    )
+
+
 class VehicleStatus(ApiModel):
     """Observed state of a Vehicle, written by the operator."""
 
@@ -305,4 +320,8 @@ class VehicleStatus(ApiModel):
     )
     managed_labels: list[str] = Field(
         default_factory=list, description="Node label keys Roost has set for this vehicle."
+    )
+    flight_hold: FlightHold | None = Field(
+        default=None,
+        description="Set while an autopilot is armed: pod replacements and evictions wait.",
     )

@@ -51,6 +51,8 @@ def health_text(row: FleetRow) -> Text:
         text.append(cell.level, style=LEVEL_STYLES.get(cell.level, "dim"))
         if cell.reason:
             text.append(f" ({cell.reason})", style="dim")
+        if cell.params:
+            text.append(f" [params {cell.params}]", style="yellow")
     return text if row.autopilots else Text("-", style="dim")
 
 
@@ -58,6 +60,8 @@ def _ready_text(row: FleetRow) -> Text:
     text = Text(row.ready, style=READY_STYLES.get(row.ready, "dim"))
     if row.ready_reason:
         text.append(f" {row.ready_reason}", style="dim")
+    if row.flight_hold:
+        text.append(f"\nin flight: {row.flight_hold}", style="yellow")
     return text
 
 

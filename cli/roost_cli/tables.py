@@ -39,11 +39,15 @@ class AutopilotCell:
     active: bool
     reason: str
     """The first reason it is not OK, empty when OK."""
+    params: str = ""
+    """Its declared parameters when they are not in sync (``Drifted: GF_ACTION is 1,
+    declared 3``), empty when in sync or none are declared."""
 
     @property
     def text(self) -> str:
         suffix = f" ({self.reason})" if self.reason else ""
-        return f"{self.name} {self.level}{suffix}"
+        params = f" [params {self.params}]" if self.params else ""
+        return f"{self.name} {self.level}{suffix}{params}"
 
 
 @dataclass(frozen=True)
@@ -61,6 +65,8 @@ class FleetRow:
     mission: str
     last_failover: str
     failover_detail: str
+    flight_hold: str = ""
+    """What the operator holds back while the vehicle is armed (why, deferred pods)."""
 
     @property
     def health(self) -> str:
@@ -158,8 +164,27 @@ def autopilot_cells(
         health = reported.get(name)
         level = str(health.level) if health else NONE
         reason = health.reasons[0] if health and health.reasons and level != "OK" else ""
-        cells.append(AutopilotCell(name=name, level=level, active=name == active, reason=reason))
+        params = find_condition(health.conditions, "ParametersInSync") if health else None
+        drift = (
+            f"{params.reason}: {params.message.partition(': ')[2] or params.message}"
+            if params is not None and params.status != "True"
+            else ""
+        )
+        cells.append(
+            AutopilotCell(
+                name=name, level=level, active=name == active, reason=reason, params=drift
+            )
+        )
     return tuple(cells)
+
+
+def describe_flight_hold(status: VehicleStatus | None) -> str:
+    """``autopilot fc1 is armed; deferred mavros`` while the operator holds the vehicle."""
+    hold = status.flight_hold if status else None
+    if hold is None:
+        return ""
+    deferred = f"; deferred {', '.join(hold.deferred)}" if hold.deferred else ""
+    return f"{hold.reason}{deferred}"
 
 
 def _mission_of_vehicle(vehicle: str, claimed_by: str | None, missions: Sequence[RawObject]) -> str:
@@ -221,6 +246,7 @@ def fleet_rows(
                 mission=_mission_of_vehicle(name, claimed, missions),
                 last_failover=summary,
                 failover_detail=detail,
+                flight_hold=describe_flight_hold(status),
             )
         )
     return rows

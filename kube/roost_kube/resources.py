@@ -81,6 +81,9 @@ VEHICLES: Final = Resource.of(VEHICLE_KIND)
 REDUNDANT_AUTOPILOTS: Final = Resource.of(REDUNDANT_AUTOPILOT_KIND)
 MISSIONS: Final = Resource.of(MISSION_KIND)
 LEASES: Final = Resource("coordination.k8s.io", "v1", "leases", "Lease", namespaced=True)
+PODDISRUPTIONBUDGETS: Final = Resource(
+    "policy", "v1", "poddisruptionbudgets", "PodDisruptionBudget", namespaced=True
+)
 
 ALL: Final = (
     NODES,
@@ -93,6 +96,7 @@ ALL: Final = (
     REDUNDANT_AUTOPILOTS,
     MISSIONS,
     LEASES,
+    PODDISRUPTIONBUDGETS,
 )
 _BY_KIND: Final = {(r.api_version, r.kind): r for r in ALL}
 

@@ -48,6 +48,7 @@ from roost_localcluster.controlplane import KWOK_NODE_ANNOTATION
 from roost_localcluster.nodes import fake_node
 from roost_operator.vehicles.desired import is_component_pod
 from tests.support.apiwrites import operator_writes
+from tests.support.disruption import fly_change_and_drain
 from tests.support.operator import OperatorProcess
 from tests.support.waiting import unique, wait_until
 
@@ -808,3 +809,34 @@ def test_a_write_the_api_server_refuses_is_reported_once_and_deletion_still_fini
             roost_crds.kubectl(
                 "delete", obj["kind"].lower(), obj["metadata"]["name"], "--ignore-not-found"
             )
+
+
+# ---- nothing changes under a vehicle in the air -----------------------------------------
+
+
+def test_in_the_air_a_config_change_waits_and_a_drain_is_refused_naming_the_vehicle(
+    roost_crds: Cluster, fake_nodes: AddNode, vehicles: Callable[..., str], kube: Kube
+) -> None:
+    node = unique("veh-node")
+    fake_nodes(node)
+    name = unique("flying")
+    roost_crds.kubectl("apply", "-f", "-", input_text=json.dumps(redundant_autopilot(name)))
+    try:
+        vehicles(name, node, simulation={"stack": "px4"})
+        wait_components_ready(kube, name)
+        outcome = fly_change_and_drain(
+            roost_crds, kube, vehicle=name, node=node, namespace=NAMESPACE
+        )
+        assert outcome.drain_in_flight.returncode != 0, outcome.drain_in_flight.stdout
+        refusal = outcome.drain_in_flight.stderr
+        assert "violate the pod's disruption budget" in refusal, refusal
+        assert f'pods/"{name}-' in refusal, refusal  # each pod's name carries the vehicle's
+        assert outcome.replacements_in_flight == 0
+        assert "mavros" in outcome.deferred
+        assert outcome.hold_reason == "autopilot fc-a, fc-b are armed"
+        assert outcome.replaced_after_landing
+        assert outcome.drain_after_landing.returncode == 0, outcome.drain_after_landing.stderr
+        assert not outcome.budget_left
+        wait_components_ready(kube, name)
+    finally:
+        roost_crds.kubectl("delete", "redundantautopilot", name, "--ignore-not-found")

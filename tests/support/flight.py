@@ -21,7 +21,7 @@ from roost_api.autopilot import (
     SafetyRoutine,
     Thresholds,
 )
-from roost_mavlink import AGENT_COMPONENT_ID, MAV_CMD_SET_MESSAGE_INTERVAL
+from roost_mavlink import AGENT_COMPONENT_ID, MAV_CMD_REQUEST_MESSAGE, MAV_CMD_SET_MESSAGE_INTERVAL
 from roost_sim import SimulatedAutopilot, autopilot_specs
 
 BOOT_TIMEOUT_S = 5.0
@@ -67,13 +67,15 @@ class Flight:
 
     def agent_commands(self, name: str, since: float = 0.0) -> list[Any]:
         """Commands the agent (component 191) sent to autopilot ``name``, except its
-        telemetry requests (SET_MESSAGE_INTERVAL), which it sends to every autopilot."""
+        requests for data, which it sends to every autopilot: telemetry rates
+        (SET_MESSAGE_INTERVAL) and AUTOPILOT_VERSION (REQUEST_MESSAGE, again after a
+        reboot)."""
         return [
             c
             for c in self.sim(name).commands
             if c.source[1] == AGENT_COMPONENT_ID
             and c.at >= since
-            and c.command != MAV_CMD_SET_MESSAGE_INTERVAL
+            and c.command not in (MAV_CMD_SET_MESSAGE_INTERVAL, MAV_CMD_REQUEST_MESSAGE)
         ]
 
 

@@ -23,6 +23,7 @@ from roost_agent.bridge import SimulatedBridge
 from roost_api.autopilot import (
     FailoverPolicy,
     HubSpec,
+    ParametersSpec,
     RedundantAutopilotSpec,
     SafetyRoutine,
     StandbyLimits,
@@ -200,15 +201,24 @@ class HubVehicle:
     agent: Agent
     bridge: SimulatedBridge
     client: HubClient
+    spec: RedundantAutopilotSpec
 
     def sim(self, name: str) -> SimulatedAutopilot:
         return next(s for s in self.sims if s.name == name)
 
+    def spec_with(self, **changes: object) -> RedundantAutopilotSpec:
+        """The agent's spec with some fields changed (``parameters=``, ``firmware=``)."""
+        return RedundantAutopilotSpec.model_validate(self.spec.model_copy(update=changes))
+
     def in_step(self, name: str) -> Condition | None:
         """The autopilot's StandbyInStep condition as the agent reports it."""
+        return self.condition(name, "StandbyInStep")
+
+    def condition(self, name: str, kind: str) -> Condition | None:
+        """One of the autopilot's own conditions as the agent reports it."""
         for health in self.agent.status().autopilots:
             if health.name == name:
-                return next((c for c in health.conditions if c.type == "StandbyInStep"), None)
+                return next((c for c in health.conditions if c.type == kind), None)
         return None
 
 
@@ -219,6 +229,7 @@ def hub_vehicle(
     mirror: bool = True,
     config: SimConfig | None = None,
     tcp: bool = False,
+    parameters: ParametersSpec | None = None,
 ) -> Iterator[HubVehicle]:
     """Sims on the ground and heard by the agent, which serves the hub on a free port,
     a :class:`HubClient` on it."""
@@ -237,6 +248,7 @@ def hub_vehicle(
                 mirror=mirror,
                 standby_limits=StandbyLimits(confirm_ms=300),
             ),
+            parameters=parameters,
         )
         bridge = SimulatedBridge(range(len(sims)))
         bridge.add_listener(motor_listener(sims))  # the sims know which one flies
@@ -255,7 +267,7 @@ def hub_vehicle(
                 10,
                 POLL_S,
             )
-            yield HubVehicle(sims, agent, bridge, client)
+            yield HubVehicle(sims, agent, bridge, client, spec)
     finally:
         if agent is not None:
             agent.stop()

@@ -17,7 +17,7 @@ from roost_api.autopilot import (
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
 )
-from roost_api.meta import ObjectReference
+from roost_api.meta import Condition, ObjectReference
 from roost_api.mission import (
     MissionPhase,
     MissionSpec,
@@ -108,6 +108,7 @@ def autopilots(
     reported_at: datetime | None = None,
     command: AutopilotCommand | None = None,
     last_command: CommandResult | None = None,
+    firmware: tuple[dict[str, Any], Condition | None] | None = None,
 ) -> AutopilotView:
     status: dict[str, Any] = {
         "conditions": [
@@ -136,6 +137,10 @@ def autopilots(
     spec = redundant_autopilot(vehicle_name)["spec"]
     if command is not None:
         spec["command"] = command.to_api()
+    if firmware is not None:  # (spec.firmware, the agent's FirmwareAcceptable condition)
+        spec["firmware"], judged = firmware
+        if judged is not None:
+            status["conditions"].append(judged.to_api())
     return AutopilotView(
         name=vehicle_name,
         spec=RedundantAutopilotSpec.model_validate(spec),

@@ -15,6 +15,7 @@ import pytest
 from roost_api.autopilot import (
     AutopilotConditionReason,
     CommandAction,
+    ParametersReason,
     StandbyInStepReason,
 )
 from roost_api.commands import CommandOutcome
@@ -30,6 +31,7 @@ from roost_api.vehicle import FailoverGuard, VehicleConditionReason
 REASONS: list[type[StrEnum]] = [
     AutopilotConditionReason,
     StandbyInStepReason,
+    ParametersReason,
     VehicleConditionReason,
     MissionReason,
     MissionVehicleReason,

@@ -22,7 +22,6 @@ import itertools
 import os
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
-from pathlib import Path
 from typing import Any
 
 os.environ.setdefault("MAVLINK20", "1")
@@ -43,19 +42,11 @@ from roost_api.plain import (
 )
 from roost_mavlink import MavState, custom_mode
 from roost_mavlink.codec import BadData, UnknownFrame, scan
+from tests.support.captures import capture
 
-REPO = Path(__file__).resolve().parents[2]
-CAPTURES = Path(os.environ.get("ROOST_CAPTURES_DIR") or REPO.parent / "shared" / "captures")
 STEP_S = 0.05
 TH = Thresholds()
 OK, STARTING, ERROR = HealthLevel.OK, HealthLevel.STARTING, HealthLevel.ERROR
-
-
-def capture(name: str) -> Path:
-    path = CAPTURES / name
-    if not path.is_file():
-        pytest.skip(f"capture {name} not found in {CAPTURES} (set ROOST_CAPTURES_DIR)")
-    return path
 
 
 @dataclass

@@ -274,3 +274,43 @@ def test_the_rendered_fleet_table_marks_the_active_autopilot_without_colour() ->
 def test_empty_tables_say_how_to_fill_them() -> None:
     assert "kubectl apply -f examples/vehicle-sim-px4.yaml" in _plain(render.fleet_table([]))
     assert "kubectl apply -f examples/mission.yaml" in _plain(render.missions_table([]))
+
+
+def test_parameter_drift_and_the_flight_hold_show_per_vehicle() -> None:
+    in_sync = {
+        "type": "ParametersInSync",
+        "status": "True",
+        "reason": "InSync",
+        "message": "2 parameter(s) hold their declared values",
+        "lastTransitionTime": _iso(5),
+    }
+    drifted = {
+        "type": "ParametersInSync",
+        "status": "False",
+        "reason": "Drifted",
+        "message": "changed on the autopilot since the agent set it: GF_ACTION is 1, declared 3",
+        "lastTransitionTime": _iso(5),
+    }
+    status = {
+        "activeAutopilot": "fc-a",
+        "autopilots": [
+            {"name": "fc-a", "level": "OK", "conditions": [in_sync]},
+            {"name": "fc-b", "level": "OK", "conditions": [drifted]},
+        ],
+    }
+    hold = {
+        "reason": "autopilot fc-a is armed",
+        "disruptionBudget": "roost-vehicle-d1-in-flight",
+        "deferred": ["mavros"],
+    }
+    [row] = tables.fleet_rows(
+        [vehicle("d1", flightHold=hold)], [autopilot("d1", status=status)], [], NOW
+    )
+    assert [c.params for c in row.autopilots] == ["", "Drifted: GF_ACTION is 1, declared 3"]
+    assert "fc-b OK [params Drifted: GF_ACTION is 1, declared 3]" in row.health
+    assert row.flight_hold == "autopilot fc-a is armed; deferred mavros"
+    console = Console(width=200, record=True)
+    console.print(render.fleet_table([row]))
+    shown = console.export_text()
+    assert "in flight: autopilot fc-a is armed; deferred mavros" in shown
+    assert "[params Drifted: GF_ACTION is 1, declared 3]" in shown

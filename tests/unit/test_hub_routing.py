@@ -341,6 +341,24 @@ def test_mode_changes_are_mirrored_only_within_a_stack(
     assert kinds(links["fc3"]) == []  # ArduPilot: the PX4 mode number means something else
 
 
+def test_parameter_writes_are_mirrored_within_a_stack_and_reads_are_not(
+    routed: tuple[Hub, dict[str, RecordingLink]],
+) -> None:
+    hub, links = routed
+    real32 = mavlink.MAV_PARAM_TYPE_REAL32
+    hub.route(
+        client_msg(mavlink.MAVLink_param_set_message(VEHICLE, 1, b"MIS_TAKEOFF_ALT", 6.2, real32))
+    )
+    hub.route(
+        client_msg(mavlink.MAVLink_param_request_read_message(VEHICLE, 1, b"MIS_TAKEOFF_ALT", -1))
+    )
+    assert kinds(links["fc1"]) == ["PARAM_SET", "PARAM_REQUEST_READ"]
+    [mirrored] = links["fc2"].frames  # the PX4 standby, readdressed
+    assert (mirrored.get_type(), mirrored.target_system) == ("PARAM_SET", 2)
+    assert (mirrored.param_id, mirrored.param_value) == ("MIS_TAKEOFF_ALT", pytest.approx(6.2))
+    assert kinds(links["fc3"]) == []  # ArduPilot has no MIS_TAKEOFF_ALT (PILOT_TKOFF_ALT, cm)
+
+
 def test_after_set_active_the_route_follows_and_mirrors_go_to_the_old_active(
     routed: tuple[Hub, dict[str, RecordingLink]],
 ) -> None:

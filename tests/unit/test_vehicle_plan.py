@@ -384,3 +384,81 @@ def test_a_pending_pod_is_only_starting_while_its_containers_wait_for_their_star
 def test_an_ended_pod_is_not_starting() -> None:
     ended = {"metadata": {"name": "m"}, "status": {"phase": "Failed", "reason": "Evicted"}}
     assert not pod_state("mavros", ended).starting
+
+
+# -- nothing changes under a vehicle in the air (roost_operator.vehicles.flight) ----------
+
+
+def armed(*names: str, active: str = "fc1") -> dict[str, Any]:
+    """The agent reporting ``names`` armed (the others disarmed)."""
+    healths = [
+        {"name": n, "level": "OK", "armed": n in names, "landedState": "InAir"}
+        for n in ("fc1", "fc2")
+    ]
+    return with_agent(active, autopilots=healths)
+
+
+def simulated(**status: Any) -> dict[str, Any]:
+    return {
+        "spec": VehicleSpec.model_validate(
+            {"nodeName": "node-a", "sysid": 12, "simulation": {"stack": "px4"}}
+        ),
+        **status,
+    }
+
+
+@pytest.mark.parametrize(
+    ("overrides", "holds", "budget", "reason"),
+    [
+        # (what the agent reports, ...) -> pods held, a budget, status.flightHold.reason
+        ({}, False, False, None),  # no RedundantAutopilot: on the ground as far as we know
+        (with_agent("fc1"), False, False, None),  # nobody said armed
+        (armed(), False, False, None),
+        (armed("fc2"), True, True, "autopilot fc2 is armed"),  # a standby armed counts
+        (armed("fc1", "fc2"), True, True, "autopilot fc1, fc2 are armed"),
+        ({**armed("fc1"), "node": None}, True, True, "autopilot fc1 is armed"),  # node gone
+        ({**armed("fc1"), "name": "d" * 64}, False, False, None),  # runs nothing at all
+    ],
+)
+def test_in_flight_decision_table(
+    overrides: dict[str, Any], holds: bool, budget: bool, reason: str | None
+) -> None:
+    plan = plan_vehicle(observed(**overrides), CTX)
+    assert plan.holds_pods is holds
+    assert (plan.disruption_budget is not None) is budget
+    hold = plan.status.flight_hold
+    assert (hold.reason if hold else None) == reason
+    if plan.disruption_budget is not None:
+        assert hold is not None and hold.disruption_budget == "roost-vehicle-drone1-in-flight"
+        assert plan.disruption_budget["metadata"]["name"] == hold.disruption_budget
+        assert plan.disruption_budget["spec"]["maxUnavailable"] == 0
+        assert plan.disruption_budget["spec"]["selector"]["matchLabels"] == {
+            "app.kubernetes.io/managed-by": "roost",
+            "roost.dev/vehicle": "drone1",
+        }
+
+
+def test_a_failover_consequence_is_not_held_in_the_air() -> None:
+    followed_fc1 = VehicleStatus(fcu_url=URL1, failover=VehicleFailover(followed_autopilot="fc1"))
+    plan = plan_vehicle(observed(status=followed_fc1, **armed("fc2", active="fc2")), CTX)
+    assert plan.failover is not None and plan.failover.acting
+    assert not plan.holds_pods  # mavros is re-pointed in flight
+    assert plan.disruption_budget is not None  # but nothing is evicted
+
+
+def test_in_the_air_an_outdated_pod_counts_as_it_runs_and_is_listed_as_deferred() -> None:
+    plan = plan_vehicle(observed(**simulated(**armed("fc1"))), CTX)
+    assert plan.pods, "a simulated vehicle has components"
+    running = {"status": {"phase": "Running", "conditions": [{"type": "Ready", "status": "True"}]}}
+    old = {"metadata": {"annotations": {"roost.dev/pod-hash": "old"}}, **running}
+    live = {c: {**pod, **running} for c, pod in plan.pods.items()}
+    live["mavros"] = old
+    status = report(plan, live=live, refused={}, generation=3, agent_expected=True)
+    assert status.flight_hold is not None and status.flight_hold.deferred == ["mavros"]
+    components = find_condition(status.conditions, "ComponentsReady")
+    assert components is not None and components.status == "True"
+    landed = plan_vehicle(observed(**simulated(**armed())), CTX)
+    status = report(landed, live=live, refused={}, generation=3, agent_expected=True)
+    assert status.flight_hold is None
+    components = find_condition(status.conditions, "ComponentsReady")
+    assert components is not None and components.status == "False"  # now being replaced

@@ -82,6 +82,20 @@ def test_an_outdated_pod_is_deleted_and_its_successor_waits_for_the_deletion() -
     assert api.writes == [("delete", "drone1-mavros")]  # no create beside it
 
 
+def test_in_the_air_an_outdated_pod_is_kept_and_an_ended_or_missing_one_still_comes_back() -> None:
+    outdated = running(desired("node-old"))
+    api = FakeApi(outdated)
+    assert controller(api)._converge_pod(desired(), node_exists=True, holding=True) == outdated
+    assert api.writes == []  # replaced after the landing
+    ended = {**desired(), "status": {"phase": "Failed"}}
+    api = FakeApi(ended)
+    controller(api)._converge_pod(desired(), node_exists=True, holding=True)
+    assert api.writes == [("delete", "drone1-mavros")]
+    api = FakeApi()
+    controller(api)._converge_pod(desired(), node_exists=True, holding=True)
+    assert api.writes == [("create", "drone1-mavros")]
+
+
 def test_a_terminating_pod_is_left_alone_and_the_desired_one_kept() -> None:
     leaving = running(desired(), deletionTimestamp="2024-01-01T00:00:00Z")
     api = FakeApi(leaving)

@@ -5,7 +5,10 @@ Each check reads one writer's verdict rather than re-deriving it: ``NodeBound``,
 ``ActiveHealthy`` and ``Redundant`` are the node agent's on the RedundantAutopilot. A
 condition that is absent counts as failing: before the agent has ever reported, nobody
 knows the vehicle is fit to fly. Which checks apply is the mission's ``spec.preflight``;
-the vehicle-side checks (node bound, components ready) always do. The Vehicle's summary
+the vehicle-side checks (node bound, components ready) always do, and so does the
+firmware check of a RedundantAutopilot that requires a firmware (``spec.firmware``):
+the agent's ``FirmwareAcceptable`` condition, whose message names the autopilot that
+breaks the requirement. The Vehicle's summary
 ``Ready`` is not used: it also requires redundancy, which a mission may waive.
 """
 
@@ -89,5 +92,17 @@ def preflight_failures(
             missing = f"no {condition_type} condition from the agent yet"
             failures.append(
                 PreflightFailure(reason, f"{summary}: {_condition_text(condition, missing)}")
+            )
+    if autopilots is not None and autopilots.spec.firmware is not None:
+        condition = find_condition(
+            autopilots.status.conditions, AutopilotConditionType.FIRMWARE_ACCEPTABLE
+        )
+        if condition is None or condition.status != "True":
+            missing = "no FirmwareAcceptable condition from the agent yet"
+            failures.append(
+                PreflightFailure(
+                    MissionVehicleReason.FIRMWARE_UNACCEPTABLE,
+                    f"firmware requirement not met: {_condition_text(condition, missing)}",
+                )
             )
     return failures

@@ -70,6 +70,7 @@ from roost_kube.resources import (
     CONFIGMAPS,
     LEASES,
     NODES,
+    PODDISRUPTIONBUDGETS,
     PODS,
     REDUNDANT_AUTOPILOTS,
     VEHICLES,
@@ -79,6 +80,7 @@ from roost_operator.autopilots.conditions import DEFAULT_AGENT_STALE_AFTER
 from roost_operator.autopilots.guards import FleetGuards
 from roost_operator.autopilots.plan import PlannedEvent, mavros_follows
 from roost_operator.cache import Cached, CachedView
+from roost_operator.vehicles import flight
 from roost_operator.vehicles.config import config_map_name
 from roost_operator.vehicles.desired import (
     PodStep,
@@ -93,6 +95,7 @@ from roost_operator.vehicles.placement import NodeClaim, NodeState, plan_node
 from roost_operator.vehicles.plan import (
     EVENT_CONDITIONS,
     REFUSED_AUTOPILOT_LABEL,
+    REFUSED_BUDGET,
     REFUSED_CONFIG,
     REFUSED_NODE,
     Context,
@@ -119,6 +122,7 @@ STATUS_FIELDS: Final = (
     "activeAutopilot",
     "failover",
     "claimedBy",
+    "flightHold",
 )
 """Every field of ``Vehicle.status``: this controller is its only writer."""
 
@@ -372,10 +376,13 @@ class VehicleController:
                 lambda: self._label_autopilot(autopilot, obs.spec.node_name),
             )
         attempt(REFUSED_CONFIG, lambda: cluster.apply(plan.config_map))
+        self._hold_evictions(obs, plan, attempt)
         live: dict[str, Obj | None] = {}
         for component, manifest in plan.pods.items():
             try:
-                live[component] = self._converge_pod(manifest, node_exists=obs.node is not None)
+                live[component] = self._converge_pod(
+                    manifest, node_exists=obs.node is not None, holding=plan.holds_pods
+                )
             except ConflictError:
                 raise
             except ApiError as err:
@@ -394,12 +401,27 @@ class VehicleController:
         listed = self.cluster.list_objects(PODS, namespace=self.namespace, labels=owned)
         return [pod for pod in listed if is_component_pod(pod)]
 
-    def _converge_pod(self, desired: Obj, *, node_exists: bool) -> Obj | None:
-        """One step of a component's pod towards ``desired`` (see :func:`pod_step`); the
-        pod as it is after the step (None: none yet)."""
+    def _hold_evictions(
+        self, obs: Observed, plan: VehiclePlan, attempt: Callable[[str, Callable[[], object]], None]
+    ) -> None:
+        """In the air: the PodDisruptionBudget that refuses evictions; on the ground after a
+        flight: delete it (roost_operator.vehicles.flight)."""
+        budget = plan.disruption_budget
+        if budget is not None:
+            attempt(REFUSED_BUDGET, lambda: self.cluster.apply(budget))
+        elif obs.status.flight_hold is not None:
+            name = obs.status.flight_hold.disruption_budget
+            self.cluster.delete(PODDISRUPTIONBUDGETS, name, self.namespace)
+
+    def _converge_pod(
+        self, desired: Obj, *, node_exists: bool, holding: bool = False
+    ) -> Obj | None:
+        """One step of a component's pod towards ``desired`` (see :func:`pod_step`; held in
+        the air by :func:`flight.hold_step`); the pod as it is after the step (None: none
+        yet)."""
         name, namespace = desired["metadata"]["name"], desired["metadata"]["namespace"]
         live = self.cluster.get(PODS, name, namespace)
-        step = pod_step(live, desired, node_exists=node_exists)
+        step = flight.hold_step(pod_step(live, desired, node_exists=node_exists), holding=holding)
         if step is PodStep.CREATE:
             try:
                 return self.cluster.create(desired)

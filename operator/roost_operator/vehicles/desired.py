@@ -349,6 +349,9 @@ class PodStep(StrEnum):
     """The live pod ended (evicted, failed): delete it, as for REPLACE."""
     WAIT = "wait"
     """The old pod is terminating, or its node does not exist yet: nothing to write."""
+    DEFER = "defer"
+    """The live pod differs but the vehicle is in the air: keep it until it lands
+    (:mod:`roost_operator.vehicles.flight`)."""
 
 
 def pod_step(

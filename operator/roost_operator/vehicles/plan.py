@@ -35,6 +35,7 @@ from typing import Any
 from roost_api.autopilot import RedundantAutopilotSpec, RedundantAutopilotStatus
 from roost_api.meta import Condition, ObjectReference, Stack, set_condition
 from roost_api.vehicle import (
+    FlightHold,
     VehicleConditionReason,
     VehicleConditionType,
     VehicleSpec,
@@ -47,6 +48,7 @@ from roost_operator.autopilots.conditions import DEFAULT_AGENT_STALE_AFTER
 from roost_operator.autopilots.guards import FleetGuards, vehicle_paused
 from roost_operator.autopilots.plan import FailoverPlan, PlannedEvent
 from roost_operator.autopilots.plan import plan as plan_failover
+from roost_operator.vehicles import flight
 from roost_operator.vehicles.config import vehicle_config, vehicle_config_map
 from roost_operator.vehicles.desired import (
     DEFAULT_FCU_URL,
@@ -130,6 +132,10 @@ class VehiclePlan:
     status: VehicleStatus
     """The status before the component states are known (see :func:`report`)."""
     runs_workloads: bool = field(default=True)
+    holds_pods: bool = field(default=False)
+    """In the air: a differing pod is kept until the landing (roost_operator.vehicles.flight)."""
+    disruption_budget: Obj | None = field(default=None)
+    """In the air: the PodDisruptionBudget refusing evictions; None on the ground."""
 
 
 @dataclass(frozen=True)
@@ -263,6 +269,12 @@ def plan_vehicle(obs: Observed, ctx: Context) -> VehiclePlan:
     node_state = (
         NodeState.of_vehicle(obs.name, obs.spec) if labels_node and obs.node is not None else None
     )
+    in_flight = flight.hold_reason(obs.autopilot_status) if labels_node else None
+    hold = (
+        None
+        if in_flight is None
+        else FlightHold(reason=in_flight, disruption_budget=flight.budget_name(obs.name))
+    )
     status = obs.status.model_copy(
         update={
             "observed_generation": obs.generation,
@@ -273,6 +285,7 @@ def plan_vehicle(obs: Observed, ctx: Context) -> VehiclePlan:
             "active_autopilot": failover.active_autopilot if failover else None,
             "failover": failover.failover if failover else obs.status.failover,
             "claimed_by": obs.claimed_by,
+            "flight_hold": hold,
         }
     )
     return VehiclePlan(
@@ -288,12 +301,18 @@ def plan_vehicle(obs: Observed, ctx: Context) -> VehiclePlan:
         fcu_url=fcu_url,
         status=status,
         runs_workloads=labels_node,
+        # a failover consequence (mavros re-pointed) is the vehicle flying on: not held
+        holds_pods=hold is not None and not (failover is not None and failover.acting),
+        disruption_budget=None
+        if hold is None
+        else flight.disruption_budget(obs.name, namespace=ctx.namespace, owners=list(ctx.owners)),
     )
 
 
 REFUSED_NODE = "node"
 REFUSED_AUTOPILOT_LABEL = "autopilot-label"
 REFUSED_CONFIG = "config"
+REFUSED_BUDGET = "disruption-budget"
 """Keys of :func:`report`'s ``refused`` for writes other than component Pods."""
 
 
@@ -349,7 +368,13 @@ def report(
         generation=generation,
         agent_expected=agent_expected,
     )
-    return plan.status.model_copy(update={"conditions": conditions})
+    update: dict[str, object] = {"conditions": conditions}
+    hold = plan.status.flight_hold
+    if hold is not None and plan.holds_pods:
+        update["flight_hold"] = hold.model_copy(
+            update={"deferred": flight.deferred(plan.pods, live)}
+        )
+    return plan.status.model_copy(update=update)
 
 
 def component_states(
@@ -359,7 +384,8 @@ def component_states(
     return [
         ComponentState(c, False, f"its Pod was refused: {refused[c].message}")
         if c in refused
-        else pod_state(c, live.get(c), pod_hash(desired))
+        # in the air an outdated pod is kept on purpose: it counts as it runs
+        else pod_state(c, live.get(c), None if plan.holds_pods else pod_hash(desired))
         for c, desired in plan.pods.items()
     ]
 

@@ -1,0 +1,235 @@
+"""roost_agent.params: the decision table of one parameter, the wire encodings, the keeper.
+
+The encodings are also checked against recorded real traffic (PX4 v1.16 and ArduCopter
+PARAM_VALUEs) when the recordings are present (``$ROOST_CAPTURES_DIR``, else
+``shared/captures`` beside the repository; skipped otherwise, read in place).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import struct
+
+os.environ.setdefault("MAVLINK20", "1")
+
+import pytest
+from pymavlink import mavutil
+
+from roost_agent.params import (
+    MAX_READS,
+    MAX_WRITES,
+    READBACK_S,
+    RETRY_S,
+    WINDOW,
+    Do,
+    Facts,
+    ParamKeeper,
+    ParamType,
+    Read,
+    Write,
+    bytewise_from_capabilities,
+    decide,
+    from_wire,
+    same,
+    to_wire,
+    value_problem,
+)
+from roost_api.autopilot_enums import ParametersReason as R
+from roost_api.core import Stack
+from tests.support.captures import capture
+
+F, I32 = ParamType.REAL32, ParamType.INT32
+NOW = 100.0
+
+# -- one parameter: the decision table -----------------------------------------------------
+
+never = -math.inf
+CASES = [
+    # (facts, armed, restore) -> (what to send, reason)
+    # not read yet: read, then again after RETRY_S, then give up (the firmware lacks it)
+    (Facts(desired=5), False, False, Do.READ, R.NO_DATA),
+    (Facts(desired=5, reads=1, read_at=NOW - 0.1), False, False, Do.NOTHING, R.NO_DATA),
+    (Facts(desired=5, reads=1, read_at=NOW - RETRY_S), False, False, Do.READ, R.NO_DATA),
+    (Facts(desired=5, reads=MAX_READS, read_at=NOW - 0.1), False, False, Do.NOTHING, R.NO_DATA),
+    (Facts(desired=5, reads=MAX_READS, read_at=NOW - RETRY_S), False, False, Do.NOTHING, R.MISSING),
+    # armed changes nothing about reading
+    (Facts(desired=5), True, False, Do.READ, R.NO_DATA),
+    # a value the type cannot hold is never written
+    (Facts(desired=1.5, observed=1, ptype=I32), False, False, Do.NOTHING, R.INVALID),
+    (Facts(desired=2**31, observed=1, ptype=I32), False, False, Do.NOTHING, R.INVALID),
+    # holds it
+    (Facts(desired=5, observed=5, ptype=I32), False, False, Do.NOTHING, R.IN_SYNC),
+    (Facts(desired=5, observed=5, ptype=I32, applied=True), True, True, Do.NOTHING, R.IN_SYNC),
+    (Facts(desired=0.1, observed=float(struct.unpack("<f", struct.pack("<f", 0.1))[0]), ptype=F),
+     False, False, Do.NOTHING, R.IN_SYNC),
+    # first write: on the ground only
+    (Facts(desired=5, observed=2, ptype=I32), False, False, Do.WRITE, R.WRITING),
+    (Facts(desired=5, observed=2, ptype=I32), True, False, Do.NOTHING, R.DEFERRED),
+    (Facts(desired=5, observed=2, ptype=I32), True, True, Do.NOTHING, R.DEFERRED),
+    # a write waits RETRY_S for its echo, is repeated, and is refused after MAX_WRITES
+    (Facts(desired=5, observed=2, ptype=I32, writes=1, write_at=NOW - 0.2), False, False,
+     Do.NOTHING, R.WRITING),
+    (Facts(desired=5, observed=2, ptype=I32, writes=1, write_at=NOW - RETRY_S), False, False,
+     Do.WRITE, R.WRITING),
+    (Facts(desired=5, observed=2, ptype=I32, writes=MAX_WRITES, write_at=NOW - RETRY_S), False,
+     False, Do.NOTHING, R.REFUSED),
+    # set once, changed by someone else: drift; written back only with Restore, disarmed
+    (Facts(desired=5, observed=2, ptype=I32, applied=True), False, False, Do.NOTHING, R.DRIFTED),
+    (Facts(desired=5, observed=2, ptype=I32, applied=True), False, True, Do.WRITE, R.DRIFTED),
+    (Facts(desired=5, observed=2, ptype=I32, applied=True), True, True, Do.NOTHING, R.DRIFTED),
+    (Facts(desired=5, observed=2, ptype=I32, applied=True, write_at=NOW - 0.1), False, True,
+     Do.NOTHING, R.DRIFTED),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("facts", "armed", "restore", "do", "reason"), CASES)
+def test_one_parameter_decision_table(
+    facts: Facts, armed: bool, restore: bool, do: Do, reason: R
+) -> None:
+    assert decide(facts, now=NOW, armed=armed, restore=restore) == (do, reason)
+
+
+# -- the encodings ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("ptype", [t for t in ParamType if t is not ParamType.REAL32])
+@pytest.mark.parametrize("bytewise", [True, False])
+def test_integers_survive_both_encodings(ptype: ParamType, bytewise: bool) -> None:
+    for value in (0, 1, 7, 100, 127):
+        wire = to_wire(value, ptype, bytewise=bytewise)
+        assert from_wire(wire, ptype, bytewise=bytewise) == value
+
+
+def test_bytewise_is_the_integers_bytes_and_c_cast_the_number() -> None:
+    assert struct.pack("<f", to_wire(1310988, I32, bytewise=True)) == struct.pack("<i", 1310988)
+    assert to_wire(1310988, I32, bytewise=False) == 1310988.0
+    assert to_wire(-3, ParamType.INT8, bytewise=True) != -3.0
+    assert (
+        from_wire(to_wire(-3, ParamType.INT8, bytewise=True), ParamType.INT8, bytewise=True) == -3
+    )
+    assert to_wire(6.2, F, bytewise=True) == to_wire(6.2, F, bytewise=False)
+
+
+def test_capabilities_choose_the_encoding() -> None:
+    assert bytewise_from_capabilities(1 << 4, Stack.ARDUPILOT)
+    assert not bytewise_from_capabilities(1 << 17, Stack.PX4)
+    assert bytewise_from_capabilities(0, Stack.PX4)
+    assert not bytewise_from_capabilities(0, Stack.ARDUPILOT)
+
+
+def test_values_are_checked_against_the_type() -> None:
+    assert value_problem(255, ParamType.UINT8) is None
+    assert "outside 0..255" in (value_problem(256, ParamType.UINT8) or "")
+    assert "whole number" in (value_problem(1.5, ParamType.INT16) or "")
+    assert "finite" in (value_problem(math.nan, F) or "")
+    assert value_problem(1e39, F) is not None
+    assert same(6.2, float(struct.unpack("<f", struct.pack("<f", 6.2))[0]), F)
+
+
+def _param_values(name: str) -> list[tuple[str, float, int]]:
+    path = capture(name)
+    log = mavutil.mavlink_connection(str(path), dialect="ardupilotmega")
+    out = []
+    while (msg := log.recv_match(type="PARAM_VALUE")) is not None:
+        out.append((msg.param_id, msg.param_value, msg.param_type))
+    return out
+
+
+def test_recorded_px4_integers_are_bytewise() -> None:
+    values = _param_values("px4-v1.16-sih-boot-arm-takeoff-loiter-land.tlog")
+    ints = [(n, w) for n, w, t in values if t == ParamType.INT32]
+    assert ints and {t for _, _, t in values} <= {ParamType.INT32, ParamType.REAL32}
+    for name, wire in ints:  # device ids and priorities: whole numbers read bytewise
+        value = from_wire(wire, I32, bytewise=True)
+        assert to_wire(value, I32, bytewise=True) == wire, name
+    by_name = {n: from_wire(w, I32, bytewise=True) for n, w in ints}
+    assert by_name["CAL_MAG0_PRIO"] == 50  # a sensor priority, 0..100
+    assert bytewise_from_capabilities(0, Stack.PX4)
+
+
+def test_recorded_ardupilot_integers_are_c_cast_with_their_own_types() -> None:
+    values = _param_values("arducopter-streams-arm-takeoff-brake-land.tlog")
+    by_name = {n: (w, t) for n, w, t in values}
+    assert by_name["EK3_SRC1_POSXY"] == (3.0, ParamType.INT8)
+    assert by_name["MIS_TOTAL"][1] == ParamType.INT16
+    wire, ptype = by_name["INS_GYR_ID"]
+    assert ptype == ParamType.INT32 and from_wire(wire, I32, bytewise=False) == 2752772
+    assert not bytewise_from_capabilities(0, Stack.ARDUPILOT)
+
+
+# -- the keeper --------------------------------------------------------------------------------
+
+
+def _answer(
+    keeper: ParamKeeper, ops: list[Read | Write], held: dict[str, float], at: float
+) -> None:
+    """What a firmware holding ``held`` (INT32 on PX4) answers to ``ops``."""
+    for op in ops:
+        if isinstance(op, Write):
+            held[op.name] = from_wire(op.wire, op.ptype, bytewise=True)
+        if op.name in held:
+            keeper.observe(op.name, to_wire(held[op.name], I32, bytewise=True), I32, at)
+
+
+def test_the_keeper_reads_writes_confirms_and_finds_drift() -> None:
+    keeper = ParamKeeper(Stack.PX4)
+    keeper.declare({"GF_ACTION": 3, "NOPE": 1})
+    held = {"GF_ACTION": 2.0}
+    now = 0.0
+    ops = keeper.step(now, armed=False, restore=False)
+    assert ops == [Read("GF_ACTION"), Read("NOPE")]
+    _answer(keeper, ops, held, now)
+    ops = keeper.step(now + 0.1, armed=False, restore=False)
+    assert ops == [Write("GF_ACTION", to_wire(3, I32, bytewise=True), I32)]
+    _answer(keeper, ops, held, now + 0.1)
+    assert keeper.reasons()["GF_ACTION"] is R.WRITING  # judged at the next step
+    for _ in range(MAX_READS + 1):
+        now += RETRY_S
+        _answer(keeper, keeper.step(now, armed=False, restore=False), held, now)
+    assert keeper.reasons() == {"GF_ACTION": R.IN_SYNC, "NOPE": R.MISSING}
+    verdict = keeper.verdict()
+    assert (verdict.status, verdict.reason) == ("False", R.MISSING)
+    assert "NOPE" in verdict.message
+    # another client sets it: the answer to the next read-back shows drift
+    held["GF_ACTION"] = 1.0
+    now += READBACK_S
+    drift = None
+    for op in keeper.step(now, armed=False, restore=False):
+        drift = keeper.observe(op.name, to_wire(held[op.name], I32, bytewise=True), I32, now)
+    assert drift is not None and (drift.desired, drift.observed) == (3, 1)
+    keeper.declare({"GF_ACTION": 3})
+    keeper.step(now, armed=False, restore=False)
+    verdict = keeper.verdict()
+    assert (verdict.reason, verdict.message) == (
+        R.DRIFTED,
+        "changed on the autopilot since the agent set it: GF_ACTION is 1, declared 3",
+    )
+    # with Restore it is written back, not while armed
+    armed = keeper.step(now + RETRY_S, armed=True, restore=True)
+    assert not [op for op in armed if isinstance(op, Write)]
+    assert [type(op) for op in keeper.step(now + RETRY_S, armed=False, restore=True)] == [Write]
+
+
+def test_the_keeper_keeps_a_window_of_requests_in_flight() -> None:
+    keeper = ParamKeeper(Stack.ARDUPILOT)
+    keeper.declare({f"RC{n}_MIN": 1000 for n in range(1, 17)} | {"FENCE_RADIUS": 50})
+    first = keeper.step(0.0, armed=False, restore=False)
+    assert len(first) == WINDOW
+    assert keeper.step(0.1, armed=False, restore=False) == []  # nothing answered yet
+    keeper.observe("RC1_MIN", 1100.0, ParamType.INT16, 0.15)
+    assert keeper.step(0.2, armed=False, restore=False) == [
+        Write("RC1_MIN", 1000.0, ParamType.INT16)  # ArduPilot: the number, its own type
+    ]
+    keeper.observe("RC1_MIN", 1000.0, ParamType.INT16, 0.25)
+    assert keeper.step(0.3, armed=False, restore=False) == [Read("FENCE_RADIUS")]
+
+
+def test_a_new_declared_value_is_written_not_drift() -> None:
+    keeper = ParamKeeper(Stack.PX4)
+    keeper.declare({"MIS_TAKEOFF_ALT": 2.5})
+    keeper.observe("MIS_TAKEOFF_ALT", 2.5, F, 0.0)
+    keeper.declare({"MIS_TAKEOFF_ALT": 6.2})
+    [op] = keeper.step(1.0, armed=False, restore=False)
+    assert op == Write("MIS_TAKEOFF_ALT", to_wire(6.2, F, bytewise=True), F)
+    assert keeper.verdict().reason is R.WRITING
