@@ -418,7 +418,9 @@ class Agent:
         )
         self._spec_lock = threading.Lock()
         # The vehicle's MAVLink endpoint (roost_agent.hub), when the spec asks for it.
-        self._hub: Hub | None = hub_for(spec, self._state.active, self._cfg.links)
+        self._hub: Hub | None = hub_for(
+            spec, self._state.active, self._cfg.links, signing=signing, on_event=self._hub_event
+        )
         if self._hub is not None:  # routed frames are not held back while clients wait
             self._reader.hurry = self._hub.has_clients
         self._in_step: dict[str, InStep] = {}
@@ -609,6 +611,7 @@ class Agent:
                 if a.name in assessments
             ]
             observed = RedundantAutopilotStatus(
+                hub_endpoints=self._hub.endpoint_status() if self._hub is not None else [],
                 active_autopilot=state.active,
                 autopilots=healths,
                 last_failover=self._last_failover,
@@ -1144,6 +1147,9 @@ class Agent:
                 keeper.attempts,
             )
             send_requests(link, requests)
+
+    def _hub_event(self, reason: str, message: str, warning: bool) -> None:
+        self._emit(EventKind.LINK, reason, message, warning=warning)
 
     def _emit(
         self,

@@ -44,6 +44,7 @@ import yaml
 
 from roost_agent.agent import Agent, connection_problems, restore_state
 from roost_agent.bridge import Bridge, GpioBridge, SimulatedBridge
+from roost_agent.hub_policy import HubConfigError
 from roost_agent.signing import DEFAULT_KEY_DIR, SigningError, SigningMode, load_signing
 from roost_agent.state import STATE_FILE_NAME, StateFile
 from roost_api.plain import AutopilotSpec, RedundantAutopilotSpec
@@ -334,6 +335,8 @@ def main(argv: list[str] | None = None) -> int:
         )
     except OSError as exc:  # the hub's endpoint is taken or not an address of this node
         raise refuse(f"cannot serve the vehicle's MAVLink endpoint (spec.hub): {exc}") from None
+    except HubConfigError as exc:  # an endpoint beyond loopback without a key
+        raise refuse(f"spec.hub: {exc}") from None
     agent.subscribe(lambda event: out.write(event.to_json()))
     stop = threading.Event()
 

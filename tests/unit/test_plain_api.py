@@ -292,7 +292,10 @@ def test_a_state_file_written_by_the_hand_written_loader_still_loads() -> None:
         land_started=1777636801.25,
         holds=False,
     )
-    assert state.api_dump() == HAND_WRITTEN_AGENT_STATE  # written back unchanged
+    # written back unchanged, apart from fields added to the spec since (their defaults)
+    expected = json.loads(json.dumps(HAND_WRITTEN_AGENT_STATE))
+    expected["spec"]["hub"]["endpoints"] = []
+    assert state.api_dump() == expected
 
 
 @settings(max_examples=300, suppress_health_check=[HealthCheck.too_slow], deadline=None)
