@@ -92,6 +92,14 @@ def parse_key(text: str | bytes) -> bytes:
         raise ValueError("a signing key is hex digits only") from None
 
 
+def passphrase_key(passphrase: str) -> bytes:
+    """The 32-byte key ground stations derive from a passphrase: SHA-256 of its ASCII
+    text (MAVProxy's ``signing key PASSPHRASE``; QGroundControl's signing key field)."""
+    import hashlib  # noqa: PLC0415 - only with signing on (see the module docstring)
+
+    return hashlib.sha256(passphrase.encode("ascii")).digest()
+
+
 def _crc(data: bytes, msg_id: int) -> int | None:
     crc_extra = crc_extra_of(msg_id)
     return None if crc_extra is None else frame_crc(data, crc_extra)
