@@ -500,6 +500,16 @@ class Agent:
         """The links by autopilot name (counters, trackers)."""
         return self._cfg.links
 
+    def rekey(self, signing: LinkSigning) -> None:
+        """Adopt a rotated signing key without a restart: every link and the hub sign
+        with it and take it (and the previous key) from now on; links opened later too."""
+        with self._spec_lock:
+            self._signing = signing
+            for link in self._cfg.links.values():
+                link.rekey(signing)
+            if self._hub is not None:
+                self._hub.rekey(signing)
+
     @property
     def hub(self) -> Hub | None:
         """The vehicle's MAVLink endpoint (None when the spec has no hub)."""

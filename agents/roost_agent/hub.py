@@ -418,6 +418,7 @@ class _Client:
         self.sock = sock  # TCP clients only
         self.out = endpoint.sock  # UDP clients: the endpoint's socket sends to them
         self.signs = endpoint.plan.signed  # what it gets is signed
+        self.signing_key: bytes | None = None  # the key it proved (a rotation may differ)
         # Gets the vehicle's messages: at once on an open endpoint, else once a frame of
         # it passed the signature check (a TCP connection alone proves nothing).
         self.ready = endpoint.gate.open
@@ -519,6 +520,13 @@ class Hub:
                 endpoint.gate = Gate(endpoint.gate.scope, signing.verifier())
         if self._signer is not None:
             self._signer = signing.signer(HUB_LINK_ID)
+        known = (signing.key, signing.previous)
+        with self._clients_lock:  # a client with a key retired twice must sign in again
+            for client in self._clients.values():
+                if client.signs and client.signing_key not in (None, *known):
+                    client.ready = False
+                    client.signing_key = None
+            self._sinks = tuple(c for c in self._clients.values() if c.ready)
 
     # -- wiring ------------------------------------------------------------------------
 
@@ -687,14 +695,17 @@ class Hub:
         if frame is None:
             return
         sent = 0
-        signed: bytes | None = None  # signed once for every client of signed endpoints
+        signed: dict[bytes | None, bytes] | None = None  # signed once per key in use
         for client in sinks:
             out = frame
             if client.signs:
                 if signed is None:
-                    signer = self._signer
-                    signed = frame if signer is None else signer.sign(frame)
-                out = signed
+                    signed = {}
+                key = client.signing_key
+                found = signed.get(key)
+                if found is None:
+                    found = signed[key] = self._sign(frame, key)
+                out = found
             try:
                 if client.sock is None:
                     client.out.sendto(out, client.address)
@@ -710,6 +721,17 @@ class Hub:
         counters = self.counters
         counters.to_clients += sent
         counters.forwarded[name] = counters.forwarded.get(name, 0) + 1
+
+    def _sign(self, frame: bytes, key: bytes | None) -> bytes:
+        """``frame`` signed with ``key`` (None: the current key) for a signed client."""
+        signer = self._signer
+        if signer is None:
+            return frame
+        signing = self._signing
+        wanted = key if key is not None else signing.key if signing is not None else None
+        if wanted is not None and wanted is not signer.key:
+            signer.use(wanted)
+        return signer.sign(frame)
 
     @staticmethod
     def _standby_answered(seen: Snapshot, command: int, result: int, now: float) -> None:
@@ -866,6 +888,9 @@ class Hub:
                 elif not client.ready:
                     self._ready(client)
                 client.last_seen = now
+                verifier = gate.verifier
+                if verifier is not None:
+                    client.signing_key = verifier.used
             if reason == ACCEPT:
                 self._from_client([msg])
                 continue

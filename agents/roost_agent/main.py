@@ -45,7 +45,13 @@ import yaml
 from roost_agent.agent import Agent, connection_problems, restore_state
 from roost_agent.bridge import Bridge, GpioBridge, SimulatedBridge
 from roost_agent.hub_policy import HubConfigError
-from roost_agent.signing import DEFAULT_KEY_DIR, SigningError, SigningMode, load_signing
+from roost_agent.signing import (
+    DEFAULT_KEY_DIR,
+    KeyWatcher,
+    SigningError,
+    SigningMode,
+    load_signing,
+)
 from roost_agent.state import STATE_FILE_NAME, StateFile
 from roost_api.plain import AutopilotSpec, RedundantAutopilotSpec
 from roost_api.plain_check import PlainValidationError
@@ -354,6 +360,9 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGHUP, lambda *_: threading.Thread(target=reload, daemon=True).start())
     agent.start()
+    if signing is not None:  # a rotated key is taken without a restart
+        watcher = KeyWatcher(args.signing_keys, spec.vehicle_name, signing, agent.rekey)
+        threading.Thread(target=watcher.run, args=(stop,), name="signing-keys", daemon=True).start()
     publisher = None
     if kube is not None:
         from roost_agent.publisher import Publisher, PublisherSettings  # noqa: PLC0415

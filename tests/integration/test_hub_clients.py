@@ -15,7 +15,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 import pytest
@@ -151,10 +151,8 @@ class MavProxy:
         return [line for line in self.output if "Detected vehicle" in line]
 
     def close(self) -> None:
-        try:
+        with suppress(OSError):
             self.say("exit")
-        except OSError:
-            pass
         try:
             self.proc.wait(timeout=5)
         except subprocess.TimeoutExpired:
@@ -224,8 +222,6 @@ def test_signed_mavproxy_flies_a_signed_vehicle_and_an_unsigned_one_gets_nothing
             fly_with_mavproxy(v, pilot)
             intruder.say("arm throttle")
             assert intruder.detected() == []  # it never even saw the vehicle
-        reached = [
-            c for s in v.sims for c in s.commands if c.source[0] == UNSIGNED_MAVPROXY_SYSID
-        ]
+        reached = [c for s in v.sims for c in s.commands if c.source[0] == UNSIGNED_MAVPROXY_SYSID]
         assert reached == []
         assert hub.endpoint_status()[1].signed

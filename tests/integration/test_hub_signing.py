@@ -223,3 +223,52 @@ def test_an_endpoint_beyond_loopback_without_a_key_refuses_to_start() -> None:
     )
     with pytest.raises(HubConfigError, match="gcs"):
         Hub(spec, "fc1")  # refused before any socket is bound
+
+
+NEW_KEY = bytes.fromhex("6e" * 32)
+
+
+def test_a_rotated_key_is_taken_without_a_restart_and_nothing_breaks_meanwhile() -> None:
+    """The agent gets the new key with the old one as ``previous`` (what ``roost keys
+    rotate`` writes): the autopilots, still on the old key, keep being answered with it;
+    a ground station with either key flies; once an autopilot is provisioned with the new
+    key the agent answers it with that one."""
+    with hub_vehicle(["px4", "px4"], endpoints=endpoints(), key=KEY) as v:
+        hub = hub_of(v)
+        signing = v.agent.links["fc1"].signing
+        assert signing is not None
+        v.agent.rekey(signing.rotated(NEW_KEY, KEY))
+        for name in ("fc1", "fc2"):
+            heard = v.agent.links[name].counters.accepted
+            wait_until(
+                f"{name} still heard on the old key",
+                lambda n=name, h=heard: v.agent.links[n].counters.accepted > h + 50,
+                10,
+                0.05,
+            )
+        for key, sysid in ((KEY, 240), (NEW_KEY, 241)):
+            with HubClient(hub.endpoint_address("gcs"), sysid=sysid, key=key) as gcs:
+                gcs.wait_for(lambda r: r.kind == "HEARTBEAT" and r.sysid == VEHICLE_SYSID, 10)
+                assert gcs.command(VEHICLE_SYSID, ARM, 1) == mavlink.MAV_RESULT_ACCEPTED
+                assert gcs.command(VEHICLE_SYSID, ARM, 0) == mavlink.MAV_RESULT_ACCEPTED
+        for sim in v.sims:  # provisioned with the new key
+            sim.link.enable_signing(NEW_KEY, link_id=7)
+        for name in ("fc1", "fc2"):
+            link = v.agent.links[name]
+            heard = link.counters.accepted
+            wait_until(
+                f"{name} heard on the new key",
+                lambda lk=link, h=heard: lk.counters.accepted > h + 50,
+                10,
+                0.05,
+            )
+        assert all(link.counters.bad_signature == 0 for link in v.agent.links.values())
+        # the autopilots take what the agent forwards, now signed with the new key
+        assert v.client.command(VEHICLE_SYSID, ARM, 1) == mavlink.MAV_RESULT_ACCEPTED
+        wait_until("armed on both", lambda: all(s.snapshot().armed for s in v.sims), 10, 0.05)
+        assert v.client.command(VEHICLE_SYSID, ARM, 0) == mavlink.MAV_RESULT_ACCEPTED
+        with HubClient(hub.endpoint_address("gcs"), sysid=242, key=WRONG_KEY) as stranger:
+            stranger.mav.command_long_send(VEHICLE_SYSID, 1, ARM, 0, 1, 0, 0, 0, 0, 0, 0)
+            gcs_drops = next(e for e in hub.endpoints if e.name == "gcs").drops
+            wait_until("the stranger dropped", lambda: gcs_drops.by_reason[BAD_SIGNATURE], 10)
+        assert commands_from(v, 242) == 0
