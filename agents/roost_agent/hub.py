@@ -21,8 +21,14 @@ on any shared path (a router, a radio, a log), and a standby's acknowledgement w
 indistinguishable from the active's. Rewriting costs a header rewrite and a CRC per frame
 (measured: ``hub.added_latency_p99_ms``); when an autopilot's sysid already equals the
 vehicle's, its frames pass unchanged. Signed frames from an autopilot lose their
-signature on the way to clients (the rewritten header would not verify): the endpoint
-is for clients on the vehicle itself.
+signature on the way to clients (the rewritten header would not verify); clients of a
+signed endpoint get every frame signed again by the hub with the vehicle's key.
+
+Endpoints (:mod:`roost_agent.hub_policy`): the ``udp`` and ``tcp`` endpoints and each of
+``hub.endpoints`` have a gate: MAVLink 2 signature (with the vehicle's key; required
+beyond loopback unless the spec says Unauthenticated) and a scope (everything, reads
+only, or an allow-list). What fails either is dropped and counted per client, never
+forwarded. The open gate (loopback, everything) keeps the original per-frame path.
 
 Standbys in step. What clients send that changes flight state (:data:`MIRRORED_COMMANDS`
 inside COMMAND_LONG/INT, and :data:`MIRRORED_MESSAGES`: modes, mission items, setpoints,
