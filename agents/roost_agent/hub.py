@@ -393,6 +393,7 @@ class HubCounters:
     mirrored: int = 0  # client messages also sent to a standby (each standby counted)
     dropped_standby: int = 0  # standby / failed autopilot messages kept from clients
     dropped_from_clients: int = 0  # client frames an endpoint's gate refused
+    kept_for_agent: int = 0  # active autopilot frames addressed to the agent, not forwarded
     forwarded: dict[str, int] = field(default_factory=dict)  # per autopilot, to clients
     switches: int = 0
 
@@ -694,8 +695,11 @@ class Hub:
                 self._standby_answered(seen, int(msg.command), int(msg.result), now)
             self.counters.dropped_standby += 1
             return
+        if for_agent:  # the agent's own answers stay with it (a gap in clients' seq)
+            self.counters.kept_for_agent += 1
+            return
         sinks = self._sinks
-        if for_agent or not sinks:
+        if not sinks:
             return
         frame = rewrite_source(bytes(msg.get_msgbuf()), self.sysid)
         if frame is None:

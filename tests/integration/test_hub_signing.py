@@ -19,6 +19,7 @@ from collections.abc import Iterator
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from roost_agent.agent import AgentEvent
 from roost_agent.hub import Hub
 from roost_agent.hub_policy import (
     BAD_SIGNATURE,
@@ -27,7 +28,7 @@ from roost_agent.hub_policy import (
     UNSIGNED,
     HubConfigError,
 )
-from roost_api.autopilot import HubEndpoint, HubScope, HubSigning
+from roost_api.autopilot import HubEndpoint, HubScope, HubSigning, HubTransport
 from roost_api.plain import RedundantAutopilotSpec as PlainSpec
 from roost_mavlink.signing import Signer, Timestamps, Verdict, Verifier, split_frames
 from tests.support.hubclient import VEHICLE_SYSID, HubClient, HubVehicle, hub_vehicle
@@ -52,6 +53,12 @@ def endpoints() -> list[HubEndpoint]:
     return [
         HubEndpoint(name="gcs", address="127.0.0.1:0", signing=HubSigning.REQUIRED),
         HubEndpoint(
+            name="gcs-tcp",
+            address="127.0.0.1:0",
+            transport=HubTransport.TCP,
+            signing=HubSigning.REQUIRED,
+        ),
+        HubEndpoint(
             name="ro",
             address="127.0.0.1:0",
             scope=HubScope.READ_ONLY,
@@ -60,10 +67,17 @@ def endpoints() -> list[HubEndpoint]:
     ]
 
 
+EVENTS: list[AgentEvent] = []  # everything the module's vehicle reported
+STARTED: list[float] = []
+
+
 @pytest.fixture(scope="module")
 def vehicle() -> Iterator[HubVehicle]:
     with hub_vehicle(["px4", "px4"], endpoints=endpoints(), key=KEY) as v:
+        STARTED.append(time.monotonic())
+        unsubscribe = v.agent.subscribe(EVENTS.append)
         yield v
+        unsubscribe()
 
 
 def hub_of(v: HubVehicle) -> Hub:
@@ -141,6 +155,7 @@ def test_attacks_get_nothing_through_and_the_legitimate_client_loses_nothing(
     with HubClient(gcs_at, sysid=250, key=KEY) as gcs:
         gcs.wait_for(lambda r: r.kind == "HEARTBEAT" and r.sysid == VEHICLE_SYSID, 10)
         since = time.monotonic()
+        for_agent = hub.counters.kept_for_agent
         # a genuine signed ARM, recorded on the air and replayed below
         genuine = Signer(KEY, 9, Timestamps()).sign(arm_frame(REPLAY_SYSID))
         send(gcs_at, [genuine])
@@ -180,6 +195,7 @@ def test_attacks_get_nothing_through_and_the_legitimate_client_loses_nothing(
         assert gcs.command(VEHICLE_SYSID, ARM, 1) == mavlink.MAV_RESULT_ACCEPTED
         assert gcs.command(VEHICLE_SYSID, ARM, 0) == mavlink.MAV_RESULT_ACCEPTED
         received = gcs.messages(since=since)
+        for_agent = hub.counters.kept_for_agent - for_agent
 
     assert not any(s.snapshot().armed for s in v.sims)
     for sysid in (UNSIGNED_SYSID, WRONG_KEY_SYSID, FLOOD_SYSID, READ_ONLY_SYSID):
@@ -191,10 +207,43 @@ def test_attacks_get_nothing_through_and_the_legitimate_client_loses_nothing(
     # the active autopilot's, kept by the hub)
     # (read from the frame: pymavlink leaves the header of ids it lacks undecoded)
     seqs = [bytes(r.msg.get_msgbuf())[4] for r in received if r.sysid == VEHICLE_SYSID]
-    lost = sum((b - a - 1) % 256 for a, b in itertools.pairwise(seqs))
-    assert len(seqs) > 100 and lost == 0
+    gaps = sum((b - a - 1) % 256 for a, b in itertools.pairwise(seqs))
+    # (answers to the agent's own requests use sequence numbers but stay with the agent)
+    assert len(seqs) > 100 and gaps <= for_agent, (gaps, for_agent)
     drops = {e.name: e.dropped for e in hub.endpoint_status()}
     assert drops["gcs"] >= 5 + 5 + 5 and drops["ro"] >= 1
+
+    # thousands of drops, reported in at most one Event a minute per endpoint
+    def about_gcs() -> list[AgentEvent]:
+        return [e for e in reported() if e.message.startswith("endpoint gcs:")]
+
+    def reported() -> list[AgentEvent]:
+        return [e for e in list(EVENTS) if e.reason == "HubFramesDropped"]
+
+    wait_until("a HubFramesDropped Event", about_gcs, 10, 0.05)  # delivered by a thread
+    minutes = (time.monotonic() - STARTED[0]) / 60
+    assert len(about_gcs()) <= 1 + minutes
+    assert all(e.warning for e in reported())
+
+
+def test_a_tcp_client_gets_nothing_until_it_signs_and_then_only_signed_frames(
+    vehicle: HubVehicle,
+) -> None:
+    hub = hub_of(vehicle)
+    drops = next(e for e in hub.endpoints if e.name == "gcs-tcp").drops
+    before = drops.by_reason[UNSIGNED]
+    with socket.create_connection(hub.endpoint_address("gcs-tcp"), timeout=5) as conn:
+        me = conn.getsockname()[:2]
+        conn.sendall(_heartbeat(243))
+        wait_until("the unsigned frame dropped", lambda: drops.by_reason[UNSIGNED] > before, 10)
+        assert me not in hub.clients()
+        conn.sendall(Signer(KEY, 4, Timestamps()).sign(_heartbeat(243)))
+        wait_until("signed in", lambda: me in hub.clients(), 10, 0.02)
+        data = b""
+        while len(split_frames(data)) < 20:
+            data += conn.recv(65535)
+    verifier = Verifier(KEY, Timestamps())
+    assert all(verifier.check(f) is Verdict.GOOD for f in split_frames(data))
 
 
 def test_the_status_says_which_endpoints_sign(vehicle: HubVehicle) -> None:
@@ -203,6 +252,7 @@ def test_the_status_says_which_endpoints_sign(vehicle: HubVehicle) -> None:
     assert shown == {
         "udp": (HubScope.EVERYTHING, False),
         "gcs": (HubScope.EVERYTHING, True),
+        "gcs-tcp": (HubScope.EVERYTHING, True),
         "ro": (HubScope.READ_ONLY, True),
     }
 

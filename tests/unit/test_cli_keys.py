@@ -6,6 +6,7 @@ import base64
 import hashlib
 
 from roost_cli import keys
+from roost_mavlink.signing import passphrase_key
 
 
 def test_a_key_secret_holds_the_passphrase_and_its_sha256() -> None:
@@ -16,6 +17,7 @@ def test_a_key_secret_holds_the_passphrase_and_its_sha256() -> None:
     data = secret["stringData"]
     assert data["key"] == hashlib.sha256(b"correct horse").hexdigest()  # what MAVProxy uses
     assert (data["passphrase"], data["previous"]) == ("correct horse", "")
+    assert bytes.fromhex(data["key"]) == passphrase_key("correct horse")  # what the hub uses
 
 
 def test_passphrases_are_long_random_and_typeable() -> None:
