@@ -537,9 +537,6 @@ class Hub:
 
     # -- wiring ------------------------------------------------------------------------
 
-    def _first(self, transport: HubTransport) -> _Endpoint | None:
-        return next((e for e in self.endpoints if e.plan.transport is transport), None)
-
     def endpoint_address(self, name: str) -> Address:
         """Where the endpoint called ``name`` listens."""
         sock = next(e.sock for e in self.endpoints if e.name == name)

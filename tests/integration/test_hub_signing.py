@@ -13,10 +13,14 @@ from __future__ import annotations
 
 import itertools
 import socket
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
+import yaml
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from roost_agent.agent import AgentEvent
@@ -26,11 +30,10 @@ from roost_agent.hub_policy import (
     NOT_ALLOWED,
     REPLAYED,
     UNSIGNED,
-    HubConfigError,
 )
 from roost_api.autopilot import HubEndpoint, HubScope, HubSigning, HubTransport
-from roost_api.plain import RedundantAutopilotSpec as PlainSpec
 from roost_mavlink.signing import Signer, Timestamps, Verdict, Verifier, split_frames
+from roost_sim import free_udp_port
 from tests.support.hubclient import VEHICLE_SYSID, HubClient, HubVehicle, hub_vehicle
 from tests.support.waiting import wait_until
 
@@ -257,22 +260,43 @@ def test_the_status_says_which_endpoints_sign(vehicle: HubVehicle) -> None:
     }
 
 
-def test_an_endpoint_beyond_loopback_without_a_key_refuses_to_start() -> None:
-    autopilots = [
-        {"name": f"fc{i}", "stack": "px4", "connection": f"udp://127.0.0.1:{14990 + i}"}
-        | {"sysid": i, "bridgeChannel": i - 1}
-        for i in (1, 2)
-    ]
-    spec = PlainSpec.from_api(
-        {
-            "vehicleName": "v1",
-            "autopilots": autopilots,
-            "primary": "fc1",
-            "hub": {"endpoints": [{"name": "gcs", "address": "0.0.0.0:14560"}]},
-        }
+def test_an_agent_with_an_endpoint_beyond_loopback_and_no_key_refuses_in_one_line(
+    tmp_path: Path,
+) -> None:
+    """Refused before any socket is bound (nothing listens beyond loopback)."""
+    config = tmp_path / "ra.yaml"
+    config.write_text(
+        yaml.safe_dump(
+            {
+                "vehicleName": "v1",
+                "primary": "fc1",
+                "autopilots": [
+                    {
+                        "name": f"fc{i}",
+                        "stack": "px4",
+                        "connection": f"udp://127.0.0.1:{free_udp_port()}",
+                        "sysid": i,
+                        "bridgeChannel": i,
+                    }
+                    for i in (1, 2)
+                ],
+                "hub": {"endpoints": [{"name": "gcs", "address": "0.0.0.0:14560"}]},
+            }
+        )
     )
-    with pytest.raises(HubConfigError, match="gcs"):
-        Hub(spec, "fc1")  # refused before any socket is bound
+    exe = Path(sys.executable).with_name("roost-agent")
+    done = subprocess.run(
+        [str(exe), "--config", str(config), "--state-dir", str(tmp_path), "--cluster", "off"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert done.returncode == 2
+    refusals = [line for line in done.stderr.splitlines() if line.startswith("roost-agent: ")]
+    assert len(refusals) == 1, done.stderr
+    assert "hub endpoint gcs" in refusals[0] and "signing: Unauthenticated" in refusals[0]
+    assert "Traceback" not in done.stderr
 
 
 NEW_KEY = bytes.fromhex("6e" * 32)
