@@ -72,6 +72,7 @@ from roost_agent.hub_policy import (
     Gate,
     Scope,
     authenticated,
+    open_to_the_network,
     plan_endpoints,
 )
 from roost_agent.signing import LinkSigning
@@ -597,8 +598,19 @@ class Hub:
         self._tracker.confirm_s = hub.standby_limits.confirm_ms / 1000
 
     def start(self) -> None:
+        for plan in open_to_the_network([e.plan for e in self.endpoints]):
+            self._event(
+                "HubEndpointUnauthenticated",
+                f"endpoint {plan.name} ({plan.address}) does not check signatures: "
+                f"anyone who reaches it may send what scope {plan.scope.value} allows",
+                True,
+            )
         self._thread = threading.Thread(target=self._serve, name="mavlink-hub", daemon=True)
         self._thread.start()
+
+    def _event(self, reason: str, message: str, warning: bool) -> None:
+        if self._on_event is not None:
+            self._on_event(reason, message, warning)
 
     def stop(self) -> None:
         self._stop.set()
@@ -903,8 +915,8 @@ class Hub:
                 continue
             self.counters.dropped_from_clients += 1
             text = endpoint.drops.note(peer, reason, now)
-            if text is not None and self._on_event is not None:
-                self._on_event("HubFramesDropped", text, True)
+            if text is not None:
+                self._event("HubFramesDropped", text, True)
 
     def _from_client(self, items: list[Parsed]) -> None:
         """Route a client's frames (of unknown ids too: the autopilot may know them)."""

@@ -269,3 +269,9 @@ def plan_endpoints(hub: HubSpec, has_key: bool) -> list[EndpointPlan]:
             EndpointPlan(name, transport, address, scope, tuple(messages), tuple(commands), signed)
         )
     return plans
+
+
+def open_to_the_network(plans: Iterable[EndpointPlan]) -> list[EndpointPlan]:
+    """The endpoints beyond loopback that do not check signatures (declared
+    ``Unauthenticated``): the agent warns about each when it starts."""
+    return [p for p in plans if not p.signed and not is_loopback(p.address.rpartition(":")[0])]

@@ -24,6 +24,7 @@ from roost_agent.hub_policy import (
     authenticated,
     is_loopback,
     must_sign,
+    open_to_the_network,
     plan_endpoints,
 )
 from roost_api.autopilot_enums import HubScope, HubSigning, HubTransport
@@ -373,3 +374,17 @@ def test_an_endpoint_keeps_its_transport_scope_and_lists() -> None:
     assert gcs.transport is HubTransport.TCP
     assert gcs.scope is HubScope.ALLOW_LIST
     assert (gcs.allow_messages, gcs.allow_commands) == ((11,), (22, 400))
+
+
+def test_unauthenticated_endpoints_beyond_loopback_are_the_ones_warned_about() -> None:
+    hub = HubSpec.from_api(
+        {
+            "udp": "127.0.0.1:14550",
+            "endpoints": [
+                endpoint("open", "0.0.0.0:14560", signing="Unauthenticated", scope="ReadOnly"),
+                endpoint("local", "127.0.0.1:14561", signing="Unauthenticated"),
+                endpoint("gcs", "0.0.0.0:14562"),
+            ],
+        }
+    )
+    assert [p.name for p in open_to_the_network(plan_endpoints(hub, True))] == ["open"]
