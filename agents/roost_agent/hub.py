@@ -855,7 +855,10 @@ class Hub:
                     self._by_sock.pop(dropped.sock, None)
                     dropped.sock.close()
             self._sinks = tuple(c for c in self._clients.values() if c.ready)
-        log.info("hub: client %s:%d connected to %s", *client.address, client.endpoint.name)
+        # an unproven connection is not news (a flood of them must not flood the log)
+        (log.info if client.ready else log.debug)(
+            "hub: client %s:%d connected to %s", *client.address, client.endpoint.name
+        )
         return client
 
     def _ready(self, client: _Client) -> None:
@@ -872,7 +875,7 @@ class Hub:
             self._sinks = tuple(c for c in self._clients.values() if c.ready)
         if client.sock is not None:
             client.sock.close()
-        log.info("hub: client %s:%d gone", *client.address)
+        (log.info if client.ready else log.debug)("hub: client %s:%d gone", *client.address)
 
     def _expire(self, now: float) -> None:
         for client in list(self._clients.values()):
