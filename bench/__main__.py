@@ -25,6 +25,7 @@ MODULES: tuple[str, ...] = (
     "firmware",
     "vehicle",
     "hub",
+    "hubsigning",
     "standby",
     "params",
     "disruption",

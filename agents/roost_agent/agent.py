@@ -450,7 +450,9 @@ class Agent:
         )
         self._spec_lock = threading.Lock()
         # The vehicle's MAVLink endpoint (roost_agent.hub), when the spec asks for it.
-        self._hub: Hub | None = hub_for(spec, self._state.active, self._cfg.links)
+        self._hub: Hub | None = hub_for(
+            spec, self._state.active, self._cfg.links, signing=signing, on_event=self._hub_event
+        )
         if self._hub is not None:  # routed frames are not held back while clients wait
             self._reader.hurry = self._hub.has_clients
         self._in_step: dict[str, InStep] = {}
@@ -529,6 +531,16 @@ class Agent:
     def links(self) -> Mapping[str, AutopilotLink]:
         """The links by autopilot name (counters, trackers)."""
         return self._cfg.links
+
+    def rekey(self, signing: LinkSigning) -> None:
+        """Adopt a rotated signing key without a restart: every link and the hub sign
+        with it and take it (and the previous key) from now on; links opened later too."""
+        with self._spec_lock:
+            self._signing = signing
+            for link in self._cfg.links.values():
+                link.rekey(signing)
+            if self._hub is not None:
+                self._hub.rekey(signing)
 
     @property
     def hub(self) -> Hub | None:
@@ -643,6 +655,7 @@ class Agent:
                 if a.name in assessments
             ]
             observed = RedundantAutopilotStatus(
+                hub_endpoints=self._hub.endpoint_status() if self._hub is not None else [],
                 active_autopilot=state.active,
                 autopilots=healths,
                 last_failover=self._last_failover,
@@ -1293,6 +1306,9 @@ class Agent:
                 keeper.attempts,
             )
             send_requests(link, requests)
+
+    def _hub_event(self, reason: str, message: str, warning: bool) -> None:
+        self._emit(EventKind.LINK, reason, message, warning=warning)
 
     def _emit(
         self,

@@ -21,8 +21,14 @@ on any shared path (a router, a radio, a log), and a standby's acknowledgement w
 indistinguishable from the active's. Rewriting costs a header rewrite and a CRC per frame
 (measured: ``hub.added_latency_p99_ms``); when an autopilot's sysid already equals the
 vehicle's, its frames pass unchanged. Signed frames from an autopilot lose their
-signature on the way to clients (the rewritten header would not verify): the endpoint
-is for clients on the vehicle itself.
+signature on the way to clients (the rewritten header would not verify); clients of a
+signed endpoint get every frame signed again by the hub with the vehicle's key.
+
+Endpoints (:mod:`roost_agent.hub_policy`): the ``udp`` and ``tcp`` endpoints and each of
+``hub.endpoints`` have a gate: MAVLink 2 signature (with the vehicle's key; required
+beyond loopback unless the spec says Unauthenticated) and a scope (everything, reads
+only, or an allow-list). What fails either is dropped and counted per client, never
+forwarded. The open gate (loopback, everything) keeps the original per-frame path.
 
 Standbys in step. What clients send that changes flight state (:data:`MIRRORED_COMMANDS`
 inside COMMAND_LONG/INT, and :data:`MIRRORED_MESSAGES`: modes, mission items, setpoints,
@@ -56,9 +62,29 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from roost_api.autopilot_enums import StandbyInStepReason
+from roost_agent.hub_policy import (
+    ACCEPT,
+    COMMAND_INT_ID,
+    COMMAND_LONG_ID,
+    NO_COMMAND,
+    Drops,
+    EndpointPlan,
+    Gate,
+    Scope,
+    authenticated,
+    open_to_the_network,
+    plan_endpoints,
+)
+from roost_agent.signing import LinkSigning
+from roost_api.autopilot_enums import HubTransport, StandbyInStepReason
 from roost_api.core import Stack
-from roost_api.plain import AutopilotSpec, HubSpec, RedundantAutopilotSpec, StandbyLimits
+from roost_api.plain import (
+    AutopilotSpec,
+    HubEndpointStatus,
+    HubSpec,
+    RedundantAutopilotSpec,
+    StandbyLimits,
+)
 from roost_mavlink import (
     AGENT_COMPONENT_ID,
     MAV_CMD_COMPONENT_ARM_DISARM,
@@ -85,6 +111,7 @@ from roost_mavlink.codec import (
     frame_crc,
     scan,
 )
+from roost_mavlink.signing import Signer
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +121,7 @@ SIGNED_FLAG = 0x01
 
 CLIENT_TIMEOUT_S = 30.0  # a UDP client not heard this long gets nothing more
 MAX_CLIENTS = 32
+HUB_LINK_ID = 0xF0  # the MAVLink signing link id of the hub's frames to clients
 MIRROR_ACK_TIMEOUT_S = 1.5  # a standby that does not acknowledge a mirrored command by then
 REJECTION_MEMORY_S = 30.0  # how long an unresolved rejection keeps a standby out of step
 SELECT_WAIT_S = 0.1
@@ -368,16 +396,43 @@ class HubCounters:
     from_clients: int = 0  # client messages routed to the active autopilot
     mirrored: int = 0  # client messages also sent to a standby (each standby counted)
     dropped_standby: int = 0  # standby / failed autopilot messages kept from clients
+    dropped_from_clients: int = 0  # client frames an endpoint's gate refused
+    kept_for_agent: int = 0  # active autopilot frames addressed to the agent, not forwarded
     forwarded: dict[str, int] = field(default_factory=dict)  # per autopilot, to clients
     switches: int = 0
+
+
+class _Endpoint:
+    """One socket the hub serves (UDP, or a TCP listener) with its gate and drop counts."""
+
+    def __init__(self, plan: EndpointPlan, gate: Gate, sock: socket.socket) -> None:
+        self.plan = plan
+        self.name = plan.name
+        self.gate = gate
+        self.sock = sock
+        self.udp = plan.transport is HubTransport.UDP
+        self.drops = Drops(plan.name)
+
+
+ClientKey = tuple[str, Address]  # (endpoint name, client address)
 
 
 class _Client:
     """One connected client: where its frames go and the parser for its bytes."""
 
-    def __init__(self, address: Address, sock: socket.socket | None, now: float) -> None:
+    def __init__(
+        self, endpoint: _Endpoint, address: Address, sock: socket.socket | None, now: float
+    ) -> None:
+        self.endpoint = endpoint
+        self.key: ClientKey = (endpoint.name, address)
         self.address = address
         self.sock = sock  # TCP clients only
+        self.out = endpoint.sock  # UDP clients: the endpoint's socket sends to them
+        self.signs = endpoint.plan.signed  # what it gets is signed
+        self.signing_key: bytes | None = None  # the key it proved (a rotation may differ)
+        # Gets the vehicle's messages: at once on an open endpoint, else once a frame of
+        # it passed the signature check (a TCP connection alone proves nothing).
+        self.ready = endpoint.gate.open
         self.parser = StreamParser()  # TCP clients' stream (a UDP datagram stands alone)
         self.last_seen = now
         self.broken = False  # a TCP client whose stream could not be written whole
@@ -391,7 +446,7 @@ def parse_host_port(text: str) -> Address:
 def hub_identity(spec: RedundantAutopilotSpec) -> tuple[object, ...] | None:
     """What a running hub cannot change: its endpoints and the vehicle's identity."""
     hub = spec.hub
-    return None if hub is None else (hub.udp, hub.tcp, vehicle_sysid(spec))
+    return None if hub is None else (hub.udp, hub.tcp, hub.endpoints, vehicle_sysid(spec))
 
 
 def vehicle_sysid(spec: RedundantAutopilotSpec) -> int:
@@ -409,50 +464,113 @@ class Hub:
         spec: RedundantAutopilotSpec,
         active: str,
         *,
+        signing: LinkSigning | None = None,
+        on_event: Callable[[str, str, bool], None] | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
+        """Binds every endpoint; raises :class:`~roost_agent.hub_policy.HubConfigError`
+        for an endpoint that must sign without a key (``signing`` None), OSError when
+        an address cannot be bound."""
         hub = spec.hub if spec.hub is not None else HubSpec()
         self.settings = hub
         self.sysid = vehicle_sysid(spec)
         self.stale_s = spec.failover_policy.thresholds.heartbeat_error_ms / 1000
         self.counters = HubCounters()
         self._clock = clock
+        self._on_event = on_event
         self._active = active
         self._links: dict[str, HubLink] = {}
         self._seen: dict[str, Snapshot] = {
             a.name: Snapshot(Stack(a.stack)) for a in spec.autopilots
         }
         self._tracker = InStepTracker(hub.standby_limits.confirm_ms / 1000)
-        self._clients: OrderedDict[Address, _Client] = OrderedDict()
-        self._sinks: tuple[_Client, ...] = ()
+        self._clients: OrderedDict[ClientKey, _Client] = OrderedDict()
+        self._sinks: tuple[_Client, ...] = ()  # clients that get the vehicle's messages
+        self._by_sock: dict[socket.socket, _Client] = {}  # TCP clients, ready or not
         self._clients_lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self._tcp: socket.socket | None = None
+        plans = plan_endpoints(hub, signing is not None)
+        self._signing = signing
+        self._signer: Signer | None = None
+        self.endpoints: list[_Endpoint] = []
         try:
-            self._udp.bind(parse_host_port(hub.udp))
-            self._udp.setblocking(False)
-            if hub.tcp is not None:
-                self._tcp = socket.create_server(parse_host_port(hub.tcp))
-                self._tcp.setblocking(False)
+            for plan in plans:
+                self.endpoints.append(self._open(plan))
         except BaseException:
             self.close()
             raise
+        self._listening = {e.sock: e for e in self.endpoints}
+        if any(e.plan.signed for e in self.endpoints) and signing is not None:
+            self._signer = signing.signer(HUB_LINK_ID)
+
+    def _open(self, plan: EndpointPlan) -> _Endpoint:
+        verifier = None
+        if plan.signed:
+            assert self._signing is not None  # plan_endpoints refused it otherwise
+            verifier = self._signing.verifier()
+        gate = Gate(Scope(plan.scope, plan.allow_messages, plan.allow_commands), verifier)
+        if plan.transport is HubTransport.UDP:
+            sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            try:
+                sock.bind(parse_host_port(plan.address))
+            except BaseException:
+                sock.close()
+                raise
+        else:
+            sock = socket.create_server(parse_host_port(plan.address))
+        sock.setblocking(False)
+        return _Endpoint(plan, gate, sock)
+
+    def rekey(self, signing: LinkSigning) -> None:
+        """Adopt a rotated key: frames to clients are signed with it from the next one
+        on, and clients must sign with it (their streams start afresh)."""
+        self._signing = signing
+        for endpoint in self.endpoints:
+            if endpoint.plan.signed:
+                endpoint.gate = Gate(endpoint.gate.scope, signing.verifier())
+        if self._signer is not None:
+            self._signer = signing.signer(HUB_LINK_ID)
+        known = (signing.key, signing.previous)
+        with self._clients_lock:  # a client with a key retired twice must sign in again
+            for client in self._clients.values():
+                if client.signs and client.signing_key not in (None, *known):
+                    client.ready = False
+                    client.signing_key = None
+            self._sinks = tuple(c for c in self._clients.values() if c.ready)
 
     # -- wiring ------------------------------------------------------------------------
 
-    @property
-    def udp_address(self) -> Address:
-        host, port = self._udp.getsockname()[:2]
+    def endpoint_address(self, name: str) -> Address:
+        """Where the endpoint called ``name`` listens."""
+        sock = next(e.sock for e in self.endpoints if e.name == name)
+        host, port = sock.getsockname()[:2]
         return str(host), int(port)
 
     @property
+    def udp_address(self) -> Address:
+        return self.endpoint_address("udp")
+
+    @property
     def tcp_address(self) -> Address | None:
-        if self._tcp is None:
-            return None
-        host, port = self._tcp.getsockname()[:2]
-        return str(host), int(port)
+        return None if self.settings.tcp is None else self.endpoint_address("tcp")
+
+    def endpoint_status(self) -> list[HubEndpointStatus]:
+        """Every endpoint as the status shows it (scope, signing, frames dropped)."""
+        out: list[HubEndpointStatus] = []
+        for e in self.endpoints:
+            host, port = e.sock.getsockname()[:2]
+            out.append(
+                HubEndpointStatus(
+                    name=e.name,
+                    transport=e.plan.transport,
+                    address=f"{host}:{port}",
+                    scope=e.plan.scope,
+                    signed=e.plan.signed,
+                    dropped=e.drops.total,
+                )
+            )
+        return out
 
     @property
     def active(self) -> str:
@@ -483,8 +601,19 @@ class Hub:
         self._tracker.confirm_s = hub.standby_limits.confirm_ms / 1000
 
     def start(self) -> None:
+        for plan in open_to_the_network([e.plan for e in self.endpoints]):
+            self._event(
+                "HubEndpointUnauthenticated",
+                f"endpoint {plan.name} ({plan.address}) does not check signatures: "
+                f"anyone who reaches it may send what scope {plan.scope.value} allows",
+                True,
+            )
         self._thread = threading.Thread(target=self._serve, name="mavlink-hub", daemon=True)
         self._thread.start()
+
+    def _event(self, reason: str, message: str, warning: bool) -> None:
+        if self._on_event is not None:
+            self._on_event(reason, message, warning)
 
     def stop(self) -> None:
         self._stop.set()
@@ -495,12 +624,12 @@ class Hub:
     def close(self) -> None:
         with self._clients_lock:
             clients, self._clients, self._sinks = list(self._clients.values()), OrderedDict(), ()
+            self._by_sock = {}
         for client in clients:
             if client.sock is not None:
                 client.sock.close()
-        self._udp.close()
-        if self._tcp is not None:
-            self._tcp.close()
+        for endpoint in self.endpoints:
+            endpoint.sock.close()
 
     def has_clients(self) -> bool:
         """Whether any client gets the vehicle's messages now (cheap: the reader asks
@@ -578,18 +707,31 @@ class Hub:
                 self._standby_answered(seen, int(msg.command), int(msg.result), now)
             self.counters.dropped_standby += 1
             return
+        if for_agent:  # the agent's own answers stay with it (a gap in clients' seq)
+            self.counters.kept_for_agent += 1
+            return
         sinks = self._sinks
-        if for_agent or not sinks:
+        if not sinks:
             return
         frame = rewrite_source(bytes(msg.get_msgbuf()), self.sysid)
         if frame is None:
             return
         sent = 0
+        signed: dict[bytes | None, bytes] | None = None  # signed once per key in use
         for client in sinks:
+            out = frame
+            if client.signs:
+                if signed is None:
+                    signed = {}
+                key = client.signing_key
+                found = signed.get(key)
+                if found is None:
+                    found = signed[key] = self._sign(frame, key)
+                out = found
             try:
                 if client.sock is None:
-                    self._udp.sendto(frame, client.address)
-                elif client.sock.send(frame) < len(frame):
+                    client.out.sendto(out, client.address)
+                elif client.sock.send(out) < len(out):
                     # A TCP client that cannot keep up: a partial frame would corrupt its
                     # stream, so it is dropped (the hub thread closes it).
                     client.broken = True
@@ -601,6 +743,17 @@ class Hub:
         counters = self.counters
         counters.to_clients += sent
         counters.forwarded[name] = counters.forwarded.get(name, 0) + 1
+
+    def _sign(self, frame: bytes, key: bytes | None) -> bytes:
+        """``frame`` signed with ``key`` (None: the current key) for a signed client."""
+        signer = self._signer
+        if signer is None:
+            return frame
+        signing = self._signing
+        wanted = key if key is not None else signing.key if signing is not None else None
+        if wanted is not None and wanted is not signer.key:
+            signer.use(wanted)
+        return signer.sign(frame)
 
     @staticmethod
     def _standby_answered(seen: Snapshot, command: int, result: int, now: float) -> None:
@@ -624,48 +777,51 @@ class Hub:
                 log.exception("hub: serving failed")
 
     def _serve_once(self) -> None:
-        watched: list[socket.socket] = [self._udp]
-        if self._tcp is not None:
-            watched.append(self._tcp)
-        watched.extend(c.sock for c in self._sinks if c.sock is not None)
+        watched: list[socket.socket] = [e.sock for e in self.endpoints]
+        watched.extend(self._by_sock)
         readable, _, _ = select.select(watched, [], [], SELECT_WAIT_S)
         now = self._clock()
         for sock in readable:
-            if sock is self._udp:
-                self._read_udp(now)
-            elif sock is self._tcp:
-                self._accept(now)
-            else:
+            endpoint = self._listening.get(sock)
+            if endpoint is None:
                 self._read_tcp(sock, now)
+            elif endpoint.udp:
+                self._read_udp(endpoint, now)
+            else:
+                self._accept(endpoint, now)
         self._expire(now)
 
-    def _read_udp(self, now: float) -> None:
+    def _read_udp(self, endpoint: _Endpoint, now: float) -> None:
+        sock = endpoint.sock
+        name = endpoint.name
         for _ in range(256):
             try:
-                data, address = self._udp.recvfrom(UDP_MAX)
+                data, address = sock.recvfrom(UDP_MAX)
             except (BlockingIOError, ConnectionRefusedError):
                 return
             peer = (str(address[0]), int(address[1]))
-            client = self._clients.get(peer)
-            if client is None:
-                client = self._add(_Client(peer, None, now))
-            client.last_seen = now
+            client = self._clients.get((name, peer))
             items, _ = scan(data)  # a frame never continues in the next datagram
-            self._from_client(items)
+            if endpoint.gate.open:
+                if client is None:
+                    client = self._add(_Client(endpoint, peer, None, now))
+                client.last_seen = now
+                self._from_client(items)
+            else:
+                self._from_gated(endpoint, peer, client, items, now)
 
-    def _accept(self, now: float) -> None:
-        assert self._tcp is not None
+    def _accept(self, endpoint: _Endpoint, now: float) -> None:
         try:
-            sock, address = self._tcp.accept()
+            sock, address = endpoint.sock.accept()
         except BlockingIOError:
             return
         sock.setblocking(False)
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, TCP_SEND_BUFFER)
-        self._add(_Client((str(address[0]), int(address[1])), sock, now))
+        self._add(_Client(endpoint, (str(address[0]), int(address[1])), sock, now))
 
     def _read_tcp(self, sock: socket.socket, now: float) -> None:
-        client = next((c for c in self._sinks if c.sock is sock), None)
+        client = self._by_sock.get(sock)
         if client is None:
             return
         try:
@@ -677,32 +833,96 @@ class Hub:
         if not data:
             self._remove(client)
             return
-        client.last_seen = now
-        self._from_client(client.parser.feed(data))
+        items = client.parser.feed(data)
+        endpoint = client.endpoint
+        if endpoint.gate.open:
+            client.last_seen = now
+            self._from_client(items)
+        else:
+            self._from_gated(endpoint, client.address, client, items, now)
 
     def _add(self, client: _Client) -> _Client:
         with self._clients_lock:
-            self._clients[client.address] = client
+            self._clients[client.key] = client
+            if client.sock is not None:
+                self._by_sock[client.sock] = client
             while len(self._clients) > MAX_CLIENTS:
-                _, dropped = self._clients.popitem(last=False)
+                # One that has not proved itself goes first: a flood of connections
+                # that cannot sign never pushes out a client that did.
+                key = next((k for k, c in self._clients.items() if not c.ready), None)
+                if key is None:
+                    _, dropped = self._clients.popitem(last=False)
+                else:
+                    dropped = self._clients.pop(key)
                 if dropped.sock is not None:
+                    self._by_sock.pop(dropped.sock, None)
                     dropped.sock.close()
-            self._sinks = tuple(self._clients.values())
-        log.info("hub: client %s:%d connected", *client.address)
+            self._sinks = tuple(c for c in self._clients.values() if c.ready)
+        # an unproven connection is not news (a flood of them must not flood the log)
+        (log.info if client.ready else log.debug)(
+            "hub: client %s:%d connected to %s", *client.address, client.endpoint.name
+        )
         return client
+
+    def _ready(self, client: _Client) -> None:
+        with self._clients_lock:
+            client.ready = True
+            self._sinks = tuple(c for c in self._clients.values() if c.ready)
+        log.info("hub: client %s:%d signed in on %s", *client.address, client.endpoint.name)
 
     def _remove(self, client: _Client) -> None:
         with self._clients_lock:
-            self._clients.pop(client.address, None)
-            self._sinks = tuple(self._clients.values())
+            self._clients.pop(client.key, None)
+            if client.sock is not None:
+                self._by_sock.pop(client.sock, None)
+            self._sinks = tuple(c for c in self._clients.values() if c.ready)
         if client.sock is not None:
             client.sock.close()
-        log.info("hub: client %s:%d gone", *client.address)
+        (log.info if client.ready else log.debug)("hub: client %s:%d gone", *client.address)
 
     def _expire(self, now: float) -> None:
-        for client in self._sinks:
+        for client in list(self._clients.values()):
             if client.broken or (client.sock is None and now - client.last_seen > CLIENT_TIMEOUT_S):
                 self._remove(client)
+
+    def _from_gated(
+        self,
+        endpoint: _Endpoint,
+        peer: Address,
+        client: _Client | None,
+        items: list[Parsed],
+        now: float,
+    ) -> None:
+        """A client's frames on an endpoint that checks signatures or scope: what passes
+        is routed, the rest is dropped and counted (never forwarded)."""
+        gate = endpoint.gate
+        for msg in items:
+            if isinstance(msg, BadData):
+                continue
+            frame = msg.get_msgbuf()
+            msg_id = frame[7] | frame[8] << 8 | frame[9] << 16 if frame[0] == V2_MAGIC else frame[5]
+            command = NO_COMMAND
+            if (msg_id in (COMMAND_LONG_ID, COMMAND_INT_ID)) and isinstance(msg, Frame):
+                command = int(msg.command)
+            reason = gate.judge(frame, msg_id, command)
+            if authenticated(reason):
+                if client is None:  # a UDP sender proved itself: a client from now on
+                    client = _Client(endpoint, peer, None, now)
+                    client.ready = True
+                    self._add(client)
+                elif not client.ready:
+                    self._ready(client)
+                client.last_seen = now
+                verifier = gate.verifier
+                if verifier is not None:
+                    client.signing_key = verifier.used
+            if reason == ACCEPT:
+                self._from_client([msg])
+                continue
+            self.counters.dropped_from_clients += 1
+            text = endpoint.drops.note(peer, reason, now)
+            if text is not None:
+                self._event("HubFramesDropped", text, True)
 
     def _from_client(self, items: list[Parsed]) -> None:
         """Route a client's frames (of unknown ids too: the autopilot may know them)."""
@@ -754,11 +974,18 @@ class Hub:
                 seen.awaiting.pop(awaited, None)
 
 
-def hub_for(spec: RedundantAutopilotSpec, active: str, links: Mapping[str, HubLink]) -> Hub | None:
+def hub_for(
+    spec: RedundantAutopilotSpec,
+    active: str,
+    links: Mapping[str, HubLink],
+    *,
+    signing: LinkSigning | None = None,
+    on_event: Callable[[str, str, bool], None] | None = None,
+) -> Hub | None:
     """The hub the spec asks for, with ``links`` attached; None without ``spec.hub``."""
     if spec.hub is None:
         return None
-    hub = Hub(spec, active)
+    hub = Hub(spec, active, signing=signing, on_event=on_event)
     for link in links.values():
         hub.attach(link)
     return hub

@@ -1265,6 +1265,10 @@ class AutopilotLink:
     def _signed(self, verifier: Verifier, msg: Frame, sender: Address | None, now: float) -> bool:
         verdict = verifier.check(msg.get_msgbuf())
         if verdict is Verdict.GOOD:
+            writer = self._writer
+            signer = writer.signer if writer is not None else None
+            if signer is not None and signer.key is not verifier.used:
+                signer.use(verifier.used)  # answer with the key the autopilot has
             return True
         if verdict is Verdict.UNSIGNED:
             self.counters.unsigned += 1
@@ -1306,6 +1310,18 @@ class AutopilotLink:
                 log.debug("%s: write failed: %s", self.name, exc)
                 return False
             return True
+
+    def rekey(self, signing: LinkSigning) -> None:
+        """Adopt a rotated key at once: frames from now on are signed with it and, when
+        signing is required, checked against it (the autopilot's streams start afresh)."""
+        with self._write_lock:
+            self.signing = signing
+            writer = self._writer
+            if writer is not None and writer.signer is not None:
+                writer.signer = signing.signer(self.spec.bridge_channel)
+            session = self._session
+            if session is not None and session.verifier is not None:
+                session.verifier = signing.verifier()
 
     def send_frame(self, frame: bytes) -> bool:
         """Forward a finished MAVLink frame (a hub client's), signed like the agent's own."""

@@ -44,7 +44,14 @@ import yaml
 
 from roost_agent.agent import Agent, connection_problems, restore_state
 from roost_agent.bridge import Bridge, GpioBridge, SimulatedBridge
-from roost_agent.signing import DEFAULT_KEY_DIR, SigningError, SigningMode, load_signing
+from roost_agent.hub_policy import HubConfigError
+from roost_agent.signing import (
+    DEFAULT_KEY_DIR,
+    KeyWatcher,
+    SigningError,
+    SigningMode,
+    load_signing,
+)
 from roost_agent.state import STATE_FILE_NAME, StateFile
 from roost_api.plain import AutopilotSpec, RedundantAutopilotSpec
 from roost_api.plain_check import PlainValidationError
@@ -334,6 +341,8 @@ def main(argv: list[str] | None = None) -> int:
         )
     except OSError as exc:  # the hub's endpoint is taken or not an address of this node
         raise refuse(f"cannot serve the vehicle's MAVLink endpoint (spec.hub): {exc}") from None
+    except HubConfigError as exc:  # an endpoint beyond loopback without a key
+        raise refuse(f"spec.hub: {exc}") from None
     agent.subscribe(lambda event: out.write(event.to_json()))
     stop = threading.Event()
 
@@ -351,6 +360,9 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGHUP, lambda *_: threading.Thread(target=reload, daemon=True).start())
     agent.start()
+    if signing is not None:  # a rotated key is taken without a restart
+        watcher = KeyWatcher(args.signing_keys, spec.vehicle_name, signing, agent.rekey)
+        threading.Thread(target=watcher.run, args=(stop,), name="signing-keys", daemon=True).start()
     telemetry = start_telemetry(args, agent, out)
     publisher = None
     if kube is not None:

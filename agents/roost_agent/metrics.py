@@ -35,6 +35,8 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from prometheus_client.registry import Collector
 
 from roost_agent.agent import AgentEvent, EventKind
+from roost_agent.hub import Hub
+from roost_agent.hub_policy import REASONS
 from roost_agent.links import LinkCounters
 from roost_api.core import HealthLevel
 
@@ -96,6 +98,9 @@ class MetricsAgent(Protocol):
 
     @property
     def links(self) -> Mapping[str, AutopilotLink]: ...
+
+    @property
+    def hub(self) -> Hub | None: ...
 
     def assessments(self) -> dict[str, Assessment]: ...
 
@@ -167,6 +172,9 @@ class AgentCollector(Collector):
             value=1.0 if agent.latched else 0.0,
         )
         yield from link_families({name: link.counters for name, link in links.items()})
+        hub = agent.hub
+        if hub is not None:
+            yield hub_family(hub)
         if self._publisher is not None:
             yield GaugeMetricFamily(
                 f"{PREFIX}_publisher_pending_events",
@@ -178,6 +186,21 @@ class AgentCollector(Collector):
                 "Failed API calls of the status publisher (discovery, status, Events).",
                 value=self._publisher.api_errors,
             )
+
+
+def hub_family(hub: Hub) -> CounterMetricFamily:
+    """Client frames each hub endpoint dropped, by reason (never forwarded)."""
+    dropped = CounterMetricFamily(
+        f"{PREFIX}_hub_dropped_frames",
+        "Client frames a hub endpoint dropped: unsigned, bad_signature, replayed or "
+        "not_allowed (outside the endpoint's scope).",
+        labels=["endpoint", "reason"],
+    )
+    for endpoint in hub.endpoints:
+        counts = endpoint.drops.by_reason
+        for reason in range(1, len(REASONS)):
+            dropped.add_metric([endpoint.name, REASONS[reason]], counts[reason])
+    return dropped
 
 
 def link_families(counters: Mapping[str, LinkCounters]) -> list[CounterMetricFamily]:

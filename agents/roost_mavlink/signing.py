@@ -92,6 +92,14 @@ def parse_key(text: str | bytes) -> bytes:
         raise ValueError("a signing key is hex digits only") from None
 
 
+def passphrase_key(passphrase: str) -> bytes:
+    """The 32-byte key ground stations derive from a passphrase: SHA-256 of its ASCII
+    text (MAVProxy's ``signing key PASSPHRASE``; QGroundControl's signing key field)."""
+    import hashlib  # noqa: PLC0415 - only with signing on (see the module docstring)
+
+    return hashlib.sha256(passphrase.encode("ascii")).digest()
+
+
 def _crc(data: bytes, msg_id: int) -> int | None:
     crc_extra = crc_extra_of(msg_id)
     return None if crc_extra is None else frame_crc(data, crc_extra)
@@ -161,14 +169,22 @@ class Verdict(StrEnum):
 
 
 class Verifier:
-    """Checks signed frames against one key, remembering each stream's last timestamp."""
+    """Checks signed frames against one key, remembering each stream's last timestamp.
 
-    def __init__(self, key: bytes, clock: Timestamps) -> None:
-        if len(key) != KEY_BYTES:
+    With ``previous`` (the key before a rotation) a frame signed with either verifies,
+    and :attr:`used` tells which key the last genuine frame was signed with, so the
+    receiver can answer each peer with the key it has (an autopilot keeps the old key
+    until it is provisioned again).
+    """
+
+    def __init__(self, key: bytes, clock: Timestamps, previous: bytes | None = None) -> None:
+        if len(key) != KEY_BYTES or (previous is not None and len(previous) != KEY_BYTES):
             raise ValueError(f"a signing key is {KEY_BYTES} bytes")
         self._key = key
+        self._previous = previous
         self._clock = clock
         self._streams: dict[tuple[int, int, int], int] = {}
+        self.used = key
 
     def check(self, frame: bytes | bytearray) -> Verdict:
         """Judge one whole frame (as received, signature block included)."""
@@ -179,8 +195,14 @@ class Verifier:
         data = bytes(frame)
         import hmac  # noqa: PLC0415 - only with signing on (see the module docstring)
 
-        if not hmac.compare_digest(_signature(self._key + data[:-6]), data[-6:]):
-            return Verdict.BAD_SIGNATURE
+        key = self._key
+        if not hmac.compare_digest(_signature(key + data[:-6]), data[-6:]):
+            previous = self._previous
+            if previous is None or not hmac.compare_digest(
+                _signature(previous + data[:-6]), data[-6:]
+            ):
+                return Verdict.BAD_SIGNATURE
+            key = previous
         link_id = data[-13]
         timestamp = int.from_bytes(data[-12:-6], "little")
         stream = (link_id, data[5], data[6])
@@ -191,6 +213,7 @@ class Verifier:
             return Verdict.REPLAYED
         self._streams[stream] = timestamp
         self._clock.observe(timestamp)
+        self.used = key
         return Verdict.GOOD
 
 
@@ -203,6 +226,16 @@ class Signer:
         self._key = key
         self.link_id = link_id & 0xFF
         self._clock = clock
+
+    @property
+    def key(self) -> bytes:
+        return self._key
+
+    def use(self, key: bytes) -> None:
+        """Sign with ``key`` from now on (the one the peer proved it has)."""
+        if len(key) != KEY_BYTES:
+            raise ValueError(f"a signing key is {KEY_BYTES} bytes")
+        self._key = key
 
     def sign(self, frame: bytes) -> bytes:
         """``frame`` signed with the next timestamp."""

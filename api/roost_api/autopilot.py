@@ -36,6 +36,9 @@ Failback = autopilot_enums.Failback
 FailoverMode = autopilot_enums.FailoverMode
 FailoverTrigger = autopilot_enums.FailoverTrigger
 FinalAction = autopilot_enums.FinalAction
+HubScope = autopilot_enums.HubScope
+HubSigning = autopilot_enums.HubSigning
+HubTransport = autopilot_enums.HubTransport
 LandedState = autopilot_enums.LandedState
 ParametersReason = autopilot_enums.ParametersReason
 SafetyRoutinePhase = autopilot_enums.SafetyRoutinePhase
@@ -170,6 +173,53 @@ class StandbyLimits(ApiModel):
     )
 
 
+class HubEndpoint(ApiModel):
+    """One more endpoint of the hub, with its own scope and signing (a ground station's).
+
+    The hub's ``udp`` and ``tcp`` endpoints let clients send everything; an endpoint
+    here says what its clients may send and whether they must sign.
+    """
+
+    name: str = Field(
+        max_length=32,
+        pattern=DNS_LABEL_PATTERN,
+        description="Names the endpoint in the status, metrics and Events (e.g. gcs).",
+    )
+    transport: HubTransport = Field(
+        default=HubTransport.UDP, description="UDP (clients are the addresses heard) or TCP."
+    )
+    address: str = Field(
+        max_length=shapes.URL_MAX,
+        pattern=HOST_PORT_PATTERN,
+        description="HOST:PORT the agent listens on.",
+    )
+    scope: HubScope = Field(
+        default=HubScope.EVERYTHING,
+        description="What clients may send: Everything; ReadOnly (parameter, mission and "
+        "message reads); AllowList (allowMessages, and allowCommands inside COMMAND_LONG "
+        "and COMMAND_INT). Anything else is dropped and counted.",
+    )
+    allow_messages: list[int] = Field(
+        default_factory=list,
+        max_length=256,
+        description="MAVLink message ids clients may send (scope AllowList).",
+        json_schema_extra={"items": {"type": "integer", "minimum": 0, "maximum": 16777215}},
+    )
+    allow_commands: list[int] = Field(
+        default_factory=list,
+        max_length=256,
+        description="MAV_CMD ids clients may send in COMMAND_LONG/COMMAND_INT (scope AllowList).",
+        json_schema_extra={"items": {"type": "integer", "minimum": 0, "maximum": 65535}},
+    )
+    signing: HubSigning = Field(
+        default=HubSigning.AUTO,
+        description="Auto: clients must sign with the vehicle's key unless the address is "
+        "loopback (without a key the agent refuses the endpoint); Required: also on "
+        "loopback; Unauthenticated: never (anyone who reaches the address may send what "
+        "the scope allows; the status says so).",
+    )
+
+
 class HubSpec(ApiModel):
     """The vehicle's MAVLink endpoint(s), served by the node agent (the MAVLink hub).
 
@@ -206,6 +256,12 @@ class HubSpec(ApiModel):
     standby_limits: StandbyLimits = Field(
         default_factory=StandbyLimits,
         description="When a standby counts as in step with the active autopilot.",
+    )
+    endpoints: list[HubEndpoint] = Field(
+        default_factory=list,
+        max_length=8,
+        description="Further endpoints, each with its own scope and signing (a ground "
+        "station on the network: signed, read-only or an allow-list).",
     )
 
 
@@ -501,6 +557,24 @@ class CommandResult(ApiModel):
     time: datetime = Field(description="When the agent processed it.")
 
 
+class HubEndpointStatus(ApiModel):
+    """One endpoint of the vehicle's hub as the agent serves it."""
+
+    name: str = Field(description="The endpoint (udp and tcp: the hub's own).")
+    transport: HubTransport = Field(description="UDP or TCP.")
+    address: str = Field(description="HOST:PORT it listens on.")
+    scope: HubScope = Field(description="What its clients may send.")
+    signed: bool = Field(
+        description="Whether clients must sign; false beyond loopback only when the spec "
+        "says Unauthenticated."
+    )
+    dropped: int = Field(
+        default=0,
+        description="Client frames dropped since the agent started (unsigned, badly "
+        "signed, replayed or outside the scope).",
+    )
+
+
 class RedundantAutopilotStatus(ApiModel):
     """Observed state of a RedundantAutopilot, written by the node agent."""
 
@@ -529,6 +603,10 @@ class RedundantAutopilotStatus(ApiModel):
     )
     last_command: CommandResult | None = Field(
         default=None, description="The last command the agent processed."
+    )
+    hub_endpoints: list[HubEndpointStatus] = Field(
+        default_factory=list,
+        description="The vehicle's MAVLink endpoints: scope, signing, frames dropped.",
     )
     node_name: str | None = Field(default=None, description="Node of the reporting agent.")
     reported_at: datetime | None = Field(

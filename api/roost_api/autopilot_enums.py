@@ -183,6 +183,29 @@ _FINAL_SAFETY_PHASES = frozenset(
 )
 
 
+class HubScope(StrEnum):
+    """What the clients of one hub endpoint may send to the vehicle."""
+
+    EVERYTHING = "Everything"  # every message (mavros, a mission controller)
+    READ_ONLY = "ReadOnly"  # parameter, mission and message reads only
+    ALLOW_LIST = "AllowList"  # the endpoint's allowMessages and allowCommands
+
+
+class HubSigning(StrEnum):
+    """Whether one hub endpoint's clients must sign (MAVLink 2 signing, the vehicle's key)."""
+
+    AUTO = "Auto"  # required beyond loopback (no key: the endpoint refuses to start)
+    REQUIRED = "Required"  # required on any address, loopback too
+    UNAUTHENTICATED = "Unauthenticated"  # never, also beyond loopback (said in the status)
+
+
+class HubTransport(StrEnum):
+    """How one hub endpoint's clients connect."""
+
+    UDP = "UDP"
+    TCP = "TCP"
+
+
 class CommandResultKind(StrEnum):
     """What the agent did with a command (``lastCommand.result``)."""
 

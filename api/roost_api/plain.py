@@ -19,6 +19,9 @@ from roost_api.autopilot_enums import (
     FailoverMode,
     FailoverTrigger,
     FinalAction,
+    HubScope,
+    HubSigning,
+    HubTransport,
     LandedState,
     SafetyRoutinePhase,
 )
@@ -350,6 +353,90 @@ class StandbyLimits:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class HubEndpoint:
+    """One more endpoint of the hub, with its own scope and signing (a ground station's).
+
+    Plain twin of :class:`roost_api.autopilot.HubEndpoint`.
+    """
+
+    name: str
+    transport: HubTransport = HubTransport.UDP
+    address: str
+    scope: HubScope = HubScope.EVERYTHING
+    allow_messages: list[int] = field(default_factory=list)
+    allow_commands: list[int] = field(default_factory=list)
+    signing: HubSigning = HubSigning.AUTO
+
+    @classmethod
+    def from_api(cls, doc: object, at: str = "") -> HubEndpoint:
+        """Validate a camelCase mapping as the API model would; ``at`` prefixes field
+        paths in errors."""
+        if isinstance(doc, cls):
+            return doc
+        d = check.mapping(doc, at.rstrip("."), "HubEndpoint")
+        v = check.required(check.get(d, "name", "name"), at + "name")
+        name = check.text(v, at + "name", max_length=32, pattern="^[a-z0-9]([-a-z0-9]*[a-z0-9])?$")
+        v = check.get(d, "transport", "transport")
+        transport = (
+            HubTransport.UDP
+            if v is check.MISSING
+            else check.member(v, at + "transport", HubTransport)
+        )
+        v = check.required(check.get(d, "address", "address"), at + "address")
+        address = check.text(
+            v,
+            at + "address",
+            max_length=256,
+            pattern="^[A-Za-z0-9]([A-Za-z0-9.-]*[A-Za-z0-9])?:[0-9]{1,5}$",
+        )
+        v = check.get(d, "scope", "scope")
+        scope = (
+            HubScope.EVERYTHING if v is check.MISSING else check.member(v, at + "scope", HubScope)
+        )
+        v = check.get(d, "allowMessages", "allow_messages")
+        allow_messages = (
+            list()
+            if v is check.MISSING
+            else check.items(v, at + "allowMessages", check.integer, max_length=256)
+        )
+        v = check.get(d, "allowCommands", "allow_commands")
+        allow_commands = (
+            list()
+            if v is check.MISSING
+            else check.items(v, at + "allowCommands", check.integer, max_length=256)
+        )
+        v = check.get(d, "signing", "signing")
+        signing = (
+            HubSigning.AUTO if v is check.MISSING else check.member(v, at + "signing", HubSigning)
+        )
+        return cls(
+            name=name,
+            transport=transport,
+            address=address,
+            scope=scope,
+            allow_messages=allow_messages,
+            allow_commands=allow_commands,
+            signing=signing,
+        )
+
+    def api_dump(self) -> dict[str, Any]:
+        """Every field by its camelCase name, None included."""
+        return {
+            "name": self.name,
+            "transport": self.transport.value,
+            "address": self.address,
+            "scope": self.scope.value,
+            "allowMessages": [x for x in self.allow_messages],
+            "allowCommands": [x for x in self.allow_commands],
+            "signing": self.signing.value,
+        }
+
+    def to_api(self) -> dict[str, Any]:
+        """The JSON body Kubernetes expects: camelCase, no nulls (as the model's)."""
+        return check.without_nones(self.api_dump())
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class HubSpec:
     """The vehicle's MAVLink endpoint(s), served by the node agent (the MAVLink hub).
 
@@ -361,6 +448,7 @@ class HubSpec:
     tcp: str | None = None
     mirror: bool = True
     standby_limits: StandbyLimits = field(default_factory=StandbyLimits)
+    endpoints: list[HubEndpoint] = field(default_factory=list)
 
     @classmethod
     def from_api(cls, doc: object, at: str = "") -> HubSpec:
@@ -405,7 +493,22 @@ class HubSpec:
             if v is check.MISSING
             else StandbyLimits.from_api(v, at + "standbyLimits" + ".")
         )
-        return cls(sysid=sysid, udp=udp, tcp=tcp, mirror=mirror, standby_limits=standby_limits)
+        v = check.get(d, "endpoints", "endpoints")
+        endpoints = (
+            list()
+            if v is check.MISSING
+            else check.items(
+                v, at + "endpoints", lambda x, w: HubEndpoint.from_api(x, w + "."), max_length=8
+            )
+        )
+        return cls(
+            sysid=sysid,
+            udp=udp,
+            tcp=tcp,
+            mirror=mirror,
+            standby_limits=standby_limits,
+            endpoints=endpoints,
+        )
 
     def api_dump(self) -> dict[str, Any]:
         """Every field by its camelCase name, None included."""
@@ -415,6 +518,7 @@ class HubSpec:
             "tcp": self.tcp,
             "mirror": self.mirror,
             "standbyLimits": self.standby_limits.api_dump(),
+            "endpoints": [x.api_dump() for x in self.endpoints],
         }
 
     def to_api(self) -> dict[str, Any]:
@@ -1083,6 +1187,64 @@ class CommandResult:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class HubEndpointStatus:
+    """One endpoint of the vehicle's hub as the agent serves it.
+
+    Plain twin of :class:`roost_api.autopilot.HubEndpointStatus`.
+    """
+
+    name: str
+    transport: HubTransport
+    address: str
+    scope: HubScope
+    signed: bool
+    dropped: int = 0
+
+    @classmethod
+    def from_api(cls, doc: object, at: str = "") -> HubEndpointStatus:
+        """Validate a camelCase mapping as the API model would; ``at`` prefixes field
+        paths in errors."""
+        if isinstance(doc, cls):
+            return doc
+        d = check.mapping(doc, at.rstrip("."), "HubEndpointStatus")
+        v = check.required(check.get(d, "name", "name"), at + "name")
+        name = check.text(v, at + "name")
+        v = check.required(check.get(d, "transport", "transport"), at + "transport")
+        transport = check.member(v, at + "transport", HubTransport)
+        v = check.required(check.get(d, "address", "address"), at + "address")
+        address = check.text(v, at + "address")
+        v = check.required(check.get(d, "scope", "scope"), at + "scope")
+        scope = check.member(v, at + "scope", HubScope)
+        v = check.required(check.get(d, "signed", "signed"), at + "signed")
+        signed = check.boolean(v, at + "signed")
+        v = check.get(d, "dropped", "dropped")
+        dropped = 0 if v is check.MISSING else check.integer(v, at + "dropped")
+        return cls(
+            name=name,
+            transport=transport,
+            address=address,
+            scope=scope,
+            signed=signed,
+            dropped=dropped,
+        )
+
+    def api_dump(self) -> dict[str, Any]:
+        """Every field by its camelCase name, None included."""
+        return {
+            "name": self.name,
+            "transport": self.transport.value,
+            "address": self.address,
+            "scope": self.scope.value,
+            "signed": self.signed,
+            "dropped": self.dropped,
+        }
+
+    def to_api(self) -> dict[str, Any]:
+        """The JSON body Kubernetes expects: camelCase, no nulls (as the model's)."""
+        return check.without_nones(self.api_dump())
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class RedundantAutopilotStatus:
     """Observed state of a RedundantAutopilot, written by the node agent.
 
@@ -1097,6 +1259,7 @@ class RedundantAutopilotStatus:
     failover_count: int = 0
     latched: bool = False
     last_command: CommandResult | None = None
+    hub_endpoints: list[HubEndpointStatus] = field(default_factory=list)
     node_name: str | None = None
     reported_at: datetime | None = None
 
@@ -1145,6 +1308,14 @@ class RedundantAutopilotStatus:
             if v is None or v is check.MISSING
             else CommandResult.from_api(v, at + "lastCommand" + ".")
         )
+        v = check.get(d, "hubEndpoints", "hub_endpoints")
+        hub_endpoints = (
+            list()
+            if v is check.MISSING
+            else check.items(
+                v, at + "hubEndpoints", lambda x, w: HubEndpointStatus.from_api(x, w + ".")
+            )
+        )
         v = check.get(d, "nodeName", "node_name")
         node_name = None if v is None or v is check.MISSING else check.text(v, at + "nodeName")
         v = check.get(d, "reportedAt", "reported_at")
@@ -1160,6 +1331,7 @@ class RedundantAutopilotStatus:
             failover_count=failover_count,
             latched=latched,
             last_command=last_command,
+            hub_endpoints=hub_endpoints,
             node_name=node_name,
             reported_at=reported_at,
         )
@@ -1175,6 +1347,7 @@ class RedundantAutopilotStatus:
             "failoverCount": self.failover_count,
             "latched": self.latched,
             "lastCommand": None if self.last_command is None else self.last_command.api_dump(),
+            "hubEndpoints": [x.api_dump() for x in self.hub_endpoints],
             "nodeName": self.node_name,
             "reportedAt": None if self.reported_at is None else check.iso(self.reported_at),
         }

@@ -52,6 +52,7 @@ MODELS: tuple[type[meta.ApiModel], ...] = (
     autopilot.Thresholds,
     autopilot.SafetyRoutine,
     autopilot.StandbyLimits,
+    autopilot.HubEndpoint,
     autopilot.HubSpec,
     autopilot.FailoverPolicy,
     autopilot.AutopilotCommand,
@@ -63,6 +64,7 @@ MODELS: tuple[type[meta.ApiModel], ...] = (
     autopilot.AutopilotHealth,
     autopilot.FailoverRecord,
     autopilot.CommandResult,
+    autopilot.HubEndpointStatus,
     autopilot.RedundantAutopilotStatus,
 )
 """The models to write out, each after the models it contains."""

@@ -24,7 +24,7 @@ from roost_api.resources import MISSION, REDUNDANT_AUTOPILOT, VEHICLE, ResourceK
 from roost_cli.errors import CliError
 from roost_kube import kubeconfig
 from roost_kube.errors import ApiError, ApiUnavailableError, ForbiddenError
-from roost_kube.resources import EVENTS, NAMESPACES, Resource
+from roost_kube.resources import EVENTS, NAMESPACES, SECRETS, Resource
 
 if TYPE_CHECKING:
     from roost_cli.dashboard.sources import ApiProxy
@@ -229,6 +229,24 @@ class Fleet:
             f"patch Mission {namespace}/{name}",
             MISSION,
             lambda: self.kube.merge_patch(Resource.of(MISSION), name, body, namespace=namespace),
+        )
+
+    def secret(self, namespace: str, name: str) -> dict[str, Any] | None:
+        """A Secret (None: absent); its data is never shown by the CLI."""
+        return self._call(
+            f"read Secret {namespace}/{name}", None, lambda: self.kube.get(SECRETS, name, namespace)
+        )
+
+    def create_secret(self, manifest: Mapping[str, Any]) -> None:
+        meta = manifest["metadata"]
+        what = f"create Secret {meta['namespace']}/{meta['name']}"
+        self._call(what, None, lambda: self.kube.create(manifest))
+
+    def patch_secret(self, namespace: str, name: str, body: Mapping[str, Any]) -> None:
+        self._call(
+            f"update Secret {namespace}/{name}",
+            None,
+            lambda: self.kube.merge_patch(SECRETS, name, body, namespace=namespace),
         )
 
 

@@ -27,7 +27,7 @@ from typer._click.exceptions import NoArgsIsHelpError  # typer >= 0.29 vendors c
 
 from roost_api.autopilot import CommandAction
 from roost_api.telemetry import Origin
-from roost_cli import actions, render, tables, view
+from roost_cli import actions, keys, render, tables, view
 from roost_cli.cluster import Fleet, in_cluster_target, resolve_kubeconfig
 from roost_cli.errors import CliError
 from roost_cli.sandbox import plan, runner, sims
@@ -95,6 +95,11 @@ sandbox_app = typer.Typer(
     no_args_is_help=True,
 )
 app.add_typer(sandbox_app, name="sandbox")
+keys_app = typer.Typer(
+    help="Each Vehicle's MAVLink signing key, in a Secret of its own (docs/mavlink-signing.md).",
+    no_args_is_help=True,
+)
+app.add_typer(keys_app, name="keys")
 console = Console()
 
 
@@ -455,3 +460,46 @@ def sandbox_up(
 def sandbox_down(ctx: typer.Context) -> None:
     """Stop a running sandbox (from another terminal) and every process it started."""
     runner.down(_context(ctx).sandbox_dir, console)
+
+
+KeysNamespace = Annotated[
+    str, typer.Option("--namespace", "-n", help="Namespace of the agents (the chart's release).")
+]
+
+
+def _passphrase_hint(namespace: str, name: str) -> str:
+    return (
+        f"for a ground station: kubectl -n {namespace} get secret {name} "
+        "-o jsonpath='{.data.passphrase}' | base64 -d"
+    )
+
+
+@keys_app.command("create")
+def keys_create(
+    ctx: typer.Context, vehicle: str, namespace: KeysNamespace = "roost-system"
+) -> None:
+    """Create VEHICLE's signing key (a random passphrase and its SHA-256 as the key)."""
+    fleet = _context(ctx).fleet()
+    name = keys.secret_name(vehicle)
+    if fleet.secret(namespace, name) is not None:
+        raise CliError(f"{namespace}/{name} exists: `roost keys rotate {vehicle}` replaces it")
+    fleet.create_secret(keys.key_secret(vehicle, namespace, keys.new_passphrase()))
+    console.print(f"created Secret {namespace}/{name}; {_passphrase_hint(namespace, name)}")
+
+
+@keys_app.command("rotate")
+def keys_rotate(
+    ctx: typer.Context, vehicle: str, namespace: KeysNamespace = "roost-system"
+) -> None:
+    """Give VEHICLE a new key; the old one stays accepted (as ``previous``) until the
+    next rotation, so autopilots and ground stations can be moved over one by one."""
+    fleet = _context(ctx).fleet()
+    name = keys.secret_name(vehicle)
+    current = fleet.secret(namespace, name)
+    if current is None:
+        raise CliError(f"{namespace}/{name} does not exist: `roost keys create {vehicle}`")
+    fleet.patch_secret(namespace, name, keys.rotation_patch(current, keys.new_passphrase()))
+    console.print(
+        f"rotated Secret {namespace}/{name}: the agent takes the new key within about a "
+        f"minute, without a restart; {_passphrase_hint(namespace, name)}"
+    )

@@ -44,6 +44,9 @@ SUITES = (
     "tests/integration/test_agent_failover.py",
     "tests/integration/test_firmware_truth.py",
     "tests/integration/test_link_trust.py",
+    # signed hub endpoints and a key rotation (the links re-key, answer each autopilot
+    # with the key it proved)
+    "tests/integration/test_hub_signing.py",
 )
 
 

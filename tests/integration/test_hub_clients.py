@@ -9,11 +9,13 @@ simulated (no GPIO hardware here).
 from __future__ import annotations
 
 import math
+import os
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 import pytest
@@ -22,6 +24,9 @@ from mavsdk.plugins.action import Action
 from mavsdk.plugins.offboard import Offboard, PositionNedYaw
 from mavsdk.plugins.telemetry import Telemetry
 
+from roost_agent.hub_policy import UNSIGNED
+from roost_api.autopilot import HubEndpoint, HubSigning
+from roost_mavlink.signing import passphrase_key
 from roost_sim import FaultKind, SimConfig
 from tests.support.hubclient import VEHICLE_SYSID, HubVehicle, hub_vehicle, repeating
 from tests.support.waiting import wait_until
@@ -106,66 +111,117 @@ def test_mavsdk_offboard_stream_continues_to_the_new_autopilot_after_a_failover(
             mavsdk.destroy()
 
 
-def test_mavproxy_arms_takes_off_and_lands_through_the_hub(tmp_path: Path) -> None:
-    with hub_vehicle(["ardupilot", "ardupilot"], config=SimConfig.fast(preset_streams=True)) as v:
-        hub = v.agent.hub
-        assert hub is not None
-        host, port = hub.udp_address
-        proc = subprocess.Popen(
+class MavProxy:
+    """A MAVProxy process on ``address`` (udpout), driven through its console."""
+
+    def __init__(self, address: tuple[str, int], state_dir: Path, sysid: int) -> None:
+        host, port = address
+        state_dir.mkdir(parents=True, exist_ok=True)
+        self.proc = subprocess.Popen(
             [
                 str(BIN / "mavproxy.py"),
                 f"--master=udpout:{host}:{port}",
                 f"--target-system={VEHICLE_SYSID}",
-                "--source-system=254",
-                f"--state-basedir={tmp_path}",
-                "--default-modules=mode,arm,cmdlong",
+                f"--source-system={sysid}",
+                f"--state-basedir={state_dir}",
+                "--default-modules=mode,arm,cmdlong,signing",
                 "--nowait",
             ],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             text=True,
-            cwd=tmp_path,
+            cwd=state_dir,
+            env={**os.environ, "HOME": str(state_dir)},  # no ~/.mavproxy of the user's
         )
-        assert proc.stdin is not None
+        self.output: list[str] = []
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.output.append(line)
+
+    def say(self, line: str) -> None:
+        assert self.proc.stdin is not None
+        self.proc.stdin.write(line + "\n")
+        self.proc.stdin.flush()
+
+    def detected(self) -> list[str]:
+        return [line for line in self.output if "Detected vehicle" in line]
+
+    def close(self) -> None:
+        with suppress(OSError):
+            self.say("exit")
         try:
+            self.proc.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait(timeout=5)
 
-            def say(line: str) -> None:
-                assert proc.stdin is not None
-                proc.stdin.write(line + "\n")
-                proc.stdin.flush()
 
-            output: list[str] = []
+@contextmanager
+def mavproxy(address: tuple[str, int], state_dir: Path, sysid: int = 254) -> Iterator[MavProxy]:
+    proxy = MavProxy(address, state_dir, sysid)
+    try:
+        yield proxy
+    finally:
+        proxy.close()
 
-            def read() -> None:
-                assert proc.stdout is not None
-                for line in proc.stdout:
-                    output.append(line)
 
-            threading.Thread(target=read, daemon=True).start()
-            eventually(
-                "MAVProxy sees one vehicle, the hub's sysid",
-                lambda: any(f"Detected vehicle {VEHICLE_SYSID}:1" in line for line in output),
-            )
-            say("mode GUIDED")
-            eventually("GUIDED on both", lambda: all(s.snapshot().mode == "GUIDED" for s in v.sims))
-            say("arm throttle")
-            eventually("armed on both", lambda: all(s.snapshot().armed for s in v.sims))
-            say("takeoff 5")
-            eventually("both autopilots in the air", lambda: airborne(v))
-            say("mode LAND")
-            eventually("both autopilots landed", lambda: on_ground(v), 40)
-            detected = [line for line in output if "Detected vehicle" in line]
-            assert len(detected) == 1, detected  # one identity all along
-        finally:
-            say_quit = proc.stdin
-            try:
-                say_quit.write("exit\n")
-                say_quit.flush()
-            except OSError:
-                pass
-            try:
-                proc.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(timeout=5)
+def fly_with_mavproxy(v: HubVehicle, proxy: MavProxy) -> None:
+    """GUIDED, arm, take off 5 m and land, through MAVProxy's console."""
+    eventually(
+        "MAVProxy sees one vehicle, the hub's sysid",
+        lambda: any(f"Detected vehicle {VEHICLE_SYSID}:1" in line for line in proxy.detected()),
+    )
+    proxy.say("mode GUIDED")
+    eventually("GUIDED on both", lambda: all(s.snapshot().mode == "GUIDED" for s in v.sims))
+    proxy.say("arm throttle")
+    eventually("armed on both", lambda: all(s.snapshot().armed for s in v.sims))
+    proxy.say("takeoff 5")
+    eventually("both autopilots in the air", lambda: airborne(v))
+    proxy.say("mode LAND")
+    eventually("both autopilots landed", lambda: on_ground(v), 40)
+    assert len(proxy.detected()) == 1, proxy.detected()  # one identity all along
+
+
+def test_mavproxy_arms_takes_off_and_lands_through_the_hub(tmp_path: Path) -> None:
+    with hub_vehicle(["ardupilot", "ardupilot"], config=SimConfig.fast(preset_streams=True)) as v:
+        hub = v.agent.hub
+        assert hub is not None
+        with mavproxy(hub.udp_address, tmp_path) as proxy:
+            fly_with_mavproxy(v, proxy)
+
+
+PASSPHRASE = "correct-horse-battery-staple-roost"
+UNSIGNED_MAVPROXY_SYSID = 249
+
+
+def test_signed_mavproxy_flies_a_signed_vehicle_and_an_unsigned_one_gets_nothing(
+    tmp_path: Path,
+) -> None:
+    """MAVProxy's ``signing key PASSPHRASE`` uses SHA-256 of the passphrase as the key,
+    which is what ``roost keys create`` stores for the vehicle."""
+    key = passphrase_key(PASSPHRASE)
+    gcs = HubEndpoint(name="gcs", address="127.0.0.1:0", signing=HubSigning.REQUIRED)
+    config = SimConfig.fast(preset_streams=True)
+    with hub_vehicle(["ardupilot", "ardupilot"], config=config, endpoints=[gcs], key=key) as v:
+        hub = v.agent.hub
+        assert hub is not None
+        address = hub.endpoint_address("gcs")
+        drops = next(e for e in hub.endpoints if e.name == "gcs").drops
+        with (
+            mavproxy(address, tmp_path / "intruder", UNSIGNED_MAVPROXY_SYSID) as intruder,
+            mavproxy(address, tmp_path / "pilot") as pilot,
+        ):
+            intruder.say("arm throttle")
+            intruder.say("mode GUIDED")
+            eventually("the intruder's frames are dropped", lambda: drops.by_reason[UNSIGNED] > 0)
+            pilot.say(f"signing key {PASSPHRASE}")
+            fly_with_mavproxy(v, pilot)
+            intruder.say("arm throttle")
+            assert intruder.detected() == []  # it never even saw the vehicle
+        reached = [c for s in v.sims for c in s.commands if c.source[0] == UNSIGNED_MAVPROXY_SYSID]
+        assert reached == []
+        assert hub.endpoint_status()[1].signed

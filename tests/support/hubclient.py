@@ -12,7 +12,7 @@ import math
 import socket
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -20,8 +20,10 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from roost_agent import Agent
 from roost_agent.bridge import SimulatedBridge
+from roost_agent.signing import LinkSigning
 from roost_api.autopilot import (
     FailoverPolicy,
+    HubEndpoint,
     HubSpec,
     ParametersSpec,
     RedundantAutopilotSpec,
@@ -31,6 +33,7 @@ from roost_api.autopilot import (
 from roost_api.meta import Stack
 from roost_api.plain import Condition
 from roost_mavlink import MAV_CMD_DO_SET_MODE, set_mode_params
+from roost_mavlink.signing import Timestamps, unix_to_ticks
 from roost_sim import (
     SimConfig,
     SimulatedAutopilot,
@@ -67,12 +70,25 @@ def source_system(msg: Any) -> int:
 class HubClient:
     """A ground station on ``address`` (the hub's UDP endpoint)."""
 
-    def __init__(self, address: tuple[str, int], *, sysid: int = GCS_SYSID) -> None:
+    def __init__(
+        self,
+        address: tuple[str, int],
+        *,
+        sysid: int = GCS_SYSID,
+        key: bytes | None = None,
+        link_id: int = 1,
+    ) -> None:
+        """With ``key`` the client signs what it sends (pymavlink's MAVLink 2 signing)
+        and takes only frames signed with that key."""
         self.address = address
+        self.key = key
+        self.link_id = link_id
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(("127.0.0.1", 0))
         self.sock.settimeout(0.1)
         self.mav = mavlink.MAVLink(_SocketFile(self), srcSystem=sysid, srcComponent=GCS_COMPONENT)
+        if key is not None:
+            _sign_with(self.mav, key, link_id)
         self.received: list[Received] = []
         self._cond = threading.Condition()
         self._stop = threading.Event()
@@ -105,6 +121,8 @@ class HubClient:
     def _read(self) -> None:
         parser = mavlink.MAVLink(None)
         parser.robust_parsing = True
+        if self.key is not None:
+            _sign_with(parser, self.key, self.link_id)
         while not self._stop.is_set():
             try:
                 data = self.sock.recv(65535)
@@ -159,6 +177,14 @@ class HubClient:
             0, target, 1, mavlink.MAV_FRAME_LOCAL_NED, ignore_all_but_position,
             north, east, down, 0, 0, 0, 0, 0, 0, 0, 0,
         )  # fmt: skip
+
+
+def _sign_with(mav: mavlink.MAVLink, key: bytes, link_id: int) -> None:
+    """pymavlink signs what ``mav`` sends and accepts only frames signed with ``key``."""
+    mav.signing.secret_key = key
+    mav.signing.link_id = link_id
+    mav.signing.sign_outgoing = True
+    mav.signing.timestamp = unix_to_ticks(time.time())
 
 
 class _SocketFile:
@@ -230,11 +256,19 @@ def hub_vehicle(
     config: SimConfig | None = None,
     tcp: bool = False,
     parameters: ParametersSpec | None = None,
+    endpoints: Sequence[HubEndpoint] = (),
+    key: bytes | None = None,
 ) -> Iterator[HubVehicle]:
     """Sims on the ground and heard by the agent, which serves the hub on a free port,
-    a :class:`HubClient` on it."""
+    a :class:`HubClient` on it. With ``key`` the whole vehicle signs: the sims and the
+    agent require it on their links, and the hub has it for ``endpoints`` that sign."""
     sims = start_vehicle_sims(stacks, config=config or SimConfig.fast())
     agent: Agent | None = None
+    signing = None
+    if key is not None:
+        for sim in sims:
+            sim.link.enable_signing(key, link_id=7)
+        signing = LinkSigning(key=key, require=True, clock=Timestamps())
     try:
         spec = RedundantAutopilotSpec(
             vehicle_name="v1",
@@ -247,12 +281,13 @@ def hub_vehicle(
                 tcp="127.0.0.1:0" if tcp else None,
                 mirror=mirror,
                 standby_limits=StandbyLimits(confirm_ms=300),
+                endpoints=list(endpoints),
             ),
             parameters=parameters,
         )
         bridge = SimulatedBridge(range(len(sims)))
         bridge.add_listener(motor_listener(sims))  # the sims know which one flies
-        agent = Agent(spec, bridge)
+        agent = Agent(spec, bridge, signing=signing)
         agent.start()
         hub = agent.hub
         assert hub is not None

@@ -17,6 +17,7 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from roost_agent.agent import Agent, AgentEvent, EventKind, FailoverEvent
 from roost_agent.bridge import SimulatedBridge
+from roost_agent.hub_policy import NOT_ALLOWED
 from roost_agent.kube import AgentKube
 from roost_agent.links import LinkCounters
 from roost_agent.metrics import (
@@ -27,7 +28,7 @@ from roost_agent.metrics import (
     build_registry,
 )
 from roost_agent.publisher import Publisher, PublisherSettings
-from roost_api.autopilot import CommandResult, FailoverRecord
+from roost_api.autopilot import CommandResult, FailoverRecord, HubEndpoint, HubSpec
 from roost_kube.client import Kube
 from roost_kube.transport import Credentials, DirectTransport
 from tests.support.feed import two_px4_spec
@@ -84,6 +85,35 @@ def test_collector_reads_health_active_and_link_counters() -> None:
     events = "roost_agent_link_events_total"
     assert got[(events, (("autopilot", "fc2"), ("event", "relocked")))] == 2
     assert ("roost_agent_publisher_pending_events", ()) not in got  # standalone: no publisher
+
+
+def test_hub_drops_are_exported_per_endpoint_and_reason() -> None:
+    spec = two_px4_spec(15010).model_copy(
+        update={
+            "hub": HubSpec(
+                udp="127.0.0.1:0",
+                endpoints=[HubEndpoint(name="ro", address="127.0.0.1:0", scope="ReadOnly")],
+            )
+        }
+    )
+    agent = Agent(spec, SimulatedBridge([0, 1]))
+    try:
+        hub = agent.hub
+        assert hub is not None
+        ro = next(e for e in hub.endpoints if e.name == "ro")
+        ro.drops.note(("127.0.0.1", 40000), NOT_ALLOWED, 0.0)
+        ro.drops.note(("127.0.0.1", 40001), NOT_ALLOWED, 1.0)
+        registry, unsubscribe = build_registry(agent)
+        got = samples(registry)
+        unsubscribe()
+    finally:
+        hub = agent.hub
+        if hub is not None:
+            hub.close()
+    dropped = "roost_agent_hub_dropped_frames_total"
+    assert got[(dropped, (("endpoint", "ro"), ("reason", "not_allowed")))] == 2
+    assert got[(dropped, (("endpoint", "udp"), ("reason", "unsigned")))] == 0
+    assert (dropped, (("endpoint", "ro"), ("reason", "accepted"))) not in got
 
 
 def event(kind: EventKind, reason: str, **payload: object) -> AgentEvent:

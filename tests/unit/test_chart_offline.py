@@ -50,6 +50,10 @@ VALUE_SETS: dict[str, tuple[dict[str, Any], tuple[Path, ...]]] = {
     ),
     "no-node-restriction": ({"agent": {"nodeRestriction": {"enabled": False}}}, ()),
     "signing": ({"agent": {"signing": {"mode": "require", "secretName": "fleet-keys"}}}, ()),
+    "signing-per-vehicle": (
+        {"agent": {"signing": {"mode": "require", "vehicles": ["drone-1", "drone-2"]}}},
+        (),
+    ),
     "operator-only": ({"agent": {"enabled": False}}, ()),
     "monitoring": (
         {
@@ -301,15 +305,36 @@ def test_agent_reads_signing_keys_from_a_read_only_secret_and_nowhere_else() -> 
     mount = next(m for m in container["volumeMounts"] if m["name"] == "signing-keys")
     assert mount == {"name": "signing-keys", "mountPath": "/etc/roost/signing", "readOnly": True}
     volume = next(v for v in pod["volumes"] if v["name"] == "signing-keys")
-    assert volume["secret"] == {"secretName": "fleet-keys", "defaultMode": 0o444}
+    assert volume["projected"] == {
+        "defaultMode": 0o444,
+        "sources": [{"secret": {"name": "fleet-keys"}}],
+    }
     assert "fleet-keys" not in str(container.get("env", []))  # not an env var, not an arg
     defaults = _agent_pod("defaults")
     assert "--signing=auto" in defaults["containers"][0]["args"]
     assert not [v for v in defaults["volumes"] if v["name"] == "signing-keys"]
 
 
+def test_per_vehicle_keys_are_mounted_by_the_kubelet_and_the_agent_may_read_no_secret() -> None:
+    pod = _agent_pod("signing-per-vehicle")
+    volume = next(v for v in pod["volumes"] if v["name"] == "signing-keys")
+    sources = volume["projected"]["sources"]
+    assert [s["secret"]["name"] for s in sources] == [
+        "roost-signing-drone-1",
+        "roost-signing-drone-2",
+    ]
+    assert sources[0]["secret"]["optional"] is True  # a Vehicle without a key yet: no signing
+    assert sources[0]["secret"]["items"] == [
+        {"key": "key", "path": "drone-1/key"},
+        {"key": "previous", "path": "drone-1/previous"},
+    ]
+    rules = _rules(_render_set("signing-per-vehicle"), "-agent")
+    for verb in ("get", "list", "watch"):
+        assert not _grants(rules, "", "secrets", verb), verb
+
+
 def test_signing_without_its_secret_is_refused() -> None:
-    with pytest.raises(ChartError, match=r"needs agent\.signing\.secretName"):
+    with pytest.raises(ChartError, match=r"needs agent\.signing\.vehicles"):
         render({"agent": {"signing": {"mode": "require"}}})
 
 
