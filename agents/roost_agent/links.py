@@ -14,10 +14,10 @@ agent's heartbeat, safety commands) take a lock, which also keeps the MAVLink se
 numbers in order.
 
 Why our own transports instead of ``pymavlink.mavutil`` connections: mavutil imports
-numpy and a MAVLink 1 dialect (about 30 MB of the agent's memory, on a companion
+numpy and a MAVLink 1 dialect (more memory than the whole agent needs, on a companion
 computer), prints to stdout, parses every sender's bytes with one parser and sends every
 reply to every address that ever sent it a datagram, spoofers included. (The agent does
-not import pymavlink at all: its generated dialect alone costs ~7 MB.)
+not import pymavlink at all: see :mod:`roost_mavlink.codec`.)
 
 Trust, on UDP, where anyone who can reach the port can send:
 

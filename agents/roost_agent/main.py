@@ -215,7 +215,7 @@ def refuse(message: str) -> SystemExit:
 
 def cluster_client(args: argparse.Namespace) -> AgentKube | None:
     # roost_kube (urllib3, its minimal transport) is imported only in cluster mode; the
-    # kubernetes package is never imported by the agent (about 13 MB of resident memory).
+    # kubernetes package is never imported by the agent (docs/performance.md#memory).
     """The API client when the agent works with a cluster (see ``--cluster``), else None."""
     if args.cluster == "off":
         return None

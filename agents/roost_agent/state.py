@@ -12,9 +12,8 @@ old or the new file, never half of one. A corrupt file is moved aside, not trust
 The file's classes, :class:`PersistedState` and :class:`SafetyProgress`, are declared in
 :mod:`roost_agent.state_model` and generated into :mod:`roost_agent.state_plain` by the
 generator of the API's pydantic-free classes (:mod:`roost_api.plain_gen`), so the agent
-has one way of declaring a validated class and still runs without pydantic. Files saved
-by every earlier agent load: the pydantic agent's and the later hand-written loader's
-had the same shape as the declaration.
+has one way of declaring a validated class and still runs without pydantic. Files
+written by older agents have the same shape as the declaration and load unchanged.
 """
 
 from __future__ import annotations

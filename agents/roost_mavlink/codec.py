@@ -1,10 +1,11 @@
 """The agent's MAVLink codec: frames from bytes, checked, decoded field by field on demand.
 
-Why our own: pymavlink's generated dialect costs the agent ~7 MB of memory to import
-(and its signing pulls in OpenSSL), on a companion computer where the agent should stay
-small, and its parser builds a full message object for every frame, which was most of
-the agent's per-message cost. The agent reads a few fields of a few message types
-(heartbeats, status, attitude, position, acks) and only checks and counts the rest.
+Why our own: pymavlink's generated dialect costs the agent several times this codec's
+memory to import (and its signing pulls in OpenSSL; docs/performance.md#memory), on a
+companion computer where the agent should stay small, and its parser builds a full
+message object for every frame, which would be most of the agent's per-message cost.
+The agent reads a few fields of a few message types (heartbeats, status, attitude,
+position, acks) and only checks and counts the rest.
 
 What a message id is known by (:func:`layout`):
 
@@ -17,7 +18,7 @@ What a message id is known by (:func:`layout`):
   those fields read, any other raises AttributeError.
 
 Judgement of bytes (:func:`scan`), the rules pymavlink's parser applies with robust
-parsing, so hostile traffic meets the same judgement as before:
+parsing, so hostile traffic meets the same judgement as it would there:
 
 - bytes before a frame start (0xFD MAVLink 2, 0xFE MAVLink 1) are one :class:`BadData`;
 - a frame's length comes from its header (plus the 13-byte signature when the signed

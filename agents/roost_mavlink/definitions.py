@@ -6,7 +6,7 @@ decodes a few fields of a few messages (:data:`AGENT_MESSAGES`: HEARTBEAT, SYS_S
 ATTITUDE, GLOBAL_POSITION_INT, the estimator reports, EXTENDED_SYS_STATE, COMMAND_ACK,
 the hub's COMMAND_LONG/INT, PARAM_VALUE, AUTOPILOT_VERSION) and encodes a few
 (HEARTBEAT, COMMAND_LONG, REQUEST_DATA_STREAM, PARAM_REQUEST_READ, PARAM_SET);
-pymavlink's generated dialect, which has them all, costs ~7 MB to import. Every other
+pymavlink's generated dialect, which has them all, costs several MB to import. Every other
 message id is only checked and counted, from the generated table
 :mod:`roost_mavlink.checked_messages`.
 

@@ -22,7 +22,7 @@ The rules are those of the MAVLink signing specification:
 
 CRC_EXTRA comes from :mod:`roost_mavlink.codec` (no pymavlink). SHA-256 is ``hashlib``'s,
 imported on first use: ``hashlib`` (and ``hmac``, which imports it) maps libcrypto,
-about 3 MB of an agent's memory, which an agent without signing does not need.
+megabytes of an agent's memory that an agent without signing does not need.
 """
 
 from __future__ import annotations

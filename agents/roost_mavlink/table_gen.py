@@ -5,9 +5,9 @@ reads but must still check (CRC) and count as the autopilot's own, and the hub f
 them to clients with a rewritten header (a new CRC). For those the agent needs only each
 id's name, CRC_EXTRA and payload lengths, and where the few fields it reads of *any*
 message sit (:data:`COMMON_FIELDS`). pymavlink's generated dialect has those facts but
-costs the agent ~7 MB to import, so they are written out once as data; the messages
-whose fields the agent decodes or encodes are declared by hand in
-:mod:`roost_mavlink.definitions` and left out of the table.
+costs the agent several MB to import (docs/performance.md#memory), so they are written
+out once as data; the messages whose fields the agent decodes or encodes are declared by
+hand in :mod:`roost_mavlink.definitions` and left out of the table.
 
 Run ``python -m roost_mavlink.table_gen`` (pymavlink installed) after a pymavlink
 upgrade, then ``ruff format`` the result; ``tests/unit/test_mavlink_codec.py`` fails while

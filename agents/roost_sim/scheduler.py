@@ -2,8 +2,9 @@
 
 Why: a thread per autopilot that wakes at each stream's exact due time wakes about 190
 times a second for PX4's table (100, 50 and 30 Hz streams with independent phases), and
-on a small VM a thread wake-up costs 150-200 µs of CPU. Twenty-five vehicles of two
-autopilots are then about 9,500 wake-ups a second -- most of the simulators' CPU. Real
+on a small VM a thread's wake-up costs more CPU than the messages it sends
+(docs/scale.md#a-bigger-sandbox). Twenty-five vehicles of two autopilots are then about
+9,500 wake-ups a second -- most of the simulators' CPU. Real
 firmware does not work that way either:
 
 - PX4's MAVLink module runs one main loop per link that sleeps between rounds

@@ -1,7 +1,7 @@
 """The RedundantAutopilot's enums and constants, without pydantic.
 
 The node agent reads and writes these values but must not import pydantic (it costs
-about 7 MB on a companion computer; see :mod:`roost_api.core`), so they live here and
+several MB on a companion computer; see :mod:`roost_api.core`), so they live here and
 :mod:`roost_api.autopilot` re-exports them next to its models.
 """
 

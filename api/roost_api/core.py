@@ -1,7 +1,7 @@
 """The pydantic-free part of the API: group, name patterns, shared enums and conditions.
 
 The node agent runs on a companion computer where every megabyte counts, and
-``import pydantic`` alone costs about 7 MB there (plus libcrypto, pulled in through
+``import pydantic`` alone costs several MB there (plus libcrypto, pulled in through
 ``secrets``). So whatever the agent needs besides the models themselves lives here and in
 :mod:`roost_api.autopilot_enums`, imported by :mod:`roost_api.meta` and
 :mod:`roost_api.autopilot` and re-exported from there: one definition, reachable without

@@ -1,14 +1,15 @@
 """Generate :mod:`roost_api.plain` from the pydantic models the node agent reads and writes.
 
 Why: the pydantic models are the single source of truth (CRDs, operator, CLI), but
-``import pydantic`` and the model classes cost a standalone node agent about 15 MB of
-its ~38 MB on a companion computer. The agent needs only a dozen of the models, and
-needs them validated exactly as the API would validate them. So this writes them out
-once as frozen dataclasses with the same class and attribute names, each with a
-``from_api`` loader (types, enums, required fields, defaults, bounds, lengths,
-patterns; unknown fields ignored) built from the model's own field metadata, and a
-``to_api`` that gives the model's JSON. The field rules are interpreted by the
-hand-written :mod:`roost_api.plain_check`, one function per field type.
+``import pydantic`` and the model classes would be a large share of a standalone node
+agent's memory on a companion computer (docs/performance.md#memory). The agent needs
+only a dozen of the models, and needs them validated exactly as the API would validate
+them. So this writes them out once as frozen dataclasses with the same class and
+attribute names, each with a ``from_api`` loader (types, enums, required fields,
+defaults, bounds, lengths, patterns; unknown fields ignored) built from the model's own
+field metadata, and a ``to_api`` that gives the model's JSON. The field rules are
+interpreted by the hand-written :mod:`roost_api.plain_check`, one function per field
+type.
 
 Run ``python -m roost_api.plain_gen`` after changing a model in :data:`MODELS`;
 ``tests/unit/test_plain_api.py`` fails while the committed module differs from what

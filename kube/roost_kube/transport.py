@@ -1,16 +1,17 @@
 """How a :class:`roost_kube.client.Kube` reaches the API server: two transports, one client.
 
 Why two: the ``kubernetes`` package's ``ApiClient`` brings its config loaders (every
-auth plugin kubectl knows) and, imported, about 18 MB of generated models. The operator
-and the CLI run where that does not matter and keep it (:class:`ApiClientTransport`).
-The node agent runs on a vehicle's companion computer and needs one cluster and two
-ways in: the service account it runs as (token and CA from the pod's mounted secret,
-the token re-read as the kubelet rotates it) or a kubeconfig with a client certificate
-or a bearer token (a vehicle configured by hand, the local sandbox).
-:class:`DirectTransport` is that, on urllib3 (which the ``kubernetes`` client uses
-too, so failures are the same exceptions and :func:`roost_kube.errors.transport_of`
-classifies them the same way). A kubeconfig that needs more (an exec or auth-provider
-plugin) is refused with a :class:`~roost_kube.kubeconfig.KubeconfigError` saying so.
+auth plugin kubectl knows) and, imported, its generated models: nearly as much memory as
+the rest of the node agent (docs/performance.md#memory). The operator and the CLI run
+where that does not matter and keep it (:class:`ApiClientTransport`). The node agent
+runs on a vehicle's companion computer and needs one cluster and two ways in: the
+service account it runs as (token and CA from the pod's mounted secret, the token
+re-read as the kubelet rotates it) or a kubeconfig with a client certificate or a bearer
+token (a vehicle configured by hand, the local sandbox). :class:`DirectTransport` is
+that, on urllib3 (which the ``kubernetes`` client uses too, so failures are the same
+exceptions and :func:`roost_kube.errors.transport_of` classifies them the same way). A
+kubeconfig that needs more (an exec or auth-provider plugin) is refused with a
+:class:`~roost_kube.kubeconfig.KubeconfigError` saying so.
 
 Both send exactly what :class:`~roost_kube.client.Kube` asks (a :class:`Request`) and
 answer with a :class:`Response` over urllib3's response.

@@ -1,12 +1,12 @@
 """Reads from watch caches, writes to the API server: the Vehicle controller's view.
 
-A first reconcile of a vehicle used to cost about ten requests, most of them reads
-(its node, the nodes labelled for it, its claim, its ConfigMap, its component pods,
-each once more inside ``apply``), and a vehicle is reconciled several times while its
-components roll out. :class:`CachedView` answers those reads from the
-:class:`~roost_operator.watches.Store` of a :class:`~roost_operator.watches.Watcher`
-the operator runs anyway, and keeps each store current with the answers to its own
-writes, so a reconcile that finds nothing to do sends nothing.
+Read from the API server, a first reconcile of a vehicle costs about ten requests, most
+of them reads (its node, the nodes labelled for it, its claim, its ConfigMap, its
+component pods, each once more inside ``apply``), and a vehicle is reconciled several
+times while its components roll out. :class:`CachedView` answers those reads from the
+:class:`~roost_operator.watches.Store` of a :class:`~roost_operator.watches.Watcher` the
+operator runs anyway, and keeps each store current with the answers to its own writes,
+so a reconcile that finds nothing to do sends nothing.
 
 Why a read from a cache cannot make the controller do the wrong thing:
 

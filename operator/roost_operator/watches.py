@@ -1,7 +1,7 @@
 """Roost's own list+watch threads, for resources kopf should not watch.
 
 kopf filters labels on the client: a handler for Roost's claim Leases makes kopf receive,
-and fully process (its per-object worker, cause detection, a diff base), every Lease in
+and fully process (its per-object worker, cause detection), every Lease in
 the cluster — a kubelet renews one per node every few seconds. Node status heartbeats
 are the same story. For those resources the operator runs a :class:`Watcher`: the API
 server applies the label selector, each event costs one JSON decode, and the callback

@@ -1,7 +1,7 @@
 """A work queue between kopf's watch events and the Vehicle controller's reconciles.
 
-Why: kopf calls a handler per watch event, in a thread of its executor, and each Roost
-handler used to reconcile right there. At fleet scale that means one full reconcile per
+Why: kopf calls a handler per watch event, in a thread of its executor. A handler
+that reconciled right there would, at fleet scale, mean one full reconcile per
 event (a component pod's way to Ready alone sends several), handlers of one vehicle queueing up
 behind its lock in kopf's threads, and a periodic timer per Vehicle to catch what an
 event handler dropped (kopf never retries event handlers). This queue is the model of

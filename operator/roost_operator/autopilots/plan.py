@@ -4,7 +4,8 @@
 status, annotations), its RedundantAutopilot (spec, and the status its node agent
 writes), the fleet guards, how many actions run elsewhere, whether mavros has rolled
 out — and returns what the Vehicle's status should become and the Events to record.
-The kopf handlers fetch, call this, write, post.
+It reads nothing and writes nothing: the Vehicle planner (:mod:`roost_operator.vehicles.plan`)
+calls it with what the Vehicle controller observed, and the controller writes and posts.
 
 What it decides, in order:
 
@@ -30,7 +31,7 @@ Mission state machine's, which asks
 cap) on the same bookkeeping this plan writes.
 
 Everything it returns is a function of its inputs (``now`` included): running it twice
-on the same inputs gives the same result, so the handlers write only on change and an
+on the same inputs gives the same result, so the controller writes only on change and an
 operator restart in the middle of a failover repeats nothing.
 """
 

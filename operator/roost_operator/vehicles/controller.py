@@ -1,15 +1,18 @@
 """The Vehicle controller: observe → :func:`~.plan.plan_vehicle` → apply → one status write.
 
-Every kopf trigger that concerns a Vehicle (its own events, its node's, its component
+Every trigger that concerns a Vehicle (its own events, its node's, its component
 Pods', its RedundantAutopilot's reports and silences, its claim Lease, the
-guard annotations, the periodic resync) ends in :meth:`VehicleController.reconcile`,
+guard annotations, the optional fleet sweep) queues its name on the work queue
+(:mod:`roost_operator.workqueue`), whose workers call :meth:`VehicleController.reconcile`,
 so there is exactly one path from "what the cluster looks like" to "what it should look
 like", and exactly one writer of ``Vehicle.status``. It does not import kopf.
 
 Why it is safe to run at any time, any number of times, and to be killed half-way:
 
-* **one lock per vehicle** serialises every reconcile of one vehicle in the process
-  (kopf runs handlers of different objects concurrently);
+* **one lock per vehicle** serialises every path that writes for one vehicle in the
+  process (:meth:`~VehicleController.reconcile` and
+  :meth:`~VehicleController.release_if_gone`), beyond the work queue's own rule that a
+  name is never reconciled twice at once;
 * **read your own write**: a Vehicle with a RedundantAutopilot (whose reconcile may act
   on a failover) and the RedundantAutopilot are read fresh from the API on every run;
   other Vehicles, nodes, the claim and what Roost made for the vehicle come from watch

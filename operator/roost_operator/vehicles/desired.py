@@ -2,18 +2,18 @@
 
 Given the Vehicle (and its RedundantAutopilot, when there is one) these functions
 return plain manifests and condition values; they read nothing and write nothing, so
-every rule here is unit-tested without a cluster and the handlers only fetch, call and
-apply.
+every rule here is unit-tested without a cluster and the Vehicle controller only
+observes, calls and applies.
 
 Each component workload is one bare Pod the Vehicle controller manages itself (as a
 DaemonSet controller would, pinned to one node), not a Deployment. Why: at 1,000
-vehicles the Deployment → ReplicaSet → Pod → scheduler chain was the bottleneck of the
-control plane (48.8 s to bring 1,000 Deployments up against 10.6 s for 1,000 bare
-Pods, see ``docs/design-decisions.md``). The pod names its node (``spec.nodeName``, no
+vehicles the Deployment → ReplicaSet → Pod → scheduler chain is the bottleneck of the
+control plane, several times the cost of bare Pods (``docs/design-decisions.md``,
+``docs/scale.md``). The pod names its node (``spec.nodeName``, no
 scheduler) and keeps the vehicle's node selector and toleration
 (:func:`~roost_operator.vehicles.placement.place_on_vehicle`), so the kubelet's own
 admission still checks that the node is the vehicle's. What the Deployment gave, the
-controller now keeps (:func:`pod_step` decides, see :mod:`.controller`):
+controller keeps (:func:`pod_step` decides, see :mod:`.controller`):
 
 * **Recreate**: a pod carries the hash of what it was built from
   (:data:`~roost_api.wellknown.ANNOTATION_POD_HASH`); a pod whose hash differs from

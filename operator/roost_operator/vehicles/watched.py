@@ -1,17 +1,17 @@
 """Roost's own watches that queue Vehicle reconciles: Nodes, and what Roost made.
 
 Why not kopf handlers: every node's kubelet (or KWOK) rewrites the Node's status every
-few seconds, and a component pod's kubelet writes its status several times on its way
-to Ready; kopf processes each of those events in full (its per-object worker, cause
-detection, a deep copy for the diff base) before a handler can say "nothing I read
-changed" — about 3 ms per event here, which at 1,000 vehicles was most of the
-operator's CPU. A :class:`~roost_operator.watches.Watcher` lists and watches with
-Roost's own client (owned objects with a server-side label selector, in the operator's
-namespace only), keeps every object in a :class:`~roost_operator.watches.Store` the
-controller reads instead of the API server (:mod:`roost_operator.cache`), and a
-:class:`VehicleTrigger` queues the vehicles an object concerns only when the part Roost
-reads changed (:func:`node_relevant`, :func:`owned_relevant`, :func:`pod_relevant`),
-it appeared, or it went away. Component pods are selected by
+few seconds, and a component pod's kubelet writes its status several times on its way to
+Ready; kopf processes each of those events in full (its per-object worker, cause
+detection) before a handler can say "nothing I read
+changed" — at 1,000 vehicles most of the operator's CPU (``docs/scale.md``). A
+:class:`~roost_operator.watches.Watcher` lists and watches with Roost's own client
+(owned objects with a server-side label selector, in the operator's namespace only),
+keeps every object in a :class:`~roost_operator.watches.Store` the controller reads
+instead of the API server (:mod:`roost_operator.cache`), and a :class:`VehicleTrigger`
+queues the vehicles an object concerns only when the part Roost reads changed
+(:func:`node_relevant`, :func:`owned_relevant`, :func:`pod_relevant`), it appeared, or
+it went away. Component pods are selected by
 :data:`~roost_operator.vehicles.desired.COMPONENT_POD_SELECTOR`: a Mission's onboard Job
 pods carry a vehicle's label too, and are not the vehicle controller's.
 
