@@ -16,10 +16,6 @@ pretend a cluster runs.
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
-from pathlib import Path
 from typing import Any
 
 import jsonschema
@@ -27,46 +23,14 @@ import pytest
 import yaml
 
 from roost_localcluster.binaries import REPO_ROOT
+from tests.support.kind import KIND_DIR, kind_config
 
-KIND_DIR = REPO_ROOT / "tests" / "e2e" / "kind"
-CONFIG = REPO_ROOT / "kind-config.yaml"
 SCHEMA = json.loads((KIND_DIR / "kind-config.schema.json").read_text())
 VEHICLE_LABEL = "e2e.roost.dev/vehicle"
 
-STAND_IN_DOCKER = """#!/bin/sh
-# Stand-in container engine for the KinD config test: answers what KinD asks before
-# validating its configuration, records and refuses everything else.
-echo "$*" >> "$ROOST_STUB_LOG"
-case "$1" in
-  -v) echo "Docker version 0.0.0-roost-stand-in, build none" ;;
-  info)
-    case "$*" in
-      *SecurityOptions*) echo "'[]'" ;;
-      *) echo '{"CgroupDriver":"systemd","CgroupVersion":"2","MemoryLimit":true,'\
-'"PidsLimit":true,"CPUShares":true,"SecurityOptions":[]}' ;;
-    esac ;;
-  ps) ;;
-  *) echo "roost stand-in: no container engine here" >&2; exit 1 ;;
-esac
-"""
-
-
-def _versions() -> dict[str, str]:
-    pairs = {}
-    for line in (KIND_DIR / "versions.env").read_text().splitlines():
-        if line and not line.startswith("#"):
-            key, _, value = line.partition("=")
-            pairs[key] = value
-    return pairs
-
-
-def _config() -> dict[str, Any]:
-    config: dict[str, Any] = yaml.safe_load(CONFIG.read_text())
-    return config
-
 
 def _workers() -> list[dict[str, Any]]:
-    return [node for node in _config()["nodes"] if node.get("role") == "worker"]
+    return [node for node in kind_config()["nodes"] if node.get("role") == "worker"]
 
 
 # -- the schema ------------------------------------------------------------------------
@@ -74,7 +38,7 @@ def _workers() -> list[dict[str, Any]]:
 
 def test_kind_config_matches_the_v1alpha4_schema() -> None:
     jsonschema.Draft7Validator.check_schema(SCHEMA)
-    jsonschema.validate(_config(), SCHEMA)
+    jsonschema.validate(kind_config(), SCHEMA)
 
 
 @pytest.mark.parametrize(
@@ -89,7 +53,7 @@ def test_kind_config_matches_the_v1alpha4_schema() -> None:
     ids=lambda value: value if isinstance(value, str) else "",
 )
 def test_schema_rejects_what_kind_rejects(change: Any, why: str) -> None:
-    config = _config()
+    config = kind_config()
     change(config)
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.validate(config, SCHEMA)
@@ -98,7 +62,7 @@ def test_schema_rejects_what_kind_rejects(change: Any, why: str) -> None:
 def test_three_vehicle_workers_with_a_fake_serial_port_and_their_config() -> None:
     workers = _workers()
     assert len(workers) == 3
-    roles = [node.get("role", "control-plane") for node in _config()["nodes"]]
+    roles = [node.get("role", "control-plane") for node in kind_config()["nodes"]]
     assert roles.count("control-plane") == 1
     for worker in workers:
         vehicle = worker["labels"][VEHICLE_LABEL]
@@ -117,82 +81,6 @@ def test_kind_values_mount_the_fake_serial_port_kind_config_provides() -> None:
 # -- the real kind binary --------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def kind_binary() -> Path:
-    result = subprocess.run(
-        [str(KIND_DIR / "install-kind.sh")],
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    if result.returncode == 3:
-        pytest.skip(result.stderr.strip())
-    assert result.returncode == 0, result.stderr
-    path = Path(result.stdout.strip())
-    assert (
-        f"kind {_versions()['KIND_VERSION']} "
-        in subprocess.run([str(path), "version"], capture_output=True, text=True, check=True).stdout
-    )
-    return path
-
-
-def _kind_create(kind: Path, config: Path, tmp_path: Path) -> tuple[str, list[str]]:
-    """Run ``kind create cluster`` with the stand-in engine; (kind's output, engine calls)."""
-    bin_dir = tmp_path / "bin"
-    bin_dir.mkdir()
-    docker = bin_dir / "docker"
-    docker.write_text(STAND_IN_DOCKER)
-    docker.chmod(0o755)
-    log = tmp_path / "engine.log"
-    env = {key: value for key, value in os.environ.items() if not key.startswith("KIND_")} | {
-        "PATH": f"{bin_dir}:{os.environ['PATH']}",
-        "ROOST_STUB_LOG": str(log),
-    }
-    result = subprocess.run(
-        [
-            str(kind),
-            "create",
-            "cluster",
-            "--config",
-            str(config),
-            "--image",
-            _versions()["KIND_NODE_IMAGE"],
-            "--kubeconfig",
-            str(tmp_path / "kubeconfig"),
-        ],
-        check=False,
-        cwd=REPO_ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert result.returncode != 0, "the stand-in engine cannot have created a cluster"
-    calls = log.read_text().splitlines() if log.exists() else []
-    return result.stdout + result.stderr, calls
-
-
-@pytest.mark.slow
-def test_pinned_kind_accepts_kind_config(kind_binary: Path, tmp_path: Path) -> None:
-    output, calls = _kind_create(kind_binary, CONFIG, tmp_path)
-    image = _versions()["KIND_NODE_IMAGE"]
-    provisioning = [call for call in calls if image in call]
-    assert provisioning, f"kind stopped before provisioning:\n{output}\ncalls: {calls}"
-    assert "invalid" not in output.lower() and "unable to decode" not in output, output
-
-
-@pytest.mark.slow
-def test_pinned_kind_rejects_a_misspelt_field(kind_binary: Path, tmp_path: Path) -> None:
-    config = _config()
-    config["nodes"][1]["extraMount"] = config["nodes"][1].pop("extraMounts")
-    path = tmp_path / "broken.yaml"
-    path.write_text(yaml.safe_dump(config))
-    output, calls = _kind_create(kind_binary, path, tmp_path)
-    assert "extraMount" in output, output
-    assert not [call for call in calls if _versions()["KIND_NODE_IMAGE"] in call], calls
-
-
 # -- the fleet run.sh applies and the scripts ------------------------------------------
 
 
@@ -202,7 +90,7 @@ def _fleet() -> list[dict[str, Any]]:
 
 def test_fleet_declares_the_identity_of_each_workers_host_file() -> None:
     vehicles = [doc for doc in _fleet() if doc["kind"] == "Vehicle"]
-    cluster = _config()["name"]
+    cluster = kind_config()["name"]
     # KinD names workers <cluster>-worker, <cluster>-worker2, ... in config order.
     node_names = [f"{cluster}-worker{'' if i == 1 else i}" for i in range(1, 4)]
     assert [v["spec"]["nodeName"] for v in vehicles] == node_names
@@ -226,37 +114,3 @@ def test_fleet_is_valid_against_the_crds() -> None:
         ]
     for doc in _fleet():
         jsonschema.Draft4Validator(schemas[doc["kind"]]).validate(doc)
-
-
-@pytest.mark.parametrize("script", ["run.sh", "install-kind.sh"])
-def test_kind_scripts_pass_shellcheck(script: str) -> None:
-    shellcheck = Path(sys.executable).parent / "shellcheck"
-    result = subprocess.run(
-        [str(shellcheck), "--external-sources", str(KIND_DIR / script)],
-        capture_output=True,
-        text=True,
-        check=False,
-        timeout=60,
-    )
-    assert result.returncode == 0, result.stdout + result.stderr
-
-
-def test_run_sh_skips_cleanly_without_a_container_engine(tmp_path: Path) -> None:
-    """No engine (a docker that cannot connect): a clear message and exit status 0."""
-    bin_dir = tmp_path / "bin"
-    bin_dir.mkdir()
-    docker = bin_dir / "docker"
-    docker.write_text(
-        "#!/bin/sh\necho 'Cannot connect to the Docker daemon at unix:///none' >&2\nexit 1\n"
-    )
-    docker.chmod(0o755)
-    result = subprocess.run(
-        [str(KIND_DIR / "run.sh")],
-        env={**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}"},
-        capture_output=True,
-        text=True,
-        check=False,
-        timeout=60,
-    )
-    assert result.returncode == 0, result.stderr
-    assert "SKIPPED" in result.stdout and "Cannot connect" in result.stdout
