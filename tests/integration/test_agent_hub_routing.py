@@ -3,7 +3,7 @@ standbys, awaited mirrored commands, the route after a switch.
 
 A real hub (its UDP endpoint bound on 127.0.0.1) with recording links in place of
 autopilot links, because what is checked is which frames the hub hands to which link.
-The hub's pure parts are in ``tests/unit/test_hub_routing.py``.
+The hub's pure parts are in ``tests/unit/test_agent_hub_rules.py``.
 """
 
 from __future__ import annotations

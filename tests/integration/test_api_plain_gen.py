@@ -1,7 +1,7 @@
 """The committed plain API modules of the node agent are what the generator renders now.
 
 The generator formats its output with the real ``ruff`` (a program), so this runs it;
-the generated loaders against the models are in ``tests/unit/test_plain_api.py``.
+the generated loaders against the models are in ``tests/unit/test_api_plain.py``.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 ``shellcheck``, from their wheels, run as programs): they must report nothing.
 
 The facts the chart and the build script rely on are checked as text in
-``tests/unit/test_images.py``; ``tests/e2e/test_image_run.py`` builds and runs them.
+``tests/unit/test_repo_images.py``; ``tests/e2e/test_image_run.py`` builds and runs them.
 """
 
 from __future__ import annotations

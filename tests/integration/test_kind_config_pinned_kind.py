@@ -7,7 +7,7 @@ only the questions KinD asks before validating (``docker -v``, ``docker info``, 
 ``docker ps`` for existing clusters) and refuses everything else. Reaching the first
 refused call, pulling the node image, means KinD accepted the configuration. The stand-in
 exists because this machine has no container engine; it is never used to pretend a
-cluster runs. The JSON-schema checks are in ``tests/unit/test_kind_config.py``.
+cluster runs. The JSON-schema checks are in ``tests/unit/test_repo_kind_config.py``.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 A ``fly`` request waits (polling, up to its ``timeout``) for the autopilot to finish
 starting up; a refusal must still be an answer that changes nothing. The other refused
-requests are a decision table in ``tests/unit/test_sim_physics.py``.
+requests are a decision table in ``tests/unit/test_sim_autopilot.py``.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """The safety routine when something changes while it runs: a hold that fails later, a
 cancel while holding.
 
-The scripted autopilot of the routine's decision table (``tests/unit/test_safety_routine.py``)
+The scripted autopilot of the routine's decision table (``tests/unit/test_agent_safety.py``)
 changes on a timer thread while the routine runs in real time.
 """
 

@@ -3,7 +3,7 @@ links, the source lock on what a listener answers, frames pymavlink's dialect la
 the kernel's arrival time of a datagram read late.
 
 The pure rules these links follow (source lock, signing, URLs) are in
-``tests/unit/test_link_lock_and_signing.py``.
+``tests/unit/test_agent_links.py``.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """``roost sandbox up --mission`` with real parts: the real monitor reports the port it
 bound, and the lag injector's thread injects and clears lag on schedule.
 
-Which programs run with which environment is in ``tests/unit/test_sandbox_missionrun.py``.
+Which programs run with which environment is in ``tests/unit/test_cli_sandbox_missionrun.py``.
 """
 
 from __future__ import annotations
