@@ -66,7 +66,7 @@ cluster-down: $(STAMP) ## stop the control plane started by cluster-up
 	$(BIN)/roost-cluster down --dir $(CLUSTER_DIR)
 
 # The test tiers (docs/contributing.md): `make check` is the loop while editing (lint,
-# types, unit tests: no sockets, threads, sleeps or programs; about 2 min warm here);
+# types, unit tests: no sockets, threads, sleeps or programs; under a minute of CPU);
 # `make integration` and `make e2e` need the control-plane build; `make test` runs them
 # all, plus the control-plane suites again on kine, as CI does.
 REPORTS := .test-reports
