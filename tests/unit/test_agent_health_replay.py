@@ -349,7 +349,7 @@ RECORDINGS = [
     ("arducopter-streams-arm-takeoff-brake-land.tlog", Stack.ARDUPILOT),
     ("arducopter-loiter-no-rc.tlog", Stack.ARDUPILOT),
 ]
-LOST_IN_A_ROW = 3  # the most the default heartbeat error tolerates (test_health)
+LOST_IN_A_ROW = 3  # the most the default heartbeat error tolerates (test_agent_health)
 
 
 def healthy_until(r: Replay) -> float:
@@ -378,7 +378,7 @@ def test_healthy_recorded_flight_is_never_an_error_at_the_default_thresholds(
     }
     assert heartbeat_findings == set()  # lossless recordings: nothing near either threshold
     beats = heartbeat_times(r)
-    # 1 Hz, as the loss table in test_health assumes (its longest period: 1.015 s)
+    # 1 Hz, as the loss table in test_agent_health assumes (its longest period: 1.015 s)
     assert max(b - a for a, b in itertools.pairwise(beats)) < 1.02
 
 
