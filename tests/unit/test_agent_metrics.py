@@ -1,7 +1,10 @@
-"""The agent's metric collectors on a real Agent, real link counters and real events.
+"""The agent's metric pieces without a link: every link counter exported, and the event
+metrics (failover latency, safety routine, commands) fed by real events.
 
-No HTTP here (tests/integration/test_agent_metrics_endpoint.py scrapes a running agent): the
-registry is rendered with prometheus_client's exposition and read back with its parser.
+The registry is rendered with prometheus_client's exposition and read back with its
+parser. Collectors on a real Agent and Publisher (bound sockets) are in
+``tests/integration/test_agent_metrics_on_links.py``; the scraped agent in
+``tests/integration/test_agent_metrics_endpoint.py``.
 """
 
 from __future__ import annotations

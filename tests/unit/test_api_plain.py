@@ -2,11 +2,12 @@
 they are generated from.
 
 The agent runs without pydantic (:mod:`roost_api.plain_gen` says why), so these tests
-hold the generated module to its source: it must be what the generator renders now, its
-loaders must accept and reject the same inputs as the models, and ``to_api`` must give
-the same JSON. Inputs are drawn around every field's rules: missing and null fields,
-wrong types, lax forms pydantic converts (numeric strings, integral floats, ``"yes"``),
-values at and beyond each bound, enum values and near misses, unknown fields.
+hold the generated loaders to their source: they must accept and reject the same inputs
+as the models, and ``to_api`` must give the same JSON. Inputs are drawn around every
+field's rules: missing and null fields, wrong types, lax forms pydantic converts (numeric
+strings, integral floats, ``"yes"``), values at and beyond each bound, enum values and
+near misses, unknown fields. That the committed modules are what the generator renders
+now is checked in ``tests/integration/test_api_plain_gen.py`` (it runs ruff).
 """
 
 from __future__ import annotations

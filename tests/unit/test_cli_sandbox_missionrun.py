@@ -1,5 +1,9 @@
-"""``roost sandbox up --mission``: which programs run with which environment, the monitor's
-address as it reports it, and the lag schedule that creates the delays."""
+"""``roost sandbox up --mission``: which programs run with which environment, and the lag
+schedule that creates the delays.
+
+The real monitor and the lag injector's thread are in
+``tests/integration/test_cli_sandbox_missionrun_live.py``.
+"""
 
 from __future__ import annotations
 

@@ -1,5 +1,8 @@
-"""roost_kube.errors: the temporary/permanent decision table, and transport failures told
-apart on real sockets (a refused port, a listener that never answers)."""
+"""roost_kube.errors: the temporary/permanent decision table.
+
+Transport failures told apart on real sockets (a refused port, a listener that never
+answers) are in ``tests/integration/test_kube_errors_sockets.py``.
+"""
 
 from __future__ import annotations
 

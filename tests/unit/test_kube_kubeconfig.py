@@ -1,9 +1,7 @@
 """Kubeconfigs load as kubectl loads them, and every bad one is one line that says why.
 
-The files are real files in a temp dir; the TLS test talks to a real HTTPS server on
-127.0.0.1 (Python's own, serving one canned list: what is under test is the TLS
-handshake and the message, not the API server), with certificates from
-:mod:`roost_localcluster.pki`.
+The files are real files in a temp dir. The TLS check against a real HTTPS server and
+``roost`` run as a program are in ``tests/integration/test_kube_kubeconfig_tls.py``.
 """
 
 from __future__ import annotations

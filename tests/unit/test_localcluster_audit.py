@@ -1,8 +1,8 @@
 """Counting requests from the API server's audit log: who asked, in which window.
 
 The log here is written by the test in the API server's format (one JSON event per
-line); the window's probe appends the marker's line, as the API server would once the
-probe's request is answered.
+line). Closing a window whose marker the API server writes late (a thread writes it) is
+in ``tests/integration/test_localcluster_audit_late_marker.py``.
 """
 
 from __future__ import annotations

@@ -1,8 +1,10 @@
-"""The operator's metric pieces: handler timing, the API request observer, fleet gauges.
+"""The operator's metric pieces: the API request observer, fleet gauges, errors counted as
+kopf makes of them.
 
-The fleet gauges come from Vehicles and Missions shaped as the API returns them; the
-timing wrapper wraps real sync and async functions and real kopf errors. The scraped
-operator process is in tests/integration/test_operator_metrics_endpoint.py.
+The fleet gauges come from Vehicles and Missions shaped as the API returns them. Handler
+timing through kopf-style sync and async handlers (an event loop) is in
+``tests/integration/test_operator_metrics_handlers.py``; the scraped operator process in
+``tests/integration/test_operator_metrics_endpoint.py``.
 """
 
 from __future__ import annotations

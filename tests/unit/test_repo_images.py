@@ -1,11 +1,11 @@
 """The image files, checked as text (tests/e2e/test_image_run.py builds and runs them).
 
-``hadolint`` and ``shellcheck`` (the real linters, from their wheels) must report
-nothing, and the facts the chart and the build script rely on must hold: a target per
+The facts the chart and the build script rely on must hold: a target per
 image whose entrypoint is one of the distribution's console scripts, a non-root user
 equal to the chart's ``runAsUser``, a public base pinned to a release by default, and a
 build context (written by ``docker/build-images.sh --context``) that carries everything
-the Dockerfile copies.
+the Dockerfile copies. The real linters (``hadolint``, ``shellcheck``) run in
+``tests/integration/test_images_lint.py``.
 """
 
 from __future__ import annotations

@@ -1,16 +1,9 @@
-"""kind-config.yaml is a configuration the pinned KinD accepts.
-
-Two checks. First against a JSON schema of KinD's v1alpha4 configuration
+"""kind-config.yaml against a JSON schema of KinD's v1alpha4 configuration
 (tests/e2e/kind/kind-config.schema.json, written for Roost from KinD's documented
-fields, strict like KinD's decoder). Second against the real ``kind`` binary of the
-pinned version (built from its Go module by tests/e2e/kind/install-kind.sh): KinD loads,
-decodes and validates the configuration before it touches a container engine, so
-``kind create cluster`` is run with a stand-in ``docker`` on PATH that answers only
-the two questions KinD asks before validating (``docker -v``, ``docker info``, and
-``docker ps`` for existing clusters) and refuses everything else. Reaching the first
-refused call, pulling the node image, means KinD accepted the configuration. The
-stand-in exists because this machine has no container engine; it is never used to
-pretend a cluster runs.
+fields, strict like KinD's decoder), and the fleet it declares against the CRDs.
+
+The real ``kind`` binary of the pinned version, and ``shellcheck`` on the KinD scripts,
+are in ``tests/integration/test_kind_config_pinned_kind.py``.
 """
 
 from __future__ import annotations

@@ -1,9 +1,8 @@
 """The simulator's tick scheduler: rounds on a grid, average rates kept, faults contained.
 
-Most tests drive :meth:`TickScheduler.run_round` with a fake clock (no thread), which is
-exactly what the scheduler's thread does between sleeps; the last ones run the real
-thread with real autopilot stand-ins (an autopilot needs sockets; the stand-ins count
-ticks the way a stream does).
+The tests drive :meth:`TickScheduler.run_round` with a fake clock (no thread), which is
+exactly what the scheduler's thread does between sleeps; the thread itself is in
+``tests/integration/test_sim_scheduler_thread.py``.
 """
 
 from __future__ import annotations
