@@ -26,7 +26,8 @@ SUITES = (
     # the compiled modules' own tests
     "tests/unit/test_mavlink_codec.py",
     "tests/unit/test_agent_health.py",
-    "tests/integration/test_agent_steering.py",
+    "tests/unit/test_agent_steering.py",
+    "tests/integration/test_agent_steering_kernel.py",
     "tests/unit/test_agent_links.py",
     "tests/integration/test_agent_links_sockets.py",
     "tests/unit/test_agent_health_replay.py",

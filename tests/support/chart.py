@@ -24,6 +24,8 @@ CHART_DIR = REPO_ROOT / "charts" / "roost"
 CHART_CRDS_DIR = CHART_DIR / "crds"
 HARDWARE_VALUES = CHART_DIR / "values-hardware.yaml"
 KIND_VALUES = CHART_DIR / "values-kind.yaml"
+KUBERNETES_VERSION = "1.35.0"
+"""The Kubernetes release the chart's objects and CRDs are validated against."""
 
 Manifest = dict[str, Any]
 
