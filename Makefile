@@ -13,7 +13,7 @@ export PATH := $(CURDIR)/$(BIN):$(PATH)
 
 .PHONY: help
 help: ## list the targets
-	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-16s %s\n", $$1, $$2}'
+	@grep -hE '^[a-zA-Z0-9_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-16s %s\n", $$1, $$2}'
 
 $(STAMP): pyproject.toml
 	@echo "setup: creating $(VENV) with Roost and its dev tools (pip's log: $(VENV)/pip.log)"
@@ -65,18 +65,41 @@ cluster-up: $(STAMP) cluster-build ## start the control plane in the background;
 cluster-down: $(STAMP) ## stop the control plane started by cluster-up
 	$(BIN)/roost-cluster down --dir $(CLUSTER_DIR)
 
-.PHONY: unit
-unit: $(STAMP) ## fast tests only (no control plane)
-	$(BIN)/pytest -m 'not cluster' tests
-	$(BIN)/pytest examples/missions/sync-paths
+# The test tiers (docs/contributing.md): `make check` is the loop while editing (lint,
+# types, unit tests: no sockets, threads, sleeps or programs; under a minute of CPU);
+# `make integration` and `make e2e` need the control-plane build; `make test` runs them
+# all, plus the control-plane suites again on kine, as CI does.
+REPORTS := .test-reports
+PYTEST_REPORT = $(BIN)/pytest --junitxml=$(REPORTS)/$(1).xml
 
-.PHONY: test
-test: lint typecheck cluster-build ## the whole suite: lint, types, unit, integration, control-plane e2e, images
+.PHONY: check
+check: $(STAMP) lint typecheck ## lint, types and the unit tests: what to run before every commit
+	@mkdir -p $(REPORTS)
+	$(call PYTEST_REPORT,unit) tests/unit
+
+.PHONY: unit
+unit: $(STAMP) ## the unit tests only (pure: no cluster, sockets, threads or sleeps)
+	$(BIN)/pytest tests/unit
+
+.PHONY: integration
+integration: $(STAMP) cluster-build ## real parts together: UDP MAVLink, processes, the control plane; and the sync-paths example
+	@mkdir -p $(REPORTS)
+	$(call PYTEST_REPORT,integration) tests/integration
+	$(call PYTEST_REPORT,sync-paths) examples/missions/sync-paths
+
+.PHONY: e2e
+e2e: $(STAMP) cluster-build ## end to end: the sandbox, the chart, the images, the dashboard in a browser, real nodes (skip without)
 	@docker/build-images.sh >/dev/null || echo "images: not built (above: why); tests/e2e/test_image_run.py skips or fails with the reason"
 	@$(MAKE) --no-print-directory browser || echo "browser: not installed (above: why); the dashboard's browser tests skip"
-	$(BIN)/pytest tests
-	$(BIN)/pytest examples/missions/sync-paths
-	$(BIN)/pytest --datastore kine $(KINE_SUITES)
+	@mkdir -p $(REPORTS)
+	$(call PYTEST_REPORT,e2e) tests/e2e tests/e2e_node
+
+.PHONY: test
+test: ## the whole suite: check, integration, e2e, the control-plane suites on kine; then the 25 slowest tests
+	@rm -rf $(REPORTS)
+	@$(MAKE) --no-print-directory check integration e2e
+	$(call PYTEST_REPORT,kine) --datastore kine $(KINE_SUITES)
+	@$(PY) -m tests.support.durations $(REPORTS)/*.xml
 
 # The control-plane and operator suites again on kine+SQLite, the datastore K3s runs on
 # (about 3.5 min warm here); `make test-kine` runs every control-plane test on it.
@@ -118,4 +141,4 @@ e2e-kind: $(STAMP) ## end-to-end suite on KinD (skips where no container engine 
 
 .PHONY: clean
 clean: ## remove the virtualenv and local state (keeps the ~/.cache build)
-	rm -rf $(VENV) $(CLUSTER_DIR) .sandbox .mypy_cache .ruff_cache .pytest_cache
+	rm -rf $(VENV) $(CLUSTER_DIR) .sandbox .mypy_cache .ruff_cache .pytest_cache $(REPORTS)

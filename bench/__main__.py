@@ -14,6 +14,7 @@ import sys
 from bench.core import RESULTS, Figure, update_readme, write_results
 
 MODULES: tuple[str, ...] = (
+    "dev",
     "controlplane",
     "kine",
     "images",

@@ -6,7 +6,7 @@ which runs without pydantic, so its classes are frozen dataclasses with loaders 
 API's plain twins. Rather than a second, hand-written way of declaring such a class,
 they are declared here as pydantic models (the shape the agent's state file has always
 had) and written out by the same generator as :mod:`roost_api.plain`: ``python -m
-roost_api.plain_gen roost_agent.state_model``. ``tests/unit/test_plain_api.py`` fails
+roost_api.plain_gen roost_agent.state_model``. ``tests/unit/test_api_plain.py`` fails
 while the generated module differs from what this renders, and checks that the loaders
 accept and refuse what these models do.
 """

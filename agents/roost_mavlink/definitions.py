@@ -26,7 +26,7 @@ them in declared order) and CRC_EXTRA (the CRC-16/MCRF4XX of ``"NAME "`` and
 arrays, folded to one byte) are computed, the way MAVLink's generators compute them, so
 a definition cannot drift from its checksum. ``tests/unit/test_mavlink_codec.py`` checks
 the computation against every message of pymavlink's dialect, each of
-:data:`AGENT_MESSAGES` against pymavlink's, and ``tests/unit/test_capture_replay.py``
+:data:`AGENT_MESSAGES` against pymavlink's, and ``tests/unit/test_agent_health_replay.py``
 every definition against the frames of the recorded PX4 flights.
 """
 

@@ -12,7 +12,7 @@ flags produce: an int field takes an integral float, a bool, or a numeric string
 (``" 5 "``, ``"1_000"``, ``"5.0"``); a float field a number, a bool or a numeric string;
 a bool field ``0``/``1`` or the words pydantic knows (``yes``, ``off``…); a str field
 only a string; a datetime an ISO 8601 string or a Unix time. ``tests/unit/
-test_plain_api.py`` checks that both accept and reject the same inputs.
+test_api_plain.py`` checks that both accept and reject the same inputs.
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ interpreted by the hand-written :mod:`roost_api.plain_check`, one function per f
 type.
 
 Run ``python -m roost_api.plain_gen`` after changing a model in :data:`MODELS`;
-``tests/unit/test_plain_api.py`` fails while the committed module differs from what
+``tests/unit/test_api_plain.py`` fails while the committed module differs from what
 this renders, and checks that the plain loaders and pydantic accept and reject the same
 inputs.
 

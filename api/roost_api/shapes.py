@@ -39,7 +39,7 @@ kubectl's copy (``\\u003c``). With :data:`CONFIG_TOTAL_MAX` characters of keys a
 (and at most :data:`CONFIG_MAX_ENTRIES` entries, 6 bytes of JSON punctuation each) the two
 copies take at most ``8192 * 18 + 64 * 6 * 2 = 148224`` bytes (145 KiB), which leaves over
 110 KiB for the rest of the spec and for the user's own annotations.
-``tests/unit/test_admission_shapes.py`` builds that worst case and measures it.
+``tests/unit/test_api_shapes.py`` builds that worst case and measures it.
 """
 
 from __future__ import annotations

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import threading
-import time
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +18,7 @@ from roost_cli.sandbox.missionrun import Lag, LagInjector
 from roost_cli.sandbox.processes import Launcher
 from roost_localcluster.processes import ManagedProcess
 from roost_sim.control import request
+from tests.support.waiting import wait_until
 
 pytestmark = pytest.mark.slow
 
@@ -27,14 +27,14 @@ TRAJECTORY = "time_s,north_m,east_m,down_m\n0,{n},0,-5\n8,{n},12,-5\n16,{n},0,-5
 
 
 def _wait_for(what: str, check: Any, procs: list[ManagedProcess], timeout_s: float) -> Any:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        found = check()
-        if found:
-            return found
-        time.sleep(0.1)
-    logs = "\n".join(f"--- {p.name}\n{p.log_tail()}" for p in procs)
-    raise AssertionError(f"{what} did not happen; logs:\n{logs}")
+    """Wait for ``check``; on a timeout the error carries every program's log tail."""
+    return wait_until(
+        what,
+        check,
+        timeout_s,
+        poll_s=0.1,
+        explain=lambda: "logs:\n" + "\n".join(f"--- {p.name}\n{p.log_tail()}" for p in procs),
+    )
 
 
 def test_a_lagging_vehicle_is_waited_for_and_transits_stay_planned(tmp_path: Path) -> None:

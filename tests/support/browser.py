@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import contextlib
 import shutil
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -18,6 +17,8 @@ from typing import Any
 import pytest
 from selenium import webdriver
 from selenium.webdriver.chrome.service import Service
+
+from tests.support.waiting import wait_until
 
 WINDOW = (1400, 900)
 
@@ -66,14 +67,15 @@ def wait_for(
     poll_s: float = 0.05,
 ) -> Any:
     """Run ``script`` (JavaScript returning a value) until it is truthy; that value."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        result = driver.execute_script(script, *args)
-        if result:
-            return result
-        if time.monotonic() > deadline:
-            state = driver.execute_script(
-                "return window.__roost && JSON.stringify(window.__roost.doc)"
+    return wait_until(
+        what,
+        lambda: driver.execute_script(script, *args),
+        timeout_s,
+        poll_s,
+        explain=lambda: (
+            "page: "
+            + str(
+                driver.execute_script("return window.__roost && JSON.stringify(window.__roost.doc)")
             )
-            raise TimeoutError(f"timed out after {timeout_s:g} s waiting for {what}; page: {state}")
-        time.sleep(poll_s)
+        ),
+    )

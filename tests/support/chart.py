@@ -2,7 +2,7 @@
 
 One place that knows where the chart lives and how values reach helm (always through a
 values file, never ``--set``, so nested keys and lists need no escaping), for the
-offline chart tests (``tests/unit/test_chart_offline.py``) and the control-plane ones
+offline chart tests (``tests/integration/test_chart_offline.py``) and the control-plane ones
 (``tests/e2e/test_chart.py``). Rendering uses the real ``helm`` binary from
 :mod:`roost_localcluster.clients`, not a template engine of our own.
 """
@@ -24,6 +24,8 @@ CHART_DIR = REPO_ROOT / "charts" / "roost"
 CHART_CRDS_DIR = CHART_DIR / "crds"
 HARDWARE_VALUES = CHART_DIR / "values-hardware.yaml"
 KIND_VALUES = CHART_DIR / "values-kind.yaml"
+KUBERNETES_VERSION = "1.35.0"
+"""The Kubernetes release the chart's objects and CRDs are validated against."""
 
 Manifest = dict[str, Any]
 

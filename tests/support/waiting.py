@@ -16,11 +16,16 @@ T = TypeVar("T")
 
 
 def wait_until(
-    what: str, check: Callable[[], T | None], timeout_s: float = 60.0, poll_s: float = 0.2
+    what: str,
+    check: Callable[[], T | None],
+    timeout_s: float = 60.0,
+    poll_s: float = 0.2,
+    explain: Callable[[], str] | None = None,
 ) -> T:
     """Poll ``check`` until it returns something truthy and return that.
 
-    Raises :class:`TimeoutError` naming ``what`` when ``timeout_s`` passes first.
+    Raises :class:`TimeoutError` naming ``what`` when ``timeout_s`` passes first, followed
+    by what ``explain`` returns then (the logs or the state that say why), if given.
     """
     deadline = time.monotonic() + timeout_s
     while True:
@@ -28,7 +33,8 @@ def wait_until(
         if result:
             return result
         if time.monotonic() > deadline:
-            raise TimeoutError(f"timed out after {timeout_s:g} s waiting for {what}")
+            why = f"; {explain()}" if explain is not None else ""
+            raise TimeoutError(f"timed out after {timeout_s:g} s waiting for {what}{why}")
         time.sleep(poll_s)
 
 

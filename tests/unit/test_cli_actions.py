@@ -8,19 +8,17 @@ real one through the API server to a real agent.
 from __future__ import annotations
 
 import json
-import socket
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
 import pytest
-import yaml
 
 from roost_api.autopilot import AutopilotCommand, CommandAction, RedundantAutopilotSpec
 from roost_api.commands import command_patch, new_command
 from roost_api.resources import MISSION, REDUNDANT_AUTOPILOT, VEHICLE, ResourceKind
 from roost_cli import actions
-from roost_cli.cluster import NO_CLUSTER, Fleet, Target, api_error, resolve_kubeconfig
+from roost_cli.cluster import NO_CLUSTER, api_error, resolve_kubeconfig
 from roost_cli.errors import CliError
 from roost_kube.errors import error_for_status
 
@@ -237,28 +235,3 @@ def test_api_errors_say_what_to_do(
     body = json.dumps({"kind": "Status", "message": "forbidden thing"})
     error = error_for_status(status, "GET", "/apis/roost.dev", body)
     assert expected in str(api_error(what, kind, error))
-
-
-def test_an_unreachable_api_server_is_named_with_what_to_do(tmp_path: Path) -> None:
-    with socket.socket() as probe:  # a port nobody listens on
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
-    kubeconfig = tmp_path / "kubeconfig"
-    kubeconfig.write_text(
-        yaml.safe_dump(
-            {
-                "apiVersion": "v1",
-                "kind": "Config",
-                "clusters": [{"name": "c", "cluster": {"server": f"http://127.0.0.1:{port}"}}],
-                "users": [{"name": "u", "user": {"token": "t"}}],
-                "contexts": [{"name": "x", "context": {"cluster": "c", "user": "u"}}],
-                "current-context": "x",
-            }
-        )
-    )
-    fleet = Fleet(Target(kubeconfig, "$KUBECONFIG"))
-    with pytest.raises(CliError) as error:
-        fleet.vehicles()
-    message = str(error.value)
-    assert f"cannot reach the API server at http://127.0.0.1:{port}" in message
-    assert "roost sandbox up" in message

@@ -1,13 +1,14 @@
-"""roost_kube.errors: the temporary/permanent decision table, and transport failures told
-apart on real sockets (a refused port, a listener that never answers)."""
+"""roost_kube.errors: the temporary/permanent decision table.
+
+Transport failures told apart on real sockets (a refused port, a listener that never
+answers) are in ``tests/integration/test_kube_errors_sockets.py``.
+"""
 
 from __future__ import annotations
 
 import json
-import socket
 
 import pytest
-import urllib3
 from kubernetes.client.exceptions import ApiException
 
 from roost_kube.errors import (
@@ -61,31 +62,6 @@ def test_the_server_message_and_reason_are_kept() -> None:
 def test_a_body_that_is_not_json_is_its_own_message() -> None:
     error = error_for_status(502, "GET", "/x", "<html>bad gateway</html>")
     assert error.message == "<html>bad gateway</html>" and error.reason == ""
-
-
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
-
-
-def test_a_refused_connection_is_refused_not_a_timeout() -> None:
-    pool = urllib3.PoolManager(retries=False)
-    with pytest.raises(urllib3.exceptions.HTTPError) as caught:
-        pool.request("GET", f"http://127.0.0.1:{_free_port()}/")
-    assert transport_of(caught.value) == "refused"
-    mapped = from_client_exception(caught.value, "GET", "/")
-    assert isinstance(mapped, ApiUnavailableError) and mapped.status is None
-    assert mapped.transport == "refused"
-
-
-def test_a_server_that_never_answers_is_a_timeout() -> None:
-    with socket.create_server(("127.0.0.1", 0)) as silent:  # accepts, never answers
-        port = silent.getsockname()[1]
-        pool = urllib3.PoolManager(retries=False, timeout=urllib3.Timeout(connect=2, read=0.2))
-        with pytest.raises(urllib3.exceptions.HTTPError) as caught:
-            pool.request("GET", f"http://127.0.0.1:{port}/")
-    assert transport_of(caught.value) == "timeout"
 
 
 def test_client_api_exceptions_map_by_status_and_bugs_are_not_swallowed() -> None:

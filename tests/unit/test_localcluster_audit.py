@@ -1,37 +1,18 @@
 """Counting requests from the API server's audit log: who asked, in which window.
 
 The log here is written by the test in the API server's format (one JSON event per
-line); the window's probe appends the marker's line, as the API server would once the
-probe's request is answered.
+line). Closing a window whose marker the API server writes late (a thread writes it) is
+in ``tests/integration/test_localcluster_audit_late_marker.py``.
 """
 
 from __future__ import annotations
 
-import json
-import threading
-import time
 from pathlib import Path
 
 import pytest
 
 from roost_localcluster.audit import RequestKind, Window, client_of, stamp
-
-
-def event(received: str, user_agent: str, verb: str, resource: str, **ref: str) -> str:
-    return json.dumps(
-        {
-            "requestReceivedTimestamp": received,
-            "userAgent": user_agent,
-            "verb": verb,
-            "objectRef": {"resource": resource, **ref},
-            "responseStatus": {"code": 200},
-        }
-    )
-
-
-def append(log: Path, *lines: str) -> None:
-    with log.open("a") as out:
-        out.writelines(line + "\n" for line in lines)
+from tests.support.auditlog import append, event
 
 
 def test_a_window_counts_only_what_was_received_inside_it_by_client(tmp_path: Path) -> None:
@@ -55,30 +36,6 @@ def test_a_window_counts_only_what_was_received_inside_it_by_client(tmp_path: Pa
         RequestKind("roost-operator", "patch", "vehicles/status"): 2,
         RequestKind("kube-controller-manager", "patch", "nodes"): 1,
     }
-
-
-def test_closing_waits_for_the_marker_the_api_server_writes_late(tmp_path: Path) -> None:
-    log = tmp_path / "audit.log"
-    log.touch()
-    window = Window.open(log)
-    answered = stamp()
-
-    def probe(marker: str) -> None:
-        def late() -> None:  # the API server writes lines a moment after the answer
-            time.sleep(0.2)
-            append(log, event(answered, "kopf/1.0", "delete", "configmaps"))
-            append(log, event(stamp(), "kubectl/v1", "get", "namespaces", name=marker))
-
-        threading.Thread(target=late).start()
-
-    assert window.close(probe) == {RequestKind("kopf", "delete", "configmaps"): 1}
-
-
-def test_a_marker_that_never_lands_is_an_error_that_names_the_log(tmp_path: Path) -> None:
-    log = tmp_path / "audit.log"
-    log.touch()
-    with pytest.raises(TimeoutError, match=r"audit\.log"):
-        Window.open(log).close(lambda marker: None, timeout_s=0.2)
 
 
 @pytest.mark.parametrize(

@@ -9,7 +9,7 @@ Damaged byte streams are judged as pymavlink's robust parser judges them (frame 
 bad data, unknown, good, and where a truncated frame begins). The generated table and
 the declarations are checked against pymavlink's dialect so neither can drift; the
 messages PX4 sends that the dialect lacks against pymavlink's ``all`` dialect, and
-``test_capture_replay`` checks them against recorded PX4 flights.
+``test_agent_health_replay`` checks them against recorded PX4 flights.
 """
 
 from __future__ import annotations

@@ -3,7 +3,6 @@ errors, naming the object."""
 
 from __future__ import annotations
 
-import asyncio
 from typing import Any
 
 import kopf
@@ -19,6 +18,7 @@ from roost_operator.edge import (
     kopf_error,
     object_name,
 )
+from tests.support.kopfstub import Resource
 
 
 @pytest.mark.parametrize(
@@ -48,34 +48,12 @@ def test_no_answer_at_all_is_temporary() -> None:
     assert isinstance(mapped, kopf.TemporaryError) and mapped.delay == UNAVAILABLE_DELAY_S
 
 
-class _Resource:
-    kind = "Mission"
-
-
 def test_the_object_is_named_with_kind_and_namespace() -> None:
-    assert object_name({"resource": _Resource(), "name": "m", "namespace": "ns"}) == "Mission ns/m"
+    assert (
+        object_name({"resource": Resource(kind="Mission"), "name": "m", "namespace": "ns"})
+        == "Mission ns/m"
+    )
     assert object_name({"name": "v"}) == "object v"
-
-
-def test_sync_and_async_handlers_are_wrapped_alike() -> None:
-    @handler_edge
-    def sync_handler(**_: Any) -> None:
-        raise error_for_status(422, "POST", "/jobs", '{"message": "bad name"}')
-
-    @handler_edge
-    async def async_handler(**_: Any) -> str:
-        raise error_for_status(409, "PATCH", "/v", "{}")
-
-    @handler_edge
-    async def fine(**_: Any) -> str:
-        return "ok"
-
-    with pytest.raises(kopf.PermanentError, match="Mission ns/m: POST /jobs: HTTP 422: bad name"):
-        sync_handler(resource=_Resource(), name="m", namespace="ns")
-    with pytest.raises(kopf.TemporaryError):
-        asyncio.run(async_handler(name="v"))
-    assert asyncio.run(fine()) == "ok"
-    assert asyncio.iscoroutinefunction(async_handler)
 
 
 def test_other_exceptions_pass_through_untouched() -> None:

@@ -1,33 +1,25 @@
-"""The operator's metric pieces: handler timing, the API request observer, fleet gauges.
+"""The operator's metric pieces: the API request observer, fleet gauges, errors counted as
+kopf makes of them.
 
-The fleet gauges come from Vehicles and Missions shaped as the API returns them; the
-timing wrapper wraps real sync and async functions and real kopf errors. The scraped
-operator process is in tests/integration/test_operator_metrics_endpoint.py.
+The fleet gauges come from Vehicles and Missions shaped as the API returns them. Handler
+timing through kopf-style sync and async handlers (an event loop) is in
+``tests/integration/test_operator_metrics_handlers.py``; the scraped operator process in
+``tests/integration/test_operator_metrics_endpoint.py``.
 """
 
 from __future__ import annotations
 
-import asyncio
 from typing import Any
 
 import kopf
 import pytest
 from prometheus_client import CollectorRegistry, generate_latest
-from prometheus_client.parser import text_string_to_metric_families
 
 from roost_kube.errors import error_for_status
 from roost_operator.edge import handler_edge
 from roost_operator.metrics import ApiRequests, Reconciles, fleet_families
-
-Samples = dict[tuple[str, tuple[tuple[str, str], ...]], float]
-
-
-def parse(text: str) -> Samples:
-    return {
-        (s.name, tuple(sorted(s.labels.items()))): s.value
-        for family in text_string_to_metric_families(text)
-        for s in family.samples
-    }
+from tests.support.kopfstub import Resource
+from tests.support.prometheus import Samples, parse
 
 
 def render(families: list[Any]) -> Samples:
@@ -76,47 +68,6 @@ def test_fleet_gauges_count_conditions_claims_guards_and_phases() -> None:
     assert got[("roost_operator_missions", (("phase", "Aborted"),))] == 0
 
 
-class _Resource:
-    def __init__(self, plural: str) -> None:
-        self.plural = plural
-
-
-def test_handler_edge_reports_runs_and_errors_by_kind_to_the_memo() -> None:
-    registry = CollectorRegistry()
-    memo = kopf.Memo(handler_timing=Reconciles(registry))
-    vehicles, missions = _Resource("vehicles"), _Resource("missions")
-
-    @handler_edge
-    def vehicle_changed(**_: Any) -> str:
-        return "done"
-
-    @handler_edge
-    def vehicle_resync(**_: Any) -> None:
-        raise kopf.TemporaryError("later", delay=1)
-
-    @handler_edge
-    async def mission_daemon(**_: Any) -> None:
-        raise ValueError("bug")
-
-    assert vehicle_changed(memo=memo, resource=vehicles) == "done"
-    assert vehicle_changed(resource=vehicles) == "done"  # no timing in the memo: not counted
-    with pytest.raises(kopf.TemporaryError):
-        vehicle_resync(memo=memo, resource=vehicles)
-    with pytest.raises(ValueError, match="bug"):
-        asyncio.run(mission_daemon(memo=memo, resource=missions))
-    got = parse(generate_latest(registry).decode())
-    count = "roost_operator_reconcile_duration_seconds_count"
-    assert got[(count, (("handler", "vehicle_changed"), ("resource", "vehicles")))] == 1
-    assert got[(count, (("handler", "vehicle_resync"), ("resource", "vehicles")))] == 1
-    assert got[(count, (("handler", "mission_daemon"), ("resource", "missions")))] == 1
-    errors = "roost_operator_reconcile_errors_total"
-    key = (("error", "temporary"), ("handler", "vehicle_resync"), ("resource", "vehicles"))
-    assert got[(errors, key)] == 1
-    key = (("error", "other"), ("handler", "mission_daemon"), ("resource", "missions"))
-    assert got[(errors, key)] == 1
-    assert not [k for k in got if k[0] == errors and ("handler", "vehicle_changed") in k[1]]
-
-
 def test_an_api_error_is_counted_as_what_kopf_makes_of_it() -> None:
     registry = CollectorRegistry()
     memo = kopf.Memo(handler_timing=Reconciles(registry))
@@ -126,7 +77,7 @@ def test_an_api_error_is_counted_as_what_kopf_makes_of_it() -> None:
         raise error_for_status(422, "PATCH", "/vehicles/x", "{}")
 
     with pytest.raises(kopf.PermanentError):
-        vehicle_changed(memo=memo, resource=_Resource("vehicles"), name="x")
+        vehicle_changed(memo=memo, resource=Resource("vehicles"), name="x")
     got = parse(generate_latest(registry).decode())
     key = (("error", "permanent"), ("handler", "vehicle_changed"), ("resource", "vehicles"))
     assert got[("roost_operator_reconcile_errors_total", key)] == 1

@@ -711,7 +711,7 @@ def test_the_agents_frames_are_judged_as_pymavlinks_messages(
 
 DEFAULTS = Thresholds()
 # HEARTBEAT period: nominal 1 Hz on both stacks, and the longest gap in the recorded
-# firmware traffic (PX4 v1.16 SIH, ArduCopter SITL; see test_capture_replay).
+# firmware traffic (PX4 v1.16 SIH, ArduCopter SITL; see test_agent_health_replay).
 HEARTBEAT_PERIOD_S = (1.0, 1.015)
 LINK_JITTER_S = 0.05  # the soak's jitter: each frame delayed by 0..50 ms
 

@@ -18,10 +18,12 @@ failsafe's MAV_STATE CRITICAL reported and corroborated into an ERROR. The hold 
 
 from __future__ import annotations
 
+import functools
 import itertools
 import os
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import Any
 
 os.environ.setdefault("MAVLINK20", "1")
@@ -85,12 +87,23 @@ class Replay:
         return next(a for a in self.timeline if a.at >= t)
 
 
+@functools.cache
+def recording(path: Path) -> tuple[tuple[float, bytes], ...]:
+    """The recording's (time, frame bytes), read once per file: pymavlink's reading of a
+    .tlog is the same every time, while the agent's reading below runs for every test."""
+    conn: Any = mavutil.mavlink_connection(str(path), dialect="ardupilotmega")
+    frames: list[tuple[float, bytes]] = []
+    while (msg := conn.recv_match()) is not None:
+        frames.append((msg._timestamp, bytes(msg.get_msgbuf())))
+    conn.close()
+    return tuple(frames)
+
+
 def replay(
     name: str, stack: Stack, tail_s: float = 4.0, lose_heartbeats: frozenset[int] = frozenset()
 ) -> Replay:
     """``lose_heartbeats``: which of the autopilot's HEARTBEATs (0 = its first) a lossy
     link drops before the tracker sees them."""
-    conn: Any = mavutil.mavlink_connection(str(capture(name)), dialect="ardupilotmega")
     tracker = HealthTracker("fc1", stack, TH)
     messages: list[tuple[float, Any]] = []
     timeline: list[Assessment] = []
@@ -98,14 +111,14 @@ def replay(
     next_at = 0.0
     foreign = unknown = 0
     heartbeats = 0
-    while (msg := conn.recv_match()) is not None:
-        start = msg._timestamp if start is None else start
-        t = msg._timestamp - start
+    for stamp, buf in recording(capture(name)):
+        start = stamp if start is None else start
+        t = stamp - start
         while next_at < t:
             timeline.append(tracker.assess(next_at))
             next_at += STEP_S
         # the recording's framing and times, the agent's reading (as the link reads it)
-        for frame in scan(bytes(msg.get_msgbuf()))[0]:
+        for frame in scan(buf)[0]:
             if isinstance(frame, UnknownFrame):
                 unknown += 1
                 continue
@@ -340,7 +353,7 @@ RECORDINGS = [
     ("arducopter-streams-arm-takeoff-brake-land.tlog", Stack.ARDUPILOT),
     ("arducopter-loiter-no-rc.tlog", Stack.ARDUPILOT),
 ]
-LOST_IN_A_ROW = 3  # the most the default heartbeat error tolerates (test_health)
+LOST_IN_A_ROW = 3  # the most the default heartbeat error tolerates (test_agent_health)
 
 
 def healthy_until(r: Replay) -> float:
@@ -369,7 +382,7 @@ def test_healthy_recorded_flight_is_never_an_error_at_the_default_thresholds(
     }
     assert heartbeat_findings == set()  # lossless recordings: nothing near either threshold
     beats = heartbeat_times(r)
-    # 1 Hz, as the loss table in test_health assumes (its longest period: 1.015 s)
+    # 1 Hz, as the loss table in test_agent_health assumes (its longest period: 1.015 s)
     assert max(b - a for a, b in itertools.pairwise(beats)) < 1.02
 
 

@@ -2,23 +2,17 @@
 
 The real ``roost`` console script runs in a subprocess (no cluster is needed: each
 command here fails on its command line before it would contact one), so what is checked
-is exactly what a user sees.
+is exactly what a user sees. The option parsers behind them are tested in
+``tests/unit/test_cli_main.py``.
 """
 
 from __future__ import annotations
 
-import math
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
-import typer
-
-from roost_cli.errors import CliError
-from roost_cli.main import finite
-from roost_cli.sandbox.sims import fault_message
-from roost_sim.faults import NUMERIC_RANGES, FaultKind, check_value
 
 ROOST = Path(sys.executable).parent / "roost"
 
@@ -74,32 +68,3 @@ def test_a_user_error_is_one_line_and_a_non_zero_exit(
 def test_help_still_prints_and_exits_zero(tmp_path: Path) -> None:
     result = run(tmp_path, "status", "--help")
     assert result.returncode == 0 and "--interval" in result.stdout
-
-
-@pytest.mark.parametrize("text", ["inf", "-inf", "nan", "1e999", "-0.5", "10.5"])
-def test_finite_refuses_what_is_not_a_finite_number_in_range(text: str) -> None:
-    with pytest.raises(typer.BadParameter):
-        finite(0, 10)(text)
-
-
-def test_finite_passes_numbers_in_range() -> None:
-    assert finite(0, 10)("0") == 0.0
-    assert finite(0, 10)("1e1") == 10.0
-
-
-@pytest.mark.parametrize("kind", sorted(NUMERIC_RANGES))
-def test_every_numeric_fault_refuses_infinite_and_out_of_range_values(kind: FaultKind) -> None:
-    low, high, _ = NUMERIC_RANGES[kind]
-    for bad in ("inf", "-inf", "nan", str(high * 2 + 1), str(low - 1), "x"):
-        with pytest.raises(ValueError):
-            check_value(kind, bad)
-        with pytest.raises(CliError, match="--value"):
-            fault_message(kind.value, bad)
-    check_value(kind, str(high))
-    check_value(kind, None)
-    assert math.isfinite(high)
-    assert fault_message(kind.value, str(low)) == {
-        "op": "fault",
-        "kind": kind.value,
-        "value": str(low),
-    }

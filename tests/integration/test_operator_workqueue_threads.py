@@ -7,18 +7,10 @@ import threading
 import time
 from collections import Counter
 
-import pytest
-
 from roost_operator.workqueue import Backoff, Permanent, WorkQueue
+from tests.support.waiting import wait_until
 
 WAIT_S = 5.0
-
-
-def _until(check: object, what: str) -> None:
-    deadline = time.monotonic() + WAIT_S
-    while not check():  # type: ignore[operator]
-        assert time.monotonic() < deadline, f"{what} did not happen"
-        time.sleep(0.005)
 
 
 def test_events_before_a_worker_picks_a_name_up_cost_one_reconcile() -> None:
@@ -29,7 +21,9 @@ def test_events_before_a_worker_picks_a_name_up_cost_one_reconcile() -> None:
     queue.add("drone-2")
     queue.start()
     try:
-        _until(lambda: queue.idle() and sum(seen.values()) >= 2, "the reconciles")
+        wait_until(
+            "the reconciles", lambda: queue.idle() and sum(seen.values()) >= 2, WAIT_S, poll_s=0.005
+        )
         time.sleep(0.05)
         assert seen == {"drone-1": 1, "drone-2": 1}
     finally:
@@ -55,11 +49,11 @@ def test_a_name_added_while_it_runs_runs_once_more_and_never_twice_at_once() -> 
     queue.start()
     try:
         queue.add("drone-1")
-        _until(lambda: running["drone-1"] == 1, "the first run")
+        wait_until("the first run", lambda: running["drone-1"] == 1, WAIT_S, poll_s=0.005)
         for _ in range(5):
             queue.add("drone-1")  # dirty while running
         gate.set()
-        _until(lambda: len(runs) == 2 and queue.idle(), "the second run")
+        wait_until("the second run", lambda: len(runs) == 2 and queue.idle(), WAIT_S, poll_s=0.005)
         time.sleep(0.05)
         assert runs == ["drone-1", "drone-1"]
         assert overlaps == []
@@ -79,7 +73,7 @@ def test_a_temporary_failure_is_retried_with_a_growing_backoff() -> None:
     queue.start()
     try:
         queue.add("drone-1")
-        _until(lambda: len(times) == 3, "two retries")
+        wait_until("two retries", lambda: len(times) == 3, WAIT_S, poll_s=0.005)
         first, second = times[1] - times[0], times[2] - times[1]
         assert first >= 0.05
         assert second >= 0.1  # doubled
@@ -104,12 +98,12 @@ def test_a_permanent_failure_is_reported_once_and_not_retried() -> None:
     queue.start()
     try:
         queue.add("drone-1")
-        _until(lambda: reported, "the report")
+        wait_until("the report", lambda: reported, WAIT_S, poll_s=0.005)
         time.sleep(0.1)  # ten backoffs' worth: nothing more happens
         assert calls == ["drone-1"]
         assert reported == [("drone-1", "the spec cannot be written")]
         queue.add("drone-1")  # the object changed: one more attempt
-        _until(lambda: len(calls) == 2, "the attempt after a change")
+        wait_until("the attempt after a change", lambda: len(calls) == 2, WAIT_S, poll_s=0.005)
     finally:
         queue.stop()
 
@@ -123,7 +117,7 @@ def test_a_deadline_fires_once_and_a_later_one_replaces_it() -> None:
         queue.add_at("drone-1", start + 0.1)
         queue.add_at("drone-1", start + 0.3)  # the agent reported again: moved later
         queue.add_at("drone-2", start + 0.05)
-        _until(lambda: len(runs) == 2, "both deadlines")
+        wait_until("both deadlines", lambda: len(runs) == 2, WAIT_S, poll_s=0.005)
         assert [key for key, _ in runs] == ["drone-2", "drone-1"]
         assert runs[1][1] - start >= 0.3
         time.sleep(0.2)
@@ -156,16 +150,11 @@ def test_a_cancelled_deadline_never_fires_but_one_moved_since_does() -> None:
         queue.add_at("moved", start + 0.05)
         queue.add_at("moved", start + 0.1)  # moved by someone else since
         queue.cancel_at("moved", start + 0.05)
-        _until(lambda: runs == ["moved"], "the moved deadline")
+        wait_until("the moved deadline", lambda: runs == ["moved"], WAIT_S, poll_s=0.005)
         time.sleep(0.1)
         assert runs == ["moved"]
     finally:
         queue.stop()
-
-
-@pytest.mark.parametrize(("failures", "delay"), [(1, 1.0), (2, 2.0), (3, 4.0), (10, 60.0)])
-def test_backoff_doubles_up_to_its_cap(failures: int, delay: float) -> None:
-    assert Backoff(base_s=1.0, cap_s=60.0).delay(failures) == delay
 
 
 def test_stop_waits_for_the_running_reconcile() -> None:

@@ -7,7 +7,6 @@ sandbox test runs them against a live fleet.
 from __future__ import annotations
 
 import math
-import socket
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
@@ -15,7 +14,7 @@ import pytest
 
 from roost_cli.errors import CliError
 from roost_cli.sandbox import director, plan, sims, state
-from roost_cli.sandbox.runner import announced_telemetry, port_free
+from roost_cli.sandbox.runner import announced_telemetry
 from roost_cli.tables import format_latency
 
 FAULT_AT = datetime(2026, 5, 1, 12, 0, 0, 600000, tzinfo=UTC)
@@ -137,13 +136,6 @@ def test_the_sandbox_reads_the_url_each_agent_announces() -> None:
     log = '2026 INFO roost_agent: started\n{"event": "Started"}\n{"telemetry": "ws://127.0.0.1:4242/"}\n'
     assert announced_telemetry(log) == "ws://127.0.0.1:4242/"
     assert announced_telemetry('{"telemetry": ') is None
-
-
-def test_a_bound_port_is_not_free() -> None:
-    with socket.socket() as taken:
-        taken.bind(("127.0.0.1", 0))
-        taken.listen()
-        assert not port_free(taken.getsockname()[1])
 
 
 _NO_STATE = state.SandboxState(pid=1, create_time=0.0, directory="/nonexistent")

@@ -1,5 +1,5 @@
 """The Vehicle controller's pod steps against a fake API: one write per step, never two
-pods of a component (the decision itself is tested in ``test_vehicle_desired``)."""
+pods of a component (the decision itself is tested in ``test_operator_vehicles_desired``)."""
 
 from __future__ import annotations
 

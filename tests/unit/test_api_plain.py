@@ -2,18 +2,17 @@
 they are generated from.
 
 The agent runs without pydantic (:mod:`roost_api.plain_gen` says why), so these tests
-hold the generated module to its source: it must be what the generator renders now, its
-loaders must accept and reject the same inputs as the models, and ``to_api`` must give
-the same JSON. Inputs are drawn around every field's rules: missing and null fields,
-wrong types, lax forms pydantic converts (numeric strings, integral floats, ``"yes"``),
-values at and beyond each bound, enum values and near misses, unknown fields.
+hold the generated loaders to their source: they must accept and reject the same inputs
+as the models, and ``to_api`` must give the same JSON. Inputs are drawn around every
+field's rules: missing and null fields, wrong types, lax forms pydantic converts (numeric
+strings, integral floats, ``"yes"``), values at and beyond each bound, enum values and
+near misses, unknown fields. That the committed modules are what the generator renders
+now is checked in ``tests/integration/test_api_plain_gen.py`` (it runs ruff).
 """
 
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -26,38 +25,9 @@ from roost_agent.state import PersistedState
 from roost_api import autopilot, meta, plain
 from roost_api.autopilot_enums import FinalAction
 from roost_api.plain_check import PlainValidationError
-from roost_api.plain_gen import MODELS, TARGET, render, render_declared
+from roost_api.plain_gen import MODELS
+from tests.support.specdoc import SPEC
 
-SPEC = {
-    "vehicleName": "v1",
-    "primary": "fc1",
-    "autopilots": [
-        {
-            "name": "fc1",
-            "stack": "px4",
-            "connection": "udp://127.0.0.1:14541",
-            "sysid": 1,
-            "bridgeChannel": 0,
-        },
-        {
-            "name": "fc2",
-            "stack": "ardupilot",
-            "connection": "udp://127.0.0.1:14542",
-            "sysid": 2,
-            "bridgeChannel": 1,
-            "componentId": 1,
-            "fcuUrl": "udp://:1@127.0.0.1:2",
-        },
-    ],
-    "failoverPolicy": {"thresholds": {"messageWarnMs": 100}, "safetyRoutine": {}},
-    "command": {
-        "id": "c-1",
-        "action": "Switch",
-        "target": "fc2",
-        "issuedAt": "2026-05-01T12:00:00Z",
-    },
-    "hub": {"tcp": "127.0.0.1:5760", "standbyLimits": {"positionM": 2}},
-}
 STATUS = {
     "conditions": [
         {
@@ -81,18 +51,6 @@ STATUS = {
     "lastCommand": {"id": "c-1", "result": "Executed", "time": 1777636800},
     "failoverCount": 1,
 }
-
-
-def test_the_committed_module_is_what_the_generator_renders() -> None:
-    """Regenerate with ``python -m roost_api.plain_gen`` when this fails."""
-    assert TARGET.read_text() == render()
-
-
-def test_the_committed_state_module_is_what_the_generator_renders() -> None:
-    """Regenerate with ``python -m roost_api.plain_gen roost_agent.state_model``."""
-    target, text = render_declared("roost_agent.state_model")
-    assert target == state_model.TARGET
-    assert target.read_text() == text
 
 
 def _outcome(model: type[BaseModel], doc: object) -> tuple[str, Any]:
@@ -305,49 +263,3 @@ def test_the_state_loader_accepts_and_refuses_as_its_declaration_does(
     doc: dict[str, Any],
 ) -> None:
     _same(state_model.PersistedState, doc)
-
-
-def _probe(code: str, *args: str) -> str:
-    out = subprocess.run(
-        [sys.executable, "-c", code, *args], capture_output=True, text=True, check=True
-    )
-    return out.stdout.strip()
-
-
-def test_the_standalone_agent_never_imports_pydantic() -> None:
-    """pydantic costs a companion computer ~15 MB with the models, plus libcrypto
-    (hashlib, via secrets) which the agent maps only with MAVLink signing on."""
-    probe = (
-        "import sys, roost_agent.main, roost_agent.agent, roost_agent.hub, roost_agent.state; "
-        "print(sorted(m for m in ('pydantic', 'pydantic_core', 'hashlib', 'decimal') "
-        "if m in sys.modules))"
-    )
-    assert _probe(probe) == "[]"
-
-
-def test_a_standalone_agent_run_loads_neither_pydantic_nor_libcrypto(tmp_path: Path) -> None:
-    """A real run: spec from a config file, two autopilot links, a saved state, status out."""
-    config = tmp_path / "spec.json"
-    spec = json.loads(json.dumps(SPEC))
-    del spec["command"], spec["hub"]
-    config.write_text(json.dumps(spec))
-    probe = (
-        "import sys, threading, roost_agent.main as m; "
-        "threading.Timer(1.5, lambda: __import__('os').kill(__import__('os').getpid(), 15))"
-        ".start(); "
-        "code = m.main(['--config', sys.argv[1], '--state-dir', sys.argv[2], "
-        "'--status-interval', '0.2']); "
-        "maps = open('/proc/self/maps').read(); "
-        "print('pydantic' in sys.modules, 'pydantic_core' in maps, 'libcrypto' in maps, "
-        "file=sys.stderr)"
-    )
-    out = subprocess.run(
-        [sys.executable, "-c", probe, str(config), str(tmp_path / "state")],
-        capture_output=True,
-        text=True,
-        check=False,
-        timeout=60,
-    )
-    assert out.stderr.strip().splitlines()[-1] == "False False False", out.stderr
-    assert (tmp_path / "state" / "agent-state.json").exists()
-    assert '"status"' in out.stdout

@@ -4,7 +4,8 @@ Everything here runs the real ``helm`` binary (``helm lint`` / ``helm template``
 validates what it prints against the Kubernetes 1.35 OpenAPI schemas shipped by
 ``kubernetes-validate``; custom resources are validated against the chart's own CRDs.
 tests/e2e/test_chart.py installs the same chart onto a real control plane and proves the
-RBAC and the node-restriction policy there.
+RBAC and the node-restriction policy there; the chart's files as data (CRD copies,
+appVersion, documented values) are checked in ``tests/unit/test_repo_chart.py``.
 """
 
 from __future__ import annotations
@@ -12,7 +13,6 @@ from __future__ import annotations
 import functools
 import json
 import re
-import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +28,7 @@ from tests.support.chart import (
     CHART_DIR,
     HARDWARE_VALUES,
     KIND_VALUES,
+    KUBERNETES_VERSION,
     ChartError,
     Manifest,
     find,
@@ -35,7 +36,6 @@ from tests.support.chart import (
     render,
 )
 
-KUBERNETES_VERSION = "1.35.0"
 AGENT_USER = "system:serviceaccount:roost-system:roost-agent"
 
 # Value sets every rendering test runs with: the defaults, both shipped values files,
@@ -114,21 +114,6 @@ def _grants(rules: list[dict[str, Any]], group: str, resource: str, verb: str) -
 # -- the CRDs Helm installs ------------------------------------------------------------
 
 
-def test_chart_crds_are_byte_identical_copies_of_the_generated_crds() -> None:
-    generated = {p.name: p.read_text() for p in (REPO_ROOT / "crds").glob("roost.dev_*.yaml")}
-    copies = {p.name: p.read_text() for p in CHART_CRDS_DIR.glob("roost.dev_*.yaml")}
-    assert sorted(copies) == sorted(generated), "run `make chart-crds`"
-    stale = [name for name in generated if copies[name] != generated[name]]
-    assert not stale, f"charts/roost/crds out of date, run `make chart-crds`: {stale}"
-
-
-def test_chart_crds_are_valid_customresourcedefinitions() -> None:
-    for path in sorted(CHART_CRDS_DIR.glob("*.yaml")):
-        kubernetes_validate.validate(
-            yaml.safe_load(path.read_text()), KUBERNETES_VERSION, strict=True
-        )
-
-
 # -- lint and schema validity ----------------------------------------------------------
 
 
@@ -159,27 +144,6 @@ def test_every_rendered_object_is_valid_for_kubernetes_1_35(value_set: str) -> N
 def test_values_schema_rejects_a_misspelt_key() -> None:
     with pytest.raises(ChartError, match="acess"):
         render({"agent": {"devices": {"acess": "privileged"}}})
-
-
-def test_every_value_in_values_yaml_is_documented() -> None:
-    """Each settable key has a comment right above it, or sits inside a documented map."""
-    lines = (CHART_DIR / "values.yaml").read_text().splitlines()
-    undocumented = []
-    documented_at: list[int] = []  # indentation of documented ancestors
-    for index, line in enumerate(lines):
-        match = re.match(r"^( *)([A-Za-z][\w.-]*):(.*)$", line)
-        if not match:
-            continue
-        indent, key, rest = len(match.group(1)), match.group(2), match.group(3).strip()
-        documented_at = [level for level in documented_at if level < indent]
-        previous = next((p for p in reversed(lines[:index]) if p.strip()), "")
-        has_comment = previous.strip().startswith("#")
-        is_section = rest == "" and index + 1 < len(lines) and not has_comment
-        if has_comment:
-            documented_at.append(indent)
-        elif not is_section and not documented_at:
-            undocumented.append(key)
-    assert not undocumented, f"values without a comment: {undocumented}"
 
 
 # -- operator --------------------------------------------------------------------------
@@ -436,13 +400,6 @@ def test_kubernetes_1_29_installs_without_the_node_restriction() -> None:
         if manifest["kind"] != "ClusterKopfPeering":
             kubernetes_validate.validate(manifest, "1.29.0", strict=True)
     assert "ValidatingAdmissionPolicy" not in {m["kind"] for m in manifests}
-
-
-def test_chart_app_version_is_the_distribution_version() -> None:
-    """Default image tags are the appVersion; the images are built from pyproject.toml."""
-    chart = yaml.safe_load((CHART_DIR / "Chart.yaml").read_text())
-    project = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())["project"]
-    assert chart["appVersion"] == project["version"]
 
 
 # -- metrics ---------------------------------------------------------------------------

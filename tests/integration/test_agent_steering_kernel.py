@@ -20,13 +20,8 @@ import pytest
 from roost_agent import links
 from roost_agent.links import LinkReader, SourceLock, UdpListen, UdpOut, _Session
 from roost_agent.steering import (
-    COMMAND_ACK,
-    HEARTBEAT,
     MAX_FRAMES,
-    _assemble,
-    _Op,
     steered_sockets,
-    urgent_program,
 )
 from roost_mavlink.codec import Encoder
 from roost_mavlink.signing import sign_frame
@@ -99,14 +94,6 @@ def test_the_kernel_steers_by_message_id(
     pair: tuple[socket.socket, socket.socket, socket.socket, int], data: bytes, expected: str
 ) -> None:
     assert landed_on(pair, data) == expected
-
-
-def test_a_program_with_jumps_too_long_is_refused_when_built() -> None:
-    far = [_Op(0x15, 1, jt="end"), *[_Op(0x04, 1) for _ in range(300)], _Op(0x06, 0, label="end")]
-    with pytest.raises(ValueError, match="out of range"):
-        _assemble(far)
-    with pytest.raises(ValueError, match="below 256"):
-        urgent_program([HEARTBEAT, COMMAND_ACK, 300])
 
 
 def test_a_port_in_use_is_refused_as_a_single_socket_would_be() -> None:

@@ -1,8 +1,10 @@
-"""Who a link believes, as pure rules: the source lock, MAVLink signing, connection URLs."""
+"""Who a link believes, as pure rules: the source lock, MAVLink signing, connection URLs;
+and the link's plumbing: the ack mailbox, the kernel stamps' clock offset."""
 
 from __future__ import annotations
 
 import os
+import time
 
 os.environ.setdefault("MAVLINK20", "1")
 
@@ -11,8 +13,9 @@ from pathlib import Path
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
+from roost_agent import links
 from roost_agent.agent import connection_problems
-from roost_agent.links import SourceLock
+from roost_agent.links import AckMailbox, SourceLock
 from roost_agent.signing import (
     RESERVE_TICKS,
     SIGNING_TIMESTAMP_FILE,
@@ -259,3 +262,21 @@ def test_a_spec_with_a_connection_the_agent_could_not_open_is_named_per_autopilo
     assert connection_problems(spec) == [
         "autopilot fc1: connection 'udp://127.0.0.1:70000': port 70000 is not 1-65535"
     ]
+
+
+# -- link plumbing ---------------------------------------------------------------------
+
+
+def test_ack_mailbox_returns_only_acks_newer_than_the_request() -> None:
+    box = AckMailbox()
+    box.put(176, 1)
+    serial = box.serial(176)
+    assert box.wait(176, serial, 0.01) is None  # the old ack does not answer a new request
+    box.put(176, 0)
+    assert box.wait(176, serial, 0.01) == 0
+
+
+def test_the_realtime_offset_matches_the_clocks() -> None:
+    """Turning a kernel stamp (realtime) into the agent's clock (monotonic)."""
+    offset = links.realtime_offset()
+    assert abs((time.time() - time.monotonic()) - offset) < 0.05
