@@ -27,7 +27,7 @@ loopback signs unless its spec says ``Unauthenticated``, and one that must sign 
 a key refuses to start (:class:`HubConfigError`), one line, no key material.
 
 Everything here is plain code without sockets, so the decision tables are unit tests
-(tests/unit/test_hub_policy.py), and compile-friendly (int reasons, slots) because
+(tests/unit/test_agent_hub_policy.py), and compile-friendly (int reasons, slots) because
 :meth:`Gate.judge` runs for every client frame.
 """
 
