@@ -15,10 +15,9 @@ ArduCopter traffic and the MAVLink parameter protocol):
   written one when it took it, its old one otherwise. A write counts only when that
   echo reads back as declared; it is repeated every :data:`RETRY_S` up to
   :data:`MAX_WRITES` times, then reported as ``WriteRefused``.
-- An integer travels in PARAM_VALUE's float field in one of two encodings: PX4 copies the
-  integer's bytes into the float (MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE; the
-  recorded CAL_ACC0_ID arrives as 1.837e-39), ArduPilot converts the number (C cast;
-  the recorded INS_GYR_ID arrives as 2752772.0). The stack decides by default;
+- An integer travels in PARAM_VALUE's float field in one of two encodings
+  (:mod:`roost_mavlink.params`): PX4 copies the integer's bytes into the float,
+  ArduPilot converts the number. The stack decides by default;
   AUTOPILOT_VERSION's capability bits decide once known. Each write uses the type the
   autopilot reported for that parameter, never one guessed from the value.
 - PX4 answers a write on the link it came from only (the recorded onboard link saw no
@@ -36,13 +35,23 @@ changed since is ``Drifted`` and written back only when ``onDrift`` is ``Restore
 from __future__ import annotations
 
 import math
-import struct
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
-from enum import Enum, IntEnum
+from enum import Enum
 
 from roost_api.autopilot_enums import ParametersReason
 from roost_api.core import ConditionStatus, Stack
+from roost_mavlink.params import (
+    FLOAT32_MAX,
+    INT_RANGE,
+    ParamType,
+    bytewise_default,
+    bytewise_from_capabilities,
+    float32,
+    from_wire,
+    known_type,
+    to_wire,
+)
 
 RETRY_S = 1.0
 """How long a read or write waits for its PARAM_VALUE before it is sent again."""
@@ -62,98 +71,15 @@ LISTED = 3
 """Parameters a condition message names before it says how many more."""
 
 
-class ParamType(IntEnum):
-    """MAV_PARAM_TYPE: the types PARAM_VALUE can carry in its float field."""
-
-    UINT8 = 1
-    INT8 = 2
-    UINT16 = 3
-    INT16 = 4
-    UINT32 = 5
-    INT32 = 6
-    REAL32 = 9
-
-
-_INT_FORMAT = {
-    ParamType.UINT8: "<B",
-    ParamType.INT8: "<b",
-    ParamType.UINT16: "<H",
-    ParamType.INT16: "<h",
-    ParamType.UINT32: "<I",
-    ParamType.INT32: "<i",
-}
-_INT_RANGE = {
-    ParamType.UINT8: (0, 0xFF),
-    ParamType.INT8: (-0x80, 0x7F),
-    ParamType.UINT16: (0, 0xFFFF),
-    ParamType.INT16: (-0x8000, 0x7FFF),
-    ParamType.UINT32: (0, 0xFFFFFFFF),
-    ParamType.INT32: (-0x80000000, 0x7FFFFFFF),
-}
-_FLOAT32_MAX = 3.4028234663852886e38
-MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE = 1 << 4
-MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST = 1 << 17
-
-
-def float32(value: float) -> float:
-    """``value`` as a 32-bit float holds it (what PARAM_VALUE carries)."""
-    return float(struct.unpack("<f", struct.pack("<f", value))[0])
-
-
-def bytewise_default(stack: Stack) -> bool:
-    """How the stack encodes integers when AUTOPILOT_VERSION has not said: PX4 bytewise,
-    ArduPilot by C cast."""
-    return stack is Stack.PX4
-
-
-def bytewise_from_capabilities(capabilities: int, stack: Stack) -> bool:
-    """The encoding AUTOPILOT_VERSION's capability bits announce (the stack's default
-    when they announce neither)."""
-    if capabilities & MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE:
-        return True
-    if capabilities & MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST:
-        return False
-    return bytewise_default(stack)
-
-
-def known_type(raw: int) -> ParamType | None:
-    """The parameter type of a PARAM_VALUE (None: one PARAM_VALUE cannot carry it)."""
-    try:
-        return ParamType(raw)
-    except ValueError:
-        return None
-
-
-def to_wire(value: float, ptype: ParamType, *, bytewise: bool) -> float:
-    """The float PARAM_SET / PARAM_VALUE carries for ``value`` of type ``ptype``."""
-    if ptype is ParamType.REAL32:
-        return float32(value)
-    if not bytewise:
-        return float(int(value))
-    raw = struct.pack(_INT_FORMAT[ptype], int(value)).ljust(4, b"\0")
-    return float(struct.unpack("<f", raw)[0])
-
-
-def from_wire(wire: float, ptype: ParamType, *, bytewise: bool) -> float:
-    """The value a PARAM_VALUE's float field carries for a parameter of type ``ptype``."""
-    if ptype is ParamType.REAL32:
-        return wire
-    if not bytewise:
-        return float(int(wire)) if math.isfinite(wire) else wire
-    raw = struct.pack("<f", wire)
-    size = struct.calcsize(_INT_FORMAT[ptype])
-    return float(struct.unpack(_INT_FORMAT[ptype], raw[:size])[0])
-
-
 def value_problem(value: float, ptype: ParamType) -> str | None:
     """Why ``value`` cannot be written to a parameter of type ``ptype`` (None: it can)."""
     if not math.isfinite(value):
         return f"{value} is not a finite number"
     if ptype is ParamType.REAL32:
-        return None if abs(value) <= _FLOAT32_MAX else f"{value} exceeds a 32-bit float"
+        return None if abs(value) <= FLOAT32_MAX else f"{value} exceeds a 32-bit float"
     if value != int(value):
         return f"{value:g} is not a whole number ({ptype.name} parameter)"
-    low, high = _INT_RANGE[ptype]
+    low, high = INT_RANGE[ptype]
     if not low <= value <= high:
         return f"{value:g} is outside {low}..{high} ({ptype.name} parameter)"
     return None
@@ -426,3 +352,21 @@ _WHAT = {
     ParametersReason.WRITING: "being written",
     ParametersReason.NO_DATA: "not read yet",
 }
+
+
+__all__ = [
+    "Do",
+    "Drift",
+    "Facts",
+    "ParamKeeper",
+    "ParamType",
+    "Read",
+    "Verdict",
+    "Write",
+    "bytewise_from_capabilities",
+    "decide",
+    "from_wire",
+    "same",
+    "to_wire",
+    "value_problem",
+]

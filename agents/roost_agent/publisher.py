@@ -93,6 +93,17 @@ POSTED_KINDS = frozenset(
 )
 URGENT_KINDS = frozenset({EventKind.FAILOVER, EventKind.COMMAND, EventKind.EMERGENCY_STOP})
 REJECTED_SPEC = "SpecRejected"
+PARAMETER_DRIFTED = "ParameterDrifted"
+# Events of other kinds posted by reason: a refused spec, and a parameter someone else
+# changed (once per change; the other parameter events are the condition's steps).
+POSTED_REASONS = frozenset(
+    {(EventKind.SPEC, REJECTED_SPEC), (EventKind.PARAMETERS, PARAMETER_DRIFTED)}
+)
+
+
+def posted(event: AgentEvent) -> bool:
+    """Whether an agent event becomes a Kubernetes Event."""
+    return event.kind in POSTED_KINDS or (event.kind, event.reason) in POSTED_REASONS
 
 
 class ReportingAgent(Protocol):
@@ -332,9 +343,7 @@ class Publisher:
     # -- agent events (on the agent's notifier thread: queue and wake only) -------------
 
     def _on_event(self, event: AgentEvent) -> None:
-        post = event.kind in POSTED_KINDS or (
-            event.kind == EventKind.SPEC and event.reason == REJECTED_SPEC
-        )
+        post = posted(event)
         with self._cond:
             if post:
                 if len(self._events) >= self._settings.max_pending_events:

@@ -10,33 +10,27 @@ declares integers INT32 and everything else FLOAT; ArduPilot sends each paramete
 type (AP_Int8 as INT8, AP_Int16 as INT16, AP_Float as REAL32), as the recorded ArduCopter
 traffic shows (EK3_SRC1_POSXY type 2, MIS_TOTAL type 4, INS_GYR_ID type 6).
 
-Integer parameters travel in PARAM_VALUE's float field the way each stack does it: PX4
-copies the bytes (MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE; the recorded PX4
-CAL_ACC0_ID reads 1.837e-39), ArduPilot converts the number (PARAM_ENCODE_C_CAST).
+Integer parameters travel in PARAM_VALUE's float field the way each stack does it
+(:mod:`roost_mavlink.params`, which the agent uses too): PX4 copies the bytes, ArduPilot
+converts the number.
 ArduPilot numbers an unrequested value (a write's answer) 65535, PX4 its real index.
 Unknown names get no reply, as on the real stacks.
 """
 
 from __future__ import annotations
 
-import math
-import struct
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from pymavlink.dialects.v20 import common as mavlink
-
 from roost_api.meta import Stack
+from roost_mavlink.params import ParamType, bytewise_default, from_wire, saturate, to_wire
 from roost_sim.model import SimConfig
 
-REAL32 = mavlink.MAV_PARAM_TYPE_REAL32
-INT32 = mavlink.MAV_PARAM_TYPE_INT32
-INT16 = mavlink.MAV_PARAM_TYPE_INT16
-INT8 = mavlink.MAV_PARAM_TYPE_INT8
-
-_INT_FORMATS = {INT8: "<b", INT16: "<h", INT32: "<i"}
-_INT_RANGES = {INT8: (-0x80, 0x7F), INT16: (-0x8000, 0x7FFF), INT32: (-0x80000000, 0x7FFFFFFF)}
+REAL32 = ParamType.REAL32
+INT32 = ParamType.INT32
+INT16 = ParamType.INT16
+INT8 = ParamType.INT8
 
 
 @dataclass(frozen=True)
@@ -44,12 +38,12 @@ class Param:
     """One parameter: its MAVLink type and how to read and write it."""
 
     name: str
-    type: int
+    type: ParamType
     get: Callable[[], float]
     set: Callable[[float], None] | None  # None: read-only
 
 
-def _stored(values: dict[str, float], name: str, ptype: int, default: float) -> Param:
+def _stored(values: dict[str, float], name: str, ptype: ParamType, default: float) -> Param:
     """A parameter the simulation keeps but does not act on (a value in a table)."""
     values[name] = default
 
@@ -111,6 +105,7 @@ class ParamStore:
         self.stack = Stack(stack)
         self._config = config
         self._values: dict[str, float] = {}
+        self._bytewise = bytewise_default(self.stack)
         self._params = self._table(sysid, config)
         self._by_name = {p.name: i for i, p in enumerate(self._params)}
 
@@ -179,30 +174,15 @@ class ParamStore:
         param.set(self._fit(param, value))
 
     def _encode(self, param: Param) -> float:
-        value = param.get()
-        if param.type == REAL32:
-            return float(value)
-        if self.stack is Stack.PX4:  # the integer's bytes, zero-padded, read as a float
-            raw = struct.pack(_INT_FORMATS[param.type], int(value)).ljust(4, b"\0")
-            return float(struct.unpack("<f", raw)[0])
-        return float(int(value))
+        return to_wire(param.get(), param.type, bytewise=self._bytewise)
 
     def _decode(self, param: Param, wire: float) -> float:
-        if param.type == REAL32:
-            return wire
-        if self.stack is Stack.PX4:
-            size = struct.calcsize(_INT_FORMATS[param.type])
-            raw = struct.pack("<f", wire)[:size]
-            return float(struct.unpack(_INT_FORMATS[param.type], raw)[0])
-        return float(int(wire)) if math.isfinite(wire) else 0.0
+        return from_wire(wire, param.type, bytewise=self._bytewise)
 
     @staticmethod
     def _fit(param: Param, value: float) -> float:
         """The value as the parameter's type holds it (an integer saturates)."""
-        if param.type == REAL32:
-            return float(struct.unpack("<f", struct.pack("<f", value))[0])
-        low, high = _INT_RANGES[param.type]
-        return float(min(max(int(value), low), high))
+        return saturate(value, param.type)
 
     def _value(self, mav: Any, index: int, *, listed: bool = True) -> Any:
         """PARAM_VALUE of one parameter; ``listed``: with its index (ArduPilot sends

@@ -473,6 +473,17 @@ REDUNDANT_AUTOPILOT_RULES = [
         "self.failoverPolicy.thresholds.heartbeatErrorMs)",
         "message": "warn thresholds must be below error thresholds",
     },
+    {
+        "rule": "!has(self.parameters) || !has(self.parameters.px4) || "
+        "size(self.parameters.px4) == 0 || self.autopilots.exists(a, a.stack == 'px4')",
+        "message": "parameters.px4 declared but no autopilot runs PX4",
+    },
+    {
+        "rule": "!has(self.parameters) || !has(self.parameters.ardupilot) || "
+        "size(self.parameters.ardupilot) == 0 || "
+        "self.autopilots.exists(a, a.stack == 'ardupilot')",
+        "message": "parameters.ardupilot declared but no autopilot runs ArduPilot",
+    },
 ]
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from datetime import UTC, datetime, timedelta
 
-from roost_agent.agent import EventKind
-from roost_agent.publisher import POSTED_KINDS, carry_transitions, merge_patch_body
+from roost_agent.agent import AgentEvent, EventKind
+from roost_agent.publisher import POSTED_KINDS, carry_transitions, merge_patch_body, posted
 from roost_api.autopilot import AutopilotHealth, FailoverRecord, RedundantAutopilotStatus
 from roost_api.meta import HealthLevel
 from tests.support.conditions import cond
@@ -34,6 +34,16 @@ def test_health_changes_are_never_posted_as_events() -> None:
     # Link failures, foreign senders and bad signatures are posted; the links rate-limit
     # them at the source (one per error text, one per alarm quiet time).
     assert EventKind.LINK in POSTED_KINDS
+
+
+def test_a_parameter_drift_is_posted_and_the_conditions_steps_are_not() -> None:
+    def event(kind: EventKind, reason: str) -> AgentEvent:
+        return AgentEvent(kind, reason, "fc1: ...", warning=True, time=T0)
+
+    assert posted(event(EventKind.PARAMETERS, "ParameterDrifted"))
+    assert not posted(event(EventKind.PARAMETERS, "ParametersWriting"))
+    assert posted(event(EventKind.SPEC, "SpecRejected"))
+    assert not posted(event(EventKind.SPEC, "SpecApplied"))
 
 
 def test_the_status_patch_removes_what_the_agent_no_longer_reports() -> None:
