@@ -41,7 +41,7 @@ def key_entries(passphrase: str, previous_key_hex: str = "") -> dict[str, str]:
     """The Secret's ``stringData`` for ``passphrase``."""
     return {
         # SHA-256 of the ASCII text: roost_mavlink.signing.passphrase_key, which the CLI
-        # does not import (tests/unit/test_import_directions.py); a test checks both agree
+        # does not import (tests/unit/test_repo_import_directions.py); a test checks both agree
         "key": hashlib.sha256(passphrase.encode("ascii")).hexdigest(),
         "passphrase": passphrase,
         "previous": previous_key_hex,

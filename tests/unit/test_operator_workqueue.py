@@ -2,7 +2,7 @@
 backoff, permanent failures reported once, deadlines that move.
 
 Here the backoff arithmetic; the queue itself runs worker threads and is tested in
-``tests/integration/test_operator_workqueue.py``."""
+``tests/integration/test_operator_workqueue_threads.py``."""
 
 from __future__ import annotations
 
