@@ -371,7 +371,7 @@ class RebootRun:
     restart_to_report_s: float
     """From starting containerd and the kubelet again to the agent's first report."""
     resumed: list[str]
-    """Messages of the agent's SafetyRoutineResumed Events after the boot."""
+    """The agent's SafetyRoutineResumed messages after the boot."""
 
 
 def _agent_mark(fleet: RealFleet) -> PodMark:
@@ -392,16 +392,20 @@ def reported_since(fleet: RealFleet, since: datetime) -> dict[str, Any] | None:
     return None
 
 
-def resumed_events(fleet: RealFleet, since: datetime) -> list[str]:
-    """Messages of the agent's SafetyRoutineResumed Events at or after ``since``."""
-    found = _json(fleet, "get", "events", "-A", "--field-selector", "reason=SafetyRoutineResumed")
-    messages = []
-    for event in found["items"]:
-        stamp = event.get("eventTime") or event.get("lastTimestamp") or ""
-        when = datetime.fromisoformat(stamp.replace("Z", "+00:00")) if stamp else None
-        if when is not None and when >= since.replace(microsecond=0):
-            messages.append(str(event.get("message") or event.get("note") or ""))
-    return messages
+def resumed_in_log(fleet: RealFleet) -> list[str]:
+    """The agent's ``SafetyRoutineResumed`` lines in its current container's log (the
+    container the boot started)."""
+    pod = fleet.agent_pod()
+    if pod is None:
+        return []
+    done = fleet.cluster.kubectl(
+        "logs", pod["metadata"]["name"], "-n", fleet.namespace, check=False
+    )
+    return [
+        line.split("SafetyRoutineResumed: ", 1)[1]
+        for line in done.stdout.splitlines()
+        if "SafetyRoutineResumed: " in line
+    ]
 
 
 def power_cycle(fleet: RealFleet, *, down_s: float = 2.0) -> RebootRun:
@@ -425,8 +429,8 @@ def power_cycle(fleet: RealFleet, *, down_s: float = 2.0) -> RebootRun:
     )
     restart_to_report_s = time.monotonic() - started
     resumed = wait_until(
-        "the agent's SafetyRoutineResumed Event",
-        lambda: resumed_events(fleet, booted_at),
+        "the agent's SafetyRoutineResumed in its new container's log",
+        lambda: resumed_in_log(fleet),
         WAIT_S,
     )
     wait_until("every pod on the vehicle node Ready again", lambda: all_ready(fleet), WAIT_S)
