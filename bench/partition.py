@@ -92,6 +92,7 @@ def run() -> list[Figure]:
                 fleet.start()
                 partition.start_workloads(fleet)
                 measured = partition.cut_and_restore(fleet)
+                partition.stop_workloads(fleet)  # the Mission's Job pod does not reboot
                 rebooted = partition.power_cycle(fleet)
             finally:
                 partition.stop_workloads(fleet)

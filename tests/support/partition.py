@@ -372,6 +372,8 @@ class RebootRun:
     """From starting containerd and the kubelet again to the agent's first report."""
     resumed: list[str]
     """The agent's SafetyRoutineResumed messages after the boot."""
+    log_tail: str = ""
+    """The end of the agent's log after the boot (for a failing check to show)."""
 
 
 def _agent_mark(fleet: RealFleet) -> PodMark:
@@ -392,18 +394,23 @@ def reported_since(fleet: RealFleet, since: datetime) -> dict[str, Any] | None:
     return None
 
 
-def resumed_in_log(fleet: RealFleet) -> list[str]:
-    """The agent's ``SafetyRoutineResumed`` lines in its current container's log (the
-    container the boot started)."""
+def agent_log(fleet: RealFleet) -> str:
+    """The agent's current container's log (``kubectl logs``), or kubectl's complaint."""
     pod = fleet.agent_pod()
     if pod is None:
-        return []
+        return "no agent pod"
     done = fleet.cluster.kubectl(
         "logs", pod["metadata"]["name"], "-n", fleet.namespace, check=False
     )
+    return done.stdout if done.returncode == 0 else done.stderr
+
+
+def resumed_in_log(fleet: RealFleet) -> list[str]:
+    """The agent's ``SafetyRoutineResumed`` lines in its current container's log (the
+    container the boot started)."""
     return [
         line.split("SafetyRoutineResumed: ", 1)[1]
-        for line in done.stdout.splitlines()
+        for line in agent_log(fleet).splitlines()
         if "SafetyRoutineResumed: " in line
     ]
 
@@ -428,12 +435,15 @@ def power_cycle(fleet: RealFleet, *, down_s: float = 2.0) -> RebootRun:
         poll_s=0.05,
     )
     restart_to_report_s = time.monotonic() - started
-    resumed = wait_until(
-        "the agent's SafetyRoutineResumed in its new container's log",
-        lambda: resumed_in_log(fleet),
-        WAIT_S,
-    )
     wait_until("every pod on the vehicle node Ready again", lambda: all_ready(fleet), WAIT_S)
+    try:
+        resumed = wait_until(
+            "the agent's SafetyRoutineResumed in its new container's log",
+            lambda: resumed_in_log(fleet),
+            30.0,
+        )
+    except TimeoutError:
+        resumed = []  # the caller says what it expected, with the log below
     return RebootRun(
         agent_before=agent_before,
         agent_after=_agent_mark(fleet),
@@ -443,6 +453,7 @@ def power_cycle(fleet: RealFleet, *, down_s: float = 2.0) -> RebootRun:
         booted_at=booted_at,
         restart_to_report_s=restart_to_report_s,
         resumed=resumed,
+        log_tail=agent_log(fleet)[-4000:],
     )
 
 
