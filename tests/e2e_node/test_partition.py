@@ -24,7 +24,7 @@ API server's default tolerations.
   its node keeps no Roost label; when the link does return, the kubelet stops what the
   API server no longer has: nothing is left on the node.
 
-About six minutes with the images cached (two cuts of about a minute, four boots, the
+About four minutes with the images cached (two cuts of about a minute, four boots, the
 fleet's start).
 The tests run in file order on one fleet.
 """
@@ -45,10 +45,8 @@ from websockets.exceptions import WebSocketException
 from websockets.sync.client import connect
 
 from roost_api.wellknown import ANNOTATION_TELEMETRY_POD, LABEL_VEHICLE
-from roost_localcluster.cluster import Cluster
-from roost_localcluster.controlplane import ControlPlane, free_port
+from roost_localcluster.controlplane import free_port
 from roost_localcluster.nodenet import missing_prerequisites
-from roost_localcluster.realnode import RealNodes
 from tests.support import partition
 from tests.support.images import missing_tools
 from tests.support.realfleet import VEHICLE, WAIT_S, RealFleet
@@ -69,25 +67,8 @@ pytestmark = [
 
 @pytest.fixture(scope="module")
 def fleet(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RealFleet]:
-    directory = tmp_path_factory.mktemp("partition")
-    with (
-        ControlPlane(directory / "control-plane", settings=partition.plane_settings()) as plane,
-        RealNodes(Cluster.of(plane), directory / "nodes") as pool,
-    ):
-        running = RealFleet(
-            Cluster.of(plane),
-            pool,
-            directory / "fleet",
-            components=partition.vicon_components(),
-            agent_values=partition.TELEMETRY_VALUES,
-        )
-        try:
-            running.start()
-            partition.start_workloads(running)
-            yield running
-        finally:
-            partition.stop_workloads(running)
-            running.stop()
+    with partition.flying_fleet(tmp_path_factory.mktemp("partition")) as running:
+        yield running
 
 
 @pytest.fixture(scope="module")

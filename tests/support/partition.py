@@ -22,17 +22,22 @@ RedundantAutopilot's status shows that failover.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import subprocess
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import Any
 
 import yaml
 
 from roost_localcluster import binaries
-from roost_localcluster.controlplane import Settings
+from roost_localcluster.cluster import Cluster
+from roost_localcluster.controlplane import ControlPlane, Settings
+from roost_localcluster.realnode import RealNodes
 from roost_sim.faults import FaultKind
 from tests.support.realfleet import VEHICLE, WAIT_S, RealFleet
 from tests.support.waiting import wait_until
@@ -264,6 +269,31 @@ def start_workloads(fleet: RealFleet) -> None:
         lambda: all(a.get("armed") for a in fleet.autopilot_status().get("autopilots", [])),
         WAIT_S,
     )
+
+
+@contextlib.contextmanager
+def flying_fleet(directory: Path) -> Iterator[RealFleet]:
+    """The whole setup under ``directory``: a control plane with :func:`plane_settings`,
+    real nodes, :class:`RealFleet` with vicon and the telemetry stream, the Mission and
+    the witness (:func:`start_workloads`); all stopped again on leaving."""
+    with (
+        ControlPlane(directory / "control-plane", settings=plane_settings()) as plane,
+        RealNodes(Cluster.of(plane), directory / "nodes") as pool,
+    ):
+        fleet = RealFleet(
+            Cluster.of(plane),
+            pool,
+            directory / "fleet",
+            components=vicon_components(),
+            agent_values=TELEMETRY_VALUES,
+        )
+        try:
+            fleet.start()
+            start_workloads(fleet)
+            yield fleet
+        finally:
+            stop_workloads(fleet)
+            fleet.stop()
 
 
 def stop_workloads(fleet: RealFleet) -> None:
