@@ -23,13 +23,9 @@ import tempfile
 from pathlib import Path
 
 from bench.core import Figure
-from roost_localcluster.cluster import Cluster
-from roost_localcluster.controlplane import ControlPlane
 from roost_localcluster.nodenet import missing_prerequisites
-from roost_localcluster.realnode import RealNodes
 from tests.support import partition
 from tests.support.images import missing_tools
-from tests.support.realfleet import RealFleet
 
 COMMAND = "python -m bench partition"
 
@@ -75,27 +71,13 @@ def run() -> list[Figure]:
     if reasons:
         print(f"bench partition: skipped ({'; '.join(reasons)})", file=sys.stderr)
         return []
-    with tempfile.TemporaryDirectory(prefix="bench-partition-") as tmp:
-        directory = Path(tmp)
-        with (
-            ControlPlane(directory / "control-plane", settings=partition.plane_settings()) as plane,
-            RealNodes(Cluster.of(plane), directory / "nodes") as pool,
-        ):
-            fleet = RealFleet(
-                Cluster.of(plane),
-                pool,
-                directory / "fleet",
-                components=partition.vicon_components(),
-                agent_values=partition.TELEMETRY_VALUES,
-            )
-            try:
-                fleet.start()
-                partition.start_workloads(fleet)
-                measured = partition.cut_and_restore(fleet)
-                rebooted = partition.power_cycle(fleet)
-            finally:
-                partition.stop_workloads(fleet)
-                fleet.stop()
+    with (
+        tempfile.TemporaryDirectory(prefix="bench-partition-") as tmp,
+        partition.flying_fleet(Path(tmp)) as fleet,
+    ):
+        measured = partition.cut_and_restore(fleet)
+        partition.stop_workloads(fleet)  # the Mission's Job pod does not reboot
+        rebooted = partition.power_cycle(fleet)
     return [*figures(measured), reboot_figure(rebooted)]
 
 

@@ -360,8 +360,9 @@ def agent_over_granted(installed: Cluster) -> Iterator[Cluster]:
                 "resources": ["vehicles/status"],
                 "verbs": ["get", "patch"],
             },
-            # What the chart grants with agent.telemetry.enabled (its announcement).
-            {"apiGroups": ["roost.dev"], "resources": ["vehicles"], "verbs": ["patch"]},
+            # What the chart grants with agent.telemetry.enabled (its announcement),
+            # and get, which kubectl sends before a patch.
+            {"apiGroups": ["roost.dev"], "resources": ["vehicles"], "verbs": ["get", "patch"]},
             {"apiGroups": ["events.k8s.io"], "resources": ["events"], "verbs": ["create"]},
         ],
     }
