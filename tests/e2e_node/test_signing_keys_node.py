@@ -21,11 +21,13 @@ from __future__ import annotations
 import json
 import subprocess
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
 
 from roost_api.vehicle import VehicleSpec
+from roost_api.wellknown import LABEL_VEHICLE, SIGNING_HOST_DIR
 from roost_cli.keys import key_secret
 from roost_localcluster import binaries
 from roost_localcluster.clients import tool_path
@@ -76,6 +78,9 @@ def nodes(cluster: Cluster, real_nodes: RealNodes) -> Iterator[dict[str, RealNod
     try:
         for vehicle, node in VEHICLES.items():
             added[vehicle] = real_nodes.add(node)
+            # As the operator binds a Vehicle (the key pod selects the vehicle's node:
+            # without the label, the node's own kubelet refuses the pod).
+            cluster.kubectl("label", "node", node, f"{LABEL_VEHICLE}={vehicle}")
             secret = key_secret(vehicle, NAMESPACE, f"passphrase-of-{vehicle}")
             cluster.kubectl("apply", "-f", "-", input_text=json.dumps(secret))
             cluster.kubectl("apply", "-f", "-", input_text=json.dumps(key_pod(vehicle, node)))
@@ -84,6 +89,12 @@ def nodes(cluster: Cluster, real_nodes: RealNodes) -> Iterator[dict[str, RealNod
         cluster.kubectl("delete", "namespace", NAMESPACE, "--wait=false", check=False)
         for node in added.values():
             real_nodes.remove(node.name)
+        # The harness's nodes share this machine's file system: the kubelet made the key
+        # pods' (empty: pause writes nothing) host directories here.
+        for vehicle in added:
+            host_dir = Path(SIGNING_HOST_DIR) / vehicle
+            if host_dir.is_dir() and not any(host_dir.iterdir()):
+                host_dir.rmdir()
 
 
 def as_kubelet(node: RealNode, *args: str) -> subprocess.CompletedProcess[str]:
