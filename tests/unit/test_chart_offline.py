@@ -306,14 +306,21 @@ def test_agent_with_a_device_plugin_requests_the_devices_and_is_not_privileged()
     assert "privileged" not in container["securityContext"]
 
 
-def test_agent_reads_signing_keys_from_a_read_only_secret_and_nowhere_else() -> None:
-    pod = _agent_pod("signing")
+def _signing_keys_volume(pod: dict[str, Any], mode: str) -> dict[str, Any]:
+    """The agent's key volume, after checking the agent reads it read-only under ``mode``."""
     container = pod["containers"][0]
-    assert "--signing=require" in container["args"]
+    assert f"--signing={mode}" in container["args"]
     assert "--signing-keys=/etc/roost/signing" in container["args"]
     mount = next(m for m in container["volumeMounts"] if m["name"] == "signing-keys")
     assert mount == {"name": "signing-keys", "mountPath": "/etc/roost/signing", "readOnly": True}
-    volume = next(v for v in pod["volumes"] if v["name"] == "signing-keys")
+    volume: dict[str, Any] = next(v for v in pod["volumes"] if v["name"] == "signing-keys")
+    return volume
+
+
+def test_agent_reads_signing_keys_from_a_read_only_secret_and_nowhere_else() -> None:
+    pod = _agent_pod("signing")
+    container = pod["containers"][0]
+    volume = _signing_keys_volume(pod, "require")
     assert volume["projected"] == {
         "defaultMode": 0o444,
         "sources": [{"secret": {"name": "fleet-keys"}}],
@@ -325,13 +332,7 @@ def test_by_default_the_agent_mounts_no_secret_only_its_nodes_key_directory() ->
     """The per-node layout: each Vehicle's key pod leaves its key in the host directory;
     the agent pod references no Secret, so no node's kubelet is let read one for it."""
     pod = _agent_pod("defaults")
-    container = pod["containers"][0]
-    assert "--signing=auto" in container["args"]
-    assert "--signing-keys=/etc/roost/signing" in container["args"]
-    mount = next(m for m in container["volumeMounts"] if m["name"] == "signing-keys")
-    assert mount == {"name": "signing-keys", "mountPath": "/etc/roost/signing", "readOnly": True}
-    volume = next(v for v in pod["volumes"] if v["name"] == "signing-keys")
-    assert volume == {
+    assert _signing_keys_volume(pod, "auto") == {
         "name": "signing-keys",
         "hostPath": {"path": "/var/lib/roost/signing", "type": "DirectoryOrCreate"},
     }
