@@ -1,11 +1,13 @@
 """The agent's MAVLink signing: which key, which policy, and a timestamp that survives restarts.
 
 Why a key file and not the RedundantAutopilot: the spec, status and Events are readable by
-anyone who can read the object; a signing key must not be. The chart mounts each
-Vehicle's Secret (``roost keys create``: ``key``, ``previous``) at ``DIR/<vehicle>/``, or
-one fleet Secret with one entry per Vehicle at ``DIR/<vehicle>``; the agent reads only
-its own vehicle's, and follows it (:class:`KeyWatcher`): a rotated key is taken without
-a restart, the previous key still accepted. The key is never logged, never
+anyone who can read the object; a signing key must not be. By default the chart mounts
+a host directory where the Vehicle's key pod (:mod:`roost_agent.keysync`) leaves
+``DIR/<vehicle>/key`` and ``previous`` from its Secret (``roost keys create``) on that
+vehicle's node only; older layouts mount each listed Vehicle's Secret at
+``DIR/<vehicle>/``, or one fleet Secret with one entry per Vehicle at ``DIR/<vehicle>``.
+The agent reads only its own vehicle's, and follows it (:class:`KeyWatcher`): a rotated
+key is taken without a restart, the previous key still accepted. The key is never logged, never
 part of an error message and never written anywhere by the agent.
 
 Why the timestamp is persisted: the MAVLink signing specification requires that a sender's

@@ -148,6 +148,14 @@ class Components(ApiModel):
         default_factory=lambda: ComponentSpec(enabled=False),
         description="Hardware drivers (camera, payload) needing device access on the node.",
     )
+    signing_keys: ComponentSpec = Field(
+        default_factory=lambda: ComponentSpec(enabled=False),
+        description="Hands the vehicle's MAVLink signing key (Secret roost-signing-<vehicle>, "
+        "from `roost keys create`) to the node agent on this vehicle's node only: a small "
+        "pod of the agent image on the node mounts that one Secret and writes the key to "
+        "/var/lib/roost/signing/<vehicle>/ on the node. Enable it for every vehicle whose "
+        "agent signs (docs/mavlink-signing.md). The image defaults to the Roost agent's.",
+    )
 
 
 class Simulation(ApiModel):

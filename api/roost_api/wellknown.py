@@ -69,3 +69,8 @@ VEHICLE_CONFIG_MOUNTS = ("/etc/roost", "/etc/starling")
 # Finalizer on Missions (kopf's), so deletion stops their work and releases claims first.
 # Vehicles of earlier versions carry it too; kopf removes it, as no handler needs it.
 FINALIZER = f"{PREFIX}cleanup"
+
+# Each Vehicle's MAVLink signing key: Secret SIGNING_SECRET_PREFIX + vehicle (`roost keys`),
+# handed by the vehicle's key pod to the agent on its node under SIGNING_HOST_DIR/<vehicle>.
+SIGNING_SECRET_PREFIX = "roost-signing-"
+SIGNING_HOST_DIR = "/var/lib/roost/signing"

@@ -23,6 +23,8 @@ import secrets
 from collections.abc import Mapping
 from typing import Any, Final
 
+from roost_api.wellknown import SIGNING_SECRET_PREFIX
+
 SECRET_TYPE: Final = "roost.dev/mavlink-signing"
 LABEL_VEHICLE: Final = "roost.dev/vehicle"
 PASSPHRASE_BYTES: Final = 24  # 32 URL-safe characters
@@ -30,7 +32,7 @@ PASSPHRASE_BYTES: Final = 24  # 32 URL-safe characters
 
 def secret_name(vehicle: str) -> str:
     """The Secret that holds ``vehicle``'s key (the chart mounts it by this name)."""
-    return f"roost-signing-{vehicle}"
+    return f"{SIGNING_SECRET_PREFIX}{vehicle}"
 
 
 def new_passphrase() -> str:

@@ -484,7 +484,11 @@ def keys_create(
     if fleet.secret(namespace, name) is not None:
         raise CliError(f"{namespace}/{name} exists: `roost keys rotate {vehicle}` replaces it")
     fleet.create_secret(keys.key_secret(vehicle, namespace, keys.new_passphrase()))
-    console.print(f"created Secret {namespace}/{name}; {_passphrase_hint(namespace, name)}")
+    console.print(
+        f"created Secret {namespace}/{name}; {_passphrase_hint(namespace, name)}. "
+        f"Its agent gets the key once Vehicle {vehicle} has spec.components.signingKeys "
+        "enabled (its key pod hands the key to that vehicle's node only)"
+    )
 
 
 @keys_app.command("rotate")

@@ -102,6 +102,7 @@ class Runtime:
             guards=settings.guards,
             stale_after=settings.agent_stale_after,
             first_report_hold=settings.first_report_hold,
+            agent_image=settings.agent_image,
             caches={
                 **{
                     kind: Cached(store, "" if kind == NODES.kind else namespace)

@@ -99,6 +99,10 @@ class Settings:
     peering: str = "roost"
     """Name of the kopf peering object, one per operator deployment (``ROOST_PEERING``)."""
 
+    agent_image: str = "roost-agent:latest"
+    """Image of a Vehicle's key pod (``spec.components.signingKeys``) when the Vehicle
+    names none: the node agent's image, which the chart passes (``ROOST_AGENT_IMAGE``)."""
+
     resync_seconds: float = 0.0
     """Period of a fleet sweep that queues every Vehicle for a reconcile
     (``ROOST_RESYNC_SECONDS``; 0, the default: none). Everything the Vehicle controller
@@ -206,6 +210,7 @@ def load_settings(environ: Mapping[str, str]) -> Settings:
     return Settings(
         namespace=environ.get("ROOST_NAMESPACE", defaults.namespace),
         peering=environ.get("ROOST_PEERING", defaults.peering),
+        agent_image=environ.get("ROOST_AGENT_IMAGE") or defaults.agent_image,
         resync_seconds=float(environ.get("ROOST_RESYNC_SECONDS", defaults.resync_seconds)),
         reconcile_workers=int(environ.get("ROOST_RECONCILE_WORKERS", defaults.reconcile_workers)),
         agent_stale_after=_seconds(

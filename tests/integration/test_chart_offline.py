@@ -168,6 +168,11 @@ def test_operator_peering_is_named_after_the_release() -> None:
         "env"
     ]
     assert {"name": "ROOST_PEERING", "value": "fleet-a-roost"} in env
+    # each Vehicle's key pod runs the agent's image
+    agent_image = find(manifests, "DaemonSet", "-agent")["spec"]["template"]["spec"]["containers"][
+        0
+    ]["image"]
+    assert {"name": "ROOST_AGENT_IMAGE", "value": agent_image} in env
     patch_rule = next(
         r
         for r in _rules(manifests, "-operator")
@@ -232,18 +237,22 @@ def test_agent_uses_the_host_network_and_learns_its_node_from_the_downward_api()
 
 
 def test_agent_without_devices_is_unprivileged_and_mounts_nothing_from_the_host() -> None:
+    """Nothing from the host but its signing key directory, read-only."""
     pod = _agent_pod("defaults")
     context = pod["containers"][0]["securityContext"]
     assert "privileged" not in context
     assert context["capabilities"] == {"drop": ["ALL"]}
     assert context["readOnlyRootFilesystem"] is True
-    assert not [v for v in pod["volumes"] if "hostPath" in v]
+    host = [v["name"] for v in pod["volumes"] if "hostPath" in v]
+    assert host == ["signing-keys"]
+    mounts = [m for m in pod["containers"][0]["volumeMounts"] if m["name"] in host]
+    assert all(m["readOnly"] for m in mounts)
 
 
 def test_agent_with_hardware_mounts_exactly_the_listed_devices_and_stays_non_root() -> None:
     pod = _agent_pod("hardware")
     listed = yaml.safe_load(HARDWARE_VALUES.read_text())["agent"]["devices"]["paths"]
-    host_paths = [v["hostPath"] for v in pod["volumes"] if "hostPath" in v]
+    host_paths = [v["hostPath"] for v in pod["volumes"] if v["name"].startswith("device")]
     assert host_paths == [{"path": path, "type": "CharDevice"} for path in listed]
     container = pod["containers"][0]
     assert container["securityContext"]["privileged"] is True
@@ -261,22 +270,39 @@ def test_agent_with_a_device_plugin_requests_the_devices_and_is_not_privileged()
     assert "privileged" not in container["securityContext"]
 
 
-def test_agent_reads_signing_keys_from_a_read_only_secret_and_nowhere_else() -> None:
-    pod = _agent_pod("signing")
+def _signing_keys_volume(pod: dict[str, Any], mode: str) -> dict[str, Any]:
+    """The agent's key volume, after checking the agent reads it read-only under ``mode``."""
     container = pod["containers"][0]
-    assert "--signing=require" in container["args"]
+    assert f"--signing={mode}" in container["args"]
     assert "--signing-keys=/etc/roost/signing" in container["args"]
     mount = next(m for m in container["volumeMounts"] if m["name"] == "signing-keys")
     assert mount == {"name": "signing-keys", "mountPath": "/etc/roost/signing", "readOnly": True}
-    volume = next(v for v in pod["volumes"] if v["name"] == "signing-keys")
+    volume: dict[str, Any] = next(v for v in pod["volumes"] if v["name"] == "signing-keys")
+    return volume
+
+
+def test_agent_reads_signing_keys_from_a_read_only_secret_and_nowhere_else() -> None:
+    pod = _agent_pod("signing")
+    container = pod["containers"][0]
+    volume = _signing_keys_volume(pod, "require")
     assert volume["projected"] == {
         "defaultMode": 0o444,
         "sources": [{"secret": {"name": "fleet-keys"}}],
     }
     assert "fleet-keys" not in str(container.get("env", []))  # not an env var, not an arg
-    defaults = _agent_pod("defaults")
-    assert "--signing=auto" in defaults["containers"][0]["args"]
-    assert not [v for v in defaults["volumes"] if v["name"] == "signing-keys"]
+
+
+def test_by_default_the_agent_mounts_no_secret_only_its_nodes_key_directory() -> None:
+    """The per-node layout: each Vehicle's key pod leaves its key in the host directory;
+    the agent pod references no Secret, so no node's kubelet is let read one for it."""
+    pod = _agent_pod("defaults")
+    assert _signing_keys_volume(pod, "auto") == {
+        "name": "signing-keys",
+        "hostPath": {"path": "/var/lib/roost/signing", "type": "DirectoryOrCreate"},
+    }
+    assert "secret" not in str(pod["volumes"]).lower()
+    required = render({"agent": {"signing": {"mode": "require"}}})
+    assert "/var/lib/roost/signing" in str(required)
 
 
 def test_per_vehicle_keys_are_mounted_by_the_kubelet_and_the_agent_may_read_no_secret() -> None:
@@ -298,8 +324,8 @@ def test_per_vehicle_keys_are_mounted_by_the_kubelet_and_the_agent_may_read_no_s
 
 
 def test_signing_without_its_secret_is_refused() -> None:
-    with pytest.raises(ChartError, match=r"needs agent\.signing\.vehicles"):
-        render({"agent": {"signing": {"mode": "require"}}})
+    with pytest.raises(ChartError, match=r"needs agent\.signing\.hostPath"):
+        render({"agent": {"signing": {"mode": "require", "hostPath": ""}}})
 
 
 def test_privileged_agent_without_a_device_list_is_refused() -> None:

@@ -840,3 +840,47 @@ def test_in_the_air_a_config_change_waits_and_a_drain_is_refused_naming_the_vehi
         wait_components_ready(kube, name)
     finally:
         roost_crds.kubectl("delete", "redundantautopilot", name, "--ignore-not-found")
+
+
+# ---- per-Vehicle signing keys ----------------------------------------------------------
+
+
+def test_each_vehicles_key_pod_is_pinned_to_its_node_and_mounts_only_its_own_secret(
+    roost_crds: Cluster, fake_nodes: AddNode, vehicles: Callable[..., str], kube: Kube
+) -> None:
+    """spec.components.signingKeys: the operator runs one key pod per Vehicle, bound to
+    that vehicle's node, mounting that Vehicle's Secret and no other (so only that node's
+    kubelet is let read it), and removes it when the Vehicle stops asking for it."""
+    nodes = [unique("key-node"), unique("key-node")]
+    names = [unique("keyed"), unique("keyed")]
+    for node, name in zip(nodes, names, strict=True):
+        fake_nodes(node)
+        vehicles(name, node, components={"signingKeys": {"enabled": True}})
+    for node, name in zip(nodes, names, strict=True):
+        wait_components_ready(kube, name)
+        pods = component_pods(kube, name)
+        assert set(pods) == {"mavros", "signing-keys"}
+        spec = pods["signing-keys"]["spec"]
+        assert spec["nodeName"] == node
+        secrets = [v["secret"]["secretName"] for v in spec["volumes"] if "secret" in v]
+        assert secrets == [f"roost-signing-{name}"]
+        assert [v["hostPath"]["path"] for v in spec["volumes"] if "hostPath" in v] == [
+            f"/var/lib/roost/signing/{name}"
+        ]
+        assert spec["automountServiceAccountToken"] is False
+        # no other pod of the vehicle references a Secret
+        for component, pod in pods.items():
+            if component != "signing-keys":
+                assert "secret" not in json.dumps(pod["spec"]["volumes"]), component
+
+    first = names[0]
+    roost_crds.kubectl(
+        "patch",
+        "vehicle",
+        first,
+        "--type=merge",
+        "-p",
+        json.dumps({"spec": {"components": {"signingKeys": {"enabled": False}}}}),
+    )
+    wait_until(f"{first}'s key pod to be gone", lambda: not pods_of(kube, first, "signing-keys"))
+    assert pods_of(kube, names[1], "signing-keys")

@@ -235,7 +235,7 @@ def test_the_longest_names_fit_every_object_label_and_container_roost_derives() 
     config_map = vehicle_config_map(name, values, namespace="roost-system")
     pods = [
         component_pod(name, spec.node_name, w, values, namespace="roost-system", owners=[])
-        for w in component_workloads(spec, derived)
+        for w in component_workloads(spec, derived, vehicle_name="v")
     ]
     assert any(p["metadata"]["name"].endswith("-sitl-" + "b" * 58) for p in pods)
     for obj in [config_map, *pods]:

@@ -50,6 +50,7 @@ def test_every_variable_reaches_its_field() -> None:
         {
             "ROOST_NAMESPACE": "fleet-ops",
             "ROOST_PEERING": "blue",
+            "ROOST_AGENT_IMAGE": "registry.example/roost-agent:1.4.0",
             "ROOST_RESYNC_SECONDS": "5",
             "ROOST_AGENT_STALE_SECONDS": "4.5",
             "ROOST_FAILOVER_PAUSED": "true",
@@ -63,6 +64,7 @@ def test_every_variable_reaches_its_field() -> None:
     )
     assert settings.namespace == "fleet-ops"
     assert settings.peering == "blue"
+    assert settings.agent_image == "registry.example/roost-agent:1.4.0"
     assert settings.resync_seconds == 5.0
     assert settings.agent_stale_after == timedelta(seconds=4.5)
     assert settings.guards.paused is True

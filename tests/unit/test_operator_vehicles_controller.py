@@ -54,7 +54,7 @@ def desired(node: str = "node-a") -> Obj:
     values = vehicle_config(
         name="drone1", spec=spec, fcu_url="udp://:14540@", firmware=None, active_autopilot=None
     )
-    (mavros,) = component_workloads(spec, [])
+    (mavros,) = component_workloads(spec, [], vehicle_name="drone1")
     return component_pod("drone1", node, mavros, values, namespace="n", owners=[])
 
 

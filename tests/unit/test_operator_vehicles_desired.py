@@ -114,7 +114,9 @@ def test_active_autopilot_prefers_the_reported_one_then_the_primary() -> None:
 
 
 def test_default_components_are_mavros_only_and_overrides_pick_images() -> None:
-    assert [w.component for w in component_workloads(spec(), [])] == ["mavros"]
+    assert [w.component for w in component_workloads(spec(), [], vehicle_name="drone1")] == [
+        "mavros"
+    ]
     s = spec(
         components={
             "mavros": {"enabled": False},
@@ -122,7 +124,7 @@ def test_default_components_are_mavros_only_and_overrides_pick_images() -> None:
             "hardware": {"enabled": True},
         }
     )
-    workloads = {w.component: w for w in component_workloads(s, [])}
+    workloads = {w.component: w for w in component_workloads(s, [], vehicle_name="drone1")}
     assert set(workloads) == {"vicon", "hardware"}
     assert workloads["vicon"].image == "example/vicon:1"
     assert workloads["hardware"].image == DEFAULT_IMAGES["hardware"]
@@ -132,7 +134,7 @@ def test_one_sitl_per_autopilot_and_no_two_share_a_port_or_sysid() -> None:
     s = spec(simulation={"stack": "px4", "instance": 1})
     sitls = [
         w
-        for w in component_workloads(s, autopilots_of(s, redundant()))
+        for w in component_workloads(s, autopilots_of(s, redundant()), vehicle_name="drone1")
         if w.component.startswith("sitl-")
     ]
     assert [w.component for w in sitls] == ["sitl-fc1", "sitl-fc2"]
@@ -147,7 +149,7 @@ def test_two_simulated_vehicles_on_distinct_instances_never_collide() -> None:
     ports: set[str] = set()
     for instance in range(3):
         s = spec(simulation={"stack": "px4", "instance": instance})
-        for w in component_workloads(s, autopilots_of(s, redundant())):
+        for w in component_workloads(s, autopilots_of(s, redundant()), vehicle_name="drone1"):
             env = {e["name"]: e["value"] for e in w.container.get("env", [])}
             if "ROOST_SITL_AGENT_PORT" in env:
                 new = {env["ROOST_SITL_AGENT_PORT"], env["ROOST_SITL_AUTOPILOT_PORT"]}
@@ -157,7 +159,9 @@ def test_two_simulated_vehicles_on_distinct_instances_never_collide() -> None:
 
 def test_ardupilot_sitl_gets_a_tcp_readiness_probe_px4_none() -> None:
     s = spec(simulation={"stack": "px4"})
-    workloads = component_workloads(s, autopilots_of(s, redundant(stacks=("px4", "ardupilot"))))
+    workloads = component_workloads(
+        s, autopilots_of(s, redundant(stacks=("px4", "ardupilot"))), vehicle_name="drone1"
+    )
     by = {w.component: w for w in workloads}
     assert "readinessProbe" not in by["sitl-fc1"].container
     probe = by["sitl-fc2"].container["readinessProbe"]
@@ -169,7 +173,7 @@ def test_simulation_image_override_applies_to_every_sitl() -> None:
     s = spec(simulation={"stack": "px4", "image": "example/sitl:2"})
     images = {
         w.image
-        for w in component_workloads(s, autopilots_of(s, redundant()))
+        for w in component_workloads(s, autopilots_of(s, redundant()), vehicle_name="drone1")
         if "sitl" in w.component
     }
     assert images == {"example/sitl:2"}
@@ -193,7 +197,7 @@ def manifests(reported_active: str | None) -> dict[str, dict[str, Any]]:
         w.component: component_pod(
             "drone1", "node-a", w, values, namespace="roost-system", owners=[{"uid": "v"}]
         )
-        for w in component_workloads(s, aps)
+        for w in component_workloads(s, aps, vehicle_name="drone1")
     }
 
 
@@ -236,7 +240,7 @@ def test_a_failover_changes_mavros_but_not_the_simulated_autopilots() -> None:
 
 def test_a_node_change_replaces_every_workload() -> None:
     s = spec()
-    (mavros,) = component_workloads(s, [])
+    (mavros,) = component_workloads(s, [], vehicle_name="drone1")
     values = config_for(s, None)
     a = component_pod("drone1", "node-a", mavros, values, namespace="n", owners=[])
     b = component_pod("drone1", "node-b", mavros, values, namespace="n", owners=[])

@@ -86,6 +86,8 @@ from roost_operator.cache import Cached, CachedView
 from roost_operator.vehicles import flight
 from roost_operator.vehicles.config import config_map_name
 from roost_operator.vehicles.desired import (
+    DEFAULT_IMAGES,
+    SIGNING_KEYS,
     PodStep,
     ReleaseStep,
     is_component_pod,
@@ -204,6 +206,8 @@ class VehicleController:
     stale_after: timedelta = DEFAULT_AGENT_STALE_AFTER
     first_report_hold: timedelta = timedelta(0)
     """See :func:`~roost_operator.vehicles.plan.first_report_due`."""
+    agent_image: str = DEFAULT_IMAGES[SIGNING_KEYS]
+    """The key pod's image when a Vehicle names none (the node agent's)."""
     ledger: ActionLedger = field(default_factory=ActionLedger)
     caches: Mapping[str, Cached] = field(default_factory=dict)
     """Watch caches (by kind) of nodes, claims and owned objects; others are read from
@@ -296,6 +300,7 @@ class VehicleController:
             owners=[owner_reference(vehicle)],
             guards=self.guards,
             stale_after=self.stale_after,
+            agent_image=self.agent_image,
         )
         was_acting = obs.status.failover is not None and obs.status.failover.action is not None
         with self.ledger.lock:  # count the others and reserve this one in one step

@@ -66,6 +66,8 @@ from roost_api.wellknown import (
     LABEL_NODE,
     LABEL_VEHICLE,
     MANAGED_BY,
+    SIGNING_HOST_DIR,
+    SIGNING_SECRET_PREFIX,
 )
 from roost_kube.patches import Obj, content_hash
 from roost_operator.vehicles.config import config_hash, mount_vehicle_config
@@ -82,6 +84,8 @@ DEFAULT_IMAGES: Final[Mapping[str, str]] = {
     "hardware": "uobflightlabstarling/starling-hardware:latest",
     "sitl-px4": "uobflightlabstarling/starling-sim-px4-sitl:latest",
     "sitl-ardupilot": "uobflightlabstarling/starling-sim-ardupilot-copter:latest",
+    # The key pod is a mode of the node agent's image (roost_agent.keysync): no new image.
+    "signing-keys": "roost-agent:latest",
 }
 
 COMPONENT_RESOURCES: Final[Mapping[str, Obj]] = {
@@ -89,6 +93,7 @@ COMPONENT_RESOURCES: Final[Mapping[str, Obj]] = {
     "vicon": {"requests": {"cpu": "50m", "memory": "64Mi"}, "limits": {"memory": "256Mi"}},
     "hardware": {"requests": {"cpu": "50m", "memory": "64Mi"}, "limits": {"memory": "256Mi"}},
     "sitl": {"requests": {"cpu": "500m", "memory": "512Mi"}, "limits": {"memory": "2Gi"}},
+    "signing-keys": {"requests": {"cpu": "5m", "memory": "24Mi"}, "limits": {"memory": "64Mi"}},
 }
 
 
@@ -188,10 +193,18 @@ _COMPONENT_FIELDS: Final[dict[str, tuple[Obj, Obj]]] = {
 }
 
 
-def component_workloads(spec: VehicleSpec, autopilots: Sequence[Autopilot]) -> list[Workload]:
+def component_workloads(
+    spec: VehicleSpec,
+    autopilots: Sequence[Autopilot],
+    *,
+    vehicle_name: str,
+    agent_image: str | None = None,
+) -> list[Workload]:
     """Every workload the vehicle should run, in a stable order.
 
     Only mavros follows a failover: it is the component pointed at the active autopilot.
+    ``agent_image`` is the key pod's image unless the Vehicle names one (the operator's
+    setting, the chart's agent image).
     """
     workloads: list[Workload] = []
     for component, (container, pod) in _COMPONENT_FIELDS.items():
@@ -206,11 +219,85 @@ def component_workloads(spec: VehicleSpec, autopilots: Sequence[Autopilot]) -> l
                     follows_failover=component == "mavros",
                 )
             )
+    if spec.components.signing_keys.enabled:
+        chosen_keys = spec.components.signing_keys
+        image = chosen_keys.image or agent_image or DEFAULT_IMAGES[SIGNING_KEYS]
+        workloads.append(signing_keys_workload(vehicle_name, image))
     if spec.simulation is not None:
         workloads.extend(
             sitl_workload(spec, index, autopilot) for index, autopilot in enumerate(autopilots)
         )
     return workloads
+
+
+SIGNING_KEYS: Final = "signing-keys"
+AGENT_USER: Final = 65532
+"""The agent image's user (docker/Dockerfile ``USER``; the chart's ``runAsUser``): the
+key files are handed to it, mode 0600."""
+_KEY_SOURCE: Final = "/var/run/secrets/roost-signing"
+_KEY_TARGET: Final = "/var/lib/roost-signing"
+
+
+def signing_keys_workload(vehicle_name: str, image: str) -> Workload:
+    """The vehicle's key pod: its one Secret in, the agent's key directory on the node out.
+
+    Why a pod per Vehicle (``roost_agent.keysync`` says more): the Node authorizer lets a
+    kubelet read only the Secrets of pods bound to its node, so this pod, pinned to the
+    vehicle's node like every component, is what lets that node (and only that node)
+    read ``roost-signing-<vehicle>``. The Secret's name is derived from the Vehicle's,
+    never taken from the spec: a Vehicle cannot have another Secret mounted on its node.
+
+    It runs as root with every capability dropped but ``CHOWN`` (the host directory is
+    root's; the files are handed to the agent's user), reads the Secret through the
+    kubelet (the pod's ServiceAccount token is not mounted: it calls no API) and writes
+    only under ``SIGNING_HOST_DIR/<vehicle>``.
+    """
+    host_dir = f"{SIGNING_HOST_DIR}/{vehicle_name}"
+    container: Obj = {
+        "command": ["python3", "-m", "roost_agent.keysync"],
+        "args": [
+            f"--source={_KEY_SOURCE}",
+            f"--target={_KEY_TARGET}",
+            f"--owner={AGENT_USER}:{AGENT_USER}",
+        ],
+        "resources": COMPONENT_RESOURCES[SIGNING_KEYS],
+        "securityContext": {
+            "runAsUser": 0,
+            "runAsNonRoot": False,
+            "allowPrivilegeEscalation": False,
+            "readOnlyRootFilesystem": True,
+            "capabilities": {"drop": ["ALL"], "add": ["CHOWN"]},
+        },
+        "volumeMounts": [
+            {"name": "signing-key", "mountPath": _KEY_SOURCE, "readOnly": True},
+            {"name": "agent-keys", "mountPath": _KEY_TARGET},
+        ],
+    }
+    pod: Obj = {
+        "automountServiceAccountToken": False,
+        "securityContext": {"seccompProfile": {"type": "RuntimeDefault"}},
+        "volumes": [
+            {
+                "name": "signing-key",
+                "secret": {
+                    "secretName": f"{SIGNING_SECRET_PREFIX}{vehicle_name}",
+                    "defaultMode": 0o400,
+                    "items": [
+                        {"key": "key", "path": "key"},
+                        {"key": "previous", "path": "previous"},
+                    ],
+                },
+            },
+            {"name": "agent-keys", "hostPath": {"path": host_dir, "type": "DirectoryOrCreate"}},
+        ],
+    }
+    return Workload(
+        SIGNING_KEYS,
+        image,
+        container,
+        pod,
+        follows_failover=False,
+    )
 
 
 def sitl_workload(spec: VehicleSpec, index: int, autopilot: Autopilot) -> Workload:

@@ -52,6 +52,8 @@ from roost_operator.vehicles import flight
 from roost_operator.vehicles.config import vehicle_config, vehicle_config_map
 from roost_operator.vehicles.desired import (
     DEFAULT_FCU_URL,
+    DEFAULT_IMAGES,
+    SIGNING_KEYS,
     Autopilot,
     ComponentState,
     NodeBinding,
@@ -146,6 +148,8 @@ class Context:
     owners: Sequence[Obj]
     guards: FleetGuards
     stale_after: timedelta = DEFAULT_AGENT_STALE_AFTER
+    agent_image: str = DEFAULT_IMAGES[SIGNING_KEYS]
+    """The key pod's image when the Vehicle names none."""
 
 
 def node_binding(obs: Observed) -> NodeBinding:
@@ -254,7 +258,13 @@ def plan_vehicle(obs: Observed, ctx: Context) -> VehiclePlan:
         VehicleConditionReason.NODE_NOT_READY,
         VehicleConditionReason.NODE_UNREACHABLE,
     )
-    wanted: list[Workload] = component_workloads(obs.spec, autopilots) if labels_node else []
+    wanted: list[Workload] = (
+        component_workloads(
+            obs.spec, autopilots, vehicle_name=obs.name, agent_image=ctx.agent_image
+        )
+        if labels_node
+        else []
+    )
     pods = {
         w.component: component_pod(
             obs.name,
