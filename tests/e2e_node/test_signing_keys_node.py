@@ -13,7 +13,7 @@ images ``make images`` builds are shared by every checkout of this machine and a
 built from one of them, so this test does not depend on them; what it proves is the
 authorisation, which the image does not affect. The hand-over itself (files, modes,
 rotation reaching the agent's key watcher) is tested on real files in
-tests/unit/test_signing_keys_component.py.
+tests/unit/test_operator_vehicles_desired_signing_keys.py and tests/unit/test_agent_keysync.py.
 """
 
 from __future__ import annotations
