@@ -504,10 +504,11 @@ def test_real_pod_bound_agent_token_carries_its_node_and_is_scoped_to_it(
     assert own.returncode == 0, own.stderr
     other = agent.kubectl(*_status_patch("redundantautopilot", VEHICLE_B, NODE_A), check=False)
     assert other.returncode != 0 and POLICY in other.stderr
-    spec = agent.kubectl(
-        "patch", "vehicle", VEHICLE_A, "--type=merge", "-p", '{"spec":{"sysid":9}}', check=False
-    )
-    assert spec.returncode != 0 and "forbidden" in spec.stderr.lower()
+    # A change the schema allows (vehicleType is mutable), so that only the policy can
+    # refuse it: the agent may announce its telemetry on its own Vehicle, nothing else.
+    change = '{"spec":{"vehicleType":"hexa"}}'
+    spec = agent.kubectl("patch", "vehicle", VEHICLE_A, "--type=merge", "-p", change, check=False)
+    assert spec.returncode != 0 and "forbidden" in spec.stderr.lower(), spec.stderr
 
 
 # -- RBAC sufficiency: the agent, run with a token bound to the chart's agent pod ------
