@@ -77,6 +77,7 @@ test: lint typecheck cluster-build ## the whole suite: lint, types, unit, integr
 	$(BIN)/pytest tests
 	$(BIN)/pytest examples/missions/sync-paths
 	$(BIN)/pytest --datastore kine $(KINE_SUITES)
+	@$(MAKE) --no-print-directory e2e-kind
 
 # The control-plane and operator suites again on kine+SQLite, the datastore K3s runs on
 # (about 3.5 min warm here); `make test-kine` runs every control-plane test on it.
@@ -113,7 +114,7 @@ sandbox-full: $(STAMP) cluster-build ## the largest sandbox (25 vehicles) end to
 	$(BIN)/pytest tests/integration/test_sandbox_full_fleet.py
 
 .PHONY: e2e-kind
-e2e-kind: $(STAMP) ## end-to-end suite on KinD (skips where no container engine runs)
+e2e-kind: $(STAMP) cluster-build node-build ## end-to-end suite on a 4-node KinD cluster (docker, or podman as root; skips otherwise)
 	tests/e2e/kind/run.sh
 
 .PHONY: clean

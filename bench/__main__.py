@@ -28,6 +28,7 @@ MODULES: tuple[str, ...] = (
     "standby",
     "sync",
     "node",
+    "kind",
     "partition",
     "dashboard",
     "fleet",
