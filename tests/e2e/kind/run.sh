@@ -40,6 +40,18 @@ skip() {
   exit 0
 }
 now() { date +%s.%N; }
+# Long steps run in a session of their own, waited for in the background, so that a
+# SIGTERM or SIGINT to this script reaches the cleanup at once and stops the step's whole
+# process tree (kind, podman, helm, pytest and their children) by its session id.
+step_pid=""
+step() {
+  setsid "$@" &
+  step_pid=$!
+  local status=0
+  wait "$step_pid" || status=$?
+  step_pid=""
+  return "$status"
+}
 mark() { printf '%s\t%s\n' "$1" "$(echo "$(now) - $2" | bc)" >>"$timings"; }
 
 # -- 1. provider and prerequisites ------------------------------------------------------
@@ -79,7 +91,6 @@ for tool in kubectl helm pytest python; do
   [[ -x "$bin/$tool" ]] || { say "missing $bin/$tool: run \`make setup\`"; exit 1; }
 done
 kubectl() { "$bin/kubectl" --kubeconfig "$kubeconfig" "$@"; }
-helm() { "$bin/helm" --kubeconfig "$kubeconfig" "$@"; }
 
 # -- 2. leftovers and cleanup -------------------------------------------------------------
 # The cluster's containers carry kind's cluster label, their /var volumes a label named
@@ -108,6 +119,10 @@ remove_everything() {
 cleanup() {
   local status=$?
   trap - EXIT INT TERM
+  if [[ -n $step_pid ]]; then
+    kill -TERM -- "-$step_pid" 2>/dev/null || true
+    wait "$step_pid" 2>/dev/null || true
+  fi
   if [[ "${ROOST_KIND_KEEP:-0}" == 1 ]]; then
     say "cluster kept (ROOST_KIND_KEEP=1): KUBECONFIG=$kubeconfig; remove it with ROOST_KIND_CLEAN=1 $0"
   else
@@ -160,7 +175,8 @@ if [[ $provider == podman ]]; then
       || skip "podman's CNI backend has no DNS plugin (Debian: golang-github-containernetworking-plugin-dnsname)"
   fi
   t0=$(now)
-  node_image=$("$here/node-image/build.sh")
+  step "$here/node-image/build.sh" >"$state/node-image"
+  node_image=$(tail -1 "$state/node-image")
   mark node_image_s "$t0"
 else
   node_image=$KIND_NODE_IMAGE
@@ -171,8 +187,17 @@ if "$kind" get clusters 2>/dev/null | grep -qx "$cluster"; then
   "$kind" export kubeconfig --name "$cluster" --kubeconfig "$kubeconfig"
 else
   say "creating cluster $cluster with $provider (kind ${KIND_VERSION}, ${node_image%%@*})"
-  timeout 600 "$kind" create cluster --name "$cluster" --config kind-config.yaml \
-    --image "$node_image" --kubeconfig "$kubeconfig" --wait 300s
+  create() {
+    step timeout 600 "$kind" create cluster --name "$cluster" --config kind-config.yaml \
+      --image "$node_image" --kubeconfig "$kubeconfig" --wait 300s
+  }
+  # One retry from scratch: podman 4.3 sometimes fails the first of several concurrent
+  # commands on a fresh runtime directory ("creating runtime status file").
+  if ! create; then
+    say "kind create failed; removing what it made and trying once more"
+    remove_everything
+    create
+  fi
 fi
 kubectl wait --for=condition=Ready node --all --timeout=300s >/dev/null
 mark create_to_ready_s "$t0"
@@ -181,7 +206,14 @@ say "cluster ready: $(kubectl get nodes --no-headers | wc -l) nodes"
 # -- 5. images --------------------------------------------------------------------------------
 values=(--values charts/roost/values-kind.yaml)
 if [[ $provider == podman ]]; then
-  images=$(docker/build-images.sh | tail -1)
+  # ROOST_IMAGES_DIR: archives built before (e.g. a copy taken while another checkout
+  # rebuilds the shared cache), as tests/support/images.py reads it.
+  if [[ -n ${ROOST_IMAGES_DIR:-} ]]; then
+    images=$ROOST_IMAGES_DIR
+  else
+    step docker/build-images.sh >"$state/images"
+    images=$(tail -1 "$state/images")
+  fi
   for target in operator agent; do
     # A copy: the archives under ~/.cache are shared with other checkouts' builds.
     archive="$state/roost-$target.oci.tar"
@@ -189,7 +221,14 @@ if [[ $provider == podman ]]; then
     name=$(tar -xOf "$archive" index.json | "$bin/python" -c \
       'import json, sys; print(json.load(sys.stdin)["manifests"][0]["annotations"]["org.opencontainers.image.ref.name"])')
     say "loading $name"
-    timeout 600 "$kind" load image-archive "$archive" --name "$cluster"
+    # What `kind load image-archive` does, by hand: kind ${KIND_VERSION} cannot read the
+    # configuration dump of containerd 2.4 (version 4), which it asks for the snapshotter.
+    for node in $("$kind" get nodes --name "$cluster"); do
+      podman cp "$archive" "$node:/var/tmp/roost-image.oci.tar"
+      step timeout 600 podman exec "$node" ctr --namespace=k8s.io images import \
+        --all-platforms --digests --local /var/tmp/roost-image.oci.tar >/dev/null
+      podman exec "$node" rm -f /var/tmp/roost-image.oci.tar
+    done
     values+=(--set "$target.image.repository=${name%:*}" --set "$target.image.tag=${name##*:}")
     # The Mission's onboard Job runs the agent image's Python (it is on every node).
     [[ $target == agent ]] && export ROOST_KIND_ONBOARD_IMAGE=$name
@@ -206,12 +245,12 @@ else
 fi
 
 # -- 6. chart -----------------------------------------------------------------------------------
-helm upgrade --install roost charts/roost --namespace "$namespace" --create-namespace \
+step "$bin/helm" --kubeconfig "$kubeconfig" upgrade --install roost charts/roost --namespace "$namespace" --create-namespace \
   "${values[@]}" --wait --timeout 5m
 
 # -- 7. end-to-end tests ------------------------------------------------------------------------
 say "running the KinD end-to-end tests"
 t0=$(now)
 ROOST_KIND_KUBECONFIG="$kubeconfig" ROOST_KIND_NAMESPACE="$namespace" ROOST_KIND_ENGINE="$engine" \
-  ROOST_KIND_CLUSTER="$cluster" timeout 1800 "$bin/pytest" -p no:cacheprovider -v "$here"
+  ROOST_KIND_CLUSTER="$cluster" step timeout 1800 "$bin/pytest" -p no:cacheprovider -v "$here"
 mark e2e_suite_s "$t0"
