@@ -132,6 +132,9 @@ cleanup() {
   exit "$status"
 }
 mkdir -p "$state"
+# One run at a time per checkout: a second one would remove the first one's cluster.
+exec 9>"$state/lock"
+flock -n 9 || { say "another run of $0 is in progress (lock $state/lock)"; exit 1; }
 if [[ "${ROOST_KIND_KEEP:-0}" != 1 ]] || [[ "${ROOST_KIND_CLEAN:-0}" == 1 ]]; then
   remove_everything
   [[ "${ROOST_KIND_CLEAN:-0}" == 1 ]] && { say "removed"; exit 0; }
