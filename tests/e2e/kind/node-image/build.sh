@@ -89,6 +89,7 @@ if [[ -s "$root_tar" ]]; then
   say "reusing the Debian root $root_tar"
   mkdir -p "$root"
   tar -C "$root" -xf "$root_tar"
+  record debian-root-cached "$(elapsed)"
 else
   say "debootstrapping $suite"
   mmdebstrap --quiet --variant=minbase --mode=root --include="$packages" \
@@ -98,8 +99,9 @@ else
   tar -C "$root" -cf "$root_tar.partial" .
   mv -f "$root_tar.partial" "$root_tar"
   find "$out" -name 'debian-root-*.tar' ! -path "$root_tar" -delete
+  record debian-root "$(elapsed)"
 fi
-record debian-root "$(elapsed)"
+root_done=$(date +%s.%N)
 
 # -- kubeadm and kubectl, from the control plane's module graph -------------------------
 k8s_bin="$cache_root/kind/k8s-$k8s_version"
@@ -217,6 +219,10 @@ buildah rm "$ctr_id" >/dev/null
 podman save --quiet --format oci-archive -o "$archive.partial" "$image"
 mv -f "$archive.partial" "$archive"
 find "$out" -name 'roost-kind-node-*.oci.tar' ! -path "$archive" -delete
+for old in $(podman images --format '{{.Repository}}:{{.Tag}}' "${image%%:*}"); do
+  [[ $old == "$image" ]] || podman rmi "$old" >/dev/null 2>&1 || true
+done
 record cold "$(elapsed)"
+record after-root "$(echo "$(date +%s.%N) - $root_done" | bc)"
 say "built $image in $(elapsed) s"
 echo "$image"
