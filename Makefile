@@ -114,7 +114,7 @@ sandbox-full: $(STAMP) cluster-build ## the largest sandbox (25 vehicles) end to
 	$(BIN)/pytest tests/integration/test_sandbox_full_fleet.py
 
 .PHONY: e2e-kind
-e2e-kind: $(STAMP) cluster-build node-build ## end-to-end suite on a 4-node KinD cluster (docker, or podman as root; skips otherwise)
+e2e-kind: $(STAMP) ## end-to-end suite on a 4-node KinD cluster (docker, or podman as root; skips otherwise)
 	tests/e2e/kind/run.sh
 
 .PHONY: clean
