@@ -52,7 +52,7 @@ step() {
   step_pid=""
   return "$status"
 }
-mark() { printf '%s\t%s\n' "$1" "$(echo "$(now) - $2" | bc)" >>"$timings"; }
+mark() { awk -v name="$1" -v t0="$2" -v t1="$(now)" 'BEGIN { printf "%s\t%.3f\n", name, t1 - t0 }' >>"$timings"; }
 
 # -- 1. provider and prerequisites ------------------------------------------------------
 docker_answers() { command -v docker >/dev/null 2>&1 && docker info >/dev/null 2>&1; }
