@@ -45,7 +45,7 @@ now() { date +%s.%N; }
 # process tree (kind, podman, helm, pytest and their children) by its session id.
 step_pid=""
 step() {
-  setsid "$@" &
+  setsid "$@" 9>&- &
   step_pid=$!
   local status=0
   wait "$step_pid" || status=$?
@@ -133,6 +133,8 @@ cleanup() {
 }
 mkdir -p "$state"
 # One run at a time per checkout: a second one would remove the first one's cluster.
+# (Steps and the pseudo-terminal holders do not inherit it: podman's conmon processes
+# would keep it for the life of the node containers.)
 exec 9>"$state/lock"
 flock -n 9 || { say "another run of $0 is in progress (lock $state/lock)"; exit 1; }
 if [[ "${ROOST_KIND_KEEP:-0}" != 1 ]] || [[ "${ROOST_KIND_CLEAN:-0}" == 1 ]]; then
@@ -158,7 +160,7 @@ path = os.ttyname(slave)
 os.chmod(path, 0o666)
 os.symlink(path, sys.argv[1])
 signal.sigwait({signal.SIGTERM, signal.SIGINT})
-' "$link" &
+' "$link" 9>&- &
   echo "$!" >>"$holders_file"
 done
 for i in 1 2 3; do
