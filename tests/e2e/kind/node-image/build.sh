@@ -50,7 +50,8 @@ say() { echo "kind-node-image: $*" >&2; }
 record() { printf '%s\t%s\t%s\n' "$1" "$2" "$(date -u +%Y-%m-%dT%H:%M:%SZ)" >>"$times"; }
 mkdir -p "$out"
 start=$(date +%s.%N)
-elapsed() { echo "$(date +%s.%N) - $start" | bc; }
+since() { awk -v t0="$1" -v t1="$(date +%s.%N)" 'BEGIN { printf "%.3f\n", t1 - t0 }'; }
+elapsed() { since "$start"; }
 
 if podman image exists "$image" 2>/dev/null; then
   record warm "$(elapsed)"
@@ -223,6 +224,6 @@ for old in $(podman images --format '{{.Repository}}:{{.Tag}}' "${image%%:*}"); 
   [[ $old == "$image" ]] || podman rmi "$old" >/dev/null 2>&1 || true
 done
 record cold "$(elapsed)"
-record after-root "$(echo "$(date +%s.%N) - $root_done" | bc)"
+record after-root "$(since "$root_done")"
 say "built $image in $(elapsed) s"
 echo "$image"
