@@ -99,6 +99,7 @@ test: ## the whole suite: check, integration, e2e, the control-plane suites on k
 	@rm -rf $(REPORTS)
 	@$(MAKE) --no-print-directory check integration e2e
 	$(call PYTEST_REPORT,kine) --datastore kine $(KINE_SUITES)
+	@$(MAKE) --no-print-directory e2e-kind
 	@$(PY) -m tests.support.durations $(REPORTS)/*.xml
 
 # The control-plane and operator suites again on kine+SQLite, the datastore K3s runs on
@@ -136,7 +137,7 @@ sandbox-full: $(STAMP) cluster-build ## the largest sandbox (25 vehicles) end to
 	$(BIN)/pytest tests/integration/test_sandbox_full_fleet.py
 
 .PHONY: e2e-kind
-e2e-kind: $(STAMP) ## end-to-end suite on KinD (skips where no container engine runs)
+e2e-kind: $(STAMP) ## end-to-end suite on a 4-node KinD cluster (docker, or podman as root; skips otherwise)
 	tests/e2e/kind/run.sh
 
 .PHONY: clean

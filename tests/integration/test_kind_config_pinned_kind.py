@@ -117,7 +117,7 @@ def test_pinned_kind_rejects_a_misspelt_field(kind_binary: Path, tmp_path: Path)
     assert not [call for call in calls if kind_versions()["KIND_NODE_IMAGE"] in call], calls
 
 
-@pytest.mark.parametrize("script", ["run.sh", "install-kind.sh"])
+@pytest.mark.parametrize("script", ["run.sh", "install-kind.sh", "node-image/build.sh"])
 def test_kind_scripts_pass_shellcheck(script: str) -> None:
     shellcheck = Path(sys.executable).parent / "shellcheck"
     result = subprocess.run(
@@ -130,22 +130,36 @@ def test_kind_scripts_pass_shellcheck(script: str) -> None:
     assert result.returncode == 0, result.stdout + result.stderr
 
 
-def test_run_sh_skips_cleanly_without_a_container_engine(tmp_path: Path) -> None:
-    """No engine (a docker that cannot connect): a clear message and exit status 0."""
+FAILING = "#!/bin/sh\necho 'Cannot connect to the engine at unix:///none' >&2\nexit 1\n"
+
+
+@pytest.mark.parametrize(
+    ("fakes", "env", "reason"),
+    [
+        # a docker that cannot connect, a podman whose `podman info` fails
+        ({"docker": FAILING, "podman": FAILING}, {}, "`podman info` fails"),
+        # podman, but not as root
+        ({"docker": FAILING, "id": "#!/bin/sh\necho 1000\n"}, {}, "only as root"),
+        # docker asked for, but no engine answers
+        ({"docker": FAILING}, {"ROOST_KIND_PROVIDER": "docker"}, "no container engine answers"),
+    ],
+)
+def test_run_sh_skips_cleanly_where_it_cannot_run(
+    tmp_path: Path, fakes: dict[str, str], env: dict[str, str], reason: str
+) -> None:
+    """No usable engine: a clear reason, exit status 0, and nothing created."""
     bin_dir = tmp_path / "bin"
     bin_dir.mkdir()
-    docker = bin_dir / "docker"
-    docker.write_text(
-        "#!/bin/sh\necho 'Cannot connect to the Docker daemon at unix:///none' >&2\nexit 1\n"
-    )
-    docker.chmod(0o755)
+    for name, text in fakes.items():
+        (bin_dir / name).write_text(text)
+        (bin_dir / name).chmod(0o755)
     result = subprocess.run(
         [str(KIND_DIR / "run.sh")],
-        env={**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}"},
+        env={**os.environ, **env, "PATH": f"{bin_dir}:{os.environ['PATH']}"},
         capture_output=True,
         text=True,
         check=False,
         timeout=60,
     )
     assert result.returncode == 0, result.stderr
-    assert "SKIPPED" in result.stdout and "Cannot connect" in result.stdout
+    assert "SKIPPED" in result.stdout and reason in result.stdout, result.stdout
