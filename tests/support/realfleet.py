@@ -12,6 +12,7 @@ as ``localhost/roost-<target>:<version>`` and never pulled.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import subprocess
@@ -21,11 +22,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import psutil
 import yaml
 
 from roost_api.wellknown import LABEL_VEHICLE
 from roost_cli.sandbox import plan, sims, state
 from roost_cli.sandbox.processes import Launcher
+from roost_localcluster import binaries
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.processes import ManagedProcess
 from roost_localcluster.realnode import RealNode, RealNodes
@@ -99,6 +102,10 @@ class RealFleet:
     simulated: state.SandboxVehicle | None = None
     launcher: NamespaceLauncher | None = None
     installed: bool = False
+    vehicle_arch: str = binaries.HOST_ARCH
+    """The vehicle node's architecture: ``arm64`` is a Raspberry Pi's node (its programs
+    and the agent image's arm64 build under emulation); the ground node is this machine's."""
+    wait_s: float = WAIT_S
 
     # ---- bring-up ------------------------------------------------------------------------
     def start(self) -> None:
@@ -107,7 +114,12 @@ class RealFleet:
         self.ground = self.pool.add(GROUND_NODE, images=[archive(images, "operator")])
         self.timings.ground_start_to_ready_s = time.monotonic() - t0
         t0 = time.monotonic()
-        self.vehicle_node = self.pool.add(self.vehicle.node, images=[archive(images, "agent")])
+        self.vehicle_node = self.pool.add(
+            self.vehicle.node,
+            images=[archive(images, "agent")],
+            arch=self.vehicle_arch,
+            timeout_s=self.wait_s,
+        )
         self.timings.vehicle_start_to_ready_s = time.monotonic() - t0
         self.launcher = NamespaceLauncher(self.vehicle_node, self.directory / "logs")
         [self.simulated] = sims.start(self.launcher, [self.vehicle], self.directory)
@@ -147,9 +159,9 @@ class RealFleet:
         manifests = [self.vehicle_manifest(), plan.autopilot_manifest(self.vehicle, connections)]
         text = "\n---\n".join(yaml.safe_dump(m) for m in manifests)
         self.cluster.kubectl("apply", "-f", "-", input_text=text)
-        wait_until("the agent pod on the vehicle node", self.agent_pod, WAIT_S, poll_s=0.05)
+        wait_until("the agent pod on the vehicle node", self.agent_pod, self.wait_s, poll_s=0.05)
         t0 = time.monotonic()
-        wait_until("the agent's first report", self.reported, WAIT_S, poll_s=0.05)
+        wait_until("the agent's first report", self.reported, self.wait_s, poll_s=0.05)
         return time.monotonic() - t0
 
     def vehicle_manifest(self) -> dict[str, Any]:
@@ -227,6 +239,17 @@ class RealFleet:
             check=True,
         )
         return [line.split()[1] for line in done.stdout.splitlines()[1:] if line.strip()]
+
+    def agent_process(self) -> psutil.Process | None:
+        """The agent container's process on the vehicle node (under emulation its
+        interpreter runs it: the command line still names roost-agent)."""
+        assert self.vehicle_node is not None
+        for pid in self.vehicle_node.pids():
+            with contextlib.suppress(psutil.Error):
+                proc = psutil.Process(pid)
+                if any(arg.endswith("roost-agent") for arg in proc.cmdline()):
+                    return proc
+        return None
 
     # ---- teardown ------------------------------------------------------------------------
     def uninstall(self) -> None:
