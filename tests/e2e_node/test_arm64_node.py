@@ -27,7 +27,7 @@ from roost_localcluster.cluster import Cluster
 from roost_localcluster.realnode import RealNodes
 from roost_sim.faults import FaultKind
 from tests.support.images import emulation_missing, missing_tools
-from tests.support.realfleet import RealFleet
+from tests.support.realfleet import EMULATED_NODE_AGENT, RealFleet
 from tests.support.waiting import wait_until
 
 ARCH = "arm64"
@@ -64,6 +64,7 @@ def fleet(
         namespace="roost-pi",
         vehicle_arch=ARCH,
         wait_s=WAIT_S,
+        agent_values=EMULATED_NODE_AGENT,
     )
     try:
         running.start()

@@ -40,6 +40,13 @@ from tests.support.waiting import wait_until
 GROUND_NODE = "real-ground"
 VEHICLE = "real-drone-1"
 WAIT_S = 180.0
+# qemu-user implements no seccomp (prctl PR_GET_SECCOMP fails), so the arm64 containerd
+# refuses any seccomp profile but for a privileged pod ("failed to generate seccomp spec
+# opts: seccomp is not supported"; a pod-level Unconfined was still refused for the
+# sandbox). On the emulated node the agent runs as values-hardware.yaml runs it on a Pi:
+# devices.access=privileged (no devices listed), which carries no seccomp profile.
+EMULATED_NODE_AGENT = {"devices": {"access": "privileged"}}
+"""Agent values for a vehicle node under qemu-user emulation (the arm64 node)."""
 
 
 def chart_values(ground: str, **agent: Any) -> dict[str, Any]:
@@ -106,6 +113,9 @@ class RealFleet:
     """The vehicle node's architecture: ``arm64`` is a Raspberry Pi's node (its programs
     and the agent image's arm64 build under emulation); the ground node is this machine's."""
     wait_s: float = WAIT_S
+    agent_values: dict[str, Any] = field(default_factory=dict)
+    """Extra chart values under ``agent`` (the emulated arm64 node needs one: see
+    tests/e2e_node/test_arm64_node.py)."""
 
     # ---- bring-up ------------------------------------------------------------------------
     def start(self) -> None:
@@ -134,7 +144,7 @@ class RealFleet:
 
     def install(self) -> None:
         assert self.ground is not None
-        self.helm(chart_values(self.ground.name))
+        self.helm(chart_values(self.ground.name, **self.agent_values))
         self.installed = True
 
     def wait_operator_ready(self) -> float:
