@@ -44,8 +44,9 @@ WAIT_S = 180.0
 # refuses any seccomp profile but for a privileged pod ("failed to generate seccomp spec
 # opts: seccomp is not supported"; a pod-level Unconfined was still refused for the
 # sandbox). On the emulated node the agent runs as values-hardware.yaml runs it on a Pi:
-# devices.access=privileged (no devices listed), which carries no seccomp profile.
-EMULATED_NODE_AGENT = {"devices": {"access": "privileged"}}
+# devices.access=privileged with the machine's one serial port (the chart needs a device
+# listed; the agent opens none here), which carries no seccomp profile.
+EMULATED_NODE_AGENT = {"devices": {"access": "privileged", "paths": ["/dev/ttyS0"]}}
 """Agent values for a vehicle node under qemu-user emulation (the arm64 node)."""
 
 
