@@ -521,11 +521,17 @@ class RealNodes:
 
     def _launch(self, node: RealNode, name: str, argv: list[str]) -> ManagedProcess:
         """Start one node program in the node's network namespace and cgroup."""
-        env = {
-            **os.environ,
-            "PATH": f"{self.programs(node.arch) / 'bin'}:/usr/local/sbin:/usr/sbin:/sbin:"
-            + os.environ.get("PATH", "/usr/bin:/bin"),
-        }
+        path = f"{self.programs(node.arch) / 'bin'}:/usr/local/sbin:/usr/sbin:/sbin:"
+        if node.arch != binaries.HOST_ARCH:
+            # The arm64 shim cannot start under qemu-user ("start failed: ... invalid
+            # argument"): containerd finds the host's first, as it finds the host's runc.
+            shim_dir = node.directory / "host-shim"
+            shim_dir.mkdir(exist_ok=True)
+            shim = shim_dir / "containerd-shim-runc-v2"
+            if not shim.exists():
+                shim.symlink_to(self.node_dir / "bin" / "containerd-shim-runc-v2")
+            path = f"{shim_dir}:{path}"
+        env = {**os.environ, "PATH": path + os.environ.get("PATH", "/usr/bin:/bin")}
         proc = ManagedProcess(name, node.run_in_namespace(argv), node.logs_dir / f"{name}.log")
         proc.launch(env, die_with_parent=True)
         node.processes[name] = proc
