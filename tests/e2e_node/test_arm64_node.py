@@ -1,13 +1,13 @@
 """The chart's agent on an arm64 vehicle node: a Raspberry Pi's programs under emulation.
 
-The vehicle node's kubelet, kube-proxy, containerd, its runc shim and the CNI plugins are
-built for arm64 (``localcluster/build-node.sh --arch arm64``) and run here as arm64
-programs under Debian's qemu-user-static through the kernel's binfmt_misc
-(``docker/binfmt.sh``); so the kubelet itself reports ``kubernetes.io/arch=arm64``
-(nothing sets the label). The agent DaemonSet pod scheduled there runs the arm64 build of
-the agent image from the same image index the amd64 ground node's operator pod comes
-from, an arm64 program under the same emulation. runc is the host's: arm64 runc cannot
-start containers under qemu-user (build-node.sh says why). The simulated autopilots stay
+The vehicle node's kubelet, kube-proxy, containerd and the CNI plugins are built for
+arm64 (``localcluster/build-node.sh --arch arm64``) and run here as arm64 programs under
+Debian's qemu-user-static through the kernel's binfmt_misc (``docker/binfmt.sh``); so
+the kubelet itself reports ``kubernetes.io/arch=arm64`` (nothing sets the label). The
+agent DaemonSet pod scheduled there runs the arm64 build of the agent image from the
+same image index the amd64 ground node's operator pod comes from, an arm64 program under
+the same emulation. runc and its shim are the host's: the arm64 ones cannot start
+containers under qemu-user (docs/real-node.md says why). The simulated autopilots stay
 programs of this machine in the vehicle node's network namespace: they are the flight
 controllers, not the companion computer.
 
