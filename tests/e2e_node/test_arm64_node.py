@@ -104,6 +104,14 @@ def test_agent_reports_both_autopilots_healthy(fleet: RealFleet) -> None:
 
 
 def test_silenced_autopilot_fails_over(fleet: RealFleet) -> None:
+    # In flight, as tests/e2e_node/test_chart_real.py silences it (on the ground a
+    # silent autopilot is reported STALE without a switch).
+    fleet.fly()
+    wait_until(
+        "the vehicle airborne",
+        lambda: all(a.get("armed") for a in fleet.autopilot_status().get("autopilots", [])),
+        WAIT_S,
+    )
     answer = fleet.control("px4-a", {"op": "fault", "kind": FaultKind.SILENCE.value, "value": None})
     assert answer.get("ok"), answer
     wait_until(
