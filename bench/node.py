@@ -43,7 +43,7 @@ from roost_localcluster.controlplane import ControlPlane
 from roost_localcluster.nodenet import missing_prerequisites
 from roost_localcluster.realnode import RealNodes
 from tests.support.images import emulation_missing, missing_tools
-from tests.support.realfleet import RealFleet
+from tests.support.realfleet import EMULATED_NODE_AGENT, RealFleet
 
 COMMAND = "python -m bench node"
 _PROGRAMS = (*binaries.NODE_BINARIES, *binaries.CNI_PLUGINS, "pause-image")
@@ -147,7 +147,12 @@ def arm64_run(cluster: Cluster, directory: Path) -> list[Figure]:
         return []
     with RealNodes(cluster, directory / "arm64-nodes") as pool:
         fleet = RealFleet(
-            cluster, pool, directory / "arm64-fleet", vehicle_arch="arm64", wait_s=600.0
+            cluster,
+            pool,
+            directory / "arm64-fleet",
+            vehicle_arch="arm64",
+            wait_s=600.0,
+            agent_values=EMULATED_NODE_AGENT,
         )
         try:
             fleet.start()
