@@ -54,7 +54,7 @@ node-build: ## build (or reuse) a real node's programs: kubelet, kube-proxy, con
 	localcluster/build-node.sh >/dev/null
 
 .PHONY: images
-images: ## build the operator and agent images (buildah) into ~/.cache/roost/images as OCI archives
+images: ## build the operator and agent images for amd64 and arm64 (buildah; arm64 under qemu) into ~/.cache/roost/images
 	docker/build-images.sh
 
 .PHONY: cluster-up
@@ -92,7 +92,7 @@ e2e: $(STAMP) cluster-build ## end to end: the sandbox, the chart, the images, t
 	@docker/build-images.sh >/dev/null || echo "images: not built (above: why); tests/e2e/test_image_run.py skips or fails with the reason"
 	@$(MAKE) --no-print-directory browser || echo "browser: not installed (above: why); the dashboard's browser tests skip"
 	@mkdir -p $(REPORTS)
-	$(call PYTEST_REPORT,e2e) tests/e2e tests/e2e_node
+	$(call PYTEST_REPORT,e2e) -m 'not arm64_node' tests/e2e tests/e2e_node
 
 .PHONY: test
 test: ## the whole suite: check, integration, e2e, the control-plane suites on kine; then the 25 slowest tests
@@ -130,7 +130,13 @@ demo: $(STAMP) ## start the local fleet sandbox (builds the control plane with a
 .PHONY: e2e-node
 e2e-node: $(STAMP) cluster-build node-build ## the chart's real pods on real harness nodes (kubelet+containerd; needs root)
 	@docker/build-images.sh >/dev/null || echo "images: not built (above: why); the chart's real-node tests skip or fail with the reason"
-	$(BIN)/pytest tests/e2e_node
+	$(BIN)/pytest -m 'not arm64_node' tests/e2e_node
+
+.PHONY: e2e-arm64
+e2e-arm64: $(STAMP) cluster-build node-build ## the chart's agent on an arm64 node under qemu (needs root, binfmt_misc)
+	@docker/build-images.sh >/dev/null || echo "images: not built (above: why); the arm64 node test skips or fails with the reason"
+	localcluster/build-node.sh --arch arm64 >/dev/null
+	$(BIN)/pytest -m arm64_node tests/e2e_node
 
 .PHONY: sandbox-full
 sandbox-full: $(STAMP) cluster-build ## the largest sandbox (25 vehicles) end to end; both cores for ~1.5 min

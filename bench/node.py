@@ -12,13 +12,21 @@
   vehicle node (the operator labelled the node from the Vehicle) to the agent's first
   report of both simulated autopilots healthy in the RedundantAutopilot status.
 
+- ``node.arm64_agent_pod_to_first_report_s``: the same on an arm64 vehicle node (kubelet,
+  containerd, shim, runc and CNI built for arm64, run under qemu-user-static; the agent
+  pod from the image index's arm64 build), the ground node this machine's.
+- ``agent.rss_mb_arm64``: peak RSS of that agent container's process over 30 s while it
+  watches both autopilots, under emulation (qemu's translator and its code cache
+  included: an upper bound for a real arm64 board).
+
 The chart figures are one run of :class:`tests.support.realfleet.RealFleet`, the same
-steps ``make e2e-node`` tests. Needs root (namespaces, cgroups); elsewhere the module
-reports why and returns no figures.
+steps ``make e2e-node`` tests (``tests/e2e_node/test_arm64_node.py`` for arm64). Needs
+root (namespaces, cgroups); elsewhere the module reports why and returns no figures.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import statistics
 import sys
@@ -26,14 +34,16 @@ import tempfile
 import time
 from pathlib import Path
 
+import psutil
+
 from bench.core import Figure
 from roost_localcluster import binaries
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import ControlPlane
 from roost_localcluster.nodenet import missing_prerequisites
 from roost_localcluster.realnode import RealNodes
-from tests.support.images import missing_tools
-from tests.support.realfleet import RealFleet
+from tests.support.images import emulation_missing, missing_tools
+from tests.support.realfleet import EMULATED_NODE_AGENT, RealFleet
 
 COMMAND = "python -m bench node"
 _PROGRAMS = (*binaries.NODE_BINARIES, *binaries.CNI_PLUGINS, "pause-image")
@@ -112,6 +122,83 @@ def chart_run(cluster: Cluster, directory: Path) -> list[Figure]:
     ]
 
 
+ARM64_RSS_S = 30.0
+
+
+def node_programs_rss_mb(fleet: RealFleet) -> dict[str, float]:
+    """RSS of the vehicle node's own programs (kubelet, containerd, kube-proxy, the
+    shims summed), in MB."""
+    assert fleet.vehicle_node is not None
+    found: dict[str, float] = {}
+    for pid in fleet.vehicle_node.pids():
+        with contextlib.suppress(psutil.Error):
+            proc = psutil.Process(pid)
+            line = " ".join(proc.cmdline())
+            for name in ("containerd-shim-runc-v2", "kube-proxy", "kubelet", "containerd"):
+                if f"/bin/{name} " in f"{line} ":
+                    found[name] = round(found.get(name, 0.0) + proc.memory_info().rss / 1e6, 1)
+                    break
+    return found
+
+
+def arm64_run(cluster: Cluster, directory: Path) -> list[Figure]:
+    if reason := emulation_missing("arm64"):
+        print(f"bench node: arm64 skipped ({reason})", file=sys.stderr)
+        return []
+    with RealNodes(cluster, directory / "arm64-nodes") as pool:
+        fleet = RealFleet(
+            cluster,
+            pool,
+            directory / "arm64-fleet",
+            vehicle_arch="arm64",
+            wait_s=600.0,
+            agent_values=EMULATED_NODE_AGENT,
+        )
+        try:
+            fleet.start()
+            programs = node_programs_rss_mb(fleet)
+            peak, cpu_s = 0.0, 0.0
+            proc = fleet.agent_process()
+            if proc is not None:
+                cpu0 = proc.cpu_times()
+                deadline = time.monotonic() + ARM64_RSS_S
+                while time.monotonic() < deadline:
+                    peak = max(peak, proc.memory_info().rss / 1e6)
+                    time.sleep(0.5)
+                cpu1 = proc.cpu_times()
+                cpu_s = (cpu1.user + cpu1.system) - (cpu0.user + cpu0.system)
+            vehicle_ready_s = fleet.timings.vehicle_start_to_ready_s
+        finally:
+            fleet.stop()
+    figures = [
+        Figure(
+            "node.arm64_agent_pod_to_first_report_s",
+            fleet.timings.agent_pod_to_first_report_s,
+            "s",
+            "informational",
+            COMMAND,
+            note="arm64 vehicle node under qemu-user-static (its node start to Ready "
+            f"{vehicle_ready_s:.1f} s): agent pod (arm64 image) created to its first report "
+            "of two simulated autopilots healthy",
+        )
+    ]
+    if peak:
+        figures.append(
+            Figure(
+                "agent.rss_mb_arm64",
+                round(peak, 1),
+                "MB",
+                "informational",
+                COMMAND,
+                note=f"peak RSS over {ARM64_RSS_S:.0f} s of the arm64 agent container on the "
+                "emulated vehicle node, two PX4 sims at onboard rates; includes qemu's "
+                f"translator and code cache; CPU {100 * cpu_s / ARM64_RSS_S:.0f} % of a core; "
+                f"the node's programs under emulation (RSS, MB): {programs}",
+            )
+        )
+    return figures
+
+
 def run() -> list[Figure]:
     figures = cold_build()
     reasons = missing_prerequisites() + [f"no {tool}" for tool in missing_tools()]
@@ -125,4 +212,5 @@ def run() -> list[Figure]:
         cluster = Cluster.of(plane)
         figures.append(node_starts(cluster, Path(tmp)))
         figures += chart_run(cluster, Path(tmp))
+        figures += arm64_run(cluster, Path(tmp))
     return figures

@@ -15,22 +15,31 @@
 # database still tells image scanners the truth. What remains: python3 and its
 # libraries, dash as /bin/sh (for `kubectl exec`), and dpkg's database.
 #
-# The root filesystem is cached under $cache/base/<key>/rootfs.tar, keyed by this script,
-# base.Dockerfile and the suite: a warm run only checks that the image exists.
+# Another architecture (arm64) is made the same way: mmdebstrap runs the packages'
+# maintainer scripts as arm64 programs under qemu-user-static (docker/binfmt.sh).
 #
-#   docker/build-base.sh STORAGE_ROOT   prints the image name (roost-base:<key>)
+# The root filesystem is cached under $cache/base/<key>/<arch>/rootfs.tar, keyed by this
+# script, base.Dockerfile and the suite: a warm run only checks that the image exists.
+#
+#   docker/build-base.sh STORAGE_ROOT [ARCH]   prints the image name (roost-base:<key>-<arch>;
+#                                              ARCH: a Debian architecture, default amd64)
 set -euo pipefail
 
 here=$(cd "$(dirname "$0")" && pwd)
 # shellcheck disable=SC2034 # read by buildah.sh
 storage=${1:?usage: build-base.sh BUILDAH_STORAGE_ROOT}
+arch=${2:-$(dpkg --print-architecture)}
 suite=${ROOST_BASE_SUITE:-bookworm}
 cache_root=${ROOST_CACHE_DIR:-${XDG_CACHE_HOME:-$HOME/.cache}/roost}
 key=$(cat "$0" "$here/base.Dockerfile" <(echo "$suite") | sha256sum | cut -c1-12)
-dir="$cache_root/images/base/$key"
-image="roost-base:$key"
+dir="$cache_root/images/base/$key/$arch"
+image="roost-base:$key-$arch"
 # shellcheck source-path=SCRIPTDIR source=buildah.sh
 source "$here/buildah.sh"
+if [[ "$arch" != "$(dpkg --print-architecture)" ]]; then
+  # mmdebstrap checks with arch-test that the foreign architecture's programs run.
+  "$here/debian-packages.sh" arch-test=arch-test
+fi
 
 # Three rounds, because PAM's removal scripts need debconf, debconf needs Perl, and the
 # triggers that removing a shell fires need coreutils (and dpkg wants tar and diff).
@@ -44,9 +53,9 @@ purge='chroot "$1" dpkg --purge --force-remove-essential --force-depends'
 if ! buildah_ inspect --type image "$image" >/dev/null 2>&1; then
   if [[ ! -s "$dir/rootfs.tar" ]]; then
     mkdir -p "$dir"
-    echo "images: building the Debian $suite root filesystem with python3 (mmdebstrap, about a minute) ..." >&2
+    echo "images: building the Debian $suite $arch root filesystem with python3 (mmdebstrap, about a minute; more under emulation) ..." >&2
     log="$dir/mmdebstrap.log"
-    if ! mmdebstrap --variant=essential --include=python3 --format=tar \
+    if ! mmdebstrap --variant=essential --include=python3 --format=tar --architectures="$arch" \
         --hook-dir=/usr/share/mmdebstrap/hooks/merged-usr \
         --dpkgopt='path-exclude=/usr/share/doc/*' \
         --dpkgopt='path-include=/usr/share/doc/*/copyright' \
@@ -68,9 +77,10 @@ if ! buildah_ inspect --type image "$image" >/dev/null 2>&1; then
   ctx=$(mktemp -d)
   trap 'rm -rf "$ctx"' EXIT
   ln "$dir/rootfs.tar" "$ctx/rootfs.tar" 2>/dev/null || cp "$dir/rootfs.tar" "$ctx/rootfs.tar"
-  buildah_ bud --quiet --layers=false -f "$here/base.Dockerfile" -t "$image" "$ctx" >/dev/null
+  buildah_ bud --quiet --layers=false --platform "linux/$arch" -f "$here/base.Dockerfile" \
+    -t "$image" "$ctx" >/dev/null
   # Bases of earlier versions of this script are no longer used.
-  for old in $(buildah_ images --format '{{.Name}}:{{.Tag}}' | grep '/roost-base:' | grep -v ":$key\$"); do
+  for old in $(buildah_ images --format '{{.Name}}:{{.Tag}}' | grep '/roost-base:' | grep -v ":$key-"); do
     buildah_ rmi "$old" >/dev/null 2>&1 || true
   done
   find "$cache_root/images/base" -mindepth 1 -maxdepth 1 ! -name "$key" -exec rm -rf {} +

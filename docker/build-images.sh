@@ -1,9 +1,23 @@
 #!/usr/bin/env bash
 # `make images`: build Roost's operator and agent images with buildah (no container
-# engine or daemon needed) and export them as OCI archives:
+# engine or daemon needed) for linux/amd64 and linux/arm64, and export each as an OCI
+# archive holding one image index (one name, both platforms):
 #
 #   ~/.cache/roost/images/roost-operator.oci.tar   (image localhost/roost-operator:<version>)
 #   ~/.cache/roost/images/roost-agent.oci.tar      (image localhost/roost-agent:<version>)
+#
+# ROOST_IMAGE_ARCHS (default "amd64 arm64") chooses the platforms; "amd64" alone builds
+# what a machine without arm64 emulation can (an index with one platform).
+#
+# arm64, how: the Debian base is made for arm64 by mmdebstrap and the Dockerfile's RUN
+# steps (image.py: pip install, ahead-of-time bytecode) run as arm64 programs under
+# Debian's qemu-user-static (docker/binfmt.sh registers it with the kernel's binfmt_misc).
+# Roost's compiled per-message path is cross-compiled, not emulated: mypyc's C comes out
+# the same for any 64-bit Linux, so the host's mypyc writes it and Debian's
+# gcc-aarch64-linux-gnu compiles it against the arm64 Python headers (libpython3.11-dev:
+# arm64), as an arm64 wheel (cross_env). The dependencies' arm64 wheels are the index's
+# own manylinux aarch64 builds of the exact versions the amd64 build resolved
+# (arm64_dependencies); a dependency with no such wheel stops the build, named.
 #
 # The archives carry the full name (localhost/, as podman and buildah name local images):
 # `ctr images import` keeps a name as the archive gives it, and the kubelet looks a name
@@ -11,11 +25,14 @@
 # is not found.
 #
 # Steps: install the Debian tools when missing (buildah, podman, runc, mmdebstrap; a C
-# compiler and Python's headers for the compiled modules); build the base
-# (ROOST_IMAGE_BASE, default `local`: Debian's python3 via docker/build-base.sh; any image
-# reference uses that image instead); `pip wheel` Roost (its per-message path compiled by
-# mypyc: setup.py) and its dependencies on the host; `buildah bud` both targets of
-# docker/Dockerfile; `buildah push` each into an OCI archive.
+# compiler and Python's headers for the compiled modules; for arm64 qemu-user-static, the
+# cross compiler and the arm64 headers); build the base per architecture
+# (ROOST_IMAGE_BASE, default `local`: Debian's python3 via docker/build-base.sh; any
+# multi-platform image reference uses that image instead); `pip wheel` Roost (its
+# per-message path compiled by mypyc: setup.py) and its dependencies on the host, per
+# architecture; `buildah bud --platform` both targets of docker/Dockerfile per
+# architecture; `buildah manifest` an index per target; push each, with its images, into
+# an OCI archive.
 #
 # Cached: the archives are rebuilt only when Roost's sources, pyproject.toml, setup.py,
 # the docker/ files or the base change (a key over them is stored beside the archives); a
@@ -36,6 +53,16 @@ repo=$(cd "$here/.." && pwd)
 # The package folders the wheel is built from (pyproject's packages.find); the image
 # cache key hashes the same list, so a new package cannot be left out of one of them.
 packages=(api kube operator agents cli localcluster)
+host_arch=$(dpkg --print-architecture 2>/dev/null || echo amd64)
+read -r -a archs <<<"${ROOST_IMAGE_ARCHS:-amd64 arm64}"
+# Without ROOST_IMAGE_ARCHS, a machine where arm64 programs cannot run (docker/binfmt.sh
+# says why) builds its own platform only, saying so; the tests that need arm64 skip.
+if [[ -z "${ROOST_IMAGE_ARCHS:-}" && "${1:-}" != --* ]] \
+    && ! "$here/binfmt.sh" 2>"${TMPDIR:-/tmp}/roost-binfmt.$$"; then
+  echo "images: building $host_arch only: $(cat "${TMPDIR:-/tmp}/roost-binfmt.$$")" >&2
+  archs=("$host_arch")
+fi
+rm -f "${TMPDIR:-/tmp}/roost-binfmt.$$"
 cache_root=${ROOST_CACHE_DIR:-${XDG_CACHE_HOME:-$HOME/.cache}/roost}
 out="$cache_root/images"
 storage="$out/storage"
@@ -58,24 +85,53 @@ check_python() {
   fi
 }
 
-# Roost's own wheel into $1 (pip's output into the log $2), its per-message path compiled
-# by mypyc (setup.py). Without build isolation: mypyc type-checks the modules it compiles
+# What a cross-compiling `pip wheel` of Roost needs for arm64 (setup.py's extensions built
+# by setuptools): the cross compiler, the arm64 Python headers first on the include path
+# (Debian's /usr/include/python3.11 picks the arm64 pyconfig.h by the compiler's own
+# target), the arm64 platform tag (linux_aarch64) and extension suffix. Printed as
+# NAME=VALUE lines for `env`.
+cross_env() {
+  local arch=$1 triplet
+  case "$arch" in
+    arm64) triplet=aarch64-linux-gnu ;;
+    *) echo "images: no cross compiler known for $arch" >&2; exit 1 ;;
+  esac
+  if ! dpkg --print-foreign-architectures | grep -qx "$arch"; then
+    if [[ $(id -u) -ne 0 ]]; then
+      echo "images: Debian's $arch packages are not enabled (as root: dpkg --add-architecture $arch)" >&2
+      exit 1
+    fi
+    dpkg --add-architecture "$arch"
+  fi
+  "$here/debian-packages.sh" "$triplet-gcc=gcc-$triplet" \
+    "/usr/include/$triplet/python3.11/pyconfig.h=libpython3.11-dev:$arch"
+  printf '%s\n' "CC=$triplet-gcc" "LDSHARED=$triplet-gcc -shared" \
+    "CPPFLAGS=-I/usr/include/python3.11" "_PYTHON_HOST_PLATFORM=linux-${triplet%%-*}" \
+    "SETUPTOOLS_EXT_SUFFIX=.cpython-311-$triplet.so"
+}
+
+# Roost's own wheel for $3 (default: this machine's architecture) into $1 (pip's output
+# into the log $2), its per-message path compiled by mypyc (setup.py). Without build isolation: mypyc type-checks the modules it compiles
 # against Roost's other packages and their dependencies, installed where $python runs
 # (the dev environment). From a copy of the packaged sources: an in-tree build would leave
 # build/ and *.egg-info in the checkout, and a stale build/lib can carry deleted modules.
 roost_wheel() {
-  local dest=$1 log=$2 src include
+  local dest=$1 log=$2 arch=${3:-$host_arch} src include cross=()
   if ! "$python" -c 'import mypyc' 2>/dev/null; then
     echo "images: $python has no mypyc (mypy) to compile Roost's per-message path; run make setup or set PYTHON" >&2
     exit 1
   fi
   include=$("$python" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')
   "$here/debian-packages.sh" cc=gcc "$include/Python.h=python3-dev"
+  if [[ "$arch" != "$host_arch" ]]; then
+    mapfile -t cross < <(cross_env "$arch")
+    [[ ${#cross[@]} -gt 0 ]] || exit 1
+  fi
   src=$(mktemp -d)
   (cd "$repo" && cp -r pyproject.toml README.md setup.py "${packages[@]}" "$src/")
   find "$src" \( -name __pycache__ -o -name '*.egg-info' \) -prune -exec rm -rf {} +
-  echo "images: building Roost's wheel, compiling its per-message path (mypyc) ..." >&2
-  if ! ROOST_COMPILE=1 "$python" -m pip wheel --no-deps --no-build-isolation \
+  echo "images: building Roost's $arch wheel, compiling its per-message path (mypyc) ..." >&2
+  if ! env "${cross[@]}" ROOST_COMPILE=1 "$python" -m pip wheel --no-deps --no-build-isolation \
       --wheel-dir "$dest" "$src" >"$log" 2>&1; then
     tail -n 30 "$log" >&2
     echo "images: building Roost's wheel failed; its log is $log" >&2
@@ -85,22 +141,57 @@ roost_wheel() {
   rm -rf "$src"
 }
 
-# The build context: Roost and its dependencies as wheels (plus pip's own, which the
-# Dockerfile runs pip from) and image.py. Wheels are built here, on the host, so the image
-# build needs no compiler or package index.
+# The build context for $2 (default: this machine's architecture): Roost and its
+# dependencies as wheels (plus pip's own, which the Dockerfile runs pip from) and
+# image.py. Wheels are built here, on the host, so the image build needs no compiler or
+# package index. Another architecture's context takes the pure wheels of this machine's
+# context $3 (written first) and the index's wheels for the rest.
 write_context() {
-  local ctx=$1 log
+  local ctx=$1 arch=${2:-$host_arch} native=${3:-} log
   check_python
   rm -rf "$ctx"
   mkdir -p "$ctx/wheels"
   cp "$here/image.py" "$ctx/"
-  log="$(dirname "$ctx")/pip-wheel.log"
-  roost_wheel "$ctx/wheels" "$log"
+  log="$(dirname "$ctx")/pip-wheel-$arch.log"
+  roost_wheel "$ctx/wheels" "$log" "$arch"
+  if [[ "$arch" != "$host_arch" ]]; then
+    arm64_dependencies "$native/wheels" "$ctx/wheels" "$arch" "$log"
+    return
+  fi
   echo "images: collecting the wheels of Roost's dependencies (pip wheel) ..." >&2
   if ! { "$python" -m pip wheel --wheel-dir "$ctx/wheels" "$ctx"/wheels/roost-*.whl \
          && "$python" -m pip download --no-deps --dest "$ctx/wheels" pip; } >>"$log" 2>&1; then
     tail -n 30 "$log" >&2
     echo "images: pip wheel failed; its log is $log" >&2
+    exit 1
+  fi
+}
+
+# The dependencies for $3 from the native context's wheels $1 into $2: pure ones
+# (py3-none-any) are the same files; for each one with compiled parts, the same version's
+# manylinux wheel for the architecture (glibc 2.17 to bookworm's 2.36), binary only.
+arm64_dependencies() {
+  local from=$1 dest=$2 arch=$3 log=$4 wheel name version machine platforms=() specs=()
+  case "$arch" in
+    arm64) machine=aarch64 ;;
+    *) echo "images: no wheel platform known for $arch" >&2; exit 1 ;;
+  esac
+  for minor in $(seq 17 36); do platforms+=(--platform "manylinux_2_${minor}_$machine"); done
+  platforms+=(--platform "manylinux2014_$machine")
+  for wheel in "$from"/*.whl; do
+    name=$(basename "$wheel")
+    case "$name" in
+      roost-*) ;;
+      *-none-any.whl) cp "$wheel" "$dest/" ;;
+      *) version=${name#*-}; specs+=("${name%%-*}==${version%%-*}") ;;
+    esac
+  done
+  echo "images: downloading the $arch wheels of ${#specs[@]} compiled dependencies ..." >&2
+  if ! "$python" -m pip download --no-deps --only-binary=:all: --dest "$dest" \
+      --implementation cp --python-version 3.11 --abi cp311 "${platforms[@]}" \
+      "${specs[@]}" >>"$log" 2>&1; then
+    tail -n 30 "$log" >&2
+    echo "images: no $arch wheel for a dependency (above); its log is $log" >&2
     exit 1
   fi
 }
@@ -112,7 +203,7 @@ sources_key() {
     find "${packages[@]}" -type f \( -name '*.py' -o -name py.typed \) \
       ! -path '*/__pycache__/*' -print0 | sort -z | xargs -0 sha256sum
     sha256sum pyproject.toml README.md setup.py docker/*
-    echo "base=$base_ref"
+    echo "base=$base_ref archs=${archs[*]}"
   } | sha256sum | cut -c1-16
 }
 
@@ -166,39 +257,66 @@ if [[ -s "$out/key" && "$(cat "$out/key")" == "$key" \
 fi
 
 "$here/debian-packages.sh" buildah=buildah podman=podman runc=runc mmdebstrap=mmdebstrap
+for arch in "${archs[@]}"; do
+  if [[ "$arch" != "$host_arch" ]] && ! "$here/binfmt.sh" --check; then
+    echo "images: $arch programs cannot run here (above: why); ROOST_IMAGE_ARCHS=$host_arch builds $host_arch only" >&2
+    exit 1
+  fi
+done
 mkdir -p "$out"
 # shellcheck source-path=SCRIPTDIR source=buildah.sh
 source "$here/buildah.sh"
 start=$(date +%s)
 
-if [[ "$base_ref" == local ]]; then
-  base=$("$here/build-base.sh" "$storage")
-else
-  base=$base_ref
-fi
+# The native context first: the other architectures take its pure wheels.
+native_ctx="$out/context-$host_arch"
+write_context "$native_ctx"
+for arch in "${archs[@]}"; do
+  [[ "$arch" == "$host_arch" ]] || write_context "$out/context-$arch" "$arch" "$native_ctx"
+done
 
-ctx="$out/context"
-write_context "$ctx"
-
-for target in operator agent; do
-  image="roost-$target:$version"
-  echo "images: building $image from $base (buildah) ..." >&2
-  log="$out/build-$target.log"
-  if ! buildah_ bud --layers --target "$target" --build-arg "BASE=$base" \
-      -f "$here/Dockerfile" -t "$image" "$ctx" >"$log" 2>&1; then
-    tail -n 30 "$log" >&2
-    echo "images: building $image failed; its log is $log" >&2
-    exit 1
+# "cold" in the build record: a base's root filesystem had to be made too.
+cold=warm
+for arch in "${archs[@]}"; do
+  if [[ "$base_ref" == local ]]; then
+    compgen -G "$out/base/*/$arch/rootfs.tar" >/dev/null || cold=cold
+    base=$("$here/build-base.sh" "$storage" "$arch") || exit 1
+  else
+    base=$base_ref
   fi
+  for target in operator agent; do
+    image="roost-$target:$version-$arch"
+    echo "images: building $image from $base (buildah, linux/$arch) ..." >&2
+    log="$out/build-$target-$arch.log"
+    if ! buildah_ bud --layers --platform "linux/$arch" --target "$target" \
+        --build-arg "BASE=$base" -f "$here/Dockerfile" -t "$image" "$out/context-$arch" \
+        >"$log" 2>&1; then
+      tail -n 30 "$log" >&2
+      echo "images: building $image failed; its log is $log" >&2
+      exit 1
+    fi
+  done
+done
+
+# One image index per target, named without the architecture; pushed with its images.
+for target in operator agent; do
+  name="localhost/roost-$target:$version"
+  buildah_ manifest rm "$name" >/dev/null 2>&1 || buildah_ rmi "$name" >/dev/null 2>&1 || true
+  buildah_ manifest create "$name" >/dev/null
+  for arch in "${archs[@]}"; do
+    buildah_ manifest add "$name" "containers-storage:localhost/roost-$target:$version-$arch" >/dev/null
+  done
   rm -f "$out/roost-$target.oci.tar"
-  buildah_ push --quiet "localhost/$image" "oci-archive:$out/roost-$target.oci.tar.partial:localhost/$image" >/dev/null
+  buildah_ manifest push --quiet --all --format oci "$name" \
+    "oci-archive:$out/roost-$target.oci.tar.partial:$name" >/dev/null
   mv -f "$out/roost-$target.oci.tar.partial" "$out/roost-$target.oci.tar"
 done
 # Drop what earlier builds left behind (their images and the intermediate stages).
 buildah_ rmi --prune >/dev/null 2>&1 || true
-rm -rf "$ctx"
+rm -rf "$out"/context-*
 echo "$key" >"$out/key"
 secs=$(( $(date +%s) - start ))
-printf 'images\t%s\t%s\n' "$secs" "$(date -u +%Y-%m-%dT%H:%M:%SZ)" >>"$out/build-times.tsv"
-echo "images: built roost-operator and roost-agent $version in $secs s into $out" >&2
+printf 'images\t%s\t%s\t%s\t%s\n' "$secs" "$(date -u +%Y-%m-%dT%H:%M:%SZ)" "${archs[*]}" "$cold" \
+  >>"$out/build-times.tsv"
+echo "images: built roost-operator and roost-agent $version (${archs[*]}) in $secs s into $out" >&2
 echo "$out"

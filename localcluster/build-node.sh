@@ -15,9 +15,28 @@
 # (kubelet 110 s, containerd 73 s) with the control plane's Go modules already downloaded,
 # timed per program in build-times.tsv.
 #
-#   localcluster/build-node.sh            build what is missing, print the node directory
-#   localcluster/build-node.sh --print    print the node directory only
+# An arm64 node (--arch arm64: a Raspberry Pi's programs, run here under qemu-user-static
+# through binfmt_misc, docker/binfmt.sh) is the same set cross-compiled by Go
+# (GOARCH=arm64; everything is built without cgo) and the pause binary cross-compiled by
+# gcc-aarch64-linux-gnu. Its directory is the amd64 one's name with "-arm64". runc stays
+# the host's: Debian's arm64 runc does not start a container under qemu-user (runc
+# re-executes itself through /proc/self/exe and clones with namespace and CLONE_PARENT
+# flags, which qemu-user's process emulation refuses: "unable to start init: fork/exec
+# /proc/self/exe: no such file or directory"), so the containers -- arm64 programs,
+# the images' arm64 builds -- are started by the host's runc and run under qemu through
+# binfmt_misc, as any arm64 program here. Cold: the Go programs cost what the amd64 ones
+# do (the Go build cache keeps the module downloads; compiled packages are per GOARCH).
+#
+#   localcluster/build-node.sh [--arch ARCH]          build what is missing, print the node directory
+#   localcluster/build-node.sh [--arch ARCH] --print  print the node directory only
 set -euo pipefail
+
+host_arch=$(go env GOHOSTARCH 2>/dev/null || dpkg --print-architecture)
+arch=$host_arch
+if [[ "${1:-}" == "--arch" ]]; then
+  arch=${2:?--arch needs an architecture (amd64, arm64)}
+  shift 2
+fi
 
 here=$(cd "$(dirname "$0")" && pwd)
 k8s_mod="$here/gomod/kubernetes"
@@ -32,6 +51,7 @@ containerd_version=$(version_of github.com/containerd/containerd/v2 "$containerd
 cni_version=$(version_of github.com/containernetworking/plugins "$cni_mod")
 cache_root=${ROOST_CACHE_DIR:-${XDG_CACHE_HOME:-$HOME/.cache}/roost}
 node_dir="$cache_root/node/k8s-$k8s_version-containerd-$containerd_version-cni-$cni_version"
+[[ "$arch" == "$host_arch" ]] || node_dir="$node_dir-$arch"
 
 if [[ "${1:-}" == "--print" ]]; then
   echo "$node_dir"
@@ -58,6 +78,17 @@ pause_name="localhost/roost-pause:$pause_tag"
 
 "$here/../docker/debian-packages.sh" runc=runc iptables=iptables conntrack=conntrack ip=iproute2 \
   nsenter=util-linux cc=gcc
+
+cross=()
+if [[ "$arch" != "$host_arch" ]]; then
+  case "$arch" in
+    arm64) triplet=aarch64-linux-gnu ;;
+    *) echo "node: no cross toolchain known for $arch" >&2; exit 1 ;;
+  esac
+  "$here/../docker/binfmt.sh" || { echo "node: $arch programs cannot run here (above: why)" >&2; exit 1; }
+  "$here/../docker/debian-packages.sh" "$triplet-gcc=gcc-$triplet"
+  cross=(CC="$triplet-gcc" STRIP="$triplet-strip" GOARCH="$arch")
+fi
 
 missing=()
 for t in "${targets[@]}"; do
@@ -96,7 +127,7 @@ for t in "${missing[@]}"; do
   echo "node: [$i/${#missing[@]}] building $name ($pkg) ..." >&2
   t0=$(date +%s)
   tmp="$node_dir/$out.partial"
-  (cd "$dir" && go build -trimpath -ldflags "$ldflags" -o "$tmp" "$pkg")
+  (cd "$dir" && env "${cross[@]}" go build -trimpath -ldflags "$ldflags" -o "$tmp" "$pkg")
   mv -f "$tmp" "$node_dir/$out"
   secs=$(( $(date +%s) - t0 ))
   echo "node: [$i/${#missing[@]}] $name built in $secs s" >&2
@@ -106,7 +137,7 @@ done
 if ! pause_current; then
   echo "node: building the pause image ($pause_name) ..." >&2
   t0=$(date +%s)
-  "$here/node/pause-image.sh" "$pause_archive" "$pause_name"
+  env "${cross[@]}" "$here/node/pause-image.sh" "$pause_archive" "$pause_name"
   echo "$pause_name" >"$node_dir/images/roost-pause.name"
   record pause-image "$(( $(date +%s) - t0 ))"
 fi

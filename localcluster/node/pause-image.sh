@@ -18,7 +18,7 @@ trap 'rm -rf "$work"' EXIT
 
 mkdir -p "$work/rootfs" "$work/oci/blobs/sha256"
 "$cc" -static -Os -Wall -Wextra -Werror -o "$work/rootfs/pause" "$here/pause.c"
-strip "$work/rootfs/pause"
+"${STRIP:-strip}" "$work/rootfs/pause"
 tar --owner=0 --group=0 --numeric-owner --mtime=@0 --sort=name -C "$work/rootfs" -cf "$work/layer.tar" pause
 
 blob() {  # FILE MEDIATYPE: store FILE as a blob, print its descriptor

@@ -8,6 +8,7 @@ That script is the one place that knows the versions and the cache layout; Pytho
 
 from __future__ import annotations
 
+import platform
 import subprocess
 import sys
 from pathlib import Path
@@ -70,10 +71,18 @@ PAUSE_ARCHIVE = "images/roost-pause.oci.tar"
 PAUSE_NAME = "images/roost-pause.name"  # the image name, tagged with a digest of its sources
 
 
-def node_dir() -> Path:
-    """The cache directory of a real node's programs (``build-node.sh`` lays it out)."""
+HOST_ARCH = {"x86_64": "amd64", "aarch64": "arm64"}.get(platform.machine(), platform.machine())
+"""This machine's architecture as Go and Kubernetes name it (``kubernetes.io/arch``)."""
+
+
+def node_dir(arch: str = HOST_ARCH) -> Path:
+    """The cache directory of a real node's programs for ``arch`` (``build-node.sh`` lays
+    it out; another architecture's has its own)."""
     out = subprocess.run(
-        [str(NODE_BUILD_SCRIPT), "--print"], check=True, capture_output=True, text=True
+        [str(NODE_BUILD_SCRIPT), "--arch", arch, "--print"],
+        check=True,
+        capture_output=True,
+        text=True,
     ).stdout
     return Path(out.strip())
 
@@ -90,12 +99,16 @@ def pause_image(directory: Path) -> str:
     return (directory / PAUSE_NAME).read_text().strip()
 
 
-def ensure_node_built() -> Path:
-    """Return the node directory, building what is missing first (minutes when cold)."""
-    directory = node_dir()
+def ensure_node_built(arch: str = HOST_ARCH) -> Path:
+    """Return the node directory for ``arch``, building what is missing first (minutes
+    when cold)."""
+    directory = node_dir(arch)
     if node_missing(directory):
         subprocess.run(
-            [str(NODE_BUILD_SCRIPT)], check=True, stdout=subprocess.DEVNULL, stderr=sys.stderr
+            [str(NODE_BUILD_SCRIPT), "--arch", arch],
+            check=True,
+            stdout=subprocess.DEVNULL,
+            stderr=sys.stderr,
         )
     still_missing = node_missing(directory)
     if still_missing:

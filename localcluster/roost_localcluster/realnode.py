@@ -175,6 +175,7 @@ class RealNode:
     directory: Path
     runtime_dir: Path
     cgroup: str
+    arch: str = binaries.HOST_ARCH
     processes: dict[str, ManagedProcess] = field(default_factory=dict)
 
     @property
@@ -189,8 +190,14 @@ class RealNode:
     def logs_dir(self) -> Path:
         return self.directory / "logs"
 
+    @property
+    def platform(self) -> str:
+        """The node's OCI platform: what its containerd runs and imports."""
+        return f"linux/{self.arch}"
+
     def ctr(self, *args: str) -> list[str]:
-        """A ``ctr`` command line against this node's containerd (CRI's namespace)."""
+        """A ``ctr`` command line against this node's containerd (CRI's namespace); the
+        host's own ``ctr`` (a client: it runs natively for a node of any architecture)."""
         node_bin = binaries.node_dir() / "bin"
         return [
             str(node_bin / "ctr"),
@@ -200,6 +207,10 @@ class RealNode:
             CONTAINERD_NAMESPACE,
             *args,
         ]
+
+    def pids(self) -> set[int]:
+        """Every process of the node: its programs, shims and containers."""
+        return _cgroup_pids(_tracking_hierarchy() / self.cgroup.lstrip("/"))
 
     def run_in_namespace(self, argv: Sequence[str]) -> list[str]:
         """``argv`` in this node's network namespace only (see the module docstring)."""
@@ -233,7 +244,8 @@ def containerd_config(node: RealNode, node_dir: Path) -> str:
         "[plugins.'io.containerd.cri.v1.runtime'.containerd.runtimes.runc]",
         "  runtime_type = 'io.containerd.runc.v2'",
         "[plugins.'io.containerd.cri.v1.runtime'.containerd.runtimes.runc.options]",
-        # Debian's runc: crun refuses hosts with a hybrid cgroup hierarchy.
+        # Debian's runc: crun refuses hosts with a hybrid cgroup hierarchy. An arm64
+        # node's too: arm64 runc cannot start containers under qemu-user (build-node.sh).
         f"  BinaryName = {json.dumps(shutil.which('runc') or 'runc')}",
         f"  Root = {json.dumps(str(node.runtime_dir / 'runc'))}",
         "  SystemdCgroup = false",
@@ -377,6 +389,7 @@ class RealNodes:
         self.directory = Path(directory or tempfile.mkdtemp(prefix="roost-nodes-")).resolve()
         self.tag = secrets.token_hex(3)
         self.node_dir = binaries.ensure_node_built()
+        self._node_dirs = {binaries.HOST_ARCH: self.node_dir}
         self.network: NodeNetwork | None = None
         self.relay: ManagedProcess | None = None
         self.nodes: dict[str, RealNode] = {}
@@ -404,6 +417,12 @@ class RealNodes:
 
     def __enter__(self) -> Self:
         return self
+
+    def programs(self, arch: str) -> Path:
+        """The directory of the node programs built for ``arch`` (built when missing)."""
+        if arch not in self._node_dirs:
+            self._node_dirs[arch] = binaries.ensure_node_built(arch)
+        return self._node_dirs[arch]
 
     def __exit__(
         self,
@@ -449,12 +468,17 @@ class RealNodes:
         taints: Iterable[Mapping[str, str]] = (),
         images: Sequence[Path] = (),
         timeout_s: float = START_TIMEOUT_S,
+        arch: str = binaries.HOST_ARCH,
     ) -> RealNode:
         """Start a real node called ``name``; returns once it is Ready.
 
         ``labels`` and ``taints`` are registered by the kubelet (NodeRestriction allows no
         ``kubernetes.io`` labels but its own). ``images`` are OCI archives imported into
-        its containerd before the kubelet starts.
+        its containerd before the kubelet starts. ``arch`` other than this machine's
+        (``arm64``): kubelet, kube-proxy, containerd, its shim and the CNI plugins built
+        for it, run under qemu-user-static (docker/binfmt.sh); the kubelet itself then
+        reports ``kubernetes.io/arch=<arch>``, and containerd runs the images' arm64
+        builds (started by the host's runc, see build-node.sh).
         """
         network = self._ensure_network()
         index = self._next_index
@@ -467,6 +491,7 @@ class RealNodes:
             directory=self.directory / name,
             runtime_dir=RUNTIME_ROOT / f"{self.tag}-{index}",
             cgroup=f"/roost-{self.tag}-{index}",
+            arch=arch,
         )
         self.nodes[name] = node
         self._registrations[name] = (dict(labels or {}), [dict(t) for t in taints])
@@ -475,7 +500,8 @@ class RealNodes:
             network.add_node(index)
             self._prepare(node)
             self._start_containerd(node)
-            self.import_images(node, [self.node_dir / binaries.PAUSE_ARCHIVE, *images])
+            pause = self.programs(node.arch) / binaries.PAUSE_ARCHIVE
+            self.import_images(node, [pause, *images])
             self._start_kubelet(node, labels or {}, taints)
             self._start_kube_proxy(node)
             self._wait_ready(node, timeout_s)
@@ -491,17 +517,24 @@ class RealNodes:
         for mount in cgroup_mounts():
             _make_cgroup(mount, node.cgroup)
         _make_cgroup(_tracking_hierarchy(), f"{node.cgroup}/runtime")
-        (node.directory / "containerd.toml").write_text(containerd_config(node, self.node_dir))
+        config = containerd_config(node, self.programs(node.arch))
+        (node.directory / "containerd.toml").write_text(config)
         conflist = node.directory / "cni" / "net.d" / "10-roost.conflist"
         conflist.write_text(json.dumps(cni_config(node), indent=2))
 
     def _launch(self, node: RealNode, name: str, argv: list[str]) -> ManagedProcess:
         """Start one node program in the node's network namespace and cgroup."""
-        env = {
-            **os.environ,
-            "PATH": f"{self.node_dir / 'bin'}:/usr/local/sbin:/usr/sbin:/sbin:"
-            + os.environ.get("PATH", "/usr/bin:/bin"),
-        }
+        path = f"{self.programs(node.arch) / 'bin'}:/usr/local/sbin:/usr/sbin:/sbin:"
+        if node.arch != binaries.HOST_ARCH:
+            # The arm64 shim cannot start under qemu-user ("start failed: ... invalid
+            # argument"): containerd finds the host's first, as it finds the host's runc.
+            shim_dir = node.directory / "host-shim"
+            shim_dir.mkdir(exist_ok=True)
+            shim = shim_dir / "containerd-shim-runc-v2"
+            if not shim.exists():
+                shim.symlink_to(self.node_dir / "bin" / "containerd-shim-runc-v2")
+            path = f"{shim_dir}:{path}"
+        env = {**os.environ, "PATH": path + os.environ.get("PATH", "/usr/bin:/bin")}
         proc = ManagedProcess(name, node.run_in_namespace(argv), node.logs_dir / f"{name}.log")
         proc.launch(env, die_with_parent=True)
         node.processes[name] = proc
@@ -514,9 +547,8 @@ class RealNodes:
 
     def _start_containerd(self, node: RealNode) -> None:
         config = node.directory / "containerd.toml"
-        proc = self._launch(
-            node, "containerd", [str(self.node_dir / "bin" / "containerd"), "--config", str(config)]
-        )
+        containerd = self.programs(node.arch) / "bin" / "containerd"
+        proc = self._launch(node, "containerd", [str(containerd), "--config", str(config)])
         _wait_for(node.containerd_socket.exists, 60, "containerd's socket", [proc])
         _wait_for(
             lambda: (
@@ -531,9 +563,14 @@ class RealNodes:
     def import_images(self, node: RealNode, archives: Sequence[Path]) -> None:
         """Import OCI archives into the node's containerd (``ctr images import``, into
         the CRI's namespace), under the names the archives give (``make images`` names
-        them ``localhost/roost-<target>:<version>``)."""
+        them ``localhost/roost-<target>:<version>``). An archive holding an image index
+        (amd64 and arm64) is imported with the index and the node's platform's content
+        only (``--platform``; ``--all-platforms`` would store both)."""
         for archive in archives:
-            self._ctr(node, "images", "import", "--no-unpack", str(archive), timeout_s=600)
+            self._ctr(
+                node, "images", "import", "--no-unpack", "--platform", node.platform,
+                str(archive), timeout_s=600,
+            )  # fmt: skip
 
     def _ctr(self, node: RealNode, *args: str, timeout_s: float = 60) -> str:
         done = subprocess.run(
@@ -579,7 +616,7 @@ class RealNodes:
         config = node.directory / "kubelet.yaml"
         config.write_text(yaml.safe_dump(kubelet_config(node, node_keys, serving)))
         argv = [
-            str(self.node_dir / "bin" / "kubelet"),
+            str(self.programs(node.arch) / "bin" / "kubelet"),
             f"--config={config}",
             f"--kubeconfig={kubeconfig}",
             f"--hostname-override={node.name}",
@@ -599,7 +636,8 @@ class RealNodes:
         config = node.directory / "kube-proxy.yaml"
         kubeconfig = node.directory / "kube-proxy.kubeconfig"
         config.write_text(yaml.safe_dump(kube_proxy_config(node, kubeconfig)))
-        argv = [str(self.node_dir / "bin" / "kube-proxy"), f"--config={config}", "--v=1"]
+        programs = self.programs(node.arch) / "bin"
+        argv = [str(programs / "kube-proxy"), f"--config={config}", "--v=1"]
         self._launch(node, "kube-proxy", argv)
 
     def _server(self) -> str:

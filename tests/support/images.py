@@ -18,16 +18,30 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from roost_localcluster.binaries import REPO_ROOT
+from roost_localcluster.binaries import HOST_ARCH, REPO_ROOT
 
 BUILD_SCRIPT = REPO_ROOT / "docker" / "build-images.sh"
 TOOLS = ("buildah", "podman", "runc", "mmdebstrap")
 TARGETS = ("operator", "agent")
+ARCHS = ("amd64", "arm64")
+"""The platforms of every image index ``make images`` writes (linux/<arch>)."""
+BINFMT_SCRIPT = REPO_ROOT / "docker" / "binfmt.sh"
 
 
 def missing_tools() -> list[str]:
     """The image tools not on PATH (``make images`` installs them on Debian)."""
     return [tool for tool in TOOLS if shutil.which(tool) is None]
+
+
+def emulation_missing(arch: str) -> str:
+    """Why ``arch`` programs cannot run here ("" when they can: this machine's own, or
+    another under qemu-user-static registered with binfmt_misc by docker/binfmt.sh)."""
+    if arch == HOST_ARCH:
+        return ""
+    done = subprocess.run(
+        [str(BINFMT_SCRIPT), "--check"], capture_output=True, text=True, check=False, timeout=60
+    )
+    return done.stderr.strip() if done.returncode else ""
 
 
 def run_build_script(*args: str, timeout_s: float = 1800) -> Path:
@@ -80,14 +94,13 @@ class Podman:
             self.command(*args), check=False, capture_output=True, text=True, timeout=timeout
         )
 
-    def load(self, oci_archive: Path) -> str:
-        """Load an OCI archive; the image's ID."""
-        done = self.call("load", "--quiet", "--input", str(oci_archive))
+    def load(self, oci_archive: Path, arch: str = HOST_ARCH) -> str:
+        """Load the ``arch`` image of an OCI archive (an image index: ``make images``
+        writes amd64 and arm64); the image's ID."""
+        done = self.call("pull", "--quiet", "--arch", arch, f"oci-archive:{oci_archive}")
         if done.returncode != 0:
-            raise RuntimeError(f"podman load {oci_archive} failed: {done.stderr}")
-        # "Loaded image: <name>" (or "Loaded image(s): ..."): resolve it to an ID.
-        name = done.stdout.strip().splitlines()[-1].split(":", 1)[1].strip()
-        return self.inspect(name)["Id"]  # type: ignore[no-any-return]
+            raise RuntimeError(f"podman pull --arch {arch} {oci_archive} failed: {done.stderr}")
+        return done.stdout.strip().splitlines()[-1]
 
     def inspect(self, image: str) -> dict[str, Any]:
         done = self.call("image", "inspect", image)

@@ -12,6 +12,7 @@ as ``localhost/roost-<target>:<version>`` and never pulled.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import subprocess
@@ -21,11 +22,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import psutil
 import yaml
 
 from roost_api.wellknown import LABEL_VEHICLE
 from roost_cli.sandbox import plan, sims, state
 from roost_cli.sandbox.processes import Launcher
+from roost_localcluster import binaries
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.processes import ManagedProcess
 from roost_localcluster.realnode import RealNode, RealNodes
@@ -37,6 +40,14 @@ from tests.support.waiting import wait_until
 GROUND_NODE = "real-ground"
 VEHICLE = "real-drone-1"
 WAIT_S = 180.0
+# qemu-user implements no seccomp (prctl PR_GET_SECCOMP fails), so the arm64 containerd
+# refuses any seccomp profile but for a privileged pod ("failed to generate seccomp spec
+# opts: seccomp is not supported"; a pod-level Unconfined was still refused for the
+# sandbox). On the emulated node the agent runs as values-hardware.yaml runs it on a Pi:
+# devices.access=privileged with the machine's one serial port (the chart needs a device
+# listed; the agent opens none here), which carries no seccomp profile.
+EMULATED_NODE_AGENT = {"devices": {"access": "privileged", "paths": ["/dev/ttyS0"]}}
+"""Agent values for a vehicle node under qemu-user emulation (the arm64 node)."""
 
 
 def chart_values(ground: str, **agent: Any) -> dict[str, Any]:
@@ -101,8 +112,13 @@ class RealFleet:
     installed: bool = False
     components: dict[str, Any] = field(default_factory=lambda: {"mavros": {"enabled": False}})
     """The Vehicle's ``spec.components`` (by default none: see :meth:`vehicle_manifest`)."""
+    vehicle_arch: str = binaries.HOST_ARCH
+    """The vehicle node's architecture: ``arm64`` is a Raspberry Pi's node (its programs
+    and the agent image's arm64 build under emulation); the ground node is this machine's."""
+    wait_s: float = WAIT_S
     agent_values: dict[str, Any] = field(default_factory=dict)
-    """Extra chart values under ``agent`` (e.g. its telemetry stream)."""
+    """Extra chart values under ``agent`` (its telemetry stream; the emulated arm64 node
+    needs one: see tests/e2e_node/test_arm64_node.py)."""
 
     # ---- bring-up ------------------------------------------------------------------------
     def start(self) -> None:
@@ -111,7 +127,12 @@ class RealFleet:
         self.ground = self.pool.add(GROUND_NODE, images=[archive(images, "operator")])
         self.timings.ground_start_to_ready_s = time.monotonic() - t0
         t0 = time.monotonic()
-        self.vehicle_node = self.pool.add(self.vehicle.node, images=[archive(images, "agent")])
+        self.vehicle_node = self.pool.add(
+            self.vehicle.node,
+            images=[archive(images, "agent")],
+            arch=self.vehicle_arch,
+            timeout_s=self.wait_s,
+        )
         self.timings.vehicle_start_to_ready_s = time.monotonic() - t0
         self.launcher = NamespaceLauncher(self.vehicle_node, self.directory / "logs")
         [self.simulated] = sims.start(self.launcher, [self.vehicle], self.directory)
@@ -151,9 +172,9 @@ class RealFleet:
         manifests = [self.vehicle_manifest(), plan.autopilot_manifest(self.vehicle, connections)]
         text = "\n---\n".join(yaml.safe_dump(m) for m in manifests)
         self.cluster.kubectl("apply", "-f", "-", input_text=text)
-        wait_until("the agent pod on the vehicle node", self.agent_pod, WAIT_S, poll_s=0.05)
+        wait_until("the agent pod on the vehicle node", self.agent_pod, self.wait_s, poll_s=0.05)
         t0 = time.monotonic()
-        wait_until("the agent's first report", self.reported, WAIT_S, poll_s=0.05)
+        wait_until("the agent's first report", self.reported, self.wait_s, poll_s=0.05)
         return time.monotonic() - t0
 
     def vehicle_manifest(self) -> dict[str, Any]:
@@ -231,6 +252,17 @@ class RealFleet:
             check=True,
         )
         return [line.split()[1] for line in done.stdout.splitlines()[1:] if line.strip()]
+
+    def agent_process(self) -> psutil.Process | None:
+        """The agent container's process on the vehicle node (under emulation its
+        interpreter runs it: the command line still names roost-agent)."""
+        assert self.vehicle_node is not None
+        for pid in self.vehicle_node.pids():
+            with contextlib.suppress(psutil.Error):
+                proc = psutil.Process(pid)
+                if any(arg.endswith("roost-agent") for arg in proc.cmdline()):
+                    return proc
+        return None
 
     # ---- teardown ------------------------------------------------------------------------
     def uninstall(self) -> None:
