@@ -99,7 +99,6 @@ test: ## the whole suite: check, integration, e2e, the control-plane suites on k
 	@rm -rf $(REPORTS)
 	@$(MAKE) --no-print-directory check integration e2e
 	$(call PYTEST_REPORT,kine) --datastore kine $(KINE_SUITES)
-	@$(MAKE) --no-print-directory e2e-kind
 	@$(PY) -m tests.support.durations $(REPORTS)/*.xml
 
 # The control-plane and operator suites again on kine+SQLite, the datastore K3s runs on
