@@ -98,7 +98,7 @@ def _create_fleet(cluster: Cluster, start: int, stop: int) -> list[str]:
 
     def create(name: str) -> None:
         manifest = nodes.fake_node(name, labels={VEHICLE_LABEL: "bench"})
-        cluster.kube("roost-bench").create(manifest)
+        cluster.admin.create(manifest)
 
     with ThreadPoolExecutor(max_workers=4) as pool:
         list(pool.map(create, names))

@@ -97,7 +97,7 @@ def _create_nodes(cluster: Cluster, labelled: list[tuple[str, dict[str, str]]]) 
 
     def create(node: tuple[str, dict[str, str]]) -> None:
         manifest = nodes.fake_node(node[0], labels=node[1])
-        cluster.kube("roost-bench").create(manifest)
+        cluster.admin.create(manifest)
 
     with ThreadPoolExecutor(max_workers=4) as pool:
         list(pool.map(create, labelled))

@@ -12,7 +12,7 @@ import subprocess
 import time
 from collections import Counter
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +33,7 @@ class Cluster:
 
     kubeconfig: Path
     control_plane: ControlPlane | None = None
+    _admin: Kube | None = field(default=None, init=False, repr=False, compare=False)
 
     @classmethod
     def of(cls, plane: ControlPlane) -> Cluster:
@@ -42,6 +43,15 @@ class Cluster:
         """A :class:`~roost_kube.client.Kube` for this cluster: the one client layer every
         Roost process, test and benchmark uses."""
         return Kube.from_environment(field_manager, kubeconfig=self.kubeconfig)
+
+    @property
+    def admin(self) -> Kube:
+        """One client for the harness's own requests (nodes, readiness polls), made on
+        first use and kept: a poll must not parse the kubeconfig and open a new TLS
+        connection pool every time."""
+        if self._admin is None:
+            self._admin = self.kube()
+        return self._admin
 
     def audit_window(self) -> Window:
         """Start counting requests (:meth:`audited`); the control plane must have been
@@ -164,17 +174,17 @@ class Cluster:
             pods=pods,
             taints=taints,
         )
-        kube = self.kube()
+        kube = self.admin
         kube.create(manifest)
         if wait:
             nodes.wait_nodes_ready(kube, [name], timeout_s)
         return manifest
 
     def wait_nodes_ready(self, names: Iterable[str], timeout_s: float = 120.0) -> None:
-        nodes.wait_nodes_ready(self.kube(), names, timeout_s)
+        nodes.wait_nodes_ready(self.admin, names, timeout_s)
 
     def delete_node(self, name: str) -> None:
-        self.kube().delete(NODES, name)
+        self.admin.delete(NODES, name)
 
 
 class FakeNodes:

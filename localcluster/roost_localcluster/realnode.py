@@ -647,7 +647,7 @@ class RealNodes:
     def _wait_ready(self, node: RealNode, timeout_s: float) -> None:
         def ready() -> bool:
             try:
-                found = self.cluster.kube().get(NODES, node.name)
+                found = self.cluster.admin.get(NODES, node.name)
             except ApiError:
                 return False
             return found is not None and nodes.node_is_ready(found)

@@ -12,8 +12,6 @@ from __future__ import annotations
 
 import math
 import socket
-import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -22,7 +20,6 @@ from pathlib import Path
 
 import psutil
 import pytest
-import yaml
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from roost_api.autopilot import (
@@ -38,8 +35,8 @@ from roost_mavlink import (
 from roost_sim import (
     FaultKind,
     SimulatedAutopilot,
-    free_udp_port,
 )
+from tests.support.agent import run_agent_once
 from tests.support.hubclient import (
     VEHICLE_SYSID,
     HubVehicle,
@@ -278,35 +275,8 @@ def test_an_agent_whose_hub_endpoint_is_taken_refuses_in_one_line(tmp_path: Path
     blocker = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     blocker.bind(("127.0.0.1", 0))
     port = blocker.getsockname()[1]
-    config = tmp_path / "ra.yaml"
-    config.write_text(
-        yaml.safe_dump(
-            {
-                "vehicleName": "v1",
-                "primary": "fc1",
-                "autopilots": [
-                    {
-                        "name": f"fc{i}",
-                        "stack": "px4",
-                        "connection": f"udp://127.0.0.1:{free_udp_port()}",
-                        "sysid": i,
-                        "bridgeChannel": i,
-                    }
-                    for i in (1, 2)
-                ],
-                "hub": {"udp": f"127.0.0.1:{port}"},
-            }
-        )
-    )
-    exe = Path(sys.executable).with_name("roost-agent")
     try:
-        done = subprocess.run(
-            [str(exe), "--config", str(config), "--state-dir", str(tmp_path), "--cluster", "off"],
-            capture_output=True,
-            text=True,
-            timeout=60,
-            check=False,
-        )
+        done = run_agent_once(tmp_path, {"udp": f"127.0.0.1:{port}"})
     finally:
         blocker.close()
     assert done.returncode == 2

@@ -13,14 +13,11 @@ from __future__ import annotations
 
 import itertools
 import socket
-import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-import yaml
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from roost_agent.agent import AgentEvent
@@ -33,7 +30,7 @@ from roost_agent.hub_policy import (
 )
 from roost_api.autopilot import HubEndpoint, HubScope, HubSigning, HubTransport
 from roost_mavlink.signing import Signer, Timestamps, Verdict, Verifier, split_frames
-from roost_sim import free_udp_port
+from tests.support.agent import run_agent_once
 from tests.support.hubclient import VEHICLE_SYSID, HubClient, HubVehicle, hub_vehicle
 from tests.support.waiting import wait_until
 
@@ -264,34 +261,7 @@ def test_an_agent_with_an_endpoint_beyond_loopback_and_no_key_refuses_in_one_lin
     tmp_path: Path,
 ) -> None:
     """Refused before any socket is bound (nothing listens beyond loopback)."""
-    config = tmp_path / "ra.yaml"
-    config.write_text(
-        yaml.safe_dump(
-            {
-                "vehicleName": "v1",
-                "primary": "fc1",
-                "autopilots": [
-                    {
-                        "name": f"fc{i}",
-                        "stack": "px4",
-                        "connection": f"udp://127.0.0.1:{free_udp_port()}",
-                        "sysid": i,
-                        "bridgeChannel": i,
-                    }
-                    for i in (1, 2)
-                ],
-                "hub": {"endpoints": [{"name": "gcs", "address": "0.0.0.0:14560"}]},
-            }
-        )
-    )
-    exe = Path(sys.executable).with_name("roost-agent")
-    done = subprocess.run(
-        [str(exe), "--config", str(config), "--state-dir", str(tmp_path), "--cluster", "off"],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
+    done = run_agent_once(tmp_path, {"endpoints": [{"name": "gcs", "address": "0.0.0.0:14560"}]})
     assert done.returncode == 2
     refusals = [line for line in done.stderr.splitlines() if line.startswith("roost-agent: ")]
     assert len(refusals) == 1, done.stderr

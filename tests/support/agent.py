@@ -21,6 +21,8 @@ from __future__ import annotations
 import json
 import os
 import signal
+import subprocess
+import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
 from datetime import UTC, datetime
@@ -33,6 +35,7 @@ from roost_api.autopilot import AutopilotCommand, RedundantAutopilotSpec
 from roost_localcluster.binaries import REPO_ROOT
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.processes import ManagedProcess
+from roost_sim import free_udp_port
 
 AGENT_EXE = REPO_ROOT / ".venv" / "bin" / "roost-agent"
 
@@ -249,3 +252,29 @@ class AgentProcess:
         os.kill(self.pid, signal.SIGHUP)
         doc = self.wait_for(lambda d: d.get("command", {}).get("id") == cid, timeout)
         return dict(doc["command"])
+
+
+def run_agent_once(state_dir: Path, hub: Mapping[str, Any]) -> subprocess.CompletedProcess[str]:
+    """``roost-agent`` run to its end on a two-PX4 config with ``hub``, out of cluster (for
+    tests of what it refuses at start: its exit status and its one line on stderr)."""
+    autopilots = [
+        {
+            "name": f"fc{i}",
+            "stack": "px4",
+            "connection": f"udp://127.0.0.1:{free_udp_port()}",
+            "sysid": i,
+            "bridgeChannel": i,
+        }
+        for i in (1, 2)
+    ]
+    config = state_dir / "ra.yaml"
+    spec = {"vehicleName": "v1", "primary": "fc1", "autopilots": autopilots, "hub": dict(hub)}
+    config.write_text(yaml.safe_dump(spec))
+    exe = Path(sys.executable).with_name("roost-agent")
+    return subprocess.run(
+        [str(exe), "--config", str(config), "--state-dir", str(state_dir), "--cluster", "off"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )

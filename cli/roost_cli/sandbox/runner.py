@@ -216,7 +216,7 @@ class Sandbox:
         with self.console.status(f"Creating {len(names)} fake vehicle nodes (kwok)…"):
             for name in names:
                 cluster.add_node(name, labels={plan.FLEET_LABEL: plan.FLEET_VALUE}, wait=False)
-            nodes.wait_nodes_ready(cluster.kube(), names, NODES_READY_TIMEOUT_S)
+            nodes.wait_nodes_ready(cluster.admin, names, NODES_READY_TIMEOUT_S)
         self._step(f"nodes Ready: {', '.join(names)}")
 
     def _start_sims(self) -> None:
