@@ -67,6 +67,7 @@ class _Signing:
     signer: Signer
     verifier: Verifier
     require: bool
+    clock: Timestamps
     counters: SigningCounters = field(default_factory=SigningCounters)
 
     def filter(self, data: bytes) -> bytes:
@@ -161,9 +162,15 @@ class Link(ABC):
         return fd in ready
 
     def enable_signing(self, key: bytes, *, link_id: int = 0, require: bool = True) -> None:
-        """Sign every frame from now on; with ``require`` hear only well-signed frames."""
-        clock = Timestamps()
-        self._signing = _Signing(Signer(key, link_id, clock), Verifier(key, clock), require)
+        """Sign every frame from now on; with ``require`` hear only well-signed frames.
+
+        Re-keying keeps the signing clock, as a flight stack keeps its persisted
+        timestamp when given a new key: a fresh clock could start below the last
+        timestamp a peer saw on the stream (the old one runs ahead of the wall clock by
+        a tick per frame in a burst) and the peer would rightly drop it as a replay.
+        """
+        clock = self._signing.clock if self._signing is not None else Timestamps()
+        self._signing = _Signing(Signer(key, link_id, clock), Verifier(key, clock), require, clock)
 
     @property
     def signing_counters(self) -> SigningCounters | None:
