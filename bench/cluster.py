@@ -40,9 +40,9 @@ from roost_kube.resources import CONFIGMAPS, PODS, REDUNDANT_AUTOPILOTS, VEHICLE
 from roost_localcluster import binaries
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import ControlPlane
-from roost_operator.autopilots.plan import mavros_follows
 from roost_operator.vehicles.config import config_map_name
-from roost_operator.vehicles.desired import workload_name
+from roost_operator.vehicles.manifests import workload_name
+from roost_operator.vehicles.pods import mavros_follows
 from roost_sim import SimConfig, SimulatedAutopilot, autopilot_specs, start_vehicle_sims, stop_sims
 from tests.support.agent import AgentProcess
 from tests.support.operator import OperatorProcess

@@ -59,7 +59,8 @@ from roost_kube.resources import CONFIGMAPS, NODES, PODS, VEHICLES
 from roost_localcluster import binaries, nodes
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import ControlPlane, Settings
-from roost_operator.vehicles.desired import pod_state, workload_name
+from roost_operator.vehicles.manifests import workload_name
+from roost_operator.vehicles.pods import pod_state
 from roost_operator.watches import Watcher
 from tests.support.operator import OperatorProcess
 from tests.support.waiting import wait_until

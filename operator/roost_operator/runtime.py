@@ -30,7 +30,8 @@ from roost_operator.cache import Cached
 from roost_operator.claims import CLAIM_COMPONENT, Claim, claim_of
 from roost_operator.edge import HandlerTiming, error_kind
 from roost_operator.settings import Settings
-from roost_operator.vehicles.controller import Peers, VehicleController
+from roost_operator.vehicles.controller import VehicleController
+from roost_operator.vehicles.observe import Peers
 from roost_operator.vehicles.watched import node_kept, node_watcher, owned_watchers, pod_kept
 from roost_operator.watches import Store, Watcher
 from roost_operator.workqueue import Backoff, WorkQueue

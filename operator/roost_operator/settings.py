@@ -138,7 +138,7 @@ class Settings:
     go without a status (``ROOST_FIRST_REPORT_HOLD_SECONDS``; 0 writes every report at
     once): usually its pods are Ready by then and its first status is its only write on
     the way to Ready. Any problem is written at once
-    (:func:`~roost_operator.vehicles.plan.first_report_due`)."""
+    (:func:`~roost_operator.vehicles.status.first_report_due`)."""
 
     agent_stale_after: timedelta = DEFAULT_AGENT_STALE_AFTER
     """Age of an agent's last report after which its Vehicle's ``AgentConnected`` turns

@@ -2,7 +2,7 @@
 
 Two real nodes of the harness (kubelets with node credentials, the API server with the
 Node authorizer and NodeRestriction) each get the key pod the operator builds for their
-vehicle (:func:`roost_operator.vehicles.desired.signing_keys_workload`, the same
+vehicle (:func:`roost_operator.vehicles.manifests.signing_keys_workload`, the same
 manifest the operator applies). The kubelet of node A then reads A's key Secret with
 its own credentials, and is refused B's: the agent DaemonSet mounts no Secret, so no pod
 on A gives A's kubelet a reason to read B's. The kubelet also really mounts the Secret
@@ -34,7 +34,7 @@ from roost_localcluster.clients import tool_path
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.realnode import RealNode, RealNodes
 from roost_operator.vehicles.config import vehicle_config, vehicle_config_map
-from roost_operator.vehicles.desired import (
+from roost_operator.vehicles.manifests import (
     DEFAULT_FCU_URL,
     SIGNING_KEYS,
     component_pod,

@@ -30,9 +30,9 @@ from roost_kube.client import Kube
 from roost_kube.patches import Obj
 from roost_kube.resources import CONFIGMAPS, EVENTS, PODS, REDUNDANT_AUTOPILOTS, VEHICLES
 from roost_localcluster.cluster import Cluster
-from roost_operator.autopilots.plan import mavros_follows
 from roost_operator.vehicles.config import config_map_name
-from roost_operator.vehicles.desired import workload_name
+from roost_operator.vehicles.manifests import workload_name
+from roost_operator.vehicles.pods import mavros_follows
 from roost_sim import SimConfig, SimulatedAutopilot, autopilot_specs, start_vehicle_sims, stop_sims
 from tests.support.agent import AgentProcess
 from tests.support.apiwrites import write_requests

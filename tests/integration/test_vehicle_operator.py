@@ -46,7 +46,7 @@ from roost_kube.resources import (
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import KWOK_NODE_ANNOTATION
 from roost_localcluster.nodes import fake_node
-from roost_operator.vehicles.desired import is_component_pod
+from roost_operator.vehicles.manifests import is_component_pod
 from tests.support.apiwrites import operator_writes
 from tests.support.disruption import fly_change_and_drain
 from tests.support.operator import OperatorProcess

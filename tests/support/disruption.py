@@ -19,7 +19,7 @@ from roost_kube.client import Kube
 from roost_kube.patches import Obj
 from roost_kube.resources import PODDISRUPTIONBUDGETS, PODS, REDUNDANT_AUTOPILOTS, VEHICLES
 from roost_localcluster.cluster import Cluster
-from roost_operator.vehicles.desired import is_component_pod
+from roost_operator.vehicles.manifests import is_component_pod
 from tests.support.waiting import wait_until
 
 DRAIN_TIMEOUT = "10s"

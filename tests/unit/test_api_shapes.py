@@ -24,11 +24,7 @@ from roost_kube.events import event_manifest
 from roost_mavlink import pymavlink_device
 from roost_operator.missions.workloads import offboard_job_name, onboard_job_name
 from roost_operator.vehicles.config import config_map_name, vehicle_config, vehicle_config_map
-from roost_operator.vehicles.desired import (
-    autopilots_of,
-    component_pod,
-    component_workloads,
-)
+from roost_operator.vehicles.manifests import autopilots_of, component_pod, component_workloads
 from roost_operator.vehicles.placement import desired_node_labels, vehicle_taint
 
 LABEL_VALUE = re.compile(shapes.LABEL_VALUE_PATTERN)

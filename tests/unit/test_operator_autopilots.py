@@ -36,10 +36,12 @@ from roost_operator.autopilots.guards import (
     observe_failovers,
     vehicle_paused,
 )
-from roost_operator.autopilots.plan import FailoverPlan, mavros_follows, plan
+from roost_operator.autopilots.plan import FailoverPlan, plan
+from roost_operator.vehicles.conditions import ready_condition
 from roost_operator.vehicles.config import config_hash
 from roost_operator.vehicles.controller import ActionLedger
-from roost_operator.vehicles.desired import ready_condition
+from roost_operator.vehicles.manifests import autopilots_of
+from roost_operator.vehicles.pods import mavros_follows
 from tests.support.conditions import cond as support_cond
 
 NOW = datetime(2026, 5, 1, 12, 0, 0, tzinfo=UTC)
@@ -358,13 +360,15 @@ def run(
     rollout_done: bool = False,
     now: datetime = NOW,
 ) -> FailoverPlan:
+    autopilots = spec or ra_spec()
     return plan(
         vehicle_name="v1",
         vehicle_spec=vehicle_spec(),
         vehicle_status=status,
         annotations=annotations or {},
-        autopilot_spec=spec or ra_spec(),
+        autopilot_spec=autopilots,
         autopilot_status=report,
+        fcu_urls={a.name: a.fcu_url for a in autopilots_of(vehicle_spec(), autopilots)},
         guards=guards or FleetGuards(),
         paused_here=vehicle_paused(annotations or {}),
         actions_elsewhere=elsewhere,

@@ -19,24 +19,28 @@ from roost_api.meta import ObjectReference, find_condition
 from roost_api.vehicle import VehicleFailover, VehicleSpec, VehicleStatus
 from roost_kube.errors import error_for_status
 from roost_operator.autopilots.guards import FleetGuards
-from roost_operator.vehicles.desired import DEFAULT_FCU_URL, ComponentState, pod_state
+from roost_operator.vehicles.manifests import DEFAULT_FCU_URL
 from roost_operator.vehicles.placement import NodeClaim
 from roost_operator.vehicles.plan import (
-    REFUSED_AUTOPILOT_LABEL,
-    REFUSED_CONFIG,
     Context,
     Observed,
-    first_report_due,
     node_binding,
     plan_vehicle,
-    refusal_time,
     relevant_autopilot,
+)
+from roost_operator.vehicles.pods import ComponentState, pod_state
+from roost_operator.vehicles.status import (
+    REFUSED_AUTOPILOT_LABEL,
+    REFUSED_CONFIG,
+    Applied,
+    first_report_due,
+    refusal_time,
     report,
 )
 
 NOW = datetime(2026, 5, 1, 12, 0, tzinfo=UTC)
 URL1, URL2 = "udp://127.0.0.1:14540", "udp://127.0.0.1:14641@"
-CTX = Context(namespace="roost-system", owners=[], guards=FleetGuards())
+CTX = Context(namespace="roost-system", guards=FleetGuards())
 
 
 def node(ready: bool = True) -> dict[str, Any]:
@@ -102,9 +106,9 @@ def observed(**overrides: Any) -> Observed:
         node=node(),
         node_claims=[],
         claimed_by=None,
-        rollout_done=True,
         actions_elsewhere=0,
         now=NOW,
+        context=CTX,
     )
     return replace(base, **overrides)
 
@@ -147,13 +151,13 @@ def test_node_binding_decision_table(
 
 
 def test_a_vehicle_that_cannot_have_its_node_labels_nothing_and_runs_nothing() -> None:
-    plan = plan_vehicle(observed(node_claims=[NodeClaim("older", "2026-05-01T09:00:00Z")]), CTX)
+    plan = plan_vehicle(observed(node_claims=[NodeClaim("older", "2026-05-01T09:00:00Z")]))
     assert plan.node_state is None and plan.pods == {}
     assert plan.status.node_name is None and plan.status.managed_labels == []
 
 
 def test_a_missing_node_still_gets_its_workloads_declared_and_the_controller_waits() -> None:
-    plan = plan_vehicle(observed(node=None), CTX)
+    plan = plan_vehicle(observed(node=None))
     assert plan.runs_workloads and "mavros" in plan.pods
     assert plan.node_state is None, "no node to label"
 
@@ -161,11 +165,11 @@ def test_a_missing_node_still_gets_its_workloads_declared_and_the_controller_wai
 def test_an_unreachable_node_keeps_every_pod_and_says_since_when_in_ready() -> None:
     """A lost link changes nothing Roost runs on the vehicle: same pods (same hashes),
     the node keeps its labels; NodeBound and Ready say since when it is unreachable."""
-    reachable = plan_vehicle(observed(), CTX)
-    lost = plan_vehicle(observed(node=unreachable()), CTX)
+    reachable = plan_vehicle(observed())
+    lost = plan_vehicle(observed(node=unreachable()))
     assert lost.runs_workloads and lost.node_state == reachable.node_state
     assert lost.pods == reachable.pods
-    status = report(lost, live={}, refused={}, generation=3, agent_expected=False)
+    status = report(lost, Applied(live={}, refused={}))
     bound = find_condition(status.conditions, "NodeBound")
     ready = find_condition(status.conditions, "Ready")
     assert bound is not None and ready is not None
@@ -180,13 +184,13 @@ def test_an_unreachable_node_keeps_every_pod_and_says_since_when_in_ready() -> N
 
 
 def test_without_a_redundant_autopilot_a_real_vehicle_follows_its_serial_link() -> None:
-    plan = plan_vehicle(observed(), CTX)
+    plan = plan_vehicle(observed())
     assert plan.fcu_url == DEFAULT_FCU_URL
     assert plan.failover is None and plan.status.active_autopilot is None
 
 
 def test_the_first_pointing_follows_the_agents_active_autopilot() -> None:
-    plan = plan_vehicle(observed(**with_agent("fc2")), CTX)
+    plan = plan_vehicle(observed(**with_agent("fc2")))
     assert plan.followed is not None and plan.followed.name == "fc2"
     assert plan.fcu_url == URL2 == plan.status.fcu_url
     assert plan.config_map["data"]["VEHICLE_FCU_URL"] == URL2
@@ -194,20 +198,20 @@ def test_the_first_pointing_follows_the_agents_active_autopilot() -> None:
 
 def test_a_failover_repoints_mavros_unless_a_guard_holds_it_back() -> None:
     followed_fc1 = VehicleStatus(fcu_url=URL1, failover=VehicleFailover(followed_autopilot="fc1"))
-    moved = plan_vehicle(observed(status=followed_fc1, **with_agent("fc2")), CTX)
+    moved = plan_vehicle(observed(status=followed_fc1, **with_agent("fc2")))
     assert moved.fcu_url == URL2 and moved.failover is not None and moved.failover.acting
     paused = replace(CTX, guards=FleetGuards(paused=True))
-    held = plan_vehicle(observed(status=followed_fc1, **with_agent("fc2")), paused)
+    held = plan_vehicle(replace(observed(status=followed_fc1, **with_agent("fc2")), context=paused))
     assert held.fcu_url == URL1, "the workloads keep following fc1"
     assert held.status.failover is not None and held.status.failover.blocked == "Paused"
     assert held.config_map["data"]["VEHICLE_FCU_URL"] == URL1
 
 
 def test_the_agents_conditions_go_when_the_redundant_autopilot_goes() -> None:
-    with_ra = plan_vehicle(observed(**with_agent("fc1")), CTX)
+    with_ra = plan_vehicle(observed(**with_agent("fc1")))
     kinds = {c.type for c in with_ra.status.conditions}
     assert {"AgentConnected", "AutopilotsHealthy"} <= kinds
-    without = plan_vehicle(observed(status=with_ra.status), CTX)
+    without = plan_vehicle(observed(status=with_ra.status))
     assert not {"AgentConnected", "AutopilotsHealthy"} & {c.type for c in without.status.conditions}
 
 
@@ -216,14 +220,14 @@ def test_the_agents_conditions_go_when_the_redundant_autopilot_goes() -> None:
 
 def test_the_mission_claim_is_mirrored_into_status() -> None:
     survey = ObjectReference(namespace="flights", name="survey")
-    assert plan_vehicle(observed(claimed_by=survey), CTX).status.claimed_by == survey
+    assert plan_vehicle(observed(claimed_by=survey)).status.claimed_by == survey
     released = VehicleStatus(claimed_by=survey)
-    assert plan_vehicle(observed(status=released), CTX).status.claimed_by is None
+    assert plan_vehicle(observed(status=released)).status.claimed_by is None
 
 
 def test_report_folds_component_states_and_readiness_into_the_status() -> None:
-    plan = plan_vehicle(observed(), CTX)
-    status = report(plan, live={}, refused={}, generation=3, agent_expected=False)
+    plan = plan_vehicle(observed())
+    status = report(plan, Applied(live={}, refused={}))
     components = find_condition(status.conditions, "ComponentsReady")
     assert components is not None and components.status == "False"
     ready = find_condition(status.conditions, "Ready")
@@ -232,16 +236,13 @@ def test_report_folds_component_states_and_readiness_into_the_status() -> None:
 
 
 def test_refusals_become_conditions_that_say_what_to_change() -> None:
-    plan = plan_vehicle(observed(**with_agent("fc1")), CTX)
+    plan = plan_vehicle(observed(**with_agent("fc1")))
     too_long = error_for_status(
         422, "PATCH", "/x", '{"message":"metadata.labels: must be no more than 63 bytes"}'
     )
     status = report(
         plan,
-        live={},
-        refused={REFUSED_AUTOPILOT_LABEL: too_long, REFUSED_CONFIG: too_long},
-        generation=3,
-        agent_expected=True,
+        Applied(live={}, refused={REFUSED_AUTOPILOT_LABEL: too_long, REFUSED_CONFIG: too_long}),
     )
     bound = find_condition(status.conditions, "NodeBound")
     assert bound is not None and bound.reason == "AutopilotLabelRefused"
@@ -253,11 +254,8 @@ def test_refusals_become_conditions_that_say_what_to_change() -> None:
     assert when == bound.last_transition_time, "the same refusal names the same Event"
     later = replace(observed(**with_agent("fc1")), now=NOW + timedelta(minutes=5))
     again = report(
-        plan_vehicle(replace(later, status=status), CTX),
-        live={},
-        refused={REFUSED_AUTOPILOT_LABEL: too_long},
-        generation=3,
-        agent_expected=True,
+        plan_vehicle(replace(later, status=status)),
+        Applied(live={}, refused={REFUSED_AUTOPILOT_LABEL: too_long}),
     )
     assert refusal_time(again, {REFUSED_AUTOPILOT_LABEL: too_long}) == when
 
@@ -293,16 +291,12 @@ def first_report(
     states: list[ComponentState], hold: timedelta = HOLD, **overrides: Any
 ) -> datetime | None:
     """first_report_due of a Vehicle ``observed(**overrides)`` whose pods are ``states``."""
-    obs = observed(**({"created": NEW} | overrides))
-    plan = plan_vehicle(obs, CTX)
-    status = report(
-        plan,
-        live={},
-        refused={},
-        generation=3,
-        agent_expected=obs.autopilot_spec is not None,
+    obs = observed(
+        **({"created": NEW, "context": replace(CTX, first_report_hold=hold)} | overrides)
     )
-    return first_report_due(obs, status, states, hold)
+    plan = plan_vehicle(obs)
+    status = report(plan, Applied(live={}, refused={}))
+    return first_report_due(plan, status, states)
 
 
 SURVEY = ObjectReference(namespace="flights", name="survey")
@@ -339,9 +333,7 @@ def test_first_report_due_decision_table(
     case: str, states: list[ComponentState], overrides: dict[str, Any], held: bool
 ) -> None:
     if overrides.get("status") == "written":
-        earlier = report(
-            plan_vehicle(observed(), CTX), live={}, refused={}, generation=3, agent_expected=False
-        )
+        earlier = report(plan_vehicle(observed()), Applied(live={}, refused={}))
         overrides = {"status": earlier}
     due = first_report(states, **overrides)
     assert (due is not None) is held, case
@@ -350,13 +342,11 @@ def test_first_report_due_decision_table(
 
 
 def test_a_refused_config_is_written_at_once() -> None:
-    obs = observed(created=NEW)
-    plan = plan_vehicle(obs, CTX)
+    obs = observed(created=NEW, context=replace(CTX, first_report_hold=HOLD))
+    plan = plan_vehicle(obs)
     too_big = error_for_status(422, "PATCH", "/x", '{"message":"ConfigMap is too long"}')
-    status = report(
-        plan, live={}, refused={REFUSED_CONFIG: too_big}, generation=3, agent_expected=False
-    )
-    assert first_report_due(obs, status, [STARTING], HOLD) is None
+    status = report(plan, Applied(live={}, refused={REFUSED_CONFIG: too_big}))
+    assert first_report_due(plan, status, [STARTING]) is None
 
 
 def test_no_hold_writes_every_first_report_at_once() -> None:
@@ -423,7 +413,7 @@ def simulated(**status: Any) -> dict[str, Any]:
 def test_in_flight_decision_table(
     overrides: dict[str, Any], holds: bool, budget: bool, reason: str | None
 ) -> None:
-    plan = plan_vehicle(observed(**overrides), CTX)
+    plan = plan_vehicle(observed(**overrides))
     assert plan.holds_pods is holds
     assert (plan.disruption_budget is not None) is budget
     hold = plan.status.flight_hold
@@ -440,25 +430,25 @@ def test_in_flight_decision_table(
 
 def test_a_failover_consequence_is_not_held_in_the_air() -> None:
     followed_fc1 = VehicleStatus(fcu_url=URL1, failover=VehicleFailover(followed_autopilot="fc1"))
-    plan = plan_vehicle(observed(status=followed_fc1, **armed("fc2", active="fc2")), CTX)
+    plan = plan_vehicle(observed(status=followed_fc1, **armed("fc2", active="fc2")))
     assert plan.failover is not None and plan.failover.acting
     assert not plan.holds_pods  # mavros is re-pointed in flight
     assert plan.disruption_budget is not None  # but nothing is evicted
 
 
 def test_in_the_air_an_outdated_pod_counts_as_it_runs_and_is_listed_as_deferred() -> None:
-    plan = plan_vehicle(observed(**simulated(**armed("fc1"))), CTX)
+    plan = plan_vehicle(observed(**simulated(**armed("fc1"))))
     assert plan.pods, "a simulated vehicle has components"
     running = {"status": {"phase": "Running", "conditions": [{"type": "Ready", "status": "True"}]}}
     old = {"metadata": {"annotations": {"roost.dev/pod-hash": "old"}}, **running}
     live = {c: {**pod, **running} for c, pod in plan.pods.items()}
     live["mavros"] = old
-    status = report(plan, live=live, refused={}, generation=3, agent_expected=True)
+    status = report(plan, Applied(live=live, refused={}))
     assert status.flight_hold is not None and status.flight_hold.deferred == ["mavros"]
     components = find_condition(status.conditions, "ComponentsReady")
     assert components is not None and components.status == "True"
-    landed = plan_vehicle(observed(**simulated(**armed())), CTX)
-    status = report(landed, live=live, refused={}, generation=3, agent_expected=True)
+    landed = plan_vehicle(observed(**simulated(**armed())))
+    status = report(landed, Applied(live=live, refused={}))
     assert status.flight_hold is None
     components = find_condition(status.conditions, "ComponentsReady")
     assert components is not None and components.status == "False"  # now being replaced

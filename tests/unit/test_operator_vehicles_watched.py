@@ -5,8 +5,8 @@ from __future__ import annotations
 from typing import Any
 
 from roost_api.wellknown import LABEL_VEHICLE
-from roost_operator.vehicles.controller import Peers
-from roost_operator.vehicles.desired import COMPONENT_POD_SELECTOR
+from roost_operator.vehicles.manifests import COMPONENT_POD_SELECTOR
+from roost_operator.vehicles.observe import Peers
 from roost_operator.vehicles.placement import NodeClaim
 from roost_operator.vehicles.watched import (
     OWNED_SELECTOR,

@@ -12,6 +12,10 @@ operator's alone, and the Kubernetes layer imports the ``kubernetes`` client at 
 level only in the modules the agent loads in cluster mode. Every request goes through
 ``roost_kube.Kube``: only the Kubernetes layer (and the CLI's kubeconfig loading) imports
 the ``kubernetes`` package.
+
+Inside the operator, the failover decision (``roost_operator.autopilots``) knows nothing of
+Vehicles: the Vehicle's plan hands it what it needs (the URL mavros uses for each
+autopilot, whether mavros rolled out), so the two packages never import each other.
 """
 
 from __future__ import annotations
@@ -57,6 +61,10 @@ CLIENT_AT_MODULE_LEVEL = {"roost_kube.client"}
 # the ``kubernetes`` package's configuration itself (to word kubeconfig errors for a user)
 # and hands it to Kube; no other module outside roost_kube touches the package.
 KUBERNETES_PACKAGE_USERS = {"roost_cli.cluster"}
+# Inside the operator: module prefix -> prefixes it never imports.
+OPERATOR_NEVER: dict[str, set[str]] = {
+    "roost_operator.autopilots": {"roost_operator.vehicles"},
+}
 
 
 def modules() -> list[tuple[str, Path]]:
@@ -107,6 +115,10 @@ def test_imports_go_one_way(module: str, path: Path) -> None:
         assert "kopf" not in tops, f"{module} imports kopf"
     if own != "roost_kube" and module not in KUBERNETES_PACKAGE_USERS:
         assert "kubernetes" not in tops, f"{module} talks to the API server beside roost_kube"
+    for prefix, never in OPERATOR_NEVER.items():
+        if module == prefix or module.startswith(prefix + "."):
+            bad = {n for n in imports(path) for p in never if n == p or n.startswith(p + ".")}
+            assert not bad, f"{module} imports {sorted(bad)}"
     if own == "roost_kube" and module not in CLIENT_AT_MODULE_LEVEL:
         top_level = {n.split(".")[0] for n in imports(path, module_level_only=True)}
         assert "kubernetes" not in top_level, f"{module} imports the client at module level"

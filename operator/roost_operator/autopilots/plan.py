@@ -40,7 +40,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
-from typing import Any, Literal
+from typing import Literal
 
 from roost_api.autopilot import (
     RedundantAutopilotSpec,
@@ -53,7 +53,7 @@ from roost_api.vehicle import (
     VehicleSpec,
     VehicleStatus,
 )
-from roost_api.wellknown import ANNOTATION_CLEAR_FAILOVER_LATCH, ANNOTATION_CONFIG_HASH
+from roost_api.wellknown import ANNOTATION_CLEAR_FAILOVER_LATCH
 from roost_operator.autopilots.conditions import (
     DEFAULT_AGENT_STALE_AFTER,
     ConditionUpdate,
@@ -67,8 +67,6 @@ from roost_operator.autopilots.guards import (
     clear_latch,
     observe_failovers,
 )
-from roost_operator.vehicles.config import config_hash, config_values_of
-from roost_operator.vehicles.desired import autopilots_of, pod_state
 
 REPOINT_MAVROS = FailoverActionKind.REPOINT_MAVROS
 
@@ -103,26 +101,6 @@ class FailoverPlan:
     """True while an action is in progress (it counts against the fleet's cap)."""
 
 
-def mavros_follows(
-    fcu_url: str | None, config_map: Mapping[str, Any] | None, mavros: Mapping[str, Any] | None
-) -> bool:
-    """Whether the vehicle's mavros runs with ``fcu_url`` (ends a re-point action).
-
-    Three things must hold: the vehicle's config carries the URL, the mavros Pod
-    carries that config's hash (so it was made from it), and it runs and is Ready (the
-    old pod gone: a terminating pod does not count).
-    """
-    if fcu_url is None or config_map is None or mavros is None:
-        return False
-    values = config_values_of(config_map)
-    if values.get("VEHICLE_FCU_URL") != fcu_url:
-        return False
-    annotations = (mavros.get("metadata") or {}).get("annotations") or {}
-    if annotations.get(ANNOTATION_CONFIG_HASH) != config_hash(values):
-        return False
-    return pod_state("mavros", mavros).ready
-
-
 def plan(
     *,
     vehicle_name: str,
@@ -131,6 +109,7 @@ def plan(
     annotations: Mapping[str, str],
     autopilot_spec: RedundantAutopilotSpec,
     autopilot_status: RedundantAutopilotStatus,
+    fcu_urls: Mapping[str, str],
     guards: FleetGuards,
     paused_here: bool,
     actions_elsewhere: int,
@@ -140,8 +119,10 @@ def plan(
 ) -> FailoverPlan:
     """Decide the cluster side of failover for one vehicle; see the module docstring.
 
-    ``rollout_done`` says whether the vehicle's mavros runs with the FCU URL in
-    ``vehicle_status.fcu_url`` (True when mavros is disabled).
+    ``fcu_urls``: the URL mavros uses for each autopilot, by name, in the spec's order
+    (the Vehicle's manifests know how it is made). ``rollout_done``: whether the
+    vehicle's mavros runs with the FCU URL in ``vehicle_status.fcu_url`` (True when
+    mavros is disabled).
     """
     events: list[PlannedEvent] = []
     connected = agent_connected(
@@ -214,11 +195,11 @@ def plan(
         )
         action = None
 
-    by_name = {a.name: a for a in autopilots_of(vehicle_spec, autopilot_spec)}
+    by_name = dict(fcu_urls)
     active = autopilot_status.active_autopilot
-    target = by_name.get(active) if active else None
+    target = active if active in by_name else None
     followed = book.followed_autopilot or next(
-        (a.name for a in by_name.values() if a.fcu_url == vehicle_status.fcu_url), None
+        (name for name, url in by_name.items() if url == vehicle_status.fcu_url), None
     )
     fcu_url = vehicle_status.fcu_url
     blocked: Verdict | None = None
@@ -232,26 +213,26 @@ def plan(
         # mavros talks to the agent's hub, which moves the route itself: nothing to
         # re-point, no rollout. mavros keeps the primary's configuration (firmware).
         followed = autopilot_spec.primary
-        fcu_url = by_name[followed].fcu_url
+        fcu_url = by_name[followed]
         action = None
     elif target is not None and (followed is None or followed not in by_name):
-        followed, fcu_url = target.name, target.fcu_url
-    elif target is not None and target.name != followed:
+        followed, fcu_url = target, by_name[target]
+    elif target is not None and target != followed:
         if verdict is Verdict.ALLOWED:
-            previous, followed, fcu_url = followed, target.name, target.fcu_url
-            action = FailoverAction(kind=REPOINT_MAVROS, autopilot=target.name, started_at=now)
+            previous, followed, fcu_url = followed, target, by_name[target]
+            action = FailoverAction(kind=REPOINT_MAVROS, autopilot=target, started_at=now)
             events.append(
                 PlannedEvent(
                     "Normal",
                     "RepointingMavros",
-                    f"pointing mavros at {target.name} ({target.fcu_url}), was {previous}",
+                    f"pointing mavros at {target} ({fcu_url}), was {previous}",
                     about,
                 )
             )
         else:
             blocked = verdict
     elif followed in by_name:
-        fcu_url = by_name[followed].fcu_url
+        fcu_url = by_name[followed]
 
     if blocked is not None and blocked.value != book.blocked:
         events.append(

@@ -70,7 +70,7 @@ def vehicle_config(
     """The vehicle's config entries, Starling's keys first, then Roost's, then the spec's.
 
     ``fcu_url``, ``firmware`` and ``active_autopilot`` are those of the autopilot mavros
-    should talk to (see :func:`roost_operator.vehicles.desired.active_autopilot`).
+    should talk to (see :func:`roost_operator.vehicles.manifests.active_autopilot`).
     """
     values = {
         "VEHICLE_NAME": name,

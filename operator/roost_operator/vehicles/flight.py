@@ -29,7 +29,8 @@ from typing import Any
 from roost_api.autopilot import RedundantAutopilotStatus
 from roost_api.wellknown import LABEL_MANAGED_BY, LABEL_VEHICLE, MANAGED_BY
 from roost_kube.patches import Obj
-from roost_operator.vehicles.desired import PodStep, pod_hash
+from roost_operator.vehicles.manifests import pod_hash
+from roost_operator.vehicles.pods import PodStep
 
 
 def hold_reason(status: RedundantAutopilotStatus | None) -> str | None:

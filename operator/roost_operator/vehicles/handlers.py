@@ -66,7 +66,7 @@ from roost_kube import resources
 from roost_operator.edge import at_the_edge, handler_edge
 from roost_operator.runtime import Runtime, runtime
 from roost_operator.settings import Settings
-from roost_operator.vehicles.controller import Peers
+from roost_operator.vehicles.observe import Peers
 from roost_operator.vehicles.placement import NodeClaim
 from roost_operator.vehicles.plan import relevant_autopilot
 from roost_operator.watches import Fingerprints

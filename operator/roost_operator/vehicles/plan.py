@@ -1,10 +1,9 @@
-"""One Vehicle's whole decision, as pure functions: what it should look like, and its status.
+"""One Vehicle's whole decision as one pure function: :func:`plan_vehicle`.
 
-The vehicle controller (:mod:`.controller`) is the only writer of ``Vehicle.status``.
-It observes, calls :func:`plan_vehicle`, applies the plan, then calls :func:`report`
-on what the apply left (the live component Pods) for the one status write. Both functions
-take everything as arguments, ``now`` included, so the same observation always gives
-the same plan.
+The Vehicle controller (:mod:`.controller`) observes (:mod:`.observe`: everything read,
+the live component Pods and the clock included), calls :func:`plan_vehicle` once,
+carries the plan out (:mod:`.apply`) and writes the status once (:mod:`.status`) from the
+plan and what the API server answered. The same observation always gives the same plan.
 
 What :func:`plan_vehicle` decides, in order:
 
@@ -18,11 +17,17 @@ What :func:`plan_vehicle` decides, in order:
 2. The node binding: the node named in the spec, unless the name cannot be a label
    value, an older Vehicle claims the node, the node does not exist, is unreachable
    (its link is lost: reported with the time the node controller noticed, and nothing
-   of the vehicle's is taken away or replaced for it) or is not Ready.
+   of the vehicle's is taken away or replaced for it) or is not Ready; the node patches
+   (the vehicle's labels and taint on its node, none on any other).
 3. The vehicle's config values, its ConfigMap and its component Pods (none while
-   the node is claimed by another Vehicle or the name is invalid).
+   the node is claimed by another Vehicle or the name is invalid), and the step for
+   each live Pod (:func:`~.pods.pod_step`, held in the air by :func:`~.flight.hold_step`).
 4. The mission claim mirrored into ``status.claimedBy`` (the claim itself is a Lease
    the mission controller writes, see :mod:`roost_operator.claims`).
+
+The vehicle package uses the failover decision; the failover package
+(:mod:`roost_operator.autopilots`) knows nothing of Vehicles' manifests: it is handed the
+URL mavros would use for each autopilot and whether mavros has rolled out.
 """
 
 from __future__ import annotations
@@ -37,35 +42,27 @@ from roost_api.meta import Condition, ObjectReference, Stack, set_condition
 from roost_api.vehicle import (
     FlightHold,
     VehicleConditionReason,
-    VehicleConditionType,
     VehicleSpec,
     VehicleStatus,
 )
-from roost_api.wellknown import LABEL_NODE
-from roost_kube.errors import ApiError
 from roost_kube.patches import Obj
 from roost_operator.autopilots.conditions import DEFAULT_AGENT_STALE_AFTER
 from roost_operator.autopilots.guards import FleetGuards, vehicle_paused
 from roost_operator.autopilots.plan import FailoverPlan, PlannedEvent
 from roost_operator.autopilots.plan import plan as plan_failover
 from roost_operator.vehicles import flight
+from roost_operator.vehicles.conditions import FAILOVER_CONDITIONS, NodeBinding
 from roost_operator.vehicles.config import vehicle_config, vehicle_config_map
-from roost_operator.vehicles.desired import (
+from roost_operator.vehicles.manifests import (
     DEFAULT_FCU_URL,
     DEFAULT_IMAGES,
     SIGNING_KEYS,
     Autopilot,
-    ComponentState,
-    NodeBinding,
     Workload,
     active_autopilot,
     autopilots_of,
     component_pod,
     component_workloads,
-    components_condition,
-    pod_hash,
-    pod_state,
-    vehicle_conditions,
 )
 from roost_operator.vehicles.placement import (
     NodeClaim,
@@ -73,27 +70,28 @@ from roost_operator.vehicles.placement import (
     claim_winner,
     node_reachability,
     node_readiness,
+    plan_node,
     vehicle_name_problem,
 )
+from roost_operator.vehicles.pods import PodStep, mavros_follows, pod_step
 
-FAILOVER_CONDITIONS = (
-    VehicleConditionType.AGENT_CONNECTED,
-    VehicleConditionType.AUTOPILOTS_HEALTHY,
-)
-"""The conditions that exist only while the vehicle has a RedundantAutopilot."""
 
-EVENT_CONDITIONS = (
-    VehicleConditionType.READY,
-    VehicleConditionType.NODE_BOUND,
-    *FAILOVER_CONDITIONS,
-)
-"""Condition types whose transitions are recorded as Events. ComponentsReady is not:
-its problems reach Ready's message, and a rollout would otherwise post one per step."""
+@dataclass(frozen=True)
+class Context:
+    """Settings the decision depends on (from the operator's settings)."""
+
+    namespace: str
+    guards: FleetGuards = field(default_factory=FleetGuards)
+    stale_after: timedelta = DEFAULT_AGENT_STALE_AFTER
+    agent_image: str = DEFAULT_IMAGES[SIGNING_KEYS]
+    """The key pod's image when the Vehicle names none."""
+    first_report_hold: timedelta = timedelta(0)
+    """See :func:`~.status.first_report_due`."""
 
 
 @dataclass(frozen=True)
 class Observed:
-    """Everything one decision about a Vehicle reads (fresh from the API)."""
+    """Everything one decision about a Vehicle reads, the clock included."""
 
     name: str
     uid: str
@@ -110,46 +108,92 @@ class Observed:
     """Every other Vehicle naming the same node."""
     claimed_by: ObjectReference | None
     """The Mission holding the vehicle's claim Lease, if any."""
-    rollout_done: bool
-    """Whether mavros runs with ``status.fcuUrl`` (ends a re-point; True without mavros)."""
     actions_elsewhere: int
     """Cluster-side failover actions running on other vehicles (the fleet's cap)."""
     now: datetime
+    context: Context
+    body: Obj = field(default_factory=dict)
+    """The Vehicle as read (Events are about it; the status write carries its
+    ``resourceVersion``)."""
+    owners: Sequence[Obj] = ()
+    """The owner reference every object made for the vehicle carries."""
+    autopilot_name: str | None = None
+    autopilot_node_label: str | None = None
+    """The RedundantAutopilot's ``roost.dev/node`` label as read."""
+    labelled_nodes: Sequence[Obj] = ()
+    """Every node carrying the vehicle's label (its own node included)."""
+    pods: Mapping[str, Obj] = field(default_factory=dict)
+    """The vehicle's live component Pods, by component."""
+    config_map: Obj | None = None
+    """The vehicle's config ConfigMap as read."""
 
 
 @dataclass(frozen=True)
-class VehiclePlan:
-    """What the vehicle should look like now; the controller applies it in field order."""
+class PodMove:
+    """One component's Pod: the desired manifest, the live pod, and the step between."""
 
+    component: str
+    desired: Obj
+    live: Obj | None
+    step: PodStep
+
+
+@dataclass(frozen=True)
+class NodePatch:
+    """A merge patch of one node (its ``resourceVersion`` inside); ``own``: the
+    vehicle's node (a refusal shows in NodeBound) rather than one to release."""
+
+    node: str
+    patch: Obj
+    own: bool
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What the vehicle should look like now; :mod:`.apply` carries it out in field order,
+    :mod:`.status` writes :attr:`status` completed with what the API server answered."""
+
+    name: str
+    namespace: str
+    body: Obj
     binding: NodeBinding
     node_state: NodeState | None
     """What to put on the target node; None: the vehicle labels no node."""
+    node_patches: tuple[NodePatch, ...]
+    autopilot_label: tuple[str, str] | None
+    """(RedundantAutopilot, node) when its ``roost.dev/node`` label must change."""
     config_map: Obj
+    disruption_budget: Obj | None
+    """In the air: the PodDisruptionBudget refusing evictions; None on the ground."""
+    delete_budget: str | None
+    """On the ground after a flight: the PodDisruptionBudget to delete."""
     pods: dict[str, Obj]
     """Desired component Pods by component."""
+    pod_moves: tuple[PodMove, ...]
+    stray_pods: tuple[str, ...]
+    """Live component Pods of components no longer wanted (deleted)."""
     failover: FailoverPlan | None
     events: tuple[PlannedEvent, ...]
     followed: Autopilot | None
     fcu_url: str
     status: VehicleStatus
-    """The status before the component states are known (see :func:`report`)."""
-    runs_workloads: bool = field(default=True)
-    holds_pods: bool = field(default=False)
-    """In the air: a differing pod is kept until the landing (roost_operator.vehicles.flight)."""
-    disruption_budget: Obj | None = field(default=None)
-    """In the air: the PodDisruptionBudget refusing evictions; None on the ground."""
+    """The status before the component states are known (see :func:`~.status.report`)."""
+    previous: VehicleStatus
+    """The status as read (only what differs from it is written)."""
+    generation: int | None
+    now: datetime
+    agent_expected: bool
+    """The vehicle has a RedundantAutopilot: Ready waits for its agent."""
+    first_report_until: datetime | None = None
+    """A new Vehicle's first report may wait until then (:func:`~.status.first_report_due`)."""
+    runs_workloads: bool = True
+    holds_pods: bool = False
+    """In the air: a differing pod is kept until the landing (:mod:`.flight`)."""
 
-
-@dataclass(frozen=True)
-class Context:
-    """Settings the decision depends on (from the operator's settings)."""
-
-    namespace: str
-    owners: Sequence[Obj]
-    guards: FleetGuards
-    stale_after: timedelta = DEFAULT_AGENT_STALE_AFTER
-    agent_image: str = DEFAULT_IMAGES[SIGNING_KEYS]
-    """The key pod's image when the Vehicle names none."""
+    @property
+    def acting(self) -> bool:
+        """Whether a cluster-side failover action runs after this plan (the fleet's cap)."""
+        return self.failover is not None and self.failover.acting
 
 
 def node_binding(obs: Observed) -> NodeBinding:
@@ -198,9 +242,14 @@ def node_binding(obs: Observed) -> NodeBinding:
     )
 
 
-def _failover(obs: Observed, ctx: Context) -> FailoverPlan | None:
+def _failover(obs: Observed, autopilots: Sequence[Autopilot]) -> FailoverPlan | None:
     if obs.autopilot_spec is None:
         return None
+    rollout_done = True
+    book = obs.status.failover
+    if book is not None and book.action is not None and obs.spec.components.mavros.enabled:
+        rollout_done = mavros_follows(obs.status.fcu_url, obs.config_map, obs.pods.get("mavros"))
+    ctx = obs.context
     return plan_failover(
         vehicle_name=obs.name,
         vehicle_spec=obs.spec,
@@ -208,16 +257,17 @@ def _failover(obs: Observed, ctx: Context) -> FailoverPlan | None:
         annotations=obs.annotations,
         autopilot_spec=obs.autopilot_spec,
         autopilot_status=obs.autopilot_status or RedundantAutopilotStatus(),
+        fcu_urls={a.name: a.fcu_url for a in autopilots},
         guards=ctx.guards,
         paused_here=vehicle_paused(obs.annotations),
         actions_elsewhere=obs.actions_elsewhere,
-        rollout_done=obs.rollout_done,
+        rollout_done=rollout_done,
         now=obs.now,
         stale_after=ctx.stale_after,
     )
 
 
-def _conditions(obs: Observed, failover: FailoverPlan | None, at: datetime) -> list[Condition]:
+def _conditions(obs: Observed, failover: FailoverPlan | None) -> list[Condition]:
     """The failover conditions set (or removed without a RedundantAutopilot)."""
     if failover is None:
         return [c for c in obs.status.conditions if c.type not in FAILOVER_CONDITIONS]
@@ -230,15 +280,54 @@ def _conditions(obs: Observed, failover: FailoverPlan | None, at: datetime) -> l
             reason=update.reason,
             message=update.message,
             observed_generation=obs.generation,
-            at=at,
+            at=obs.now,
         )
     return conditions
 
 
-def plan_vehicle(obs: Observed, ctx: Context) -> VehiclePlan:
+def _node_patches(obs: Observed, node_state: NodeState | None) -> tuple[NodePatch, ...]:
+    """Release every other node labelled for the vehicle; put ``node_state`` on its own."""
+    target = obs.spec.node_name if node_state is not None else None
+    patches = [
+        NodePatch(node["metadata"]["name"], patch, own=False)
+        for node in obs.labelled_nodes
+        if node["metadata"]["name"] != target
+        and (patch := plan_node(node, NodeState.released())) is not None
+    ]
+    if node_state is not None and obs.node is not None:
+        own = plan_node(obs.node, node_state)
+        if own is not None:
+            patches.append(NodePatch(obs.spec.node_name, own, own=True))
+    return tuple(patches)
+
+
+def _pod_moves(obs: Observed, pods: Mapping[str, Obj], *, holding: bool) -> tuple[PodMove, ...]:
+    moves = []
+    for component, desired in pods.items():
+        live = obs.pods.get(component)
+        step = pod_step(live, desired, node_exists=obs.node is not None)
+        moves.append(PodMove(component, desired, live, flight.hold_step(step, holding=holding)))
+    return tuple(moves)
+
+
+def _first_report_until(obs: Observed) -> datetime | None:
+    """When a new Vehicle's first report is due at the latest (None: no hold applies)."""
+    hold = obs.context.first_report_hold
+    if hold <= timedelta(0) or obs.status.conditions or obs.autopilot_spec is not None:
+        return None
+    try:
+        due = datetime.fromisoformat(obs.created) + hold
+    except ValueError:
+        return None
+    return due if obs.now < due else None
+
+
+def plan_vehicle(obs: Observed) -> Plan:
     """Decide the vehicle; see the module docstring."""
-    failover = _failover(obs, ctx)
+    ctx = obs.context
+    owners = list(obs.owners)
     autopilots = autopilots_of(obs.spec, obs.autopilot_spec)
+    failover = _failover(obs, autopilots)
     followed = active_autopilot(
         autopilots,
         reported_active=failover.failover.followed_autopilot if failover else None,
@@ -267,12 +356,7 @@ def plan_vehicle(obs: Observed, ctx: Context) -> VehiclePlan:
     )
     pods = {
         w.component: component_pod(
-            obs.name,
-            obs.spec.node_name,
-            w,
-            values,
-            namespace=ctx.namespace,
-            owners=list(ctx.owners),
+            obs.name, obs.spec.node_name, w, values, namespace=ctx.namespace, owners=owners
         )
         for w in wanted
     }
@@ -285,10 +369,12 @@ def plan_vehicle(obs: Observed, ctx: Context) -> VehiclePlan:
         if in_flight is None
         else FlightHold(reason=in_flight, disruption_budget=flight.budget_name(obs.name))
     )
+    # a failover consequence (mavros re-pointed) is the vehicle flying on: not held
+    holding = hold is not None and not (failover is not None and failover.acting)
     status = obs.status.model_copy(
         update={
             "observed_generation": obs.generation,
-            "conditions": _conditions(obs, failover, obs.now),
+            "conditions": _conditions(obs, failover),
             "node_name": obs.spec.node_name if node_state is not None else None,
             "managed_labels": sorted(node_state.labels) if node_state is not None else [],
             "fcu_url": fcu_url,
@@ -298,167 +384,48 @@ def plan_vehicle(obs: Observed, ctx: Context) -> VehiclePlan:
             "flight_hold": hold,
         }
     )
-    return VehiclePlan(
+    relabel = (
+        (obs.autopilot_name, obs.spec.node_name)
+        if obs.autopilot_name is not None and obs.autopilot_node_label != obs.spec.node_name
+        else None
+    )
+    return Plan(
+        name=obs.name,
+        namespace=ctx.namespace,
+        body=obs.body,
         binding=binding,
         node_state=node_state,
-        config_map=vehicle_config_map(
-            obs.name, values, namespace=ctx.namespace, owners=list(ctx.owners)
-        ),
+        node_patches=_node_patches(obs, node_state),
+        autopilot_label=relabel,
+        config_map=vehicle_config_map(obs.name, values, namespace=ctx.namespace, owners=owners),
+        disruption_budget=None
+        if hold is None
+        else flight.disruption_budget(obs.name, namespace=ctx.namespace, owners=owners),
+        delete_budget=obs.status.flight_hold.disruption_budget
+        if hold is None and obs.status.flight_hold is not None
+        else None,
         pods=pods,
+        pod_moves=_pod_moves(obs, pods, holding=holding),
+        stray_pods=tuple(
+            sorted(
+                pod["metadata"]["name"]
+                for component, pod in obs.pods.items()
+                if component not in pods and not pod["metadata"].get("deletionTimestamp")
+            )
+        ),
         failover=failover,
         events=failover.events if failover else (),
         followed=followed,
         fcu_url=fcu_url,
         status=status,
+        previous=obs.status,
+        generation=obs.generation,
+        now=obs.now,
+        agent_expected=obs.autopilot_spec is not None,
+        first_report_until=_first_report_until(obs),
         runs_workloads=labels_node,
-        # a failover consequence (mavros re-pointed) is the vehicle flying on: not held
-        holds_pods=hold is not None and not (failover is not None and failover.acting),
-        disruption_budget=None
-        if hold is None
-        else flight.disruption_budget(obs.name, namespace=ctx.namespace, owners=list(ctx.owners)),
+        holds_pods=holding,
     )
-
-
-REFUSED_NODE = "node"
-REFUSED_AUTOPILOT_LABEL = "autopilot-label"
-REFUSED_CONFIG = "config"
-REFUSED_BUDGET = "disruption-budget"
-"""Keys of :func:`report`'s ``refused`` for writes other than component Pods."""
-
-
-def _binding_after(plan: VehiclePlan, refused: Mapping[str, ApiError]) -> NodeBinding:
-    """NodeBound, unless the API server refused a write the binding needs."""
-    if REFUSED_NODE in refused:
-        return NodeBinding(
-            False,
-            VehicleConditionReason.NODE_REFUSED,
-            f"labelling node {plan.status.node_name or '?'} was refused: "
-            f"{refused[REFUSED_NODE].message}; check spec.nodeName and spec.labels",
-        )
-    if REFUSED_AUTOPILOT_LABEL in refused:
-        return NodeBinding(
-            False,
-            VehicleConditionReason.AUTOPILOT_LABEL_REFUSED,
-            f"the RedundantAutopilot's {LABEL_NODE} label was refused: "
-            f"{refused[REFUSED_AUTOPILOT_LABEL].message}; with a RedundantAutopilot "
-            "spec.nodeName must also be a label value (at most 63 characters)",
-        )
-    return plan.binding
-
-
-def report(
-    plan: VehiclePlan,
-    *,
-    live: Mapping[str, Obj | None],
-    refused: Mapping[str, ApiError],
-    generation: int | None,
-    agent_expected: bool,
-) -> VehicleStatus:
-    """The status to write once the plan is applied: NodeBound, ComponentsReady, Ready.
-
-    ``live`` maps each desired component to its Pod as the apply left it,
-    ``refused`` the writes the API server refused, by component or by one of the
-    ``REFUSED_*`` keys, with its answer: each shows in a condition with what to change.
-    """
-    states = component_states(plan, live=live, refused=refused)
-    components = components_condition(
-        states, blocked=None if plan.runs_workloads else plan.binding.message
-    )
-    if REFUSED_CONFIG in refused:
-        components = (
-            "False",
-            VehicleConditionReason.CONFIG_REFUSED,
-            f"the vehicle's config ConfigMap was refused: {refused[REFUSED_CONFIG].message}; "
-            "make spec.config smaller",
-        )
-    conditions = vehicle_conditions(
-        plan.status.conditions,
-        binding=_binding_after(plan, refused),
-        components=components,
-        generation=generation,
-        agent_expected=agent_expected,
-    )
-    update: dict[str, object] = {"conditions": conditions}
-    hold = plan.status.flight_hold
-    if hold is not None and plan.holds_pods:
-        update["flight_hold"] = hold.model_copy(
-            update={"deferred": flight.deferred(plan.pods, live)}
-        )
-    return plan.status.model_copy(update=update)
-
-
-def component_states(
-    plan: VehiclePlan, *, live: Mapping[str, Obj | None], refused: Mapping[str, ApiError]
-) -> list[ComponentState]:
-    """Each desired component's state once the plan is applied (see :func:`report`)."""
-    return [
-        ComponentState(c, False, f"its Pod was refused: {refused[c].message}")
-        if c in refused
-        # in the air an outdated pod is kept on purpose: it counts as it runs
-        else pod_state(c, live.get(c), None if plan.holds_pods else pod_hash(desired))
-        for c, desired in plan.pods.items()
-    ]
-
-
-HELD_CONDITIONS = (VehicleConditionType.READY, VehicleConditionType.COMPONENTS_READY)
-"""The conditions a held first report may have False: its components are still starting."""
-
-
-def first_report_due(
-    obs: Observed,
-    status: VehicleStatus,
-    states: Sequence[ComponentState],
-    hold: timedelta,
-) -> datetime | None:
-    """When to write the first status of a new Vehicle whose components are only
-    starting, or None to write ``status`` now.
-
-    A new Vehicle's components are usually Ready moments after its pods are created, and
-    a status saying "starting" written in between is the most expensive request of its
-    rollout (a write of the whole custom object, sent to every watcher of Vehicles), so
-    that report waits until ``hold`` after the Vehicle's creation. Any other news is
-    written at once: an existing status, a condition other than Ready and
-    ComponentsReady that is not True, a component that is not merely starting (refused,
-    ended, waiting for a reason such as an image pull), anything of failover or claims,
-    a Vehicle with a RedundantAutopilot, or a Vehicle older than ``hold``.
-    """
-    if hold <= timedelta(0) or obs.status.conditions or obs.autopilot_spec is not None:
-        return None
-    if status.failover is not None or status.claimed_by is not None:
-        return None
-    if any(c.status != "True" for c in status.conditions if c.type not in HELD_CONDITIONS):
-        return None
-    components = next(
-        (c for c in status.conditions if c.type == VehicleConditionType.COMPONENTS_READY), None
-    )
-    if components is None or components.reason != VehicleConditionReason.COMPONENTS_NOT_READY:
-        return None  # ready, or its config was refused: news
-    if not any(not s.ready for s in states) or not all(s.ready or s.starting for s in states):
-        return None
-    try:
-        due = datetime.fromisoformat(obs.created) + hold
-    except ValueError:
-        return None
-    return due if obs.now < due else None
-
-
-def refusal_time(status: VehicleStatus, refused: Mapping[str, ApiError]) -> datetime | None:
-    """When the conditions that report ``refused`` last changed (None: no such condition).
-
-    The refusal's Event is stamped with it, never with the clock: the same refusal seen
-    again by a later reconcile names the same Event and the API refuses the repeat.
-    """
-    on_node = REFUSED_NODE in refused or REFUSED_AUTOPILOT_LABEL in refused
-    kinds = [VehicleConditionType.NODE_BOUND] if on_node else []
-    if any(key not in (REFUSED_NODE, REFUSED_AUTOPILOT_LABEL) for key in refused):
-        kinds.append(VehicleConditionType.COMPONENTS_READY)
-    times = [c.last_transition_time for c in status.conditions if c.type in kinds]
-    return min(times, default=None)
-
-
-def acting(plan: VehiclePlan) -> bool:
-    """Whether a cluster-side failover action runs after this plan (counts for the cap)."""
-    return plan.failover is not None and plan.failover.acting
 
 
 def relevant_autopilot(body: Mapping[str, Any] | None) -> Any:

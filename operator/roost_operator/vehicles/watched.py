@@ -12,7 +12,7 @@ instead of the API server (:mod:`roost_operator.cache`), and a :class:`VehicleTr
 queues the vehicles an object concerns only when the part Roost reads changed
 (:func:`node_relevant`, :func:`owned_relevant`, :func:`pod_relevant`), it appeared, or
 it went away. Component pods are selected by
-:data:`~roost_operator.vehicles.desired.COMPONENT_POD_SELECTOR`: a Mission's onboard Job
+:data:`~roost_operator.vehicles.manifests.COMPONENT_POD_SELECTOR`: a Mission's onboard Job
 pods carry a vehicle's label too, and are not the vehicle controller's.
 
 Which vehicles a node concerns comes from kopf's index of Vehicles by node
@@ -34,8 +34,8 @@ from typing import Any, Final
 from roost_api.wellknown import LABEL_COMPONENT, LABEL_MANAGED_BY, LABEL_VEHICLE, MANAGED_BY
 from roost_kube.client import Kube
 from roost_kube.resources import CONFIGMAPS, NODES, PODS
-from roost_operator.vehicles.controller import Peers
-from roost_operator.vehicles.desired import COMPONENT_POD_SELECTOR
+from roost_operator.vehicles.manifests import COMPONENT_POD_SELECTOR
+from roost_operator.vehicles.observe import Peers
 from roost_operator.watches import Fingerprints, Store, Watcher, key_of, without_managed_fields
 
 OWNED_SELECTOR: Final = f"{LABEL_MANAGED_BY}={MANAGED_BY},{LABEL_VEHICLE},{LABEL_COMPONENT}"

@@ -11,7 +11,7 @@ from roost_api.vehicle import VehicleSpec
 from roost_api.wellknown import SIGNING_HOST_DIR
 from roost_kube.patches import Obj
 from roost_operator.vehicles.config import vehicle_config
-from roost_operator.vehicles.desired import (
+from roost_operator.vehicles.manifests import (
     DEFAULT_FCU_URL,
     DEFAULT_IMAGES,
     SIGNING_KEYS,

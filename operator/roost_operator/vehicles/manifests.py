@@ -1,32 +1,19 @@
-"""Pure desired state of a Vehicle: its autopilots, config, workloads and conditions.
+"""A Vehicle's manifests, as pure functions: its autopilots, workloads and component Pods.
 
-Given the Vehicle (and its RedundantAutopilot, when there is one) these functions
-return plain manifests and condition values; they read nothing and write nothing, so
-every rule here is unit-tested without a cluster and the Vehicle controller only
-observes, calls and applies.
+Given the Vehicle (and its RedundantAutopilot, when there is one) these functions return
+plain manifests; they read nothing and write nothing, so every rule here is unit-tested
+without a cluster. :mod:`.pods` decides what to do about a live pod, :mod:`.conditions`
+what the Vehicle's conditions say.
 
-Each component workload is one bare Pod the Vehicle controller manages itself (as a
-DaemonSet controller would, pinned to one node), not a Deployment. Why: at 1,000
-vehicles the Deployment → ReplicaSet → Pod → scheduler chain is the bottleneck of the
-control plane, several times the cost of bare Pods (``docs/design-decisions.md``,
-``docs/scale.md``). The pod names its node (``spec.nodeName``, no
-scheduler) and keeps the vehicle's node selector and toleration
+Each component workload is one bare Pod the Vehicle controller manages itself (pinned to
+one node), not a Deployment: at 1,000 vehicles the Deployment → ReplicaSet → Pod →
+scheduler chain is the bottleneck of the control plane (``docs/design-decisions.md``,
+``docs/scale.md``). The pod names its node (``spec.nodeName``, no scheduler) and keeps
+the vehicle's node selector and toleration
 (:func:`~roost_operator.vehicles.placement.place_on_vehicle`), so the kubelet's own
-admission still checks that the node is the vehicle's. What the Deployment gave, the
-controller keeps (:func:`pod_step` decides, see :mod:`.controller`):
-
-* **Recreate**: a pod carries the hash of what it was built from
-  (:data:`~roost_api.wellknown.ANNOTATION_POD_HASH`); a pod whose hash differs from
-  the desired one is deleted, and the new one is created only once the old one is gone
-  (its deletion event queues the next reconcile). The pod's name is fixed
-  (``<vehicle>-<component>``), so the API server itself refuses a second pod of one
-  component while the old one still exists: a MAVLink endpoint, a sysid or a serial
-  device is never held by two processes. A live pod's spec is never patched (most of it
-  is immutable).
-* a pod that ended (``Failed``/``Succeeded``, e.g. evicted) is deleted and recreated;
-  ``restartPolicy: Always`` restarts crashed containers in place.
-* readiness (:func:`pod_state`): the pod exists with the desired hash, is not being
-  deleted, runs and is Ready.
+admission still checks that the node is the vehicle's. A pod carries the hash of what it
+was built from (:data:`~roost_api.wellknown.ANNOTATION_POD_HASH`); its name is fixed
+(``<vehicle>-<component>``).
 
 The FCU URL mavros uses is that of the *active* autopilot: the RedundantAutopilot's
 ``status.activeAutopilot`` (written by the node agent), else its ``spec.primary``.
@@ -44,19 +31,12 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping, Sequence
 from copy import deepcopy
 from dataclasses import dataclass
-from datetime import datetime
-from enum import StrEnum
 from typing import Any, Final
 
 from roost_api.autopilot import RedundantAutopilotSpec, hub_client_url
-from roost_api.meta import Condition, ConditionStatus, Stack, set_condition
+from roost_api.meta import Stack
 from roost_api.sitl import sitl_endpoint
-from roost_api.vehicle import (
-    ComponentSpec,
-    VehicleConditionReason,
-    VehicleConditionType,
-    VehicleSpec,
-)
+from roost_api.vehicle import ComponentSpec, VehicleSpec
 from roost_api.wellknown import (
     ANNOTATION_CONFIG_HASH,
     ANNOTATION_POD_HASH,
@@ -71,7 +51,7 @@ from roost_api.wellknown import (
 )
 from roost_kube.patches import Obj, content_hash
 from roost_operator.vehicles.config import config_hash, mount_vehicle_config
-from roost_operator.vehicles.placement import node_reachability, place_on_vehicle
+from roost_operator.vehicles.placement import place_on_vehicle
 
 # Starling's default for a real vehicle without a RedundantAutopilot: the flight
 # controller's USB serial device.
@@ -416,313 +396,3 @@ def pod_hash(pod: Mapping[str, Any] | None) -> str | None:
     if pod is None:
         return None
     return ((pod.get("metadata") or {}).get("annotations") or {}).get(ANNOTATION_POD_HASH)
-
-
-# -- replacing pods (the Recreate guarantee) -----------------------------------------
-
-ENDED_PHASES: Final = ("Failed", "Succeeded")
-
-
-class PodStep(StrEnum):
-    """What the controller does about one component's pod."""
-
-    KEEP = "keep"
-    """The live pod is the desired one."""
-    CREATE = "create"
-    """No pod: create the desired one."""
-    REPLACE = "replace"
-    """The live pod differs: delete it; its deletion event brings the create."""
-    RESTART = "restart"
-    """The live pod ended (evicted, failed): delete it, as for REPLACE."""
-    WAIT = "wait"
-    """The old pod is terminating, or its node does not exist yet: nothing to write."""
-    DEFER = "defer"
-    """The live pod differs but the vehicle is in the air: keep it until it lands
-    (:mod:`roost_operator.vehicles.flight`)."""
-
-
-def pod_step(
-    live: Mapping[str, Any] | None, desired: Mapping[str, Any], *, node_exists: bool = True
-) -> PodStep:
-    """The step towards ``desired`` from ``live`` (None: no pod). Never two pods of a
-    component: a new pod is created only when none exists."""
-    if live is None:
-        return PodStep.CREATE if node_exists else PodStep.WAIT
-    if (live.get("metadata") or {}).get("deletionTimestamp"):
-        return PodStep.WAIT
-    if pod_hash(live) != pod_hash(desired):
-        return PodStep.REPLACE
-    if (live.get("status") or {}).get("phase") in ENDED_PHASES:
-        return PodStep.RESTART
-    return PodStep.KEEP
-
-
-class ReleaseStep(StrEnum):
-    """What a release (the Vehicle is gone) does about one of its component pods."""
-
-    DELETE = "delete"
-    """Delete it; its kubelet stops it within its grace period."""
-    FORCE = "force"
-    """Its node cannot be reached (or is gone): remove it at once (grace period 0)."""
-    LEAVE = "leave"
-    """Already terminating on a reachable node: its kubelet is finishing it."""
-
-
-def release_step(pod: Mapping[str, Any], node: Mapping[str, Any] | None) -> ReleaseStep:
-    """How to remove a gone Vehicle's pod, given its node as read (None: no such node).
-
-    A pod on an unreachable node would stay Terminating until the link returns — for
-    ever, if it never does — so it is removed without the kubelet's confirmation, even
-    when someone (the garbage collector) already asked for its graceful end. Nothing of
-    the vehicle can use it any more, and a kubelet that comes back stops the containers
-    of pods the API server no longer has.
-    """
-    if node is None or node_reachability(node) is not None:
-        return ReleaseStep.FORCE
-    if (pod.get("metadata") or {}).get("deletionTimestamp"):
-        return ReleaseStep.LEAVE
-    return ReleaseStep.DELETE
-
-
-def pod_node(pod: Mapping[str, Any]) -> str | None:
-    """The node a component pod was made for (its ``roost.dev/node`` annotation; the pod
-    stores keep no spec)."""
-    return ((pod.get("metadata") or {}).get("annotations") or {}).get(LABEL_NODE)
-
-
-# -- readiness and conditions --------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class ComponentState:
-    """Whether one component's pod runs as desired and is Ready."""
-
-    component: str
-    ready: bool
-    detail: str
-    starting: bool = False
-    """Not Ready yet, and nothing is wrong: the desired pod is Pending or not yet Ready,
-    and no container waits for anything but its own start (:data:`STARTING_REASONS`)."""
-
-
-STARTING_REASONS: Final = frozenset({"ContainerCreating", "PodInitializing"})
-"""Why a container waits while its pod starts as it should (the kubelet's words)."""
-
-
-def _only_starting(status: Mapping[str, Any]) -> bool:
-    """Whether nothing but the pod's own start keeps it from running: no container has
-    ended or waits for another reason, and the pod carries no reason of its own."""
-    if status.get("reason"):
-        return False
-    for container in status.get("containerStatuses") or []:
-        state = container.get("state") or {}
-        if "terminated" in state:
-            return False
-        if "waiting" in state and state["waiting"].get("reason") not in STARTING_REASONS:
-            return False
-    return True
-
-
-def _pod_problem(status: Mapping[str, Any]) -> str:
-    """Why a pod's containers do not run, from their waiting/terminated states."""
-    for container in status.get("containerStatuses") or []:
-        state = container.get("state") or {}
-        for kind in ("waiting", "terminated"):
-            if kind in state:
-                why = state[kind].get("reason") or kind
-                message = state[kind].get("message")
-                return f"{why}: {message}" if message else str(why)
-    return str(status.get("message") or status.get("reason") or "")
-
-
-def pod_state(
-    component: str, live: Mapping[str, Any] | None, want_hash: str | None = None
-) -> ComponentState:
-    """Whether the component's pod is the desired one (``want_hash``; None: any), is not
-    being deleted, runs and is Ready; otherwise what is missing."""
-    if live is None:
-        return ComponentState(component, False, "its Pod does not exist yet")
-    if (live.get("metadata") or {}).get("deletionTimestamp"):
-        return ComponentState(component, False, "its old Pod is terminating")
-    if want_hash is not None and pod_hash(live) != want_hash:
-        return ComponentState(component, False, "its Pod is outdated and being replaced")
-    status = live.get("status") or {}
-    phase = status.get("phase") or "Pending"
-    problem = _pod_problem(status)
-    if phase in ENDED_PHASES:
-        return ComponentState(
-            component,
-            False,
-            f"its Pod ended ({phase}" + (f", {problem}" if problem else "") + "); recreating it",
-        )
-    ready = (
-        next((c for c in status.get("conditions") or [] if c.get("type") == "Ready"), None) or {}
-    )
-    if phase != "Running":
-        return ComponentState(
-            component,
-            False,
-            f"its Pod is {phase}" + (f" ({problem})" if problem else ""),
-            starting=_only_starting(status),
-        )
-    if ready.get("status") != "True":
-        why = ready.get("message") or problem
-        return ComponentState(
-            component,
-            False,
-            "its Pod runs but is not Ready" + (f" ({why})" if why else ""),
-            starting=_only_starting(status),
-        )
-    return ComponentState(component, True, "")
-
-
-@dataclass(frozen=True)
-class NodeBinding:
-    """Outcome of binding the vehicle to its node, for the NodeBound condition."""
-
-    bound: bool
-    reason: str
-    message: str
-    since: datetime | None = None
-    """When the problem began, if known (an unreachable node: when the node controller
-    noticed); NodeBound's transition time when it changes."""
-
-
-def components_condition(
-    states: Sequence[ComponentState], *, blocked: str | None = None
-) -> tuple[ConditionStatus, str, str]:
-    """ComponentsReady from the states of all desired components.
-
-    ``blocked`` says why no components run at all (the vehicle has no node to run on).
-    """
-    if blocked is not None:
-        return "False", VehicleConditionReason.WAITING_FOR_NODE, f"no components run: {blocked}"
-    if not states:
-        return "True", VehicleConditionReason.NO_COMPONENTS, "no components are enabled"
-    waiting = [s for s in states if not s.ready]
-    if not waiting:
-        names = ", ".join(s.component for s in states)
-        return "True", VehicleConditionReason.ALL_COMPONENTS_READY, f"ready: {names}"
-    message = "; ".join(f"component {s.component} not ready: {s.detail}" for s in waiting)
-    return "False", VehicleConditionReason.COMPONENTS_NOT_READY, message
-
-
-# The detail conditions Ready summarises, in the order their problems are reported.
-READY_INPUTS: Final = (
-    VehicleConditionType.NODE_BOUND,
-    VehicleConditionType.COMPONENTS_READY,
-    VehicleConditionType.AUTOPILOTS_HEALTHY,
-    VehicleConditionType.AGENT_CONNECTED,
-)
-
-
-def ready_condition(
-    conditions: Sequence[Condition], *, agent_expected: bool = False
-) -> tuple[ConditionStatus, str, str]:
-    """Ready from the detail conditions present: False on any False, else Unknown on any
-    Unknown, else True. AutopilotsHealthy and AgentConnected count once they exist;
-    ``agent_expected`` (the vehicle has a RedundantAutopilot) makes a missing
-    AgentConnected count as Unknown, so Ready is never True before the failover side
-    has heard from the vehicle's agent.
-    """
-    present = {c.type: c for c in conditions}
-    inputs = [
-        (c.type, c.status, c.reason, c.message)
-        for c in (present.get(t) for t in READY_INPUTS)
-        if c is not None
-    ]
-    if agent_expected and VehicleConditionType.AGENT_CONNECTED not in present:
-        inputs.append(
-            (
-                VehicleConditionType.AGENT_CONNECTED.value,
-                "Unknown",
-                VehicleConditionReason.AGENT_NOT_HEARD_YET,
-                "the vehicle's node agent has not been heard from yet",
-            )
-        )
-    for wanted in ("False", "Unknown"):
-        failing = [i for i in inputs if i[1] == wanted]
-        if failing:
-            message = "; ".join(f"{kind}: {text}" for kind, _, _, text in failing)
-            return wanted, failing[0][2], message
-    return "True", VehicleConditionReason.VEHICLE_READY, "node bound, components ready"
-
-
-def vehicle_conditions(
-    previous: Sequence[Condition],
-    *,
-    binding: NodeBinding,
-    components: tuple[ConditionStatus, str, str],
-    generation: int | None,
-    agent_expected: bool = False,
-) -> list[Condition]:
-    """The Vehicle's conditions after this reconcile (others' condition types kept).
-
-    ``agent_expected``: see :func:`ready_condition`.
-    """
-    conditions = set_condition(
-        previous,
-        type=VehicleConditionType.NODE_BOUND,
-        status="True" if binding.bound else "False",
-        reason=binding.reason,
-        message=binding.message,
-        observed_generation=generation,
-        at=binding.since,
-    )
-    status, reason, message = components
-    conditions = set_condition(
-        conditions,
-        type=VehicleConditionType.COMPONENTS_READY,
-        status=status,
-        reason=reason,
-        message=message,
-        observed_generation=generation,
-    )
-    return with_ready(conditions, generation=generation, agent_expected=agent_expected)
-
-
-def with_ready(
-    conditions: Sequence[Condition],
-    *,
-    generation: int | None,
-    at: datetime | None = None,
-    agent_expected: bool = False,
-) -> list[Condition]:
-    """``conditions`` with Ready recomputed from the detail conditions (see
-    :func:`ready_condition`); the one place every Vehicle condition writer summarises."""
-    status, reason, message = ready_condition(conditions, agent_expected=agent_expected)
-    return set_condition(
-        conditions,
-        type=VehicleConditionType.READY,
-        status=status,
-        reason=reason,
-        message=message,
-        observed_generation=generation,
-        at=at,
-    )
-
-
-def transitions(
-    before: Sequence[Condition], after: Sequence[Condition], types: Iterable[str]
-) -> list[Condition]:
-    """Conditions of ``types`` worth an Event: those whose status changed, and a detail
-    condition that appears False (a problem from the start, such as a missing node).
-
-    Other first appearances are no news: a condition that appears True or Unknown is the
-    vehicle starting as it should, and Ready's first False says that its components are
-    still rolling out or repeats a detail condition's own Event. Ready turning True is
-    news; a Vehicle whose first status is already Ready (its "starting" report was held
-    until its pods were Ready, see :func:`~.plan.first_report_due`) posts no Event.
-    """
-    wanted = set(types)
-    old = {c.type: c.status for c in before}
-    return [
-        c
-        for c in after
-        if c.type in wanted
-        and (
-            old[c.type] != c.status
-            if c.type in old
-            else c.status == "False" and c.type != VehicleConditionType.READY
-        )
-    ]

@@ -1,5 +1,7 @@
-"""The Vehicle controller's pod steps against a fake API: one write per step, never two
-pods of a component (the decision itself is tested in ``test_operator_vehicles_desired``)."""
+"""A component pod's step, as the plan decides it and the apply carries it out, against a
+fake API (a stand-in that records writes, so a test can say "exactly this write"): one
+write per step, never two pods of a component. The step's decision table is in
+``test_operator_vehicles_desired``."""
 
 from __future__ import annotations
 
@@ -11,9 +13,13 @@ from roost_kube.client import Kube
 from roost_kube.errors import ConflictError
 from roost_kube.patches import Obj
 from roost_kube.resources import Resource
+from roost_operator.cache import CachedView
+from roost_operator.vehicles.apply import converge_pod
 from roost_operator.vehicles.config import vehicle_config
-from roost_operator.vehicles.controller import VehicleController
-from roost_operator.vehicles.desired import component_pod, component_workloads, pod_hash
+from roost_operator.vehicles.flight import hold_step
+from roost_operator.vehicles.manifests import component_pod, component_workloads, pod_hash
+from roost_operator.vehicles.plan import PodMove
+from roost_operator.vehicles.pods import pod_step
 
 
 class FakeApi:
@@ -58,8 +64,12 @@ def desired(node: str = "node-a") -> Obj:
     return component_pod("drone1", node, mavros, values, namespace="n", owners=[])
 
 
-def controller(api: FakeApi) -> VehicleController:
-    return VehicleController(kube=cast(Kube, api), namespace="n")
+def step(api: FakeApi, want: Obj, *, node_exists: bool, holding: bool = False) -> Obj | None:
+    """Decide the pod's step as the plan does, then take it as the apply does."""
+    live = api.pods.get(want["metadata"]["name"])
+    decided = hold_step(pod_step(live, want, node_exists=node_exists), holding=holding)
+    move = PodMove("mavros", want, live, decided)
+    return converge_pod(CachedView(cast(Kube, api)), move)
 
 
 def running(pod: Obj, **meta: Any) -> Obj:
@@ -68,16 +78,16 @@ def running(pod: Obj, **meta: Any) -> Obj:
 
 def test_a_missing_pod_is_created_once_its_node_exists() -> None:
     api = FakeApi()
-    assert controller(api)._converge_pod(desired(), node_exists=False) is None
+    assert step(api, desired(), node_exists=False) is None
     assert api.writes == []
-    live = controller(api)._converge_pod(desired(), node_exists=True)
+    live = step(api, desired(), node_exists=True)
     assert live is not None and pod_hash(live) == pod_hash(desired())
     assert api.writes == [("create", "drone1-mavros")]
 
 
 def test_an_outdated_pod_is_deleted_and_its_successor_waits_for_the_deletion() -> None:
     api = FakeApi(running(desired("node-old")))
-    live = controller(api)._converge_pod(desired(), node_exists=True)
+    live = step(api, desired(), node_exists=True)
     assert live is not None and live["spec"]["nodeName"] == "node-old"  # reported outdated
     assert api.writes == [("delete", "drone1-mavros")]  # no create beside it
 
@@ -85,28 +95,28 @@ def test_an_outdated_pod_is_deleted_and_its_successor_waits_for_the_deletion() -
 def test_in_the_air_an_outdated_pod_is_kept_and_an_ended_or_missing_one_still_comes_back() -> None:
     outdated = running(desired("node-old"))
     api = FakeApi(outdated)
-    assert controller(api)._converge_pod(desired(), node_exists=True, holding=True) == outdated
+    assert step(api, desired(), node_exists=True, holding=True) == outdated
     assert api.writes == []  # replaced after the landing
     ended = {**desired(), "status": {"phase": "Failed"}}
     api = FakeApi(ended)
-    controller(api)._converge_pod(desired(), node_exists=True, holding=True)
+    step(api, desired(), node_exists=True, holding=True)
     assert api.writes == [("delete", "drone1-mavros")]
     api = FakeApi()
-    controller(api)._converge_pod(desired(), node_exists=True, holding=True)
+    step(api, desired(), node_exists=True, holding=True)
     assert api.writes == [("create", "drone1-mavros")]
 
 
 def test_a_terminating_pod_is_left_alone_and_the_desired_one_kept() -> None:
     leaving = running(desired(), deletionTimestamp="2024-01-01T00:00:00Z")
     api = FakeApi(leaving)
-    assert controller(api)._converge_pod(desired(), node_exists=True) == leaving
+    assert step(api, desired(), node_exists=True) == leaving
     api = FakeApi(running(desired()))
-    controller(api)._converge_pod(desired(), node_exists=True)
+    step(api, desired(), node_exists=True)
     assert api.writes == []
 
 
 def test_a_create_racing_a_pod_the_cache_missed_judges_the_pod_that_exists() -> None:
     old = running(desired("node-old"), deletionTimestamp="2024-01-01T00:00:00Z")
     api = FakeApi(exists_behind_the_cache=old)
-    assert controller(api)._converge_pod(desired(), node_exists=True) == old
+    assert step(api, desired(), node_exists=True) == old
     assert api.writes == [("create", "drone1-mavros")]
