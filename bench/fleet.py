@@ -59,9 +59,9 @@ from roost_kube.resources import CONFIGMAPS, NODES, PODS, VEHICLES
 from roost_localcluster import binaries, nodes
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import ControlPlane, Settings
+from roost_operator.engine.watches import Watcher
 from roost_operator.vehicles.manifests import workload_name
 from roost_operator.vehicles.pods import pod_state
-from roost_operator.watches import Watcher
 from tests.support.operator import OperatorProcess
 from tests.support.waiting import wait_until
 
@@ -128,7 +128,7 @@ def _is_ready(vehicle: Mapping[str, Any]) -> bool:
 
 def wait_all_ready(kube: Kube, count: int, timeout_s: float = READY_TIMEOUT_S) -> None:
     """Return once ``count`` of the fleet's Vehicles are Ready, seen by a watch (the
-    operator's own :class:`~roost_operator.watches.Watcher`): the moment the last one
+    operator's own :class:`~roost_operator.engine.watches.Watcher`): the moment the last one
     turns Ready is when its status write arrives (a poll would add up to its period), and
     the API server sends one event per status write instead of the whole fleet on every
     poll."""

@@ -25,7 +25,7 @@ Settings are explicit rather than kopf's defaults, following operator practice:
   (:class:`~roost_operator.settings.KopfTimings`): back-pressure on the watch streams
   instead of a worker per object, and a fixed thread pool for the handlers that block.
   The Vehicle controller's reconciles run in its own work queue
-  (:mod:`roost_operator.workqueue`), started here at startup and stopped at cleanup.
+  (:mod:`roost_operator.engine.workqueue`), started here at startup and stopped at cleanup.
 
 Nothing is registered on import: :func:`main` reads the settings (environment, then
 flags) once, builds a kopf registry with every controller's handlers registered with
@@ -37,9 +37,13 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import socket
+import threading
 from collections.abc import Iterable, Mapping
 from dataclasses import replace
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any, cast
+from urllib.parse import urlsplit
 
 import kopf
 
@@ -47,6 +51,7 @@ from roost_api.wellknown import FINALIZER, PREFIX
 from roost_kube.client import Kube
 from roost_kube.resources import NAMESPACES
 from roost_operator.edge import FIELD_MANAGER
+from roost_operator.engine.leader import LeaderElector
 from roost_operator.missions import handlers as mission_handlers
 from roost_operator.runtime import Runtime, settings_of
 from roost_operator.settings import Settings, load_settings
@@ -151,6 +156,17 @@ def parse_args(argv: list[str] | None, environ: Mapping[str, str]) -> tuple[Any,
         default=None,
         help="serve kopf's health endpoint, e.g. http://0.0.0.0:8080/healthz",
     )
+    parser.add_argument(
+        "--leader-election",
+        action="store_true",
+        help="act only while holding the Lease roost-operator-leader in the operator's "
+        "namespace; stand by otherwise (the chart's replicas)",
+    )
+    parser.add_argument(
+        "--identity",
+        default=environ.get("POD_ID") or f"{socket.gethostname()}-{os.getpid()}",
+        help="this replica's name in the Lease (default: $POD_ID, else host and pid)",
+    )
     parser.add_argument("--namespace", help="operator namespace (overrides ROOST_NAMESPACE)")
     parser.add_argument(
         "--resync-seconds", type=float, help="fleet sweep period, 0: none (ROOST_RESYNC_SECONDS)"
@@ -198,15 +214,68 @@ def main(argv: list[str] | None = None) -> int:
         logging.getLogger(__name__).info(
             "metrics on http://%s:%d/metrics", args.metrics_address, port
         )
-    kopf.run(
-        registry=registry,
-        memo=memo,
-        clusterwide=True,
-        standalone=args.standalone or None,
-        peering_name=settings.peering,
-        liveness_endpoint=args.liveness,
-    )
+    elector = None
+    if args.leader_election:
+        elector = LeaderElector(
+            Kube.from_environment(FIELD_MANAGER),
+            settings.namespace,
+            args.identity,
+            on_lost=lose_leadership,
+        )
+        with standby_health(args.liveness):
+            elector.acquire()
+        elector.keep()
+    try:
+        kopf.run(
+            registry=registry,
+            memo=memo,
+            clusterwide=True,
+            standalone=args.standalone or None,
+            peering_name=settings.peering,
+            liveness_endpoint=args.liveness,
+        )
+    finally:
+        if elector is not None:
+            elector.stop()
     return 0
+
+
+def lose_leadership() -> None:
+    """The Lease could not be kept: stop at once, acting on nothing more (the pod's
+    restart makes this replica a standby)."""
+    logging.getLogger(__name__).critical("leader: lost the Lease; exiting")
+    logging.shutdown()
+    os._exit(3)
+
+
+class _Healthy(BaseHTTPRequestHandler):
+    def do_GET(self) -> None:
+        self.send_response(200)
+        self.send_header("Content-Type", "application/json")
+        self.end_headers()
+        self.wfile.write(b'{"standby": true}')
+
+    def log_message(self, *_: Any) -> None:
+        return
+
+
+class standby_health:  # noqa: N801 (a context manager used as a function)
+    """While a replica stands by (kopf not started), answer the liveness URL itself."""
+
+    def __init__(self, url: str | None) -> None:
+        self.server: ThreadingHTTPServer | None = None
+        if url:
+            parts = urlsplit(url)
+            self.server = ThreadingHTTPServer((parts.hostname or "", parts.port or 80), _Healthy)
+
+    def __enter__(self) -> None:
+        if self.server is not None:
+            threading.Thread(target=self.server.serve_forever, daemon=True).start()
+
+    def __exit__(self, *_: object) -> None:
+        if self.server is not None:
+            self.server.shutdown()
+            self.server.server_close()
 
 
 if __name__ == "__main__":

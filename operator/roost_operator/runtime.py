@@ -3,7 +3,7 @@
 :func:`roost_operator.main.main` builds the :class:`~roost_operator.settings.Settings`
 and hands them to kopf in the operator's ``memo``; the startup handler adds the API
 client, the controllers that keep per-process state (locks, the failover ledger) and
-the Vehicle controller's work queue (:mod:`roost_operator.workqueue`), whose workers
+the Vehicle controller's work queue (:mod:`roost_operator.engine.workqueue`), whose workers
 start with it and stop at the operator's cleanup, and Roost's own watches that feed it
 and whose stores the controller reads (:mod:`roost_operator.vehicles.watched`, claims
 here). Handlers call :func:`runtime` to get
@@ -26,15 +26,15 @@ from roost_api.wellknown import LABEL_COMPONENT, LABEL_MANAGED_BY, LABEL_VEHICLE
 from roost_kube.client import Kube
 from roost_kube.errors import ApiError
 from roost_kube.resources import CONFIGMAPS, LEASES, NODES, PODS, VEHICLES
-from roost_operator.cache import Cached
 from roost_operator.claims import CLAIM_COMPONENT, Claim, claim_of
 from roost_operator.edge import HandlerTiming, error_kind
+from roost_operator.engine.cache import Cached
+from roost_operator.engine.watches import Store, Watcher
+from roost_operator.engine.workqueue import Backoff, WorkQueue
 from roost_operator.settings import Settings
 from roost_operator.vehicles.controller import VehicleController
 from roost_operator.vehicles.observe import Peers
 from roost_operator.vehicles.watched import node_kept, node_watcher, owned_watchers, pod_kept
-from roost_operator.watches import Store, Watcher
-from roost_operator.workqueue import Backoff, WorkQueue
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +72,7 @@ class Runtime:
     timing: HandlerTiming | None = None
     """Where each queued reconcile's duration goes (the operator's metrics), if anywhere."""
     watchers: list[Watcher] = field(default_factory=list)
-    """Roost's own watches (Nodes, claim Leases): see :mod:`roost_operator.watches`."""
+    """Roost's own watches (Nodes, claim Leases): see :mod:`roost_operator.engine.watches`."""
     claim_listeners: list[Callable[[Claim], None]] = field(default_factory=list)
     """Called (from the claim watch's thread) with every claim Lease event; the Vehicle
     queue is always told, the mission controller adds itself here at startup."""

@@ -149,12 +149,15 @@ def test_values_schema_rejects_a_misspelt_key() -> None:
 # -- operator --------------------------------------------------------------------------
 
 
-def test_operator_runs_one_replica_replaced_with_recreate_and_a_liveness_probe() -> None:
+def test_operator_runs_two_replicas_that_elect_a_leader_and_a_liveness_probe() -> None:
     deployment = find(_render_set("defaults"), "Deployment", "-operator")
     spec = deployment["spec"]
-    assert spec["replicas"] == 1
-    assert spec["strategy"] == {"type": "Recreate"}
+    assert spec["replicas"] == 2
+    assert "strategy" not in spec  # rolling: a new pod stands by until the Lease is free
     container = spec["template"]["spec"]["containers"][0]
+    assert "--leader-election" in container["args"]
+    single = find(render({"operator": {"replicas": 1}}), "Deployment", "-operator")
+    assert "--leader-election" not in single["spec"]["template"]["spec"]["containers"][0]["args"]
     assert "--liveness=http://0.0.0.0:8080/healthz" in container["args"]
     assert container["livenessProbe"]["httpGet"] == {"path": "/healthz", "port": "health"}
     assert container["resources"]["limits"]["memory"]

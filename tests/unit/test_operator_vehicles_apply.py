@@ -13,7 +13,7 @@ from roost_kube.client import Kube
 from roost_kube.errors import ConflictError
 from roost_kube.patches import Obj
 from roost_kube.resources import Resource
-from roost_operator.cache import CachedView
+from roost_operator.engine.cache import CachedView
 from roost_operator.vehicles.apply import converge_pod
 from roost_operator.vehicles.config import vehicle_config
 from roost_operator.vehicles.flight import hold_step

@@ -32,7 +32,7 @@ from roost_kube.resources import (
     PODS,
     REDUNDANT_AUTOPILOTS,
 )
-from roost_operator.cache import CachedView
+from roost_operator.engine.cache import CachedView
 from roost_operator.vehicles.manifests import is_component_pod
 from roost_operator.vehicles.placement import NodeState, plan_node
 from roost_operator.vehicles.plan import Plan, PodMove

@@ -2,7 +2,7 @@
 
 Every trigger that concerns a Vehicle (its own events, its node's, its component Pods',
 its RedundantAutopilot's reports, its claim Lease, the guard annotations, the fleet
-sweep) queues its name on the work queue (:mod:`roost_operator.workqueue`), whose
+sweep) queues its name on the work queue (:mod:`roost_operator.engine.workqueue`), whose
 workers call :meth:`VehicleController.reconcile`. A reconcile follows the name through
 four modules, each once:
 
@@ -45,7 +45,7 @@ from roost_kube.patches import Obj
 from roost_kube.resources import VEHICLES
 from roost_operator.autopilots.conditions import DEFAULT_AGENT_STALE_AFTER
 from roost_operator.autopilots.guards import FleetGuards
-from roost_operator.cache import Cached, CachedView
+from roost_operator.engine.cache import Cached, CachedView
 from roost_operator.vehicles.apply import apply, release
 from roost_operator.vehicles.manifests import DEFAULT_IMAGES, SIGNING_KEYS
 from roost_operator.vehicles.observe import Gone, Peers, observe

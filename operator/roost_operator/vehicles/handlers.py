@@ -1,6 +1,6 @@
 """kopf triggers of the Vehicle controller: every one adds the vehicle to one work queue.
 
-kopf watches; :class:`~roost_operator.workqueue.WorkQueue` reconciles. Each handler
+kopf watches; :class:`~roost_operator.engine.workqueue.WorkQueue` reconciles. Each handler
 below only decides *which vehicle* an event concerns and whether anything Roost reads
 changed, then adds that vehicle's name to the queue and returns: handlers are async and
 never touch the API, so kopf's event loop never waits on a thread, and a burst of
@@ -32,7 +32,7 @@ Triggers, and why each exists:
   timeouts, and the moment a guard lifts;
 * its claim Lease — the mission claim mirrored into ``status.claimedBy``. Claim Leases
   are watched by Roost's own thread with a server-side label selector
-  (:mod:`roost_operator.watches`): kopf filters labels itself, so a kopf handler would
+  (:mod:`roost_operator.engine.watches`): kopf filters labels itself, so a kopf handler would
   have kopf process every node's heartbeat Lease;
 * optionally a fleet sweep every ``resync_seconds`` (off by default: everything above is
   event-driven, and a sweep at fleet scale is work that almost always finds nothing).
@@ -64,12 +64,12 @@ from roost_api.meta import now
 from roost_api.wellknown import PREFIX
 from roost_kube import resources
 from roost_operator.edge import at_the_edge, handler_edge
+from roost_operator.engine.watches import Fingerprints
 from roost_operator.runtime import Runtime, runtime
 from roost_operator.settings import Settings
 from roost_operator.vehicles.observe import Peers
 from roost_operator.vehicles.placement import NodeClaim
 from roost_operator.vehicles.plan import relevant_autopilot
-from roost_operator.watches import Fingerprints
 
 VEHICLES: Final = resources.VEHICLES.kopf
 AUTOPILOTS: Final = resources.REDUNDANT_AUTOPILOTS.kopf

@@ -6,7 +6,7 @@ and the clock. A Vehicle with a RedundantAutopilot (whose reconcile may act on a
 failover) and the RedundantAutopilot are read fresh from the API; the rest comes from
 watch caches that the controller's own writes update at once, and a retry after a
 conflict (``fresh``) reads the Vehicle and its nodes fresh
-(:class:`~roost_operator.cache.CachedView` says why that is safe).
+(:class:`~roost_operator.engine.cache.CachedView` says why that is safe).
 
 A Vehicle that does not exist, or is being deleted, is :class:`Gone`: asked of the API
 server, never concluded from a cache.
@@ -30,7 +30,7 @@ from roost_api.wellknown import (
 from roost_kube.patches import Obj, owner_reference
 from roost_kube.resources import CONFIGMAPS, LEASES, NODES, PODS, REDUNDANT_AUTOPILOTS, VEHICLES
 from roost_operator import claims
-from roost_operator.cache import CachedView
+from roost_operator.engine.cache import CachedView
 from roost_operator.vehicles.config import config_map_name
 from roost_operator.vehicles.manifests import is_component_pod
 from roost_operator.vehicles.placement import NodeClaim

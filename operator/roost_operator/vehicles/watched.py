@@ -5,10 +5,10 @@ few seconds, and a component pod's kubelet writes its status several times on it
 Ready; kopf processes each of those events in full (its per-object worker, cause
 detection) before a handler can say "nothing I read
 changed" — at 1,000 vehicles most of the operator's CPU (``docs/scale.md``). A
-:class:`~roost_operator.watches.Watcher` lists and watches with Roost's own client
+:class:`~roost_operator.engine.watches.Watcher` lists and watches with Roost's own client
 (owned objects with a server-side label selector, in the operator's namespace only),
-keeps every object in a :class:`~roost_operator.watches.Store` the controller reads
-instead of the API server (:mod:`roost_operator.cache`), and a :class:`VehicleTrigger`
+keeps every object in a :class:`~roost_operator.engine.watches.Store` the controller reads
+instead of the API server (:mod:`roost_operator.engine.cache`), and a :class:`VehicleTrigger`
 queues the vehicles an object concerns only when the part Roost reads changed
 (:func:`node_relevant`, :func:`owned_relevant`, :func:`pod_relevant`), it appeared, or
 it went away. Component pods are selected by
@@ -34,9 +34,15 @@ from typing import Any, Final
 from roost_api.wellknown import LABEL_COMPONENT, LABEL_MANAGED_BY, LABEL_VEHICLE, MANAGED_BY
 from roost_kube.client import Kube
 from roost_kube.resources import CONFIGMAPS, NODES, PODS
+from roost_operator.engine.watches import (
+    Fingerprints,
+    Store,
+    Watcher,
+    key_of,
+    without_managed_fields,
+)
 from roost_operator.vehicles.manifests import COMPONENT_POD_SELECTOR
 from roost_operator.vehicles.observe import Peers
-from roost_operator.watches import Fingerprints, Store, Watcher, key_of, without_managed_fields
 
 OWNED_SELECTOR: Final = f"{LABEL_MANAGED_BY}={MANAGED_BY},{LABEL_VEHICLE},{LABEL_COMPONENT}"
 """The vehicle's ConfigMap the Vehicle controller made, selected by the API server."""

@@ -4,7 +4,7 @@ Read from the API server, a first reconcile of a vehicle costs about ten request
 of them reads (its node, the nodes labelled for it, its claim, its ConfigMap, its
 component pods, each once more inside ``apply``), and a vehicle is reconciled several
 times while its components roll out. :class:`CachedView` answers those reads from the
-:class:`~roost_operator.watches.Store` of a :class:`~roost_operator.watches.Watcher` the
+:class:`~.watches.Store` of a :class:`~.watches.Watcher` the
 operator runs anyway, and keeps each store current with the answers to its own writes,
 so a reconcile that finds nothing to do sends nothing.
 
@@ -12,7 +12,7 @@ Why a read from a cache cannot make the controller do the wrong thing:
 
 * ``apply`` is server-side apply: a cache that lags only costs a write that changes
   nothing. A cache cannot hide a missing object: deletions arrive as watch events and
-  stay behind as tombstones (see :class:`~roost_operator.watches.Store`).
+  stay behind as tombstones (see :class:`~roost_operator.engine.watches.Store`).
 * writes that replace a list (node taints) carry the ``resourceVersion`` they were
   computed from; a stale cache makes the API server refuse them (409) and the
   controller retries from :meth:`fresh` reads, which also refresh the store.
@@ -37,7 +37,7 @@ from typing import Any
 from roost_kube.client import Kube
 from roost_kube.patches import Obj
 from roost_kube.resources import Resource, resource_of
-from roost_operator.watches import Store
+from roost_operator.engine.watches import Store
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,7 @@ the owner can compare it with what it knew.
 A watcher can also keep what it saw in a :class:`Store` — the last version of every
 object, indexed by one label — so that a reconcile reads nodes, claims and its own
 ConfigMaps and component Pods from memory instead of asking the API server each time
-(:mod:`roost_operator.cache` says when such a read is safe).
+(:mod:`roost_operator.engine.cache` says when such a read is safe).
 """
 
 from __future__ import annotations

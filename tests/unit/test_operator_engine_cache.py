@@ -1,4 +1,4 @@
-"""Which reads of the Vehicle controller reach the API server (``roost_operator.cache``).
+"""Which reads of the Vehicle controller reach the API server (``roost_operator.engine.cache``).
 
 The stand-in below replaces ``Kube.get`` only to record which reads would have gone to
 the API server: the decision tested here is where a read is answered, not the HTTP.
@@ -12,8 +12,8 @@ from typing import Any, cast
 
 from roost_kube.client import Kube
 from roost_kube.resources import CONFIGMAPS, NODES, VEHICLES
-from roost_operator.cache import Cached, CachedView
-from roost_operator.watches import Store
+from roost_operator.engine.cache import Cached, CachedView
+from roost_operator.engine.watches import Store
 
 
 class RecordedReads:

@@ -1,7 +1,7 @@
 """The watch cache the Vehicle controller reads: ordering of watch events and own writes.
 
 A reconcile reads nodes, claims and its own ConfigMaps and component Pods from a
-``roost_operator.watches.Store``; these are the rules that keep it from going back in
+``roost_operator.engine.watches.Store``; these are the rules that keep it from going back in
 time (a write's answer racing the watch) or bringing back what was deleted.
 """
 
@@ -11,7 +11,7 @@ from typing import Any
 
 import pytest
 
-from roost_operator.watches import Store
+from roost_operator.engine.watches import Store
 
 
 def _obj(name: str, version: str, namespace: str = "roost", **labels: str) -> dict[str, Any]:

@@ -7,7 +7,7 @@ import threading
 import time
 from collections import Counter
 
-from roost_operator.workqueue import Backoff, Permanent, WorkQueue
+from roost_operator.engine.workqueue import Backoff, Permanent, WorkQueue
 from tests.support.waiting import wait_until
 
 WAIT_S = 5.0

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import pytest
 
-from roost_operator.workqueue import Backoff
+from roost_operator.engine.workqueue import Backoff
 
 
 @pytest.mark.parametrize(("failures", "delay"), [(1, 1.0), (2, 2.0), (3, 4.0), (10, 60.0)])
