@@ -19,6 +19,7 @@ MODULES: tuple[str, ...] = (
     "kine",
     "images",
     "mission",
+    "leader",
     "cluster",
     "agent",
     "metrics",

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 import urllib.request
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
 
@@ -33,9 +33,11 @@ class OperatorProcess:
         namespace: str,
         environment: Mapping[str, str] | None = None,
         standalone: bool = True,
+        args: Sequence[str] = (),
     ) -> None:
         """``standalone=False`` runs with kopf peering, as the chart does (set the peering
-        name with ``ROOST_PEERING`` in ``environment``; the peering object must exist)."""
+        name with ``ROOST_PEERING`` in ``environment``; the peering object must exist);
+        ``args``: more flags (``--leader-election``)."""
         self.cluster = cluster
         self.port = free_port()
         self.process = ManagedProcess(
@@ -44,6 +46,7 @@ class OperatorProcess:
                 str(REPO_ROOT / ".venv" / "bin" / "roost-operator"),
                 *(["--standalone"] if standalone else []),
                 f"--liveness=http://127.0.0.1:{self.port}/healthz",
+                *args,
             ],
             log,
         )

@@ -1,0 +1,55 @@
+"""Leader election figures, on the local control plane with two ``roost-operator``
+replicas (``--leader-election``): ``operator.leader_takeover_s`` and
+``operator.double_actions_on_takeover``.
+
+The leader is killed (SIGKILL) once a quarter of a 100-Vehicle rollout's pods exist and a
+two-vehicle Mission is starting (:mod:`tests.support.takeover`). The takeover is the time
+from the kill until the standby holds the Lease (polled every 50 ms); the standby waits
+for one whole lease (8 s) without a renewal on its own clock, then looks every second.
+Double actions are the objects the actions make (component Pods, claim Leases, the
+Mission's Jobs) that were made twice or removed though they should stay.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+from bench.core import Figure
+from roost_localcluster.cluster import Cluster
+from roost_localcluster.controlplane import ControlPlane, Settings
+from tests.support.takeover import kill_the_leader
+
+COMMAND = "python -m bench leader"
+
+
+def run() -> list[Figure]:
+    with (
+        tempfile.TemporaryDirectory(prefix="bench-leader-") as tmp,
+        ControlPlane(Path(tmp), settings=Settings()) as plane,
+    ):
+        cluster = Cluster.of(plane)
+        cluster.install_crds()
+        result = kill_the_leader(cluster, Path(tmp), fleet=100)
+    note = (
+        f"killed at {result.pods_at_kill}/100 pods, Mission {result.mission_phase_at_kill or 'new'}"
+        f"; after: {result.pods} pods, {result.claims} claims, {result.jobs} Jobs"
+    )
+    return [
+        Figure(
+            "operator.leader_takeover_s",
+            round(result.takeover_s, 1),
+            "s",
+            "<= 15",
+            COMMAND,
+            "SIGKILL of the leader to the standby holding the Lease; " + note,
+        ),
+        Figure(
+            "operator.double_actions_on_takeover",
+            len(result.doubles),
+            "actions",
+            "== 0",
+            COMMAND,
+            "; ".join(result.doubles) or note,
+        ),
+    ]

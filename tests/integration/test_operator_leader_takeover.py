@@ -1,0 +1,27 @@
+"""Two operator replicas with leader election on the real control plane: the leader is
+killed (SIGKILL) in the middle of a 100-Vehicle rollout and a Mission start, the standby
+takes the Lease and finishes both, and nothing is done twice
+(:mod:`tests.support.takeover` says how it is counted). How long the takeover took is a
+figure (``python -m bench leader``), not a limit here. About two minutes warm.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from roost_localcluster.cluster import Cluster
+from tests.support.takeover import kill_the_leader
+
+pytestmark = pytest.mark.cluster
+
+
+def test_a_standby_takes_over_a_killed_leader_and_does_nothing_twice(
+    roost_crds: Cluster, tmp_path: Path
+) -> None:
+    result = kill_the_leader(roost_crds, tmp_path, fleet=100)
+    assert 0 < result.pods_at_kill < 100, "killed mid-way through the rollout"
+    assert result.doubles == []
+    assert result.pods == 100, "every vehicle's pod, once"
+    assert (result.claims, result.jobs) == (2, 2), "the Mission's claims and Jobs, once"

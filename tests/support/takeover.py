@@ -1,0 +1,270 @@
+"""Kill the leading operator in the middle of a fleet rollout and a Mission start, and see
+what the standby does: how long it takes the Lease, and whether anything was done twice.
+
+Two ``roost-operator --leader-election`` processes watch the same cluster; the first
+leads. A Mission with two vehicles (stand-in agents report for them) and a fleet of
+Vehicles are applied together; once a quarter of the fleet's pods exist, the leader is
+killed (SIGKILL). The standby takes the Lease and finishes the rollout and the Mission's
+start. Watches record every object the actions make (component Pods, claim Leases, the
+Mission's Jobs) by name and uid: an object made twice (a second uid, or a deletion of one
+that should stay) is a double action.
+
+Used by ``tests/integration/test_operator_leader_takeover.py`` (the verdicts) and ``python
+-m bench leader`` (the figures).
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections import defaultdict
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from roost_api.wellknown import LABEL_MANAGED_BY, MANAGED_BY
+from roost_kube.client import Kube
+from roost_kube.errors import ApiError
+from roost_kube.resources import JOBS, LEASES, MISSIONS, PODS, VEHICLES, Resource
+from roost_localcluster import nodes
+from roost_localcluster.cluster import Cluster
+from roost_operator.engine.leader import LEASE_NAME
+from tests.support.fakeagents import FakeAgents, redundant_autopilot
+from tests.support.operator import OperatorProcess
+from tests.support.waiting import unique, wait_until
+
+NAMESPACE = "roost-it-leader"
+FLIGHTS = "roost-it-leader-flights"
+HOLD_GATE = "roost.dev/test-hold"
+WAIT_S = 300.0
+
+
+@dataclass(frozen=True)
+class Takeover:
+    """What one kill showed."""
+
+    takeover_s: float
+    """From the SIGKILL to the standby holding the Lease."""
+    doubles: list[str]
+    """Objects made twice (or removed though they should stay)."""
+    pods: int
+    claims: int
+    jobs: int
+    pods_at_kill: int
+    mission_phase_at_kill: str
+
+
+class Births:
+    """Every object of a kind seen by a watch, by name: its uids and deletions."""
+
+    def __init__(self, kube: Kube, resource: Resource, namespace: str, selector: str = "") -> None:
+        self.kube, self.resource, self.namespace, self.selector = (
+            kube,
+            resource,
+            namespace,
+            selector,
+        )
+        self.uids: dict[str, set[str]] = defaultdict(set)
+        self.deleted: dict[str, int] = defaultdict(int)
+        self.lock = threading.Lock()
+        self.stopping = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True, name="births")
+
+    def _see(self, kind: str, obj: dict[str, Any]) -> None:
+        meta = obj.get("metadata") or {}
+        if "name" not in meta or kind == "BOOKMARK":
+            return
+        with self.lock:
+            self.uids[meta["name"]].add(meta.get("uid", ""))
+            if kind == "DELETED":
+                self.deleted[meta["name"]] += 1
+
+    def _run(self) -> None:
+        while not self.stopping.is_set():
+            try:
+                items, version = self.kube.list_with_version(
+                    self.resource, namespace=self.namespace, label_selector=self.selector
+                )
+                for item in items:
+                    self._see("ADDED", item)
+                for kind, obj in self.kube.watch_collection(
+                    self.resource,
+                    resource_version=version,
+                    namespace=self.namespace,
+                    label_selector=self.selector,
+                    timeout_s=20,
+                ):
+                    self._see(kind, obj)
+                    if self.stopping.is_set():
+                        return
+            except ApiError:
+                time.sleep(0.5)  # a gone resourceVersion or a dropped watch: list again
+
+    def count(self) -> int:
+        with self.lock:
+            return sum(1 for name in self.uids if not self.deleted.get(name))
+
+    def doubles(self, keep: set[str]) -> list[str]:
+        """Objects made more than once, and objects of ``keep`` deleted."""
+        kind = self.resource.kind
+        with self.lock:
+            made = [f"{kind} {n} made {len(u)} times" for n, u in self.uids.items() if len(u) > 1]
+            gone = [f"{kind} {n} deleted" for n in keep if self.deleted.get(n)]
+        return made + gone
+
+    def __enter__(self) -> Births:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.stopping.set()
+
+
+def leader(kube: Kube) -> str:
+    lease = kube.get(LEASES, LEASE_NAME, NAMESPACE) or {}
+    return str((lease.get("spec") or {}).get("holderIdentity") or "")
+
+
+def replica(cluster: Cluster, log_dir: Path, identity: str) -> OperatorProcess:
+    return OperatorProcess(
+        cluster,
+        log_dir / f"operator-{identity}.log",
+        namespace=NAMESPACE,
+        args=["--leader-election", f"--identity={identity}"],
+    )
+
+
+def vehicle(name: str, node: str, sysid: int, **spec: Any) -> dict[str, Any]:
+    return {
+        "apiVersion": "roost.dev/v1alpha1",
+        "kind": "Vehicle",
+        "metadata": {"name": name},
+        "spec": {"nodeName": node, "sysid": sysid, **spec},
+    }
+
+
+def mission(name: str, vehicles: list[str]) -> dict[str, Any]:
+    return {
+        "apiVersion": "roost.dev/v1alpha1",
+        "kind": "Mission",
+        "metadata": {"name": name, "namespace": FLIGHTS},
+        "spec": {
+            "vehicles": {"names": vehicles, "count": len(vehicles)},
+            "onboard": {
+                "spec": {
+                    "restartPolicy": "Never",
+                    "schedulingGates": [{"name": HOLD_GATE}],  # the Job stays active
+                    "containers": [{"name": "controller", "image": "example.org/controller:1"}],
+                }
+            },
+        },
+    }
+
+
+def ready(kube: Kube, name: str) -> bool:
+    conditions = ((kube.get(VEHICLES, name) or {}).get("status") or {}).get("conditions") or []
+    return any(c["type"] == "Ready" and c["status"] == "True" for c in conditions)
+
+
+def phase(kube: Kube, name: str) -> str:
+    body = kube.get(MISSIONS, name, FLIGHTS) or {}
+    return str((body.get("status") or {}).get("phase") or "")
+
+
+@contextmanager
+def _nodes(cluster: Cluster, names: list[str]) -> Iterator[None]:
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        list(pool.map(lambda n: cluster.admin.create(nodes.fake_node(n)), names))
+    try:
+        cluster.wait_nodes_ready(names, WAIT_S)
+        yield
+    finally:
+        with ThreadPoolExecutor(max_workers=4) as pool:
+            list(pool.map(cluster.delete_node, names))
+
+
+def kill_the_leader(cluster: Cluster, log_dir: Path, fleet: int = 100) -> Takeover:
+    """Run the scenario of the module docstring on ``cluster``."""
+    kube = cluster.kube("roost-tests")
+    cluster.kubectl("create", "namespace", NAMESPACE, check=False)
+    cluster.kubectl("create", "namespace", FLIGHTS, check=False)
+    run = unique("lead")
+    fleet_names = [f"{run}-{i:03d}" for i in range(fleet)]
+    crew = [f"{run}-crew-{i}" for i in range(2)]
+    one, two = f"{run}-a", f"{run}-b"
+    first, second = replica(cluster, log_dir, one), replica(cluster, log_dir, two)
+    objects = [*[vehicle(n, f"{n}-node", 1 + i % 250) for i, n in enumerate(fleet_names)]]
+    with (
+        _nodes(cluster, [f"{n}-node" for n in [*fleet_names, *crew]]),
+        FakeAgents(cluster) as agents,
+    ):
+        first.start()
+        wait_until("the first replica to lead", lambda: leader(kube) == one, WAIT_S)
+        second.start()  # answers its liveness URL while it stands by
+        try:
+            for i, name in enumerate(crew):
+                off = {"components": {"mavros": {"enabled": False}}}
+                cluster.kubectl(
+                    "apply",
+                    "-f",
+                    "-",
+                    input_text=json.dumps(vehicle(name, f"{name}-node", 251 + i, **off)),
+                )
+                cluster.kubectl(
+                    "apply", "-f", "-", input_text=json.dumps(redundant_autopilot(name))
+                )
+                agents.add(name, name, f"{name}-node")
+            wait_until("the crew Ready", lambda: all(ready(kube, n) for n in crew), WAIT_S)
+            owned = f"{LABEL_MANAGED_BY}={MANAGED_BY}"
+            with (
+                Births(kube, PODS, NAMESPACE, owned) as pods,
+                Births(kube, LEASES, NAMESPACE) as leases,
+                Births(kube, JOBS, FLIGHTS) as jobs,
+            ):
+                name = f"{run}-mission"
+                cluster.kubectl("apply", "-f", "-", input_text=json.dumps(mission(name, crew)))
+                listing = {"apiVersion": "v1", "kind": "List", "items": objects}
+                cluster.kubectl("apply", "--server-side", "-f", "-", input_text=json.dumps(listing))
+                wait_until(
+                    "a quarter of the fleet's pods", lambda: pods.count() >= fleet // 4, WAIT_S
+                )
+                first.crash()
+                killed = time.monotonic()
+                at_kill, phase_at_kill = pods.count(), phase(kube, name)
+                wait_until("the standby to lead", lambda: leader(kube) == two, WAIT_S, 0.05)
+                takeover_s = time.monotonic() - killed
+                wait_until(
+                    "the fleet Ready", lambda: all(ready(kube, n) for n in fleet_names), WAIT_S
+                )
+                wait_until("the Mission Running", lambda: phase(kube, name) == "Running", WAIT_S)
+                wait_until("both Jobs seen", lambda: jobs.count() >= len(crew), WAIT_S)
+                claims = [c for c in leases.uids if c != LEASE_NAME]
+                doubles = [
+                    *pods.doubles(set(pods.uids)),
+                    *leases.doubles(set(claims)),
+                    *jobs.doubles(set(jobs.uids)),
+                ]
+                result = Takeover(
+                    takeover_s=takeover_s,
+                    doubles=doubles,
+                    pods=pods.count(),
+                    claims=len(claims),
+                    jobs=jobs.count(),
+                    pods_at_kill=at_kill,
+                    mission_phase_at_kill=phase_at_kill,
+                )
+            cluster.kubectl("delete", "mission", name, "-n", FLIGHTS, "--timeout=120s")
+            for n in crew:
+                agents.forget(n)
+                cluster.kubectl("delete", "redundantautopilot", n, check=False)
+            cluster.kubectl(
+                "delete", "vehicle", *fleet_names, *crew, "--ignore-not-found", "--timeout=300s"
+            )
+        finally:
+            first.stop()
+            second.stop()
+    return result
