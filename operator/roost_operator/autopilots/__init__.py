@@ -5,9 +5,10 @@ status (it is that status's only writer); this package decides what those report
 for the Vehicle: its ``AgentConnected`` and ``AutopilotsHealthy`` conditions, which
 autopilot the vehicle's mavros follows (also after an automatic failback, which the
 agent decides on the vehicle), and the fleet guards (pause, latch, concurrency cap) on
-those cluster-side actions — never on the on-vehicle switch. The Vehicle controller
-(:mod:`roost_operator.vehicles.controller`) applies the decisions and writes them, as
-the one writer of ``Vehicle.status``.
+those cluster-side actions — never on the on-vehicle switch. The Vehicle controller's
+plan (:mod:`roost_operator.vehicles.plan`) calls it with what it observed (the URL mavros
+uses for each autopilot among it); this package imports nothing of the Vehicle
+controller.
 
 ``conditions``
     AgentConnected / AutopilotsHealthy from the agent's report (pure).

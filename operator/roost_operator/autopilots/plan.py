@@ -19,8 +19,8 @@ What it decides, in order:
    not remediation, and is not guarded. With the agent's MAVLink hub
    (``spec.hub``) there is nothing to re-point: mavros talks to the hub's endpoint,
    whose route the agent moves in the switch itself, so mavros keeps following the
-   primary's configuration and is never rolled on a failover. The re-point mode stays
-   for vehicles without the hub: autopilots reached through an external MAVLink router
+   primary's configuration and is never rolled on a failover. Re-pointing is for
+   vehicles without the hub: autopilots reached through an external MAVLink router
    (one endpoint per autopilot), and simulated vehicles whose SITLs each serve mavros.
 
 Automatic failback (``failoverPolicy.failback: OnGround``) is decided on the vehicle by

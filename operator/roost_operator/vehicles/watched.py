@@ -16,7 +16,7 @@ it went away. Component pods are selected by
 pods carry a vehicle's label too, and are not the vehicle controller's.
 
 Which vehicles a node concerns comes from kopf's index of Vehicles by node
-(:class:`~roost_operator.vehicles.controller.Peers`) plus the vehicle the node is
+(:class:`~roost_operator.vehicles.observe.Peers`) plus the vehicle the node is
 labelled for; an owned object concerns the vehicle in its ``roost.dev/vehicle`` label.
 Before the first handler has bound the index there is nothing to queue: every Vehicle
 is queued by its own first event anyway.
