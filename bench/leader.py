@@ -2,8 +2,8 @@
 replicas (``--leader-election``): ``operator.leader_takeover_s`` and
 ``operator.double_actions_on_takeover``.
 
-The leader is killed (SIGKILL) once a quarter of a 100-Vehicle rollout's pods exist and a
-two-vehicle Mission is starting (:mod:`tests.support.takeover`). The takeover is the time
+The leader is killed (SIGKILL) in the middle of a 100-Vehicle rollout, at the first claim
+of a two-vehicle Mission that is starting (:mod:`tests.support.takeover`). The takeover is the time
 from the kill until the standby holds the Lease (polled every 50 ms); the standby waits
 for one whole lease (8 s) without a renewal on its own clock, then looks every second.
 Double actions are the objects the actions make (component Pods, claim Leases, the
@@ -32,8 +32,8 @@ def run() -> list[Figure]:
         cluster.install_crds()
         result = kill_the_leader(cluster, Path(tmp), fleet=100)
     note = (
-        f"killed at {result.pods_at_kill}/100 pods, Mission {result.mission_phase_at_kill or 'new'}"
-        f"; after: {result.pods} pods, {result.claims} claims, {result.jobs} Jobs"
+        f"killed at {result.at_kill}; after: {result.pods} pods, {result.claims} claims, "
+        f"{result.jobs} Jobs"
     )
     return [
         Figure(

@@ -21,7 +21,8 @@ def test_a_standby_takes_over_a_killed_leader_and_does_nothing_twice(
     roost_crds: Cluster, tmp_path: Path
 ) -> None:
     result = kill_the_leader(roost_crds, tmp_path, fleet=100)
-    assert 0 < result.pods_at_kill < 100, "killed mid-way through the rollout"
+    assert 0 < result.at_kill.pods < 100, f"killed mid-way through the rollout: {result.at_kill}"
+    assert result.at_kill.claims >= 1, "killed once the Mission had started claiming"
     assert result.doubles == []
     assert result.pods == 100, "every vehicle's pod, once"
     assert (result.claims, result.jobs) == (2, 2), "the Mission's claims and Jobs, once"

@@ -2,9 +2,10 @@
 what the standby does: how long it takes the Lease, and whether anything was done twice.
 
 Two ``roost-operator --leader-election`` processes watch the same cluster; the first
-leads. A Mission with two vehicles (stand-in agents report for them) and a fleet of
-Vehicles are applied together; once a quarter of the fleet's pods exist, the leader is
-killed (SIGKILL). The standby takes the Lease and finishes the rollout and the Mission's
+leads. A Mission waits for its two vehicles (their stand-in agents have not reported
+yet) while a fleet of Vehicles is applied; once a tenth of the fleet's pods exist, the
+crew's agents report, and at the Mission's first claim the leader is killed (SIGKILL).
+The standby takes the Lease and finishes the rollout and the Mission's
 start. Watches record every object the actions make (component Pods, claim Leases, the
 Mission's Jobs) by name and uid: an object made twice (a second uid, or a deletion of one
 that should stay) is a double action.
@@ -44,6 +45,22 @@ WAIT_S = 300.0
 
 
 @dataclass(frozen=True)
+class Moment:
+    """How far the rollout and the Mission's start had come when the leader died."""
+
+    pods: int
+    claims: int
+    jobs: int
+    phase: str
+
+    def __str__(self) -> str:
+        return (
+            f"{self.pods} pods, {self.claims} claims, {self.jobs} Jobs, "
+            f"Mission {self.phase or 'new'}"
+        )
+
+
+@dataclass(frozen=True)
 class Takeover:
     """What one kill showed."""
 
@@ -54,8 +71,7 @@ class Takeover:
     pods: int
     claims: int
     jobs: int
-    pods_at_kill: int
-    mission_phase_at_kill: str
+    at_kill: Moment
 
 
 class Births:
@@ -124,6 +140,12 @@ class Births:
         self.stopping.set()
 
 
+def claimed(leases: Births) -> int:
+    """Claim Leases (every Lease in the namespace but the leader's)."""
+    with leases.lock:
+        return sum(1 for n in leases.uids if n != LEASE_NAME and not leases.deleted.get(n))
+
+
 def leader(kube: Kube) -> str:
     lease = kube.get(LEASES, LEASE_NAME, NAMESPACE) or {}
     return str((lease.get("spec") or {}).get("holderIdentity") or "")
@@ -135,6 +157,9 @@ def replica(cluster: Cluster, log_dir: Path, identity: str) -> OperatorProcess:
         log_dir / f"operator-{identity}.log",
         namespace=NAMESPACE,
         args=["--leader-election", f"--identity={identity}"],
+        # two reconcile workers instead of 16: a 100-Vehicle rollout then spans seconds,
+        # long enough to kill the leader in the middle of it
+        environment={"ROOST_RECONCILE_WORKERS": "2"},
     )
 
 
@@ -206,19 +231,10 @@ def kill_the_leader(cluster: Cluster, log_dir: Path, fleet: int = 100) -> Takeov
         wait_until("the first replica to lead", lambda: leader(kube) == one, WAIT_S)
         second.start()  # answers its liveness URL while it stands by
         try:
-            for i, name in enumerate(crew):
+            for i, name in enumerate(crew):  # no agent reports yet: not Ready, not claimed
                 off = {"components": {"mavros": {"enabled": False}}}
-                cluster.kubectl(
-                    "apply",
-                    "-f",
-                    "-",
-                    input_text=json.dumps(vehicle(name, f"{name}-node", 251 + i, **off)),
-                )
-                cluster.kubectl(
-                    "apply", "-f", "-", input_text=json.dumps(redundant_autopilot(name))
-                )
-                agents.add(name, name, f"{name}-node")
-            wait_until("the crew Ready", lambda: all(ready(kube, n) for n in crew), WAIT_S)
+                kube.create(vehicle(name, f"{name}-node", 251 + i, **off))
+                kube.create(redundant_autopilot(name))
             owned = f"{LABEL_MANAGED_BY}={MANAGED_BY}"
             with (
                 Births(kube, PODS, NAMESPACE, owned) as pods,
@@ -226,15 +242,18 @@ def kill_the_leader(cluster: Cluster, log_dir: Path, fleet: int = 100) -> Takeov
                 Births(kube, JOBS, FLIGHTS) as jobs,
             ):
                 name = f"{run}-mission"
-                cluster.kubectl("apply", "-f", "-", input_text=json.dumps(mission(name, crew)))
+                kube.create(mission(name, crew))  # Pending: its vehicles are not Ready
                 listing = {"apiVersion": "v1", "kind": "List", "items": objects}
                 cluster.kubectl("apply", "--server-side", "-f", "-", input_text=json.dumps(listing))
                 wait_until(
-                    "a quarter of the fleet's pods", lambda: pods.count() >= fleet // 4, WAIT_S
+                    "the rollout under way", lambda: pods.count() >= fleet // 10, WAIT_S, 0.02
                 )
+                for name_ in crew:  # the crew's agents report: Ready, and the Mission starts
+                    agents.add(name_, name_, f"{name_}-node")
+                wait_until("the Mission's first claim", lambda: claimed(leases), WAIT_S, 0.02)
                 first.crash()
                 killed = time.monotonic()
-                at_kill, phase_at_kill = pods.count(), phase(kube, name)
+                at_kill = Moment(pods.count(), claimed(leases), jobs.count(), phase(kube, name))
                 wait_until("the standby to lead", lambda: leader(kube) == two, WAIT_S, 0.05)
                 takeover_s = time.monotonic() - killed
                 wait_until(
@@ -254,8 +273,7 @@ def kill_the_leader(cluster: Cluster, log_dir: Path, fleet: int = 100) -> Takeov
                     pods=pods.count(),
                     claims=len(claims),
                     jobs=jobs.count(),
-                    pods_at_kill=at_kill,
-                    mission_phase_at_kill=phase_at_kill,
+                    at_kill=at_kill,
                 )
             cluster.kubectl("delete", "mission", name, "-n", FLIGHTS, "--timeout=120s")
             for n in crew:
