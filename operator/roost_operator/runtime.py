@@ -20,15 +20,13 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, cast
 
-import kopf
-
 from roost_api.wellknown import LABEL_COMPONENT, LABEL_MANAGED_BY, LABEL_VEHICLE, MANAGED_BY
 from roost_kube.client import Kube
-from roost_kube.errors import ApiError
 from roost_kube.resources import CONFIGMAPS, LEASES, NODES, PODS, VEHICLES
 from roost_operator.claims import CLAIM_COMPONENT, Claim, claim_of
-from roost_operator.edge import HandlerTiming, error_kind
+from roost_operator.edge import HandlerTiming
 from roost_operator.engine.cache import Cached
+from roost_operator.engine.errors import error_kind, is_permanent
 from roost_operator.engine.watches import Store, Watcher
 from roost_operator.engine.workqueue import Backoff, WorkQueue
 from roost_operator.settings import Settings
@@ -40,18 +38,6 @@ log = logging.getLogger(__name__)
 
 CLAIM_SELECTOR = f"{LABEL_MANAGED_BY}={MANAGED_BY},{LABEL_COMPONENT}={CLAIM_COMPONENT}"
 """The claim Leases, selected by the API server (never every node's heartbeat Lease)."""
-
-
-def is_permanent(error: BaseException) -> bool:
-    """Whether a reconcile failure will repeat until the object changes.
-
-    Handlers' API errors arrive mapped to kopf's types at the edge
-    (:func:`roost_operator.edge.at_the_edge`); anything else (a bug, a dropped
-    connection) is retried with the queue's backoff, as kopf would.
-    """
-    if isinstance(error, kopf.PermanentError):
-        return True
-    return isinstance(error, ApiError) and not error.temporary
 
 
 @dataclass

@@ -1,34 +1,14 @@
-"""The operator's runtime: which reconcile failures the Vehicle queue retries, and what a
-claim Lease event reaches (the Vehicle queue and the mission controller's listener)."""
+"""The operator's runtime: what a claim Lease event reaches (the Vehicle queue and the
+mission controller's listener)."""
 
 from __future__ import annotations
 
 from typing import Any, cast
 
-import kopf
-import pytest
-
 from roost_kube.client import Kube
-from roost_kube.errors import error_for_status
 from roost_operator.claims import ANNOTATION_CLAIMED_VEHICLE, Claim
-from roost_operator.runtime import Runtime, is_permanent
+from roost_operator.runtime import Runtime
 from roost_operator.settings import Settings
-
-
-@pytest.mark.parametrize(
-    ("error", "permanent"),
-    [
-        (kopf.PermanentError("the spec cannot be written"), True),
-        (kopf.TemporaryError("conflict", delay=1), False),
-        (error_for_status(422, "PATCH", "/x", "{}"), True),
-        (error_for_status(403, "PATCH", "/x", "{}"), True),
-        (error_for_status(409, "PATCH", "/x", "{}"), False),
-        (error_for_status(503, "GET", "/x", "{}"), False),
-        (RuntimeError("a bug or a dropped connection"), False),
-    ],
-)
-def test_which_failures_are_retried(error: BaseException, permanent: bool) -> None:
-    assert is_permanent(error) is permanent
 
 
 def _lease(vehicle: str | None, holder: str) -> dict[str, Any]:

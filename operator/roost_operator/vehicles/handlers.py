@@ -63,7 +63,7 @@ import kopf
 from roost_api.meta import now
 from roost_api.wellknown import PREFIX
 from roost_kube import resources
-from roost_operator.edge import at_the_edge, handler_edge
+from roost_operator.edge import handler_edge
 from roost_operator.engine.watches import Fingerprints
 from roost_operator.runtime import Runtime, runtime
 from roost_operator.settings import Settings
@@ -139,18 +139,17 @@ def peers_from(indexes: Mapping[str, Any]) -> Peers:
 
 
 def reconcile_vehicle(rt: Runtime, vehicle: str) -> None:
-    """One queued reconcile (a worker thread): API errors leave as kopf's error types,
-    which the queue sorts into retried (temporary) and reported once (permanent)."""
+    """One queued reconcile (a worker thread): API errors leave as they are, and the
+    engine's queue retries temporary ones and reports permanent ones once
+    (:mod:`roost_operator.engine.errors`)."""
     peers = rt.peers
     if peers is None:
         # Queued by a node or a pod before kopf delivered any Vehicle event: a vehicle
         # that exists is queued again by its first event; one deleted while the operator
         # was down is released now.
-        with at_the_edge("Vehicle", vehicle):
-            rt.vehicles.release_if_gone(vehicle)
+        rt.vehicles.release_if_gone(vehicle)
         return
-    with at_the_edge("Vehicle", vehicle):
-        outcome = rt.vehicles.reconcile(vehicle, peers)
+    outcome = rt.vehicles.reconcile(vehicle, peers)
     held = rt.held_reports.pop(vehicle, None)
     if outcome is not None and outcome.report_due is not None:
         # A held first report: write it then at the latest.
