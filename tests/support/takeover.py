@@ -2,9 +2,9 @@
 what the standby does: how long it takes the Lease, and whether anything was done twice.
 
 Two ``roost-operator --leader-election`` processes watch the same cluster; the first
-leads. A Mission waits for its two vehicles (their stand-in agents have not reported
-yet) while a fleet of Vehicles is applied; once a tenth of the fleet's pods exist, the
-crew's agents report, and at the Mission's first claim the leader is killed (SIGKILL).
+leads. A fleet of Vehicles is applied; once a tenth of its pods exist, a Mission for two
+other vehicles (Ready, stand-in agents report for them) is created, and at its first
+claim the leader is killed (SIGKILL).
 The standby takes the Lease and finishes the rollout and the Mission's
 start. Watches record every object the actions make (component Pods, claim Leases, the
 Mission's Jobs) by name and uid: an object made twice (a second uid, or a deletion of one
@@ -231,25 +231,24 @@ def kill_the_leader(cluster: Cluster, log_dir: Path, fleet: int = 100) -> Takeov
         wait_until("the first replica to lead", lambda: leader(kube) == one, WAIT_S)
         second.start()  # answers its liveness URL while it stands by
         try:
-            for i, name in enumerate(crew):  # no agent reports yet: not Ready, not claimed
+            for i, name in enumerate(crew):
                 off = {"components": {"mavros": {"enabled": False}}}
                 kube.create(vehicle(name, f"{name}-node", 251 + i, **off))
                 kube.create(redundant_autopilot(name))
+                agents.add(name, name, f"{name}-node")
+            wait_until("the crew Ready", lambda: all(ready(kube, n) for n in crew), WAIT_S)
             owned = f"{LABEL_MANAGED_BY}={MANAGED_BY}"
             with (
                 Births(kube, PODS, NAMESPACE, owned) as pods,
                 Births(kube, LEASES, NAMESPACE) as leases,
                 Births(kube, JOBS, FLIGHTS) as jobs,
             ):
-                name = f"{run}-mission"
-                kube.create(mission(name, crew))  # Pending: its vehicles are not Ready
                 listing = {"apiVersion": "v1", "kind": "List", "items": objects}
                 cluster.kubectl("apply", "--server-side", "-f", "-", input_text=json.dumps(listing))
-                wait_until(
-                    "the rollout under way", lambda: pods.count() >= fleet // 10, WAIT_S, 0.02
-                )
-                for name_ in crew:  # the crew's agents report: Ready, and the Mission starts
-                    agents.add(name_, name_, f"{name_}-node")
+                under_way = lambda: pods.count() >= fleet // 10  # noqa: E731
+                wait_until("the rollout under way", under_way, WAIT_S, 0.02)
+                name = f"{run}-mission"
+                kube.create(mission(name, crew))
                 wait_until("the Mission's first claim", lambda: claimed(leases), WAIT_S, 0.02)
                 first.crash()
                 killed = time.monotonic()
