@@ -236,7 +236,7 @@ def test_helm_install_runs_the_operator_and_an_agent_on_every_vehicle_node_only(
     installed: Cluster,
 ) -> None:
     deployment = _get(installed, "deployment", "-n", NAMESPACE, f"{FULLNAME}-operator")
-    assert deployment["status"].get("availableReplicas") == 1
+    assert deployment["status"].get("availableReplicas") == 2  # a leader and a standby
     wait_until(
         "agent pods on both vehicle nodes", lambda: {NODE_A, NODE_B} <= set(_agent_pods(installed))
     )
@@ -557,8 +557,8 @@ def test_agent_with_its_pod_bound_token_reports_its_autopilots(
 
 @pytest.fixture
 def operator_as_chart_account(installed: Cluster, tmp_path: Path) -> Iterator[OperatorProcess]:
-    """roost-operator with a token of the chart's operator service account and the chart's
-    peering (not standalone), serving its liveness endpoint."""
+    """roost-operator with a token of the chart's operator service account, the chart's
+    peering (not standalone) and its leader election, serving its liveness endpoint."""
     account = installed.as_service_account(NAMESPACE, OPERATOR_SA, tmp_path / "kubeconfig")
     operator = OperatorProcess(
         account,
@@ -566,6 +566,7 @@ def operator_as_chart_account(installed: Cluster, tmp_path: Path) -> Iterator[Op
         namespace=NAMESPACE,
         environment={"ROOST_PEERING": FULLNAME},
         standalone=False,
+        args=["--leader-election"],
     )
     operator.start()
     try:
