@@ -16,8 +16,11 @@ aborts what still flies for the mission and releases its vehicles; its Jobs go b
 owner reference. A cleanup that meets a permanent error still lets the Mission go,
 with a Warning Event naming what was left.
 
-Errors: a reconcile that fails is retried with a doubling backoff
-(:class:`~roost_operator.settings.MissionTimings`); its log line names the Mission.
+Errors: a reconcile that fails is retried with the engine's doubling backoff
+(:class:`~roost_operator.engine.workqueue.Backoff`, timed by
+:class:`~roost_operator.settings.MissionTimings`), a refusal for good
+(:func:`~roost_operator.engine.errors.is_permanent`) reported once; its log line names
+the Mission.
 Handlers are registered by :func:`register`; timings are read from the settings in
 the operator's memo.
 """
@@ -34,13 +37,15 @@ from roost_api.meta import now
 from roost_api.wellknown import LABEL_MISSION
 from roost_kube import resources
 from roost_kube.client import Kube
-from roost_kube.errors import ApiError, TemporaryApiError
+from roost_kube.errors import ApiError
 from roost_operator.claims import Claim
 from roost_operator.edge import at_the_edge, handler_edge
+from roost_operator.engine.errors import is_permanent
+from roost_operator.engine.workqueue import Backoff
 from roost_operator.missions.cluster import reconcile_mission, release_deleted_mission
 from roost_operator.missions.wakeups import Wakeups, sleep_until_woken
 from roost_operator.runtime import runtime
-from roost_operator.settings import MissionTimings, Settings
+from roost_operator.settings import Settings
 
 MISSIONS: Final = resources.MISSIONS.kopf
 VEHICLES: Final = resources.VEHICLES.kopf
@@ -48,12 +53,6 @@ AUTOPILOTS: Final = resources.REDUNDANT_AUTOPILOTS.kopf
 
 WAKEUPS: Final = Wakeups()
 log = logging.getLogger(__name__)
-
-
-def backoff(timings: MissionTimings, failures: int) -> float:
-    """Wait before the next try after ``failures`` failed reconciles in a row (doubling)."""
-    delay = timings.error_backoff_seconds * 2 ** max(failures - 1, 0)
-    return float(min(delay, timings.max_backoff_seconds))
 
 
 def report_refusal(kube: Kube, body: kopf.Body, key: str, error: ApiError) -> None:
@@ -89,6 +88,7 @@ async def mission_daemon(
     assert namespace is not None, "Missions are namespaced"
     rt = runtime(memo)
     timings = rt.settings.missions
+    retry = Backoff(timings.error_backoff_seconds, timings.max_backoff_seconds)
     key = f"{namespace}/{name}"
     wakeup = WAKEUPS.register(key)
     failures = 0
@@ -107,15 +107,15 @@ async def mission_daemon(
                 )
             except ApiError as error:
                 failures += 1
-                delay = backoff(timings, failures)
-                if isinstance(error, TemporaryApiError):
+                delay = retry.delay(failures)
+                if not is_permanent(error):
                     log.warning("Mission %s: %s; retrying in %.1f s", key, error, delay)
                 elif str(error) != reported:  # once per distinct refusal, no traceback
                     reported = str(error)
                     await asyncio.to_thread(report_refusal, rt.kube, body, key, error)
             except Exception:
                 failures += 1
-                delay = backoff(timings, failures)
+                delay = retry.delay(failures)
                 log.exception("Mission %s: reconcile failed; retrying in %.1f s", key, delay)
             else:
                 failures = 0
