@@ -232,6 +232,24 @@ class Kube:
         decoded: Obj = json.loads(raw)
         return decoded
 
+    def get_bytes(
+        self, path: str, *, headers: Mapping[str, str] | None = None, timeout: Timeout | None = None
+    ) -> Response:
+        """GET ``path`` for bytes, not JSON (a pod proxy's files): the status and the body,
+        unread, whatever the status; the caller reads or releases it."""
+        request_headers = {"Accept": "*/*", **(headers or {})}
+        try:
+            return self._transport.send(
+                Request("GET", path, request_headers, None, timeout or self.timeout)
+            )
+        except Exception as exc:
+            transport = transport_of(exc)
+            if transport is None:
+                raise
+            raise ApiUnavailableError(
+                None, "GET", path, f"{type(exc).__name__}: {exc}", transport=transport
+            ) from exc
+
     # -- reads -------------------------------------------------------------------
 
     def get(self, resource: Resource, name: str, namespace: str | None = None) -> Obj | None:
