@@ -209,6 +209,32 @@ def test_operator_role_grants_no_secrets_no_wildcards_and_no_rbac() -> None:
     assert not _grants(rules, "roost.dev", "redundantautopilots/status", "patch")
 
 
+def test_operator_keeps_mission_records_on_its_own_claim_and_may_reach_the_agents() -> None:
+    objects = _render_set("defaults")
+    pod = find(objects, "Deployment", "-operator")["spec"]["template"]["spec"]
+    claim = find(objects, "PersistentVolumeClaim", "-operator-records")
+    assert claim["metadata"]["annotations"]["helm.sh/resource-policy"] == "keep"
+    (volume,) = [v for v in pod["volumes"] if v["name"] == "records"]
+    assert volume["persistentVolumeClaim"]["claimName"] == claim["metadata"]["name"]
+    container = pod["containers"][0]
+    env = {e["name"]: e.get("value") for e in container["env"]}
+    (mount,) = [m for m in container["volumeMounts"] if m["name"] == "records"]
+    assert env["ROOST_RECORDS_DIR"] == mount["mountPath"]
+    assert pod["securityContext"]["fsGroup"] == pod["securityContext"]["runAsGroup"]
+    pods_role = find(objects, "Role", "-operator-pods")["rules"]
+    assert _grants(pods_role, "", "pods/proxy", "get")
+
+    existing = render({"operator": {"records": {"persistence": {"existingClaim": "flights"}}}})
+    assert not [m for m in existing if m["kind"] == "PersistentVolumeClaim"]
+    pod = find(existing, "Deployment", "-operator")["spec"]["template"]["spec"]
+    assert {"name": "records", "persistentVolumeClaim": {"claimName": "flights"}} in pod["volumes"]
+
+    off = render({"operator": {"records": {"enabled": False}}})
+    pod = find(off, "Deployment", "-operator")["spec"]["template"]["spec"]
+    assert not [m for m in off if m["kind"] == "PersistentVolumeClaim"]
+    assert "ROOST_RECORDS_DIR" not in {e["name"] for e in pod["containers"][0]["env"]}
+
+
 # -- agent -----------------------------------------------------------------------------
 
 
