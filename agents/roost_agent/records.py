@@ -129,6 +129,16 @@ class Manifest:
             return self
         return replace(self, state=FlightState.FAILED, message=message)
 
+    def settled(self) -> Manifest:
+        """A landed flight whose files are all written: Complete, or Failed with the
+        first failed file's message."""
+        if self.state is not FlightState.LANDED:
+            return self
+        failed = next((f for f in self.files if f.state is FileState.FAILED), None)
+        if failed is not None:
+            return self.failed(f"{failed.path}: {failed.message}")
+        return replace(self, state=FlightState.COMPLETE)
+
     def to_json(self) -> dict[str, Any]:
         return {
             "flightId": self.flight_id,

@@ -266,7 +266,7 @@ class LogFetcher:
                 bytes=have,
                 sha256=sha256_of(path) if state is FileState.COMPLETE else None,
             )
-            update(lambda m: _with_failure(m.with_file(final)))
+            update(partial(_with_entry, final))
         finally:
             link.log_sink = None
             link.send_message("LOG_REQUEST_END")
@@ -375,15 +375,6 @@ class LogFetcher:
 
 def _with_entry(entry: FileEntry, manifest: Manifest) -> Manifest:
     return manifest.with_file(entry)
-
-
-def _with_failure(manifest: Manifest) -> Manifest:
-    """A flight with a failed autopilot log says so (the first failure's message)."""
-    failed = [f for f in manifest.files if f.state is FileState.FAILED]
-    if not failed:
-        return manifest
-    f = failed[0]
-    return manifest.failed(f"{f.path}: {f.message}")
 
 
 def _get(inbox: queue.SimpleQueue[Any], timeout: float) -> Any:

@@ -44,6 +44,7 @@ from collections import deque
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
+from functools import partial
 from pathlib import Path
 from typing import IO, Any, Protocol
 
@@ -537,8 +538,7 @@ class FlightRecorder:
             log.exception("records: cannot write the manifest of %s", name)
             return
         if self._fetch_logs is None or flight.failed:
-            if not flight.failed:
-                self._update(name, lambda m: replace(m, state=FlightState.COMPLETE))
+            self._update(name, Manifest.settled)
             return
         directory = self.root / name
         (directory / LOGS_DIR).mkdir(exist_ok=True)
@@ -549,15 +549,9 @@ class FlightRecorder:
                 fetch(directory, lambda change: self._update(name, change))
             except Exception as exc:  # a failed fetch marks the flight, never the agent
                 log.exception("records: fetching the autopilots' logs failed")
-                why = f"fetching the autopilots' logs: {exc}"
-                self._update(name, lambda m: m.failed(why))
+                self._update(name, partial(_fetch_failed, f"fetching the autopilots' logs: {exc}"))
                 return
-            self._update(
-                name,
-                lambda m: (
-                    replace(m, state=FlightState.COMPLETE) if m.state is FlightState.LANDED else m
-                ),
-            )
+            self._update(name, Manifest.settled)
 
         self._fetcher = threading.Thread(target=run, name="autopilot-logs", daemon=True)
         self._fetcher.start()
@@ -601,6 +595,14 @@ class FlightRecorder:
                 f"the disk budget of {self.budget_bytes / 1e6:g} MB is reached by this "
                 "flight alone: recording stopped",
             )
+
+
+def _fetch_failed(why: str, manifest: Manifest) -> Manifest:
+    files = tuple(
+        replace(f, state=FileState.FAILED, message=why) if f.state is FileState.PARTIAL else f
+        for f in manifest.files
+    )
+    return replace(manifest, files=files).failed(why)
 
 
 def _size(path: Path) -> int:

@@ -20,8 +20,8 @@ The formats are the real ones, small but complete:
   parameters, and the samples; pymavlink's ``DFReader`` (MAVExplorer, Mission Planner's
   reader) reads it.
 
-Tests damage a stored log (:meth:`SimLogs.truncate`, :meth:`SimLogs.corrupt`) as a
-worn SD card or a stack killed while writing would.
+Tests damage a log (:attr:`SimLogs.damage_next`, :meth:`SimLogs.truncate`,
+:meth:`SimLogs.corrupt`) as a worn SD card or a stack killed while writing would.
 """
 
 from __future__ import annotations
@@ -90,6 +90,10 @@ class SimLogs:
     _credit: float = 0.0
     _last: float | None = None
     served_bytes: int = 0
+    # What happens to the next log written: "truncate" (the stack died while writing:
+    # the file ends early, the listing says the full size) or "corrupt" (its header
+    # is overwritten). Tests set it; cleared once used.
+    damage_next: str | None = None
 
     # -- logging while armed -----------------------------------------------------------
 
@@ -132,6 +136,11 @@ class SimLogs:
             data = dataflash_bytes(samples, params, self.home)
         log_id = (self.logs[-1].id if self.logs else 0) + 1
         self.logs.append(StoredLog(log_id, samples[0].unix_us // 1_000_000, data, len(data)))
+        damage, self.damage_next = self.damage_next, None
+        if damage == "truncate":
+            self.truncate(log_id, len(data) * 2 // 3)
+        elif damage == "corrupt":
+            self.corrupt(log_id)
 
     # -- damage (tests) ----------------------------------------------------------------
 

@@ -139,3 +139,62 @@ def test_a_flight_leaves_tlog_decisions_params_and_both_autopilots_logs(
     assert kinds["PARM"] == len(ardupilot.params.names())
     assert kinds["GPS"] >= SAMPLES
     assert kinds["BARO"] == kinds["GPS"]
+
+
+@pytest.fixture
+def slow_fetch(tmp_path: Path) -> Iterator[tuple[HubVehicle, FlightRecorder, LogFetcher]]:
+    """A fetch slow enough (small windows, a low rate) to be cut in the middle."""
+    with hub_vehicle(["px4", "px4"]) as v:
+        settings = FetchSettings(rate_bytes_per_s=8000, window=450, request_timeout_s=0.5)
+        fetcher = LogFetcher(lambda: v.agent.links, settings=settings)
+        recorder = FlightRecorder(
+            v.agent, tmp_path / "records", budget_bytes=50_000_000, fetch_logs=fetcher
+        )
+        recorder.start()
+        try:
+            yield v, recorder, fetcher
+        finally:
+            recorder.stop()
+
+
+def test_a_download_cut_by_loss_and_a_reboot_resumes_to_the_whole_file(
+    slow_fetch: tuple[HubVehicle, FlightRecorder, LogFetcher],
+) -> None:
+    v, recorder, fetcher = slow_fetch
+    sim = v.sims[0]  # fetched first
+    fly_once(v)
+    wait_until("the download started", lambda: fetcher.bytes_fetched > 0, 10, 0.01)
+    sim.inject("loss", 30)  # a lossy link: lost LOG_DATA are asked for again
+    booted = sim.snapshot().time_boot_ms
+    sim.inject("reboot", 0)  # the autopilot forgets the transfer; the card keeps the log
+    wait_until("rebooted", lambda: sim.snapshot().time_boot_ms < booted, 10, 0.05)
+    manifest = settled(recorder.root)
+    sim.clear("loss")
+    assert manifest.state is FlightState.COMPLETE, manifest
+    entry = manifest.file(f"autopilot-logs/{sim.name}/1.ulg")
+    assert entry is not None and entry.state is FileState.COMPLETE
+    data = (recorder.root / manifest.flight_id / entry.path).read_bytes()
+    assert data == sim.logs.logs[0].data
+    assert sim.logs.served_bytes > len(data)  # some of it was sent twice
+
+
+@pytest.mark.parametrize(
+    ("damage", "expected"),
+    [("truncate", "truncated: the autopilot's file ends at byte"), ("corrupt", "not a ULog")],
+)
+def test_a_damaged_autopilot_log_fails_that_file_and_touches_nothing_else(
+    recorded: tuple[HubVehicle, FlightRecorder], damage: str, expected: str
+) -> None:
+    v, recorder = recorded
+    px4, ardupilot = v.sims
+    px4.logs.damage_next = damage
+    fly_once(v)
+    manifest = settled(recorder.root)
+    assert manifest.state is FlightState.FAILED
+    bad = manifest.file(f"autopilot-logs/{px4.name}/1.ulg")
+    assert bad is not None and bad.state is FileState.FAILED
+    assert expected in bad.message
+    assert manifest.message.startswith(f"{bad.path}: ")
+    others = [f for f in manifest.files if f.path != bad.path]
+    assert {f.state for f in others} == {FileState.COMPLETE}
+    assert manifest.file(f"autopilot-logs/{ardupilot.name}/1.bin") is not None
