@@ -1,12 +1,13 @@
 """Mission records on the real control plane, with ``roost-operator`` as a process.
 
-The vehicles' records servers are real HTTP servers on the loopback serving real flight
-directories as the records contract specifies (:mod:`tests.support.recordserver`); each
-Vehicle's ``roost.dev/records`` annotation points the operator at its server, as the
-sandbox does for agents that run as processes (in a cluster the operator goes through
-the API server's pod proxy instead, which cannot dial the loopback). The vehicles'
-other half is :class:`~tests.support.fakeagents.FakeAgents`, as in
-:mod:`tests.integration.test_mission_operator`, whose helpers these tests share.
+Each vehicle's records are served by the agent's own records server
+(:class:`~roost_agent.records_server.RecordsServer`) over flight directories written
+with the agent's manifest code, behind a TCP relay that plays the WiFi link and can
+drop (:mod:`tests.support.wifilink`). Each Vehicle's ``roost.dev/records`` annotation
+points the operator at its relay, as for agents that run as processes (in a cluster
+the operator goes through the API server's pod proxy instead, which refuses to dial
+the loopback). The vehicles' status half is :class:`~tests.support.fakeagents.FakeAgents`,
+as in :mod:`tests.integration.test_mission_operator`, whose helpers these tests share.
 
 What is checked end to end: the bundle holds exactly the Mission's flights (not an
 earlier one), every file with a sha256 that matches its bytes, the Mission's Events and
@@ -33,6 +34,8 @@ from typing import Any
 
 import pytest
 
+from roost_agent.records import FlightState
+from roost_agent.records_server import RecordsServer
 from roost_api.wellknown import ANNOTATION_RECORDS
 from roost_kube.client import Kube
 from roost_kube.resources import VEHICLES
@@ -41,8 +44,8 @@ from roost_localcluster.controlplane import free_port
 from tests.support.fakeagents import FakeAgents
 from tests.support.missionfleet import FLIGHTS, AddNode, Fleet, mission_status, wait_phase
 from tests.support.operator import OperatorProcess
-from tests.support.recordserver import RecordServer, land, write_flight
 from tests.support.waiting import unique, wait_until
+from tests.support.wifilink import WifiLink, land, write_flight
 
 pytestmark = pytest.mark.cluster
 
@@ -142,12 +145,13 @@ def test_a_missions_record_survives_a_cut_a_vehicle_away_and_a_corrupt_file(
     a, b, c = fleet.add(3)
     armed = datetime.now(UTC).replace(microsecond=0) - timedelta(seconds=2)
     tlog = os.urandom(300_000)
-    servers: dict[str, RecordServer] = {}
+    servers: dict[str, RecordsServer] = {}
+    links: dict[str, WifiLink] = {}
     flights: dict[str, str] = {}
     for vehicle in (a, b, c):
         directory = tmp_path / "vehicles" / vehicle
         earlier = armed - timedelta(hours=1)
-        write_flight(directory, vehicle, earlier, {"hub.tlog": b"old"}, state="Complete",
+        write_flight(directory, vehicle, earlier, {"hub.tlog": b"old"}, state=FlightState.COMPLETE,
                      disarmed_at=earlier + timedelta(minutes=5))  # fmt: skip
         flights[vehicle] = write_flight(
             directory,
@@ -160,14 +164,13 @@ def test_a_missions_record_survives_a_cut_a_vehicle_away_and_a_corrupt_file(
             },
             corrupt=frozenset({"decisions.jsonl"}) if vehicle == c else frozenset(),
         )
-        servers[vehicle] = RecordServer(directory, vehicle).start()
+        servers[vehicle] = RecordsServer(directory, vehicle)
+        links[vehicle] = WifiLink(servers[vehicle].port).up()
         kube.merge_patch(
             VEHICLES,
             vehicle,
-            {"metadata": {"annotations": {ANNOTATION_RECORDS: servers[vehicle].url}}},
+            {"metadata": {"annotations": {ANNOTATION_RECORDS: links[vehicle].url}}},
         )
-    cut_route = f"records/{flights[a]}/hub.tlog"
-    servers[a].cut_next(cut_route, 100_000)
     other = records_dir / "elsewhere_older_00000000"
     other.mkdir()
     (other / "manifest.json").write_text(json.dumps({"readyAt": armed.isoformat(), "files": []}))
@@ -175,13 +178,14 @@ def test_a_missions_record_survives_a_cut_a_vehicle_away_and_a_corrupt_file(
     try:
         name = fleet.mission(unique("recorded"), names=[a, b, c], count=3, hold=False)
         wait_phase(kube, name, "Succeeded")
+        links[a].cut_after(100_000)  # a's link drops in the middle of its tlog
         # Still armed: gathering waits for the flights to end.
         waiting = wait_records(
             kube, name, "waiting for the flights",
             lambda r: "waiting" in (per_vehicle(r).get(a, {}).get("message") or ""),
         )  # fmt: skip
         assert waiting["state"] == "Gathering"
-        servers[b].stop()  # b's WiFi drops before it lands
+        links[b].down()  # b's WiFi drops before it lands
         landed = datetime.now(UTC)
         for vehicle in (a, b, c):
             land(tmp_path / "vehicles" / vehicle, flights[vehicle], landed)
@@ -192,11 +196,12 @@ def test_a_missions_record_survives_a_cut_a_vehicle_away_and_a_corrupt_file(
             and "unreachable" in (per_vehicle(r)[b].get("message") or ""),
         )  # fmt: skip
         assert away["state"] == "Gathering" and "pending: " + b in away["message"]
-        servers[b].start()  # back in range
+        links[b].up()  # back in range
         final = wait_records(kube, name, "the record final", lambda r: r["state"] != "Gathering")
     finally:
-        for server in servers.values():
-            server.stop()
+        for vehicle, server in servers.items():
+            links[vehicle].down()
+            server.close()
 
     assert final["state"] == "Partial", final
     assert {v: s["state"] for v, s in per_vehicle(final).items()} == {
@@ -204,8 +209,7 @@ def test_a_missions_record_survives_a_cut_a_vehicle_away_and_a_corrupt_file(
     }  # fmt: skip
     assert "sha256" in per_vehicle(final)[c]["message"]
     assert final["readyTime"]
-    resumed = [r for route, r in servers[a].requests if route == cut_route and r]
-    assert resumed and resumed[0] != "bytes=0-", "the cut transfer resumed where it stopped"
+    assert links[a].cuts == 1, "the tlog transfer was cut once (and resumed: it is whole)"
 
     bundle = records_dir / final["bundle"]
     manifest = json.loads((bundle / "manifest.json").read_text())
