@@ -432,6 +432,17 @@ def dashboard(
             "--in-cluster", help="Use the pod's service account (the chart's Deployment)."
         ),
     ] = False,
+    records_url: Annotated[
+        str | None,
+        typer.Option(
+            "--records-url",
+            envvar="ROOST_RECORDS_URL",
+            help="The operator's records server, when reachable directly (else the pod proxy).",
+        ),
+    ] = None,
+    operator_namespace: Annotated[
+        str, typer.Option("--operator-namespace", help="Where the operator runs.")
+    ] = "roost-system",
 ) -> None:
     """A live fleet view in the browser: arena, fleet, missions, timeline, guarded actions.
 
@@ -449,8 +460,11 @@ def dashboard(
     else:
         fleet = context.fleet()
     flags = dict(_agent_flag(text) for text in agent or [])
-    if fleet is None and not flags:
-        raise CliError("--no-cluster shows only the agents' streams: name them with --agent")
+    if fleet is None and not flags and not records_url:
+        raise CliError(
+            "--no-cluster shows only the agents' streams (name them with --agent) "
+            "and the records at --records-url"
+        )
 
     def sandbox_endpoints() -> dict[str, str]:
         recorded = sandbox_state.running(context.sandbox_dir)
@@ -468,6 +482,8 @@ def dashboard(
         read_only=read_only,
         origin=_origin_flag(origin) if origin else None,
         tiles=tiles,
+        records_url=records_url,
+        operator_namespace=operator_namespace,
     )
     if fleet is None:
         where, mode = server.NO_CLUSTER, "read-only"

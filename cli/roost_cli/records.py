@@ -190,44 +190,49 @@ def _sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
+def fetch_file(server: Server, bundle: str, entry: Mapping[str, Any], out: Path) -> Path:
+    """One file of the bundle's manifest into ``out`` (kept when already whole; resumed
+    from a ``.part``); CliError when cut or when its sha256 differs."""
+    path = str(entry["path"])
+    if not _safe(path):
+        raise CliError(f"bundle {bundle}: refused path {path!r} in its manifest")
+    target = out / path
+    if target.is_file() and _sha256(target) == entry.get("sha256"):
+        return target
+    part = target.with_name(target.name + ".part")
+    part.parent.mkdir(parents=True, exist_ok=True)
+    offset = part.stat().st_size if part.exists() else 0
+    response = server.get(f"bundles/{bundle}/{path}", offset)
+    try:
+        if response.status not in (200, 206, 416):
+            raise CliError(f"bundle {bundle}: {path}: HTTP {response.status}")
+        if response.status != 416:
+            with part.open("ab" if response.status == 206 else "wb") as handle:
+                try:
+                    for chunk in _chunks(response):
+                        handle.write(chunk)
+                except urllib3.exceptions.HTTPError as error:
+                    raise CliError(
+                        f"bundle {bundle}: {path}: transfer cut ({error}); run the "
+                        "command again to resume"
+                    ) from None
+    finally:
+        response.release_conn()
+    if _sha256(part) != entry.get("sha256"):
+        part.unlink()
+        raise CliError(f"bundle {bundle}: {path}: sha256 differs from the manifest's")
+    part.replace(target)
+    return target
+
+
 def download(server: Server, bundle: str, out: Path) -> Fetched:
     """Every file of the bundle into ``out`` (resuming, sha256-checked), then its manifest."""
     manifest = read_json(server, f"bundles/{bundle}/manifest.json")
     result = Fetched(out)
     for entry in manifest.get("files") or []:
-        path = str(entry["path"])
-        if not _safe(path):
-            raise CliError(f"bundle {bundle}: refused path {path!r} in its manifest")
-        target = out / path
-        if target.is_file() and _sha256(target) == entry.get("sha256"):
-            result.files += 1
-            result.bytes += target.stat().st_size
-            continue
-        part = target.with_name(target.name + ".part")
-        part.parent.mkdir(parents=True, exist_ok=True)
-        offset = part.stat().st_size if part.exists() else 0
-        response = server.get(f"bundles/{bundle}/{path}", offset)
-        try:
-            if response.status not in (200, 206, 416):
-                raise CliError(f"bundle {bundle}: {path}: HTTP {response.status}")
-            if response.status != 416:
-                with part.open("ab" if response.status == 206 else "wb") as handle:
-                    try:
-                        for chunk in _chunks(response):
-                            handle.write(chunk)
-                    except urllib3.exceptions.HTTPError as error:
-                        raise CliError(
-                            f"bundle {bundle}: {path}: transfer cut ({error}); run the "
-                            "command again to resume"
-                        ) from None
-        finally:
-            response.release_conn()
-        if _sha256(part) != entry.get("sha256"):
-            part.unlink()
-            raise CliError(f"bundle {bundle}: {path}: sha256 differs from the manifest's")
+        target = fetch_file(server, bundle, entry, out)
         result.files += 1
-        result.bytes += part.stat().st_size
-        part.replace(target)
+        result.bytes += target.stat().st_size
     (out / "manifest.json").write_text(json.dumps(manifest, indent=2, sort_keys=True) + "\n")
     for item in manifest.get("missing") or []:
         where = "/".join(str(item[k]) for k in ("vehicle", "flightId", "path") if item.get(k))
