@@ -207,7 +207,7 @@ def missions(
 
 
 records_app = typer.Typer(
-    help="Flight records: one bundle per Mission that flew (docs/records.md).",
+    help="Flight records: one bundle per Mission that flew (docs/mission-records.md).",
     no_args_is_help=True,
 )
 app.add_typer(records_app, name="records")

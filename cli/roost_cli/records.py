@@ -1,7 +1,7 @@
 """``roost records``: list the Missions' flight records and fetch a bundle.
 
 A bundle lives on the operator's records volume and is served read-only by the
-operator (docs/records.md). The CLI reaches it through the API server's pod proxy of the
+operator (docs/mission-records.md). The CLI reaches it through the API server's pod proxy of the
 operator pod, with the user's kubeconfig (``get pods/proxy`` in the operator's
 namespace), or at ``--records-url`` where the operator is reachable directly (the
 sandbox, a port-forward).

@@ -1,6 +1,6 @@
 """A bundle on the records volume: one directory per Mission, written by the operator.
 
-Layout (docs/records.md)::
+Layout (docs/mission-records.md)::
 
     <records dir>/<bundle>/
         manifest.json                      what is here, with sha256; what is missing and why
