@@ -30,12 +30,12 @@ from pathlib import Path
 from bench.core import Figure
 from roost_agent.records_server import RecordsServer
 from roost_api.wellknown import ANNOTATION_RECORDS
-from roost_kube.resources import MISSIONS, PODS, VEHICLES
+from roost_kube.resources import MISSIONS, VEHICLES
 from roost_localcluster import binaries
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import ControlPlane
 from tests.support.fakeagents import FakeAgents
-from tests.support.missionfleet import FLIGHTS, Fleet, mission_status, wait_phase
+from tests.support.missionfleet import FLIGHTS, Fleet, mission_status, release_holds, wait_phase
 from tests.support.operator import OperatorProcess
 from tests.support.tlogs import write_flight as write_tlog_flight
 from tests.support.waiting import wait_until
@@ -91,14 +91,7 @@ def run() -> list[Figure]:
                     landed = datetime.now(UTC)
                     for name in names:
                         land(tmp / "vehicles" / name, flights[name], landed)
-                    for pod in kube.list_objects(PODS, namespace=FLIGHTS):
-                        if pod["spec"].get("schedulingGates"):
-                            kube.merge_patch(
-                                PODS,
-                                pod["metadata"]["name"],
-                                {"spec": {"schedulingGates": None}},
-                                namespace=FLIGHTS,
-                            )
+                    release_holds(kube, mission)
                     wait_phase(kube, mission, "Succeeded", TIMEOUT_S)
                     seen_end = time.monotonic()
                     records = wait_until(

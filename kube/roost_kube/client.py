@@ -181,8 +181,9 @@ class Kube:
         body: Any,
         content_type: str,
         timeout: Timeout | None,
+        headers: Mapping[str, str] | None = None,
     ) -> Response:
-        headers = {"Accept": "application/json", "Content-Type": content_type}
+        headers = {"Accept": "application/json", "Content-Type": content_type, **(headers or {})}
         url = f"{path}?{urlencode(query)}" if query else path
         try:
             return self._transport.send(
@@ -237,18 +238,15 @@ class Kube:
     ) -> Response:
         """GET ``path`` for bytes, not JSON (a pod proxy's files): the status and the body,
         unread, whatever the status; the caller reads or releases it."""
-        request_headers = {"Accept": "*/*", **(headers or {})}
-        try:
-            return self._transport.send(
-                Request("GET", path, request_headers, None, timeout or self.timeout)
-            )
-        except Exception as exc:
-            transport = transport_of(exc)
-            if transport is None:
-                raise
-            raise ApiUnavailableError(
-                None, "GET", path, f"{type(exc).__name__}: {exc}", transport=transport
-            ) from exc
+        return self._send(
+            "GET",
+            path,
+            query=None,
+            body=None,
+            content_type="application/json",
+            timeout=timeout or self.timeout,
+            headers={"Accept": "*/*", **(headers or {})},
+        )
 
     # -- reads -------------------------------------------------------------------
 

@@ -70,6 +70,8 @@ from tests.support.missionfleet import (
     Fleet,
     mission_manifest,
     mission_status,
+    pods_of,
+    release_holds,
     vehicle_condition,
     wait_phase,
 )
@@ -128,16 +130,6 @@ def jobs_of(kube: Kube, mission: str) -> dict[str, Obj]:
     }
 
 
-def pods_of(kube: Kube, mission: str) -> list[Obj]:
-    return [
-        p
-        for p in kube.list_objects(
-            PODS, namespace=FLIGHTS, labels={LABEL_MISSION: bounded_name(mission)}
-        )
-        if not p["metadata"].get("deletionTimestamp")
-    ]
-
-
 def claimed_by(kube: Kube, vehicle: str) -> str | None:
     """``namespace/name`` of the Mission whose claim Lease holds ``vehicle``, if any."""
     claim = claim_of(kube.get(LEASES, lease_name(vehicle), OPERATOR_NAMESPACE) or {})
@@ -153,20 +145,6 @@ def command_of(kube: Kube, vehicle: str) -> Obj | None:
 
 def assigned(status: Obj) -> list[str]:
     return [v["name"] for v in status.get("vehicles") or []]
-
-
-def release_holds(kube: Kube, mission: str, vehicle: str | None = None) -> None:
-    """Remove the scheduling gates: the pods get scheduled, kwok runs and completes them."""
-    for pod in pods_of(kube, mission):
-        if vehicle is not None and pod["metadata"]["labels"].get(LABEL_VEHICLE) != vehicle:
-            continue
-        if pod["spec"].get("schedulingGates"):
-            kube.merge_patch(
-                PODS,
-                pod["metadata"]["name"],
-                {"spec": {"schedulingGates": None}},
-                namespace=FLIGHTS,
-            )
 
 
 def events_for(cluster: Cluster, mission: str) -> list[str]:

@@ -13,10 +13,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from roost_api.wellknown import LABEL_MISSION, LABEL_VEHICLE
 from roost_kube.client import Kube
 from roost_kube.patches import Obj
-from roost_kube.resources import MISSIONS, VEHICLES
+from roost_kube.resources import MISSIONS, PODS, VEHICLES
 from roost_localcluster.cluster import Cluster
+from roost_operator.missions.workloads import bounded_name
 from tests.support.fakeagents import FakeAgents, redundant_autopilot
 from tests.support.waiting import unique, wait_until
 
@@ -156,3 +158,27 @@ def wait_phase(kube: Kube, name: str, phase: str, timeout_s: float = WAIT_S) -> 
         status = json.dumps(mission_status(kube, name))
         raise AssertionError(f"{error}; status now: {status}") from error
     return result
+
+
+def pods_of(kube: Kube, mission: str) -> list[Obj]:
+    return [
+        p
+        for p in kube.list_objects(
+            PODS, namespace=FLIGHTS, labels={LABEL_MISSION: bounded_name(mission)}
+        )
+        if not p["metadata"].get("deletionTimestamp")
+    ]
+
+
+def release_holds(kube: Kube, mission: str, vehicle: str | None = None) -> None:
+    """Remove the scheduling gates: the pods get scheduled, kwok runs and completes them."""
+    for pod in pods_of(kube, mission):
+        if vehicle is not None and pod["metadata"]["labels"].get(LABEL_VEHICLE) != vehicle:
+            continue
+        if pod["spec"].get("schedulingGates"):
+            kube.merge_patch(
+                PODS,
+                pod["metadata"]["name"],
+                {"spec": {"schedulingGates": None}},
+                namespace=FLIGHTS,
+            )

@@ -9,7 +9,7 @@ controller — pure decisions, thin I/O:
 ``planning``
     Pure: which flights belong to a Mission, which files are still to fetch, what is
     missing and why, the bundle's and each vehicle's state, which bundles retention
-    removes. Decision tables in ``tests/unit/test_records_planning.py``.
+    removes. Decision tables in ``tests/unit/test_operator_records_planning.py``.
 ``source``
     How the operator reaches a vehicle's records server (pod proxy, or a direct URL).
 ``bundle``
