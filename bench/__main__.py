@@ -38,7 +38,7 @@ MODULES: tuple[str, ...] = (
     "fleet",
     "fleetapi",
     "sandbox",
-    "records",
+    "missionrecords",
 )
 
 

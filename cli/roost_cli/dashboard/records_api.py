@@ -31,10 +31,12 @@ class NotFoundError(Exception):
 
 @dataclass
 class RecordsAccess:
-    """Reads bundles from ``server()`` (None: no records server known) into ``cache``."""
+    """Reads bundles from ``server()`` (None: no records server known) into a cache
+    directory made on first use (``cache()``), so a dashboard on a read-only root
+    filesystem without a scratch volume still serves everything but the plots."""
 
     server: Callable[[], records.Server | None]
-    cache: Path
+    cache: Callable[[], Path]
     origin: Origin | None = None
 
     def _server(self) -> records.Server:
@@ -70,7 +72,10 @@ class RecordsAccess:
         files = {
             f.get("name"): f for f in manifest.get("files") or [] if f.get("flightId") == flight_id
         }
-        out = self.cache / bundle
+        try:
+            out = self.cache() / bundle
+        except OSError as error:
+            raise CliError(f"no scratch directory for the flight's files: {error}") from None
         server = self._server()
 
         def local(name: str) -> Path | None:

@@ -278,7 +278,13 @@ def records_access(fleet: Fleet | None, settings: Settings) -> records_api.Recor
         pod = fleet.operator_pod(settings.operator_namespace)
         return records.ProxyServer(fleet.kube, settings.operator_namespace, pod)
 
-    cache = Path(tempfile.mkdtemp(prefix="roost-dashboard-records-"))
+    made: list[Path] = []
+
+    def cache() -> Path:
+        if not made:
+            made.append(Path(tempfile.mkdtemp(prefix="roost-dashboard-records-")))
+        return made[0]
+
     return records_api.RecordsAccess(server, cache, settings.origin)
 
 

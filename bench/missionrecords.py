@@ -35,13 +35,20 @@ from roost_localcluster import binaries
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import ControlPlane
 from tests.support.fakeagents import FakeAgents
-from tests.support.missionfleet import FLIGHTS, Fleet, mission_status, release_holds, wait_phase
+from tests.support.missionfleet import (
+    FLIGHTS,
+    Fleet,
+    mission_status,
+    pods_of,
+    release_holds,
+    wait_phase,
+)
 from tests.support.operator import OperatorProcess
 from tests.support.tlogs import write_flight as write_tlog_flight
 from tests.support.waiting import wait_until
 from tests.support.wifilink import land, write_flight
 
-COMMAND = "python -m bench records"
+COMMAND = "python -m bench missionrecords"
 NAMESPACE = "roost-bench-records"
 VEHICLES_N = 3
 FLIGHT_S = 300.0
@@ -91,6 +98,11 @@ def run() -> list[Figure]:
                     landed = datetime.now(UTC)
                     for name in names:
                         land(tmp / "vehicles" / name, flights[name], landed)
+                    wait_until(
+                        "the onboard pods",  # created right after the Running status
+                        lambda: len(pods_of(kube, mission)) == VEHICLES_N,
+                        TIMEOUT_S,
+                    )
                     release_holds(kube, mission)
                     wait_phase(kube, mission, "Succeeded", TIMEOUT_S)
                     seen_end = time.monotonic()
