@@ -170,7 +170,7 @@ def parse_args(argv: list[str] | None, environ: Mapping[str, str]) -> tuple[Any,
         "--records-port",
         type=int,
         default=int(environ.get("ROOST_RECORDS_PORT", "0")),
-        help="serve the Mission records (bundles) read-only on this port (0: off; docs/mission-records.md)",
+        help="serve the Mission records read-only on this port (0: off; docs/mission-records.md)",
     )
     parser.add_argument(
         "--records-address",

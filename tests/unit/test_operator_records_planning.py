@@ -291,6 +291,8 @@ def test_a_mission_that_flew_starts_gathering_when_it_ends() -> None:
     assert [v.name for v in records.vehicles] == ["a", "b"]
     assert plan.requeue_after == 0.0
     assert plan_mission(obs).status.records is None  # records off: nothing
+    ended = replace(obs, status=plan_mission(obs).status, records=True)
+    assert plan_mission(ended).status.records is None  # ended before records were on
 
 
 def test_a_mission_that_never_flew_gets_no_record() -> None:

@@ -229,11 +229,14 @@ def plan_mission(obs: Observation) -> Plan:
 
 
 def _start_records(obs: Observation, plan: Plan) -> None:
-    """A mission that flew and has just ended: its record starts Gathering (the next
-    reconcile gathers; see :mod:`roost_operator.records.gather`). One that never
-    started has nothing to record and gets no ``status.records``."""
+    """A mission that flew and ends now: its record starts Gathering in the same status
+    write as its final phase (the next reconcile gathers; see
+    :mod:`roost_operator.records.gather`). One that never started has nothing to record
+    and gets no ``status.records``; nor does one that had ended before records were on
+    (an upgraded operator does not go back over every old Mission)."""
     status = plan.status
-    if not (obs.records and MissionPhase(status.phase).finished and status.records is None):
+    ends_now = MissionPhase(status.phase).finished and not MissionPhase(obs.status.phase).finished
+    if not (obs.records and ends_now and status.records is None):
         return
     if status.start_time is None:
         return
