@@ -25,7 +25,7 @@ so the arming command and its answer are in the record.
   disarmed).
 
 The disk budget (:func:`roost_agent.records.choose_deletions`) deletes the oldest
-flights, never the current one; when the current flight alone is over budget, or the
+flights, never the current one (on the ground, never the last one); when the current flight alone is over budget, or the
 disk is full, that flight is marked Failed with a message and recording stops for it.
 Flying goes on either way. After landing the autopilots' logs are fetched
 (:mod:`roost_agent.records_logs`).
@@ -196,6 +196,7 @@ class FlightRecorder:
         clock: Callable[[], float] = time.monotonic,
         wall_clock: Callable[[], datetime] = lambda: datetime.now(UTC),
         queue_frames: int = QUEUE_FRAMES,
+        budget_check_s: float = BUDGET_CHECK_S,
     ) -> None:
         self._agent = agent
         self.root = root
@@ -204,6 +205,7 @@ class FlightRecorder:
         self._clock = clock
         self._wall_clock = wall_clock
         self.tap = FrameTap(queue_frames)
+        self._budget_check_s = budget_check_s
         self._decisions: deque[bytes] = deque()
         self.decisions_dropped = 0
         self._preroll: deque[tuple[float, bytes]] = deque()
@@ -312,7 +314,7 @@ class FlightRecorder:
             self._write(flight, frames, lines, now)
         if flight is not None and not airborne:
             self._end(flight)
-        if now - self._last_budget >= BUDGET_CHECK_S:
+        if now - self._last_budget >= self._budget_check_s:
             self._last_budget = now
             self._keep_budget()
 
@@ -579,9 +581,13 @@ class FlightRecorder:
     # -- the disk budget -----------------------------------------------------------------
 
     def _keep_budget(self) -> None:
-        current = self.current
         try:
-            choice = choose_deletions(stored_flights(self.root), current, self.budget_bytes)
+            flights = stored_flights(self.root)
+            # never the current flight; on the ground never the last one either (a
+            # flight too big for the budget alone keeps its record of why it failed)
+            last = max(flights, key=lambda f: (f.armed_at, f.flight_id), default=None)
+            keep = self.current or (last.flight_id if last is not None else None)
+            choice = choose_deletions(flights, keep, self.budget_bytes)
         except OSError:
             log.exception("records: cannot measure the records")
             return
