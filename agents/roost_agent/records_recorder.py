@@ -27,8 +27,8 @@ so the arming command and its answer are in the record.
 The disk budget (:func:`roost_agent.records.choose_deletions`) deletes the oldest
 flights, never the current one (on the ground, never the last one); when the current
 flight alone is over budget, or the disk is full, that flight is marked Failed with a
-message and recording stops for it. Flying goes on either way. After landing the autopilots' logs are fetched
-(:mod:`roost_agent.records_logs`).
+message and recording stops for it. Flying goes on either way. After landing the
+autopilots' logs are fetched (:mod:`roost_agent.records_logs`).
 """
 
 from __future__ import annotations
