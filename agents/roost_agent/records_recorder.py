@@ -255,8 +255,9 @@ class FlightRecorder:
         return None if flight is None else flight.manifest.flight_id
 
     @property
-    def dropped(self) -> int:
-        return self.tap.dropped + self.decisions_dropped
+    def dropped_frames(self) -> int:
+        """Frames the tap dropped (queue full) since the agent started."""
+        return self.tap.dropped
 
     def _recover(self) -> None:
         """A flight left Recording by a crash or a power cut is closed as it stands."""
