@@ -213,6 +213,7 @@ class FlightRecorder:
         self._params: dict[int, _ParamTable] = {}
         self._flight: _Flight | None = None
         self._manifest_lock = threading.Lock()
+        self._step_lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._unsubscribe: Callable[[], None] | None = None
@@ -220,6 +221,9 @@ class FlightRecorder:
         self._last_sync = 0.0
         self._last_budget = 0.0
         self.flights_recorded = 0
+        self.frames_written = 0
+        # Paused: the links are detached (nothing is tapped); the benchmark compares.
+        self.paused = False
         root.mkdir(parents=True, exist_ok=True)
         self._recover()
 
@@ -273,10 +277,11 @@ class FlightRecorder:
 
     def _attach(self) -> None:
         """Every link of the agent records into the tap (a link replaced by a spec
-        change is attached on the next round)."""
+        change is attached on the next round); none while paused."""
+        wanted = None if self.paused else self.tap
         for link in self._agent.links.values():
-            if link.record is not self.tap:
-                link.record = self.tap
+            if link.record is not wanted:
+                link.record = wanted
 
     def _on_event(self, event: Any) -> None:
         """The agent's event path (its notifier thread): one JSON line, queued."""
@@ -297,7 +302,11 @@ class FlightRecorder:
 
     def step(self) -> None:
         """One round: attach links, follow arming, write what was queued, keep the
-        budget (public for tests that drive the recorder without its thread)."""
+        budget (also called by the benchmark to attach or detach at once)."""
+        with self._step_lock:
+            self._step()
+
+    def _step(self) -> None:
         now = self._clock()
         self._attach()
         frames = self.tap.drain()
@@ -443,6 +452,7 @@ class FlightRecorder:
         try:
             data = b"".join([_STAMP.pack(int(at * 1_000_000)) + frame for at, frame in frames])
             flight.tlog.write(data)
+            self.frames_written += len(frames)
             flight.decisions.write(b"".join(lines))
             flight.written += len(data) + sum(len(line) for line in lines)
             if now - self._last_sync >= SYNC_PERIOD_S:
