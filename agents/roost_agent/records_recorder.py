@@ -222,6 +222,7 @@ class FlightRecorder:
         self._last_budget = 0.0
         self.flights_recorded = 0
         self.frames_written = 0
+        self.cpu_s = 0.0  # CPU time of the recording rounds (the writer's side)
         # Paused: the links are detached (nothing is tapped); the benchmark compares.
         self.paused = False
         root.mkdir(parents=True, exist_ok=True)
@@ -304,7 +305,9 @@ class FlightRecorder:
         """One round: attach links, follow arming, write what was queued, keep the
         budget (also called by the benchmark to attach or detach at once)."""
         with self._step_lock:
+            started = time.thread_time()
             self._step()
+            self.cpu_s += time.thread_time() - started
 
     def _step(self) -> None:
         now = self._clock()
