@@ -27,6 +27,7 @@ MODULES: tuple[str, ...] = (
     "vehicle",
     "hub",
     "hubsigning",
+    "records",
     "standby",
     "params",
     "disruption",

@@ -479,7 +479,11 @@ def main(argv: list[str] | None = None) -> int:
 
         try:
             metrics = MetricsServer(
-                agent, address=args.metrics_address, port=args.metrics_port, publisher=publisher
+                agent,
+                address=args.metrics_address,
+                port=args.metrics_port,
+                publisher=publisher,
+                recorder=recorder,
             )
         except OSError as exc:
             # Supervising the autopilots matters more than being observed: fly on.

@@ -25,10 +25,10 @@ so the arming command and its answer are in the record.
   disarmed).
 
 The disk budget (:func:`roost_agent.records.choose_deletions`) deletes the oldest
-flights, never the current one; when the current flight alone is over budget, or the
-disk is full, that flight is marked Failed with a message and recording stops for it.
-Flying goes on either way. After landing the autopilots' logs are fetched
-(:mod:`roost_agent.records_logs`).
+flights, never the current one (on the ground, never the last one); when the current
+flight alone is over budget, or the disk is full, that flight is marked Failed with a
+message and recording stops for it. Flying goes on either way. After landing the
+autopilots' logs are fetched (:mod:`roost_agent.records_logs`).
 """
 
 from __future__ import annotations
@@ -196,6 +196,7 @@ class FlightRecorder:
         clock: Callable[[], float] = time.monotonic,
         wall_clock: Callable[[], datetime] = lambda: datetime.now(UTC),
         queue_frames: int = QUEUE_FRAMES,
+        budget_check_s: float = BUDGET_CHECK_S,
     ) -> None:
         self._agent = agent
         self.root = root
@@ -204,6 +205,7 @@ class FlightRecorder:
         self._clock = clock
         self._wall_clock = wall_clock
         self.tap = FrameTap(queue_frames)
+        self._budget_check_s = budget_check_s
         self._decisions: deque[bytes] = deque()
         self.decisions_dropped = 0
         self._preroll: deque[tuple[float, bytes]] = deque()
@@ -211,6 +213,7 @@ class FlightRecorder:
         self._params: dict[int, _ParamTable] = {}
         self._flight: _Flight | None = None
         self._manifest_lock = threading.Lock()
+        self._step_lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._unsubscribe: Callable[[], None] | None = None
@@ -218,6 +221,10 @@ class FlightRecorder:
         self._last_sync = 0.0
         self._last_budget = 0.0
         self.flights_recorded = 0
+        self.frames_written = 0
+        self.cpu_s = 0.0  # CPU time of the recording rounds (the writer's side)
+        # Paused: the links are detached (nothing is tapped); the benchmark compares.
+        self.paused = False
         root.mkdir(parents=True, exist_ok=True)
         self._recover()
 
@@ -253,8 +260,9 @@ class FlightRecorder:
         return None if flight is None else flight.manifest.flight_id
 
     @property
-    def dropped(self) -> int:
-        return self.tap.dropped + self.decisions_dropped
+    def dropped_frames(self) -> int:
+        """Frames the tap dropped (queue full) since the agent started."""
+        return self.tap.dropped
 
     def _recover(self) -> None:
         """A flight left Recording by a crash or a power cut is closed as it stands."""
@@ -270,10 +278,11 @@ class FlightRecorder:
 
     def _attach(self) -> None:
         """Every link of the agent records into the tap (a link replaced by a spec
-        change is attached on the next round)."""
+        change is attached on the next round); none while paused."""
+        wanted = None if self.paused else self.tap
         for link in self._agent.links.values():
-            if link.record is not self.tap:
-                link.record = self.tap
+            if link.record is not wanted:
+                link.record = wanted
 
     def _on_event(self, event: Any) -> None:
         """The agent's event path (its notifier thread): one JSON line, queued."""
@@ -294,7 +303,13 @@ class FlightRecorder:
 
     def step(self) -> None:
         """One round: attach links, follow arming, write what was queued, keep the
-        budget (public for tests that drive the recorder without its thread)."""
+        budget (also called by the benchmark to attach or detach at once)."""
+        with self._step_lock:
+            started = time.thread_time()
+            self._step()
+            self.cpu_s += time.thread_time() - started
+
+    def _step(self) -> None:
         now = self._clock()
         self._attach()
         frames = self.tap.drain()
@@ -312,7 +327,7 @@ class FlightRecorder:
             self._write(flight, frames, lines, now)
         if flight is not None and not airborne:
             self._end(flight)
-        if now - self._last_budget >= BUDGET_CHECK_S:
+        if now - self._last_budget >= self._budget_check_s:
             self._last_budget = now
             self._keep_budget()
 
@@ -440,6 +455,7 @@ class FlightRecorder:
         try:
             data = b"".join([_STAMP.pack(int(at * 1_000_000)) + frame for at, frame in frames])
             flight.tlog.write(data)
+            self.frames_written += len(frames)
             flight.decisions.write(b"".join(lines))
             flight.written += len(data) + sum(len(line) for line in lines)
             if now - self._last_sync >= SYNC_PERIOD_S:
@@ -579,9 +595,13 @@ class FlightRecorder:
     # -- the disk budget -----------------------------------------------------------------
 
     def _keep_budget(self) -> None:
-        current = self.current
         try:
-            choice = choose_deletions(stored_flights(self.root), current, self.budget_bytes)
+            flights = stored_flights(self.root)
+            # never the current flight; on the ground never the last one either (a
+            # flight too big for the budget alone keeps its record of why it failed)
+            last = max(flights, key=lambda f: (f.armed_at, f.flight_id), default=None)
+            keep = self.current or (last.flight_id if last is not None else None)
+            choice = choose_deletions(flights, keep, self.budget_bytes)
         except OSError:
             log.exception("records: cannot measure the records")
             return

@@ -37,7 +37,7 @@ from roost_api.core import Stack
 LOG_DATA_BYTES = 90
 DEFAULT_RATE_BYTES_PER_S = 150_000.0
 SAMPLE_PERIOD_S = 0.1
-MAX_BURST = 64  # LOG_DATA messages per tick at most
+MAX_BURST = 24  # LOG_DATA messages per tick at most (a burst is spread, not dumped)
 ULOG_MAGIC = b"ULog\x01\x12\x35"
 ULOG_SYNC = bytes((0x2F, 0x73, 0x13, 0x20, 0x25, 0x0C, 0xBB, 0x12))
 DATAFLASH_HEAD = b"\xa3\x95"

@@ -57,15 +57,22 @@ def _get(port: int, path: str) -> tuple[int, bytes]:
         conn.close()
 
 
+def _recording_agent(
+    tmp_path: Path, sims: list[SimulatedAutopilot], vehicle: str, port: int
+) -> AgentProcess:
+    """A started roost-agent recording into ``tmp_path/records``."""
+    spec = RedundantAutopilotSpec(
+        vehicle_name=vehicle, autopilots=autopilot_specs(sims), primary=sims[0].name
+    )
+    args = ["--records-dir", str(tmp_path / "records"), "--records-port", str(port)]
+    return AgentProcess.standalone(tmp_path / "agent", spec, extra_args=args)
+
+
 def test_a_killed_agent_loses_at_most_about_the_last_second(
     tmp_path: Path, sims: list[SimulatedAutopilot]
 ) -> None:
-    spec = RedundantAutopilotSpec(
-        vehicle_name="crashy", autopilots=autopilot_specs(sims), primary=sims[0].name
-    )
     records = tmp_path / "records"
-    args = ["--records-dir", str(records), "--records-port", "0"]
-    agent = AgentProcess.standalone(tmp_path / "agent", spec, extra_args=args)
+    agent = _recording_agent(tmp_path, sims, "crashy", 0)
     try:
         agent.wait_ok([s.name for s in sims])
         for sim in sims:
@@ -84,7 +91,7 @@ def test_a_killed_agent_loses_at_most_about_the_last_second(
         [manifest] = read_manifests(records)
         assert manifest.state is FlightState.RECORDING  # nobody closed it
 
-        agent = AgentProcess.standalone(tmp_path / "agent", spec, extra_args=args)
+        agent = _recording_agent(tmp_path, sims, "crashy", 0)
         wait_until(
             "the crashed flight closed",
             lambda: read_manifests(records)[-1].state is FlightState.FAILED,
@@ -101,15 +108,10 @@ def test_a_killed_agent_loses_at_most_about_the_last_second(
 def test_the_agent_serves_its_records_on_the_records_port(
     tmp_path: Path, sims: list[SimulatedAutopilot]
 ) -> None:
-    spec = RedundantAutopilotSpec(
-        vehicle_name="served", autopilots=autopilot_specs(sims), primary=sims[0].name
-    )
-    records = tmp_path / "records"
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
-    args = ["--records-dir", str(records), "--records-port", str(port)]
-    agent = AgentProcess.standalone(tmp_path / "agent", spec, extra_args=args)
+    agent = _recording_agent(tmp_path, sims, "served", port)
     try:
         announced = agent.wait_for(lambda doc: "records" in doc, 15)
         assert announced["records"] == f"http://127.0.0.1:{port}/records"

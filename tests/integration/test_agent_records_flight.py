@@ -13,13 +13,21 @@ from __future__ import annotations
 import json
 import struct
 from collections.abc import Iterator
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
 import pytest
 from pymavlink import DFReader, mavutil
 
-from roost_agent.records import FileState, FlightState, Manifest, read_manifests
+from roost_agent.records import (
+    FileState,
+    FlightState,
+    Manifest,
+    flight_id,
+    read_manifests,
+    write_manifest,
+)
 from roost_agent.records_logs import FetchSettings, LogFetcher, check_ulog
 from roost_agent.records_recorder import FlightRecorder
 from roost_mavlink import MAV_CMD_COMPONENT_ARM_DISARM, MavResult
@@ -198,3 +206,63 @@ def test_a_damaged_autopilot_log_fails_that_file_and_touches_nothing_else(
     others = [f for f in manifest.files if f.path != bad.path]
     assert {f.state for f in others} == {FileState.COMPLETE}
     assert manifest.file(f"autopilot-logs/{ardupilot.name}/1.bin") is not None
+
+
+def _old_flight(root: Path, minutes_ago: int, size: int) -> str:
+    armed = datetime.now(UTC) - timedelta(minutes=minutes_ago)
+    manifest = Manifest(flight_id("v1", armed, ()), "v1", armed, armed, FlightState.COMPLETE)
+    (root / manifest.flight_id).mkdir(parents=True)
+    (root / manifest.flight_id / "hub.tlog").write_bytes(bytes(size))
+    write_manifest(root, manifest)
+    return manifest.flight_id
+
+
+def test_a_flight_over_the_disk_budget_fails_and_the_vehicle_flies_on(tmp_path: Path) -> None:
+    root = tmp_path / "records"
+    oldest, older = _old_flight(root, 60, 20_000), _old_flight(root, 30, 20_000)
+    with hub_vehicle(["px4", "px4"]) as v:
+        recorder = FlightRecorder(v.agent, root, budget_bytes=60_000, budget_check_s=0.2)
+        recorder.start()
+        try:
+            assert v.client.command(VEHICLE_SYSID, MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
+            wait_until(
+                "the flight over budget",
+                lambda: read_manifests(root)[0].state is FlightState.FAILED,
+                30,
+            )
+            # the oldest went first, then the next; the current one is kept, Failed
+            assert [m.flight_id for m in read_manifests(root)] == [recorder.current]
+            assert not (root / oldest).exists() and not (root / older).exists()
+            failed = read_manifests(root)[0]
+            assert "disk budget of 0.06 MB is reached by this flight alone" in failed.message
+            # flying is untouched: the hub routes, commands are answered, health holds
+            assert v.client.command(VEHICLE_SYSID, MAV_CMD_COMPONENT_ARM_DISARM, 0) == 0
+            wait_until("disarmed", lambda: not any(s.snapshot().armed for s in v.sims), 5)
+            assert {a.level.value for a in v.agent.assessments().values()} == {"OK"}
+            wait_until("landed", lambda: read_manifests(root)[0].disarmed_at is not None, 5)
+            landed = read_manifests(root)[0]
+            assert landed.state is FlightState.FAILED and landed.dropped["tlog"] > 0
+        finally:
+            recorder.stop()
+
+
+def test_a_full_disk_fails_the_flight_with_why_and_the_vehicle_flies_on(
+    recorded: tuple[HubVehicle, FlightRecorder],
+) -> None:
+    v, recorder = recorded
+    assert v.client.command(VEHICLE_SYSID, MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
+    wait_until("recording", lambda: recorder.current is not None, 5)
+    # The one stand-in: the flight's tlog is swapped for /dev/full (a real device whose
+    # every write fails with ENOSPC), as filling a real filesystem would need a mount.
+    flight = recorder._flight
+    assert flight is not None and flight.tlog is not None
+    flight.tlog = Path("/dev/full").open("ab", buffering=0)  # noqa: SIM115
+    wait_until(
+        "the flight failed",
+        lambda: read_manifests(recorder.root)[0].state is FlightState.FAILED,
+        10,
+    )
+    assert "the disk is full" in read_manifests(recorder.root)[0].message
+    assert v.client.command(VEHICLE_SYSID, MAV_CMD_COMPONENT_ARM_DISARM, 0) == 0
+    wait_until("disarmed", lambda: not any(s.snapshot().armed for s in v.sims), 5)
+    assert {a.level.value for a in v.agent.assessments().values()} == {"OK"}
