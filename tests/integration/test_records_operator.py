@@ -15,7 +15,8 @@ final state; a transfer cut mid-file resumes with a Range request; a vehicle awa
 the end is gathered when it is back; a file whose sha256 does not match is downloaded
 again, then named as corrupt (bundle Partial); another bundle on the volume is not
 touched; ``roost records get`` fetches the bundle through the operator's records server;
-a Mission that never flew has no record and ``roost records get`` says so, exit 1.
+a Mission that never flew has no record and ``roost records get`` says so, exit 1; an
+unusable records volume fails the record with why.
 About 30 s on two cores (most of it the Vehicles becoming Ready).
 """
 
@@ -36,11 +37,15 @@ import pytest
 
 from roost_agent.records import FlightState
 from roost_agent.records_server import RecordsServer
+from roost_api.mission import MissionPhase, MissionStatus, RecordsState
 from roost_api.wellknown import ANNOTATION_RECORDS
 from roost_kube.client import Kube
 from roost_kube.resources import VEHICLES
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import free_port
+from roost_operator.records.gather import VehicleTarget, gather_round
+from roost_operator.records.planning import gathering
+from roost_operator.records.settings import RecordsSettings
 from tests.support.fakeagents import FakeAgents
 from tests.support.missionfleet import FLIGHTS, AddNode, Fleet, mission_status, wait_phase
 from tests.support.operator import OperatorProcess
@@ -260,3 +265,29 @@ def test_a_mission_that_never_flew_has_no_record_and_get_says_so(
     assert got.returncode == 1
     assert "never flew" in got.stderr and "Traceback" not in got.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_an_unusable_records_volume_fails_the_record_once_with_why(
+    kube: Kube, tmp_path: Path
+) -> None:
+    """The volume is a file, not a directory: the round ends Failed (final, so the loop
+    stops) with the volume's error, without contacting any vehicle."""
+    (tmp_path / "volume").write_text("not a directory")
+    status = MissionStatus(
+        phase=MissionPhase.SUCCEEDED,
+        start_time=datetime.now(UTC) - timedelta(minutes=5),
+        completion_time=datetime.now(UTC),
+        records=gathering("flights_x_00000000", ["a"]),
+    )
+    result = gather_round(
+        kube,
+        RecordsSettings(directory=tmp_path / "volume"),
+        namespace=FLIGHTS,
+        name="x",
+        uid="0",
+        status=status,
+        vehicles=[VehicleTarget("a", "a-node", {ANNOTATION_RECORDS: "http://127.0.0.1:9/"})],
+        now=datetime.now(UTC),
+    )
+    assert result.state == RecordsState.FAILED and RecordsState(result.state).final
+    assert "records volume" in (result.message or "")
