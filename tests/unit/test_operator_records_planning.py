@@ -236,8 +236,9 @@ def test_ready_time_is_set_once_when_the_bundle_becomes_final() -> None:
     assert again.ready_time == at(2)
 
 
-def info(name: str, days_ago: float | None) -> BundleInfo:
-    return BundleInfo(name, None if days_ago is None else at(0) - timedelta(days=days_ago))
+def info(name: str, days_ago: float | None, written_days_ago: float = 0) -> BundleInfo:
+    ready = None if days_ago is None else at(0) - timedelta(days=days_ago)
+    return BundleInfo(name, ready, at(0) - timedelta(days=written_days_ago))
 
 
 @pytest.mark.parametrize(
@@ -253,8 +254,20 @@ def info(name: str, days_ago: float | None) -> BundleInfo:
 def test_retention_removes_the_oldest_final_bundles_never_one_gathering(
     keep_count: int, keep_for: timedelta | None, gone: list[str]
 ) -> None:
-    bundles = [info("new", 0.5), info("mid", 5), info("old", 20), info("gathering", None)]
+    bundles = [info("new", 0.5), info("mid", 5), info("old", 20), info("gathering", None, 1)]
     assert expired(bundles, keep_count=keep_count, keep_for=keep_for, now=at(0)) == gone
+
+
+def test_a_bundle_left_gathering_by_a_deleted_mission_ages_out_from_its_last_write() -> None:
+    left = [info("left", None, written_days_ago=40), info("recent", None, written_days_ago=1)]
+    gone = expired(
+        left,
+        keep_count=0,
+        keep_for=timedelta(days=30),
+        now=at(0),
+        abandoned_after=timedelta(days=2),
+    )
+    assert gone == ["left"]
 
 
 @pytest.mark.parametrize(

@@ -23,7 +23,7 @@ import os
 import shutil
 from collections.abc import Mapping
 from dataclasses import dataclass
-from datetime import datetime
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -172,7 +172,13 @@ def list_bundles(directory: Path) -> list[BundleInfo]:
         if not entry.is_dir():
             continue
         ready = Bundle(entry).manifest().get("readyAt")
-        found.append(BundleInfo(entry.name, datetime.fromisoformat(ready) if ready else None))
+        manifest = entry / MANIFEST
+        written = (
+            datetime.fromtimestamp(manifest.stat().st_mtime, UTC) if manifest.exists() else None
+        )
+        found.append(
+            BundleInfo(entry.name, datetime.fromisoformat(ready) if ready else None, written)
+        )
     return found
 
 

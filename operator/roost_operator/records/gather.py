@@ -354,6 +354,7 @@ def _apply_retention(settings: RecordsSettings, now: datetime, *, keep: str) -> 
         keep_count=settings.keep_count,
         keep_for=settings.keep_for,
         now=now,
+        abandoned_after=settings.give_up_after + settings.settle_after,
     )
     for name in gone:
         if name != keep:

@@ -16,7 +16,8 @@
 * **The bundle's state**: Gathering while any vehicle is Pending; Complete when all are;
   Partial otherwise.
 * **Retention**: final bundles beyond the newest ``keep_count`` or older than
-  ``keep_for`` go; a bundle still gathering is never removed.
+  ``keep_for`` go; a bundle still gathering is never removed, unless nothing has written
+  it for longer than gathering can last (its Mission was deleted while it gathered).
 """
 
 from __future__ import annotations
@@ -350,24 +351,39 @@ class BundleInfo:
     name: str
     ready_at: datetime | None
     """None while it is still gathering."""
+    written_at: datetime | None = None
+    """When its manifest was last written."""
 
 
 def expired(
-    bundles: Sequence[BundleInfo], *, keep_count: int, keep_for: timedelta | None, now: datetime
+    bundles: Sequence[BundleInfo],
+    *,
+    keep_count: int,
+    keep_for: timedelta | None,
+    now: datetime,
+    abandoned_after: timedelta = timedelta(days=2),
 ) -> list[str]:
     """The final bundles retention removes: beyond the newest ``keep_count`` (0: no
     limit) or ready longer ago than ``keep_for`` (None: no limit). Never a bundle still
-    gathering."""
+    gathering; one nothing has written for ``abandoned_after`` (its Mission was deleted
+    while it gathered) counts as final since its last write."""
     final = sorted(
-        (b for b in bundles if b.ready_at is not None),
-        key=lambda b: (b.ready_at, b.name),
+        (
+            (at, b.name)
+            for b in bundles
+            if (at := b.ready_at or _abandoned(b, now, abandoned_after)) is not None
+        ),
         reverse=True,
     )
     gone = []
-    for index, info in enumerate(final):
-        assert info.ready_at is not None
+    for index, (at, name) in enumerate(final):
         too_many = keep_count > 0 and index >= keep_count
-        too_old = keep_for is not None and now - info.ready_at > keep_for
+        too_old = keep_for is not None and now - at > keep_for
         if too_many or too_old:
-            gone.append(info.name)
+            gone.append(name)
     return sorted(gone)
+
+
+def _abandoned(info: BundleInfo, now: datetime, after: timedelta) -> datetime | None:
+    written = info.written_at
+    return written if written is not None and now - written >= after else None
