@@ -223,6 +223,7 @@ def test_operator_keeps_mission_records_on_its_own_claim_and_may_reach_the_agent
     assert pod["securityContext"]["fsGroup"] == pod["securityContext"]["runAsGroup"]
     pods_role = find(objects, "Role", "-operator-pods")["rules"]
     assert _grants(pods_role, "", "pods/proxy", "get")
+    assert _grants(_rules(objects, "-operator"), "", "events", "list")  # for the bundle
 
     existing = render({"operator": {"records": {"persistence": {"existingClaim": "flights"}}}})
     assert not [m for m in existing if m["kind"] == "PersistentVolumeClaim"]

@@ -121,10 +121,16 @@ def _gather_vehicle(
     return current
 
 
-def _events(kube: Kube, namespace: str, uid: str) -> list[dict[str, Any]]:
-    items = kube.list_objects(
-        EVENTS, namespace=namespace, field_selector=f"involvedObject.uid={uid}"
-    )
+def _events(kube: Kube, namespace: str, uid: str) -> list[dict[str, Any]] | dict[str, str]:
+    """The Mission's Events, oldest first, or ``{"error": why}`` when they cannot be read
+    (the bundle is still written: a record without its Events beats none)."""
+    try:
+        items = kube.list_objects(
+            EVENTS, namespace=namespace, field_selector=f"involvedObject.uid={uid}"
+        )
+    except ApiError as error:
+        log.warning("Mission %s/%s: its Events could not be listed: %s", namespace, uid, error)
+        return {"error": f"the Mission's Events could not be listed: {error}"}
     keep = ("type", "reason", "message", "count", "firstTimestamp", "lastTimestamp", "eventTime")
     rows = [{k: e.get(k) for k in keep if e.get(k) is not None} for e in items]
     return sorted(rows, key=lambda e: str(e.get("eventTime") or e.get("firstTimestamp") or ""))
@@ -236,7 +242,10 @@ def gather_round(
 
 
 def _mission(kube: Kube, namespace: str, name: str) -> dict[str, Any]:
-    body = kube.get(MISSIONS, name, namespace) or {}
+    try:
+        body = kube.get(MISSIONS, name, namespace) or {}
+    except ApiError as error:
+        return {"error": f"the Mission could not be read: {error}"}
     meta = body.get("metadata", {})
     meta.pop("managedFields", None)
     return body
