@@ -229,6 +229,9 @@ def test_a_missions_record_survives_a_cut_a_vehicle_away_and_a_corrupt_file(
     assert [(m["vehicle"], m.get("path")) for m in manifest["missing"]] == [(c, "decisions.jsonl")]
     assert "after 3 downloads" in manifest["missing"][0]["reason"]
     assert not list(bundle.rglob("*.part"))
+    events = json.loads((bundle / "events.json").read_text())
+    assert "Started" in [e["reason"] for e in events], events  # its phase transitions
+    assert json.loads((bundle / "mission.json").read_text())["status"]["phase"] == "Succeeded"
     assert sha256(other / "manifest.json") == before, "another bundle was touched"
 
     with urllib.request.urlopen(f"http://127.0.0.1:{records_port}/bundles", timeout=10) as answer:
