@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import json
 import struct
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
@@ -55,10 +55,12 @@ def recorded(tmp_path: Path) -> Iterator[tuple[HubVehicle, FlightRecorder]]:
             recorder.stop()
 
 
-def fly_once(v: HubVehicle) -> None:
-    """Arm, stay armed a moment, disarm (every autopilot follows the mirrored command)."""
+def fly_once(v: HubVehicle, during: Callable[[], None] = lambda: None) -> None:
+    """Arm, stay armed a moment (calling ``during``), disarm (every autopilot follows
+    the mirrored command)."""
     assert v.client.command(VEHICLE_SYSID, MAV_CMD_COMPONENT_ARM_DISARM, 1) == MavResult.ACCEPTED
     wait_until("both armed", lambda: all(s.snapshot().armed for s in v.sims), 5)
+    during()
     wait_until(
         "a second of samples logged",
         lambda: all(s.logs.samples_logging >= SAMPLES for s in v.sims),
@@ -90,7 +92,25 @@ def test_a_flight_leaves_tlog_decisions_params_and_both_autopilots_logs(
     recorded: tuple[HubVehicle, FlightRecorder],
 ) -> None:
     v, recorder = recorded
-    fly_once(v)
+    standby = v.sims[1]
+
+    def gyro_fault_on_the_standby() -> None:
+        standby.inject("sensor", "gyro")
+        wait_until(
+            "the standby judged",
+            lambda: v.agent.assessments()[standby.name].level.value != "OK",
+            5,
+            0.02,
+        )
+        standby.clear("sensor")
+        wait_until(
+            "the standby healthy again",
+            lambda: v.agent.assessments()[standby.name].level.value == "OK",
+            5,
+            0.02,
+        )
+
+    fly_once(v, gyro_fault_on_the_standby)
     manifest = settled(recorder.root)
     assert manifest.state is FlightState.COMPLETE, manifest
     assert manifest.flight_id.startswith("v1-")
@@ -120,8 +140,15 @@ def test_a_flight_leaves_tlog_decisions_params_and_both_autopilots_logs(
     assert all(at > 1.7e9 for _, _, at in arm_commands)  # wall-clock timestamps
 
     # decisions: the agent's events, JSON lines
-    lines = (flight / "decisions.jsonl").read_text().splitlines()
-    assert all("event" in json.loads(line) for line in lines)
+    events = [json.loads(line) for line in (flight / "decisions.jsonl").read_text().splitlines()]
+    fault = [
+        e
+        for e in events
+        if e["event"] == "HealthChanged" and e["message"].startswith(f"{standby.name}: OK -> ")
+    ]
+    assert fault and fault[0]["health"]["reasons"]  # the transition with its evidence
+    recovered = [e for e in events if e["event"] == "HealthChanged" and " -> OK" in e["message"]]
+    assert any(e["autopilot"] == standby.name for e in recovered)
 
     # parameters at arming, per autopilot
     for sim in v.sims:
