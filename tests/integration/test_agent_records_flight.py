@@ -278,7 +278,7 @@ def test_a_full_disk_fails_the_flight_with_why_and_the_vehicle_flies_on(
 ) -> None:
     v, recorder = recorded
     assert v.client.command(VEHICLE_SYSID, MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
-    wait_until("recording", lambda: recorder.current is not None, 5)
+    wait_until("recording", lambda: read_manifests(recorder.root), 5)
     # The one stand-in: the flight's tlog is swapped for /dev/full (a real device whose
     # every write fails with ENOSPC), as filling a real filesystem would need a mount.
     flight = recorder._flight
