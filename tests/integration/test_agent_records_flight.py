@@ -180,7 +180,7 @@ def test_a_flight_leaves_tlog_decisions_params_and_both_autopilots_logs(
 def slow_fetch(tmp_path: Path) -> Iterator[tuple[HubVehicle, FlightRecorder, LogFetcher]]:
     """A fetch slow enough (small windows, a low rate) to be cut in the middle."""
     with hub_vehicle(["px4", "px4"]) as v:
-        settings = FetchSettings(rate_bytes_per_s=8000, window=450, request_timeout_s=0.5)
+        settings = FetchSettings(rate_bytes_per_s=2500, window=450, request_timeout_s=0.5)
         fetcher = LogFetcher(lambda: v.agent.links, settings=settings)
         recorder = FlightRecorder(
             v.agent, tmp_path / "records", budget_bytes=50_000_000, fetch_logs=fetcher
@@ -192,7 +192,7 @@ def slow_fetch(tmp_path: Path) -> Iterator[tuple[HubVehicle, FlightRecorder, Log
             recorder.stop()
 
 
-def test_a_download_cut_by_loss_and_a_reboot_resumes_to_the_whole_file(
+def test_a_download_cut_by_loss_a_drop_and_a_reboot_resumes_to_the_whole_file(
     slow_fetch: tuple[HubVehicle, FlightRecorder, LogFetcher],
 ) -> None:
     v, recorder, fetcher = slow_fetch
@@ -200,11 +200,21 @@ def test_a_download_cut_by_loss_and_a_reboot_resumes_to_the_whole_file(
     fly_once(v)
     wait_until("the download started", lambda: fetcher.bytes_fetched > 0, 10, 0.01)
     sim.inject("loss", 30)  # a lossy link: lost LOG_DATA are asked for again
+    sim.inject("silence")  # a WiFi drop: nothing either way until the agent sees it
+    wait_until(
+        "the agent saw the silence",
+        lambda: v.agent.assessments()[sim.name].level.value != "OK",
+        10,
+        0.02,
+    )
+    sim.clear("silence")
     booted = sim.snapshot().time_boot_ms
     sim.inject("reboot", 0)  # the autopilot forgets the transfer; the card keeps the log
     wait_until("rebooted", lambda: sim.snapshot().time_boot_ms < booted, 10, 0.05)
+    cut_at = fetcher.bytes_fetched
     manifest = settled(recorder.root)
     sim.clear("loss")
+    assert cut_at < len(sim.logs.logs[0].data)  # the cuts came in the middle
     assert manifest.state is FlightState.COMPLETE, manifest
     entry = manifest.file(f"autopilot-logs/{sim.name}/1.ulg")
     assert entry is not None and entry.state is FileState.COMPLETE
