@@ -303,3 +303,23 @@ def test_a_full_disk_fails_the_flight_with_why_and_the_vehicle_flies_on(
     assert v.client.command(VEHICLE_SYSID, MAV_CMD_COMPONENT_ARM_DISARM, 0) == 0
     wait_until("disarmed", lambda: not any(s.snapshot().armed for s in v.sims), 5)
     assert {a.level.value for a in v.agent.assessments().values()} == {"OK"}
+
+
+def test_a_second_flight_fetches_only_its_own_logs(
+    recorded: tuple[HubVehicle, FlightRecorder],
+) -> None:
+    v, recorder = recorded
+    fly_once(v)
+    first = settled(recorder.root)
+    fly_once(v)
+
+    def second_settled() -> Manifest | None:
+        found = read_manifests(recorder.root)
+        done = (FlightState.COMPLETE, FlightState.FAILED)
+        return found[0] if len(found) == 2 and found[0].state in done else None
+
+    second = wait_until("the second flight settled", second_settled, 30)
+    assert first.state is second.state is FlightState.COMPLETE
+    logs = sorted(f.path for f in second.files if f.autopilot and f.path.startswith("autopilot"))
+    px4, ardupilot = v.sims
+    assert logs == [f"autopilot-logs/{px4.name}/2.ulg", f"autopilot-logs/{ardupilot.name}/2.bin"]
