@@ -1035,7 +1035,8 @@ class AutopilotLink:
         # Called by the reader with every accepted message (the hub routes them to clients).
         self.tap: Callable[[Any, float], None] | None = None
         # The flight recorder's tap (roost_agent.records_recorder): every frame accepted
-        # from the autopilot and every frame written to it, after it was routed or sent.
+        # from the autopilot (after the hub routed it and the tracker judged it) and
+        # every frame written to it (after the write).
         self._record: Callable[[bytes], None] | None = None
         # LOG_ENTRY and LOG_DATA go here while an autopilot log is being fetched
         # (roost_agent.records_logs); dropped otherwise.
@@ -1271,9 +1272,6 @@ class AutopilotLink:
         tap = self.tap
         if tap is not None:
             tap(msg, now)
-        record = self._record
-        if record is not None:
-            record(msg.get_msgbuf())
         if kind == "COMMAND_ACK":
             target_system = getattr(msg, "target_system", 0)
             target_component = getattr(msg, "target_component", 0)
@@ -1293,6 +1291,9 @@ class AutopilotLink:
                 sink(msg)
         if self.tracker.observe(msg, now):
             self._on_change()
+        record = self._record  # last: routed and judged before it is recorded
+        if record is not None:
+            record(msg.get_msgbuf())
 
     def _signed(self, verifier: Verifier, msg: Frame, sender: Address | None, now: float) -> bool:
         verdict = verifier.check(msg.get_msgbuf())

@@ -6,7 +6,8 @@ the autopilot that failed as much as in the one that took over. The protocol (co
 ``LOG_ENTRY`` per log (``num_logs 0``: none); ``LOG_REQUEST_DATA(id, ofs, count)`` makes
 the autopilot stream ``LOG_DATA`` of up to 90 bytes at ``ofs``, ``count 0`` meaning
 the file ends there; ``LOG_REQUEST_END`` lets it log again. The log of the flight that
-just ended is the newest one (both stacks start one per arming).
+just ended are those after the last one fetched from that autopilot (both stacks start
+one per arming, and a reboot in flight starts another): :func:`logs_to_fetch`.
 
 - Resumable: what arrived is kept as byte intervals (:class:`Intervals`), and the fetcher
   asks only for the missing ones (:func:`next_request`), a window at a time. A lost
@@ -40,6 +41,7 @@ from roost_agent.records import (
     FileKind,
     FileState,
     Manifest,
+    read_manifests,
     sha256_of,
 )
 from roost_api.core import Stack
@@ -52,6 +54,7 @@ WINDOW_BYTES = LOG_DATA_BYTES * 64
 DEFAULT_RATE_BYTES_PER_S = 100_000.0
 REQUEST_TIMEOUT_S = 1.0
 LIST_TIMEOUT_S = 2.0
+MAX_LOGS = 3  # logs of one autopilot fetched after one flight at most
 GIVE_UP_S = 30.0  # no byte for this long (the autopilot gone): the log is not fetched
 PROGRESS_EVERY_S = 2.0
 
@@ -109,13 +112,41 @@ def next_request(have: Intervals, size: int, window: int) -> tuple[int, int] | N
     return start, min(end - start, window)
 
 
-def newest(entries: Mapping[int, tuple[int, int]]) -> tuple[int, int] | None:
-    """``(id, size)`` of the newest log among ``entries`` (id -> (time_utc, size)); the
-    highest id (both stacks number logs upwards; the UTC time may be unset, 0)."""
+def logs_to_fetch(
+    entries: Mapping[int, tuple[int, int]], last_fetched: int | None, limit: int = MAX_LOGS
+) -> list[tuple[int, int]]:
+    """``(id, size)`` of the logs of the flight that just ended, oldest first, among
+    ``entries`` (id -> (time_utc, size)): those after the last one fetched from this
+    autopilot (a reboot in flight starts a second log), at most ``limit``, the newest
+    ones; none when no log came after it (the autopilot did not log this flight); the
+    newest alone when none was fetched before or the card's numbering started again.
+    Both stacks number logs upwards; the UTC time may be unset (0), so it is not used."""
     if not entries:
-        return None
-    log_id = max(entries)
-    return log_id, entries[log_id][1]
+        return []
+    if last_fetched is None or max(entries) < last_fetched:
+        chosen = [max(entries)]
+    else:
+        chosen = sorted(i for i in entries if i > last_fetched)[-limit:]
+    return [(i, entries[i][1]) for i in chosen]
+
+
+def last_fetched(root: Path, exclude: str, autopilot: str) -> int | None:
+    """The highest log id fetched whole from ``autopilot`` in the flights under
+    ``root`` other than ``exclude``."""
+    best: int | None = None
+    for manifest in read_manifests(root):
+        if manifest.flight_id == exclude:
+            continue
+        for f in manifest.files:
+            if (
+                f.kind is FileKind.AUTOPILOT_LOG
+                and f.autopilot == autopilot
+                and f.state is FileState.COMPLETE
+            ):
+                stem = Path(f.path).stem
+                if stem.isdigit() and (best is None or int(stem) > best):
+                    best = int(stem)
+    return best
 
 
 # -- format checks (pure) -------------------------------------------------------------
@@ -204,7 +235,7 @@ class AbortedError(Exception):
 
 
 class LogFetcher:
-    """Downloads the newest log of every autopilot link of ``links()`` into a flight."""
+    """Downloads the logs of the flight that ended from every autopilot link of ``links()``."""
 
     def __init__(
         self,
@@ -240,36 +271,51 @@ class LogFetcher:
             if listing is None:
                 log.warning("records: %s did not list its logs", link.name)
                 return
-            chosen = newest(listing)
-            if chosen is None:
+            previous = last_fetched(flight_dir.parent, flight_dir.name, link.name)
+            chosen = logs_to_fetch(listing, previous)
+            if not chosen:
                 log.info("records: %s has no log", link.name)
-                return
-            log_id, size = chosen
-            stack = Stack(link.stack)
-            rel = f"{LOGS_DIR}/{link.name}/{log_id}.{extension(stack)}"
-            path = flight_dir / rel
-            path.parent.mkdir(parents=True, exist_ok=True)
-            entry = FileEntry(rel, FileKind.AUTOPILOT_LOG, autopilot=link.name)
-            update(lambda m: m.with_file(entry))
-            state, message, have = self._download(
-                link, inbox, log_id=log_id, size=size, path=path, entry=entry, update=update
-            )
-            if state is FileState.COMPLETE:
-                data = path.read_bytes()
-                problem = check_log(stack, data)
-                if problem is not None:
-                    state, message = FileState.FAILED, problem
-            final = replace(
-                entry,
-                state=state,
-                message=message,
-                bytes=have,
-                sha256=sha256_of(path) if state is FileState.COMPLETE else None,
-            )
-            update(partial(_with_entry, final))
+            for log_id, size in chosen:
+                self._fetch_log(
+                    link, inbox, flight_dir=flight_dir, update=update, log_id=log_id, size=size
+                )
         finally:
             link.log_sink = None
             link.send_message("LOG_REQUEST_END")
+
+    def _fetch_log(
+        self,
+        link: Any,
+        inbox: queue.SimpleQueue[Any],
+        *,
+        flight_dir: Path,
+        update: ManifestUpdate,
+        log_id: int,
+        size: int,
+    ) -> None:
+        """One log into ``autopilot-logs/<autopilot>/<id>.<ext>``, checked."""
+        stack = Stack(link.stack)
+        rel = f"{LOGS_DIR}/{link.name}/{log_id}.{extension(stack)}"
+        path = flight_dir / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        entry = FileEntry(rel, FileKind.AUTOPILOT_LOG, autopilot=link.name)
+        update(lambda m: m.with_file(entry))
+        state, message, have = self._download(
+            link, inbox, log_id=log_id, size=size, path=path, entry=entry, update=update
+        )
+        if state is FileState.COMPLETE:
+            data = path.read_bytes()
+            problem = check_log(stack, data)
+            if problem is not None:
+                state, message = FileState.FAILED, problem
+        final = replace(
+            entry,
+            state=state,
+            message=message,
+            bytes=have,
+            sha256=sha256_of(path) if state is FileState.COMPLETE else None,
+        )
+        update(partial(_with_entry, final))
 
     def _list(self, link: Any, inbox: queue.SimpleQueue[Any]) -> dict[int, tuple[int, int]] | None:
         for _ in range(3):

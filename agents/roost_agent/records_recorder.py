@@ -349,7 +349,17 @@ class FlightRecorder:
     # -- parameters ----------------------------------------------------------------------
 
     def _watch_params(self, frames: list[tuple[float, bytes]], now: float) -> None:
-        for _, frame in frames:
+        # one comprehension over every frame (no call per frame): PARAM_VALUEs are few
+        found = [
+            f
+            for _, f in frames
+            if len(f) > 9
+            and (
+                (f[0] == V2_MAGIC and f[7] == PARAM_VALUE_ID and not f[8] and not f[9])
+                or (f[0] == V1_MAGIC and f[5] == PARAM_VALUE_ID)
+            )
+        ]
+        for frame in found:
             source = frame_source(frame)
             if source is None or source[1] != PARAM_VALUE_ID:
                 continue

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import json
 import struct
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
@@ -55,10 +55,12 @@ def recorded(tmp_path: Path) -> Iterator[tuple[HubVehicle, FlightRecorder]]:
             recorder.stop()
 
 
-def fly_once(v: HubVehicle) -> None:
-    """Arm, stay armed a moment, disarm (every autopilot follows the mirrored command)."""
+def fly_once(v: HubVehicle, during: Callable[[], None] = lambda: None) -> None:
+    """Arm, stay armed a moment (calling ``during``), disarm (every autopilot follows
+    the mirrored command)."""
     assert v.client.command(VEHICLE_SYSID, MAV_CMD_COMPONENT_ARM_DISARM, 1) == MavResult.ACCEPTED
     wait_until("both armed", lambda: all(s.snapshot().armed for s in v.sims), 5)
+    during()
     wait_until(
         "a second of samples logged",
         lambda: all(s.logs.samples_logging >= SAMPLES for s in v.sims),
@@ -90,7 +92,25 @@ def test_a_flight_leaves_tlog_decisions_params_and_both_autopilots_logs(
     recorded: tuple[HubVehicle, FlightRecorder],
 ) -> None:
     v, recorder = recorded
-    fly_once(v)
+    standby = v.sims[1]
+
+    def gyro_fault_on_the_standby() -> None:
+        standby.inject("sensor", "gyro")
+        wait_until(
+            "the standby judged",
+            lambda: v.agent.assessments()[standby.name].level.value != "OK",
+            5,
+            0.02,
+        )
+        standby.clear("sensor")
+        wait_until(
+            "the standby healthy again",
+            lambda: v.agent.assessments()[standby.name].level.value == "OK",
+            5,
+            0.02,
+        )
+
+    fly_once(v, gyro_fault_on_the_standby)
     manifest = settled(recorder.root)
     assert manifest.state is FlightState.COMPLETE, manifest
     assert manifest.flight_id.startswith("v1-")
@@ -120,8 +140,15 @@ def test_a_flight_leaves_tlog_decisions_params_and_both_autopilots_logs(
     assert all(at > 1.7e9 for _, _, at in arm_commands)  # wall-clock timestamps
 
     # decisions: the agent's events, JSON lines
-    lines = (flight / "decisions.jsonl").read_text().splitlines()
-    assert all("event" in json.loads(line) for line in lines)
+    events = [json.loads(line) for line in (flight / "decisions.jsonl").read_text().splitlines()]
+    fault = [
+        e
+        for e in events
+        if e["event"] == "HealthChanged" and e["message"].startswith(f"{standby.name}: OK -> ")
+    ]
+    assert fault and fault[0]["health"]["reasons"]  # the transition with its evidence
+    recovered = [e for e in events if e["event"] == "HealthChanged" and " -> OK" in e["message"]]
+    assert any(e["autopilot"] == standby.name for e in recovered)
 
     # parameters at arming, per autopilot
     for sim in v.sims:
@@ -153,7 +180,7 @@ def test_a_flight_leaves_tlog_decisions_params_and_both_autopilots_logs(
 def slow_fetch(tmp_path: Path) -> Iterator[tuple[HubVehicle, FlightRecorder, LogFetcher]]:
     """A fetch slow enough (small windows, a low rate) to be cut in the middle."""
     with hub_vehicle(["px4", "px4"]) as v:
-        settings = FetchSettings(rate_bytes_per_s=8000, window=450, request_timeout_s=0.5)
+        settings = FetchSettings(rate_bytes_per_s=2500, window=450, request_timeout_s=0.5)
         fetcher = LogFetcher(lambda: v.agent.links, settings=settings)
         recorder = FlightRecorder(
             v.agent, tmp_path / "records", budget_bytes=50_000_000, fetch_logs=fetcher
@@ -165,7 +192,7 @@ def slow_fetch(tmp_path: Path) -> Iterator[tuple[HubVehicle, FlightRecorder, Log
             recorder.stop()
 
 
-def test_a_download_cut_by_loss_and_a_reboot_resumes_to_the_whole_file(
+def test_a_download_cut_by_loss_a_drop_and_a_reboot_resumes_to_the_whole_file(
     slow_fetch: tuple[HubVehicle, FlightRecorder, LogFetcher],
 ) -> None:
     v, recorder, fetcher = slow_fetch
@@ -173,11 +200,21 @@ def test_a_download_cut_by_loss_and_a_reboot_resumes_to_the_whole_file(
     fly_once(v)
     wait_until("the download started", lambda: fetcher.bytes_fetched > 0, 10, 0.01)
     sim.inject("loss", 30)  # a lossy link: lost LOG_DATA are asked for again
+    sim.inject("silence")  # a WiFi drop: nothing either way until the agent sees it
+    wait_until(
+        "the agent saw the silence",
+        lambda: v.agent.assessments()[sim.name].level.value != "OK",
+        10,
+        0.02,
+    )
+    sim.clear("silence")
     booted = sim.snapshot().time_boot_ms
     sim.inject("reboot", 0)  # the autopilot forgets the transfer; the card keeps the log
     wait_until("rebooted", lambda: sim.snapshot().time_boot_ms < booted, 10, 0.05)
+    cut_at = fetcher.bytes_fetched
     manifest = settled(recorder.root)
     sim.clear("loss")
+    assert cut_at < len(sim.logs.logs[0].data)  # the cuts came in the middle
     assert manifest.state is FlightState.COMPLETE, manifest
     entry = manifest.file(f"autopilot-logs/{sim.name}/1.ulg")
     assert entry is not None and entry.state is FileState.COMPLETE
@@ -251,7 +288,7 @@ def test_a_full_disk_fails_the_flight_with_why_and_the_vehicle_flies_on(
 ) -> None:
     v, recorder = recorded
     assert v.client.command(VEHICLE_SYSID, MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
-    wait_until("recording", lambda: recorder.current is not None, 5)
+    wait_until("recording", lambda: read_manifests(recorder.root), 5)
     # The one stand-in: the flight's tlog is swapped for /dev/full (a real device whose
     # every write fails with ENOSPC), as filling a real filesystem would need a mount.
     flight = recorder._flight
@@ -266,3 +303,23 @@ def test_a_full_disk_fails_the_flight_with_why_and_the_vehicle_flies_on(
     assert v.client.command(VEHICLE_SYSID, MAV_CMD_COMPONENT_ARM_DISARM, 0) == 0
     wait_until("disarmed", lambda: not any(s.snapshot().armed for s in v.sims), 5)
     assert {a.level.value for a in v.agent.assessments().values()} == {"OK"}
+
+
+def test_a_second_flight_fetches_only_its_own_logs(
+    recorded: tuple[HubVehicle, FlightRecorder],
+) -> None:
+    v, recorder = recorded
+    fly_once(v)
+    first = settled(recorder.root)
+    fly_once(v)
+
+    def second_settled() -> Manifest | None:
+        found = read_manifests(recorder.root)
+        done = (FlightState.COMPLETE, FlightState.FAILED)
+        return found[0] if len(found) == 2 and found[0].state in done else None
+
+    second = wait_until("the second flight settled", second_settled, 30)
+    assert first.state is second.state is FlightState.COMPLETE
+    logs = sorted(f.path for f in second.files if f.autopilot and f.path.startswith("autopilot"))
+    px4, ardupilot = v.sims
+    assert logs == [f"autopilot-logs/{px4.name}/2.ulg", f"autopilot-logs/{ardupilot.name}/2.bin"]

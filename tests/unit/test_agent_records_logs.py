@@ -11,7 +11,7 @@ from roost_agent.records_logs import (
     Intervals,
     check_dataflash,
     check_ulog,
-    newest,
+    logs_to_fetch,
     next_request,
 )
 from roost_agent.records_recorder import FrameTap, frame_source, in_flight, tlog_record
@@ -111,9 +111,25 @@ def test_intervals_merge_overlapping_and_adjacent_pieces_in_any_order() -> None:
     assert have.missing(700) == [(270, 500), (650, 700)]
 
 
-def test_the_newest_log_is_the_highest_id() -> None:
-    assert newest({1: (0, 10), 7: (0, 70), 3: (1_700_000_000, 30)}) == (7, 70)
-    assert newest({}) is None
+LISTED = {1: (0, 10), 2: (0, 20), 3: (1_700_000_000, 30), 4: (0, 40), 5: (0, 50)}
+
+# listed logs, the last id fetched from this autopilot -> the logs fetched now
+FETCH_TABLE: list[tuple[dict[int, tuple[int, int]], int | None, list[int]]] = [
+    (LISTED, None, [5]),  # nothing fetched before: the newest alone
+    (LISTED, 4, [5]),  # one new log: this flight's
+    (LISTED, 3, [4, 5]),  # a reboot in flight started a second log
+    (LISTED, 0, [3, 4, 5]),  # many new ones: the newest three (older flights unseen)
+    (LISTED, 5, []),  # no log after it: the autopilot did not log this flight
+    (LISTED, 9, [5]),  # the card was wiped and numbers again from 1
+    ({}, 3, []),  # no log at all
+]
+
+
+@pytest.mark.parametrize(("listed", "last", "expected"), FETCH_TABLE)
+def test_the_logs_of_the_flight_are_those_after_the_last_fetched(
+    listed: dict[int, tuple[int, int]], last: int | None, expected: list[int]
+) -> None:
+    assert logs_to_fetch(listed, last) == [(i, listed[i][1]) for i in expected]
 
 
 def _samples(n: int = 20) -> list[Sample]:
