@@ -28,6 +28,7 @@ MODULES: tuple[str, ...] = (
     "vehicle",
     "hub",
     "hubsigning",
+    "records",
     "standby",
     "params",
     "disruption",
@@ -39,6 +40,7 @@ MODULES: tuple[str, ...] = (
     "fleet",
     "fleetapi",
     "sandbox",
+    "missionrecords",
 )
 
 

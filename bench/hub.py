@@ -136,7 +136,9 @@ def _switch_to_client(sims: list[SimulatedAutopilot], agent: Agent) -> list[floa
     return samples
 
 
-def _added_latency(sims: list[SimulatedAutopilot], agent: Agent) -> tuple[list[float], list[float]]:
+def _added_latency(
+    sims: list[SimulatedAutopilot], agent: Agent, samples: int = LATENCY_SAMPLES
+) -> tuple[list[float], list[float]]:
     assert agent.hub is not None
     active = next(s for s in sims if s.name == agent.active)
     hub_mav = mavlink.MAVLink(None, 255, 190)
@@ -151,7 +153,7 @@ def _added_latency(sims: list[SimulatedAutopilot], agent: Agent) -> tuple[list[f
     sent: dict[tuple[int, int], float] = {}
     since = time.monotonic()
     try:
-        for i in range(LATENCY_SAMPLES):
+        for i in range(samples):
             for via_hub, mav, sock, target, address in (
                 (1, hub_mav, hub_sock, VEHICLE_SYSID, agent.hub.udp_address),
                 (0, direct_mav, direct_sock, active.sysid, sim_address),

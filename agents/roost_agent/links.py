@@ -600,6 +600,9 @@ def _address_text(address: Address | None) -> str:
     return "the serial/TCP peer" if address is None else f"{address[0]}:{address[1]}"
 
 
+_LOG_REPLIES = frozenset({"LOG_ENTRY", "LOG_DATA"})
+
+
 class _Writer:
     """Where the link's frames go: its own (encoded and numbered as the agent) and hub
     clients' (as they are), signed when the link signs."""
@@ -608,11 +611,15 @@ class _Writer:
         self.transport = transport
         self.signer = signer
         self.encoder = encoder
+        self.record: Callable[[bytes], None] | None = None  # the flight recorder's tap
 
     def write(self, frame: bytes) -> None:
         if self.signer is not None:
             frame = self.signer.sign(frame)
         self.transport.send(frame)
+        record = self.record  # after the send: recording never delays a frame
+        if record is not None:
+            record(frame)
 
     def send(self, name: str, **values: Value) -> None:
         """Encode one message from the agent and write it."""
@@ -1027,9 +1034,27 @@ class AutopilotLink:
         self._locked: Address | None = None
         # Called by the reader with every accepted message (the hub routes them to clients).
         self.tap: Callable[[Any, float], None] | None = None
+        # The flight recorder's tap (roost_agent.records_recorder): every frame accepted
+        # from the autopilot (after the hub routed it and the tracker judged it) and
+        # every frame written to it (after the write).
+        self._record: Callable[[bytes], None] | None = None
+        # LOG_ENTRY and LOG_DATA go here while an autopilot log is being fetched
+        # (roost_agent.records_logs); dropped otherwise.
+        self.log_sink: Callable[[Frame], None] | None = None
         self.params = ParamInbox()
         # The autopilot's last AUTOPILOT_VERSION (roost_agent.firmware reads it).
         self.version: Frame | None = None
+
+    @property
+    def record(self) -> Callable[[bytes], None] | None:
+        return self._record
+
+    @record.setter
+    def record(self, record: Callable[[bytes], None] | None) -> None:
+        with self._write_lock:
+            self._record = record
+            if self._writer is not None:
+                self._writer.record = record
 
     @property
     def locked_address(self) -> Address | None:
@@ -1156,6 +1181,7 @@ class AutopilotLink:
             signer = signing.signer(self.spec.bridge_channel) if signing is not None else None
             verifier = signing.verifier() if signing is not None and signing.require else None
             writer = _Writer(transport, signer, Encoder(self.spec.sysid, AGENT_COMPONENT_ID))
+            writer.record = self._record
         except BaseException:
             transport.close()
             raise
@@ -1259,8 +1285,15 @@ class AutopilotLink:
             self.params.put(name, float(msg.param_value), int(msg.param_type), now)
         elif kind == "AUTOPILOT_VERSION":
             self.version = msg
+        elif kind in _LOG_REPLIES:
+            sink = self.log_sink
+            if sink is not None:
+                sink(msg)
         if self.tracker.observe(msg, now):
             self._on_change()
+        record = self._record  # last: routed and judged before it is recorded
+        if record is not None:
+            record(msg.get_msgbuf())
 
     def _signed(self, verifier: Verifier, msg: Frame, sender: Address | None, now: float) -> bool:
         verdict = verifier.check(msg.get_msgbuf())
@@ -1349,6 +1382,10 @@ class AutopilotLink:
         """One message addressed to this autopilot's system and component."""
         target = {"target_system": self.spec.sysid, "target_component": self.spec.component_id}
         return self._send(lambda writer: writer.send(name, **target, **values))
+
+    def send_message(self, name: str, **values: Value) -> bool:
+        """One message (``name`` of common.xml) addressed to this autopilot."""
+        return self._send_to_autopilot(name, **values)
 
     def send_command(self, command: int, params: Params, confirmation: int = 0) -> bool:
         """COMMAND_LONG addressed to this autopilot's system and component."""

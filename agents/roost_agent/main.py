@@ -23,7 +23,9 @@ open, a signing key it cannot use) is refused at start with one line on stderr a
 status 2, never a traceback. MAVLink signing: ``--signing`` and ``--signing-keys`` (see
 :mod:`roost_agent.signing`). Optional local endpoints, both off by default: Prometheus
 metrics (``--metrics-port``, :mod:`roost_agent.metrics`) and the live telemetry stream
-``roost dashboard`` follows (``--telemetry-port``, :mod:`roost_agent.telemetry`).
+``roost dashboard`` follows (``--telemetry-port``, :mod:`roost_agent.telemetry`). Flight
+records (``--records-dir``, :mod:`roost_agent.records_recorder`), served over HTTP on
+``--records-port``, announced on stdout as ``{"records": URL}``.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ import yaml
 from roost_agent.agent import Agent, connection_problems, restore_state
 from roost_agent.bridge import Bridge, GpioBridge, SimulatedBridge
 from roost_agent.hub_policy import HubConfigError
+from roost_agent.records import DEFAULT_BUDGET_MB, DEFAULT_PORT
 from roost_agent.signing import (
     DEFAULT_KEY_DIR,
     KeyWatcher,
@@ -58,6 +61,8 @@ from roost_api.plain_check import PlainValidationError
 
 if TYPE_CHECKING:
     from roost_agent.kube import AgentKube
+    from roost_agent.records_recorder import FlightRecorder
+    from roost_agent.records_server import RecordsServer
     from roost_agent.telemetry import TelemetryServer
 
 log = logging.getLogger("roost_agent")
@@ -190,6 +195,40 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="LAT,LON",
         help="where the stream's north/east metres start (default: the first position)",
     )
+    parser.add_argument(
+        "--records-dir",
+        type=Path,
+        default=Path(os.environ["ROOST_AGENT_RECORDS_DIR"])
+        if os.environ.get("ROOST_AGENT_RECORDS_DIR")
+        else None,
+        help="record every flight here (MAVLink tlog, decisions, parameters, the "
+        "autopilots' logs; see docs/flight-records.md); off without it",
+    )
+    parser.add_argument(
+        "--records-budget-mb",
+        type=float,
+        default=float(os.environ.get("ROOST_AGENT_RECORDS_BUDGET_MB", DEFAULT_BUDGET_MB)),
+        help="disk budget of the records: the oldest flights are deleted first, never the "
+        "current one",
+    )
+    parser.add_argument(
+        "--records-port",
+        type=int,
+        default=int(os.environ.get("ROOST_AGENT_RECORDS_PORT", str(DEFAULT_PORT))),
+        help="serve the records over HTTP on this port (0: not served)",
+    )
+    parser.add_argument(
+        "--records-address",
+        default=os.environ.get("ROOST_AGENT_RECORDS_ADDRESS", "127.0.0.1"),
+        help="address the records server binds (127.0.0.1 keeps it on the vehicle)",
+    )
+    parser.add_argument(
+        "--records-fetch-kbps",
+        type=float,
+        default=float(os.environ.get("ROOST_AGENT_RECORDS_FETCH_KBPS", "100")),
+        help="the autopilots' logs are fetched after landing at most this fast (kB/s; "
+        "0: not fetched)",
+    )
     parser.add_argument("--log-level", default="INFO")
     return parser
 
@@ -292,6 +331,49 @@ def start_telemetry(
     return server
 
 
+def start_records(
+    args: argparse.Namespace, agent: Agent, out: JsonLines
+) -> tuple[FlightRecorder | None, RecordsServer | None]:
+    """The flight recorder and its HTTP server when ``--records-dir`` asks for them;
+    flying goes on without them when they cannot start."""
+    if args.records_dir is None:
+        return None, None
+    from roost_agent.records_logs import FetchSettings, LogFetcher  # noqa: PLC0415
+    from roost_agent.records_recorder import FlightRecorder  # noqa: PLC0415
+    from roost_agent.records_server import RecordsServer  # noqa: PLC0415
+
+    fetcher = None
+    if args.records_fetch_kbps > 0:
+        settings = FetchSettings(rate_bytes_per_s=args.records_fetch_kbps * 1000)
+        fetcher = LogFetcher(lambda: agent.links, settings=settings)
+    try:
+        recorder = FlightRecorder(
+            agent,
+            args.records_dir,
+            budget_bytes=int(args.records_budget_mb * 1e6),
+            fetch_logs=fetcher,
+        )
+    except OSError as exc:
+        log.error("cannot record flights in %s (%s); flying without records", args.records_dir, exc)
+        return None, None
+    recorder.start()
+    server = None
+    if args.records_port:
+        try:
+            server = RecordsServer(
+                args.records_dir,
+                agent.vehicle_name,
+                address=args.records_address,
+                port=args.records_port,
+            )
+        except OSError as exc:
+            log.error("cannot serve the records (%s); recording without serving", exc)
+        else:
+            log.info("records on %s", server.url)
+            out.write({"records": server.url})
+    return recorder, server
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     # A thread waiting for the GIL waits up to the switch interval (5 ms by default) while
@@ -364,6 +446,7 @@ def main(argv: list[str] | None = None) -> int:
         watcher = KeyWatcher(args.signing_keys, spec.vehicle_name, signing, agent.rekey)
         threading.Thread(target=watcher.run, args=(stop,), name="signing-keys", daemon=True).start()
     telemetry = start_telemetry(args, agent, out)
+    recorder, records_server = start_records(args, agent, out)
     publisher = None
     if kube is not None:
         from roost_agent.publisher import Publisher, PublisherSettings  # noqa: PLC0415
@@ -396,7 +479,11 @@ def main(argv: list[str] | None = None) -> int:
 
         try:
             metrics = MetricsServer(
-                agent, address=args.metrics_address, port=args.metrics_port, publisher=publisher
+                agent,
+                address=args.metrics_address,
+                port=args.metrics_port,
+                publisher=publisher,
+                recorder=recorder,
             )
         except OSError as exc:
             # Supervising the autopilots matters more than being observed: fly on.
@@ -417,6 +504,10 @@ def main(argv: list[str] | None = None) -> int:
             telemetry.close()
         if metrics is not None:
             metrics.close()
+        if records_server is not None:
+            records_server.close()
+        if recorder is not None:
+            recorder.stop()
         if publisher is not None:
             publisher.stop()
         agent.stop()

@@ -117,12 +117,32 @@ class PublisherGauges(Protocol):
     def api_errors(self) -> int: ...
 
 
-class AgentCollector(Collector):
-    """Reads the agent's state at scrape time (health, links, active autopilot, publisher)."""
+class RecorderGauges(Protocol):
+    """What the collector reads of :class:`roost_agent.records_recorder.FlightRecorder`."""
 
-    def __init__(self, agent: MetricsAgent, publisher: PublisherGauges | None = None) -> None:
+    @property
+    def dropped_frames(self) -> int: ...
+
+    @property
+    def decisions_dropped(self) -> int: ...
+
+    @property
+    def flights_recorded(self) -> int: ...
+
+
+class AgentCollector(Collector):
+    """Reads the agent's state at scrape time (health, links, active autopilot, publisher,
+    flight recorder)."""
+
+    def __init__(
+        self,
+        agent: MetricsAgent,
+        publisher: PublisherGauges | None = None,
+        recorder: RecorderGauges | None = None,
+    ) -> None:
         self._agent = agent
         self._publisher = publisher
+        self._recorder = recorder
 
     def collect(self) -> Iterable[GaugeMetricFamily | CounterMetricFamily]:
         agent = self._agent
@@ -185,6 +205,21 @@ class AgentCollector(Collector):
                 f"{PREFIX}_publisher_api_errors",
                 "Failed API calls of the status publisher (discovery, status, Events).",
                 value=self._publisher.api_errors,
+            )
+        if self._recorder is not None:
+            dropped = CounterMetricFamily(
+                f"{PREFIX}_records_dropped",
+                "What the flight recorder dropped rather than slow the hub (its queue "
+                "full): MAVLink frames (tlog) and agent events (decisions).",
+                labels=["file"],
+            )
+            dropped.add_metric(["tlog"], self._recorder.dropped_frames)
+            dropped.add_metric(["decisions"], self._recorder.decisions_dropped)
+            yield dropped
+            yield CounterMetricFamily(
+                f"{PREFIX}_records_flights",
+                "Flights the recorder began (arm to disarm) since the agent started.",
+                value=self._recorder.flights_recorded,
             )
 
 
@@ -296,12 +331,14 @@ class EventMetrics:
 
 
 def build_registry(
-    agent: MetricsAgent, publisher: PublisherGauges | None = None
+    agent: MetricsAgent,
+    publisher: PublisherGauges | None = None,
+    recorder: RecorderGauges | None = None,
 ) -> tuple[CollectorRegistry, Callable[[], None]]:
     """A registry with the agent's metrics; returns it and the unsubscribe function."""
     registry = CollectorRegistry(auto_describe=False)
     ProcessCollector(registry=registry)
-    registry.register(AgentCollector(agent, publisher))
+    registry.register(AgentCollector(agent, publisher, recorder))
     events = EventMetrics(registry)
     return registry, agent.subscribe(events.observe)
 
@@ -316,8 +353,9 @@ class MetricsServer:
         address: str = DEFAULT_ADDRESS,
         port: int = DEFAULT_PORT,
         publisher: PublisherGauges | None = None,
+        recorder: RecorderGauges | None = None,
     ) -> None:
-        self.registry, self._unsubscribe = build_registry(agent, publisher)
+        self.registry, self._unsubscribe = build_registry(agent, publisher, recorder)
         server: WSGIServer
         try:
             server, self._thread = start_http_server(port, address, self.registry)

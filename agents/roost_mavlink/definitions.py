@@ -4,8 +4,9 @@ sends that pymavlink's dialect lacks.
 Why declarations (the agent's codec, :mod:`roost_mavlink.codec`, reads them): the agent
 decodes a few fields of a few messages (:data:`AGENT_MESSAGES`: HEARTBEAT, SYS_STATUS,
 ATTITUDE, GLOBAL_POSITION_INT, the estimator reports, EXTENDED_SYS_STATE, COMMAND_ACK,
-the hub's COMMAND_LONG/INT, PARAM_VALUE, AUTOPILOT_VERSION) and encodes a few
-(HEARTBEAT, COMMAND_LONG, REQUEST_DATA_STREAM, PARAM_REQUEST_READ, PARAM_SET);
+the hub's COMMAND_LONG/INT, PARAM_VALUE, AUTOPILOT_VERSION, LOG_ENTRY, LOG_DATA) and
+encodes a few (HEARTBEAT, COMMAND_LONG, REQUEST_DATA_STREAM, PARAM_REQUEST_READ,
+PARAM_REQUEST_LIST, PARAM_SET, the LOG_REQUEST_* of the log protocol);
 pymavlink's generated dialect, which has them all, costs several MB to import. Every other
 message id is only checked and counted, from the generated table
 :mod:`roost_mavlink.checked_messages`.
@@ -187,6 +188,9 @@ AGENT_MESSAGES: dict[int, MessageDef] = {
             ("int16_t", "param_index"),
         ),
         _message(
+            21, "PARAM_REQUEST_LIST", ("uint8_t", "target_system"), ("uint8_t", "target_component")
+        ),
+        _message(
             22,
             "PARAM_VALUE",
             ("char", "param_id", 16),
@@ -271,6 +275,44 @@ AGENT_MESSAGES: dict[int, MessageDef] = {
                 ("uint8_t", "target_system"),
                 ("uint8_t", "target_component"),
             ),
+        ),
+        # the log protocol: the flight recorder fetches the autopilots' logs after landing
+        _message(
+            117,
+            "LOG_REQUEST_LIST",
+            ("uint8_t", "target_system"),
+            ("uint8_t", "target_component"),
+            ("uint16_t", "start"),
+            ("uint16_t", "end"),
+        ),
+        _message(
+            118,
+            "LOG_ENTRY",
+            ("uint16_t", "id"),
+            ("uint16_t", "num_logs"),
+            ("uint16_t", "last_log_num"),
+            ("uint32_t", "time_utc"),
+            ("uint32_t", "size"),
+        ),
+        _message(
+            119,
+            "LOG_REQUEST_DATA",
+            ("uint8_t", "target_system"),
+            ("uint8_t", "target_component"),
+            ("uint16_t", "id"),
+            ("uint32_t", "ofs"),
+            ("uint32_t", "count"),
+        ),
+        _message(
+            120,
+            "LOG_DATA",
+            ("uint16_t", "id"),
+            ("uint32_t", "ofs"),
+            ("uint8_t", "count"),
+            ("uint8_t", "data", 90),
+        ),
+        _message(
+            122, "LOG_REQUEST_END", ("uint8_t", "target_system"), ("uint8_t", "target_component")
         ),
         _message(
             148,

@@ -70,6 +70,7 @@ from roost_sim.faults import (
 )
 from roost_sim.kinematics import ned_from_global
 from roost_sim.link import Link, PtyLink, UdpLink
+from roost_sim.logs import SimLogs
 from roost_sim.model import AutopilotModel, ModeChange, SimConfig, Touchdown
 from roost_sim.params import ParamStore
 from roost_sim.scheduler import TickScheduler, shared_scheduler
@@ -238,6 +239,10 @@ class SimulatedAutopilot:
         self._tx_lock = threading.Lock()
         self._model = AutopilotModel(self.stack, self.config, battery=self.battery)
         self.params = ParamStore(self.stack, sysid=sysid, config=self.config)
+        # The SD card: one log per armed interval, served over the MAVLink log protocol.
+        self.logs = SimLogs(
+            self.stack, lambda: {n: self.params.get(n) for n in self.params.names()}
+        )
         # What AUTOPILOT_VERSION says (tests set other versions and builds).
         self.firmware_version: tuple[int, int, int] = _FIRMWARE[self.stack]
         self.firmware_build = _BUILD[self.stack]
@@ -618,9 +623,11 @@ class SimulatedAutopilot:
                 self._streams.due[msg_id] = self._next_due(msg_id, now)
             texts, self._model.texts = self._model.texts, []
             messages: list[Any] = []
+            self.logs.note(view, now)
             if self._sending():
                 messages = [self._telemetry.builders[m](view) for m in due]
                 messages += self._events(view, texts)
+                messages += self.logs.pending(now, self._mav)
             noise = self._noise(now) if self._sending() else []
             next_due = min(
                 (t for t in self._streams.due.values() if t > now), default=now + _MAX_SLEEP_S
@@ -678,6 +685,7 @@ class SimulatedAutopilot:
         self._reboot_at = None
         self._frozen = None
         self._model.reboot()
+        self.logs.forget_transfer()
         self._model.texts.clear()
         self._heard = False
         self._heartbeat_mode = None
@@ -819,6 +827,8 @@ class SimulatedAutopilot:
                     self.config.throttle = min(1.0, max(0.0, (raw - 1000) / 1000.0))
                 elif raw == 0:
                     self.config.throttle = None
+            elif kind.startswith("LOG_") and self._for_us(msg):
+                replies = self.logs.handle(msg, self._mav, self._model.armed)
             elif kind == "HEARTBEAT":
                 # what a real autopilot's companion / ground-station failsafe watches
                 self._heartbeats_heard[msg.get_srcSystem(), msg.get_srcComponent()] += 1

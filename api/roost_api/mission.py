@@ -391,6 +391,46 @@ class MissionOffboardStatus(ApiModel):
     message: str | None = Field(default=None, description="What is happening.")
 
 
+class RecordsState(StrEnum):
+    """Where a finished Mission's record (its bundle) stands."""
+
+    GATHERING = "Gathering"
+    """Still fetching flights from vehicles (or waiting for one to come back)."""
+    COMPLETE = "Complete"
+    """Every claimed vehicle's flights and files are in the bundle, checksums verified."""
+    PARTIAL = "Partial"
+    """The bundle is final but lacks something; its manifest says what and why."""
+    FAILED = "Failed"
+    """No bundle could be written (the operator's records volume refused it)."""
+
+    @property
+    def final(self) -> bool:
+        return self is not RecordsState.GATHERING
+
+
+class VehicleRecordsStatus(ApiModel):
+    """One claimed vehicle's part of the Mission's record."""
+
+    name: str = Field(description="The Vehicle.")
+    state: str = Field(description="Pending, Complete, Partial or Missing.")
+    flights: int = Field(default=0, description="Flights of this mission gathered so far.")
+    message: str | None = Field(default=None, description="What is pending or missing, and why.")
+
+
+class MissionRecordsStatus(ApiModel):
+    """The Mission's record: one bundle on the operator's records volume."""
+
+    state: RecordsState = Field(description="Gathering, Complete, Partial or Failed.")
+    bundle: str = Field(description="The bundle's name (``roost records get`` fetches it).")
+    message: str | None = Field(default=None, description="What is pending or missing.")
+    ready_time: datetime | None = Field(
+        default=None, description="When the bundle became final (Complete or Partial)."
+    )
+    vehicles: list[VehicleRecordsStatus] = Field(
+        default_factory=list, description="Per claimed vehicle."
+    )
+
+
 class MissionStatus(ApiModel):
     """Observed state of a Mission, written by the operator."""
 
@@ -412,3 +452,6 @@ class MissionStatus(ApiModel):
     )
     start_time: datetime | None = Field(default=None, description="When workloads started.")
     completion_time: datetime | None = Field(default=None, description="When it finished.")
+    records: MissionRecordsStatus | None = Field(
+        default=None, description="The flight record of a mission that flew, once it ended."
+    )

@@ -30,6 +30,11 @@ ANNOTATION_TELEMETRY = f"{PREFIX}telemetry"
 # API server's pod proxy. Both written by the agent itself.
 ANNOTATION_TELEMETRY_POD = f"{PREFIX}telemetry-pod"
 
+# A Vehicle's flight records server (http://HOST:PORT/) when the operator can reach it
+# directly (the sandbox, where agents run as processes); otherwise the operator goes
+# through the API server's pod proxy of the agent pod on the vehicle's node.
+ANNOTATION_RECORDS = f"{PREFIX}records"
+
 # Taint keeping ordinary workloads off vehicle nodes.
 TAINT_VEHICLE = f"{PREFIX}vehicle"
 

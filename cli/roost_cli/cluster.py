@@ -207,6 +207,25 @@ class Fleet:
             raise not_found(what, REDUNDANT_AUTOPILOT)
         return obj
 
+    def operator_pod(self, namespace: str) -> str:
+        """The running operator pod in ``namespace`` (its records server's way in)."""
+        from roost_kube.resources import PODS  # noqa: PLC0415
+
+        pods = self._call(
+            f"list the operator's pods in {namespace}",
+            None,
+            lambda: self.kube.list_objects(
+                PODS, namespace=namespace, labels={"app.kubernetes.io/component": "operator"}
+            ),
+        )
+        running = [p for p in pods if (p.get("status") or {}).get("phase") == "Running"]
+        if not running:
+            raise CliError(
+                f"no running operator pod in namespace {namespace} (--operator-namespace, "
+                "or --records-url where the operator's records server is reachable)"
+            )
+        return str(running[0]["metadata"]["name"])
+
     def mission(self, namespace: str, name: str) -> dict[str, Any]:
         what = f"get Mission {namespace}/{name}"
         obj = self._call(

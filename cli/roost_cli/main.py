@@ -27,7 +27,7 @@ from typer._click.exceptions import NoArgsIsHelpError  # typer >= 0.29 vendors c
 
 from roost_api.autopilot import CommandAction
 from roost_api.telemetry import Origin
-from roost_cli import actions, keys, render, tables, view
+from roost_cli import actions, keys, records, render, tables, view
 from roost_cli.cluster import Fleet, in_cluster_target, resolve_kubeconfig
 from roost_cli.errors import CliError
 from roost_cli.sandbox import plan, runner, sims
@@ -206,6 +206,84 @@ def missions(
     console.print(render.missions_table(rows))
 
 
+records_app = typer.Typer(
+    help="Flight records: one bundle per Mission that flew (docs/mission-records.md).",
+    no_args_is_help=True,
+)
+app.add_typer(records_app, name="records")
+
+
+@records_app.command("list")
+def records_list(
+    ctx: typer.Context,
+    namespace: Annotated[
+        str | None, typer.Option("--namespace", "-n", help="Only this namespace.")
+    ] = None,
+    output: Annotated[Output, typer.Option("--output", "-o")] = Output.TABLE,
+) -> None:
+    """Missions with a flight record: its state, bundle and what is pending or missing."""
+    fleet = _context(ctx).fleet()
+    if namespace is not None:
+        fleet.require_namespace(namespace)
+    rows = records.record_rows(fleet.missions(namespace))
+    if output is Output.JSON:
+        _print_json([asdict(row) for row in rows])
+        return
+    table = Table("NAMESPACE", "MISSION", "PHASE", "RECORD", "VEHICLES", "BUNDLE", "MESSAGE")
+    for row in rows:
+        table.add_row(
+            row.namespace,
+            row.mission,
+            row.phase,
+            row.records,
+            row.vehicles,
+            row.bundle,
+            row.message,
+        )
+    console.print(table if rows else "no Mission has a flight record yet")
+
+
+@records_app.command("get")
+def records_get(
+    ctx: typer.Context,
+    *,
+    ref: Annotated[str, typer.Argument(help="mission/NAME or mission/NAMESPACE/NAME.")],
+    out: Annotated[Path, typer.Option("--output-dir", "-o", help="Where to write the bundle.")],
+    namespace: Annotated[str, typer.Option("--namespace", "-n")] = "default",
+    operator_namespace: Annotated[
+        str, typer.Option("--operator-namespace", help="Where the operator runs.")
+    ] = "roost-system",
+    records_url: Annotated[
+        str | None,
+        typer.Option(
+            "--records-url",
+            envvar="ROOST_RECORDS_URL",
+            help="The operator's records server, when reachable directly (else the pod proxy).",
+        ),
+    ] = None,
+) -> None:
+    """Fetch a Mission's record (its bundle) into a directory; resumes when run again."""
+    kind, _, rest = ref.partition("/")
+    if kind not in ("mission", "missions") or not rest:
+        raise CliError(f"{ref!r}: write mission/NAME or mission/NAMESPACE/NAME")
+    ns, name = actions.split_mission_ref(rest, namespace)
+    fleet = _context(ctx).fleet()
+    bundle = records.bundle_of(fleet.mission(ns, name))
+    server: records.Server
+    if records_url:
+        server = records.DirectServer(records_url)
+    else:
+        pod = fleet.operator_pod(operator_namespace)
+        server = records.ProxyServer(fleet.kube, operator_namespace, pod)
+    fetched = records.download(server, bundle, out)
+    console.print(
+        f"[bold]mission {ns}/{name}[/]: bundle {bundle}: {fetched.files} files, "
+        f"{fetched.bytes} bytes in {out} (manifest.json lists them)"
+    )
+    for line in fetched.missing:
+        console.print(Text.assemble(("missing: ", "yellow"), line), highlight=False)
+
+
 @app.command()
 def abort(
     ctx: typer.Context,
@@ -354,6 +432,17 @@ def dashboard(
             "--in-cluster", help="Use the pod's service account (the chart's Deployment)."
         ),
     ] = False,
+    records_url: Annotated[
+        str | None,
+        typer.Option(
+            "--records-url",
+            envvar="ROOST_RECORDS_URL",
+            help="The operator's records server, when reachable directly (else the pod proxy).",
+        ),
+    ] = None,
+    operator_namespace: Annotated[
+        str, typer.Option("--operator-namespace", help="Where the operator runs.")
+    ] = "roost-system",
 ) -> None:
     """A live fleet view in the browser: arena, fleet, missions, timeline, guarded actions.
 
@@ -371,8 +460,11 @@ def dashboard(
     else:
         fleet = context.fleet()
     flags = dict(_agent_flag(text) for text in agent or [])
-    if fleet is None and not flags:
-        raise CliError("--no-cluster shows only the agents' streams: name them with --agent")
+    if fleet is None and not flags and not records_url:
+        raise CliError(
+            "--no-cluster shows only the agents' streams (name them with --agent) "
+            "and the records at --records-url"
+        )
 
     def sandbox_endpoints() -> dict[str, str]:
         recorded = sandbox_state.running(context.sandbox_dir)
@@ -390,6 +482,8 @@ def dashboard(
         read_only=read_only,
         origin=_origin_flag(origin) if origin else None,
         tiles=tiles,
+        records_url=records_url,
+        operator_namespace=operator_namespace,
     )
     if fleet is None:
         where, mode = server.NO_CLUSTER, "read-only"

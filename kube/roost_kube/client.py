@@ -181,8 +181,9 @@ class Kube:
         body: Any,
         content_type: str,
         timeout: Timeout | None,
+        headers: Mapping[str, str] | None = None,
     ) -> Response:
-        headers = {"Accept": "application/json", "Content-Type": content_type}
+        headers = {"Accept": "application/json", "Content-Type": content_type, **(headers or {})}
         url = f"{path}?{urlencode(query)}" if query else path
         try:
             return self._transport.send(
@@ -231,6 +232,21 @@ class Kube:
             raise error_for_status(response.status, method, path, raw.decode(errors="replace"))
         decoded: Obj = json.loads(raw)
         return decoded
+
+    def get_bytes(
+        self, path: str, *, headers: Mapping[str, str] | None = None, timeout: Timeout | None = None
+    ) -> Response:
+        """GET ``path`` for bytes, not JSON (a pod proxy's files): the status and the body,
+        unread, whatever the status; the caller reads or releases it."""
+        return self._send(
+            "GET",
+            path,
+            query=None,
+            body=None,
+            content_type="application/json",
+            timeout=timeout or self.timeout,
+            headers={"Accept": "*/*", **(headers or {})},
+        )
 
     # -- reads -------------------------------------------------------------------
 

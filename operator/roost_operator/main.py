@@ -182,6 +182,17 @@ def parse_args(argv: list[str] | None, environ: Mapping[str, str]) -> tuple[Any,
         default=environ.get("ROOST_OPERATOR_METRICS_ADDRESS", "127.0.0.1"),
         help="address the metrics endpoint binds (0.0.0.0 in a pod)",
     )
+    parser.add_argument(
+        "--records-port",
+        type=int,
+        default=int(environ.get("ROOST_RECORDS_PORT", "0")),
+        help="serve the Mission records read-only on this port (0: off; docs/mission-records.md)",
+    )
+    parser.add_argument(
+        "--records-address",
+        default=environ.get("ROOST_RECORDS_ADDRESS", "127.0.0.1"),
+        help="address the records server binds (0.0.0.0 in a pod)",
+    )
     parser.add_argument("--verbose", action="store_true", help="debug logging")
     args = parser.parse_args(argv)
     settings = load_settings(environ)
@@ -213,6 +224,13 @@ def main(argv: list[str] | None = None) -> int:
         port = metrics.serve(args.metrics_address, args.metrics_port)
         logging.getLogger(__name__).info(
             "metrics on http://%s:%d/metrics", args.metrics_address, port
+        )
+    if args.records_port and settings.records.directory is not None:
+        from roost_operator.records.server import serve  # noqa: PLC0415
+
+        server = serve(settings.records.directory, args.records_address, args.records_port)
+        logging.getLogger(__name__).info(
+            "records on http://%s:%d/bundles", args.records_address, server.server_address[1]
         )
     elector = None
     if args.leader_election:

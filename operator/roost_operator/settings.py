@@ -14,9 +14,11 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from datetime import timedelta
+from pathlib import Path
 
 from roost_operator.autopilots.conditions import DEFAULT_AGENT_STALE_AFTER
 from roost_operator.autopilots.guards import TRUE_VALUES, FleetGuards
+from roost_operator.records.settings import RecordsSettings
 
 
 @dataclass(frozen=True)
@@ -159,6 +161,9 @@ class Settings:
     kopf: KopfTimings = field(default_factory=KopfTimings)
     """Watch and request timeouts of kopf (``ROOST_WATCH_*``, ``ROOST_*_TIMEOUT_SECONDS``)."""
 
+    records: RecordsSettings = field(default_factory=RecordsSettings)
+    """Where and how Mission records are gathered and kept (``ROOST_RECORDS_*``)."""
+
 
 def _seconds(environ: Mapping[str, str], key: str, default: timedelta) -> timedelta:
     value = environ.get(key)
@@ -229,4 +234,22 @@ def load_settings(environ: Mapping[str, str]) -> Settings:
             ),
         ),
         kopf=load_kopf_timings(environ),
+        records=load_records(environ),
+    )
+
+
+def load_records(environ: Mapping[str, str]) -> RecordsSettings:
+    """:class:`RecordsSettings` from the environment, defaults for what is unset."""
+    defaults = RecordsSettings()
+    directory = environ.get("ROOST_RECORDS_DIR")
+    days = float(environ.get("ROOST_RECORDS_KEEP_DAYS", 30))
+    return RecordsSettings(
+        directory=Path(directory) if directory else None,
+        agent_port=int(environ.get("ROOST_RECORDS_AGENT_PORT", defaults.agent_port)),
+        agent_namespace=environ.get("ROOST_RECORDS_AGENT_NAMESPACE", defaults.agent_namespace),
+        retry_seconds=float(environ.get("ROOST_RECORDS_RETRY_SECONDS", defaults.retry_seconds)),
+        settle_after=_seconds(environ, "ROOST_RECORDS_SETTLE_SECONDS", defaults.settle_after),
+        give_up_after=_seconds(environ, "ROOST_RECORDS_GIVE_UP_SECONDS", defaults.give_up_after),
+        keep_count=int(environ.get("ROOST_RECORDS_KEEP", defaults.keep_count)),
+        keep_for=timedelta(days=days) if days > 0 else None,
     )

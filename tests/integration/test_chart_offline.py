@@ -212,6 +212,33 @@ def test_operator_role_grants_no_secrets_no_wildcards_and_no_rbac() -> None:
     assert not _grants(rules, "roost.dev", "redundantautopilots/status", "patch")
 
 
+def test_operator_keeps_mission_records_on_its_own_claim_and_may_reach_the_agents() -> None:
+    objects = _render_set("defaults")
+    pod = find(objects, "Deployment", "-operator")["spec"]["template"]["spec"]
+    claim = find(objects, "PersistentVolumeClaim", "-operator-records")
+    assert claim["metadata"]["annotations"]["helm.sh/resource-policy"] == "keep"
+    (volume,) = [v for v in pod["volumes"] if v["name"] == "records"]
+    assert volume["persistentVolumeClaim"]["claimName"] == claim["metadata"]["name"]
+    container = pod["containers"][0]
+    env = {e["name"]: e.get("value") for e in container["env"]}
+    (mount,) = [m for m in container["volumeMounts"] if m["name"] == "records"]
+    assert env["ROOST_RECORDS_DIR"] == mount["mountPath"]
+    assert pod["securityContext"]["fsGroup"] == pod["securityContext"]["runAsGroup"]
+    pods_role = find(objects, "Role", "-operator-pods")["rules"]
+    assert _grants(pods_role, "", "pods/proxy", "get")
+    assert _grants(_rules(objects, "-operator"), "", "events", "list")  # for the bundle
+
+    existing = render({"operator": {"records": {"persistence": {"existingClaim": "flights"}}}})
+    assert not [m for m in existing if m["kind"] == "PersistentVolumeClaim"]
+    pod = find(existing, "Deployment", "-operator")["spec"]["template"]["spec"]
+    assert {"name": "records", "persistentVolumeClaim": {"claimName": "flights"}} in pod["volumes"]
+
+    off = render({"operator": {"records": {"enabled": False}}})
+    pod = find(off, "Deployment", "-operator")["spec"]["template"]["spec"]
+    assert not [m for m in off if m["kind"] == "PersistentVolumeClaim"]
+    assert "ROOST_RECORDS_DIR" not in {e["name"] for e in pod["containers"][0]["env"]}
+
+
 # -- agent -----------------------------------------------------------------------------
 
 
@@ -240,16 +267,46 @@ def test_agent_uses_the_host_network_and_learns_its_node_from_the_downward_api()
 
 
 def test_agent_without_devices_is_unprivileged_and_mounts_nothing_from_the_host() -> None:
-    """Nothing from the host but its signing key directory, read-only."""
+    """Nothing from the host but its signing key directory, read-only, and its flight
+    records directory."""
     pod = _agent_pod("defaults")
     context = pod["containers"][0]["securityContext"]
     assert "privileged" not in context
     assert context["capabilities"] == {"drop": ["ALL"]}
     assert context["readOnlyRootFilesystem"] is True
     host = [v["name"] for v in pod["volumes"] if "hostPath" in v]
-    assert host == ["signing-keys"]
-    mounts = [m for m in pod["containers"][0]["volumeMounts"] if m["name"] in host]
-    assert all(m["readOnly"] for m in mounts)
+    assert host == ["records", "signing-keys"]
+    mounts = [m for m in pod["containers"][0]["volumeMounts"] if m["name"] == "signing-keys"]
+    assert mounts and all(m["readOnly"] for m in mounts)
+
+
+def test_agent_records_flights_on_a_host_directory_it_is_handed_and_serves_them_locally() -> None:
+    pod = _agent_pod("defaults")
+    container = pod["containers"][0]
+    for arg in (
+        "--records-dir=/var/lib/roost/records",
+        "--records-port=9468",
+        "--records-budget-mb=2048",
+    ):
+        assert arg in container["args"]
+    assert {"name": "records", "containerPort": 9468, "hostPort": 9468, "protocol": "TCP"} in (
+        container["ports"]
+    )
+    assert "ROOST_AGENT_RECORDS_ADDRESS" not in {e["name"] for e in container["env"]}
+    volume = next(v for v in pod["volumes"] if v["name"] == "records")
+    assert volume["hostPath"] == {"path": "/var/lib/roost/records", "type": "DirectoryOrCreate"}
+    [init] = pod["initContainers"]  # hands the root-created directory to the agent's user
+    assert init["command"][-3:] == ["/var/lib/roost/records", "65532", "65532"]
+    assert init["securityContext"]["capabilities"] == {"drop": ["ALL"], "add": ["CHOWN"]}
+    off = find(render({"agent": {"records": {"enabled": False}}}), "DaemonSet", "-agent")
+    spec = off["spec"]["template"]["spec"]
+    assert "initContainers" not in spec
+    assert not [a for a in spec["containers"][0]["args"] if a.startswith("--records")]
+    near = find(render({"agent": {"records": {"bindNodeAddress": True}}}), "DaemonSet", "-agent")
+    assert {
+        "name": "ROOST_AGENT_RECORDS_ADDRESS",
+        "valueFrom": {"fieldRef": {"fieldPath": "status.hostIP"}},
+    } in near["spec"]["template"]["spec"]["containers"][0]["env"]
 
 
 def test_agent_with_hardware_mounts_exactly_the_listed_devices_and_stays_non_root() -> None:

@@ -56,6 +56,9 @@ SUITES = (
     "tests/integration/test_agent_failover.py",
     "tests/integration/test_firmware_truth.py",
     "tests/integration/test_link_trust.py",
+    # the flight recorder's taps and the autopilot log download on the links
+    "tests/integration/test_agent_records_flight.py::"
+    "test_a_flight_leaves_tlog_decisions_params_and_both_autopilots_logs",
     # signed hub endpoints and a key rotation (the links re-key, answer each autopilot
     # with the key it proved)
     "tests/integration/test_hub_signing.py",

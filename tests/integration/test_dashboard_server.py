@@ -13,8 +13,6 @@ from __future__ import annotations
 import copy
 import json
 import re
-import subprocess
-import sys
 import time
 import urllib.error
 import urllib.request
@@ -31,45 +29,17 @@ from roost_cli.sandbox import plan
 from roost_kube.client import Kube
 from roost_kube.resources import MISSIONS, REDUNDANT_AUTOPILOTS
 from roost_localcluster.cluster import Cluster
-from tests.support.waiting import unique, wait_until
+from tests.support.dashboardproc import running_dashboard
+from tests.support.waiting import unique
 
 pytestmark = pytest.mark.cluster
-
-ROOST = Path(sys.executable).parent / "roost"
-ANNOUNCE = re.compile(r"Roost dashboard on (http://\S+/)")
 
 
 @contextmanager
 def dashboard(cluster: Cluster, log: Path, *args: str) -> Iterator[str]:
-    """A running ``roost dashboard`` on a free port; its URL."""
-    with log.open("w") as out:
-        proc = subprocess.Popen(
-            [
-                str(ROOST),
-                "--kubeconfig",
-                str(cluster.kubeconfig),
-                "dashboard",
-                "--port",
-                "0",
-                *args,
-            ],
-            stdout=out,
-            stderr=subprocess.STDOUT,
-            text=True,
-            env={"COLUMNS": "400", "PATH": str(ROOST.parent)},
-        )
-    try:
-
-        def announced() -> str | None:
-            assert proc.poll() is None, log.read_text()
-            found = ANNOUNCE.search(log.read_text())
-            return found.group(1) if found else None
-
-        yield wait_until("the dashboard's URL", announced, 30, 0.1)
-    finally:
-        proc.terminate()
-        proc.wait(timeout=10)
-    assert "Traceback" not in log.read_text()
+    """A running ``roost dashboard`` on the session cluster; its URL."""
+    with running_dashboard(log, "--kubeconfig", str(cluster.kubeconfig), *args) as url:
+        yield url
 
 
 def token_of(url: str) -> str:

@@ -8,7 +8,9 @@ Routes:
   something changed, at most :data:`PUSH_HZ` times a second: at once when the last push
   is older than a period, else at the end of it;
 * ``POST /api/abort`` and ``POST /api/estop`` — the guarded actions
-  (:mod:`.actions_api`), refused with ``--read-only``.
+  (:mod:`.actions_api`), refused with ``--read-only``;
+* ``GET /records`` — the Missions' flight records and a flight's plot
+  (``static/records.html``), over ``GET /api/records…`` (:mod:`.records_api`).
 
 Who acts: the dashboard has no identity of its own. It reads and writes with the
 kubeconfig of the user who runs it (the same resolution as every ``roost`` command), so
@@ -28,11 +30,13 @@ import logging
 import secrets
 import socket
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from importlib import resources
+from pathlib import Path
 from typing import Any
 
 import uvicorn
@@ -44,8 +48,9 @@ from starlette.staticfiles import StaticFiles
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from roost_api.telemetry import Origin
+from roost_cli import records
 from roost_cli.cluster import Fleet
-from roost_cli.dashboard import actions_api
+from roost_cli.dashboard import actions_api, records_api
 from roost_cli.dashboard.model import FleetModel
 from roost_cli.dashboard.sources import Endpoints, TelemetryClients, start_watchers
 from roost_cli.errors import CliError
@@ -68,6 +73,10 @@ class Settings:
     origin: Origin | None = None
     tiles: str | None = None
     """An XYZ tile URL template for an outdoor field (``{z}/{x}/{y}``); none by default."""
+    records_url: str | None = None
+    """The operator's records server when reachable directly (else the pod proxy)."""
+    operator_namespace: str = "roost-system"
+    """Where the operator runs (its pod serves the records)."""
 
 
 class Pusher:
@@ -215,8 +224,33 @@ def build_app(
 
         return endpoint
 
+    access = records_access(fleet, settings)
+
+    async def records_page(request: Request) -> Response:
+        return HTMLResponse(static_text("records.html"), headers={"Cache-Control": "no-store"})
+
+    async def records_json(request: Request) -> Response:
+        bundle = request.path_params.get("bundle")
+        flight = request.query_params.get("flight")
+        try:
+            if bundle is None:
+                result = await asyncio.to_thread(access.bundles)
+            elif flight is None:
+                result = await asyncio.to_thread(access.manifest, bundle)
+            else:
+                result = await asyncio.to_thread(access.plot, bundle, flight)
+        except records_api.NotFoundError as error:
+            return JSONResponse({"error": str(error)}, status_code=404)
+        except CliError as error:
+            return JSONResponse({"error": str(error)}, status_code=502)
+        return JSONResponse(result, headers={"Cache-Control": "no-store"})
+
     routes = [
         Route("/", index),
+        Route("/records", records_page),
+        Route("/api/records", records_json),
+        Route("/api/records/{bundle}", records_json),
+        Route("/api/records/{bundle}/plot", records_json),
         Route("/api/abort", guarded(actions_api.abort), methods=["POST"]),
         Route("/api/estop", guarded(actions_api.estop), methods=["POST"]),
         WebSocketRoute("/ws", stream),
@@ -230,6 +264,28 @@ def build_app(
     app.state.model = fleet_model
     app.state.pusher = pusher
     return app
+
+
+def records_access(fleet: Fleet | None, settings: Settings) -> records_api.RecordsAccess:
+    """Where the records pages read bundles from (the server is found per request, so a
+    restarted operator pod is found again)."""
+
+    def server() -> records.Server | None:
+        if settings.records_url:
+            return records.DirectServer(settings.records_url)
+        if fleet is None:
+            return None
+        pod = fleet.operator_pod(settings.operator_namespace)
+        return records.ProxyServer(fleet.kube, settings.operator_namespace, pod)
+
+    made: list[Path] = []
+
+    def cache() -> Path:
+        if not made:
+            made.append(Path(tempfile.mkdtemp(prefix="roost-dashboard-records-")))
+        return made[0]
+
+    return records_api.RecordsAccess(server, cache, settings.origin)
 
 
 def bind(host: str, port: int) -> socket.socket:

@@ -38,7 +38,7 @@ from pydantic import ValidationError
 from roost_api.autopilot import AutopilotCommand
 from roost_api.commands import command_patch
 from roost_api.meta import API_VERSION
-from roost_api.mission import MissionPhase, MissionReason, MissionSpec, MissionStatus
+from roost_api.mission import MissionPhase, MissionReason, MissionSpec, MissionStatus, RecordsState
 from roost_api.resources import MISSION, VEHICLE
 from roost_api.wellknown import (
     LABEL_COMPONENT,
@@ -65,6 +65,8 @@ from roost_operator.missions.machine import (
 from roost_operator.missions.observed import AutopilotView, JobView, MissionRef, VehicleView
 from roost_operator.missions.selection import holding_missions
 from roost_operator.missions.workloads import bounded_name, template_probes
+from roost_operator.records.gather import VehicleTarget, gather_round
+from roost_operator.records.settings import RecordsSettings
 from roost_operator.vehicles.config import CONFIG_COMPONENT, config_map_name, config_values_of
 
 log = logging.getLogger(__name__)
@@ -465,15 +467,42 @@ def carry_out(kube: Kube, obs: Observation, plan: Plan, operator_namespace: str)
 
 
 def reconcile_mission(
-    kube: Kube, *, namespace: str, name: str, operator_namespace: str, guards: FleetGuards
+    kube: Kube,
+    *,
+    namespace: str,
+    name: str,
+    operator_namespace: str,
+    guards: FleetGuards,
+    records: RecordsSettings | None = None,
 ) -> Outcome | None:
-    """Observe, plan, claim (all or nothing), carry out. None when the Mission is gone."""
+    """Observe, plan, claim (all or nothing), carry out. None when the Mission is gone.
+
+    ``records``: gather the flight records of a mission that flew once it has ended
+    (a round per reconcile while ``status.records`` says Gathering; its result goes
+    out with the mission's one status write)."""
     obs = observe(
         kube, namespace=namespace, name=name, operator_namespace=operator_namespace, guards=guards
     )
     if obs is None:
         return None
+    gathering = records is not None and records.directory is not None
+    obs = replace(obs, records=gathering)
     plan = plan_mission(obs)
+    if records is not None and _gathering(obs):
+        plan.status.records = gather_round(
+            kube,
+            replace(records, agent_namespace=records.agent_namespace or operator_namespace),
+            namespace=namespace,
+            name=name,
+            uid=obs.mission.uid,
+            status=obs.status,
+            vehicles=[_target(obs, v.name) for v in obs.status.vehicles],
+            now=obs.now,
+        )
+        if not RecordsState(plan.status.records.state).final:
+            plan.requeue_after = min(
+                plan.requeue_after or records.retry_seconds, records.retry_seconds
+            )
     if plan.claims:
         refused = check_templates(kube, obs, plan.claims)
         if refused is not None:
@@ -506,10 +535,29 @@ def reconcile_mission(
         plan=plan,
         requeue_after=plan.requeue_after,
         finished=phase_finished
+        and (status.records is None or RecordsState(status.records.state).final)
         and not (plan.releases or plan.jobs_to_delete or plan.requeue_after is not None),
         assigned=tuple(v.name for v in status.vehicles),
         waiting_for_vehicles=status.start_time is None,
     )
+
+
+def _gathering(obs: Observation) -> bool:
+    """The mission has ended (as observed) and its record is still being gathered."""
+    return (
+        obs.records
+        and MissionPhase(obs.status.phase).finished
+        and obs.status.records is not None
+        and not RecordsState(obs.status.records.state).final
+        and obs.status.start_time is not None
+    )
+
+
+def _target(obs: Observation, vehicle: str) -> VehicleTarget:
+    view = obs.vehicles.get(vehicle)
+    if view is None:
+        return VehicleTarget(vehicle)
+    return VehicleTarget(vehicle, view.node_name, view.annotations)
 
 
 def release_deleted_mission(

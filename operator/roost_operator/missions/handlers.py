@@ -104,6 +104,7 @@ async def mission_daemon(
                     name=name,
                     operator_namespace=rt.settings.namespace,
                     guards=rt.settings.guards,
+                    records=rt.settings.records,
                 )
             except ApiError as error:
                 failures += 1

@@ -120,6 +120,7 @@ from roost_operator.missions.workloads import (
     onboard_job,
     onboard_job_name,
 )
+from roost_operator.records.planning import bundle_name, gathering
 
 ABORT_COMMAND_DEADLINE_SECONDS = 30
 """How long an agent may take to see an abort command before it counts as stale."""
@@ -165,6 +166,9 @@ class Observation:
     now: datetime
     guards: FleetGuards
     """The fleet guards a failover consequence must pass (pause and latch)."""
+    records: bool = False
+    """The operator gathers flight records (:mod:`roost_operator.records`): a mission that
+    flew gets ``status.records`` when it ends."""
 
 
 @dataclass(frozen=True)
@@ -217,10 +221,28 @@ def plan_mission(obs: Observation) -> Plan:
         _run(obs, plan)
     plan.status.observed_generation = obs.generation
     plan.events = [*transition_events(obs.status, plan.status), *plan.events]
+    _start_records(obs, plan)
     if MissionPhase(plan.status.phase).finished:
         # Nothing of a finished mission keeps running, so nothing needs its config copies.
         plan.config_maps_to_delete = [v.name for v in plan.status.vehicles]
     return plan
+
+
+def _start_records(obs: Observation, plan: Plan) -> None:
+    """A mission that flew and ends now: its record starts Gathering in the same status
+    write as its final phase (the next reconcile gathers; see
+    :mod:`roost_operator.records.gather`). One that never started has nothing to record
+    and gets no ``status.records``; nor does one that had ended before records were on
+    (an upgraded operator does not go back over every old Mission)."""
+    status = plan.status
+    ends_now = MissionPhase(status.phase).finished and not MissionPhase(obs.status.phase).finished
+    if not (obs.records and ends_now and status.records is None):
+        return
+    if status.start_time is None:
+        return
+    bundle = bundle_name(obs.mission.namespace, obs.mission.name, obs.mission.uid)
+    status.records = gathering(bundle, [v.name for v in status.vehicles])
+    plan.requeue_after = 0.0
 
 
 def fail_mission(obs: Observation, reason: str, message: str) -> Plan:
