@@ -238,6 +238,12 @@ def test_operator_keeps_mission_records_on_its_own_claim_and_may_reach_the_agent
     assert not [m for m in off if m["kind"] == "PersistentVolumeClaim"]
     assert "ROOST_RECORDS_DIR" not in {e["name"] for e in pod["containers"][0]["env"]}
 
+    scratch = render({"operator": {"records": {"persistence": {"enabled": False}}}})
+    pod = find(scratch, "Deployment", "-operator")["spec"]["template"]["spec"]
+    assert not [m for m in scratch if m["kind"] == "PersistentVolumeClaim"]
+    assert {"name": "records", "emptyDir": {}} in pod["volumes"]
+    assert "ROOST_RECORDS_DIR" in {e["name"] for e in pod["containers"][0]["env"]}
+
 
 # -- agent -----------------------------------------------------------------------------
 

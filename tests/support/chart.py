@@ -116,6 +116,9 @@ def install_args(
         "--timeout",
         "3m",
     ]
+    # The harness clusters have no volume provisioner: the operator's Mission records
+    # go to an emptyDir there (a claim would stay Pending, and with it the operator).
+    args += ["--set", "operator.records.persistence.enabled=false"]
     if values:
         args += ["--values", str(_values_file(values, values_dir))]
     return args
