@@ -237,8 +237,8 @@ class FlightRecorder:
         self._thread.start()
 
     def stop(self) -> None:
-        """Stop recording; a flight in the air is closed as it stands (Recording: the
-        agent stopped, not the vehicle)."""
+        """Stop recording; a flight in the air is closed as it stands, Failed: the
+        agent stopped, not the vehicle."""
         self._stop.set()
         if self._unsubscribe is not None:
             self._unsubscribe()
@@ -248,8 +248,17 @@ class FlightRecorder:
             if link.record is self.tap:
                 link.record = None
         flight = self._flight
-        if flight is not None:
+        if flight is not None:  # closed as it stands, and says why
             self._close_files(flight)
+            name = flight.manifest.flight_id
+            files = tuple(self._finished(name, f) for f in flight.manifest.files)
+            flight.manifest = replace(
+                flight.manifest, files=files, dropped=self._dropped(flight)
+            ).failed("the agent was stopped during the flight")
+            try:
+                self._save(flight)
+            except OSError:
+                log.exception("records: cannot write the manifest of %s", name)
         fetcher = self._fetcher
         if fetcher is not None:
             fetcher.join(timeout=5)
