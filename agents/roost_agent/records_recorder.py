@@ -226,7 +226,7 @@ class FlightRecorder:
         # Paused: the links are detached (nothing is tapped); the benchmark compares.
         self.paused = False
         root.mkdir(parents=True, exist_ok=True)
-        self._recover()
+        close_interrupted(root)
 
     # -- lifecycle -----------------------------------------------------------------------
 
@@ -237,8 +237,8 @@ class FlightRecorder:
         self._thread.start()
 
     def stop(self) -> None:
-        """Stop recording; a flight in the air is closed as it stands (Recording: the
-        agent stopped, not the vehicle)."""
+        """Stop recording; a flight in the air is closed as it stands, Failed: the
+        agent stopped, not the vehicle."""
         self._stop.set()
         if self._unsubscribe is not None:
             self._unsubscribe()
@@ -248,8 +248,17 @@ class FlightRecorder:
             if link.record is self.tap:
                 link.record = None
         flight = self._flight
-        if flight is not None:
+        if flight is not None:  # closed as it stands, and says why
             self._close_files(flight)
+            name = flight.manifest.flight_id
+            files = tuple(self._finished(name, f) for f in flight.manifest.files)
+            flight.manifest = replace(
+                flight.manifest, files=files, dropped=self._dropped(flight)
+            ).failed("the agent was stopped during the flight")
+            try:
+                self._save(flight)
+            except OSError:
+                log.exception("records: cannot write the manifest of %s", name)
         fetcher = self._fetcher
         if fetcher is not None:
             fetcher.join(timeout=5)
@@ -263,16 +272,6 @@ class FlightRecorder:
     def dropped_frames(self) -> int:
         """Frames the tap dropped (queue full) since the agent started."""
         return self.tap.dropped
-
-    def _recover(self) -> None:
-        """A flight left Recording by a crash or a power cut is closed as it stands."""
-        for manifest in read_manifests(self.root):
-            if manifest.state is FlightState.RECORDING:
-                fixed = replace(
-                    manifest,
-                    files=tuple(self._finished(manifest.flight_id, f) for f in manifest.files),
-                ).failed("the agent stopped during the flight (crash or power cut)")
-                write_manifest(self.root, fixed)
 
     # -- inputs --------------------------------------------------------------------------
 
@@ -583,16 +582,7 @@ class FlightRecorder:
         self._fetcher.start()
 
     def _finished(self, flight: str, entry: FileEntry) -> FileEntry:
-        """A Partial file whose writing is over: its final size and digest."""
-        if entry.state is not FileState.PARTIAL or entry.kind is FileKind.AUTOPILOT_LOG:
-            return entry
-        path = self.root / flight / entry.path
-        try:
-            return replace(
-                entry, state=FileState.COMPLETE, bytes=_size(path), sha256=sha256_of(path)
-            )
-        except OSError as exc:
-            return replace(entry, state=FileState.FAILED, message=str(exc))
+        return finished_entry(self.root, flight, entry)
 
     def _update(self, flight: str, change: Callable[[Manifest], Manifest]) -> None:
         """Change a landed flight's manifest (the log fetcher's thread)."""
@@ -625,6 +615,30 @@ class FlightRecorder:
                 f"the disk budget of {self.budget_bytes / 1e6:g} MB is reached by this "
                 "flight alone: recording stopped",
             )
+
+
+def finished_entry(root: Path, flight: str, entry: FileEntry) -> FileEntry:
+    """A Partial file whose writing is over: its final size and digest."""
+    if entry.state is not FileState.PARTIAL or entry.kind is FileKind.AUTOPILOT_LOG:
+        return entry
+    path = root / flight / entry.path
+    try:
+        return replace(entry, state=FileState.COMPLETE, bytes=_size(path), sha256=sha256_of(path))
+    except OSError as exc:
+        return replace(entry, state=FileState.FAILED, message=str(exc))
+
+
+def close_interrupted(root: Path) -> None:
+    """A flight left Recording or Landed by a crash, a power cut or a restart is closed
+    as it stands (a cut download is not resumed: the autopilot may have flown since)."""
+    for manifest in read_manifests(root):
+        if manifest.state is FlightState.RECORDING:
+            files = tuple(finished_entry(root, manifest.flight_id, f) for f in manifest.files)
+            why = "the agent stopped during the flight (crash or power cut)"
+            write_manifest(root, replace(manifest, files=files).failed(why))
+        elif manifest.state is FlightState.LANDED:
+            why = "the agent stopped during the download of the autopilots' logs"
+            write_manifest(root, _fetch_failed(why, manifest))
 
 
 def _fetch_failed(why: str, manifest: Manifest) -> Manifest:

@@ -101,6 +101,12 @@ def test_a_killed_agent_loses_at_most_about_the_last_second(
         assert "the agent stopped during the flight" in closed.message
         tlog = closed.file("hub.tlog")
         assert tlog is not None and tlog.sha256 is not None and tlog.bytes > 20_000
+        # the restarted agent recorded the flight still going on; stopped, it says so
+        wait_until("a second flight", lambda: len(read_manifests(records)) == 2, 10)
+        agent.stop()
+        stopped = read_manifests(records)[0]
+        assert stopped.state is FlightState.FAILED
+        assert stopped.message == "the agent was stopped during the flight"
     finally:
         agent.stop()
 

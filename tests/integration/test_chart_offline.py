@@ -72,6 +72,7 @@ VALUE_SETS: dict[str, tuple[dict[str, Any], tuple[Path, ...]]] = {
         },
         (),
     ),
+    "records": ({"agent": {"records": {"enabled": True, "bindNodeAddress": True}}}, ()),
     "no-metrics": (
         {"operator": {"metrics": {"enabled": False}}, "agent": {"metrics": {"enabled": False}}},
         (),
@@ -273,21 +274,24 @@ def test_agent_uses_the_host_network_and_learns_its_node_from_the_downward_api()
 
 
 def test_agent_without_devices_is_unprivileged_and_mounts_nothing_from_the_host() -> None:
-    """Nothing from the host but its signing key directory, read-only, and its flight
-    records directory."""
+    """Nothing from the host but its signing key directory, read-only."""
     pod = _agent_pod("defaults")
     context = pod["containers"][0]["securityContext"]
     assert "privileged" not in context
     assert context["capabilities"] == {"drop": ["ALL"]}
     assert context["readOnlyRootFilesystem"] is True
     host = [v["name"] for v in pod["volumes"] if "hostPath" in v]
-    assert host == ["records", "signing-keys"]
-    mounts = [m for m in pod["containers"][0]["volumeMounts"] if m["name"] == "signing-keys"]
-    assert mounts and all(m["readOnly"] for m in mounts)
+    assert host == ["signing-keys"]
+    mounts = [m for m in pod["containers"][0]["volumeMounts"] if m["name"] in host]
+    assert all(m["readOnly"] for m in mounts)
 
 
-def test_agent_records_flights_on_a_host_directory_it_is_handed_and_serves_them_locally() -> None:
-    pod = _agent_pod("defaults")
+def test_agent_records_flights_on_a_host_directory_of_its_node_when_asked() -> None:
+    off = _agent_pod("defaults")
+    assert "initContainers" not in off
+    assert not [a for a in off["containers"][0]["args"] if a.startswith("--records")]
+    on = find(render({"agent": {"records": {"enabled": True}}}), "DaemonSet", "-agent")
+    pod = on["spec"]["template"]["spec"]
     container = pod["containers"][0]
     for arg in (
         "--records-dir=/var/lib/roost/records",
@@ -301,14 +305,14 @@ def test_agent_records_flights_on_a_host_directory_it_is_handed_and_serves_them_
     assert "ROOST_AGENT_RECORDS_ADDRESS" not in {e["name"] for e in container["env"]}
     volume = next(v for v in pod["volumes"] if v["name"] == "records")
     assert volume["hostPath"] == {"path": "/var/lib/roost/records", "type": "DirectoryOrCreate"}
+    mount = next(m for m in container["volumeMounts"] if m["name"] == "records")
+    assert mount["subPathExpr"] == "$(NODE_NAME)"  # nodes sharing a host keep their own
     [init] = pod["initContainers"]  # hands the root-created directory to the agent's user
     assert init["command"][-3:] == ["/var/lib/roost/records", "65532", "65532"]
     assert init["securityContext"]["capabilities"] == {"drop": ["ALL"], "add": ["CHOWN"]}
-    off = find(render({"agent": {"records": {"enabled": False}}}), "DaemonSet", "-agent")
-    spec = off["spec"]["template"]["spec"]
-    assert "initContainers" not in spec
-    assert not [a for a in spec["containers"][0]["args"] if a.startswith("--records")]
-    near = find(render({"agent": {"records": {"bindNodeAddress": True}}}), "DaemonSet", "-agent")
+    assert init["volumeMounts"][0]["subPathExpr"] == "$(NODE_NAME)"
+    values = {"agent": {"records": {"enabled": True, "bindNodeAddress": True}}}
+    near = find(render(values), "DaemonSet", "-agent")
     assert {
         "name": "ROOST_AGENT_RECORDS_ADDRESS",
         "valueFrom": {"fieldRef": {"fieldPath": "status.hostIP"}},

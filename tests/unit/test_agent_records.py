@@ -23,6 +23,7 @@ from roost_agent.records import (
     resolve_record,
     write_manifest,
 )
+from roost_agent.records_recorder import close_interrupted
 
 T0 = datetime(2026, 11, 27, 20, 0, 0, tzinfo=UTC)
 
@@ -194,3 +195,27 @@ def test_only_files_inside_the_flight_are_served(
     (tmp_path / "secret").write_bytes(b"s")
     (root / "f1" / "link").symlink_to(tmp_path / "secret")
     assert (resolve_record(root, flight, path) is not None) is served
+
+
+def test_flights_interrupted_by_a_restart_are_closed_as_they_stand(tmp_path: Path) -> None:
+    recording = Manifest("v-1", "v", T0).with_file(FileEntry("hub.tlog", FileKind.TLOG))
+    landed = Manifest("v-2", "v", T0 + timedelta(minutes=1), state=FlightState.LANDED)
+    landed = landed.with_file(
+        FileEntry("autopilot-logs/fc1/3.ulg", FileKind.AUTOPILOT_LOG, autopilot="fc1")
+    )
+    done = Manifest("v-3", "v", T0 + timedelta(minutes=2), state=FlightState.COMPLETE)
+    for manifest in (recording, landed, done):
+        (tmp_path / manifest.flight_id).mkdir()
+        write_manifest(tmp_path, manifest)
+    (tmp_path / "v-1" / "hub.tlog").write_bytes(b"x" * 10)
+    close_interrupted(tmp_path)
+    after = {m.flight_id: m for m in read_manifests(tmp_path)}
+    assert after["v-1"].state is FlightState.FAILED
+    assert "stopped during the flight" in after["v-1"].message
+    tlog = after["v-1"].file("hub.tlog")
+    assert tlog is not None and (tlog.state, tlog.bytes) == (FileState.COMPLETE, 10)
+    assert after["v-2"].state is FlightState.FAILED
+    log = after["v-2"].file("autopilot-logs/fc1/3.ulg")
+    assert log is not None and log.state is FileState.FAILED
+    assert "download" in log.message
+    assert after["v-3"] == done
