@@ -511,7 +511,7 @@ def test_operator_serves_metrics_on_their_own_port_with_scrape_annotations() -> 
     assert "--metrics-port=9466" in container["args"]
     assert "--metrics-address=0.0.0.0" in container["args"]
     ports = {p["name"]: p["containerPort"] for p in container["ports"]}
-    assert ports == {"health": 8080, "metrics": 9466}
+    assert ports == {"health": 8080, "metrics": 9466, "records": 9469}
     assert _annotations(deployment) == {
         "prometheus.io/scrape": "true",
         "prometheus.io/port": "9466",
