@@ -74,6 +74,7 @@ from roost_agent.arbiter import (
     step,
 )
 from roost_agent.bridge import Bridge, BridgeError
+from roost_agent.fence import Fences
 from roost_agent.health import Assessment, HealthTracker
 from roost_agent.hub import Hub, InStep, hub_for, hub_identity
 from roost_agent.links import AutopilotLink, LinkReader
@@ -163,6 +164,7 @@ class EventKind(StrEnum):
     BRIDGE_ERROR = "BridgeError"
     LINK = "Link"
     PARAMETERS = "Parameters"
+    FENCE = "Fence"
 
 
 @dataclass(frozen=True)
@@ -422,6 +424,8 @@ class Agent:
         # their ParametersInSync verdicts are read by status() under the lock.
         self._param_keepers: dict[str, tuple[AutopilotLink, ParamKeeper]] = {}
         self._param_verdicts: dict[str, Verdict] = {}
+        # The Mission's fence per autopilot (roost_agent.fence), on the heartbeat thread.
+        self._fences = Fences()
         # Each autopilot's AUTOPILOT_VERSION as read (frame, what it says, its capability
         # bits, the reboots seen when it came) and when it was last asked for
         # (roost_agent.firmware).
@@ -712,9 +716,21 @@ class Agent:
                 message=params.message,
                 at=at,
             )
+        fence = self._fences.verdict(health.name)
+        if fence is not None:
+            conditions = set_condition(
+                conditions,
+                type=AutopilotEntryConditionType.FENCE_IN_SYNC.value,
+                status=fence.status,
+                reason=fence.reason.value,
+                message=fence.message,
+                at=at,
+            )
         kept = {AutopilotEntryConditionType.STANDBY_IN_STEP.value} if verdict else set()
         if params is not None:
             kept.add(AutopilotEntryConditionType.PARAMETERS_IN_SYNC.value)
+        if fence is not None:
+            kept.add(AutopilotEntryConditionType.FENCE_IN_SYNC.value)
         conditions = [c for c in conditions if c.type in kept]
         return replace(health, conditions=conditions) if conditions or health.conditions else health
 
@@ -1185,10 +1201,16 @@ class Agent:
                     self._keep_firmware(link)
                 except Exception:  # nor a firmware question
                     log.exception("%s: asking for the firmware version failed", link.name)
+            cfg = self._cfg
+            received = {name: link.params.take() for name, link in cfg.links.items()}
             try:
-                self._keep_params(self._cfg)
+                self._keep_params(cfg, received)
             except Exception:  # nor a parameter read or write
                 log.exception("parameter keeping failed")
+            try:
+                self._keep_fence(cfg, received)
+            except Exception:  # nor a fence transfer
+                log.exception("fence keeping failed")
             self._stop.wait(STREAM_CHECK_S)
 
     def _keep_firmware(self, link: AutopilotLink) -> None:
@@ -1224,7 +1246,30 @@ class Agent:
         request = float(firmware.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
         link.send_command(MAV_CMD_REQUEST_MESSAGE, (request, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
 
-    def _keep_params(self, cfg: _Running) -> None:
+    def _keep_fence(
+        self, cfg: _Running, received: dict[str, list[tuple[str, float, int, float]]]
+    ) -> None:
+        """Step every autopilot's fence keeper (roost_agent.fence) with what its link
+        received."""
+
+        def emit(reason: str, message: str, warning: bool, autopilot: str) -> None:
+            self._emit(EventKind.FENCE, reason, message, warning=warning, autopilot=autopilot)
+            self._reader.poke()
+
+        self._fences.step(
+            cfg.links,
+            cfg.spec.fence,
+            messages={name: link.mission.take() for name, link in cfg.links.items()},
+            params=received,
+            capabilities={name: fw[2] for name, fw in self._firmware.items()},
+            armed=any(_armed(link) for link in cfg.links.values()),
+            now=self._clock(),
+            emit=emit,
+        )
+
+    def _keep_params(
+        self, cfg: _Running, received: dict[str, list[tuple[str, float, int, float]]]
+    ) -> None:
         """Step every autopilot's parameter keeper: take the PARAM_VALUEs its link
         received, send the reads and writes it asks for, report what changed."""
         declared = cfg.spec.parameters
@@ -1232,7 +1277,7 @@ class Agent:
         armed = any(_armed(link) for link in cfg.links.values())
         now = self._clock()
         for link in cfg.links.values():
-            values = link.params.take()
+            values = received.get(link.name, [])
             want = {} if declared is None else _declared_for(declared, link.stack)
             known = self._param_keepers.get(link.name)
             if known is None or known[0] is not link:  # a new link: a new keeper
