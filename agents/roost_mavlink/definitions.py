@@ -243,14 +243,14 @@ AGENT_MESSAGES: dict[int, MessageDef] = {
             "MISSION_COUNT",
             *_TARGET,
             ("uint16_t", "count"),
-            extensions=(("uint8_t", "mission_type"), ("uint32_t", "opaque_id")),
+            extensions=(("uint8_t", "mission_type"),),
         ),
         _message(
             47,
             "MISSION_ACK",
             *_TARGET,
             ("uint8_t", "type"),
-            extensions=(("uint8_t", "mission_type"), ("uint32_t", "opaque_id")),
+            extensions=(("uint8_t", "mission_type"),),
         ),
         _message(
             51,
