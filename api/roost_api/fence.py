@@ -107,9 +107,6 @@ def polygon_problem(vertices: Sequence[LatLon]) -> str | None:
     for i in range(n):
         if xy[i] == xy[(i + 1) % n]:
             return f"vertices {i} and {(i + 1) % n} are the same point"
-    area = abs(sum(_cross((0.0, 0.0), xy[i], xy[(i + 1) % n]) for i in range(n))) / 2
-    if area < MIN_AREA_M2:
-        return "an open polygon: its vertices enclose no area (they lie on one line)"
     for i in range(n):
         for j in range(i + 1, n):
             if j == i + 1 or (i == 0 and j == n - 1):
@@ -119,6 +116,10 @@ def polygon_problem(vertices: Sequence[LatLon]) -> str | None:
                     f"the polygon intersects itself: edge {i}-{(i + 1) % n} crosses "
                     f"edge {j}-{(j + 1) % n}"
                 )
+    # After the crossing test: a figure-of-eight's two lobes cancel out in the sum.
+    area = abs(sum(_cross((0.0, 0.0), xy[i], xy[(i + 1) % n]) for i in range(n))) / 2
+    if area < MIN_AREA_M2:
+        return "an open polygon: its vertices enclose no area (they lie on one line)"
     return None
 
 
