@@ -180,7 +180,7 @@ def test_a_fence_is_saved_uploaded_verified_and_its_parameters_written() -> None
         ),
     ],
 )
-def test_decision_table(
+def test_decision_table(  # noqa: PLR0917 - one parameter per column of the table
     peer: Peer, armed: bool, phase: Phase, status: str, reason: FenceReason, detail: str
 ) -> None:
     keeper = FenceKeeper(Stack.PX4)
