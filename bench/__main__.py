@@ -29,6 +29,7 @@ MODULES: tuple[str, ...] = (
     "hubsigning",
     "standby",
     "params",
+    "fence",
     "disruption",
     "sync",
     "node",

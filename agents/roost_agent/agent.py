@@ -142,6 +142,7 @@ JUDGE_LATE_S = 1e-4
 compares a difference of float times with the threshold and must see it crossed."""
 HEARTBEAT_PERIOD_S = 1.0
 STREAM_CHECK_S = 0.1
+FENCE_POLL_S = 0.005
 FAILOVER_HISTORY = 100
 
 
@@ -1211,7 +1212,26 @@ class Agent:
                 self._keep_fence(cfg, received)
             except Exception:  # nor a fence transfer
                 log.exception("fence keeping failed")
-            self._stop.wait(STREAM_CHECK_S)
+            self._rest(cfg, STREAM_CHECK_S)
+
+    def _rest(self, cfg: _Running, period_s: float) -> None:
+        """Wait ``period_s`` between heartbeat rounds; while a fence transfer runs, step
+        the fence keepers every :data:`FENCE_POLL_S` meanwhile (a transfer is one round
+        trip per item: at the round's pace a 20-vertex upload and its read-back would
+        take over 4 s)."""
+        until = self._clock() + period_s
+        while not self._stop.is_set():
+            left = until - self._clock()
+            if left <= 0:
+                return
+            if not self._fences.transferring():
+                self._stop.wait(left)
+                return
+            self._stop.wait(min(left, FENCE_POLL_S))
+            try:
+                self._keep_fence(cfg, {})
+            except Exception:
+                log.exception("fence keeping failed")
 
     def _keep_firmware(self, link: AutopilotLink) -> None:
         """Ask a heard autopilot for AUTOPILOT_VERSION until it answers, and again after

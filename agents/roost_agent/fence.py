@@ -125,6 +125,11 @@ class FenceKeeper:
         self._failure: tuple[FenceReason, str] | None = None
         self._deferred = False
 
+    @property
+    def transferring(self) -> bool:
+        """Whether a fence transfer waits for the autopilot."""
+        return self._transfer is not None
+
     def set_capabilities(self, capabilities: int) -> None:
         """AUTOPILOT_VERSION's capability bits (the parameters' integer encoding)."""
         self._params.set_capabilities(capabilities)
@@ -361,6 +366,10 @@ class Fences:
         self.lock = threading.Lock()
         self._keepers: dict[str, tuple[FenceLink, FenceKeeper]] = {}
         self._verdicts: dict[str, Verdict] = {}
+
+    def transferring(self) -> bool:
+        """Whether any keeper waits for a mission protocol answer."""
+        return any(keeper.transferring for _, keeper in self._keepers.values())
 
     def verdict(self, name: str) -> Verdict | None:
         with self.lock:

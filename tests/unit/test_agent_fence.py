@@ -3,7 +3,7 @@ keeper sends and reports in each phase.
 
 The autopilot here is a scripted peer in the test (a fence store and a parameter table
 answering the keeper's messages the way roost_sim.fence and roost_sim.params do), so the
-table runs without sockets or threads; tests/integration/test_agent_fence.py runs the
+table runs without sockets or threads; tests/integration/test_agent_geofence.py runs the
 same keeper inside the real agent against the simulator over real UDP.
 """
 
