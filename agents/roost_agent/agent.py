@@ -46,7 +46,7 @@ import queue
 import threading
 import time
 from collections import OrderedDict, deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
@@ -105,6 +105,7 @@ from roost_api.autopilot_enums import (
     SafetyRoutinePhase,
 )
 from roost_api.core import ConditionStatus, HealthLevel, Stack
+from roost_api.fence import LatLon
 from roost_api.plain import (
     AutopilotCommand,
     AutopilotHealth,
@@ -355,6 +356,16 @@ def _armed(link: AutopilotLink) -> bool:
     """Whether the autopilot's last heartbeat said armed."""
     beat = link.heartbeat()
     return beat is not None and bool(beat[1] & MAV_MODE_FLAG_SAFETY_ARMED)
+
+
+def _positions(links: Iterable[AutopilotLink]) -> dict[str, LatLon]:
+    """Where each autopilot last said the vehicle is (none before a GPS fix: lat/lon 0)."""
+    out = {}
+    for link in links:
+        fix = link.tracker.fix()
+        if fix is not None and (fix.lat_deg, fix.lon_deg) != (0.0, 0.0):
+            out[link.name] = LatLon(fix.lat_deg, fix.lon_deg)
+    return out
 
 
 def _declared_for(declared: ParametersSpec, stack: Stack) -> dict[str, float]:
@@ -1282,6 +1293,7 @@ class Agent:
             messages={name: link.mission.take() for name, link in cfg.links.items()},
             params=received,
             capabilities={name: fw[2] for name, fw in self._firmware.items()},
+            positions=_positions(cfg.links.values()),
             armed=any(_armed(link) for link in cfg.links.values()),
             now=self._clock(),
             emit=emit,

@@ -74,6 +74,7 @@ class Target:
     items: tuple[Item, ...]
     params: dict[str, float]
     summary: str
+    area: Area
 
 
 def target_of(assigned: AssignedFence, stack: Stack) -> Target:
@@ -89,7 +90,7 @@ def target_of(assigned: AssignedFence, stack: Stack) -> Target:
     action = FenceAction(f.action)
     params = {p.name: p.value for p in stack_params(stack, f.max_altitude_m, action)}
     summary = f"{shape}, max altitude {f.max_altitude_m:g} m, on breach {action.value}"
-    return Target(assigned.id, tuple(items_for(area)), params, summary)
+    return Target(assigned.id, tuple(items_for(area)), params, summary, area)
 
 
 @dataclass(frozen=True)
@@ -124,6 +125,7 @@ class FenceKeeper:
         self._transfer: Transfer | None = None
         self._failure: tuple[FenceReason, str] | None = None
         self._deferred = False
+        self.position: LatLon | None = None  # the vehicle's, where the autopilot knows it
 
     @property
     def transferring(self) -> bool:
@@ -227,6 +229,13 @@ class FenceKeeper:
     def _upload(self, now: float, armed: bool) -> list[Op]:
         assert self.target is not None
         if self._transfer is None:
+            at = self.position
+            if at is not None and not self.target.area.contains(at):
+                return self._fail(
+                    FenceReason.OUTSIDE,
+                    f"the vehicle is at {at.latitude:.6f},{at.longitude:.6f}, outside the "
+                    "fence: not uploaded (it would breach on arming)",
+                )
             return self._run(Transfer.upload(self.target.items), now)
         done, sent = self._transfer_step(now)
         if done is None:
@@ -390,6 +399,7 @@ class Fences:
         messages: Mapping[str, list[tuple[str, dict[str, Any], float]]],
         params: Mapping[str, list[tuple[str, float, int, float]]],
         capabilities: Mapping[str, int],
+        positions: Mapping[str, LatLon],
         armed: bool,
         now: float,
         emit: Emit,
@@ -402,6 +412,7 @@ class Fences:
             if link.name in capabilities:
                 keeper.set_capabilities(capabilities[link.name])
             keeper.declare(None if assigned is None else target_of(assigned, link.stack))
+            keeper.position = positions.get(link.name)
             for pname, wire, ptype, at in params.get(link.name, []):
                 keeper.observe_param(pname, wire, ptype, at)
             ops: list[Op] = []

@@ -95,6 +95,7 @@ class FenceReason(StrEnum):
     NO_ANSWER = "NoAnswer"  # the transfer timed out after its retries
     MISMATCH = "ReadBackDiffers"  # what was read back is not what was uploaded
     PARAMETERS = "ParametersNotHeld"  # a fence parameter did not take
+    OUTSIDE = "VehicleOutsideFence"  # its position is outside the fence: not uploaded
     RESTORING = "RestoringPrevious"
 
 

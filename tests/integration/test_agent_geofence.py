@@ -92,6 +92,22 @@ def test_an_upload_refused_by_one_autopilot_is_reported_naming_it() -> None:
         assert v.sim("fc2").params.get("GF_MAX_VER_DIST") == 0  # nor half of it applied
 
 
+def test_a_fence_that_does_not_contain_the_vehicle_is_not_uploaded() -> None:
+    lat, lon = HOME
+    away = Fence(
+        circle=FenceCircle(latitude=lat + 0.01, longitude=lon, radius_m=100), max_altitude_m=30
+    )
+    with hub_vehicle(["px4", "px4"]) as v:
+        v.agent.apply_spec(v.spec_with(fence=assigned(away)))
+        for sim in v.sims:
+            wait_until(
+                f"{sim.name} refused",
+                lambda s=sim: reason(v, s.name) == "VehicleOutsideFence",
+                15,
+            )
+        assert all(s.fence.uploads == 0 for s in v.sims)
+
+
 def test_a_fence_is_not_written_while_the_vehicle_is_armed() -> None:
     fence = Fence(polygon=square(), max_altitude_m=40)
     with hub_vehicle(["px4", "px4"]) as v:

@@ -19,7 +19,7 @@ from roost_agent.params import Read, Write
 from roost_api.autopilot import AssignedFence, Fence, FencePoint
 from roost_api.autopilot_enums import FenceReason
 from roost_api.core import Stack
-from roost_api.fence import FenceAction, held_id
+from roost_api.fence import FenceAction, LatLon, held_id
 from roost_api.plain import AssignedFence as PlainAssignedFence
 from roost_mavlink.fence import MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION as V
 from roost_mavlink.fence import Item
@@ -232,6 +232,21 @@ def test_without_the_fence_the_previous_one_is_restored_then_nothing_is_reported
     assert keeper.phase is Phase.IDLE and keeper.verdict() is None
     assert peer.items == old
     assert peer.params == {"GF_ACTION": 2.0, "GF_MAX_VER_DIST": 0.0}
+
+
+def test_a_vehicle_outside_the_fence_gets_no_upload() -> None:
+    keeper, peer = FenceKeeper(Stack.PX4), Peer()
+    keeper.declare(target())
+    keeper.position = LatLon(47.01, 8.0)  # about 1 km north of the triangle
+    run(keeper, peer)
+    verdict = keeper.verdict()
+    assert verdict is not None and verdict.reason is FenceReason.OUTSIDE
+    assert verdict.message.startswith("the vehicle is at 47.010000,8.000000, outside the fence")
+    assert peer.items == []
+    keeper.position = LatLon(47.0002, 8.0002)  # inside: a new fence is uploaded
+    keeper.declare(target("f2"))
+    run(keeper, peer)
+    assert keeper.phase is Phase.HELD
 
 
 def test_nothing_declared_nothing_sent() -> None:
