@@ -35,6 +35,7 @@ DriftPolicy = autopilot_enums.DriftPolicy
 Failback = autopilot_enums.Failback
 FailoverMode = autopilot_enums.FailoverMode
 FailoverTrigger = autopilot_enums.FailoverTrigger
+FenceReason = autopilot_enums.FenceReason
 FinalAction = autopilot_enums.FinalAction
 HubScope = autopilot_enums.HubScope
 HubSigning = autopilot_enums.HubSigning
