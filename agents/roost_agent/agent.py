@@ -75,6 +75,7 @@ from roost_agent.arbiter import (
 )
 from roost_agent.bridge import Bridge, BridgeError
 from roost_agent.fence import Fences
+from roost_agent.fence import Verdict as FenceVerdict
 from roost_agent.health import Assessment, HealthTracker
 from roost_agent.hub import Hub, InStep, hub_for, hub_identity
 from roost_agent.links import AutopilotLink, LinkReader
@@ -696,8 +697,9 @@ class Agent:
         return health if known is None else replace(health, firmware=known[1])
 
     def _with_entry_conditions(self, health: AutopilotHealth) -> AutopilotHealth:
-        """The health entry with its StandbyInStep (with the hub only) and
-        ParametersInSync (with declared parameters only) conditions."""
+        """The health entry with its StandbyInStep (with the hub only), ParametersInSync
+        (with declared parameters only) and FenceInSync (with a Mission's fence, and
+        while the previous one is restored) conditions."""
         previous = self._last_status
         conditions = next(
             (
@@ -718,31 +720,22 @@ class Agent:
                 message=verdict.message,
                 at=at,
             )
-        params = self._param_verdicts.get(health.name)
-        if params is not None:
-            conditions = set_condition(
-                conditions,
-                type=AutopilotEntryConditionType.PARAMETERS_IN_SYNC.value,
-                status=params.status,
-                reason=params.reason.value,
-                message=params.message,
-                at=at,
-            )
-        fence = self._fences.verdict(health.name)
-        if fence is not None:
-            conditions = set_condition(
-                conditions,
-                type=AutopilotEntryConditionType.FENCE_IN_SYNC.value,
-                status=fence.status,
-                reason=fence.reason.value,
-                message=fence.message,
-                at=at,
-            )
         kept = {AutopilotEntryConditionType.STANDBY_IN_STEP.value} if verdict else set()
-        if params is not None:
-            kept.add(AutopilotEntryConditionType.PARAMETERS_IN_SYNC.value)
-        if fence is not None:
-            kept.add(AutopilotEntryConditionType.FENCE_IN_SYNC.value)
+        own: tuple[tuple[AutopilotEntryConditionType, Verdict | FenceVerdict | None], ...] = (
+            (AutopilotEntryConditionType.PARAMETERS_IN_SYNC, self._param_verdicts.get(health.name)),
+            (AutopilotEntryConditionType.FENCE_IN_SYNC, self._fences.verdict(health.name)),
+        )
+        for kind, judged in own:
+            if judged is not None:
+                conditions = set_condition(
+                    conditions,
+                    type=kind.value,
+                    status=judged.status,
+                    reason=judged.reason.value,
+                    message=judged.message,
+                    at=at,
+                )
+                kept.add(kind.value)
         conditions = [c for c in conditions if c.type in kept]
         return replace(health, conditions=conditions) if conditions or health.conditions else health
 

@@ -196,14 +196,22 @@ class FenceKeeper:
 
     # -- one method per phase ----------------------------------------------------------
 
-    def _save_items(self, now: float, armed: bool) -> list[Op]:
+    def _await(self, now: float, make: Callable[[], Transfer], what: str) -> Transfer | list[Op]:
+        """Run one transfer to its end: what to send while it runs, then the finished
+        transfer (a failed one fails the phase, reported as ``what: why``)."""
         if self._transfer is None:
-            return self._run(Transfer.download(), now)
+            return self._run(make(), now)
         done, sent = self._transfer_step(now)
         if done is None:
             return sent
         if done.outcome is not Outcome.DONE:
-            return self._fail(_failure_reason(done), f"reading the current fence: {done.detail}")
+            return self._fail(_failure_reason(done), f"{what}: {done.detail}")
+        return done
+
+    def _save_items(self, now: float, armed: bool) -> list[Op]:
+        done = self._await(now, Transfer.download, "reading the current fence")
+        if isinstance(done, list):
+            return done
         self.previous_items = list(done.received)
         self.phase = Phase.SAVE_PARAMS
         assert self.target is not None
@@ -227,33 +235,26 @@ class FenceKeeper:
         return ops
 
     def _upload(self, now: float, armed: bool) -> list[Op]:
-        assert self.target is not None
-        if self._transfer is None:
-            at = self.position
-            if at is not None and not self.target.area.contains(at):
-                return self._fail(
-                    FenceReason.OUTSIDE,
-                    f"the vehicle is at {at.latitude:.6f},{at.longitude:.6f}, outside the "
-                    "fence: not uploaded (it would breach on arming)",
-                )
-            return self._run(Transfer.upload(self.target.items), now)
-        done, sent = self._transfer_step(now)
-        if done is None:
-            return sent
-        if done.outcome is not Outcome.DONE:
-            return self._fail(_failure_reason(done), f"uploading: {done.detail}")
+        target = self.target
+        assert target is not None
+        at = self.position
+        if self._transfer is None and at is not None and not target.area.contains(at):
+            return self._fail(
+                FenceReason.OUTSIDE,
+                f"the vehicle is at {at.latitude:.6f},{at.longitude:.6f}, outside the "
+                "fence: not uploaded (it would breach on arming)",
+            )
+        done = self._await(now, lambda: Transfer.upload(target.items), "uploading")
+        if isinstance(done, list):
+            return done
         self.phase = Phase.VERIFY
         return self._run(Transfer.download(), now)
 
     def _verify(self, now: float, armed: bool) -> list[Op]:
         assert self.target is not None
-        if self._transfer is None:
-            return self._run(Transfer.download(), now)
-        done, sent = self._transfer_step(now)
-        if done is None:
-            return sent
-        if done.outcome is not Outcome.DONE:
-            return self._fail(_failure_reason(done), f"reading the fence back: {done.detail}")
+        done = self._await(now, Transfer.download, "reading the fence back")
+        if isinstance(done, list):
+            return done
         differs = mismatch(self.target.items, done.received)
         if differs is not None:
             return self._fail(FenceReason.MISMATCH, differs)
@@ -283,13 +284,10 @@ class FenceKeeper:
         return self._keep_params(now, armed, Phase.HELD)
 
     def _restore_items(self, now: float, armed: bool) -> list[Op]:
-        if self._transfer is None:
-            return self._run(Transfer.upload(self.previous_items or []), now)
-        done, sent = self._transfer_step(now)
-        if done is None:
-            return sent
-        if done.outcome is not Outcome.DONE:
-            return self._fail(_failure_reason(done), f"restoring the previous fence: {done.detail}")
+        previous = self.previous_items or []
+        done = self._await(now, lambda: Transfer.upload(previous), "restoring the previous fence")
+        if isinstance(done, list):
+            return done
         self.phase = Phase.RESTORE_PARAMS
         self._params.declare(self.previous_params or {})
         return self._restore_params(now, armed)
