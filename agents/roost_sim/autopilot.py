@@ -450,6 +450,12 @@ class SimulatedAutopilot:
             param7 = alt + self.config.home_amsl_m if self.stack is Stack.PX4 else alt
             self._local(MAV_CMD_NAV_TAKEOFF, (0, 0, 0, math.nan, math.nan, math.nan, param7))
 
+    def land(self) -> None:
+        """NAV_LAND, as a ground station on another link would send it (the firmware
+        disarms after the touchdown)."""
+        with self._lock:
+            self._local(MAV_CMD_NAV_LAND, (0, 0, 0, math.nan, math.nan, math.nan, math.nan))
+
     def _local(self, command: int, params: tuple[float, ...]) -> int:
         reasons = self._model.arming_refusals() if command == MAV_CMD_COMPONENT_ARM_DISARM else []
         result, _ = self._execute(command, params, (0, 0))
