@@ -13,7 +13,9 @@ heartbeat thread beside the parameter keeper (nothing here can switch an autopil
 3. **parameters**: write the stack's fence parameters (altitude limit, breach action,
    enable) with the parameter keeper's confirmed writes, until they read back;
 4. **held**: the ``FenceInSync`` condition is True and names the fence's id, which the
-   Mission's preflight requires of every autopilot, standbys included;
+   Mission's preflight requires of every autopilot, standbys included; the parameters
+   are read back as the parameter keeper does (a changed one is reported and written
+   back once disarmed) and the items every :data:`REVERIFY_S`;
 5. once ``spec.fence`` goes: **restore** the saved items and parameters, then drop the
    condition.
 
@@ -28,6 +30,7 @@ pure step function is :meth:`FenceKeeper.step`; its decision table is in
 
 from __future__ import annotations
 
+import math
 import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -49,6 +52,9 @@ from roost_mavlink.fence import (
     stack_param_names,
     stack_params,
 )
+
+REVERIFY_S = 10.0
+"""A held fence's items are read back this often (another client may upload one)."""
 
 
 class Phase(Enum):
@@ -126,6 +132,7 @@ class FenceKeeper:
         self._failure: tuple[FenceReason, str] | None = None
         self._deferred = False
         self.position: LatLon | None = None  # the vehicle's, where the autopilot knows it
+        self._verified_at = -math.inf  # when the items last read back as uploaded
 
     @property
     def transferring(self) -> bool:
@@ -259,6 +266,7 @@ class FenceKeeper:
         if differs is not None:
             return self._fail(FenceReason.MISMATCH, differs)
         self.phase = Phase.PARAMS
+        self._verified_at = now
         self._params.declare(self.target.params)
         return self._keep_params(now, armed, Phase.HELD)
 
@@ -279,9 +287,22 @@ class FenceKeeper:
         return self._keep_params(now, armed, Phase.HELD)
 
     def _held(self, now: float, armed: bool) -> list[Op]:
-        # Keep reading the parameters back (drift shows as a lost fence, never rewritten
-        # in the air: the keeper defers writes while armed).
-        return self._keep_params(now, armed, Phase.HELD)
+        # The parameters are read back by their keeper (a changed one is reported and put
+        # back once disarmed); the items are read back every REVERIFY_S.
+        ops = self._keep_params(now, armed, Phase.HELD)
+        if self.phase is not Phase.HELD:
+            return ops
+        if self._transfer is None and now - self._verified_at < REVERIFY_S:
+            return ops
+        done = self._await(now, Transfer.download, "reading the fence back")
+        if isinstance(done, list):
+            return ops + done
+        self._verified_at = now
+        assert self.target is not None
+        differs = mismatch(self.target.items, done.received)
+        if differs is not None:
+            return self._fail(FenceReason.MISMATCH, f"changed on the autopilot: {differs}")
+        return ops
 
     def _restore_items(self, now: float, armed: bool) -> list[Op]:
         previous = self.previous_items or []
@@ -314,6 +335,9 @@ class FenceKeeper:
         if self._deferred:
             what = "restoring the previous fence" if restoring else "uploading the fence"
             return Verdict("False", FenceReason.DEFERRED, f"{what} waits until disarmed")
+        params = self._params.verdict()
+        if self.phase is Phase.HELD and params.reason is not ParametersReason.IN_SYNC:
+            return Verdict("False", FenceReason.PARAMETERS, params.message)
         if self.phase is Phase.HELD:
             assert self.target is not None
             return Verdict(

@@ -14,7 +14,7 @@ from typing import Any
 
 import pytest
 
-from roost_agent.fence import FenceKeeper, Phase, Send, Target, target_of
+from roost_agent.fence import REVERIFY_S, FenceKeeper, Phase, Send, Target, target_of
 from roost_agent.params import Read, Write
 from roost_api.autopilot import AssignedFence, Fence, FencePoint
 from roost_api.autopilot_enums import FenceReason
@@ -247,6 +247,30 @@ def test_a_vehicle_outside_the_fence_gets_no_upload() -> None:
     keeper.declare(target("f2"))
     run(keeper, peer)
     assert keeper.phase is Phase.HELD
+
+
+def test_a_held_fence_changed_by_someone_else_is_reported() -> None:
+    keeper, peer = FenceKeeper(Stack.PX4), Peer()
+    keeper.declare(target())
+    run(keeper, peer)
+    assert keeper.phase is Phase.HELD
+    peer.params["GF_ACTION"] = 1.0  # another link sets it: no echo to the agent
+    run(keeper, peer, armed=True)  # read back, not written in the air
+    verdict = keeper.verdict()
+    assert verdict is not None and (verdict.status, verdict.reason) == (
+        "False",
+        FenceReason.PARAMETERS,
+    )
+    assert "GF_ACTION is 1, declared 5" in verdict.message
+    run(keeper, peer)  # on the ground it is put back
+    assert peer.params["GF_ACTION"] == 5.0
+    verdict = keeper.verdict()
+    assert verdict is not None and verdict.reason is FenceReason.HELD
+    peer.items = peer.items[:2]  # another client uploads a fence of its own
+    run(keeper, peer, steps=int(REVERIFY_S / 0.1) + 10)
+    verdict = keeper.verdict()
+    assert verdict is not None and verdict.reason is FenceReason.MISMATCH
+    assert verdict.message.startswith("changed on the autopilot: read back 2 item(s)")
 
 
 def test_nothing_declared_nothing_sent() -> None:
