@@ -20,8 +20,6 @@ What is refused and why:
 
 from __future__ import annotations
 
-import hashlib
-import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -193,14 +191,6 @@ def fence_problems(
     return problems
 
 
-def fence_id(document: object) -> str:
-    """A short stable id of a fence's content (its camelCase document): an autopilot's
-    FenceInSync condition names the id it holds, so a preflight can tell this Mission's
-    fence from an earlier one."""
-    text = json.dumps(document, sort_keys=True, separators=(",", ":"))
-    return hashlib.sha256(text.encode()).hexdigest()[:12]
-
-
 HELD_PREFIX = "holds fence "
 
 
@@ -220,7 +210,6 @@ __all__ = [
     "Area",
     "FenceAction",
     "LatLon",
-    "fence_id",
     "fence_problems",
     "held_id",
     "held_message",

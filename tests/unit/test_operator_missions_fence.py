@@ -9,7 +9,13 @@ from typing import Any
 from roost_api.autopilot import AssignedFence
 from roost_api.fence import held_message
 from roost_api.mission import MissionPhase, MissionReason, MissionVehicleReason
-from roost_operator.missions.fence import assigned, fence_failures, fence_patch, invalid_fence
+from roost_operator.missions.fence import (
+    assigned,
+    fence_failures,
+    fence_id,
+    fence_patch,
+    invalid_fence,
+)
 from roost_operator.missions.machine import plan_mission
 from roost_operator.missions.observed import AutopilotView
 from tests.support.missions import ME, autopilots, claimed, mission_spec, observe, vehicle_status
@@ -112,3 +118,10 @@ def test_the_patch_sets_or_removes_the_fence() -> None:
     assert patch["spec"]["fence"]["id"] == want.id
     assert patch["spec"]["fence"]["fence"]["maxAltitudeM"] == 40
     assert fence_patch(None) == {"spec": {"fence": None}}
+
+
+def test_the_fence_id_follows_the_content_not_the_key_order() -> None:
+    a = fence_id({"circle": {"latitude": 47.0}, "maxAltitudeM": 40})
+    assert a == fence_id({"maxAltitudeM": 40, "circle": {"latitude": 47.0}})
+    assert a != fence_id({"maxAltitudeM": 41, "circle": {"latitude": 47.0}})
+    assert len(a) == 12

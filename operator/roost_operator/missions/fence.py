@@ -16,10 +16,12 @@ with ``InvalidFence``, a permanent error.
 
 from __future__ import annotations
 
+import hashlib
+import json
 from typing import Any
 
 from roost_api.autopilot import AssignedFence, AutopilotEntryConditionType, Fence
-from roost_api.fence import Area, LatLon, fence_id, fence_problems, held_id
+from roost_api.fence import Area, LatLon, fence_problems, held_id
 from roost_api.meta import find_condition
 from roost_api.mission import MissionSpec, MissionVehicleReason
 from roost_operator.missions.observed import AutopilotView, MissionRef
@@ -42,6 +44,14 @@ def invalid_fence(spec: MissionSpec) -> str | None:
         area_of(spec.fence), spec.fence.max_altitude_m, flying_altitude_m=spec.flying_altitude_m
     )
     return "; ".join(problems) or None
+
+
+def fence_id(document: object) -> str:
+    """A short stable id of a fence's content (its camelCase document): an autopilot's
+    FenceInSync condition names the id it holds, so a preflight can tell this Mission's
+    fence from an earlier one (the agent only compares it: it imports no hashing)."""
+    text = json.dumps(document, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
 def assigned(mission: MissionRef, spec: MissionSpec) -> AssignedFence | None:
