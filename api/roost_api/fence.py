@@ -1,6 +1,8 @@
 """A Mission's geofence without pydantic: the breach actions, the geometry checks and the
-fence's identity, shared by the operator (admission of a Mission's fence, preflight) and
-the node agent (which uploads it and must not import pydantic, see :mod:`roost_api.core`).
+form in which an autopilot's condition names the fence it holds, shared by the operator
+(admission of a Mission's fence, preflight) and the node agent (which uploads it and must
+import neither pydantic, see :mod:`roost_api.core`, nor hashlib: the fence's content id
+is computed by the operator, ``roost_operator.missions.fence``).
 
 The geometry is checked on a local flat-earth projection around the fence's first point
 (metres north and east). A Mission's flying area spans at most a few kilometres, where
