@@ -31,6 +31,7 @@ MODULES: tuple[str, ...] = (
     "records",
     "standby",
     "params",
+    "fence",
     "disruption",
     "sync",
     "node",

@@ -46,7 +46,7 @@ import queue
 import threading
 import time
 from collections import OrderedDict, deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
@@ -74,6 +74,8 @@ from roost_agent.arbiter import (
     step,
 )
 from roost_agent.bridge import Bridge, BridgeError
+from roost_agent.fence import Fences
+from roost_agent.fence import Verdict as FenceVerdict
 from roost_agent.health import Assessment, HealthTracker
 from roost_agent.hub import Hub, InStep, hub_for, hub_identity
 from roost_agent.links import AutopilotLink, LinkReader
@@ -104,6 +106,7 @@ from roost_api.autopilot_enums import (
     SafetyRoutinePhase,
 )
 from roost_api.core import ConditionStatus, HealthLevel, Stack
+from roost_api.fence import LatLon
 from roost_api.plain import (
     AutopilotCommand,
     AutopilotHealth,
@@ -141,6 +144,7 @@ JUDGE_LATE_S = 1e-4
 compares a difference of float times with the threshold and must see it crossed."""
 HEARTBEAT_PERIOD_S = 1.0
 STREAM_CHECK_S = 0.1
+FENCE_POLL_S = 0.005
 FAILOVER_HISTORY = 100
 
 
@@ -163,6 +167,7 @@ class EventKind(StrEnum):
     BRIDGE_ERROR = "BridgeError"
     LINK = "Link"
     PARAMETERS = "Parameters"
+    FENCE = "Fence"
 
 
 @dataclass(frozen=True)
@@ -354,6 +359,16 @@ def _armed(link: AutopilotLink) -> bool:
     return beat is not None and bool(beat[1] & MAV_MODE_FLAG_SAFETY_ARMED)
 
 
+def _positions(links: Iterable[AutopilotLink]) -> dict[str, LatLon]:
+    """Where each autopilot last said the vehicle is (none before a GPS fix: lat/lon 0)."""
+    out = {}
+    for link in links:
+        fix = link.tracker.fix()
+        if fix is not None and (fix.lat_deg, fix.lon_deg) != (0.0, 0.0):
+            out[link.name] = LatLon(fix.lat_deg, fix.lon_deg)
+    return out
+
+
 def _declared_for(declared: ParametersSpec, stack: Stack) -> dict[str, float]:
     """The parameters declared for the autopilots of ``stack``."""
     entries = declared.px4 if stack is Stack.PX4 else declared.ardupilot
@@ -422,6 +437,8 @@ class Agent:
         # their ParametersInSync verdicts are read by status() under the lock.
         self._param_keepers: dict[str, tuple[AutopilotLink, ParamKeeper]] = {}
         self._param_verdicts: dict[str, Verdict] = {}
+        # The Mission's fence per autopilot (roost_agent.fence), on the heartbeat thread.
+        self._fences = Fences()
         # Each autopilot's AUTOPILOT_VERSION as read (frame, what it says, its capability
         # bits, the reboots seen when it came) and when it was last asked for
         # (roost_agent.firmware).
@@ -680,8 +697,9 @@ class Agent:
         return health if known is None else replace(health, firmware=known[1])
 
     def _with_entry_conditions(self, health: AutopilotHealth) -> AutopilotHealth:
-        """The health entry with its StandbyInStep (with the hub only) and
-        ParametersInSync (with declared parameters only) conditions."""
+        """The health entry with its StandbyInStep (with the hub only), ParametersInSync
+        (with declared parameters only) and FenceInSync (with a Mission's fence, and
+        while the previous one is restored) conditions."""
         previous = self._last_status
         conditions = next(
             (
@@ -702,19 +720,22 @@ class Agent:
                 message=verdict.message,
                 at=at,
             )
-        params = self._param_verdicts.get(health.name)
-        if params is not None:
-            conditions = set_condition(
-                conditions,
-                type=AutopilotEntryConditionType.PARAMETERS_IN_SYNC.value,
-                status=params.status,
-                reason=params.reason.value,
-                message=params.message,
-                at=at,
-            )
         kept = {AutopilotEntryConditionType.STANDBY_IN_STEP.value} if verdict else set()
-        if params is not None:
-            kept.add(AutopilotEntryConditionType.PARAMETERS_IN_SYNC.value)
+        own: tuple[tuple[AutopilotEntryConditionType, Verdict | FenceVerdict | None], ...] = (
+            (AutopilotEntryConditionType.PARAMETERS_IN_SYNC, self._param_verdicts.get(health.name)),
+            (AutopilotEntryConditionType.FENCE_IN_SYNC, self._fences.verdict(health.name)),
+        )
+        for kind, judged in own:
+            if judged is not None:
+                conditions = set_condition(
+                    conditions,
+                    type=kind.value,
+                    status=judged.status,
+                    reason=judged.reason.value,
+                    message=judged.message,
+                    at=at,
+                )
+                kept.add(kind.value)
         conditions = [c for c in conditions if c.type in kept]
         return replace(health, conditions=conditions) if conditions or health.conditions else health
 
@@ -1185,11 +1206,36 @@ class Agent:
                     self._keep_firmware(link)
                 except Exception:  # nor a firmware question
                     log.exception("%s: asking for the firmware version failed", link.name)
+            cfg = self._cfg
+            received = {name: link.params.take() for name, link in cfg.links.items()}
             try:
-                self._keep_params(self._cfg)
+                self._keep_params(cfg, received)
             except Exception:  # nor a parameter read or write
                 log.exception("parameter keeping failed")
-            self._stop.wait(STREAM_CHECK_S)
+            try:
+                self._keep_fence(cfg, received)
+            except Exception:  # nor a fence transfer
+                log.exception("fence keeping failed")
+            self._rest(cfg, STREAM_CHECK_S)
+
+    def _rest(self, cfg: _Running, period_s: float) -> None:
+        """Wait ``period_s`` between heartbeat rounds; while a fence transfer runs, step
+        the fence keepers every :data:`FENCE_POLL_S` meanwhile (a transfer is one round
+        trip per item: at the round's pace a 20-vertex upload and its read-back would
+        take over 4 s)."""
+        until = self._clock() + period_s
+        while not self._stop.is_set():
+            left = until - self._clock()
+            if left <= 0:
+                return
+            if not self._fences.transferring():
+                self._stop.wait(left)
+                return
+            self._stop.wait(min(left, FENCE_POLL_S))
+            try:
+                self._keep_fence(cfg, {})
+            except Exception:
+                log.exception("fence keeping failed")
 
     def _keep_firmware(self, link: AutopilotLink) -> None:
         """Ask a heard autopilot for AUTOPILOT_VERSION until it answers, and again after
@@ -1224,7 +1270,31 @@ class Agent:
         request = float(firmware.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
         link.send_command(MAV_CMD_REQUEST_MESSAGE, (request, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
 
-    def _keep_params(self, cfg: _Running) -> None:
+    def _keep_fence(
+        self, cfg: _Running, received: dict[str, list[tuple[str, float, int, float]]]
+    ) -> None:
+        """Step every autopilot's fence keeper (roost_agent.fence) with what its link
+        received."""
+
+        def emit(reason: str, message: str, warning: bool, autopilot: str) -> None:
+            self._emit(EventKind.FENCE, reason, message, warning=warning, autopilot=autopilot)
+            self._reader.poke()
+
+        self._fences.step(
+            cfg.links,
+            cfg.spec.fence,
+            messages={name: link.mission.take() for name, link in cfg.links.items()},
+            params=received,
+            capabilities={name: fw[2] for name, fw in self._firmware.items()},
+            positions=_positions(cfg.links.values()),
+            armed=any(_armed(link) for link in cfg.links.values()),
+            now=self._clock(),
+            emit=emit,
+        )
+
+    def _keep_params(
+        self, cfg: _Running, received: dict[str, list[tuple[str, float, int, float]]]
+    ) -> None:
         """Step every autopilot's parameter keeper: take the PARAM_VALUEs its link
         received, send the reads and writes it asks for, report what changed."""
         declared = cfg.spec.parameters
@@ -1232,7 +1302,7 @@ class Agent:
         armed = any(_armed(link) for link in cfg.links.values())
         now = self._clock()
         for link in cfg.links.values():
-            values = link.params.take()
+            values = received.get(link.name, [])
             want = {} if declared is None else _declared_for(declared, link.stack)
             known = self._param_keepers.get(link.name)
             if known is None or known[0] is not link:  # a new link: a new keeper

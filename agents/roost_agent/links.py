@@ -74,10 +74,10 @@ import sys
 import threading
 import time
 from collections import OrderedDict, deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from functools import partial
-from typing import Any, Final
+from typing import Any, Final, Generic, TypeVar
 
 from roost_agent.health import Fix, HealthTracker, Motion
 from roost_agent.signing import LinkSigning
@@ -666,26 +666,38 @@ class AckMailbox:
 
 
 PARAM_INBOX_MAX: Final = 4096  # a client's full parameter list is about 1,000 on PX4
+T = TypeVar("T")
+MISSION_INBOX_MAX: Final = 1024  # a fence download is one message per item
+MISSION_MESSAGES: Final = frozenset(
+    {"MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_COUNT", "MISSION_ITEM_INT", "MISSION_ACK"}
+)
+"""The mission protocol messages an autopilot sends the agent (roost_agent.fence)."""
 
 
-class ParamInbox:
-    """PARAM_VALUEs from the autopilot (name, wire value, type, arrival), for the
-    parameter keeper on another thread; the oldest go first when nobody takes them."""
+class Inbox(Generic[T]):
+    """Messages from the autopilot for a keeper on another thread (parameters, the
+    mission protocol); the oldest go first when nobody takes them."""
 
-    def __init__(self) -> None:
+    def __init__(self, limit: int) -> None:
         self._lock = threading.Lock()
-        self._items: deque[tuple[str, float, int, float]] = deque(maxlen=PARAM_INBOX_MAX)
+        self._items: deque[T] = deque(maxlen=limit)
 
-    def put(self, name: str, wire: float, ptype: int, at: float) -> None:
+    def put(self, item: T) -> None:
         with self._lock:
-            self._items.append((name, wire, ptype, at))
+            self._items.append(item)
 
-    def take(self) -> list[tuple[str, float, int, float]]:
+    def take(self) -> list[T]:
         """Everything received since the last take, oldest first."""
         with self._lock:
             items = list(self._items)
             self._items.clear()
         return items
+
+
+ParamInbox = Inbox[tuple[str, float, int, float]]
+"""PARAM_VALUEs: name, wire value, type, arrival."""
+MissionInbox = Inbox[tuple[str, dict[str, Any], float]]
+"""Mission protocol messages addressed to the agent: name, fields, arrival."""
 
 
 @dataclass
@@ -1041,7 +1053,8 @@ class AutopilotLink:
         # LOG_ENTRY and LOG_DATA go here while an autopilot log is being fetched
         # (roost_agent.records_logs); dropped otherwise.
         self.log_sink: Callable[[Frame], None] | None = None
-        self.params = ParamInbox()
+        self.params = ParamInbox(PARAM_INBOX_MAX)
+        self.mission = MissionInbox(MISSION_INBOX_MAX)
         # The autopilot's last AUTOPILOT_VERSION (roost_agent.firmware reads it).
         self.version: Frame | None = None
 
@@ -1282,7 +1295,13 @@ class AutopilotLink:
                 self.acks.put(int(msg.command), int(msg.result))
         elif kind == "PARAM_VALUE":
             name = bytes(msg.param_id).decode("ascii", "replace")
-            self.params.put(name, float(msg.param_value), int(msg.param_type), now)
+            self.params.put((name, float(msg.param_value), int(msg.param_type), now))
+        elif kind in MISSION_MESSAGES:
+            if msg.target_system in (0, self.spec.sysid) and msg.target_component in (
+                0,
+                AGENT_COMPONENT_ID,
+            ):
+                self.mission.put((kind, msg.to_dict(), now))
         elif kind == "AUTOPILOT_VERSION":
             self.version = msg
         elif kind in _LOG_REPLIES:
@@ -1404,6 +1423,10 @@ class AutopilotLink:
         return self._send_to_autopilot(
             "PARAM_SET", param_id=name, param_value=wire, param_type=ptype
         )
+
+    def send_mission(self, name: str, fields: Mapping[str, Value]) -> bool:
+        """One mission protocol message (roost_agent.fence) addressed to this autopilot."""
+        return self._send_to_autopilot(name, **fields)
 
     def request_data_stream(self, stream_id: int, hz: int) -> bool:
         """REQUEST_DATA_STREAM (start) for one MAV_DATA_STREAM group (ArduPilot)."""

@@ -140,10 +140,12 @@ def _message(
 
 
 _PARAMS = tuple(("float", f"param{i}") for i in range(1, 8))
+_TARGET: tuple[Declared, ...] = (("uint8_t", "target_system"), ("uint8_t", "target_component"))
 
 # The messages whose fields the agent reads (health, hub, command acks, parameters,
-# firmware) or writes (its heartbeat, commands, ArduPilot stream requests, parameter reads
-# and writes), as common.xml / ardupilotmega.xml declare them.
+# firmware, the fence part of the mission protocol) or writes (its heartbeat, commands,
+# ArduPilot stream requests, parameter reads and writes, fence uploads and read-backs),
+# as common.xml / ardupilotmega.xml declare them.
 AGENT_MESSAGES: dict[int, MessageDef] = {
     m.id: m
     for m in (
@@ -233,6 +235,35 @@ AGENT_MESSAGES: dict[int, MessageDef] = {
             ("uint16_t", "hdg"),
         ),
         _message(
+            40,
+            "MISSION_REQUEST",
+            *_TARGET,
+            ("uint16_t", "seq"),
+            extensions=(("uint8_t", "mission_type"),),
+        ),
+        _message(43, "MISSION_REQUEST_LIST", *_TARGET, extensions=(("uint8_t", "mission_type"),)),
+        _message(
+            44,
+            "MISSION_COUNT",
+            *_TARGET,
+            ("uint16_t", "count"),
+            extensions=(("uint8_t", "mission_type"),),
+        ),
+        _message(
+            47,
+            "MISSION_ACK",
+            *_TARGET,
+            ("uint8_t", "type"),
+            extensions=(("uint8_t", "mission_type"),),
+        ),
+        _message(
+            51,
+            "MISSION_REQUEST_INT",
+            *_TARGET,
+            ("uint16_t", "seq"),
+            extensions=(("uint8_t", "mission_type"),),
+        ),
+        _message(
             66,
             "REQUEST_DATA_STREAM",
             ("uint8_t", "target_system"),
@@ -240,6 +271,21 @@ AGENT_MESSAGES: dict[int, MessageDef] = {
             ("uint8_t", "req_stream_id"),
             ("uint16_t", "req_message_rate"),
             ("uint8_t", "start_stop"),
+        ),
+        _message(
+            73,
+            "MISSION_ITEM_INT",
+            *_TARGET,
+            ("uint16_t", "seq"),
+            ("uint8_t", "frame"),
+            ("uint16_t", "command"),
+            ("uint8_t", "current"),
+            ("uint8_t", "autocontinue"),
+            *_PARAMS[:4],
+            ("int32_t", "x"),
+            ("int32_t", "y"),
+            ("float", "z"),
+            extensions=(("uint8_t", "mission_type"),),
         ),
         _message(
             75,

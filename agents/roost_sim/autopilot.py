@@ -34,6 +34,7 @@ from typing import Any, Self
 
 from pymavlink.dialects.v20 import all as mavlink
 
+from roost_api.fence import FenceAction, LatLon
 from roost_api.meta import Stack
 from roost_mavlink import (
     AUTOPILOT_COMPONENT_ID,
@@ -49,7 +50,8 @@ from roost_mavlink import (
     heartbeat_autopilot,
     mav_state_name,
 )
-from roost_mavlink.modes import custom_mode, custom_mode_from_set_mode
+from roost_mavlink.fence import MAV_MISSION_TYPE_FENCE
+from roost_mavlink.modes import ModeIntent, custom_mode, custom_mode_from_set_mode, intent_mode
 from roost_mavlink.status import (
     MAV_AUTOPILOT_INVALID,
     MAV_TYPE_QUADROTOR,
@@ -68,10 +70,11 @@ from roost_sim.faults import (
     parse_sensor,
     parse_state,
 )
+from roost_sim.fence import SimFence, fence_params
 from roost_sim.kinematics import ned_from_global
 from roost_sim.link import Link, PtyLink, UdpLink
 from roost_sim.logs import SimLogs
-from roost_sim.model import AutopilotModel, ModeChange, SimConfig, Touchdown
+from roost_sim.model import SEVERITY_CRITICAL, AutopilotModel, ModeChange, SimConfig, Touchdown
 from roost_sim.params import ParamStore
 from roost_sim.scheduler import TickScheduler, shared_scheduler
 from roost_sim.streams import (
@@ -243,6 +246,7 @@ class SimulatedAutopilot:
         self.logs = SimLogs(
             self.stack, lambda: {n: self.params.get(n) for n in self.params.names()}
         )
+        self.fence = SimFence(self.stack)
         # What AUTOPILOT_VERSION says (tests set other versions and builds).
         self.firmware_version: tuple[int, int, int] = _FIRMWARE[self.stack]
         self.firmware_build = _BUILD[self.stack]
@@ -451,6 +455,12 @@ class SimulatedAutopilot:
             param7 = alt + self.config.home_amsl_m if self.stack is Stack.PX4 else alt
             self._local(MAV_CMD_NAV_TAKEOFF, (0, 0, 0, math.nan, math.nan, math.nan, param7))
 
+    def land(self) -> None:
+        """NAV_LAND, as a ground station on another link would send it (the firmware
+        disarms after the touchdown)."""
+        with self._lock:
+            self._local(MAV_CMD_NAV_LAND, (0, 0, 0, math.nan, math.nan, math.nan, math.nan))
+
     def _local(self, command: int, params: tuple[float, ...]) -> int:
         reasons = self._model.arming_refusals() if command == MAV_CMD_COMPONENT_ARM_DISARM else []
         result, _ = self._execute(command, params, (0, 0))
@@ -616,6 +626,7 @@ class SimulatedAutopilot:
                 self._reboot(now)
             if self._frozen is None:
                 self._model.step()
+                self._enforce_fence()
             view = self._frozen or self._view()
             # A stream whose start-up step is not reached stays due: it starts on time.
             due = [m for m, t in self._streams.due.items() if t <= now and self._gate_open(m)]
@@ -633,6 +644,27 @@ class SimulatedAutopilot:
                 (t for t in self._streams.due.values() if t > now), default=now + _MAX_SLEEP_S
             )
         return messages, noise, next_due
+
+    def _enforce_fence(self) -> None:
+        """Act on a fence breach as the firmware does (roost_sim.fence)."""
+        model = self._model
+        action = self.fence.check(
+            north_m=model.horizontal.north_m,
+            east_m=model.horizontal.east_m,
+            altitude_m=model.altitude_m,
+            home=LatLon(self.config.home_lat_deg, self.config.home_lon_deg),
+            params=fence_params(self.stack, self.params.get),
+            flying=model.armed and not model.on_ground,
+        )
+        if action is None:
+            return
+        model.texts.append((SEVERITY_CRITICAL, f"Geofence breached: {self.fence.breaches[-1]}"))
+        if action is FenceAction.RETURN:
+            model.return_to_launch()
+        elif action is FenceAction.LAND:
+            model.land()
+        elif action is FenceAction.HOLD:
+            model.set_mode(custom_mode(self.stack, intent_mode(self.stack, ModeIntent.HOLD)))
 
     def _gate_open(self, msg_id: int) -> bool:
         model = self._model
@@ -808,6 +840,12 @@ class SimulatedAutopilot:
             elif kind == "TIMESYNC":
                 if msg.tc1 == 0:
                     replies = [self._mav.timesync_encode(time.monotonic_ns(), msg.ts1)]
+            elif (
+                kind.startswith("MISSION_")
+                and getattr(msg, "mission_type", 0) == MAV_MISSION_TYPE_FENCE
+                and self._for_us(msg)
+            ):
+                replies = self.fence.handle(msg, self._mav, self.sysid, self.component_id)
             elif kind == "MISSION_REQUEST_LIST" and self._for_us(msg):
                 # No mission, fence or rally points are stored: say so.
                 replies = [

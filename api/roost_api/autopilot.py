@@ -17,7 +17,7 @@ from datetime import datetime
 from pydantic import Field
 from pydantic.config import JsonDict
 
-from roost_api import autopilot_enums, shapes
+from roost_api import autopilot_enums, fence, shapes
 from roost_api.core import DNS_LABEL_PATTERN, DNS_SUBDOMAIN_PATTERN, HealthLevel, Stack
 from roost_api.meta import CONDITIONS_SCHEMA, ApiModel, Condition
 
@@ -35,6 +35,7 @@ DriftPolicy = autopilot_enums.DriftPolicy
 Failback = autopilot_enums.Failback
 FailoverMode = autopilot_enums.FailoverMode
 FailoverTrigger = autopilot_enums.FailoverTrigger
+FenceReason = autopilot_enums.FenceReason
 FinalAction = autopilot_enums.FinalAction
 HubScope = autopilot_enums.HubScope
 HubSigning = autopilot_enums.HubSigning
@@ -338,6 +339,69 @@ class FirmwareRequirement(ApiModel):
     )
 
 
+class FencePoint(ApiModel):
+    """One point of a fence, in degrees (WGS84)."""
+
+    latitude: float = Field(ge=-90, le=90, description="Latitude in degrees.")
+    longitude: float = Field(ge=-180, le=180, description="Longitude in degrees.")
+
+
+class FenceCircle(ApiModel):
+    """A circular inclusion area."""
+
+    latitude: float = Field(ge=-90, le=90, description="Centre latitude in degrees.")
+    longitude: float = Field(ge=-180, le=180, description="Centre longitude in degrees.")
+    radius_m: float = Field(gt=0, le=100000, description="Radius in metres.")
+
+
+class Fence(ApiModel):
+    """A flying area: an inclusion polygon or circle, a maximum altitude above home and
+    what the autopilot does on a breach (docs/missions.md, "Geofence")."""
+
+    polygon: list[FencePoint] = Field(
+        default_factory=list,
+        max_length=fence.MAX_VERTICES,
+        description="Inclusion polygon, at least three vertices, closed implicitly (last "
+        "to first); its edges must not cross. Exactly one of polygon and circle.",
+    )
+    circle: FenceCircle | None = Field(
+        default=None, description="Inclusion circle. Exactly one of polygon and circle."
+    )
+    max_altitude_m: float = Field(
+        gt=0, le=10000, description="Maximum altitude above home in metres."
+    )
+    action: fence.FenceAction = Field(
+        default=fence.FenceAction.RETURN,
+        description="On a breach: Hold (hover where it is), Return (to launch), Land, or "
+        "Report (tell the ground station only).",
+    )
+
+
+FENCE_RULES: list[JsonDict] = [
+    {
+        "rule": "(has(self.circle) ? 1 : 0) + (has(self.polygon) && size(self.polygon) > 0 "
+        "? 1 : 0) == 1",
+        "message": "a fence has exactly one of polygon and circle",
+    },
+    {
+        "rule": "!has(self.polygon) || size(self.polygon) == 0 || size(self.polygon) >= 3",
+        "message": "an open polygon: a fence polygon needs at least three vertices",
+    },
+]
+
+
+class AssignedFence(ApiModel):
+    """The fence a Mission asks this vehicle's autopilots to hold (written by the
+    operator during the Mission's preflight, removed when the Mission lets the vehicle
+    go; the agent then restores the fence the autopilots held before)."""
+
+    mission: str = Field(max_length=317, description="The Mission, as namespace/name.")
+    id: str = Field(max_length=64, description="Id of the fence's content.")
+    fence: Fence = Field(
+        description="The fence.", json_schema_extra={"x-kubernetes-validations": list(FENCE_RULES)}
+    )
+
+
 class FailoverPolicy(ApiModel):
     """How the agent decides and what it does after deciding."""
 
@@ -427,6 +491,12 @@ class RedundantAutopilotSpec(ApiModel):
         default=None,
         description="Autopilot parameters the agent keeps on every autopilot of the "
         "vehicle (written while disarmed, read back, watched for drift).",
+    )
+    fence: AssignedFence | None = Field(
+        default=None,
+        description="Written by the operator: the geofence of the Mission that holds this "
+        "vehicle. The agent uploads it to every autopilot (mission protocol and the stack's "
+        "fence parameters), reads it back, and restores the previous fence once it goes.",
     )
 
 

@@ -64,6 +64,7 @@ class AutopilotEntryConditionType(StrEnum):
 
     STANDBY_IN_STEP = "StandbyInStep"
     PARAMETERS_IN_SYNC = "ParametersInSync"
+    FENCE_IN_SYNC = "FenceInSync"
 
 
 class StandbyInStepReason(StrEnum):
@@ -79,6 +80,23 @@ class StandbyInStepReason(StrEnum):
     ALTITUDE_DIFFERS = "AltitudeDiffers"
     REJECTED_MIRRORED = "RejectedMirroredCommand"
     NOT_MIRRORED = "NotMirrored"
+
+
+class FenceReason(StrEnum):
+    """Reasons of the per-autopilot ``FenceInSync`` condition (with spec.fence, and
+    while a previous fence is being restored)."""
+
+    HELD = "FenceHeld"  # the fence and its parameters read back as declared
+    SAVING = "SavingPrevious"  # reading the fence it held before, to restore it later
+    UPLOADING = "Uploading"
+    VERIFYING = "Verifying"  # reading the uploaded fence back
+    DEFERRED = "DeferredWhileArmed"  # nothing is written to an armed vehicle
+    REFUSED = "UploadRefused"  # the autopilot refused the upload (MISSION_ACK error)
+    NO_ANSWER = "NoAnswer"  # the transfer timed out after its retries
+    MISMATCH = "ReadBackDiffers"  # what was read back is not what was uploaded
+    PARAMETERS = "ParametersNotHeld"  # a fence parameter did not take
+    OUTSIDE = "VehicleOutsideFence"  # its position is outside the fence: not uploaded
+    RESTORING = "RestoringPrevious"
 
 
 class ParametersReason(StrEnum):

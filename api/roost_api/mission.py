@@ -20,7 +20,7 @@ from pydantic import Field
 from pydantic.config import JsonDict
 
 from roost_api import shapes
-from roost_api.autopilot import AutopilotCommand
+from roost_api.autopilot import FENCE_RULES, AutopilotCommand, Fence
 from roost_api.meta import CONDITIONS_SCHEMA, DNS_SUBDOMAIN_PATTERN, ApiModel, Condition
 from roost_api.vehicle import FailoverGuard
 
@@ -89,6 +89,7 @@ class MissionReason(StrEnum):
     ABORTED = "Aborted"
     ABORTED_BEFORE_START = "AbortedBeforeStart"
     INVALID_TEMPLATE = "InvalidTemplate"
+    INVALID_FENCE = "InvalidFence"
     JOB_REJECTED = "JobRejected"
 
 
@@ -109,6 +110,7 @@ class MissionVehicleReason(StrEnum):
     ACTIVE_AUTOPILOT_UNHEALTHY = "ActiveAutopilotUnhealthy"
     NOT_REDUNDANT = "NotRedundant"
     FIRMWARE_UNACCEPTABLE = "FirmwareUnacceptable"
+    FENCE_NOT_HELD = "FenceNotHeld"
     VEHICLE_CONFIG_MISSING = "VehicleConfigMissing"
     # the onboard workload
     JOB_CREATED = "JobCreated"
@@ -312,6 +314,20 @@ class MissionSpec(ApiModel):
         default=AbortAction.SAFETY_ROUTINE,
         description="SafetyRoutine (hold then land) or EmergencyStop (force disarm).",
     )
+    fence: Fence | None = Field(
+        default=None,
+        description="The Mission's flying area. Before the Mission starts, every autopilot "
+        "of every claimed vehicle (standbys included) must hold it; the previous fence is "
+        "restored afterwards. Immutable.",
+        json_schema_extra={"x-kubernetes-validations": list(FENCE_RULES)},
+    )
+    flying_altitude_m: float | None = Field(
+        default=None,
+        gt=0,
+        le=10000,
+        description="The highest altitude above home the Mission's vehicles fly at; a "
+        "fence's maxAltitudeM may not be below it. Immutable.",
+    )
 
 
 # On the whole object: metadata.name is only visible to CEL from the root.
@@ -340,6 +356,17 @@ MISSION_SPEC_RULES = [
         "!has(self.offboard.spec.restartPolicy) || self.offboard.spec.restartPolicy != 'Always'",
         "message": "offboard pods run to completion as a Job: restartPolicy must be Never or "
         "OnFailure (Never when omitted)",
+    },
+    {
+        "rule": "has(self.fence) == has(oldSelf.fence) && "
+        "(!has(self.fence) || self.fence == oldSelf.fence)",
+        "message": "fence is immutable",
+    },
+    {
+        "rule": "!has(self.fence) || !has(self.flyingAltitudeM) || "
+        "self.fence.maxAltitudeM >= self.flyingAltitudeM",
+        "message": "fence.maxAltitudeM is below flyingAltitudeM: the Mission could not fly "
+        "as declared without breaching its fence",
     },
     {
         "rule": "has(self.offboard) == has(oldSelf.offboard) && "

@@ -26,6 +26,7 @@ from roost_api.autopilot_enums import (
     SafetyRoutinePhase,
 )
 from roost_api.core import ConditionStatus, HealthLevel, Stack
+from roost_api.fence import FenceAction
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -799,6 +800,176 @@ class FirmwareRequirement:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class FencePoint:
+    """One point of a fence, in degrees (WGS84).
+
+    Plain twin of :class:`roost_api.autopilot.FencePoint`.
+    """
+
+    latitude: float
+    longitude: float
+
+    @classmethod
+    def from_api(cls, doc: object, at: str = "") -> FencePoint:
+        """Validate a camelCase mapping as the API model would; ``at`` prefixes field
+        paths in errors."""
+        if isinstance(doc, cls):
+            return doc
+        d = check.mapping(doc, at.rstrip("."), "FencePoint")
+        v = check.required(check.get(d, "latitude", "latitude"), at + "latitude")
+        latitude = check.number(v, at + "latitude", ge=-90, le=90)
+        v = check.required(check.get(d, "longitude", "longitude"), at + "longitude")
+        longitude = check.number(v, at + "longitude", ge=-180, le=180)
+        return cls(latitude=latitude, longitude=longitude)
+
+    def api_dump(self) -> dict[str, Any]:
+        """Every field by its camelCase name, None included."""
+        return {
+            "latitude": self.latitude,
+            "longitude": self.longitude,
+        }
+
+    def to_api(self) -> dict[str, Any]:
+        """The JSON body Kubernetes expects: camelCase, no nulls (as the model's)."""
+        return check.without_nones(self.api_dump())
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class FenceCircle:
+    """A circular inclusion area.
+
+    Plain twin of :class:`roost_api.autopilot.FenceCircle`.
+    """
+
+    latitude: float
+    longitude: float
+    radius_m: float
+
+    @classmethod
+    def from_api(cls, doc: object, at: str = "") -> FenceCircle:
+        """Validate a camelCase mapping as the API model would; ``at`` prefixes field
+        paths in errors."""
+        if isinstance(doc, cls):
+            return doc
+        d = check.mapping(doc, at.rstrip("."), "FenceCircle")
+        v = check.required(check.get(d, "latitude", "latitude"), at + "latitude")
+        latitude = check.number(v, at + "latitude", ge=-90, le=90)
+        v = check.required(check.get(d, "longitude", "longitude"), at + "longitude")
+        longitude = check.number(v, at + "longitude", ge=-180, le=180)
+        v = check.required(check.get(d, "radiusM", "radius_m"), at + "radiusM")
+        radius_m = check.number(v, at + "radiusM", gt=0, le=100000)
+        return cls(latitude=latitude, longitude=longitude, radius_m=radius_m)
+
+    def api_dump(self) -> dict[str, Any]:
+        """Every field by its camelCase name, None included."""
+        return {
+            "latitude": self.latitude,
+            "longitude": self.longitude,
+            "radiusM": self.radius_m,
+        }
+
+    def to_api(self) -> dict[str, Any]:
+        """The JSON body Kubernetes expects: camelCase, no nulls (as the model's)."""
+        return check.without_nones(self.api_dump())
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Fence:
+    """A flying area: an inclusion polygon or circle, a maximum altitude above home and
+
+    Plain twin of :class:`roost_api.autopilot.Fence`.
+    """
+
+    polygon: list[FencePoint] = field(default_factory=list)
+    circle: FenceCircle | None = None
+    max_altitude_m: float
+    action: FenceAction = FenceAction.RETURN
+
+    @classmethod
+    def from_api(cls, doc: object, at: str = "") -> Fence:
+        """Validate a camelCase mapping as the API model would; ``at`` prefixes field
+        paths in errors."""
+        if isinstance(doc, cls):
+            return doc
+        d = check.mapping(doc, at.rstrip("."), "Fence")
+        v = check.get(d, "polygon", "polygon")
+        polygon = (
+            list()
+            if v is check.MISSING
+            else check.items(
+                v, at + "polygon", lambda x, w: FencePoint.from_api(x, w + "."), max_length=100
+            )
+        )
+        v = check.get(d, "circle", "circle")
+        circle = (
+            None
+            if v is None or v is check.MISSING
+            else FenceCircle.from_api(v, at + "circle" + ".")
+        )
+        v = check.required(check.get(d, "maxAltitudeM", "max_altitude_m"), at + "maxAltitudeM")
+        max_altitude_m = check.number(v, at + "maxAltitudeM", gt=0, le=10000)
+        v = check.get(d, "action", "action")
+        action = (
+            FenceAction.RETURN
+            if v is check.MISSING
+            else check.member(v, at + "action", FenceAction)
+        )
+        return cls(polygon=polygon, circle=circle, max_altitude_m=max_altitude_m, action=action)
+
+    def api_dump(self) -> dict[str, Any]:
+        """Every field by its camelCase name, None included."""
+        return {
+            "polygon": [x.api_dump() for x in self.polygon],
+            "circle": None if self.circle is None else self.circle.api_dump(),
+            "maxAltitudeM": self.max_altitude_m,
+            "action": self.action.value,
+        }
+
+    def to_api(self) -> dict[str, Any]:
+        """The JSON body Kubernetes expects: camelCase, no nulls (as the model's)."""
+        return check.without_nones(self.api_dump())
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class AssignedFence:
+    """The fence a Mission asks this vehicle's autopilots to hold (written by the
+
+    Plain twin of :class:`roost_api.autopilot.AssignedFence`.
+    """
+
+    mission: str
+    id: str
+    fence: Fence
+
+    @classmethod
+    def from_api(cls, doc: object, at: str = "") -> AssignedFence:
+        """Validate a camelCase mapping as the API model would; ``at`` prefixes field
+        paths in errors."""
+        if isinstance(doc, cls):
+            return doc
+        d = check.mapping(doc, at.rstrip("."), "AssignedFence")
+        v = check.required(check.get(d, "mission", "mission"), at + "mission")
+        mission = check.text(v, at + "mission", max_length=317)
+        v = check.required(check.get(d, "id", "id"), at + "id")
+        id = check.text(v, at + "id", max_length=64)
+        v = check.required(check.get(d, "fence", "fence"), at + "fence")
+        fence = Fence.from_api(v, at + "fence" + ".")
+        return cls(mission=mission, id=id, fence=fence)
+
+    def api_dump(self) -> dict[str, Any]:
+        """Every field by its camelCase name, None included."""
+        return {
+            "mission": self.mission,
+            "id": self.id,
+            "fence": self.fence.api_dump(),
+        }
+
+    def to_api(self) -> dict[str, Any]:
+        """The JSON body Kubernetes expects: camelCase, no nulls (as the model's)."""
+        return check.without_nones(self.api_dump())
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class RedundantAutopilotSpec:
     """Desired state of a RedundantAutopilot.
 
@@ -813,6 +984,7 @@ class RedundantAutopilotSpec:
     hub: HubSpec | None = None
     firmware: FirmwareRequirement | None = None
     parameters: ParametersSpec | None = None
+    fence: AssignedFence | None = None
 
     @classmethod
     def from_api(cls, doc: object, at: str = "") -> RedundantAutopilotSpec:
@@ -865,6 +1037,12 @@ class RedundantAutopilotSpec:
             if v is None or v is check.MISSING
             else ParametersSpec.from_api(v, at + "parameters" + ".")
         )
+        v = check.get(d, "fence", "fence")
+        fence = (
+            None
+            if v is None or v is check.MISSING
+            else AssignedFence.from_api(v, at + "fence" + ".")
+        )
         return cls(
             vehicle_name=vehicle_name,
             autopilots=autopilots,
@@ -874,6 +1052,7 @@ class RedundantAutopilotSpec:
             hub=hub,
             firmware=firmware,
             parameters=parameters,
+            fence=fence,
         )
 
     def api_dump(self) -> dict[str, Any]:
@@ -887,6 +1066,7 @@ class RedundantAutopilotSpec:
             "hub": None if self.hub is None else self.hub.api_dump(),
             "firmware": None if self.firmware is None else self.firmware.api_dump(),
             "parameters": None if self.parameters is None else self.parameters.api_dump(),
+            "fence": None if self.fence is None else self.fence.api_dump(),
         }
 
     def to_api(self) -> dict[str, Any]:

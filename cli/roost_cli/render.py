@@ -53,6 +53,9 @@ def health_text(row: FleetRow) -> Text:
             text.append(f" ({cell.reason})", style="dim")
         if cell.params:
             text.append(f" [params {cell.params}]", style="yellow")
+        if cell.fence:
+            held = cell.fence.startswith("held ")
+            text.append(f" [fence {cell.fence}]", style="green" if held else "yellow")
     return text if row.autopilots else Text("-", style="dim")
 
 

@@ -18,7 +18,8 @@ from typing import Any, TypeVar
 from pydantic import ValidationError
 
 from roost_api.autopilot import FailoverRecord, RedundantAutopilotSpec, RedundantAutopilotStatus
-from roost_api.meta import GROUP, ApiModel, HealthLevel, find_condition
+from roost_api.fence import held_id
+from roost_api.meta import GROUP, ApiModel, Condition, HealthLevel, find_condition
 from roost_api.mission import MissionPhase, MissionSpec, MissionStatus
 from roost_api.vehicle import VehicleConditionType, VehicleSpec, VehicleStatus
 
@@ -42,12 +43,16 @@ class AutopilotCell:
     params: str = ""
     """Its declared parameters when they are not in sync (``Drifted: GF_ACTION is 1,
     declared 3``), empty when in sync or none are declared."""
+    fence: str = ""
+    """A Mission's fence on it: ``held 1a2b3c4d5e6f`` or where it stands
+    (``UploadRefused: uploading: MISSION_ACK result 1``); empty without one."""
 
     @property
     def text(self) -> str:
         suffix = f" ({self.reason})" if self.reason else ""
         params = f" [params {self.params}]" if self.params else ""
-        return f"{self.name} {self.level}{suffix}{params}"
+        fence = f" [fence {self.fence}]" if self.fence else ""
+        return f"{self.name} {self.level}{suffix}{params}{fence}"
 
 
 @dataclass(frozen=True)
@@ -172,10 +177,26 @@ def autopilot_cells(
         )
         cells.append(
             AutopilotCell(
-                name=name, level=level, active=name == active, reason=reason, params=drift
+                name=name,
+                level=level,
+                active=name == active,
+                reason=reason,
+                params=drift,
+                fence=fence_text(health.conditions if health else []),
             )
         )
     return tuple(cells)
+
+
+def fence_text(conditions: Sequence[Condition]) -> str:
+    """An autopilot's FenceInSync condition as the HEALTH column shows it."""
+    fence = find_condition(conditions, "FenceInSync")
+    if fence is None:
+        return ""
+    fid = held_id(fence.message)
+    if fence.status == "True" and fid is not None:
+        return f"held {fid}"
+    return f"{fence.reason}: {fence.message}"
 
 
 def describe_flight_hold(status: VehicleStatus | None) -> str:

@@ -24,12 +24,13 @@ from typing import Any
 
 import pytest
 
-from roost_api.autopilot import CommandAction
+from roost_api.autopilot import AssignedFence, CommandAction, Fence, FenceCircle
 from roost_api.commands import command_patch, new_command
 from roost_kube.client import Kube
 from roost_kube.patches import Obj
 from roost_kube.resources import CONFIGMAPS, EVENTS, PODS, REDUNDANT_AUTOPILOTS, VEHICLES
 from roost_localcluster.cluster import Cluster
+from roost_operator.missions.fence import fence_patch
 from roost_operator.vehicles.config import config_map_name
 from roost_operator.vehicles.manifests import workload_name
 from roost_operator.vehicles.pods import mavros_follows
@@ -428,3 +429,57 @@ def test_a_guard_holds_the_repoint_until_a_human_lifts_it(rig: Rig, roost_crds: 
     roost_crds.kubectl("annotate", "vehicle", rig.name, "roost.dev/pause-failover-actions-")
     until("mavros re-pointed once the pause is lifted", lambda: rig.mavros_on(1))
     assert rig.vehicle_status()["failover"].get("blocked") is None
+
+
+def test_a_fence_written_into_the_redundant_autopilot_reaches_both_autopilots_and_goes(
+    rig: Rig,
+) -> None:
+    """What the operator writes for a Mission's fence (spec.fence), read by the real
+    agent process from the API server: deferred while the vehicle flies, uploaded to both
+    simulated autopilots once they landed and disarmed, reported per autopilot in the
+    status, and the previous fence restored once it is removed."""
+    home = SimConfig()
+    fence = AssignedFence(
+        mission="default/fenced",
+        id="0123456789ab",
+        fence=Fence(
+            circle=FenceCircle(
+                latitude=home.home_lat_deg, longitude=home.home_lon_deg, radius_m=60
+            ),
+            max_altitude_m=25,
+        ),
+    )
+    before = [list(sim.fence.items) for sim in rig.sims]
+    rig.kube.merge_patch(REDUNDANT_AUTOPILOTS, rig.name, fence_patch(fence))
+
+    def fence_states() -> dict[str, tuple[str, str]]:
+        return {
+            h["name"]: (c["status"], c["message"])
+            for h in rig.ra_status().get("autopilots", [])
+            for c in h.get("conditions", [])
+            if c["type"] == "FenceInSync"
+        }
+
+    def held() -> bool:
+        states = fence_states()
+        return len(states) == 2 and all(
+            s == "True" and m.startswith("holds fence 0123456789ab") for s, m in states.values()
+        )
+
+    def deferred() -> bool:
+        states = fence_states()
+        return len(states) == 2 and all(
+            m == "uploading the fence waits until disarmed" for _, m in states.values()
+        )
+
+    until("the fence deferred while the vehicle flies", deferred)
+    assert all(sim.fence.uploads == 0 for sim in rig.sims)
+    for sim in rig.sims:
+        sim.land()
+    until("both autopilots hold the fence", held)
+    assert all(len(sim.fence.items) == 1 for sim in rig.sims)
+    assert all(sim.params.get("GF_MAX_VER_DIST") == 25 for sim in rig.sims)
+    rig.kube.merge_patch(REDUNDANT_AUTOPILOTS, rig.name, fence_patch(None))
+    until("the fence condition gone", lambda: fence_states() == {})
+    assert [list(sim.fence.items) for sim in rig.sims] == before
+    assert all(sim.params.get("GF_MAX_VER_DIST") == 0 for sim in rig.sims)

@@ -52,6 +52,8 @@ SUITES = (
     "tests/unit/test_agent_metrics.py",
     "tests/integration/test_agent_metrics_on_links.py",
     "tests/unit/test_agent_telemetry.py",
+    # the fence keeper's mission protocol inbox and sends on the compiled links
+    "tests/integration/test_agent_geofence.py",
     # the agent as a process, over real UDP, against simulated autopilots
     "tests/integration/test_agent_failover.py",
     "tests/integration/test_firmware_truth.py",

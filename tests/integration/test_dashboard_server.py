@@ -137,3 +137,61 @@ def test_read_only_refuses_every_action_and_other_origins(
             connect(ws_url, origin="http://evil.example", open_timeout=5) as ws,  # type: ignore[arg-type]
         ):
             ws.recv(timeout=5)
+
+
+FENCED_ORIGIN = (47.3977, 8.5456)
+
+
+def test_the_arena_draws_a_missions_fence_in_a_real_browser(
+    roost_crds: Cluster, kube: Kube, tmp_path: Path
+) -> None:
+    """A real headless Chromium (tests.support.browser) on the dashboard: a Mission's
+    polygon fence appears in the arena, placed in metres from the dashboard's origin."""
+    from selenium.webdriver.common.by import By  # noqa: PLC0415 - only this test drives a browser
+
+    from tests.support.browser import chromium  # noqa: PLC0415
+
+    lat, lon = FENCED_ORIGIN
+    mission = plan.mission_manifest(1)
+    mission["metadata"]["name"] = name = unique("dash-fence")
+    mission["spec"]["vehicles"]["selector"] = {"matchLabels": {"dashboard-test": name}}
+    d = 0.0009  # about 100 m north, 68 m east
+    mission["spec"]["fence"] = {
+        "polygon": [
+            {"latitude": lat, "longitude": lon},
+            {"latitude": lat, "longitude": lon + d},
+            {"latitude": lat + d, "longitude": lon + d},
+            {"latitude": lat + d, "longitude": lon},
+        ],
+        "maxAltitudeM": 30,
+        "action": "Land",
+    }
+    origin = f"{lat},{lon}"
+    with dashboard(roost_crds, tmp_path / "dashboard.log", "--origin", origin) as url:
+        kube.apply(mission)
+        try:
+            with chromium(tmp_path / "chromedriver.log") as driver:
+                driver.get(url)
+                selector = f'#fences g[data-mission="default/{name}"]'
+
+                def drawn() -> Any:
+                    found = driver.find_elements(By.CSS_SELECTOR, f"{selector} polygon")
+                    return found[0] if found else None
+
+                polygon = wait_until("the fence in the arena", drawn, 30, 0.2)
+                points = [
+                    tuple(float(v) for v in p.split(","))
+                    for p in polygon.get_attribute("points").split()
+                ]
+                # x east, y south (north up): the first vertex at the origin, the third
+                # about 100 m north and 68 m east of it.
+                assert points[0] == (0.0, 0.0)
+                assert points[2][0] == pytest.approx(67.8, abs=1) and points[2][1] == pytest.approx(
+                    -100.1, abs=1
+                )
+                group = driver.find_element(By.CSS_SELECTOR, selector)
+                assert group.get_attribute("data-action") == "Land"
+                assert "fence ≤30 m, Land" in group.text
+                driver.save_screenshot(str(tmp_path / "fence.png"))
+        finally:
+            kube.delete(MISSIONS, name, "default")

@@ -256,6 +256,38 @@ def test_preflight_holds_the_mission_until_the_autopilot_is_healthy(
     wait_until("both Jobs", lambda: len(jobs_of(kube, name)) == 2, WAIT_S)
 
 
+def test_a_fence_every_autopilot_must_hold_before_the_start_and_lose_after(
+    fleet: Fleet, kube: Kube, agents: FakeAgents, roost_crds: Cluster
+) -> None:
+    (drone,) = fleet.add(1, fence_refused=("fc2",))
+    fence = {
+        "circle": {"latitude": 47.3977, "longitude": 8.5456, "radiusM": 80},
+        "maxAltitudeM": 30,
+    }
+    name = fleet.mission(unique("fenced"), names=[drone], count=1, fence=fence)
+
+    status = wait_phase(kube, name, "Preflight")
+    written = (kube.get(REDUNDANT_AUTOPILOTS, drone) or {})["spec"].get("fence")
+    assert written is not None and written["mission"] == f"{FLIGHTS}/{name}"
+    assert written["fence"]["maxAltitudeM"] == 30
+    wait_until(
+        "preflight names fc2",
+        lambda: (
+            "fc2: UploadRefused" in (mission_status(kube, name)["vehicles"][0].get("message") or "")
+        ),
+        WAIT_S,
+    )
+    status = mission_status(kube, name)
+    assert status["vehicles"][0]["reason"] == "FenceNotHeld"
+    assert "fc1" not in status["vehicles"][0]["message"].split("autopilot: ", 1)[1]
+    assert jobs_of(kube, name) == {}, "a vehicle without the fence on every autopilot stays"
+
+    agents.set(drone, fence_refused=())
+    wait_phase(kube, name, "Running")
+    roost_crds.kubectl("delete", "mission", name, "-n", FLIGHTS)
+    assert (kube.get(REDUNDANT_AUTOPILOTS, drone) or {})["spec"].get("fence") is None
+
+
 @pytest.mark.parametrize("action", ["SafetyRoutine", "EmergencyStop"])
 def test_abort_lands_every_vehicle_and_stops_the_workloads(
     fleet: Fleet, kube: Kube, agents: FakeAgents, roost_crds: Cluster, action: str

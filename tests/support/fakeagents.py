@@ -22,6 +22,7 @@ from datetime import UTC, datetime
 from typing import Any
 
 from roost_api.autopilot import CommandAction
+from roost_api.fence import held_message
 from roost_api.meta import GROUP, VERSION, Condition, set_condition
 from roost_kube.errors import NotFoundError
 from roost_kube.resources import REDUNDANT_AUTOPILOTS
@@ -73,6 +74,8 @@ class AgentState:
     failover_count: int = 0
     last_command: dict[str, Any] | None = None
     conditions: list[Condition] = field(default_factory=list)
+    fence: dict[str, Any] | None = None  # spec.fence as last read
+    fence_refused: tuple[str, ...] = ()  # autopilots whose fence upload fails
 
 
 def _execute(state: AgentState, command: dict[str, Any] | None) -> None:
@@ -92,6 +95,28 @@ def _execute(state: AgentState, command: dict[str, Any] | None) -> None:
         "message": f"{action} done",
         "time": rfc3339(datetime.now(UTC)),
     }
+
+
+def _fence_conditions(state: AgentState, autopilot: str) -> list[dict[str, Any]]:
+    """The autopilot's FenceInSync condition, as the agent reports it for ``spec.fence``:
+    held (naming the fence's id) unless the test made its upload fail."""
+    if state.fence is None:
+        return []
+    at = rfc3339(datetime.now(UTC))
+    if autopilot in state.fence_refused:
+        verdict = ("False", "UploadRefused", "uploading: MISSION_ACK result 1")
+    else:
+        verdict = ("True", "FenceHeld", held_message(state.fence["id"], "as uploaded"))
+    status, reason, message = verdict
+    return [
+        {
+            "type": "FenceInSync",
+            "status": status,
+            "reason": reason,
+            "message": message,
+            "lastTransitionTime": at,
+        }
+    ]
 
 
 def agent_status(state: AgentState) -> dict[str, Any]:
@@ -115,6 +140,7 @@ def agent_status(state: AgentState) -> dict[str, Any]:
             "level": "OK" if state.healthy or name != state.active else "ERROR",
             "landedState": state.landed,
             "armed": state.armed,
+            "conditions": _fence_conditions(state, name),
         }
         for name in ("fc1", "fc2")
     ]
@@ -190,6 +216,7 @@ class FakeAgents:
                 if body is None:
                     return
                 _execute(state, (body.get("spec") or {}).get("command"))
+                state.fence = (body.get("spec") or {}).get("fence")
                 self._kube.merge_patch(
                     REDUNDANT_AUTOPILOTS,
                     autopilots,

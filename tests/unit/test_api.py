@@ -15,6 +15,7 @@ import pytest
 from roost_api.autopilot import (
     AutopilotConditionReason,
     CommandAction,
+    FenceReason,
     ParametersReason,
     StandbyInStepReason,
 )
@@ -32,6 +33,7 @@ REASONS: list[type[StrEnum]] = [
     AutopilotConditionReason,
     StandbyInStepReason,
     ParametersReason,
+    FenceReason,
     VehicleConditionReason,
     MissionReason,
     MissionVehicleReason,

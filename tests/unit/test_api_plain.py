@@ -252,7 +252,7 @@ def test_a_state_file_written_by_the_hand_written_loader_still_loads() -> None:
     )
     # written back unchanged, apart from fields added to the spec since (their defaults)
     expected = json.loads(json.dumps(HAND_WRITTEN_AGENT_STATE))
-    expected["spec"].update({"firmware": None, "parameters": None})
+    expected["spec"].update({"firmware": None, "parameters": None, "fence": None})
     expected["spec"]["hub"]["endpoints"] = []
     assert state.api_dump() == expected
 

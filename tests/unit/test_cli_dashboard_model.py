@@ -17,6 +17,7 @@ from roost_cli.dashboard.model import (
     TELEMETRY_STALE_S,
     TRAIL_POINTS,
     FleetModel,
+    fence_doc,
     timeline_kind,
     worst,
 )
@@ -210,3 +211,63 @@ def test_an_abort_acts_only_on_the_targets_the_user_confirmed() -> None:
     actions_api._check(["default/survey", "v1", "v2"], sorted(["v2", "default/survey", "v1"]))
     with pytest.raises(actions_api.RefusedError, match="confirmed"):
         actions_api._confirmed({"confirmed": "v1"})
+
+
+def fenced_mission(name: str, fence: dict[str, Any], phase: str = "Preflight") -> dict[str, Any]:
+    return {
+        "apiVersion": "roost.dev/v1alpha1",
+        "kind": "Mission",
+        "metadata": {"name": name, "namespace": "default"},
+        "spec": {"vehicles": {"names": ["v1"], "count": 1}, "onboard": {}, "fence": fence},
+        "status": {"phase": phase},
+    }
+
+
+def test_a_missions_fence_is_placed_in_the_arena_while_the_mission_is_not_finished() -> None:
+    polygon = {
+        "polygon": [
+            {"latitude": ORIGIN.lat, "longitude": ORIGIN.lon},
+            {"latitude": ORIGIN.lat, "longitude": ORIGIN.lon + 0.001},
+            {"latitude": ORIGIN.lat + 0.001, "longitude": ORIGIN.lon},
+        ],
+        "maxAltitudeM": 30,
+        "action": "Land",
+    }
+    circle = {
+        "circle": {"latitude": ORIGIN.lat, "longitude": ORIGIN.lon, "radiusM": 50},
+        "maxAltitudeM": 20,
+    }
+    model = FleetModel(origin=ORIGIN, clock=Clock())
+    model.replace(
+        "Mission",
+        [
+            fenced_mission("poly", polygon),
+            fenced_mission("round", circle),
+            fenced_mission("done", circle, phase="Succeeded"),
+        ],
+    )
+    doc = model.snapshot(read_only=True, server="s")
+    fences = {m["name"]: m["fence"] for m in doc["missions"]}
+    assert fences["default/done"] is None
+    assert fences["default/round"] == {
+        "maxAltitudeM": 20.0,
+        "action": "Return",
+        "circle": [0.0, 0.0, 50.0],
+    }
+    north, east = north_east_m(ORIGIN, ORIGIN.lat + 0.001, ORIGIN.lon)
+    assert fences["default/poly"]["polygon"][2] == [round(north, 2), round(east, 2)]
+    assert "spec" not in doc["missions"][0]
+    assert fence_doc({"polygon": "nonsense"}, ORIGIN) is None
+
+
+def test_without_an_origin_no_fence_is_placed() -> None:
+    model = FleetModel(clock=Clock())
+    model.replace(
+        "Mission",
+        [
+            fenced_mission(
+                "poly", {"circle": {"latitude": 1, "longitude": 2, "radiusM": 5}, "maxAltitudeM": 9}
+            )
+        ],
+    )
+    assert model.snapshot(read_only=True, server="s")["missions"][0]["fence"] is None

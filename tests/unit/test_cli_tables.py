@@ -314,3 +314,42 @@ def test_parameter_drift_and_the_flight_hold_show_per_vehicle() -> None:
     shown = console.export_text()
     assert "in flight: autopilot fc-a is armed; deferred mavros" in shown
     assert "[params Drifted: GF_ACTION is 1, declared 3]" in shown
+
+
+def test_the_fence_state_shows_per_autopilot() -> None:
+    def fence(status: str, reason: str, message: str) -> dict[str, str]:
+        return {
+            "type": "FenceInSync",
+            "status": status,
+            "reason": reason,
+            "message": message,
+            "lastTransitionTime": _iso(5),
+        }
+
+    status = {
+        "activeAutopilot": "fc-a",
+        "autopilots": [
+            {
+                "name": "fc-a",
+                "level": "OK",
+                "conditions": [fence("True", "FenceHeld", "holds fence 0123456789ab: polygon")],
+            },
+            {
+                "name": "fc-b",
+                "level": "OK",
+                "conditions": [fence("False", "UploadRefused", "uploading: MISSION_ACK result 1")],
+            },
+            {"name": "fc-c", "level": "OK"},
+        ],
+    }
+    [row] = tables.fleet_rows([vehicle("d1")], [autopilot("d1", status=status)], [], NOW)
+    assert [c.fence for c in row.autopilots] == [
+        "held 0123456789ab",
+        "UploadRefused: uploading: MISSION_ACK result 1",
+        "",
+    ]
+    console = Console(width=250, record=True)
+    console.print(render.fleet_table([row]))
+    shown = console.export_text()
+    assert "[fence held 0123456789ab]" in shown
+    assert "[fence UploadRefused: uploading: MISSION_ACK result 1]" in shown

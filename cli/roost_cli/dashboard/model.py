@@ -30,7 +30,7 @@ from typing import Any
 from pydantic import ValidationError
 
 from roost_api.meta import HealthLevel
-from roost_api.mission import MissionStatus
+from roost_api.mission import MissionPhase, MissionStatus
 from roost_api.telemetry import Origin, north_east_m
 from roost_cli import tables
 from roost_cli.tables import NONE
@@ -220,6 +220,8 @@ class FleetModel:
             mission_docs.append(
                 asdict(row)
                 | {
+                    "fence": None,
+                    "spec": mission.get("spec") or {},
                     "perVehicle": [
                         {
                             "name": v.name,
@@ -228,7 +230,7 @@ class FleetModel:
                             "message": v.message or "",
                         }
                         for v in status.vehicles
-                    ]
+                    ],
                 }
             )
         timeline = []
@@ -284,6 +286,7 @@ class FleetModel:
             for vehicle, record in live.items()
         ]
         merged = sorted(timeline + live_entries, key=lambda entry: str(entry["time"]))
+        missions = [_with_fence(m, origin) for m in missions]
         return {
             "type": "state",
             "version": version,
@@ -296,6 +299,41 @@ class FleetModel:
             "missions": missions,
             "timeline": merged[-TIMELINE_LIMIT:],
         }
+
+
+def fence_doc(fence: Mapping[str, Any], origin: Origin) -> dict[str, Any] | None:
+    """A Mission's ``spec.fence`` in the arena's frame (metres north and east of
+    ``origin``): ``{"polygon": [[n, e], ...]}`` or ``{"circle": [n, e, r]}``, with its
+    altitude limit and breach action; None when it cannot be read."""
+    try:
+        doc: dict[str, Any] = {
+            "maxAltitudeM": float(fence["maxAltitudeM"]),
+            "action": str(fence.get("action", "Return")),
+        }
+        circle = fence.get("circle")
+        if circle is not None:
+            n, e = north_east_m(origin, float(circle["latitude"]), float(circle["longitude"]))
+            doc["circle"] = [round(n, 2), round(e, 2), float(circle["radiusM"])]
+        else:
+            points = [
+                north_east_m(origin, float(p["latitude"]), float(p["longitude"]))
+                for p in fence.get("polygon") or []
+            ]
+            doc["polygon"] = [[round(n, 2), round(e, 2)] for n, e in points]
+    except (KeyError, TypeError, ValueError):
+        return None
+    return doc
+
+
+def _with_fence(mission: dict[str, Any], origin: Origin | None) -> dict[str, Any]:
+    """The mission's document with its fence placed in the arena (unfinished Missions
+    with a fence, once the arena has an origin), without its raw spec."""
+    out = {k: v for k, v in mission.items() if k != "spec"}
+    fence = (mission.get("spec") or {}).get("fence")
+    finished = mission.get("phase") in {p.value for p in MissionPhase if p.finished}
+    if fence and origin is not None and not finished:
+        out["fence"] = fence_doc(fence, origin)
+    return out
 
 
 def _vehicle_doc(

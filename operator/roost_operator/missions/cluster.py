@@ -35,7 +35,7 @@ from typing import Any, Final, TypeVar
 
 from pydantic import ValidationError
 
-from roost_api.autopilot import AutopilotCommand
+from roost_api.autopilot import AssignedFence, AutopilotCommand
 from roost_api.commands import command_patch
 from roost_api.meta import API_VERSION
 from roost_api.mission import MissionPhase, MissionReason, MissionSpec, MissionStatus, RecordsState
@@ -54,6 +54,8 @@ from roost_kube.resources import CONFIGMAPS, JOBS, LEASES, MISSIONS, REDUNDANT_A
 from roost_operator import claims
 from roost_operator.autopilots.guards import FleetGuards
 from roost_operator.claims import Claim
+from roost_operator.missions.fence import fence_patch
+from roost_operator.missions.fence import held_by as fence_held_by
 from roost_operator.missions.machine import (
     MissionEvent,
     Observation,
@@ -443,6 +445,25 @@ def _write_commands(kube: Kube, obs: Observation, commands: Mapping[str, Autopil
     _each(write, list(commands.items()))
 
 
+def _write_fences(kube: Kube, obs: Observation, plan: Plan) -> None:
+    """Write the Mission's fence into its vehicles' RedundantAutopilots, and remove it
+    from the ones it releases (roost_operator.missions.fence)."""
+    writes: list[tuple[str, AssignedFence | None]] = list(plan.fences.items())
+    writes += [
+        (name, None)
+        for name in plan.releases
+        if name not in plan.fences and fence_held_by(obs.mission, obs.autopilots.get(name))
+    ]
+
+    def write(item: tuple[str, AssignedFence | None]) -> None:
+        vehicle_name, fence = item
+        kube.merge_patch(
+            REDUNDANT_AUTOPILOTS, obs.autopilots[vehicle_name].name, fence_patch(fence)
+        )
+
+    _each(write, writes)
+
+
 def carry_out(kube: Kube, obs: Observation, plan: Plan, operator_namespace: str) -> None:
     """Write what ``plan`` says, in the order the module docstring explains."""
     _write_status(kube, obs, plan.status)
@@ -457,6 +478,7 @@ def carry_out(kube: Kube, obs: Observation, plan: Plan, operator_namespace: str)
         carry_out(kube, obs, rejected, operator_namespace)
         return
     _write_commands(kube, obs, plan.commands)
+    _write_fences(kube, obs, plan)
     _each(lambda job_name: kube.delete(JOBS, job_name, obs.mission.namespace), plan.jobs_to_delete)
     _delete_config_copies(kube, obs, plan.config_maps_to_delete, operator_namespace)
     _each(
@@ -590,6 +612,7 @@ def release_deleted_mission(
             f"abort command to {vehicle_name}",
             partial(_write_commands, kube, obs, {vehicle_name: command}),
         )
+    attempt("fences", partial(_write_fences, kube, obs, plan))
     for vehicle_name in plan.releases:
         attempt(
             f"claim on {vehicle_name}",

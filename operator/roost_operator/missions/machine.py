@@ -75,6 +75,7 @@ from datetime import datetime
 from typing import Literal
 
 from roost_api.autopilot import (
+    AssignedFence,
     AutopilotCommand,
     AutopilotConditionType,
     AutopilotHealth,
@@ -104,6 +105,9 @@ from roost_api.mission import (
 from roost_api.wellknown import ANNOTATION_CLEAR_FAILOVER_LATCH, ANNOTATION_PAUSE_FAILOVER_ACTIONS
 from roost_kube.patches import Obj
 from roost_operator.autopilots.guards import FleetGuards, Verdict, consequence_verdict
+from roost_operator.missions.fence import assigned as assigned_fence
+from roost_operator.missions.fence import fence_failures, invalid_fence
+from roost_operator.missions.fence import needs_write as fence_needs_write
 from roost_operator.missions.observed import (
     AutopilotView,
     JobPhase,
@@ -192,6 +196,9 @@ class Plan:
     jobs_to_create: list[Obj] = field(default_factory=list)
     commands: dict[str, AutopilotCommand] = field(default_factory=dict)
     """New commands to write, by vehicle name."""
+    fences: dict[str, AssignedFence] = field(default_factory=dict)
+    """The Mission's fence to write into these vehicles' RedundantAutopilots
+    (roost_operator.missions.fence); it is removed when the Mission releases them."""
     jobs_to_delete: list[str] = field(default_factory=list)
     config_maps_to_delete: list[str] = field(default_factory=list)
     """Vehicles whose config copy in the Mission's namespace goes (if this Mission owns it)."""
@@ -211,8 +218,11 @@ def plan_mission(obs: Observation) -> Plan:
     if phase.finished:
         _wind_down(obs, plan)
     elif not _started(obs):
+        invalid = invalid_fence(obs.spec)
         if obs.spec.abort:
             _abort_before_start(obs, plan)
+        elif invalid is not None:
+            _finish(obs, plan, MissionPhase.FAILED, MissionReason.INVALID_FENCE, invalid)
         else:
             _assign(obs, plan)
     elif obs.spec.abort or phase is MissionPhase.ABORTING:
@@ -379,6 +389,7 @@ def _failures(obs: Observation, name: str) -> list[PreflightFailure]:
     failures = preflight_failures(
         obs.vehicles.get(name), obs.autopilots.get(name), obs.spec.preflight
     )
+    failures += fence_failures(assigned_fence(obs.mission, obs.spec), obs.autopilots.get(name))
     if name not in obs.config_values:
         failures.append(
             PreflightFailure(
@@ -402,6 +413,10 @@ def _preflight(obs: Observation, plan: Plan, assigned: list[str]) -> None:
         message=f"{len(assigned)}/{obs.spec.vehicles.count}: {names}",
     )
     results = {name: _failures(obs, name) for name in assigned}
+    fence = assigned_fence(obs.mission, obs.spec)
+    for name in assigned:
+        if fence is not None and fence_needs_write(fence, obs.autopilots.get(name)):
+            plan.fences[name] = fence
     vehicles = []
     for name in assigned:
         vehicle = obs.vehicles.get(name)

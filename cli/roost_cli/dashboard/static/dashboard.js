@@ -33,13 +33,22 @@ function setAttr(node, name, value) {
 // ---- arena ----------------------------------------------------------------------------
 let view = null; // current viewBox [x, y, w, h], widened as vehicles move, never jittering
 
-function fitArena(vehicles) {
+function fencePoints(f) {
+  // The points that bound a fence in the arena: its vertices, or its circle's box.
+  if (f.circle) {
+    const [n, e, r] = f.circle;
+    return [[n - r, e - r], [n + r, e + r]];
+  }
+  return f.polygon || [];
+}
+
+function fitArena(vehicles, fences) {
   let minX = -10, maxX = 10, minY = -10, maxY = 10;
-  for (const v of vehicles) {
-    for (const [n, e] of v.trail || []) {
-      minX = Math.min(minX, e); maxX = Math.max(maxX, e);
-      minY = Math.min(minY, -n); maxY = Math.max(maxY, -n);
-    }
+  const points = vehicles.flatMap((v) => v.trail || []);
+  for (const f of fences) points.push(...fencePoints(f));
+  for (const [n, e] of points) {
+    minX = Math.min(minX, e); maxX = Math.max(maxX, e);
+    minY = Math.min(minY, -n); maxY = Math.max(maxY, -n);
   }
   const pad = 5;
   const size = Math.max(maxX - minX, maxY - minY) + 2 * pad;
@@ -96,9 +105,41 @@ function drawTiles() {
 }
 
 const drawn = new Map(); // vehicle -> {g, trail, last}
+let fencesDrawn = "";
 
-function renderArena(vehicles) {
-  fitArena(vehicles);
+function renderFences(missions) {
+  // Each unfinished Mission's fence: its polygon or circle, dashed, named after it.
+  const key = JSON.stringify([view, missions.map((m) => [m.name, m.fence])]);
+  if (key === fencesDrawn) return;
+  fencesDrawn = key;
+  const group = $("fences");
+  group.replaceChildren();
+  for (const m of missions) {
+    const f = m.fence;
+    if (!f) continue;
+    const g = el("svg:g", { class: "fence", "data-mission": m.name, "data-action": f.action,
+      "data-max-altitude": f.maxAltitudeM });
+    let label;
+    if (f.circle) {
+      const [n, e, r] = f.circle;
+      g.append(el("svg:circle", { cx: e, cy: -n, r }));
+      label = [e - r, -n - r];
+    } else {
+      g.append(el("svg:polygon", { points: f.polygon.map(([n, e]) => `${e},${-n}`).join(" ") }));
+      const top = f.polygon.reduce((a, b) => (b[0] > a[0] ? b : a));
+      label = [top[1], -top[0]];
+    }
+    const size = Math.max(1.2, view[2] / 50); // readable however wide the arena is
+    g.append(el("svg:text", { x: label[0], y: label[1] - size / 2, "font-size": size },
+      `${m.name} fence ≤${f.maxAltitudeM} m, ${f.action}`));
+    group.append(g);
+  }
+}
+
+function renderArena(vehicles, missions = []) {
+  const fences = missions.map((m) => m.fence).filter(Boolean);
+  fitArena(vehicles, fences);
+  renderFences(missions);
   const markers = $("markers"), trails = $("trails");
   const seen = new Set();
   for (const v of vehicles) {
@@ -351,7 +392,7 @@ function apply(doc) {
   $("estop-all").hidden = doc.readOnly || doc.vehicles.length === 0;
   $("read-only").hidden = !doc.readOnly;
   if (doc.origin) tileOrigin = doc.origin;
-  renderArena(doc.vehicles);
+  renderArena(doc.vehicles, doc.missions);
   renderFleet(doc);
   renderMissions(doc);
   renderTimeline(doc);
