@@ -30,7 +30,7 @@ from roost_kube.client import Kube
 from roost_kube.resources import MISSIONS, REDUNDANT_AUTOPILOTS
 from roost_localcluster.cluster import Cluster
 from tests.support.dashboardproc import running_dashboard
-from tests.support.waiting import unique
+from tests.support.waiting import unique, wait_until
 
 pytestmark = pytest.mark.cluster
 
