@@ -32,6 +32,7 @@ MODULES: tuple[str, ...] = (
     "disruption",
     "sync",
     "node",
+    "syncpods",
     "kind",
     "partition",
     "dashboard",

@@ -498,6 +498,8 @@ class RealNodes:
         self._record()
         try:
             network.add_node(index)
+            peers = {n.index: n.pod_subnet for n in self.nodes.values() if n is not node}
+            network.route_pods(index, node.pod_subnet, peers)
             self._prepare(node)
             self._start_containerd(node)
             pause = self.programs(node.arch) / binaries.PAUSE_ARCHIVE
@@ -701,6 +703,8 @@ class RealNodes:
             if proc is not None:
                 proc.stop(grace_s=5.0)
         release(node, self.network)
+        if self.network is not None:
+            self.network.unroute_pods(node.pod_subnet, [n.index for n in self.nodes.values()])
         self._record()
         if delete_node:
             self.cluster.kubectl("delete", "node", name, "--ignore-not-found", check=False)
