@@ -455,9 +455,16 @@ class RealNodes:
         relay.launch(die_with_parent=True)
         self.relay = relay
         _wait_for(lambda: "relaying" in relay.log.read_text(), 10, "the API relay", [relay])
-        slice_manifest = api_endpoint_slice(network.host_address, port)
-        self.cluster.kubectl("apply", "-f", "-", input_text=json.dumps(slice_manifest))
+        self.publish_api()
         return network
+
+    def publish_api(self) -> None:
+        """Point the ``kubernetes`` Service at this pool's relay (its EndpointSlice). One
+        pool per control plane does: another pool's (a test's second pool) replaces it, and
+        the first one's pods lose the API server until this is called again."""
+        assert self.network is not None and self.plane.ports is not None
+        slice_manifest = api_endpoint_slice(self.network.host_address, self.plane.ports.apiserver)
+        self.cluster.kubectl("apply", "-f", "-", input_text=json.dumps(slice_manifest))
 
     # ---- nodes ---------------------------------------------------------------------------
     def add(
