@@ -61,6 +61,24 @@ def mission_image() -> Path:
     return run_build_script("--mission", str(EXAMPLE), timeout_s=3600) / name
 
 
+EMULATED_ONBOARD = {"privileged": True}
+"""The onboard containers' securityContext when a vehicle node runs under qemu-user: the
+kubelet always asks for the RuntimeDefault seccomp profile for a pod's sandbox (whatever
+the pod says), and containerd under qemu-user, which implements no seccomp, refuses that
+for every unprivileged pod; a privileged pod carries no profile. The agent runs so there
+for the same reason (``EMULATED_NODE_AGENT``); a real arm64 board has seccomp and needs
+neither."""
+
+
+def privileged_onboard(documents: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """``documents`` with the Mission's onboard containers privileged (:data:`EMULATED_ONBOARD`)."""
+    for doc in documents:
+        if doc.get("kind") == "Mission":
+            for container in doc["spec"]["onboard"]["spec"]["containers"]:
+                container.setdefault("securityContext", {}).update(EMULATED_ONBOARD)
+    return documents
+
+
 def through_cluster_ip(documents: list[dict[str, Any]], address: str) -> list[dict[str, Any]]:
     """``documents`` with the followers' ``SYNC_MONITOR`` host replaced by ``address``
     (the Service's ClusterIP: the harness has no cluster DNS, see the module docstring)."""
@@ -101,12 +119,16 @@ class RealMission:
     documents: list[dict[str, Any]] = field(default_factory=list)
 
     @property
+    def emulated(self) -> bool:
+        """Whether a vehicle node runs under emulation (another architecture's)."""
+        return any(arch != binaries.HOST_ARCH for arch in self.arches)
+
+    @property
     def plans(self) -> tuple[plan.VehiclePlan, ...]:
         return plan.plan_fleet(len(self.arches))
 
     def start(self) -> None:
         """Ground node, chart, and every vehicle reporting both autopilots healthy."""
-        emulated = any(arch != binaries.HOST_ARCH for arch in self.arches)
         first, *rest = self.plans
         self.fleet = RealFleet(
             self.cluster,
@@ -117,7 +139,7 @@ class RealMission:
             vehicle=first,
             vehicle_arch=self.arches[0],
             wait_s=self.wait_s,
-            agent_values=EMULATED_NODE_AGENT if emulated else {},
+            agent_values=EMULATED_NODE_AGENT if self.emulated else {},
             hub=HUB,
             extra_images=[mission_image()],
         )
@@ -147,6 +169,8 @@ class RealMission:
         meta = service["metadata"]
         found = self._get("service", meta["name"], "-n", meta.get("namespace", "default"))
         documents = through_cluster_ip(documents, found["spec"]["clusterIP"])
+        if self.emulated:
+            documents = privileged_onboard(documents)
         self._kubectl_apply([d for d in documents if d.get("kind") != "Service"])
         self.documents = documents
 
