@@ -9,9 +9,10 @@ autopilots through the Roost agent's hub on the vehicle, lagged on the sandbox's
 schedule; the monitor's results (read back from its finished pod's log) are the paper's
 Table I, with every corrected transit within 0.5 s of the planned one.
 
-Two fleets: two amd64 vehicles (about 4 minutes: the flight itself is five 20 s legs
-plus the delays), and three vehicles with the third on the emulated arm64 node
-(``arm64_node``: `make e2e-arm64` only).
+Two fleets: two amd64 vehicles (about 3 minutes here: the flight itself is five 20 s
+legs plus the delays, take-off and landing), and three vehicles with the third on the
+emulated arm64 node (``arm64_node``: `make e2e-arm64` only; the followers run privileged
+there, see ``EMULATED_ONBOARD`` in :mod:`tests.support.realmission`).
 """
 
 from __future__ import annotations
