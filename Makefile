@@ -136,7 +136,6 @@ e2e-node: $(STAMP) cluster-build node-build ## the chart's real pods on real har
 .PHONY: e2e-arm64
 e2e-arm64: $(STAMP) cluster-build node-build ## the chart's agent on an arm64 node under qemu (needs root, binfmt_misc)
 	@docker/build-images.sh >/dev/null || echo "images: not built (above: why); the arm64 node test skips or fails with the reason"
-	@docker/build-images.sh --mission examples/missions/sync-paths >/dev/null || echo "sync-paths image: not built (above: why); tests/e2e_node/test_sync_paths_real.py fails with the reason"
 	localcluster/build-node.sh --arch arm64 >/dev/null
 	$(BIN)/pytest -m arm64_node tests/e2e_node
 
