@@ -90,6 +90,7 @@ integration: $(STAMP) cluster-build ## real parts together: UDP MAVLink, process
 .PHONY: e2e
 e2e: $(STAMP) cluster-build ## end to end: the sandbox, the chart, the images, the dashboard in a browser, real nodes (skip without)
 	@docker/build-images.sh >/dev/null || echo "images: not built (above: why); tests/e2e/test_image_run.py skips or fails with the reason"
+	@docker/build-images.sh --mission examples/missions/sync-paths >/dev/null || echo "sync-paths image: not built (above: why); tests/e2e_node/test_sync_paths_real.py fails with the reason"
 	@$(MAKE) --no-print-directory browser || echo "browser: not installed (above: why); the dashboard's browser tests skip"
 	@mkdir -p $(REPORTS)
 	$(call PYTEST_REPORT,e2e) -m 'not arm64_node' tests/e2e tests/e2e_node
@@ -129,6 +130,7 @@ demo: $(STAMP) ## start the local fleet sandbox (builds the control plane with a
 .PHONY: e2e-node
 e2e-node: $(STAMP) cluster-build node-build ## the chart's real pods on real harness nodes (kubelet+containerd; needs root)
 	@docker/build-images.sh >/dev/null || echo "images: not built (above: why); the chart's real-node tests skip or fail with the reason"
+	@docker/build-images.sh --mission examples/missions/sync-paths >/dev/null || echo "sync-paths image: not built (above: why); tests/e2e_node/test_sync_paths_real.py fails with the reason"
 	$(BIN)/pytest -m 'not arm64_node' tests/e2e_node
 
 .PHONY: e2e-arm64

@@ -35,6 +35,7 @@ MODULES: tuple[str, ...] = (
     "disruption",
     "sync",
     "node",
+    "syncpods",
     "kind",
     "partition",
     "dashboard",

@@ -43,11 +43,21 @@
 #   docker/build-images.sh --print         print the archives' directory only
 #   docker/build-images.sh --context DIR   only write the build context (wheels/, image.py)
 #                                          into DIR, for `docker build` (make e2e-kind)
+#   docker/build-images.sh --mission DIR   build a mission's image from DIR's Dockerfile (below)
 #   docker/build-images.sh --compiled-tree install the packages of Roost's compiled wheel
 #                                          that hold compiled modules into
 #                                          $cache/compiled/tree when stale; print that
 #                                          directory (put it first on PYTHONPATH to run the
 #                                          image's compiled agent from this checkout)
+#
+# A mission's image (--mission DIR, e.g. examples/missions/sync-paths): the same way, for
+# the same platforms, on the same local base: DIR's package and its dependencies as wheels
+# built or fetched here (the arm64 ones by arm64_dependencies), DIR's Dockerfile built per
+# architecture, one index per image. Its name is DIR's package name and version
+# (roost-<name>:<version>), given in the archive as docker.io/library/roost-<name>:<version>:
+# that is what the kubelet looks an unqualified image name up as, so a Mission naming
+# `roost-<name>:<version>` finds it imported. Cached as $cache/images/roost-<name>.oci.tar,
+# keyed on DIR's sources, its Dockerfile, this script and the base.
 here=$(cd "$(dirname "$0")" && pwd)
 repo=$(cd "$here/.." && pwd)
 # The package folders the wheel is built from (pyproject's packages.find); the image
@@ -57,7 +67,7 @@ host_arch=$(dpkg --print-architecture 2>/dev/null || echo amd64)
 read -r -a archs <<<"${ROOST_IMAGE_ARCHS:-amd64 arm64}"
 # Without ROOST_IMAGE_ARCHS, a machine where arm64 programs cannot run (docker/binfmt.sh
 # says why) builds its own platform only, saying so; the tests that need arm64 skip.
-if [[ -z "${ROOST_IMAGE_ARCHS:-}" && "${1:-}" != --* ]] \
+if [[ -z "${ROOST_IMAGE_ARCHS:-}" && ( "${1:-}" != --* || "${1:-}" == --mission ) ]] \
     && ! "$here/binfmt.sh" 2>"${TMPDIR:-/tmp}/roost-binfmt.$$"; then
   echo "images: building $host_arch only: $(cat "${TMPDIR:-/tmp}/roost-binfmt.$$")" >&2
   archs=("$host_arch")
@@ -241,8 +251,118 @@ compiled_tree() {
   echo "$dir/tree"
 }
 
+# The base image for $1 (an architecture): the local Debian one (built when missing) or
+# ROOST_IMAGE_BASE.
+base_image() {
+  if [[ "$base_ref" == local ]]; then
+    "$here/build-base.sh" "$storage" "$1"
+  else
+    echo "$base_ref"
+  fi
+}
+
+# One image index $1 of the images $2-<arch> (one per architecture built), pushed with
+# its images into the OCI archive $3, under the name $1.
+push_index() {
+  local name=$1 per_arch=$2 archive=$3 arch
+  buildah_ manifest rm "$name" >/dev/null 2>&1 || buildah_ rmi "$name" >/dev/null 2>&1 || true
+  buildah_ manifest create "$name" >/dev/null
+  for arch in "${archs[@]}"; do
+    buildah_ manifest add "$name" "containers-storage:localhost/$per_arch-$arch" >/dev/null
+  done
+  rm -f "$archive"
+  buildah_ manifest push --quiet --all --format oci "$name" "oci-archive:$archive.partial:$name" >/dev/null
+  mv -f "$archive.partial" "$archive"
+}
+
+# The tools, the platforms' emulation and the image store, before any build.
+prepare_build() {
+  "$here/debian-packages.sh" buildah=buildah podman=podman runc=runc mmdebstrap=mmdebstrap
+  local arch
+  for arch in "${archs[@]}"; do
+    if [[ "$arch" != "$host_arch" ]] && ! "$here/binfmt.sh" --check; then
+      echo "images: $arch programs cannot run here (above: why); ROOST_IMAGE_ARCHS=$host_arch builds $host_arch only" >&2
+      exit 1
+    fi
+  done
+  mkdir -p "$out"
+  # shellcheck source-path=SCRIPTDIR source=buildah.sh
+  source "$here/buildah.sh"
+}
+
+# A mission's image from directory $1 (see the header): prints the archives' directory.
+mission_image() {
+  local dir name version image archive key ctx arch base log wheels src
+  dir=$(cd "${1:?--mission needs a directory}" && pwd) || exit 1
+  name=$(sed -nE 's/^name = "([^"]+)"$/\1/p' "$dir/pyproject.toml" | head -n 1)
+  version=$(sed -nE 's/^version = "([^"]+)"$/\1/p' "$dir/pyproject.toml" | head -n 1)
+  [[ -n "$name" && -n "$version" ]] || { echo "images: no name and version in $dir/pyproject.toml" >&2; exit 1; }
+  image="roost-$name:$version"
+  archive="$out/roost-$name.oci.tar"
+  key=$(cd "$dir" && {
+    find . -type f ! -path '*/__pycache__/*' ! -path './tests/*' ! -name '*.md' -print0 \
+      | sort -z | xargs -0 sha256sum
+    sha256sum "$here/build-images.sh" "$here/build-base.sh" "$here/base.Dockerfile"
+    echo "base=$base_ref archs=${archs[*]}"
+  } | sha256sum | cut -c1-16)
+  if [[ -s "$out/roost-$name.key" && "$(cat "$out/roost-$name.key")" == "$key" && -s "$archive" ]]; then
+    echo "images: cached in $out ($image)" >&2
+    echo "$out"
+    return
+  fi
+  check_python
+  prepare_build
+  local start
+  start=$(date +%s)
+  ctx="$out/context-$name"
+  rm -rf "$ctx"
+  mkdir -p "$ctx"
+  cp -r "$dir/trajectories" "$ctx/" 2>/dev/null || true
+  log="$out/pip-wheel-$name.log"
+  echo "images: the wheels of $name and its dependencies (pip wheel) ..." >&2
+  # From a copy: an in-tree build would leave build/ and *.egg-info in DIR.
+  src=$(mktemp -d)
+  cp -r "$dir/." "$src/"
+  if ! { "$python" -m pip wheel --wheel-dir "$ctx/wheels-$host_arch" "$src" \
+         && "$python" -m pip download --no-deps --dest "$ctx/pip" pip; } >"$log" 2>&1; then
+    tail -n 30 "$log" >&2
+    echo "images: pip wheel failed; its log is $log" >&2
+    rm -rf "$src"
+    exit 1
+  fi
+  rm -rf "$src"
+  mv "$ctx"/pip/pip-*.whl "$ctx/pip.whl"
+  rmdir "$ctx/pip"
+  for arch in "${archs[@]}"; do
+    wheels="$ctx/wheels-$arch"
+    if [[ "$arch" != "$host_arch" ]]; then
+      mkdir -p "$wheels"
+      arm64_dependencies "$ctx/wheels-$host_arch" "$wheels" "$arch" "$log"
+    fi
+    base=$(base_image "$arch") || exit 1
+    rm -rf "$ctx/wheels"
+    cp -r "$wheels" "$ctx/wheels"
+    echo "images: building $image from $base (buildah, linux/$arch) ..." >&2
+    if ! buildah_ bud --layers --platform "linux/$arch" --build-arg "BASE=$base" \
+        -f "$dir/Dockerfile" -t "$image-$arch" "$ctx" >"$out/build-$name-$arch.log" 2>&1; then
+      tail -n 30 "$out/build-$name-$arch.log" >&2
+      echo "images: building $image failed; its log is $out/build-$name-$arch.log" >&2
+      exit 1
+    fi
+  done
+  push_index "docker.io/library/$image" "$image" "$archive"
+  buildah_ rmi --prune >/dev/null 2>&1 || true
+  rm -rf "$ctx"
+  echo "$key" >"$out/roost-$name.key"
+  printf '%s\t%s\t%s\t%s\n' "$name" "$(( $(date +%s) - start ))" "$(date -u +%Y-%m-%dT%H:%M:%SZ)" \
+    "${archs[*]}" >>"$out/build-times.tsv"
+  echo "images: built $image (${archs[*]}) into $out" >&2
+  echo "$out"
+}
+
 case "${1:-}" in
   --print) echo "$out"; exit 0 ;;
+  --mission) mission_image "${2:-}"; exit 0 ;;
   --context) write_context "${2:?--context needs a directory}"; exit 0 ;;
   --compiled-tree) compiled_tree; exit 0 ;;
 esac
@@ -256,16 +376,7 @@ if [[ -s "$out/key" && "$(cat "$out/key")" == "$key" \
   exit 0
 fi
 
-"$here/debian-packages.sh" buildah=buildah podman=podman runc=runc mmdebstrap=mmdebstrap
-for arch in "${archs[@]}"; do
-  if [[ "$arch" != "$host_arch" ]] && ! "$here/binfmt.sh" --check; then
-    echo "images: $arch programs cannot run here (above: why); ROOST_IMAGE_ARCHS=$host_arch builds $host_arch only" >&2
-    exit 1
-  fi
-done
-mkdir -p "$out"
-# shellcheck source-path=SCRIPTDIR source=buildah.sh
-source "$here/buildah.sh"
+prepare_build
 start=$(date +%s)
 
 # The native context first: the other architectures take its pure wheels.
@@ -278,12 +389,8 @@ done
 # "cold" in the build record: a base's root filesystem had to be made too.
 cold=warm
 for arch in "${archs[@]}"; do
-  if [[ "$base_ref" == local ]]; then
-    compgen -G "$out/base/*/$arch/rootfs.tar" >/dev/null || cold=cold
-    base=$("$here/build-base.sh" "$storage" "$arch") || exit 1
-  else
-    base=$base_ref
-  fi
+  compgen -G "$out/base/*/$arch/rootfs.tar" >/dev/null || cold=cold
+  base=$(base_image "$arch") || exit 1
   for target in operator agent; do
     image="roost-$target:$version-$arch"
     echo "images: building $image from $base (buildah, linux/$arch) ..." >&2
@@ -300,16 +407,7 @@ done
 
 # One image index per target, named without the architecture; pushed with its images.
 for target in operator agent; do
-  name="localhost/roost-$target:$version"
-  buildah_ manifest rm "$name" >/dev/null 2>&1 || buildah_ rmi "$name" >/dev/null 2>&1 || true
-  buildah_ manifest create "$name" >/dev/null
-  for arch in "${archs[@]}"; do
-    buildah_ manifest add "$name" "containers-storage:localhost/roost-$target:$version-$arch" >/dev/null
-  done
-  rm -f "$out/roost-$target.oci.tar"
-  buildah_ manifest push --quiet --all --format oci "$name" \
-    "oci-archive:$out/roost-$target.oci.tar.partial:$name" >/dev/null
-  mv -f "$out/roost-$target.oci.tar.partial" "$out/roost-$target.oci.tar"
+  push_index "localhost/roost-$target:$version" "roost-$target:$version" "$out/roost-$target.oci.tar"
 done
 # Drop what earlier builds left behind (their images and the intermediate stages).
 buildah_ rmi --prune >/dev/null 2>&1 || true

@@ -10,9 +10,12 @@ creates, and owns, everything here:
   so concurrent harnesses differ). The API server's relay listens there and nowhere else;
 - per node, a namespace (``roost-<tag>-<index>``) and a veth pair: ``eth0`` inside with
   the node's address (10.213.K.10 + index), the host end (``rn<tag>-<index>``) on the
-  bridge. The namespace's only routes are its /24 and the Service range (to the bridge,
-  so kube-proxy's DNAT of 10.96.0.1 has a route to rewrite): no default route, so pods and
-  host-network pods reach nothing but the harness.
+  bridge. The namespace's only routes are its /24, the Service range (to the bridge,
+  so kube-proxy's DNAT of 10.96.0.1 has a route to rewrite) and the other nodes' pod
+  subnets, each through that node's address (:meth:`NodeNetwork.route_pods`, a host-gateway
+  pod network: a pod or host-network pod reaches a pod on another node directly, or through
+  a Service's ClusterIP, which kube-proxy rewrites to such a pod): no default route, so
+  pods and host-network pods reach nothing but the harness.
 
 Everything is deleted by name on teardown (the names carry the harness's tag). Needs root
 (CAP_NET_ADMIN) and ``ip`` from iproute2.
@@ -27,7 +30,7 @@ import json
 import os
 import shutil
 import subprocess
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -150,6 +153,27 @@ class NodeNetwork:
             self.remove_node(index)
             raise
         return namespace
+
+    def route_pods(self, index: int, subnet: str, peers: Mapping[int, str]) -> None:
+        """Route between node ``index``'s pods (``subnet``) and its ``peers``' (node index ->
+        pod subnet), both ways, each through the other node's address on the bridge."""
+        for peer, peer_subnet in peers.items():
+            via = ("via", self.node_address(peer))
+            ip("-n", self.namespace(index), "route", "replace", peer_subnet, *via)
+            ip(
+                "-n",
+                self.namespace(peer),
+                "route",
+                "replace",
+                subnet,
+                "via",
+                self.node_address(index),
+            )
+
+    def unroute_pods(self, subnet: str, peers: Iterable[int]) -> None:
+        """Drop the ``peers``' routes to a removed node's pod ``subnet``."""
+        for peer in peers:
+            ip("-n", self.namespace(peer), "route", "del", subnet, check=False)
 
     def set_link(self, index: int, *, up: bool) -> None:
         """Bring node ``index``'s link up or down (its host end of the veth): down, the node

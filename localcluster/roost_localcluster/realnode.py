@@ -455,9 +455,16 @@ class RealNodes:
         relay.launch(die_with_parent=True)
         self.relay = relay
         _wait_for(lambda: "relaying" in relay.log.read_text(), 10, "the API relay", [relay])
-        slice_manifest = api_endpoint_slice(network.host_address, port)
-        self.cluster.kubectl("apply", "-f", "-", input_text=json.dumps(slice_manifest))
+        self.publish_api()
         return network
+
+    def publish_api(self) -> None:
+        """Point the ``kubernetes`` Service at this pool's relay (its EndpointSlice). One
+        pool per control plane does: another pool's (a test's second pool) replaces it, and
+        the first one's pods lose the API server until this is called again."""
+        assert self.network is not None and self.plane.ports is not None
+        slice_manifest = api_endpoint_slice(self.network.host_address, self.plane.ports.apiserver)
+        self.cluster.kubectl("apply", "-f", "-", input_text=json.dumps(slice_manifest))
 
     # ---- nodes ---------------------------------------------------------------------------
     def add(
@@ -498,6 +505,8 @@ class RealNodes:
         self._record()
         try:
             network.add_node(index)
+            peers = {n.index: n.pod_subnet for n in self.nodes.values() if n is not node}
+            network.route_pods(index, node.pod_subnet, peers)
             self._prepare(node)
             self._start_containerd(node)
             pause = self.programs(node.arch) / binaries.PAUSE_ARCHIVE
@@ -701,6 +710,8 @@ class RealNodes:
             if proc is not None:
                 proc.stop(grace_s=5.0)
         release(node, self.network)
+        if self.network is not None:
+            self.network.unroute_pods(node.pod_subnet, [n.index for n in self.nodes.values()])
         self._record()
         if delete_node:
             self.cluster.kubectl("delete", "node", name, "--ignore-not-found", check=False)

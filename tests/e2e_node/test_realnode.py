@@ -183,3 +183,6 @@ def test_a_dead_pools_leftovers_are_swept_by_the_next_pool(
         "delete", "pod", "orphan", "-n", NAMESPACE, "--force", "--grace-period=0", check=False
     )
     cluster.kubectl("delete", "node", name)
+    # The orphaned pool pointed the `kubernetes` Service at its own (dead) relay: the
+    # session pool's pods of later modules (the operator) must reach the API server again.
+    real_nodes.publish_api()

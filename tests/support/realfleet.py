@@ -78,6 +78,17 @@ class NamespaceLauncher(Launcher):
 
 
 @dataclass
+class VehicleRig:
+    """One vehicle of a real fleet: its plan, its real node and its simulated autopilots
+    (in the node's network namespace)."""
+
+    plan: plan.VehiclePlan
+    node: RealNode
+    simulated: state.SandboxVehicle
+    launcher: NamespaceLauncher
+
+
+@dataclass
 class Timings:
     """Seconds between the steps of :class:`RealFleet` (what bench/node.py reports)."""
 
@@ -119,26 +130,54 @@ class RealFleet:
     agent_values: dict[str, Any] = field(default_factory=dict)
     """Extra chart values under ``agent`` (its telemetry stream; the emulated arm64 node
     needs one: see tests/e2e_node/test_arm64_node.py)."""
+    hub: str | None = None
+    """``HOST:PORT`` of each vehicle's MAVLink hub (RedundantAutopilot ``spec.hub.udp``);
+    None: the agent serves none."""
+    extra_images: list[Path] = field(default_factory=list)
+    """OCI archives imported on every node besides Roost's own (a mission's image)."""
+    more: list[VehicleRig] = field(default_factory=list)
+    """Vehicles added after the first (:meth:`join`)."""
+    images: Path = field(default_factory=Path)
+    """The directory of Roost's image archives (set by :meth:`start`)."""
 
     # ---- bring-up ------------------------------------------------------------------------
     def start(self) -> None:
-        images = build_images()
+        self.images = images = build_images()
         t0 = time.monotonic()
-        self.ground = self.pool.add(GROUND_NODE, images=[archive(images, "operator")])
+        self.ground = self.pool.add(
+            GROUND_NODE, images=[archive(images, "operator"), *self.extra_images]
+        )
         self.timings.ground_start_to_ready_s = time.monotonic() - t0
         t0 = time.monotonic()
-        self.vehicle_node = self.pool.add(
-            self.vehicle.node,
-            images=[archive(images, "agent")],
-            arch=self.vehicle_arch,
-            timeout_s=self.wait_s,
-        )
+        rig = self.start_vehicle(self.vehicle, self.vehicle_arch)
         self.timings.vehicle_start_to_ready_s = time.monotonic() - t0
-        self.launcher = NamespaceLauncher(self.vehicle_node, self.directory / "logs")
-        [self.simulated] = sims.start(self.launcher, [self.vehicle], self.directory)
+        self.vehicle_node, self.simulated, self.launcher = rig.node, rig.simulated, rig.launcher
         self.install()
         self.timings.install_to_operator_ready_s = self.wait_operator_ready()
         self.timings.agent_pod_to_first_report_s = self.add_vehicle()
+
+    def start_vehicle(self, vehicle: plan.VehiclePlan, arch: str) -> VehicleRig:
+        """A vehicle node of ``arch`` (Ready) and the vehicle's simulated autopilots in it."""
+        node = self.pool.add(
+            vehicle.node,
+            images=[archive(self.images, "agent"), *self.extra_images],
+            arch=arch,
+            timeout_s=self.wait_s,
+        )
+        launcher = NamespaceLauncher(node, self.directory / "logs")
+        [simulated] = sims.start(launcher, [vehicle], self.directory)
+        return VehicleRig(vehicle, node, simulated, launcher)
+
+    def join(self, vehicle: plan.VehiclePlan, arch: str = binaries.HOST_ARCH) -> VehicleRig:
+        """One more vehicle once the chart runs: its node, simulators and objects; returns
+        once its agent reported both autopilots healthy."""
+        rig = self.start_vehicle(vehicle, arch)
+        self.more.append(rig)
+        self.apply_vehicle(vehicle, rig.simulated)
+        wait_until(
+            f"{vehicle.name}'s agent's first report", lambda: self.reported(vehicle), self.wait_s
+        )
+        return rig
 
     def helm(self, values: Mapping[str, Any], *extra: str) -> None:
         args = install_args(self.release, self.namespace, values, self.directory)
@@ -168,20 +207,27 @@ class RealFleet:
         """Apply the Vehicle and its RedundantAutopilot; seconds from the agent pod's
         appearance on the vehicle node to the agent's first report in the status."""
         assert self.simulated is not None
-        connections = {a.name: a.connection for a in self.simulated.autopilots}
-        manifests = [self.vehicle_manifest(), plan.autopilot_manifest(self.vehicle, connections)]
-        text = "\n---\n".join(yaml.safe_dump(m) for m in manifests)
-        self.cluster.kubectl("apply", "-f", "-", input_text=text)
+        self.apply_vehicle(self.vehicle, self.simulated)
         wait_until("the agent pod on the vehicle node", self.agent_pod, self.wait_s, poll_s=0.05)
         t0 = time.monotonic()
         wait_until("the agent's first report", self.reported, self.wait_s, poll_s=0.05)
         return time.monotonic() - t0
 
-    def vehicle_manifest(self) -> dict[str, Any]:
+    def apply_vehicle(self, vehicle: plan.VehiclePlan, simulated: state.SandboxVehicle) -> None:
+        """Apply ``vehicle``'s Vehicle and RedundantAutopilot (its simulators' links)."""
+        connections = {a.name: a.connection for a in simulated.autopilots}
+        manifests = [
+            self.vehicle_manifest(vehicle),
+            plan.autopilot_manifest(vehicle, connections, self.hub),
+        ]
+        text = "\n---\n".join(yaml.safe_dump(m) for m in manifests)
+        self.cluster.kubectl("apply", "-f", "-", input_text=text)
+
+    def vehicle_manifest(self, vehicle: plan.VehiclePlan | None = None) -> dict[str, Any]:
         """The sandbox's Vehicle without its simulation block and mavros: its autopilots
         are the simulators started here (as a vehicle's flight controllers are hardware),
         and neither SITL nor mavros images exist on the node."""
-        manifest = plan.vehicle_manifest(self.vehicle)
+        manifest = plan.vehicle_manifest(vehicle or self.vehicle)
         manifest["spec"].pop("simulation", None)
         manifest["spec"]["components"] = self.components
         return manifest
@@ -216,21 +262,24 @@ class RealFleet:
             None,
         )
 
-    def autopilot_status(self) -> dict[str, Any]:
-        status: dict[str, Any] = self.get("redundantautopilot", VEHICLE).get("status") or {}
+    def autopilot_status(self, name: str | None = None) -> dict[str, Any]:
+        """The RedundantAutopilot status of vehicle ``name`` (default: the first)."""
+        found = self.get("redundantautopilot", name or self.vehicle.name)
+        status: dict[str, Any] = found.get("status") or {}
         return status
 
-    def reported(self) -> bool:
-        """The agent reported from the vehicle node, every autopilot healthy."""
-        status = self.autopilot_status()
+    def reported(self, vehicle: plan.VehiclePlan | None = None) -> bool:
+        """The agent reported from the vehicle's node, every autopilot healthy."""
+        vehicle = vehicle or self.vehicle
+        status = self.autopilot_status(vehicle.name)
         levels = {a.get("level") for a in status.get("autopilots", [])}
-        return status.get("nodeName") == self.vehicle.node and levels == {"OK"}
+        return status.get("nodeName") == vehicle.node and levels == {"OK"}
 
     def node_labelled(self) -> bool:
         assert self.vehicle_node is not None
         node = self.get("node", self.vehicle_node.name)
         labels: dict[str, str] = node["metadata"].get("labels", {})
-        return labels.get(LABEL_VEHICLE) == VEHICLE
+        return labels.get(LABEL_VEHICLE) == self.vehicle.name
 
     def control(self, autopilot: str, message: dict[str, Any]) -> dict[str, Any]:
         """A request to one simulated autopilot (``roost fault``'s channel)."""
@@ -270,12 +319,14 @@ class RealFleet:
         self.installed = False
 
     def stop(self) -> None:
-        objects = ("redundantautopilot,vehicle", VEHICLE)
+        names = [self.vehicle.name, *(rig.plan.name for rig in self.more)]
+        objects = ("redundantautopilot,vehicle", *names)
         self.cluster.kubectl("delete", *objects, "--ignore-not-found", "--timeout=60s", check=False)
         if self.installed:
             self.uninstall()
-        if self.launcher is not None:
-            self.launcher.stop_all()
-        for node in (self.vehicle_node, self.ground):
+        for launcher in (self.launcher, *(rig.launcher for rig in self.more)):
+            if launcher is not None:
+                launcher.stop_all()
+        for node in (self.vehicle_node, *(rig.node for rig in self.more), self.ground):
             if node is not None:
                 self.pool.remove(node.name)

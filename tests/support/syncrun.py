@@ -25,12 +25,13 @@ if str(EXAMPLE) not in sys.path:
 
 from syncpaths.channel import Channel  # noqa: E402
 from syncpaths.follower import fly  # noqa: E402
-from syncpaths.monitor import Monitor  # noqa: E402
+from syncpaths.monitor import Monitor, results_from_log  # noqa: E402
 from syncpaths.sync import Follower, Phase  # noqa: E402
 from syncpaths.trajectory import Task, load  # noqa: E402
 from syncpaths.vehicle import MavlinkVehicle  # noqa: E402
 
 TRAJECTORIES = EXAMPLE / "trajectories"
+__all__ = ["EXAMPLE", "SyncRun", "fly_mission", "paper_plans", "results_from_log"]
 
 
 @dataclass

@@ -13,6 +13,7 @@ import pytest
 
 from roost_cli.sandbox import missionrun
 from roost_cli.sandbox.missionrun import Lag
+from tests.support.realmission import through_cluster_ip
 
 NAMES = ["drone-1", "drone-2", "drone-3"]
 
@@ -97,3 +98,25 @@ def test_lag_schedule_follows_the_planned_legs() -> None:
     assert first == Lag("drone-1", missionrun.START_DELAY_S, planned, 23.0)
     assert [lag.start_s for lag in schedule] == sorted(lag.start_s for lag in schedule)
     assert all(1 <= lag.percent <= 100 for lag in schedule)
+
+
+def test_the_mission_file_puts_followers_on_the_vehicle_network_and_sizes_the_monitor() -> None:
+    documents = missionrun.mission_manifests(missionrun.SYNC_PATHS, 2, {})
+    (mission,) = [d for d in documents if d["kind"] == "Mission"]
+    onboard = mission["spec"]["onboard"]["spec"]
+    # The agent's hub is on the vehicle's loopback; the Service's name resolves there too.
+    assert onboard["hostNetwork"] is True
+    assert onboard["dnsPolicy"] == "ClusterFirstWithHostNet"
+    # The monitor expects the vehicles the Mission got (ROOST_MISSION_VEHICLES), not 3.
+    offboard_env = mission["spec"]["offboard"]["spec"]["containers"][0]["env"]
+    assert "SYNC_VEHICLES" not in {e["name"] for e in offboard_env}
+    assert mission["spec"]["vehicles"]["count"] == 2
+
+
+def test_followers_reach_the_monitor_through_the_services_cluster_ip() -> None:
+    documents = missionrun.mission_manifests(missionrun.SYNC_PATHS, 3, {})
+    through_cluster_ip(documents, "10.96.0.42")
+    (mission,) = [d for d in documents if d["kind"] == "Mission"]
+    (follower,) = mission["spec"]["onboard"]["spec"]["containers"]
+    env = {e["name"]: e["value"] for e in follower["env"]}
+    assert env["SYNC_MONITOR"] == "10.96.0.42:7700"

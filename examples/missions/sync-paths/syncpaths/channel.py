@@ -18,6 +18,7 @@ Messages (``type``):
 from __future__ import annotations
 
 import contextlib
+import ipaddress
 import json
 import socket
 from typing import Any
@@ -30,6 +31,17 @@ def parse_address(text: str, default_port: int) -> tuple[str, int]:
     """``host:port`` (or ``host``) as a socket address."""
     host, _, port = text.rpartition(":") if ":" in text else (text, "", "")
     return (host or text, int(port) if port else default_port)
+
+
+def bind_towards(peer: tuple[str, int]) -> tuple[str, int]:
+    """Where a client talking to ``peer`` binds: the loopback for a local peer (nothing
+    else hears it); any address of this network stack for a peer elsewhere (a Service's
+    address in a cluster), from which the peer's answers come back."""
+    try:
+        local = ipaddress.ip_address(peer[0]).is_loopback
+    except ValueError:  # a name: "localhost", or a Service's name
+        local = peer[0] == "localhost"
+    return ("127.0.0.1", 0) if local else ("0.0.0.0", 0)
 
 
 class Channel:

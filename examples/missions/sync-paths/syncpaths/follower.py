@@ -28,7 +28,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-from syncpaths.channel import Channel, parse_address
+from syncpaths.channel import Channel, bind_towards, parse_address
 from syncpaths.sync import Follower, Phase
 from syncpaths.trajectory import Point, Task, load
 from syncpaths.vehicle import MavlinkVehicle, Vehicle
@@ -50,7 +50,7 @@ def fly(
     on_state: Callable[[Follower], None] | None = None,
 ) -> dict[str, Any]:
     """Fly the mission; returns the result sent to the monitor (records and path)."""
-    channel = Channel()
+    channel = Channel(bind_towards(monitor))
     path: list[tuple[float, ...]] = []
     follower: Follower | None = None
     state = "TakingOff"

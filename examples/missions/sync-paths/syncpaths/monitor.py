@@ -6,8 +6,11 @@ points, forwards every reported delay to every vehicle (``pause``), keeps the me
 list (a vehicle that says ``leave`` or is silent for ``silent_after_s`` is dropped, and
 the others stop waiting for it), and when every vehicle is done or gone writes the
 results: ``table.md`` (the paper's Table I layout), ``results.json`` and ``paths.svg``
-into ``SYNC_OUTPUT`` (default ``./sync-results``). Listens on ``SYNC_LISTEN``
-(default ``0.0.0.0:7700`` in a pod behind a Service; the sandbox uses ``127.0.0.1``).
+into ``SYNC_OUTPUT`` (default ``./sync-results``), and the same results to stdout, Table I
+then one JSON line ``{"results": ...}``: a finished pod keeps nothing but its log, so
+that is where a cluster's run is read back from (``kubectl logs``; :func:`results_from_log`).
+Listens on ``SYNC_LISTEN`` (default ``0.0.0.0:7700`` in a pod behind a Service; the
+sandbox uses ``127.0.0.1``).
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ from typing import Any
 
 from syncpaths.channel import Channel, Message, parse_address
 from syncpaths.sync import Membership
-from syncpaths.table import write_results
+from syncpaths.table import table, write_results
 
 log = logging.getLogger("syncpaths.monitor")
 START_DELAY_S = 2.0
@@ -120,8 +123,28 @@ def main() -> int:
         channel.close()
     output = Path(env.get("SYNC_OUTPUT", "sync-results"))
     write_results(results, output)
+    print(table(results), flush=True)
+    print(json.dumps({RESULTS_KEY: results}), flush=True)
     print(json.dumps({"vehicles": sorted(results), "output": str(output)}))
     return 0
+
+
+RESULTS_KEY = "results"
+
+
+def results_from_log(text: str) -> dict[str, dict[str, Any]] | None:
+    """The results a monitor printed to its log (``{"results": ...}``), once it has."""
+    for line in reversed(text.splitlines()):
+        if not line.startswith("{"):
+            continue
+        try:
+            said = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(said, dict) and isinstance(said.get(RESULTS_KEY), dict):
+            found: dict[str, dict[str, Any]] = said[RESULTS_KEY]
+            return found
+    return None
 
 
 if __name__ == "__main__":

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
+from syncpaths.channel import bind_towards
+from syncpaths.monitor import results_from_log
 from syncpaths.sync import Follower, Membership, Phase
 from syncpaths.trajectory import Task, TrajectoryError, parse, setpoint
 
@@ -107,3 +110,26 @@ def test_membership_drops_the_silent_and_the_leaving() -> None:
     assert m.heard("a", 0.0) and m.heard("b", 0.0) and not m.heard("a", 1.0)
     assert m.expire(3.5) == ["b"] and m.members == ["a"]
     assert m.leave("a") and m.members == [] and not m.heard("a", 4.0)  # left for good
+
+
+def test_a_client_binds_where_its_peer_can_answer() -> None:
+    assert bind_towards(("127.0.0.1", 7700)) == ("127.0.0.1", 0)
+    assert bind_towards(("localhost", 7700)) == ("127.0.0.1", 0)
+    # A Service's address or name: any address of the pod's (or vehicle's) network.
+    assert bind_towards(("10.96.0.12", 7700)) == ("0.0.0.0", 0)
+    assert bind_towards(("sync-monitor.default.svc.cluster.local", 7700)) == ("0.0.0.0", 0)
+
+
+def test_results_are_read_back_from_the_monitors_log() -> None:
+    results = {"drone-1": {"type": "done", "records": [], "path": []}}
+    log = "\n".join(
+        [
+            '{"listening": "0.0.0.0:7700"}',
+            "2026-01-01 syncpaths.monitor: starting 1 vehicles in 2 s",
+            "| vehicle | task |",
+            json.dumps({"results": results}),
+            '{"vehicles": ["drone-1"], "output": "/tmp/sync-results"}',
+        ]
+    )
+    assert results_from_log(log) == results
+    assert results_from_log(log.rsplit("\n", 2)[0]) is None  # not finished yet
