@@ -160,21 +160,22 @@ write_context() {
   local ctx=$1 arch=${2:-$host_arch} native=${3:-} log
   check_python
   rm -rf "$ctx"
-  mkdir -p "$ctx/wheels"
+  mkdir -p "$ctx/wheels/roost" "$ctx/wheels/dependencies"
   cp "$here/image.py" "$ctx/"
   log="$(dirname "$ctx")/pip-wheel-$arch.log"
-  roost_wheel "$ctx/wheels" "$log" "$arch"
+  roost_wheel "$ctx/wheels/roost" "$log" "$arch"
   if [[ "$arch" != "$host_arch" ]]; then
-    arm64_dependencies "$native/wheels" "$ctx/wheels" "$arch" "$log"
+    arm64_dependencies "$native/wheels/dependencies" "$ctx/wheels/dependencies" "$arch" "$log"
     return
   fi
   echo "images: collecting the wheels of Roost's dependencies (pip wheel) ..." >&2
-  if ! { "$python" -m pip wheel --wheel-dir "$ctx/wheels" "$ctx"/wheels/roost-*.whl \
-         && "$python" -m pip download --no-deps --dest "$ctx/wheels" pip; } >>"$log" 2>&1; then
+  if ! { "$python" -m pip wheel --wheel-dir "$ctx/wheels/dependencies" "$ctx"/wheels/roost/roost-*.whl \
+         && "$python" -m pip download --no-deps --dest "$ctx/wheels/dependencies" pip; } >>"$log" 2>&1; then
     tail -n 30 "$log" >&2
     echo "images: pip wheel failed; its log is $log" >&2
     exit 1
   fi
+  rm -f "$ctx"/wheels/dependencies/roost-*.whl
 }
 
 # The dependencies for $3 from the native context's wheels $1 into $2: pure ones
@@ -391,7 +392,9 @@ cold=warm
 for arch in "${archs[@]}"; do
   compgen -G "$out/base/*/$arch/rootfs.tar" >/dev/null || cold=cold
   base=$(base_image "$arch") || exit 1
-  for target in operator agent; do
+  # The build stage first, tagged: its steps (the dependencies' layer above all) are then
+  # images with a name or a child, which the prune below keeps for the next build.
+  for target in install operator agent; do
     image="roost-$target:$version-$arch"
     echo "images: building $image from $base (buildah, linux/$arch) ..." >&2
     log="$out/build-$target-$arch.log"
@@ -409,7 +412,8 @@ done
 for target in operator agent; do
   push_index "localhost/roost-$target:$version" "roost-$target:$version" "$out/roost-$target.oci.tar"
 done
-# Drop what earlier builds left behind (their images and the intermediate stages).
+# Drop what earlier builds left behind: their images and the steps nothing refers to any
+# more (the dependencies' steps stay while the tagged build stage is made from them).
 buildah_ rmi --prune >/dev/null 2>&1 || true
 rm -rf "$out"/context-*
 echo "$key" >"$out/key"

@@ -4,19 +4,23 @@ Why Python: the base then needs nothing but ``python3``. The local base (docker/
 build-base.sh) has no coreutils, findutils or bash (30 MB the images never use), and any
 public Python base works the same way. Two steps:
 
-``install WHEELS`` (build stage): a virtualenv at /opt/roost with Roost installed from the
-wheels built on the host, by pip run from its own wheel (a zip archive Python can
-execute; the base needs no pip). Then it is made small and ready for a read-only root:
+``dependencies WHEELS`` and ``roost WHEELS`` (build stages, in that order): a virtualenv at
+/opt/roost with Roost's dependencies, then Roost itself, installed from the wheels built
+on the host by pip run from its own wheel (a zip archive Python can execute; the base
+needs no pip). Two steps so that a change to Roost's sources rebuilds only the second:
+the first (the dependencies, most of the image and most of the build time, several
+minutes for arm64 under emulation) stays a cached layer while its wheels are unchanged.
+Both make what they install small and ready for a read-only root:
 
-1. What never runs in a pod is removed: the ``roost`` CLI and the local control plane
+1. What never runs in a pod is left out: the ``roost`` CLI and the local control plane
    (they run on a workstation; the control plane needs Go-built binaries no image has),
    with the distributions only they use (the CLI's typer, rich and pygments, the
-   certificate authority's cryptography: 25 MB); ``kubernetes.aio`` (an asyncio copy of the whole
-   client, 41 MB; kopf talks to the API with aiohttp), lxml (only pymavlink's code
-   generator needs it), pymavlink's generator, log indexer and every MAVLink dialect but
-   the ones Roost speaks (v2 ``ardupilotmega`` for the agent; ``common`` and ``all`` for
-   the simulator, which sends PX4's CURRENT_MODE, a message only ``all`` defines), and
-   third-party test modules.
+   certificate authority's cryptography: 25 MB, never installed); ``kubernetes.aio`` (an
+   asyncio copy of the whole client, 41 MB; kopf talks to the API with aiohttp), lxml
+   (only pymavlink's code generator needs it), pymavlink's generator, log indexer and
+   every MAVLink dialect but the ones Roost speaks (v2 ``ardupilotmega`` for the agent;
+   ``common`` and ``all`` for the simulator, which sends PX4's CURRENT_MODE, a message
+   only ``all`` defines), and third-party test modules.
 2. Everything is compiled ahead of time: without bytecode, importing the Kubernetes
    client, kopf and the dialect takes several seconds at each start instead of under one,
    and nothing can be written at run time. Docstrings stay: the Kubernetes client's watch
@@ -64,17 +68,51 @@ DIALECTS_KEPT = {"__init__.py", "common.py", "ardupilotmega.py", "all.py"}
 OWN_PREFIX = "roost_"
 MODE = py_compile.PycInvalidationMode.UNCHECKED_HASH
 UID = GID = 65532
+PIP_OPTIONS = (
+    "--quiet", "--no-index", "--no-compile", "--no-cache-dir", "--disable-pip-version-check",
+)  # fmt: skip
 
 
-def install(wheels: Path) -> None:
+def dependencies(wheels: Path) -> None:
+    """Roost's dependencies (every wheel in ``wheels`` but pip's and the workstation's)."""
     subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(PREFIX)], check=True)
+    kept = sorted(
+        str(wheel)
+        for wheel in wheels.glob("*.whl")
+        if distribution(wheel) not in {"pip", *WORKSTATION_DISTRIBUTIONS}
+    )
+    subprocess.run([*pip(wheels), "install", *PIP_OPTIONS, "--no-deps", *kept], check=True)
+    site = site_packages()
+    remove_unused(site, UNUSED, UNUSED_GLOBS)
+    compile_dependencies(site)
+
+
+def roost(wheels: Path, pip_wheels: Path) -> None:
+    """Roost's own wheel onto the dependencies; its workstation-only parts removed."""
+    (wheel,) = wheels.glob("roost-*.whl")
+    subprocess.run([*pip(pip_wheels), "install", *PIP_OPTIONS, "--no-deps", str(wheel)], check=True)
+    site = site_packages()
+    remove_unused(site, WORKSTATION_ONLY, ())
+    for top in sorted(site.glob(f"{OWN_PREFIX}*")):
+        if top.is_dir() and not compileall.compile_dir(
+            top, quiet=1, workers=0, invalidation_mode=MODE
+        ):
+            sys.exit(f"image: compiling {top} failed")
+
+
+def pip(wheels: Path) -> list[str]:
+    """pip run from its own wheel in ``wheels`` by the virtualenv's Python."""
     (pip_wheel,) = wheels.glob("pip-*.whl")
-    pip = [str(PYTHON), str(pip_wheel / "pip"), "install", "--quiet", "--no-index"]
-    options = ["--no-compile", "--no-cache-dir", "--disable-pip-version-check"]
-    subprocess.run([*pip, *options, "--find-links", str(wheels), "roost"], check=True)
-    uninstall = [str(PYTHON), str(pip_wheel / "pip"), "uninstall", "--quiet", "--yes"]
-    subprocess.run([*uninstall, *WORKSTATION_DISTRIBUTIONS], check=True)
-    site = Path(
+    return [str(PYTHON), str(pip_wheel / "pip")]
+
+
+def distribution(wheel: Path) -> str:
+    """A wheel's distribution name, normalised (``Markdown_It_Py`` → ``markdown-it-py``)."""
+    return wheel.name.split("-", 1)[0].lower().replace("_", "-").replace(".", "-")
+
+
+def site_packages() -> Path:
+    return Path(
         subprocess.run(
             [str(PYTHON), "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"],
             check=True,
@@ -82,44 +120,40 @@ def install(wheels: Path) -> None:
             text=True,
         ).stdout.strip()
     )
-    remove_unused(site)
-    compile_all(site)
 
 
-def remove_unused(site: Path) -> None:
-    for rel in WORKSTATION_ONLY:
+def remove_unused(site: Path, paths: tuple[str, ...], patterns: tuple[str, ...]) -> None:
+    """Delete ``paths`` (``bin/...`` under the prefix, the rest under site-packages) and
+    what ``patterns`` match under site-packages; the dialects Roost does not speak."""
+    for rel in paths:
         path = PREFIX / rel if rel.startswith("bin/") else site / rel
         if path.is_dir():
             shutil.rmtree(path)
-        else:
+        elif path.exists():
             path.unlink()
-    for rel in UNUSED:
-        shutil.rmtree(site / rel, ignore_errors=True)
-    for pattern in UNUSED_GLOBS:
+    for pattern in patterns:
         for path in site.glob(pattern):
             if path.is_dir():
                 shutil.rmtree(path)
             else:
                 path.unlink()
-    for path in (site / "pymavlink/dialects/v20").iterdir():
-        if path.is_file() and path.name not in DIALECTS_KEPT:
-            path.unlink()
+    dialects = site / "pymavlink/dialects/v20"
+    if dialects.is_dir():
+        for path in dialects.iterdir():
+            if path.is_file() and path.name not in DIALECTS_KEPT:
+                path.unlink()
 
 
-def compile_all(site: Path) -> None:
-    # A third-party module that does not compile (a Python 2 leftover nobody imports)
-    # simply keeps its source; Roost's own must compile.
+def compile_dependencies(site: Path) -> None:
+    """Bytecode for every third-party module, then its source removed. A module that does
+    not compile (a Python 2 leftover nobody imports) simply keeps its source."""
     for top in sorted(site.iterdir()):
-        if top.name.startswith(OWN_PREFIX):
-            if not compileall.compile_dir(top, quiet=1, workers=0, invalidation_mode=MODE):
-                sys.exit(f"image: compiling {top} failed")
-        elif top.is_dir():
+        if top.is_dir():
             compileall.compile_dir(top, quiet=2, legacy=True, workers=0, invalidation_mode=MODE)
         elif top.suffix == ".py":
             compileall.compile_file(top, quiet=2, legacy=True, invalidation_mode=MODE)
     for source in site.rglob("*.py"):
-        own = source.relative_to(site).parts[0].startswith(OWN_PREFIX)
-        if not own and source.with_suffix(".pyc").is_file():
+        if source.with_suffix(".pyc").is_file():
             source.unlink()
 
 
@@ -142,12 +176,14 @@ def harden() -> None:
 
 def main() -> None:
     match sys.argv[1:]:
-        case ["install", wheels]:
-            install(Path(wheels))
+        case ["dependencies", wheels]:
+            dependencies(Path(wheels))
+        case ["roost", wheels, pip_wheels]:
+            roost(Path(wheels), Path(pip_wheels))
         case ["harden"]:
             harden()
         case _:
-            sys.exit("usage: image.py install WHEELS | harden")
+            sys.exit("usage: image.py dependencies WHEELS | roost WHEELS PIP_WHEELS | harden")
 
 
 if __name__ == "__main__":

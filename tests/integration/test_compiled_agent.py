@@ -54,9 +54,12 @@ SUITES = (
     "tests/unit/test_agent_telemetry.py",
     # the fence keeper's mission protocol inbox and sends on the compiled links
     "tests/integration/test_agent_geofence.py",
-    # the agent as a process, over real UDP, against simulated autopilots
+    # the agent as a process, over real UDP, against simulated autopilots; what goes
+    # through the message path (not the restarts of the safety routine, whose state
+    # handling the compiled modules take no part in: the interpreted run covers those)
     "tests/integration/test_agent_failover.py",
-    "tests/integration/test_firmware_truth.py",
+    "tests/integration/test_firmware_truth.py::test_ardupilot_streaming_only_on_request_fails_over_unaided",
+    "tests/integration/test_firmware_truth.py::test_streams_are_requested_again_after_the_autopilot_reboots",
     "tests/integration/test_link_trust.py",
     # the flight recorder's taps and the autopilot log download on the links
     "tests/integration/test_agent_records_flight.py::"

@@ -123,6 +123,29 @@ def test_agent_runs_on_every_vehicle_worker_and_nowhere_else(kind: Cluster) -> N
     assert set(_agent_pods(kind)) == workers
 
 
+def test_cluster_dns_answers_in_a_vehicle_agent_pod(kind: Cluster) -> None:
+    """CoreDNS (built for the podman path's node image) serves the cluster's names: the
+    agent pod (host network, ``ClusterFirstWithHostNet``) resolves the API's Service."""
+    wait_until(
+        "CoreDNS available",
+        lambda: _get(kind, "deployment", "coredns", "-n", "kube-system")
+        .get("status", {})
+        .get("availableReplicas", 0)
+        >= 1,
+        SLOW_S,
+        POLL_S,
+    )
+    pod = next(iter(_agent_pods(kind).values()))
+    service_ip = _get(kind, "service", "kubernetes", "-n", "default")["spec"]["clusterIP"]
+    resolved = _exec_python(
+        kind,
+        pod,
+        "import socket; print(socket.getaddrinfo("
+        "'kubernetes.default.svc.cluster.local', 443, proto=socket.IPPROTO_TCP)[0][4][0])",
+    )
+    assert resolved == service_ip
+
+
 def test_agents_report_every_px4_sitl_autopilot_healthy(kind: Cluster) -> None:
     for vehicle in FLEET:
         name = vehicle["metadata"]["name"]

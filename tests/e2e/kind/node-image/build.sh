@@ -18,9 +18,10 @@
 #   - every image `kubeadm config images list` names, built from those binaries as FROM-
 #     scratch images under exactly those names and imported at build time into the image's
 #     containerd store (/var/lib/containerd, copied into each node's /var volume), so no
-#     node ever pulls. CoreDNS is not built (its module does not build from the Go proxy
-#     here either way): its pods stay pending on an image, nothing in Roost needs
-#     cluster DNS (clients reach the API server through the kubernetes Service's IP).
+#     node ever pulls. CoreDNS is built from its Go module at the tag kubeadm names
+#     (cached under ~/.cache/roost/kind/coredns-<version>/). etcd's image holds the
+#     control plane's etcd build, the patch release Kubernetes' own module graph pins,
+#     under the tag kubeadm names (one patch release apart at most; both 3.6).
 #
 # Cached: the image is named localhost/roost-kind-node:<k8s version>-<key>, the key a
 # digest of the versions and of this directory; its OCI archive is kept under
@@ -184,7 +185,23 @@ for name in $images; do
       buildah commit --quiet "$c" "oci-archive:$a:$name" >/dev/null
       buildah rm "$c" >/dev/null
       : "$src" ;;
-    coredns) say "not building $name (see the header)"; continue ;;
+    coredns)
+      # CoreDNS at the tag kubeadm names, built from its module (cached per version).
+      dns_version=${name##*:}
+      dns_bin="$cache_root/kind/coredns-$dns_version"
+      if [[ ! -x "$dns_bin/coredns" ]]; then
+        say "building CoreDNS $dns_version"
+        rm -rf "$dns_bin.partial"
+        CGO_ENABLED=0 GOTOOLCHAIN=local GOFLAGS=-mod=mod GOBIN="$dns_bin.partial" \
+          go install -trimpath -ldflags "-s -w" "github.com/coredns/coredns@$dns_version"
+        rm -rf "$dns_bin"
+        mv "$dns_bin.partial" "$dns_bin"
+      fi
+      c=$(buildah from scratch); containers+=("$c")
+      buildah copy --quiet "$c" "$dns_bin/coredns" /coredns >/dev/null
+      buildah config --entrypoint '["/coredns"]' --port 53/udp --port 53/tcp "$c"
+      buildah commit --quiet "$c" "oci-archive:$a:$name" >/dev/null
+      buildah rm "$c" >/dev/null ;;
     *) say "no recipe for $name"; exit 1 ;;
   esac
 done
