@@ -128,10 +128,12 @@ def test_cluster_dns_answers_in_a_vehicle_agent_pod(kind: Cluster) -> None:
     agent pod (host network, ``ClusterFirstWithHostNet``) resolves the API's Service."""
     wait_until(
         "CoreDNS available",
-        lambda: _get(kind, "deployment", "coredns", "-n", "kube-system")
-        .get("status", {})
-        .get("availableReplicas", 0)
-        >= 1,
+        lambda: (
+            _get(kind, "deployment", "coredns", "-n", "kube-system")
+            .get("status", {})
+            .get("availableReplicas", 0)
+            >= 1
+        ),
         SLOW_S,
         POLL_S,
     )
