@@ -255,8 +255,8 @@ def ulog_bytes(samples: list[Sample], params: dict[str, float]) -> bytes:
             out += _ulog_message(b"P", bytes([len(k)]) + k + struct.pack("<f", value))
     formats = {
         "vehicle_local_position": "uint64_t timestamp;float x;float y;float z;float vz;",
-        "vehicle_status": "uint64_t timestamp;uint8_t arming_state;uint8_t nav_state;"
-        "uint8_t[6] _padding0;",
+        # No trailing padding: a ULog writer leaves it out of the data messages.
+        "vehicle_status": "uint64_t timestamp;uint8_t arming_state;uint8_t nav_state;",
     }
     for name, fields in formats.items():
         out += _ulog_message(b"F", f"{name}:{fields}".encode())
@@ -272,7 +272,7 @@ def ulog_bytes(samples: list[Sample], params: dict[str, float]) -> bytes:
         out += _ulog_message(b"D", struct.pack("<H", 0) + position)
         if s.mode != mode:
             mode = s.mode
-            status = struct.pack("<QBB6x", s.boot_us, 2 if s.armed else 1, (s.mode >> 24) & 0xFF)
+            status = struct.pack("<QBB", s.boot_us, 2 if s.armed else 1, (s.mode >> 24) & 0xFF)
             out += _ulog_message(b"D", struct.pack("<H", 1) + status)
     end = samples[-1].boot_us
     out += _ulog_message(b"L", struct.pack("<BQ", ord("6"), end) + b"Disarmed")

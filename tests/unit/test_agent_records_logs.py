@@ -3,9 +3,11 @@ resumable download's planner and the autopilot log format checks."""
 
 from __future__ import annotations
 
+import io
 import struct
 
 import pytest
+import pyulog
 
 from roost_agent.records_logs import (
     Intervals,
@@ -151,6 +153,17 @@ def _samples(n: int = 20) -> list[Sample]:
 
 ULOG = ulog_bytes(_samples(), {"MPC_XY_VEL_MAX": 12.0, "SYS_AUTOSTART": 4001})
 DATAFLASH = dataflash_bytes(_samples(), {"WPNAV_SPEED": 500.0}, (47.0, 8.0))
+
+
+def test_the_simulators_ulog_is_read_by_pyulog_as_px4_logs_are() -> None:
+    """pyulog (what PX4 Flight Review and ulog2csv use) reads the simulator's log whole:
+    no corruption, the parameters with their types, every sample of both topics."""
+    log = pyulog.ULog(io.BytesIO(ULOG))
+    assert not log.file_corruption
+    assert log.initial_parameters == {"MPC_XY_VEL_MAX": 12, "SYS_AUTOSTART": 4001}
+    topics = {data.name: len(data.data["timestamp"]) for data in log.data_list}
+    assert topics == {"vehicle_local_position": len(_samples()), "vehicle_status": 1}
+    assert [m.message for m in log.logged_messages] == ["Armed by the agent", "Disarmed"]
 
 
 def test_whole_logs_pass_their_checks() -> None:
