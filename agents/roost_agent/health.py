@@ -63,7 +63,9 @@ gap rather than a fitted distribution (φ-accrual's normal or exponential): the 
 a multiplexed stream are a mix of near-zero gaps inside bursts and the periods of a dozen
 rates, nothing like either distribution, and a mean/variance fit is pulled down by every
 burst; the largest gap is distribution-free, a burst after a stall cannot lower it, and
-a link that degrades slowly raises it as it goes. Until :data:`LEARN_MIN_WINDOWS` windows
+a link that degrades slowly raises it as it goes. A gap of ``message_error_ms`` or more
+is an outage, not the stream's rhythm, and is not learnt: an autopilot back from a
+silence is judged by the rhythm it had. Until :data:`LEARN_MIN_WINDOWS` windows
 are learnt (start-up, after a reboot, after the agent requested other stream rates) the
 ceiling applies: a requested rate change never meets a threshold learnt on the old rates.
 The warning for a late stream scales with it (``message_warn_ms / message_error_ms`` of
@@ -408,10 +410,12 @@ class HealthTracker:
         if last_at is None:
             o.first_at = o.window_start = now
         else:
-            # between kernel arrival stamps: the agent's own lateness is not in it
-            # (compared, not max(): compiled, max() would box the floats)
+            # between kernel arrival stamps: the agent's own lateness is not in it. A gap
+            # of the ceiling or more is an outage (the autopilot was silent, the link
+            # lost), not the stream's rhythm: it is not learnt.
             gap = now - last_at
-            o.window_gap = gap if gap > o.window_gap else o.window_gap
+            if gap > o.window_gap and gap * 1000 < th.message_error_ms:
+                o.window_gap = gap
             silence_ended = gap >= _silence_s(o, th)
             if silence_ended:
                 # A silence ends: what is judged only while messages come (frozen

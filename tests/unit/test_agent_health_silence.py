@@ -149,6 +149,15 @@ def test_a_burst_after_a_stall_keeps_the_margin_the_stall_taught() -> None:
     assert v.tracker.silence_threshold_s() == FLOOR_S
 
 
+def test_an_outage_is_not_learnt_as_the_streams_rhythm() -> None:
+    """An autopilot silent for a second (a failover's worth) comes back: it is judged by
+    the rhythm it had, not by 2.5 x its outage (which the ceiling would cap at 200 ms)."""
+    v = vehicle()
+    arrive(v, steady(0.0, 3.0, 0.01))
+    arrive(v, steady(v.t + 1.0, 2.0, 0.01))
+    assert v.tracker.silence_threshold_s() == FLOOR_S
+
+
 def test_a_silence_ends_the_moment_a_message_arrives() -> None:
     v = vehicle()
     arrive(v, steady(0.0, 3.0, 0.01))
