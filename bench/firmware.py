@@ -159,7 +159,7 @@ def run() -> list[Figure]:
             "failover.ardupilot_unaided_onset_to_switch_p99_ms",
             round(percentile(unaided, 99), 1),
             "ms",
-            "<= 700",
+            "<= 120",
             COMMAND,
             f"{len(unaided)} silent simulated ArduCopters that send only HEARTBEAT until "
             f"the agent requests streams; default {_thresholds_text(Thresholds())}; "
