@@ -40,6 +40,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
+from typing import Any
 
 import psutil
 
@@ -170,6 +171,7 @@ class Cycles:
 
     detect_ms: list[float] = field(default_factory=list)
     silent_ms: list[float] = field(default_factory=list)
+    limits_ms: list[int] = field(default_factory=list)  # the learnt silence thresholds
     claim_ms: list[float] = field(default_factory=list)
 
 
@@ -192,6 +194,7 @@ def failover_cycles(
             switched_at = event["monotonic"]["switchedAt"]
             if kind is FaultKind.SILENCE:
                 cycles.silent_ms.append((switched_at - onset) * 1000)
+                cycles.limits_ms.extend(silence_limits([event]))
             claimed_at = event["monotonic"]["onsetAt"]
             if kind is FaultKind.STATE and claimed_at is not None:
                 cycles.claim_ms.append((switched_at - claimed_at) * 1000)
@@ -368,6 +371,18 @@ def false_failovers(thresholds: Thresholds = FAST) -> Soak:
         ]
         judged.append(doc["message"] + (f" (meanwhile {'; '.join(nearby)})" if nearby else ""))
     return Soak(failovers, judged, warnings, received)
+
+
+def silence_limits(events: Sequence[dict[str, Any]]) -> list[int]:
+    """The silence thresholds (ms) the agent judged these failovers by, from their reasons."""
+    found = (re.search(r"\(limit (\d+) ms\)", e["failover"]["reason"]) for e in events)
+    return [int(m[1]) for m in found if m is not None]
+
+
+def _limits_text(limits: list[int]) -> str:
+    if not limits:
+        return "none reported"
+    return f"median {statistics.median(limits):.0f} ms, {min(limits)}-{max(limits)} ms"
 
 
 def _load() -> str:
@@ -637,7 +652,8 @@ def default_figures() -> list[Figure]:
     """The vehicle as shipped: default thresholds, silent onsets and the soak."""
     defaults = Thresholds()
     silences = [(FaultKind.SILENCE, None)]
-    silent = failover_cycles(max(1, FAILOVERS // 2), thresholds=defaults, faults=silences).silent_ms
+    cycles = failover_cycles(max(1, FAILOVERS // 2), thresholds=defaults, faults=silences)
+    silent = cycles.silent_ms
     load = _load()
     soak = false_failovers(defaults)
     return [
@@ -650,6 +666,7 @@ def default_figures() -> list[Figure]:
             f"{len(silent)} silent autopilots streaming PX4's recorded onboard set (~400 "
             "messages/s, ATTITUDE 100 Hz); from the injection to the bridge write; default "
             f"{_thresholds_text(defaults)}; median {statistics.median(silent):.0f} ms; "
+            f"silence thresholds learnt from the streams: {_limits_text(cycles.limits_ms)}; "
             f"1-min load {load}",
         ),
         Figure(
