@@ -26,6 +26,7 @@ MODULES: tuple[str, ...] = (
     "firmware",
     "vehicle",
     "hub",
+    "hubcost",
     "hubsigning",
     "standby",
     "params",
