@@ -66,10 +66,8 @@ burst; the largest gap is distribution-free, a burst after a stall cannot lower 
 a link that degrades slowly raises it as it goes. A gap of ``message_error_ms`` or more
 is an outage, not the stream's rhythm, and is not learnt: an autopilot back from a
 silence is judged by the rhythm it had. Until :data:`LEARN_MIN_WINDOWS` windows
-are learnt (start-up; after a reboot or a request for other stream rates, counting from
-the second window after it, as the streams change during the first two) the ceiling
-applies: a requested rate change never meets a threshold learnt on the old rates, nor
-on the gaps of the change itself.
+are learnt (start-up, after a reboot, after the agent requested other stream rates) the
+ceiling applies: a requested rate change never meets a threshold learnt on the old rates.
 The warning for a late stream scales with it (``message_warn_ms / message_error_ms`` of
 the threshold).
 
@@ -115,8 +113,6 @@ RATE_WINDOW_S: Final = 1.0
 # rate windows, and applies once LEARN_MIN_WINDOWS are complete (module docstring).
 LEARN_WINDOWS: Final = 8
 LEARN_MIN_WINDOWS: Final = 2
-# After a reboot or a stream request, the window running and the next are not learnt.
-FORGET_SKIP_WINDOWS: Final = 2
 
 # time_boot_ms may step back a little when UDP reorders packets (jitter); a reboot
 # restarts it near zero. Only a step back larger than this counts as a reboot.
@@ -276,7 +272,6 @@ class _Observed:
     window_gap: float = 0.0  # the longest gap between two arrivals in this rate window
     gaps: list[float] = field(default_factory=list)  # ... in the last LEARN_WINDOWS windows
     silence_s: float | None = None  # the learnt silence threshold (None: the ceiling)
-    skip_windows: int = 0  # windows not learnt (the streams change during them)
     heartbeat_at: float | None = None
     heartbeat_autopilot: int | None = None
     base_mode: int | None = None
@@ -457,10 +452,7 @@ class HealthTracker:
         o.stream_rate = o.window_count / (now - o.window_start)
         o.window_start, o.window_count = now, 0
         gaps = o.gaps
-        if o.skip_windows:
-            o.skip_windows -= 1
-        else:
-            gaps.append(o.window_gap)
+        gaps.append(o.window_gap)
         if len(gaps) > LEARN_WINDOWS:
             del gaps[0]
         o.window_gap = 0.0
@@ -1012,13 +1004,10 @@ def _late_s(silence_s: float, th: Thresholds) -> float:
 
 
 def _forget_gaps(o: _Observed) -> None:
-    """Relearn the silence threshold (the ceiling until then) from the windows after the
-    one running and the next: the streams change during those (requested rates arrive,
-    a rebooted autopilot starts its streams), and their gaps are neither rhythm."""
+    """Relearn the silence threshold from the next windows (the ceiling until then)."""
     o.gaps.clear()
     o.window_gap = 0.0
     o.silence_s = None
-    o.skip_windows = FORGET_SKIP_WINDOWS
 
 
 def _fast_stream(o: _Observed, th: Thresholds) -> bool:

@@ -111,21 +111,11 @@ def test_a_requested_rate_change_relearns_from_the_ceiling() -> None:
     arrive(v, steady(0.0, 3.0, 0.01))
     v.tracker.expect_streams(None)
     assert v.tracker.silence_threshold_s() == CEILING_S
-    slower = steady(v.t, 5.0, 0.05)
+    slower = steady(v.t, 3.0, 0.05)
     for t in slower:
         arrive(v, [t])
         assert not silent(v.at(0.049))
     assert v.tracker.silence_threshold_s() == pytest.approx(MARGIN * 0.05)
-
-
-def test_the_gaps_of_a_rate_change_are_not_learnt() -> None:
-    """Requested: the streams take a while to arrive (here 150 ms of heartbeat only,
-    then 100 Hz). Those gaps are the change, not the new rhythm."""
-    v = vehicle()
-    arrive(v, steady(0.0, 3.0, 0.01))
-    v.tracker.expect_streams(None)
-    arrive(v, steady(v.t + 0.15, 4.0, 0.01))
-    assert v.tracker.silence_threshold_s() == FLOOR_S
 
 
 def test_verified_streams_do_not_forget_what_was_learnt() -> None:
