@@ -27,6 +27,7 @@ MODULES: tuple[str, ...] = (
     "firmware",
     "vehicle",
     "hub",
+    "hubcost",
     "hubsigning",
     "records",
     "standby",

@@ -17,6 +17,9 @@ default 100), ``ROOST_BENCH_HEARTBEAT_FAILOVERS`` (default 12), ``ROOST_BENCH_PE
 (default 3), ``ROOST_BENCH_CPU_S`` (default 30), ``ROOST_BENCH_SOAK_S`` (healthy flight
 under 5 % loss and 50 ms jitter, default 600: the committed figure must come from 600),
 ``ROOST_BENCH_AGENT_PARTS`` (a comma-separated subset of :data:`PARTS`, default all).
+The ``replay`` part reads the recorded firmware traffic where the replay tests find it
+(``$ROOST_CAPTURES_DIR``, else ``shared/captures`` beside the repository); ``starved``
+runs the default soak while one busy-looping process per core competes for the CPU.
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
+from typing import Any
 
 import psutil
 
@@ -50,6 +54,7 @@ from roost_api.autopilot import (
     SafetyRoutine,
     Thresholds,
 )
+from roost_api.meta import HealthLevel
 from roost_sim import (
     FaultKind,
     SimConfig,
@@ -70,8 +75,22 @@ HEARTBEAT_FAILOVERS = int(os.environ.get("ROOST_BENCH_HEARTBEAT_FAILOVERS", "12"
 PEER_SAMPLES = int(os.environ.get("ROOST_BENCH_PEER_SAMPLES", "3"))
 CPU_S = float(os.environ.get("ROOST_BENCH_CPU_S", "30"))
 SOAK_S = float(os.environ.get("ROOST_BENCH_SOAK_S", "600"))
-PARTS = ("cpu", "cluster", "failover", "heartbeat", "peer", "soak", "defaults")
-SELECTED = [p for p in os.environ.get("ROOST_BENCH_AGENT_PARTS", ",".join(PARTS)).split(",") if p]
+PARTS = (
+    "cpu",
+    "cluster",
+    "failover",
+    "heartbeat",
+    "peer",
+    "soak",
+    "defaults",
+    "onset",
+    "replay",
+    "starved",
+)
+# "onset" is the first half of "defaults" (its silent onsets without the soak), to measure
+# again alone; the default run has it once, inside "defaults".
+DEFAULT_PARTS = ",".join(p for p in PARTS if p != "onset")
+SELECTED = [p for p in os.environ.get("ROOST_BENCH_AGENT_PARTS", DEFAULT_PARTS).split(",") if p]
 COMMAND = "make bench (python -m bench agent)"
 
 # Tuned for 50 Hz telemetry: silent after 200 ms (10 missed ATTITUDE samples), confirm
@@ -166,6 +185,7 @@ class Cycles:
 
     detect_ms: list[float] = field(default_factory=list)
     silent_ms: list[float] = field(default_factory=list)
+    limits_ms: list[int] = field(default_factory=list)  # the learnt silence thresholds
     claim_ms: list[float] = field(default_factory=list)
 
 
@@ -188,6 +208,7 @@ def failover_cycles(
             switched_at = event["monotonic"]["switchedAt"]
             if kind is FaultKind.SILENCE:
                 cycles.silent_ms.append((switched_at - onset) * 1000)
+                cycles.limits_ms.extend(silence_limits([event]))
             claimed_at = event["monotonic"]["onsetAt"]
             if kind is FaultKind.STATE and claimed_at is not None:
                 cycles.claim_ms.append((switched_at - claimed_at) * 1000)
@@ -366,6 +387,18 @@ def false_failovers(thresholds: Thresholds = FAST) -> Soak:
     return Soak(failovers, judged, warnings, received)
 
 
+def silence_limits(events: Sequence[dict[str, Any]]) -> list[int]:
+    """The silence thresholds (ms) the agent judged these failovers by, from their reasons."""
+    found = (re.search(r"\(limit (\d+) ms\)", e["failover"]["reason"]) for e in events)
+    return [int(m[1]) for m in found if m is not None]
+
+
+def _limits_text(limits: list[int]) -> str:
+    if not limits:
+        return "none reported"
+    return f"median {statistics.median(limits):.0f} ms, {min(limits)}-{max(limits)} ms"
+
+
 def _load() -> str:
     """The 1-minute load average (CPU here is shared; figures note it)."""
     return f"{os.getloadavg()[0]:.2f}"
@@ -373,17 +406,19 @@ def _load() -> str:
 
 def _thresholds_text(th: Thresholds) -> str:
     return (
-        f"thresholds message warn/error {th.message_warn_ms}/{th.message_error_ms} ms, "
+        f"thresholds message warn/error {th.message_warn_ms}/{th.message_error_ms} ms "
+        f"(silence learnt: {th.silence_margin:g} x the worst recent gap, at least "
+        f"{th.message_error_min_ms} ms), "
         f"heartbeat warn/error {th.heartbeat_warn_ms}/{th.heartbeat_error_ms} ms, "
         f"confirm {th.confirm_ms} ms"
     )
 
 
-def _soak_note(th: Thresholds, soak: Soak) -> str:
+def _soak_note(th: Thresholds, soak: Soak, meanwhile: str = "") -> str:
     judgements = "; ".join(soak.errors) or "none"
     warnings = ", ".join(f"{why} x{n}" for why, n in soak.warnings.most_common()) or "none"
     return (
-        f"{SOAK_S:.0f} s of healthy flight, two PX4 sims, 5 % loss and 50 ms jitter on "
+        f"{SOAK_S:.0f} s of healthy flight{meanwhile}, two PX4 sims, 5 % loss and 50 ms jitter on "
         f"every link, {_thresholds_text(th)}; {soak.received} messages accepted; "
         f"{len(soak.errors)} ERROR judgements: {judgements}; "
         f"{soak.warnings.total()} WARN judgements: {warnings}; 1-min load {_load()} at the end"
@@ -627,24 +662,36 @@ def cluster_figures() -> list[Figure]:
     ]
 
 
-def default_figures() -> list[Figure]:
-    """The vehicle as shipped: default thresholds, silent onsets and the soak."""
+def onset_figures() -> list[Figure]:
+    """The vehicle as shipped: silent onsets at the default thresholds."""
     defaults = Thresholds()
     silences = [(FaultKind.SILENCE, None)]
-    silent = failover_cycles(max(1, FAILOVERS // 2), thresholds=defaults, faults=silences).silent_ms
+    cycles = failover_cycles(max(1, FAILOVERS // 2), thresholds=defaults, faults=silences)
+    silent = cycles.silent_ms
     load = _load()
-    soak = false_failovers(defaults)
     return [
         Figure(
             "failover.silent_onset_to_switch_default_p99_ms",
             round(percentile(silent, 99), 1),
             "ms",
-            "",
+            "<= 100",
             COMMAND,
-            f"{len(silent)} silent autopilots streaming ATTITUDE at 50 Hz; default "
+            f"{len(silent)} silent autopilots streaming PX4's recorded onboard set (~400 "
+            "messages/s, ATTITUDE 100 Hz); from the injection to the bridge write; default "
             f"{_thresholds_text(defaults)}; median {statistics.median(silent):.0f} ms; "
+            f"silence thresholds learnt from the streams: {_limits_text(cycles.limits_ms)}; "
             f"1-min load {load}",
-        ),
+        )
+    ]
+
+
+def default_figures() -> list[Figure]:
+    """The vehicle as shipped: default thresholds, silent onsets and the soak."""
+    defaults = Thresholds()
+    figures = onset_figures()
+    soak = false_failovers(defaults)
+    return [
+        *figures,
         Figure(
             "failover.false_failovers_10min_default",
             float(soak.failovers),
@@ -653,6 +700,71 @@ def default_figures() -> list[Figure]:
             f"ROOST_BENCH_SOAK_S={SOAK_S:.0f} {COMMAND}",
             _soak_note(defaults, soak),
         ),
+    ]
+
+
+@contextmanager
+def busy_cores() -> Iterator[int]:
+    """One busy-looping process per core (this machine's), stopped by pid afterwards."""
+    count = os.cpu_count() or 1
+    spinners = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(count)]
+    try:
+        yield count
+    finally:
+        for spinner in spinners:
+            spinner.kill()
+            spinner.wait()
+
+
+def starved_figures() -> list[Figure]:
+    """The default soak while other processes keep every core busy."""
+    defaults = Thresholds()
+    with busy_cores() as count:
+        soak = false_failovers(defaults)
+        load = _load()
+    meanwhile = f" while {count} busy-looping processes kept the {count} cores busy"
+    return [
+        Figure(
+            "failover.false_failovers_10min_cpu_starved",
+            float(soak.failovers),
+            "count",
+            "== 0",
+            f"ROOST_BENCH_SOAK_S={SOAK_S:.0f} ROOST_BENCH_AGENT_PARTS=starved {COMMAND}",
+            _soak_note(defaults, soak, meanwhile) + f" (1-min load {load} with the spinners)",
+        )
+    ]
+
+
+def replay_figures() -> list[Figure]:
+    """ERROR or STALE judgements on healthy autopilots over every recording there is."""
+    from tests.support.captures import CAPTURES  # noqa: PLC0415 - this part only
+    from tests.support.replay import healthy_until, replay, stack_of  # noqa: PLC0415
+
+    names = sorted(p.name for p in CAPTURES.glob("*.tlog"))
+    if not names:
+        raise SystemExit(f"bench replay: no .tlog in {CAPTURES} (set ROOST_CAPTURES_DIR)")
+    judged, errors = 0, []
+    for name in names:
+        r = replay(name, stack_of(name))
+        healthy = r.during(0, healthy_until(r))
+        judged += len(healthy)
+        errors += [
+            f"{name} at {a.at:.2f} s: {a.failure_reason}"
+            for a in healthy
+            if a.level in (HealthLevel.ERROR, HealthLevel.STALE)
+        ]
+    return [
+        Figure(
+            "failover.replay_false_errors",
+            float(len(errors)),
+            "count",
+            "== 0",
+            f"ROOST_BENCH_AGENT_PARTS=replay {COMMAND}",
+            f"{len(names)} recordings of PX4 v1.16 SIH and ArduCopter SITL replayed through "
+            f"the health model at the default thresholds, {judged} judgements (every 50 ms) "
+            "up to where the autopilot reports trouble itself or the recording ends; "
+            f"ERROR/STALE: {'; '.join(errors) or 'none'}",
+        )
     ]
 
 
@@ -665,6 +777,9 @@ def run() -> list[Figure]:
         "peer": peer_figures,
         "soak": soak_figures,
         "defaults": default_figures,
+        "onset": onset_figures,
+        "replay": replay_figures,
+        "starved": starved_figures,
     }
     unknown = sorted(set(SELECTED) - set(parts))
     if unknown:

@@ -761,7 +761,9 @@ class Agent:
         of a confirm window, or of a standby's time free of failures).
         """
         cfg = self._cfg
-        now = self._clock()
+        # Judged as of the start of the last read: what arrived since is not read yet, so
+        # the reader running late (a starved CPU) never reads as an autopilot's silence.
+        now = self._reader.as_of(self._clock())
         in_step = self._hub.in_step(now) if self._hub is not None else {}
         quiet_until = self._nothing_new(cfg, now, in_step)
         if quiet_until is not None:

@@ -9,7 +9,8 @@ is unit-testable without sleeping and the same code serves the live agent and re
 The rules follow the health model in ``docs/health-model.md`` (with its sources):
 
 - liveness: age of any message (only where the link streams fast enough for that to mean
-  something, see :data:`FAST_STREAM_FACTOR`) and age of the heartbeat;
+  something, see :data:`FAST_STREAM_FACTOR`) against a threshold learnt from the stream
+  itself (below), and age of the heartbeat;
 - frozen telemetry: messages keep coming but ``time_boot_ms`` stops advancing;
 - reboot: ``time_boot_ms`` going backwards, or MAV_STATE BOOT after the autopilot was up;
 - MAV_STATE: EMERGENCY / POWEROFF / FLIGHT_TERMINATION are errors, BOOT-like states in the
@@ -50,6 +51,26 @@ The tracker also keeps what the stream keeper (:mod:`roost_agent.streams`) and t
 safety routine need: messages counted per type (to verify requested rates arrive) and
 the last altitude and vertical speed (GLOBAL_POSITION_INT) to confirm that a hold holds.
 
+The silence threshold adapts to each autopilot's stream. A fixed 200 ms fits a 50 Hz
+stream with margin, but a PX4 onboard link delivers ~400 messages a second and never
+leaves a gap much over 12 ms (the recordings under docs/health-model.md), so 200 ms of
+silence is ~15 gaps longer than any healthy one. The tracker keeps the worst gap between
+consecutive arrivals (kernel receive stamps, so the agent's own lateness is never a
+gap) in each of the last :data:`LEARN_WINDOWS` one-second windows, and calls the stream
+silent after ``silence_margin`` times the worst of them, held between
+``message_error_min_ms`` and ``message_error_ms`` (the operator's bounds). Why the worst
+gap rather than a fitted distribution (φ-accrual's normal or exponential): the gaps of
+a multiplexed stream are a mix of near-zero gaps inside bursts and the periods of a dozen
+rates, nothing like either distribution, and a mean/variance fit is pulled down by every
+burst; the largest gap is distribution-free, a burst after a stall cannot lower it, and
+a link that degrades slowly raises it as it goes. A gap of ``message_error_ms`` or more
+is an outage, not the stream's rhythm, and is not learnt: an autopilot back from a
+silence is judged by the rhythm it had. Until :data:`LEARN_MIN_WINDOWS` windows
+are learnt (start-up, after a reboot, after the agent requested other stream rates) the
+ceiling applies: a requested rate change never meets a threshold learnt on the old rates.
+The warning for a late stream scales with it (``message_warn_ms / message_error_ms`` of
+the threshold).
+
 Only findings marked ``triggers_failover`` can make the arbiter switch; warnings never
 do. The arbiter adds the hysteresis (confirm/clear times); here a finding is reported as
 soon as its own definition holds.
@@ -88,6 +109,10 @@ from roost_mavlink.status import MAV_AUTOPILOT_INVALID, is_airborne, sensor_name
 # looking like a fast stream.
 FAST_STREAM_FACTOR: Final = 4.0
 RATE_WINDOW_S: Final = 1.0
+# The silence threshold is learnt from the worst gap of each of the last LEARN_WINDOWS
+# rate windows, and applies once LEARN_MIN_WINDOWS are complete (module docstring).
+LEARN_WINDOWS: Final = 8
+LEARN_MIN_WINDOWS: Final = 2
 
 # time_boot_ms may step back a little when UDP reorders packets (jitter); a reboot
 # restarts it near zero. Only a step back larger than this counts as a reboot.
@@ -244,6 +269,9 @@ class _Observed:
     window_count: int = 0
     stream_rate: float | None = None  # messages/s over the last completed window
     expected_rate: float | None = None  # messages/s of the streams requested and verified
+    window_gap: float = 0.0  # the longest gap between two arrivals in this rate window
+    gaps: list[float] = field(default_factory=list)  # ... in the last LEARN_WINDOWS windows
+    silence_s: float | None = None  # the learnt silence threshold (None: the ceiling)
     heartbeat_at: float | None = None
     heartbeat_autopilot: int | None = None
     base_mode: int | None = None
@@ -333,6 +361,7 @@ class HealthTracker:
         """Apply new thresholds (a spec change); observations are kept."""
         with self._lock:
             self.thresholds = thresholds
+            self._o.silence_s = _learnt_silence_s(self._o, thresholds)
             self._o.version += 1
 
     # -- observing -------------------------------------------------------------------
@@ -377,14 +406,22 @@ class HealthTracker:
         judged = o.claim is not None or o.boot_advanced_at is None or kind in _JUDGED_KINDS
         before = _judged(o, th) if judged else None
         last_at = o.last_at
-        silence_ended = last_at is not None and (now - last_at) * 1000 >= th.message_error_ms
+        silence_ended = False
         if last_at is None:
             o.first_at = o.window_start = now
-        elif silence_ended:
-            # A silence ends: what is judged only while messages come (frozen
-            # telemetry) may apply from this message on, and the decision loop
-            # should see the autopilot back now (its time free of failures starts).
-            o.version += 1
+        else:
+            # between kernel arrival stamps: the agent's own lateness is not in it. A gap
+            # of the ceiling or more is an outage (the autopilot was silent, the link
+            # lost), not the stream's rhythm: it is not learnt.
+            gap = now - last_at
+            if gap > o.window_gap and gap * 1000 < th.message_error_ms:
+                o.window_gap = gap
+            silence_ended = gap >= _silence_s(o, th)
+            if silence_ended:
+                # A silence ends: what is judged only while messages come (frozen
+                # telemetry) may apply from this message on, and the decision loop
+                # should see the autopilot back now (its time free of failures starts).
+                o.version += 1
         o.last_at = now
         counts = o.counts
         counts[kind] = counts.get(kind, 0) + 1
@@ -408,12 +445,19 @@ class HealthTracker:
         return changed or silence_ended
 
     def _close_rate_window(self, now: float) -> None:
-        """End the message-rate window at ``now`` (once a second)."""
+        """End the message-rate window at ``now`` (once a second), and learn its worst gap."""
         o = self._o
-        fast = _fast_stream(o, self.thresholds)
+        th = self.thresholds
+        fast, silence_s = _fast_stream(o, th), _silence_s(o, th)
         o.stream_rate = o.window_count / (now - o.window_start)
         o.window_start, o.window_count = now, 0
-        if _fast_stream(o, self.thresholds) != fast:
+        gaps = o.gaps
+        gaps.append(o.window_gap)
+        if len(gaps) > LEARN_WINDOWS:
+            del gaps[0]
+        o.window_gap = 0.0
+        o.silence_s = _learnt_silence_s(o, th)
+        if _fast_stream(o, th) != fast or _silence_s(o, th) != silence_s:
             o.version += 1
 
     def _settle(self, msg: Any, kind: str, boot_ms: int | None, seq: int | None) -> bool:
@@ -457,6 +501,7 @@ class HealthTracker:
 
     def _note_reboot(self, now: float, reason: str) -> None:
         o = self._o
+        _forget_gaps(o)  # streams restart at the firmware's defaults
         o.reboot_at = now
         o.reboot_reason = reason
         o.reboots += 1
@@ -618,10 +663,18 @@ class HealthTracker:
             return self._o.refuted
 
     def expect_streams(self, rate_hz: float | None) -> None:
-        """Judge liveness on these verified requested streams (None: on what arrives)."""
+        """Judge liveness on these verified requested streams (None: on what arrives,
+        as other rates are being requested: the learnt silence threshold is relearnt)."""
         with self._lock:
             self._o.expected_rate = rate_hz
+            if rate_hz is None:
+                _forget_gaps(self._o)
             self._o.version += 1
+
+    def silence_threshold_s(self) -> float:
+        """The silence (any-message age ERROR) threshold now, learnt or the ceiling."""
+        with self._lock:
+            return _silence_s(self._o, self.thresholds)
 
     def heartbeat(self) -> tuple[int, int, float] | None:
         """(custom_mode, base_mode, received_at) of the last heartbeat, for confirmations."""
@@ -791,7 +844,11 @@ def _next_threshold(o: _Observed, th: Thresholds, after: float) -> float:
     if o.last_at is None or o.first_at is None:
         return math.inf  # "no data" lasts until a message comes (a new version)
     fast = _fast_stream(o, th)
-    times = [o.last_at + (th.message_warn_ms if fast else th.heartbeat_error_ms) / 1000]
+    silence_s = _silence_s(o, th)
+    if fast:
+        times = [o.last_at + _late_s(silence_s, th), o.last_at + silence_s]
+    else:
+        times = [o.last_at + th.heartbeat_error_ms / 1000]
     if o.heartbeat_at is not None:
         times.append(o.heartbeat_at + th.heartbeat_warn_ms / 1000)
     else:
@@ -865,18 +922,19 @@ def _liveness(o: _Observed, th: Thresholds, now: float) -> list[Finding]:
             )
         )
     elif _fast_stream(o, th):
-        if silent_s * 1000 >= th.message_error_ms:
+        limit_s = _silence_s(o, th)
+        if silent_s >= limit_s:
             found.append(
                 Finding(
                     HealthLevel.ERROR,
                     "silent",
-                    f"silent for {silent_s * 1000:.0f} ms",
+                    f"silent for {silent_s * 1000:.0f} ms (limit {limit_s * 1000:.0f} ms)",
                     True,
                     o.last_at,
                     varies=True,
                 )
             )
-        elif silent_s * 1000 >= th.message_warn_ms:
+        elif silent_s >= _late_s(limit_s, th):
             found.append(
                 Finding(
                     HealthLevel.WARN,
@@ -924,6 +982,32 @@ def _liveness(o: _Observed, th: Thresholds, now: float) -> list[Finding]:
                 )
             )
     return found
+
+
+def _learnt_silence_s(o: _Observed, th: Thresholds) -> float | None:
+    """The silence threshold the gaps learnt so far give (None: too few to trust yet)."""
+    if len(o.gaps) < LEARN_MIN_WINDOWS:
+        return None
+    learnt = max(th.message_error_min_ms / 1000, th.silence_margin * max(o.gaps))
+    return min(learnt, th.message_error_ms / 1000)
+
+
+def _silence_s(o: _Observed, th: Thresholds) -> float:
+    """Seconds without any message that make a fast stream silent (an ERROR)."""
+    learnt = o.silence_s
+    return th.message_error_ms / 1000 if learnt is None else learnt
+
+
+def _late_s(silence_s: float, th: Thresholds) -> float:
+    """Seconds without any message that make a fast stream late (a WARN)."""
+    return silence_s * th.message_warn_ms / th.message_error_ms
+
+
+def _forget_gaps(o: _Observed) -> None:
+    """Relearn the silence threshold from the next windows (the ceiling until then)."""
+    o.gaps.clear()
+    o.window_gap = 0.0
+    o.silence_s = None
 
 
 def _fast_stream(o: _Observed, th: Thresholds) -> bool:

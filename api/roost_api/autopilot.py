@@ -91,9 +91,35 @@ class Thresholds(ApiModel):
     # Defaults: a PX4 or ArduPilot link streams ATTITUDE at 50 Hz (roost_agent.streams), so
     # 200 ms of silence is 10 missed samples; on links with 5 % loss and 50 ms jitter
     # these defaults gave no false failover in a 10-minute soak (bench agent).
-    message_warn_ms: int = Field(default=100, ge=10, le=60000, description="Any-message age WARN.")
+    # The silence threshold is learnt per autopilot from the gaps between its messages
+    # (roost_agent.health: the worst gap of the last seconds times silenceMargin) and
+    # kept between messageErrorMinMs and messageErrorMs; the ceiling also applies while
+    # it learns (after start-up, a reboot, a stream-rate request). Recorded PX4 (~400
+    # messages/s) and ArduCopter (~70/s) streams put it at the floor; 50 ms of jitter
+    # lifts it to ~125 ms. messageErrorMinMs = messageErrorMs: a fixed threshold.
+    message_warn_ms: int = Field(
+        default=100,
+        ge=10,
+        le=60000,
+        description="Any-message age WARN at the ceiling; scaled with the learnt threshold.",
+    )
     message_error_ms: int = Field(
-        default=200, ge=20, le=60000, description="Any-message age ERROR (silent link)."
+        default=200,
+        ge=20,
+        le=60000,
+        description="Any-message age ERROR (silent link): the learnt threshold's ceiling.",
+    )
+    message_error_min_ms: int = Field(
+        default=60,
+        ge=10,
+        le=60000,
+        description="Floor of the learnt silence threshold (above messageErrorMs: no effect).",
+    )
+    silence_margin: float = Field(
+        default=2.5,
+        ge=1.0,
+        le=20.0,
+        description="Silence ERROR after this many times the worst recent gap between messages.",
     )
     # HEARTBEAT is 1 Hz on both stacks. Each threshold sits half a period between two
     # counts of consecutive lost heartbeats (plus jitter), so WARN takes two in a row and

@@ -180,6 +180,8 @@ class Thresholds:
 
     message_warn_ms: int = 100
     message_error_ms: int = 200
+    message_error_min_ms: int = 60
+    silence_margin: float = 2.5
     heartbeat_warn_ms: int = 2500
     heartbeat_error_ms: int = 4500
     confirm_ms: int = 20
@@ -201,6 +203,16 @@ class Thresholds:
         v = check.get(d, "messageErrorMs", "message_error_ms")
         message_error_ms = (
             200 if v is check.MISSING else check.integer(v, at + "messageErrorMs", ge=20, le=60000)
+        )
+        v = check.get(d, "messageErrorMinMs", "message_error_min_ms")
+        message_error_min_ms = (
+            60
+            if v is check.MISSING
+            else check.integer(v, at + "messageErrorMinMs", ge=10, le=60000)
+        )
+        v = check.get(d, "silenceMargin", "silence_margin")
+        silence_margin = (
+            2.5 if v is check.MISSING else check.number(v, at + "silenceMargin", ge=1.0, le=20.0)
         )
         v = check.get(d, "heartbeatWarnMs", "heartbeat_warn_ms")
         heartbeat_warn_ms = (
@@ -231,6 +243,8 @@ class Thresholds:
         return cls(
             message_warn_ms=message_warn_ms,
             message_error_ms=message_error_ms,
+            message_error_min_ms=message_error_min_ms,
+            silence_margin=silence_margin,
             heartbeat_warn_ms=heartbeat_warn_ms,
             heartbeat_error_ms=heartbeat_error_ms,
             confirm_ms=confirm_ms,
@@ -244,6 +258,8 @@ class Thresholds:
         return {
             "messageWarnMs": self.message_warn_ms,
             "messageErrorMs": self.message_error_ms,
+            "messageErrorMinMs": self.message_error_min_ms,
+            "silenceMargin": self.silence_margin,
             "heartbeatWarnMs": self.heartbeat_warn_ms,
             "heartbeatErrorMs": self.heartbeat_error_ms,
             "confirmMs": self.confirm_ms,

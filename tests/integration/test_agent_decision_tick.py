@@ -28,7 +28,11 @@ from tests.support.feed import SENSORS, Feed, two_px4_spec
 
 TICK_S = 0.01
 RATE_HZ = 50
-TH = Thresholds(message_warn_ms=100, message_error_ms=200, confirm_ms=20, clear_ms=300)
+# A fixed silence threshold (floor = ceiling): the ticks are what is tested here; the
+# learnt threshold has tests of its own (test_agent_health_silence, test_agent_silence).
+TH = Thresholds(
+    message_warn_ms=100, message_error_ms=200, message_error_min_ms=200, confirm_ms=20, clear_ms=300
+)
 WALL = datetime(2026, 5, 1, 12, 0, tzinfo=UTC)
 
 

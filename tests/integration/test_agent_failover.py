@@ -141,8 +141,10 @@ def assert_held_then_landed(flight: Flight, name: str, since: float) -> None:
 
 # Each fault must be reported by its own detector: a rebooting ArduPilot streams nothing
 # (requests do not survive a reboot) for longer than the default 200 ms silence, which
-# would then name the failover first. Silence here takes 500 ms.
-DETECTORS = Thresholds(message_warn_ms=200, message_error_ms=500, confirm_ms=100)
+# would then name the failover first. Silence here takes 500 ms (fixed: floor = ceiling).
+DETECTORS = Thresholds(
+    message_warn_ms=200, message_error_ms=500, message_error_min_ms=500, confirm_ms=100
+)
 FAULTS = [
     pytest.param(FaultKind.SILENCE, None, "silent", id="silence"),
     pytest.param(FaultKind.FREEZE, None, "frozen", id="freeze"),

@@ -34,7 +34,15 @@ from tests.support.feed import ARMED, LOITER, SENSORS, Feed
 OK, WARN, ERROR, STALE = HealthLevel.OK, HealthLevel.WARN, HealthLevel.ERROR, HealthLevel.STALE
 # The numbers these tests assert are these thresholds', not whatever the defaults are.
 HEARTBEAT_MS = {"heartbeat_warn_ms": 1500, "heartbeat_error_ms": 3000}
-TH = Thresholds(message_warn_ms=200, message_error_ms=500, confirm_ms=100, **HEARTBEAT_MS)
+# Fixed silence thresholds (floor = ceiling): the adaptive threshold has tests of its own
+# (test_agent_health_silence).
+TH = Thresholds(
+    message_warn_ms=200,
+    message_error_ms=500,
+    message_error_min_ms=500,
+    confirm_ms=100,
+    **HEARTBEAT_MS,
+)
 
 
 class Vehicle(Feed):
@@ -710,6 +718,8 @@ def test_the_agents_frames_are_judged_as_pymavlinks_messages(
 # -- the default thresholds: decision tables at their boundaries ---------------------------
 
 DEFAULTS = Thresholds()
+# The defaults with the silence threshold at its ceiling (as while it learns).
+FIXED_DEFAULTS = Thresholds(message_error_min_ms=DEFAULTS.message_error_ms)
 # HEARTBEAT period: nominal 1 Hz on both stacks, and the longest gap in the recorded
 # firmware traffic (PX4 v1.16 SIH, ArduCopter SITL; see test_agent_health_replay).
 HEARTBEAT_PERIOD_S = (1.0, 1.015)
@@ -765,7 +775,7 @@ def test_liveness_at_the_default_boundaries(
     the heartbeat age decides) or the whole stream stops (the message age decides).
     Only ERROR may fail over, from the last message of the clock as its onset."""
     age_s = (getattr(DEFAULTS, threshold) + offset_ms) / 1000
-    v = Vehicle(thresholds=DEFAULTS)
+    v = Vehicle(thresholds=DEFAULTS if clock == "heartbeat" else FIXED_DEFAULTS)
     streaming(v, -3.0, age_s if clock == "heartbeat" else 0.0, beats_until_s=0.0)
     a = v.tracker.assess(age_s)
     assert (a.level, codes(a), a.failing) == (level, found, level == ERROR)

@@ -18,20 +18,16 @@ failsafe's MAV_STATE CRITICAL reported and corroborated into an ERROR. The hold 
 
 from __future__ import annotations
 
-import functools
 import itertools
 import os
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from datetime import UTC, datetime
-from pathlib import Path
-from typing import Any
 
 os.environ.setdefault("MAVLINK20", "1")
 
 import pytest
-from pymavlink import mavutil
 
-from roost_agent.health import Assessment, HealthTracker, Motion
+from roost_agent.health import Assessment, Motion
 from roost_agent.report import conditions
 from roost_agent.safety import DEFAULT_TIMING, judge_hold
 from roost_api.autopilot_enums import LandedState
@@ -40,105 +36,19 @@ from roost_api.plain import (
     AutopilotHealth,
     RedundantAutopilotSpec,
     RedundantAutopilotStatus,
-    Thresholds,
 )
 from roost_mavlink import MavState, custom_mode
-from roost_mavlink.codec import BadData, UnknownFrame, scan
-from tests.support.captures import capture
+from tests.support.captures import CAPTURES
+from tests.support.replay import (
+    RECORDINGS,
+    STEP_S,
+    TH,
+    Replay,
+    healthy_until,
+    replay,
+)
 
-STEP_S = 0.05
-TH = Thresholds()
 OK, STARTING, ERROR = HealthLevel.OK, HealthLevel.STARTING, HealthLevel.ERROR
-
-
-@dataclass
-class Replay:
-    """Messages of one recording (autopilot's own only) and the judgements over time."""
-
-    messages: list[tuple[float, Any]]
-    timeline: list[Assessment]
-    foreign: int
-    unknown: int  # frames of ids the agent's codec does not know
-
-    @property
-    def last_at(self) -> float:
-        return self.messages[-1][0]
-
-    def first(self, kind: str, **fields: int) -> float:
-        return next(
-            t
-            for t, m in self.messages
-            if m.get_type() == kind and all(getattr(m, k) == v for k, v in fields.items())
-        )
-
-    def up(self) -> float:
-        """The first heartbeat out of boot (STANDBY, or ACTIVE when armed at once)."""
-        return next(
-            t
-            for t, m in self.messages
-            if m.get_type() == "HEARTBEAT"
-            and m.system_status in (MavState.STANDBY, MavState.ACTIVE)
-        )
-
-    def during(self, start: float, end: float) -> list[Assessment]:
-        return [a for a in self.timeline if start <= a.at < end]
-
-    def at(self, t: float) -> Assessment:
-        return next(a for a in self.timeline if a.at >= t)
-
-
-@functools.cache
-def recording(path: Path) -> tuple[tuple[float, bytes], ...]:
-    """The recording's (time, frame bytes), read once per file: pymavlink's reading of a
-    .tlog is the same every time, while the agent's reading below runs for every test."""
-    conn: Any = mavutil.mavlink_connection(str(path), dialect="ardupilotmega")
-    frames: list[tuple[float, bytes]] = []
-    while (msg := conn.recv_match()) is not None:
-        frames.append((msg._timestamp, bytes(msg.get_msgbuf())))
-    conn.close()
-    return tuple(frames)
-
-
-def replay(
-    name: str, stack: Stack, tail_s: float = 4.0, lose_heartbeats: frozenset[int] = frozenset()
-) -> Replay:
-    """``lose_heartbeats``: which of the autopilot's HEARTBEATs (0 = its first) a lossy
-    link drops before the tracker sees them."""
-    tracker = HealthTracker("fc1", stack, TH)
-    messages: list[tuple[float, Any]] = []
-    timeline: list[Assessment] = []
-    start: float | None = None
-    next_at = 0.0
-    foreign = unknown = 0
-    heartbeats = 0
-    for stamp, buf in recording(capture(name)):
-        start = stamp if start is None else start
-        t = stamp - start
-        while next_at < t:
-            timeline.append(tracker.assess(next_at))
-            next_at += STEP_S
-        # the recording's framing and times, the agent's reading (as the link reads it)
-        for frame in scan(buf)[0]:
-            if isinstance(frame, UnknownFrame):
-                unknown += 1
-                continue
-            if isinstance(frame, BadData) or (
-                frame.get_srcSystem(),
-                frame.get_srcComponent(),
-            ) != (1, 1):
-                foreign += 1
-                continue
-            if frame.get_type() == "HEARTBEAT":
-                heartbeats += 1
-                if heartbeats - 1 in lose_heartbeats:
-                    continue
-            tracker.observe(frame, t)
-            messages.append((t, frame))
-    end = next_at + tail_s
-    while next_at < end:
-        timeline.append(tracker.assess(next_at))
-        next_at += STEP_S
-    return Replay(messages, timeline, foreign, unknown)
 
 
 def levels(assessments: list[Assessment]) -> set[HealthLevel]:
@@ -343,26 +253,14 @@ def test_brake_is_a_hold() -> None:
     assert failures == []
 
 
-# Every recording, up to where its autopilot reports trouble itself (MAV_STATE CRITICAL)
-# or the recording ends (the killed PX4's recording ends with the kill).
-RECORDINGS = [
-    ("px4-v1.16-sih-boot-arm-takeoff-loiter-land.tlog", Stack.PX4),
-    ("px4-v1.16-sih-killed-in-flight.tlog", Stack.PX4),
-    ("px4-v1.16-sih-battery-failsafe.tlog", Stack.PX4),
-    ("arducopter-boot-unrequested.tlog", Stack.ARDUPILOT),
-    ("arducopter-streams-arm-takeoff-brake-land.tlog", Stack.ARDUPILOT),
-    ("arducopter-loiter-no-rc.tlog", Stack.ARDUPILOT),
-]
 LOST_IN_A_ROW = 3  # the most the default heartbeat error tolerates (test_agent_health)
 
 
-def healthy_until(r: Replay) -> float:
-    critical = [
-        t
-        for t, m in r.messages
-        if m.get_type() == "HEARTBEAT" and m.system_status == MavState.CRITICAL
-    ]
-    return min(critical, default=r.last_at)
+def test_every_recording_there_is_replayed() -> None:
+    """A recording added to the captures directory is judged by the tests below too."""
+    if not CAPTURES.is_dir():
+        pytest.skip(f"no captures directory {CAPTURES} (set ROOST_CAPTURES_DIR)")
+    assert {p.name for p in CAPTURES.glob("*.tlog")} <= {name for name, _ in RECORDINGS}
 
 
 def heartbeat_times(r: Replay) -> list[float]:
