@@ -2,7 +2,8 @@
 
 The agent runs as its own process (``roost-agent --cluster off``, simulated bridge: the
 one stand-in, no GPIO here) on two simulated PX4s streaming their onboard rates over
-real UDP, at the default thresholds. A silent active autopilot fails over on the
+real UDP, at the default thresholds but the floor (60 ms, learning on; the default floor
+equals the ceiling, a fixed threshold). A silent active autopilot fails over on the
 threshold learnt from its stream (the floor, far under the fixed ceiling); the agent
 itself stopped (SIGSTOP, a starved CPU at its worst) while both autopilots keep
 streaming is never judged as their silence: no ERROR, no failover. About 25 s.
@@ -41,15 +42,16 @@ def test_silence_fails_over_on_the_learnt_threshold_and_a_stopped_agent_is_not_s
 ) -> None:
     sims = start_vehicle_sims(["px4", "px4"], config=SimConfig.fast())
     by_name = {s.name: s for s in sims}
+    th = Thresholds(message_error_min_ms=60)
     spec = RedundantAutopilotSpec(
         vehicle_name="silence",
         autopilots=autopilot_specs(sims),
         primary="fc1",
         failover_policy=FailoverPolicy(
-            safety_routine=SafetyRoutine(hold_seconds=0, final_action=FinalAction.HOLD)
+            thresholds=th,
+            safety_routine=SafetyRoutine(hold_seconds=0, final_action=FinalAction.HOLD),
         ),
     )
-    th = Thresholds()
     agent = AgentProcess.standalone(tmp_path, spec, log_level="WARNING")
     try:
         take_off(sims)

@@ -22,7 +22,8 @@ from roost_api.meta import HealthLevel, Stack
 from tests.support.feed import Feed
 
 OK, WARN, ERROR = HealthLevel.OK, HealthLevel.WARN, HealthLevel.ERROR
-DEFAULTS = Thresholds()
+# Learning on (the default floor equals the ceiling: a fixed threshold).
+DEFAULTS = Thresholds(message_error_min_ms=60)
 FLOOR_S = DEFAULTS.message_error_min_ms / 1000  # 60 ms
 CEILING_S = DEFAULTS.message_error_ms / 1000  # 200 ms
 MARGIN = DEFAULTS.silence_margin  # 2.5
