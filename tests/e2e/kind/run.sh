@@ -239,6 +239,9 @@ if [[ $provider == podman ]]; then
     [[ $target == agent ]] && export ROOST_KIND_ONBOARD_IMAGE=$name
   done
   export ROOST_KIND_SIMULATED=1
+  # The locally built node image has no volume provisioner (kind's local-path one is
+  # another image from a registry): the operator's Mission records go to an emptyDir.
+  values+=(--set operator.records.persistence.enabled=false)
 else
   context="$state/image-context"
   docker/build-images.sh --context "$context"
