@@ -27,6 +27,7 @@ import pytest
 
 from roost_localcluster.cluster import Cluster
 from roost_localcluster.realnode import RealNodes
+from roost_operator.engine.leader import LEASE_NAME
 from roost_sim.faults import FaultKind
 from tests.support.images import missing_tools
 from tests.support.realfleet import GROUND_NODE, VEHICLE, WAIT_S, RealFleet, chart_values
@@ -62,12 +63,18 @@ def _conditions(obj: dict[str, Any]) -> dict[str, str]:
     return {c["type"]: c["status"] for c in obj.get("status", {}).get("conditions", [])}
 
 
-def test_operator_pod_runs_on_the_ground_node_and_binds_the_vehicle(fleet: RealFleet) -> None:
-    (pod,) = fleet.pods("operator")
-    assert pod["spec"]["nodeName"] == GROUND_NODE
-    assert pod["status"]["phase"] == "Running"
-    # On the pod network: it reached the API server through the kubernetes Service.
-    assert fleet.ground is not None and pod["status"]["podIP"] != fleet.ground.address
+def test_operator_pods_run_on_the_ground_node_one_leads_and_it_binds_the_vehicle(
+    fleet: RealFleet,
+) -> None:
+    pods = fleet.pods("operator")
+    assert len(pods) == 2  # the chart's replicas, electing a leader on a Lease
+    for pod in pods:
+        assert pod["spec"]["nodeName"] == GROUND_NODE
+        assert pod["status"]["phase"] == "Running"
+        # On the pod network: it reached the API server through the kubernetes Service.
+        assert fleet.ground is not None and pod["status"]["podIP"] != fleet.ground.address
+    lease = fleet.get("lease", LEASE_NAME, namespaced=True)
+    assert lease["spec"]["holderIdentity"] in {pod["metadata"]["name"] for pod in pods}
     assert fleet.node_labelled()
     wait_until(
         "Vehicle NodeBound=True",
