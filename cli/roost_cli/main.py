@@ -104,10 +104,16 @@ console = Console()
 
 
 class Output(StrEnum):
-    """How ``status`` and ``missions`` print."""
+    """How ``status``, ``missions`` and ``records list`` print."""
 
     TABLE = "table"
     JSON = "json"
+
+
+OutputOption = Annotated[Output, typer.Option("--output", "-o")]
+NamespaceOption = Annotated[
+    str | None, typer.Option("--namespace", "-n", help="Only this namespace.")
+]
 
 
 class Context:
@@ -170,7 +176,7 @@ def status(
     events: Annotated[
         int, typer.Option(min=0, max=view.MAX_EVENTS, help="Recent Roost events to show.")
     ] = 0,
-    output: Annotated[Output, typer.Option("--output", "-o")] = Output.TABLE,
+    output: OutputOption = Output.TABLE,
 ) -> None:
     """The fleet: each vehicle's node, active autopilot, health, mission and last failover."""
     fleet = _context(ctx).fleet()
@@ -190,10 +196,8 @@ def status(
 @app.command()
 def missions(
     ctx: typer.Context,
-    namespace: Annotated[
-        str | None, typer.Option("--namespace", "-n", help="Only this namespace.")
-    ] = None,
-    output: Annotated[Output, typer.Option("--output", "-o")] = Output.TABLE,
+    namespace: NamespaceOption = None,
+    output: OutputOption = Output.TABLE,
 ) -> None:
     """Missions: phase, assigned vehicles and their state, why."""
     fleet = _context(ctx).fleet()
@@ -216,10 +220,8 @@ app.add_typer(records_app, name="records")
 @records_app.command("list")
 def records_list(
     ctx: typer.Context,
-    namespace: Annotated[
-        str | None, typer.Option("--namespace", "-n", help="Only this namespace.")
-    ] = None,
-    output: Annotated[Output, typer.Option("--output", "-o")] = Output.TABLE,
+    namespace: NamespaceOption = None,
+    output: OutputOption = Output.TABLE,
 ) -> None:
     """Missions with a flight record: its state, bundle and what is pending or missing."""
     fleet = _context(ctx).fleet()
