@@ -84,6 +84,7 @@ def dependencies(wheels: Path) -> None:
     subprocess.run([*pip(wheels), "install", *PIP_OPTIONS, "--no-deps", *kept], check=True)
     site = site_packages()
     remove_unused(site, UNUSED, UNUSED_GLOBS)
+    remove_unspoken_dialects(site)
     compile_dependencies(site)
 
 
@@ -124,7 +125,7 @@ def site_packages() -> Path:
 
 def remove_unused(site: Path, paths: tuple[str, ...], patterns: tuple[str, ...]) -> None:
     """Delete ``paths`` (``bin/...`` under the prefix, the rest under site-packages) and
-    what ``patterns`` match under site-packages; the dialects Roost does not speak."""
+    what ``patterns`` match under site-packages."""
     for rel in paths:
         path = PREFIX / rel if rel.startswith("bin/") else site / rel
         if path.is_dir():
@@ -137,11 +138,14 @@ def remove_unused(site: Path, paths: tuple[str, ...], patterns: tuple[str, ...])
                 shutil.rmtree(path)
             else:
                 path.unlink()
-    dialects = site / "pymavlink/dialects/v20"
-    if dialects.is_dir():
-        for path in dialects.iterdir():
-            if path.is_file() and path.name not in DIALECTS_KEPT:
-                path.unlink()
+
+
+def remove_unspoken_dialects(site: Path) -> None:
+    """Every MAVLink dialect module but the ones Roost speaks (before compiling: the
+    names kept are the sources')."""
+    for path in (site / "pymavlink/dialects/v20").iterdir():
+        if path.is_file() and path.name not in DIALECTS_KEPT:
+            path.unlink()
 
 
 def compile_dependencies(site: Path) -> None:
