@@ -361,13 +361,26 @@ mission_image() {
   echo "$out"
 }
 
+# One build at a time per cache: checkouts share its storage, contexts and archives, and
+# two builds at once would remove each other's contexts. The lock is the cache's own
+# file; the kernel drops it when this script and its children end.
+lock_cache() {
+  mkdir -p "$out"
+  exec 9>"$out/.lock"
+  if ! flock -n 9; then
+    echo "images: waiting for another build into $out to finish ..." >&2
+    flock 9
+  fi
+}
+
 case "${1:-}" in
   --print) echo "$out"; exit 0 ;;
-  --mission) mission_image "${2:-}"; exit 0 ;;
+  --mission) lock_cache; mission_image "${2:-}"; exit 0 ;;
   --context) write_context "${2:?--context needs a directory}"; exit 0 ;;
-  --compiled-tree) compiled_tree; exit 0 ;;
+  --compiled-tree) lock_cache; compiled_tree; exit 0 ;;
 esac
 
+lock_cache
 version=$(sed -nE 's/^version = "([^"]+)"$/\1/p' "$repo/pyproject.toml")
 key=$(sources_key)
 if [[ -s "$out/key" && "$(cat "$out/key")" == "$key" \
