@@ -33,10 +33,11 @@ from bench.hub import VEHICLE_SYSID, _added_latency, _percentile, _vehicle
 from roost_agent import Agent
 from roost_agent.records_logs import FetchSettings, LogFetcher
 from roost_agent.records_recorder import FlightRecorder, FrameTap
-from roost_mavlink import MAV_CMD_NAV_LAND
+from roost_mavlink import MAV_CMD_NAV_LAND, MAV_MODE_FLAG_SAFETY_ARMED
 from roost_sim import SimulatedAutopilot
 from roost_sim.logs import Sample, StoredLog, ulog_bytes
 from tests.support.hubclient import HubClient
+from tests.support.waiting import wait_until
 
 COMMAND = "python -m bench records"
 BLOCKS = 4
@@ -140,6 +141,13 @@ def _download(
     link = agent.links[active.name]
     fetcher = LogFetcher(
         lambda: {active.name: link}, settings=FetchSettings(rate_bytes_per_s=FETCH_KBPS * 1000)
+    )
+    # The fetcher refuses while the agent's last heartbeat from it says armed: wait until
+    # the agent has heard the landing the simulator already made.
+    wait_until(
+        "the agent hears the autopilot disarmed",
+        lambda: (beat := link.heartbeat()) is not None and not beat[1] & MAV_MODE_FLAG_SAFETY_ARMED,
+        10,
     )
     heard = FrameTap(capacity=10**7)  # every frame the agent accepted from the autopilot
     link.record = heard
