@@ -297,18 +297,6 @@ def read_manifests(root: Path) -> list[Manifest]:
     return found
 
 
-def sha256_of(path: Path) -> str:
-    # hashlib maps libcrypto: only an agent that records pays for it (roost-agent's
-    # flags import this module for its defaults).
-    import hashlib  # noqa: PLC0415
-
-    digest = hashlib.sha256()
-    with path.open("rb") as data:
-        for chunk in iter(lambda: data.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
-
-
 # -- serving ---------------------------------------------------------------------------
 
 

@@ -42,9 +42,9 @@ from roost_agent.records import (
     FileState,
     Manifest,
     read_manifests,
-    sha256_of,
 )
 from roost_api.core import Stack
+from roost_api.records import sha256_of
 from roost_mavlink import MAV_MODE_FLAG_SAFETY_ARMED
 
 log = logging.getLogger(__name__)

@@ -64,10 +64,10 @@ from roost_agent.records import (
     fsync_directory,
     read_manifest,
     read_manifests,
-    sha256_of,
     stored_flights,
     write_manifest,
 )
+from roost_api.records import sha256_of
 from roost_mavlink import MAV_MODE_FLAG_SAFETY_ARMED
 from roost_mavlink.codec import V1_MAGIC, V2_MAGIC, Frame, scan
 

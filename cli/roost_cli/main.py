@@ -166,6 +166,14 @@ def _print_json(rows: object) -> None:
     sys.stdout.write(json.dumps(rows, indent=2, default=str) + "\n")
 
 
+def _missions(ctx: typer.Context, namespace: str | None) -> list[dict[str, Any]]:
+    """The Missions a listing command shows (one namespace's, if given and existing)."""
+    fleet = _context(ctx).fleet()
+    if namespace is not None:
+        fleet.require_namespace(namespace)
+    return fleet.missions(namespace)
+
+
 @app.command()
 def status(
     ctx: typer.Context,
@@ -200,10 +208,7 @@ def missions(
     output: OutputOption = Output.TABLE,
 ) -> None:
     """Missions: phase, assigned vehicles and their state, why."""
-    fleet = _context(ctx).fleet()
-    if namespace is not None:
-        fleet.require_namespace(namespace)
-    rows = tables.mission_rows(fleet.missions(namespace), datetime.now(UTC))
+    rows = tables.mission_rows(_missions(ctx, namespace), datetime.now(UTC))
     if output is Output.JSON:
         _print_json([asdict(row) for row in rows])
         return
@@ -224,10 +229,7 @@ def records_list(
     output: OutputOption = Output.TABLE,
 ) -> None:
     """Missions with a flight record: its state, bundle and what is pending or missing."""
-    fleet = _context(ctx).fleet()
-    if namespace is not None:
-        fleet.require_namespace(namespace)
-    rows = records.record_rows(fleet.missions(namespace))
+    rows = records.record_rows(_missions(ctx, namespace))
     if output is Output.JSON:
         _print_json([asdict(row) for row in rows])
         return

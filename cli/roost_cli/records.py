@@ -15,7 +15,6 @@ its record, the rows of the list) are pure functions here; the commands in
 
 from __future__ import annotations
 
-import hashlib
 import json
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -25,6 +24,7 @@ from urllib.parse import quote
 
 import urllib3
 
+from roost_api.records import sha256_of
 from roost_cli.errors import CliError
 
 OPERATOR_LABELS = {"app.kubernetes.io/component": "operator"}
@@ -182,14 +182,6 @@ def _safe(path: str) -> bool:
     return bool(path) and not pure.is_absolute() and ".." not in pure.parts
 
 
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def fetch_file(server: Server, bundle: str, entry: Mapping[str, Any], out: Path) -> Path:
     """One file of the bundle's manifest into ``out`` (kept when already whole; resumed
     from a ``.part``); CliError when cut or when its sha256 differs."""
@@ -197,7 +189,7 @@ def fetch_file(server: Server, bundle: str, entry: Mapping[str, Any], out: Path)
     if not _safe(path):
         raise CliError(f"bundle {bundle}: refused path {path!r} in its manifest")
     target = out / path
-    if target.is_file() and _sha256(target) == entry.get("sha256"):
+    if target.is_file() and sha256_of(target) == entry.get("sha256"):
         return target
     part = target.with_name(target.name + ".part")
     part.parent.mkdir(parents=True, exist_ok=True)
@@ -218,7 +210,7 @@ def fetch_file(server: Server, bundle: str, entry: Mapping[str, Any], out: Path)
                     ) from None
     finally:
         response.release_conn()
-    if _sha256(part) != entry.get("sha256"):
+    if sha256_of(part) != entry.get("sha256"):
         part.unlink()
         raise CliError(f"bundle {bundle}: {path}: sha256 differs from the manifest's")
     part.replace(target)

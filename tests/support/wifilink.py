@@ -28,9 +28,9 @@ from roost_agent.records import (
     FlightState,
     Manifest,
     read_manifest,
-    sha256_of,
     write_manifest,
 )
+from roost_api.records import sha256_of
 from roost_localcluster.controlplane import free_port
 
 KINDS = {".tlog": FileKind.TLOG, ".jsonl": FileKind.DECISIONS, ".json": FileKind.PARAMS}

@@ -17,7 +17,6 @@ rename) after every round, so a reader never sees half of one.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -29,6 +28,7 @@ from typing import Any
 
 import urllib3
 
+from roost_api.records import sha256_of
 from roost_operator.records.planning import BundleInfo, Fetch, safe_path
 from roost_operator.records.source import Endpoint, SourceError, chunks
 
@@ -47,14 +47,6 @@ class Stored:
     path: str
     bytes: int
     sha256: str
-
-
-def sha256_of(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def write_atomically(path: Path, data: bytes) -> None:
