@@ -114,6 +114,17 @@ OutputOption = Annotated[Output, typer.Option("--output", "-o")]
 NamespaceOption = Annotated[
     str | None, typer.Option("--namespace", "-n", help="Only this namespace.")
 ]
+RecordsUrlOption = Annotated[
+    str | None,
+    typer.Option(
+        "--records-url",
+        envvar="ROOST_RECORDS_URL",
+        help="The operator's records server, when reachable directly (else the pod proxy).",
+    ),
+]
+OperatorNamespaceOption = Annotated[
+    str, typer.Option("--operator-namespace", help="Where the operator runs.")
+]
 
 
 class Context:
@@ -254,17 +265,8 @@ def records_get(
     ref: Annotated[str, typer.Argument(help="mission/NAME or mission/NAMESPACE/NAME.")],
     out: Annotated[Path, typer.Option("--output-dir", "-o", help="Where to write the bundle.")],
     namespace: Annotated[str, typer.Option("--namespace", "-n")] = "default",
-    operator_namespace: Annotated[
-        str, typer.Option("--operator-namespace", help="Where the operator runs.")
-    ] = "roost-system",
-    records_url: Annotated[
-        str | None,
-        typer.Option(
-            "--records-url",
-            envvar="ROOST_RECORDS_URL",
-            help="The operator's records server, when reachable directly (else the pod proxy).",
-        ),
-    ] = None,
+    operator_namespace: OperatorNamespaceOption = "roost-system",
+    records_url: RecordsUrlOption = None,
 ) -> None:
     """Fetch a Mission's record (its bundle) into a directory; resumes when run again."""
     kind, _, rest = ref.partition("/")
@@ -436,17 +438,8 @@ def dashboard(
             "--in-cluster", help="Use the pod's service account (the chart's Deployment)."
         ),
     ] = False,
-    records_url: Annotated[
-        str | None,
-        typer.Option(
-            "--records-url",
-            envvar="ROOST_RECORDS_URL",
-            help="The operator's records server, when reachable directly (else the pod proxy).",
-        ),
-    ] = None,
-    operator_namespace: Annotated[
-        str, typer.Option("--operator-namespace", help="Where the operator runs.")
-    ] = "roost-system",
+    records_url: RecordsUrlOption = None,
+    operator_namespace: OperatorNamespaceOption = "roost-system",
 ) -> None:
     """A live fleet view in the browser: arena, fleet, missions, timeline, guarded actions.
 
