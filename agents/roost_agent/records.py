@@ -27,9 +27,10 @@ import shutil
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
-from enum import StrEnum
 from pathlib import Path
 from typing import Any
+
+from roost_api.records import FileKind, FileState, FlightState
 
 MANIFEST = "flight.json"
 TLOG = "hub.tlog"
@@ -41,26 +42,6 @@ DEFAULT_DIR = "/var/lib/roost/records"
 DEFAULT_BUDGET_MB = 2048
 
 _ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
-
-
-class FlightState(StrEnum):
-    RECORDING = "Recording"  # armed: the recorder writes
-    LANDED = "Landed"  # disarmed everywhere: the autopilots' logs are being fetched
-    COMPLETE = "Complete"  # everything written and fetched
-    FAILED = "Failed"  # something could not be recorded (the message says what)
-
-
-class FileState(StrEnum):
-    PARTIAL = "Partial"
-    COMPLETE = "Complete"
-    FAILED = "Failed"
-
-
-class FileKind(StrEnum):
-    TLOG = "tlog"
-    DECISIONS = "decisions"
-    PARAMS = "params"
-    AUTOPILOT_LOG = "autopilot-log"
 
 
 @dataclass(frozen=True)

@@ -35,16 +35,9 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-from roost_agent.records import (
-    LOGS_DIR,
-    FileEntry,
-    FileKind,
-    FileState,
-    Manifest,
-    read_manifests,
-)
+from roost_agent.records import LOGS_DIR, FileEntry, Manifest, read_manifests
 from roost_api.core import Stack
-from roost_api.records import sha256_of
+from roost_api.records import FileKind, FileState, sha256_of
 from roost_mavlink import MAV_MODE_FLAG_SAFETY_ARMED
 
 log = logging.getLogger(__name__)

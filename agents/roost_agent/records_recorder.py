@@ -54,9 +54,6 @@ from roost_agent.records import (
     PARAMS_DIR,
     TLOG,
     FileEntry,
-    FileKind,
-    FileState,
-    FlightState,
     Manifest,
     choose_deletions,
     delete_flight,
@@ -67,7 +64,7 @@ from roost_agent.records import (
     stored_flights,
     write_manifest,
 )
-from roost_api.records import sha256_of
+from roost_api.records import FileKind, FileState, FlightState, sha256_of
 from roost_mavlink import MAV_MODE_FLAG_SAFETY_ARMED
 from roost_mavlink.codec import V1_MAGIC, V2_MAGIC, Frame, scan
 

@@ -17,9 +17,10 @@ from pathlib import Path
 import pytest
 from pymavlink import mavutil
 
-from roost_agent.records import FlightState, read_manifests
+from roost_agent.records import read_manifests
 from roost_agent.records_recorder import SYNC_PERIOD_S, WRITE_PERIOD_S
 from roost_api.autopilot import RedundantAutopilotSpec
+from roost_api.records import FlightState
 from roost_sim.autopilot import SimulatedAutopilot
 from roost_sim.model import SimConfig
 from roost_sim.vehicle import autopilot_specs, start_vehicle_sims, stop_sims

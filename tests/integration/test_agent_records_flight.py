@@ -20,16 +20,10 @@ from typing import Any
 import pytest
 from pymavlink import DFReader, mavutil
 
-from roost_agent.records import (
-    FileState,
-    FlightState,
-    Manifest,
-    flight_id,
-    read_manifests,
-    write_manifest,
-)
+from roost_agent.records import Manifest, flight_id, read_manifests, write_manifest
 from roost_agent.records_logs import FetchSettings, LogFetcher, check_ulog
 from roost_agent.records_recorder import FlightRecorder
+from roost_api.records import FileState, FlightState
 from roost_mavlink import MAV_CMD_COMPONENT_ARM_DISARM, MavResult
 from tests.support.hubclient import VEHICLE_SYSID, HubVehicle, hub_vehicle
 from tests.support.waiting import wait_until

@@ -9,8 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from roost_agent.records import FileEntry, FileKind, Manifest, write_manifest
+from roost_agent.records import FileEntry, Manifest, write_manifest
 from roost_agent.records_server import RecordsServer
+from roost_api.records import FileKind
 from tests.unit.test_agent_records import T0
 
 

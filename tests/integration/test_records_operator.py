@@ -35,9 +35,9 @@ from typing import Any
 
 import pytest
 
-from roost_agent.records import FlightState
 from roost_agent.records_server import RecordsServer
 from roost_api.mission import MissionPhase, MissionStatus, RecordsState
+from roost_api.records import FlightState
 from roost_api.wellknown import ANNOTATION_RECORDS
 from roost_kube.client import Kube
 from roost_kube.resources import VEHICLES

@@ -10,9 +10,6 @@ import pytest
 from roost_agent.records import (
     ByteRange,
     FileEntry,
-    FileKind,
-    FileState,
-    FlightState,
     Manifest,
     RangeNotSatisfiableError,
     StoredFlight,
@@ -24,6 +21,7 @@ from roost_agent.records import (
     write_manifest,
 )
 from roost_agent.records_recorder import close_interrupted
+from roost_api.records import FileKind, FileState, FlightState
 
 T0 = datetime(2026, 11, 27, 20, 0, 0, tzinfo=UTC)
 

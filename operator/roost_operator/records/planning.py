@@ -30,9 +30,10 @@ from pathlib import PurePosixPath
 from typing import Any
 
 from roost_api.mission import MissionRecordsStatus, RecordsState, VehicleRecordsStatus
+from roost_api.records import FileState, FlightState
 from roost_operator.records.settings import RecordsSettings
 
-FINAL_FLIGHT_STATES = frozenset({"Complete", "Failed"})
+FINAL_FLIGHT_STATES = frozenset({FlightState.COMPLETE, FlightState.FAILED})
 """Agent flight states after which nothing more is written to the flight."""
 
 
@@ -80,7 +81,7 @@ class AgentFlight:
             AgentFile(
                 path=str(f["path"]),
                 kind=str(f.get("kind") or ""),
-                state=str(f.get("state") or "Partial"),
+                state=str(f.get("state") or FileState.PARTIAL),
                 bytes=int(f.get("bytes") or 0),
                 sha256=f.get("sha256") or None,
                 autopilot=f.get("autopilot") or None,
@@ -94,7 +95,7 @@ class AgentFlight:
             vehicle=str(body.get("vehicle") or ""),
             armed_at=_time(body["armedAt"]),
             disarmed_at=_time(disarmed) if disarmed else None,
-            state=str(body.get("state") or "Recording"),
+            state=str(body.get("state") or FlightState.RECORDING),
             message=body.get("message") or None,
             files=files,
             raw=dict(body),
@@ -212,7 +213,7 @@ def plan_vehicle(
         if not flight.final:
             reason = f"still {flight.state} when the settle time ended; taken as it was"
             plan.missing.append(Missing(name, reason, flight.flight_id))
-        elif flight.state == "Failed":
+        elif flight.state == FlightState.FAILED:
             reason = "recording Failed on the vehicle" + (
                 f": {flight.message}" if flight.message else ""
             )
@@ -247,7 +248,7 @@ def _plan_file(
 ) -> None:
     key = (flight.flight_id, item.path)
     if key in held:
-        if item.state != "Complete":
+        if item.state != FileState.COMPLETE:
             plan.missing.append(
                 Missing(plan.vehicle, _file_reason(item), flight.flight_id, item.path)
             )
@@ -257,7 +258,7 @@ def _plan_file(
             Missing(plan.vehicle, "path outside the flight refused", flight.flight_id, item.path)
         )
         return
-    if item.state == "Failed":
+    if item.state == FileState.FAILED:
         plan.missing.append(Missing(plan.vehicle, _file_reason(item), flight.flight_id, item.path))
         return
     if attempts.get(key, 0) >= settings.fetch_attempts:
