@@ -32,7 +32,7 @@ import yaml
 
 from roost_agent import Agent
 from roost_agent.bridge import SimulatedBridge
-from roost_agent.health import HealthTracker
+from roost_agent.health import Assessment, HealthTracker
 from roost_agent.links import AutopilotLink
 from roost_agent.safety import Phase, SafetyRunner
 from roost_agent.state import STATE_FILE_NAME, StateFile
@@ -144,6 +144,16 @@ def standby_usable(agent: Agent) -> bool:
     return redundant.status == "True"
 
 
+def only_late(seen: Assessment) -> bool:
+    """Healthy, or at worst a stream gap under the silence limit (WARN "late").
+
+    On a loaded two-core machine the 50 Hz stream can pause for just over 100 ms, which
+    the agent rightly calls late; a ground station's heartbeat taken as the autopilot's
+    would show instead as disarmed in the air or as a wrong MAV_STATE.
+    """
+    return seen.level == HealthLevel.OK or {f.code for f in seen.findings} == {"late"}
+
+
 def test_ardupilot_streaming_only_on_request_fails_over_unaided(tmp_path: Path) -> None:
     # ArduPilot also routes a ground station's heartbeats (sysid 255, disarmed) onto the
     # link; taken as the autopilot's, they would make the standby look disarmed.
@@ -153,12 +163,12 @@ def test_ardupilot_streaming_only_on_request_fails_over_unaided(tmp_path: Path) 
         # heard but not yet streaming: never a healthy standby (then the streams came)
         assert "StandbyStateUnknown" in log.reasons, log.reasons
         fc2 = agent.assessments()["fc2"]
-        assert fc2.armed is True and fc2.in_air is True and fc2.level == HealthLevel.OK
+        assert fc2.armed is True and fc2.in_air is True and only_late(fc2), fc2.reasons
         # over 2.5 s (two routed ground-station heartbeats) the standby never looks
         # disarmed or unhealthy: "nothing happens" is the point here
         for _ in range(50):
             seen = agent.assessments()["fc2"]
-            assert seen.armed is True and seen.level == HealthLevel.OK, seen.reasons
+            assert seen.armed is True and only_late(seen), seen.reasons
             time.sleep(0.05)
         asked = {
             int(c.params[0])
