@@ -282,7 +282,10 @@ def test_a_link_that_cannot_open_reports_retries_and_recovers(tmp_path: Path) ->
             blocker.close()
             wait_until("fc1 OK", lambda: levels(agent).get("fc1") == HealthLevel.OK, 20, 0.02)
             assert agent.links["fc1"].error is None
-            assert "LinkRecovered" in events.reasons(EventKind.LINK)
+            # the Event is emitted on the agent's event thread, after the health turned OK
+            wait_until(
+                "LinkRecovered", lambda: "LinkRecovered" in events.reasons(EventKind.LINK), 5, 0.02
+            )
     finally:
         blocker.close()
         stop_sims(sims)
