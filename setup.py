@@ -23,12 +23,12 @@ from typing import Any
 from setuptools import setup
 
 COMPILED_MODULES = (
-    "agents/roost_mavlink/codec.py",
-    "agents/roost_agent/health.py",
-    "agents/roost_agent/transport.py",
-    "agents/roost_agent/trust.py",
-    "agents/roost_agent/reader.py",
-    "agents/roost_agent/link.py",
+    "mavlink/roost_mavlink/codec.py",
+    "agent/roost_agent/health.py",
+    "agent/roost_agent/transport.py",
+    "agent/roost_agent/trust.py",
+    "agent/roost_agent/reader.py",
+    "agent/roost_agent/link.py",
 )
 """The modules compiled with ``ROOST_COMPILE=1``, as paths from the repository root."""
 
