@@ -1,8 +1,9 @@
 """Packaging hook: with ``ROOST_COMPILE=1`` the agent's per-message path is compiled.
 
-Every datagram an autopilot sends passes through three modules: the MAVLink parser
-(``roost_mavlink.codec``), the link that reads and accounts for it
-(``roost_agent.links``) and the health tracker that judges it (``roost_agent.health``).
+Every datagram an autopilot sends passes through the MAVLink parser
+(``roost_mavlink.codec``), the link's modules that read, trust and account for it
+(``roost_agent.transport``, ``roost_agent.reader``, ``roost_agent.trust``,
+``roost_agent.link``) and the health tracker that judges it (``roost_agent.health``).
 They are mypy-strict, so mypyc can compile them to C extension modules that run the same
 code cheaper (``agent.cpu_ms_per_10k_msgs`` against ``agent.cpu_ms_per_10k_msgs_interpreted``
 in the README's benchmark table). The image build sets ``ROOST_COMPILE=1``
@@ -22,9 +23,12 @@ from typing import Any
 from setuptools import setup
 
 COMPILED_MODULES = (
-    "agents/roost_mavlink/codec.py",
-    "agents/roost_agent/health.py",
-    "agents/roost_agent/links.py",
+    "mavlink/roost_mavlink/codec.py",
+    "agent/roost_agent/health.py",
+    "agent/roost_agent/transport.py",
+    "agent/roost_agent/trust.py",
+    "agent/roost_agent/reader.py",
+    "agent/roost_agent/link.py",
 )
 """The modules compiled with ``ROOST_COMPILE=1``, as paths from the repository root."""
 

@@ -14,7 +14,7 @@ paced message to a second after the last, per 10,000 frames that reached the cli
 - ``hub.loss_pct_1to1_5000``: frames the active autopilot sent that did not reach the
   client at 5,000 messages/s. Measured once the autopilot's address holds the link's
   source lock: a new source's first frames are dropped until it proves itself with two
-  autopilot HEARTBEATs (``roost_agent.links``), a second or two of its stream.
+  autopilot HEARTBEATs (``roost_agent.trust``), a second or two of its stream.
 - ``hub.agent_cpu_ms_per_10k_routed_2x2_400``: both autopilots send at 400 messages/s
   (the agent reads both), the active one's stream goes to two clients.
 - ``hub.syscalls_per_routed_msg``: ``strace -c -f`` on the agent for a window at 2,000

@@ -62,7 +62,7 @@ here=$(cd "$(dirname "$0")" && pwd)
 repo=$(cd "$here/.." && pwd)
 # The package folders the wheel is built from (pyproject's packages.find); the image
 # cache key hashes the same list, so a new package cannot be left out of one of them.
-packages=(api kube operator agents cli localcluster)
+packages=(api kube operator agent mavlink sim cli localcluster)
 host_arch=$(dpkg --print-architecture 2>/dev/null || echo amd64)
 read -r -a archs <<<"${ROOST_IMAGE_ARCHS:-amd64 arm64}"
 # Without ROOST_IMAGE_ARCHS, a machine where arm64 programs cannot run (docker/binfmt.sh

@@ -127,14 +127,16 @@ def test_agent_image_runs_the_compiled_per_message_path(
     (setup.py compiles them for the image), and the parser works in them."""
     store, images = podman
     probe = (
-        "import roost_mavlink.codec as c, roost_agent.links as l, roost_agent.health as h;"
-        "print(*(m.__file__.rsplit('.', 1)[-1] for m in (c, l, h)));"
+        "import roost_mavlink.codec as c, roost_agent.health as h;"
+        "import roost_agent.transport as t, roost_agent.trust as u;"
+        "import roost_agent.reader as r, roost_agent.link as l;"
+        "print(*(m.__file__.rsplit('.', 1)[-1] for m in (c, h, t, u, r, l)));"
         "f = c.Encoder(1, 1).encode('HEARTBEAT', type=2, autopilot=12, base_mode=0,"
         " custom_mode=0, system_status=4, mavlink_version=3);"
         "(frame,), used = c.scan(f); print(frame.get_type(), used == len(f))"
     )
     done = store.run(images["agent"], "-c", probe, entrypoint="python3")
-    assert done.stdout.split() == ["so", "so", "so", "HEARTBEAT", "True"], done.stdout + done.stderr
+    assert done.stdout.split() == ["so"] * 6 + ["HEARTBEAT", "True"], done.stdout + done.stderr
 
 
 def test_image_has_no_setuid_files(podman: tuple[Podman, dict[str, str]]) -> None:

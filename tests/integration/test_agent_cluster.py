@@ -37,6 +37,7 @@ from roost_operator.vehicles.pods import mavros_follows
 from roost_sim import SimConfig, SimulatedAutopilot, autopilot_specs, start_vehicle_sims, stop_sims
 from tests.support.agent import AgentProcess
 from tests.support.apiwrites import write_requests
+from tests.support.flight import land
 from tests.support.operator import OperatorProcess
 from tests.support.waiting import unique, wait_until
 
@@ -475,7 +476,7 @@ def test_a_fence_written_into_the_redundant_autopilot_reaches_both_autopilots_an
     until("the fence deferred while the vehicle flies", deferred)
     assert all(sim.fence.uploads == 0 for sim in rig.sims)
     for sim in rig.sims:
-        sim.land()
+        land(sim)
     until("both autopilots hold the fence", held)
     assert all(len(sim.fence.items) == 1 for sim in rig.sims)
     assert all(sim.params.get("GF_MAX_VER_DIST") == 25 for sim in rig.sims)

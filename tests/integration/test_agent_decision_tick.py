@@ -18,8 +18,9 @@ from datetime import UTC, datetime
 
 import pytest
 
-from roost_agent.agent import Agent, AgentEvent
+from roost_agent.agent import Agent
 from roost_agent.bridge import SimulatedBridge
+from roost_agent.events import AgentEvent
 from roost_api.autopilot import (
     Thresholds,
 )

@@ -21,7 +21,7 @@ from typing import Any
 import pytest
 import yaml
 
-from roost_agent import Agent, links
+from roost_agent import Agent, reader
 from roost_agent.agent import STEERED_TICK_S
 from roost_agent.bridge import SimulatedBridge
 from roost_agent.state import STATE_FILE_NAME, StateFile
@@ -194,7 +194,7 @@ def test_a_fatal_heartbeat_and_command_answers_are_read_when_they_arrive(
     soon after, as a claim waits) and the switch follows; the safety routine's first
     command is answered within its 0.4 s wait, so it is sent once, not retried. (The
     reader's longest sleep is raised to the same minute: nothing else wakes it.)"""
-    monkeypatch.setattr(links, "READ_WAIT_S", RARE_READ_S)
+    monkeypatch.setattr(reader, "READ_WAIT_S", RARE_READ_S)
     with flying(
         ["px4", "px4"], tmp_path, transport=transport, steered_tick_s=RARE_READ_S
     ) as flight:

@@ -3,7 +3,7 @@ links, the source lock on what a listener answers, frames pymavlink's dialect la
 the kernel's arrival time of a datagram read late.
 
 The pure rules these links follow (source lock, signing, URLs) are in
-``tests/unit/test_agent_links.py``.
+``tests/unit/test_agent_trust.py``.
 """
 
 from __future__ import annotations
@@ -14,9 +14,10 @@ import time
 
 import pytest
 
-from roost_agent import links
+from roost_agent import link as link_module
 from roost_agent.health import HealthTracker
-from roost_agent.links import AutopilotLink, UdpListen, UdpOut, open_transport
+from roost_agent.link import AutopilotLink
+from roost_agent.transport import UdpListen, UdpOut, open_transport
 from roost_api.autopilot import Thresholds
 from roost_api.meta import Stack
 from roost_mavlink import AGENT_COMPONENT_ID
@@ -204,7 +205,7 @@ def test_a_datagram_read_late_keeps_its_kernel_arrival_time(
     late, beyond the slack: the slack before the read, never the read time (which would
     delay a silence by the whole wait)."""
     if not later_than_slack:
-        monkeypatch.setattr(links, "STAMP_SLACK_S", 10.0)
+        monkeypatch.setattr(link_module, "STAMP_SLACK_S", 10.0)
     from pymavlink.dialects.v20 import common  # noqa: PLC0415
 
     autopilot_socket = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -232,12 +233,12 @@ def test_a_datagram_read_late_keeps_its_kernel_arrival_time(
         delivered = time.monotonic()
         time.sleep(0.3 if later_than_slack else 0.05)
         read_from = time.monotonic()
-        link._drain(session)
+        link.drain(session)
         read_until = time.monotonic()
         beat = link.heartbeat()
         assert beat is not None
         if later_than_slack:
-            slack = links.STAMP_SLACK_S
+            slack = link_module.STAMP_SLACK_S
             assert read_from - slack - 0.001 <= beat[2] <= read_until - slack + 0.001
         else:  # arrival (within the clock conversion's rounding), not the read 50 ms later
             assert sent_at - 0.001 <= beat[2] <= delivered + 0.001

@@ -17,12 +17,15 @@ from collections.abc import Iterator
 
 import pytest
 
-from roost_agent import links
-from roost_agent.links import LinkReader, SourceLock, UdpListen, UdpOut, _Session
+from roost_agent import reader as reader_module
+from roost_agent import transport
+from roost_agent.reader import LinkReader, Session
 from roost_agent.steering import (
     MAX_FRAMES,
     steered_sockets,
 )
+from roost_agent.transport import UdpListen, UdpOut
+from roost_agent.trust import SourceLock
 from roost_mavlink.codec import Encoder
 from roost_mavlink.signing import sign_frame
 from tests.support.kernelstamps import until_the_kernel_stamps_arrivals
@@ -168,8 +171,8 @@ def test_where_the_kernel_refuses_to_steer_a_link_keeps_one_socket(
     def refuse(bind: tuple[str, int]) -> tuple[socket.socket, socket.socket]:
         raise OSError(errno.ENOPROTOOPT, "Protocol not available")
 
-    monkeypatch.setattr(links, "steered_sockets", refuse)
-    monkeypatch.setattr(links, "_STEERING_WORKS", [True])
+    monkeypatch.setattr(transport, "steered_sockets", refuse)
+    monkeypatch.setattr(transport, "_STEERING_WORKS", [True])
     listener = UdpListen("127.0.0.1", 0, steer=True)
     try:
         assert listener.urgent_fileno() is None
@@ -181,7 +184,7 @@ def test_where_the_kernel_refuses_to_steer_a_link_keeps_one_socket(
         sender.close()
     finally:
         listener.close()
-    assert links._STEERING_WORKS == [False]  # asked once per process, not per link
+    assert transport._STEERING_WORKS == [False]  # asked once per process, not per link
 
 
 def test_the_reader_reads_rarely_only_while_every_link_is_steered() -> None:
@@ -189,8 +192,8 @@ def test_the_reader_reads_rarely_only_while_every_link_is_steered() -> None:
     reader.drive(lambda: None, 0.02, 0.1)
     steered = UdpListen("127.0.0.1", 0, steer=True)
     plain = UdpListen("127.0.0.1", 0)
-    first = _Session(steered, SourceLock(relock_after_s=1.0), None)
-    second = _Session(plain, SourceLock(relock_after_s=1.0), None)
+    first = Session(steered, SourceLock(relock_after_s=1.0), None)
+    second = Session(plain, SourceLock(relock_after_s=1.0), None)
     try:
         assert reader.tick_s == 0.02  # nothing to read yet
         reader.attach(first)
@@ -216,8 +219,9 @@ def test_health_judged_between_reads_stands_for_the_last_read() -> None:
     try:
         wait_until("a read", lambda: time.monotonic() - reader.as_of(time.monotonic()) < 0.05)
         now = time.monotonic()
-        assert now - links.READ_WAIT_S <= reader.as_of(now) <= now
-        assert reader.as_of(now + 60.0) == now + 60.0 - links.READ_WAIT_S  # a stalled reader
+        assert now - reader_module.READ_WAIT_S <= reader.as_of(now) <= now
+        stalled = now + 60.0 - reader_module.READ_WAIT_S
+        assert reader.as_of(now + 60.0) == stalled  # a stalled reader
     finally:
         reader.stop()
 
@@ -228,7 +232,7 @@ class _CountingLink:
     def __init__(self) -> None:
         self.drains = 0
 
-    def _drain(self, session: _Session) -> None:
+    def drain(self, session: Session) -> None:
         self.drains += 1
         session.transport.receive_batch(1 << 16)
 
@@ -243,7 +247,7 @@ def test_a_flood_of_forged_heartbeats_wakes_the_reader_no_more_than_the_short_in
     reader.drive(lambda: None, short_s, 60.0)
     listener = UdpListen("127.0.0.1", 0, steer=True)
     link = _CountingLink()
-    session = _Session(listener, SourceLock(relock_after_s=1.0), None)
+    session = Session(listener, SourceLock(relock_after_s=1.0), None)
     session.link = link  # type: ignore[assignment]
     flooding = threading.Event()
     sent = [0]

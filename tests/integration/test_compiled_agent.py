@@ -28,7 +28,7 @@ SUITES = (
     "tests/unit/test_agent_health.py",
     "tests/unit/test_agent_steering.py",
     "tests/integration/test_agent_steering_kernel.py",
-    "tests/unit/test_agent_links.py",
+    "tests/unit/test_agent_trust.py",
     "tests/integration/test_agent_links_sockets.py",
     "tests/unit/test_agent_health_replay.py",
     # their callers: the agent's parts, its decisions, its routine, its outputs
@@ -74,9 +74,14 @@ SUITES = (
 @pytest.mark.timeout(1500)
 def test_the_agent_suites_pass_against_the_compiled_build() -> None:
     tree = compiled_tree()
-    assert {"roost_mavlink.codec", "roost_agent.health", "roost_agent.links"} <= set(
-        compiled_modules(tree)
-    )
+    assert {
+        "roost_mavlink.codec",
+        "roost_agent.health",
+        "roost_agent.transport",
+        "roost_agent.trust",
+        "roost_agent.reader",
+        "roost_agent.link",
+    } <= set(compiled_modules(tree))
     run = subprocess.run(
         [sys.executable, "-m", "pytest", "-p", "no:cacheprovider", *SUITES],
         cwd=REPO_ROOT,

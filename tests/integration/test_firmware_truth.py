@@ -33,7 +33,7 @@ import yaml
 from roost_agent import Agent
 from roost_agent.bridge import SimulatedBridge
 from roost_agent.health import Assessment, HealthTracker
-from roost_agent.links import AutopilotLink
+from roost_agent.link import AutopilotLink
 from roost_agent.safety import Phase, SafetyRunner
 from roost_agent.state import STATE_FILE_NAME, StateFile
 from roost_agent.streams import WANTED, Method, Request, send_requests

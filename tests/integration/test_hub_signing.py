@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from roost_agent.agent import AgentEvent
+from roost_agent.events import AgentEvent
 from roost_agent.hub import Hub
 from roost_agent.hub_policy import (
     BAD_SIGNATURE,

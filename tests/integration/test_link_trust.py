@@ -20,10 +20,10 @@ from pathlib import Path
 import pytest
 
 from roost_agent import Agent
-from roost_agent.agent import AgentEvent, EventKind
 from roost_agent.bridge import SimulatedBridge
+from roost_agent.events import AgentEvent, EventKind
 from roost_agent.health import HealthTracker
-from roost_agent.links import AutopilotLink
+from roost_agent.link import AutopilotLink
 from roost_agent.signing import LinkSigning, PersistentTimestamps
 from roost_agent.state import STATE_FILE_NAME, StateFile
 from roost_api.autopilot import (

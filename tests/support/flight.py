@@ -1,12 +1,13 @@
 """Simulated autopilots in the air under an agent, for the failover tests and benchmarks.
 
-:func:`take_off` gets sims airborne; :func:`make_spec` is the RedundantAutopilot spec the
-agent tests fly them with; :class:`Flight` is one such vehicle (sims, in-process agent,
-simulated bridge) with what the tests ask of it.
+:func:`take_off` gets sims airborne and :func:`land` brings one down; :func:`make_spec`
+is the RedundantAutopilot spec the agent tests fly them with; :class:`Flight` is one
+such vehicle (sims, in-process agent, simulated bridge) with what the tests ask of it.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,7 +22,12 @@ from roost_api.autopilot import (
     SafetyRoutine,
     Thresholds,
 )
-from roost_mavlink import AGENT_COMPONENT_ID, MAV_CMD_REQUEST_MESSAGE, MAV_CMD_SET_MESSAGE_INTERVAL
+from roost_mavlink import (
+    AGENT_COMPONENT_ID,
+    MAV_CMD_NAV_LAND,
+    MAV_CMD_REQUEST_MESSAGE,
+    MAV_CMD_SET_MESSAGE_INTERVAL,
+)
 from roost_sim import SimulatedAutopilot, autopilot_specs
 
 BOOT_TIMEOUT_S = 5.0
@@ -45,6 +51,12 @@ def take_off(sims: Sequence[SimulatedAutopilot]) -> None:
             lambda s: s.landed_state == "InAir" and s.altitude_m > AIRBORNE_M,
             timeout=TAKEOFF_TIMEOUT_S,
         )
+
+
+def land(sim: SimulatedAutopilot) -> None:
+    """NAV_LAND, as a ground station on another link would send it (the firmware
+    disarms after the touchdown)."""
+    sim.local_command(MAV_CMD_NAV_LAND, (0, 0, 0, math.nan, math.nan, math.nan, math.nan))
 
 
 HOLD_S = 1.0  # the safety routine's hold in the agent tests

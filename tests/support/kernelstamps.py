@@ -10,7 +10,7 @@ import socket
 import struct
 import time
 
-from roost_agent.links import SO_TIMESTAMPNS
+from roost_agent.transport import SO_TIMESTAMPNS
 
 
 def until_the_kernel_stamps_arrivals(timeout_s: float = 5.0) -> None:

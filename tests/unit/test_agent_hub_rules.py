@@ -14,15 +14,13 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from roost_agent.arbiter import ArbiterState, AutopilotView, Policy, SwitchBridge, step
-from roost_agent.hub import (
-    MAV_CMD_DO_AUX_FUNCTION,
+from roost_agent.hub import MAV_CMD_DO_AUX_FUNCTION, retarget, rewrite_source
+from roost_agent.instep import (
     MIRRORED_COMMANDS,
     InStepTracker,
     Snapshot,
     horizontal_m,
     judge_standby,
-    retarget,
-    rewrite_source,
 )
 from roost_api.autopilot import (
     Failback,

@@ -14,8 +14,8 @@ from datetime import UTC, datetime
 
 from prometheus_client import CollectorRegistry
 
-from roost_agent.agent import AgentEvent, EventKind, FailoverEvent
-from roost_agent.links import LinkCounters
+from roost_agent.events import AgentEvent, EventKind, FailoverEvent
+from roost_agent.link import LinkCounters
 from roost_agent.metrics import (
     FRAME_RESULTS,
     LINK_EVENTS,

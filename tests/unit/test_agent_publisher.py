@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from datetime import UTC, datetime, timedelta
 
-from roost_agent.agent import AgentEvent, EventKind
+from roost_agent.events import AgentEvent, EventKind
 from roost_agent.publisher import POSTED_KINDS, carry_transitions, merge_patch_body, posted
 from roost_api.autopilot import AutopilotHealth, FailoverRecord, RedundantAutopilotStatus
 from roost_api.meta import HealthLevel

@@ -7,7 +7,7 @@ import json
 from datetime import UTC, datetime
 from pathlib import Path
 
-from roost_agent.agent import restore_state
+from roost_agent.spec_changes import restore_state
 from roost_agent.state import PersistedState, StateFile
 from roost_api.autopilot import CommandResult
 from tests.support.agentspec import SPEC

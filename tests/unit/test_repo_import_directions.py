@@ -30,9 +30,9 @@ from roost_localcluster.binaries import REPO_ROOT
 PACKAGES = {
     "roost_api": "api",
     "roost_kube": "kube",
-    "roost_mavlink": "agents",
-    "roost_sim": "agents",
-    "roost_agent": "agents",
+    "roost_mavlink": "mavlink",
+    "roost_sim": "sim",
+    "roost_agent": "agent",
     "roost_operator": "operator",
     "roost_cli": "cli",
     "roost_localcluster": "localcluster",

@@ -19,7 +19,7 @@ from pathlib import Path
 
 TESTS = Path(__file__).resolve().parents[1]
 REPO = TESTS.parent
-SOURCE_ROOTS = ("api", "kube", "operator", "agents", "cli", "localcluster")
+SOURCE_ROOTS = ("api", "kube", "operator", "agent", "mavlink", "sim", "cli", "localcluster")
 
 
 def package_and_module_keys() -> tuple[set[str], set[str]]:

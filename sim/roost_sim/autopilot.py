@@ -455,11 +455,14 @@ class SimulatedAutopilot:
             param7 = alt + self.config.home_amsl_m if self.stack is Stack.PX4 else alt
             self._local(MAV_CMD_NAV_TAKEOFF, (0, 0, 0, math.nan, math.nan, math.nan, param7))
 
-    def land(self) -> None:
-        """NAV_LAND, as a ground station on another link would send it (the firmware
-        disarms after the touchdown)."""
+    def local_command(self, command: int, params: tuple[float, ...]) -> int:
+        """Run one command through the same rules as a received COMMAND_LONG (logged
+        with source 0/0), as a ground station on another link would send it.
+
+        Raises RuntimeError when it is refused (an arming refusal names its reasons).
+        """
         with self._lock:
-            self._local(MAV_CMD_NAV_LAND, (0, 0, 0, math.nan, math.nan, math.nan, math.nan))
+            return self._local(command, params)
 
     def _local(self, command: int, params: tuple[float, ...]) -> int:
         reasons = self._model.arming_refusals() if command == MAV_CMD_COMPONENT_ARM_DISARM else []
@@ -489,17 +492,6 @@ class SimulatedAutopilot:
         with self._lock:
             self._rate_overrides[message_id] = hz
             self._streams.set(message_id, hz, time.monotonic())
-
-    def request_streams(self, rates: dict[int, float]) -> None:
-        """What a client's SET_MESSAGE_INTERVAL requests do, without a client (tests).
-
-        Raises ValueError for a message this flavour cannot stream.
-        """
-        with self._lock:
-            for msg_id, hz in rates.items():
-                result = self._set_interval(msg_id, 1e6 / hz if hz > 0 else -1.0)
-                if result != MavResult.ACCEPTED:
-                    raise ValueError(f"{self.label}: cannot stream message {msg_id} ({result})")
 
     def set_throttle(self, stick: float | None) -> None:
         """The pilot's throttle stick, 0 (low) to 1 (high); None: no RC (reads low)."""

@@ -13,9 +13,8 @@ from pathlib import Path
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from roost_agent import links
-from roost_agent.agent import connection_problems
-from roost_agent.links import AckMailbox, SourceLock
+from roost_agent import transport
+from roost_agent.link import AckMailbox
 from roost_agent.signing import (
     RESERVE_TICKS,
     SIGNING_TIMESTAMP_FILE,
@@ -24,6 +23,8 @@ from roost_agent.signing import (
     SigningMode,
     load_signing,
 )
+from roost_agent.spec_changes import connection_problems
+from roost_agent.trust import SourceLock
 from roost_api.autopilot import AutopilotSpec, RedundantAutopilotSpec
 from roost_mavlink import pymavlink_device
 from roost_mavlink.signing import (
@@ -278,5 +279,5 @@ def test_ack_mailbox_returns_only_acks_newer_than_the_request() -> None:
 
 def test_the_realtime_offset_matches_the_clocks() -> None:
     """Turning a kernel stamp (realtime) into the agent's clock (monotonic)."""
-    offset = links.realtime_offset()
+    offset = transport.realtime_offset()
     assert abs((time.time() - time.monotonic()) - offset) < 0.05

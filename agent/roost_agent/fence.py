@@ -374,7 +374,7 @@ _PROGRESS = {
 
 
 class FenceLink(Protocol):
-    """What the fence keepers use of an autopilot link (roost_agent.links.AutopilotLink)."""
+    """What the fence keepers use of an autopilot link (roost_agent.link.AutopilotLink)."""
 
     name: str
     stack: Stack

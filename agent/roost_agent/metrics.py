@@ -34,17 +34,17 @@ from prometheus_client import (
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from prometheus_client.registry import Collector
 
-from roost_agent.agent import AgentEvent, EventKind
+from roost_agent.events import AgentEvent, EventKind
 from roost_agent.hub import Hub
 from roost_agent.hub_policy import REASONS
-from roost_agent.links import LinkCounters
+from roost_agent.link import LinkCounters
 from roost_api.core import HealthLevel
 
 if TYPE_CHECKING:
     from wsgiref.simple_server import WSGIServer
 
     from roost_agent.health import Assessment
-    from roost_agent.links import AutopilotLink
+    from roost_agent.link import AutopilotLink
 
 PREFIX = "roost_agent"
 DEFAULT_ADDRESS = "127.0.0.1"

@@ -44,7 +44,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 import yaml
 
-from roost_agent.agent import Agent, connection_problems, restore_state
+from roost_agent.agent import Agent
 from roost_agent.bridge import Bridge, GpioBridge, SimulatedBridge
 from roost_agent.hub_policy import HubConfigError
 from roost_agent.records import DEFAULT_BUDGET_MB, DEFAULT_PORT
@@ -55,6 +55,7 @@ from roost_agent.signing import (
     SigningMode,
     load_signing,
 )
+from roost_agent.spec_changes import connection_problems, restore_state
 from roost_agent.state import STATE_FILE_NAME, StateFile
 from roost_api.plain import AutopilotSpec, RedundantAutopilotSpec
 from roost_api.plain_check import PlainValidationError

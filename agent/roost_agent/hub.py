@@ -34,13 +34,10 @@ Standbys in step. What clients send that changes flight state (:data:`MIRRORED_C
 inside COMMAND_LONG/INT, and :data:`MIRRORED_MESSAGES`: modes, mission items, setpoints,
 parameter writes, the ground station's heartbeat so no standby triggers a GCS failsafe)
 goes to every standby too; their answers never reach the client but are recorded, so a standby that
-rejects a mirrored command or does not answer is seen at once. :func:`judge_standby`
-compares each standby with the active (armed state, mode, position and altitude within
-``HubSpec.standby_limits``) and :class:`InStepTracker` confirms a difference over
-``confirm_ms`` before it counts, which gives the ``StandbyInStep`` condition and the
-arbiter's preference for standbys in step. Mode commands and parameter writes are
-mirrored only between autopilots of the same stack (a custom mode number or a parameter
-name means something else on the other stack), and modes are compared only there.
+rejects a mirrored command or does not answer is seen at once. Whether each standby is in
+step with the active is judged from what the hub read of them (:mod:`roost_agent.instep`).
+Mode commands and parameter writes are mirrored only between autopilots of the same
+stack (a custom mode number or a parameter name means something else on the other stack).
 
 ArduPilot standbys: ArduPilot's auxiliary function 76 (STANDBY) tells a flight controller
 its outputs are not on the motors, so it relaxes its controllers' integrators instead of
@@ -52,7 +49,6 @@ active, right after the route moved (never before the bridge write).
 from __future__ import annotations
 
 import logging
-import math
 import select
 import socket
 import threading
@@ -75,26 +71,22 @@ from roost_agent.hub_policy import (
     open_to_the_network,
     plan_endpoints,
 )
+from roost_agent.instep import (
+    MIRRORED_COMMANDS,
+    InStep,
+    InStepTracker,
+    Snapshot,
+    judge_standby,
+    note_answer,
+)
 from roost_agent.signing import LinkSigning
 from roost_api.autopilot_enums import HubTransport, StandbyInStepReason
 from roost_api.core import Stack
-from roost_api.plain import (
-    AutopilotSpec,
-    HubEndpointStatus,
-    HubSpec,
-    RedundantAutopilotSpec,
-    StandbyLimits,
-)
+from roost_api.plain import AutopilotSpec, HubEndpointStatus, HubSpec, RedundantAutopilotSpec
 from roost_mavlink import (
     AGENT_COMPONENT_ID,
-    MAV_CMD_COMPONENT_ARM_DISARM,
     MAV_CMD_DO_SET_MODE,
-    MAV_CMD_NAV_LAND,
-    MAV_CMD_NAV_RETURN_TO_LAUNCH,
-    MAV_CMD_NAV_TAKEOFF,
     MAV_MODE_FLAG_SAFETY_ARMED,
-    MavResult,
-    mav_result_name,
     mode_name,
 )
 from roost_mavlink.codec import (
@@ -122,8 +114,6 @@ SIGNED_FLAG = 0x01
 CLIENT_TIMEOUT_S = 30.0  # a UDP client not heard this long gets nothing more
 MAX_CLIENTS = 32
 HUB_LINK_ID = 0xF0  # the MAVLink signing link id of the hub's frames to clients
-MIRROR_ACK_TIMEOUT_S = 1.5  # a standby that does not acknowledge a mirrored command by then
-REJECTION_MEMORY_S = 30.0  # how long an unresolved rejection keeps a standby out of step
 SELECT_WAIT_S = 0.1
 UDP_MAX = 65535
 TCP_SEND_BUFFER = 1 << 18
@@ -133,24 +123,6 @@ AUX_FUNCTION_STANDBY = 76  # ArduPilot RC_OPTION / aux function "Standby"
 AUX_SWITCH_LOW = 0
 AUX_SWITCH_HIGH = 2
 
-# Flight-state commands a client sends that every standby must follow (MAV_CMD numbers
-# of common.xml, with their names for the in-step messages).
-MIRRORED_COMMANDS: dict[int, str] = {
-    MAV_CMD_COMPONENT_ARM_DISARM: "MAV_CMD_COMPONENT_ARM_DISARM",
-    MAV_CMD_DO_SET_MODE: "MAV_CMD_DO_SET_MODE",
-    MAV_CMD_NAV_TAKEOFF: "MAV_CMD_NAV_TAKEOFF",
-    24: "MAV_CMD_NAV_TAKEOFF_LOCAL",
-    MAV_CMD_NAV_LAND: "MAV_CMD_NAV_LAND",
-    MAV_CMD_NAV_RETURN_TO_LAUNCH: "MAV_CMD_NAV_RETURN_TO_LAUNCH",
-    17: "MAV_CMD_NAV_LOITER_UNLIM",
-    300: "MAV_CMD_MISSION_START",
-    192: "MAV_CMD_DO_REPOSITION",
-    178: "MAV_CMD_DO_CHANGE_SPEED",
-    179: "MAV_CMD_DO_SET_HOME",
-    193: "MAV_CMD_DO_PAUSE_CONTINUE",
-    224: "MAV_CMD_DO_SET_MISSION_CURRENT",
-    92: "MAV_CMD_NAV_GUIDED_ENABLE",
-}
 MODE_COMMANDS: frozenset[int] = frozenset({MAV_CMD_DO_SET_MODE})
 
 # Whole messages mirrored to every standby.
@@ -236,146 +208,11 @@ def retarget(msg: Parsed, vehicle_sysid: int, sysid: int) -> bytes:
     return msg.with_field(name, sysid)
 
 
-# -- what the hub knows about each autopilot -------------------------------------------
-
-
-@dataclass
-class Snapshot:
-    """One autopilot's state as the hub last read it (monotonic seconds)."""
-
-    stack: Stack
-    heartbeat_at: float | None = None
-    armed: bool | None = None
-    mode: str | None = None
-    position_at: float | None = None
-    lat_deg: float | None = None
-    lon_deg: float | None = None
-    relative_alt_m: float | None = None
-    # mirrored command -> (what happened, when): a rejection until an accepting answer
-    rejected: dict[int, tuple[str, float]] = field(default_factory=dict)
-    # mirrored command -> when it was sent, until the standby answers it
-    awaiting: dict[int, float] = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class InStep:
-    """Whether a standby follows the active autopilot; ``status`` None means not known."""
-
-    status: bool | None
-    reason: StandbyInStepReason
-    message: str
-
-
-def horizontal_m(lat1: float, lon1: float, lat2: float, lon2: float) -> float:
-    """Distance in metres between two nearby positions (equirectangular; metres apart)."""
-    k = math.pi / 180
-    x = (lon2 - lon1) * k * math.cos((lat1 + lat2) / 2 * k)
-    y = (lat2 - lat1) * k
-    return math.hypot(x, y) * 6_371_000.0
-
-
-def _command_text(command: int) -> str:
-    return MIRRORED_COMMANDS.get(command, str(command))
-
-
-def judge_standby(
-    active: Snapshot,
-    standby: Snapshot,
-    limits: StandbyLimits,
-    *,
-    stale_s: float,
-    now: float,
-) -> InStep:
-    """Whether ``standby`` is in step with ``active`` right now (no confirmation time)."""
-    reason = StandbyInStepReason
-    if standby.heartbeat_at is None:
-        return InStep(None, reason.NO_DATA, "no heartbeat from this standby yet")
-    if now - standby.heartbeat_at > stale_s:
-        age = now - standby.heartbeat_at
-        return InStep(False, reason.SILENT, f"no heartbeat for {age:.1f} s")
-    for command, (text, at) in standby.rejected.items():
-        if now - at <= REJECTION_MEMORY_S:
-            return InStep(
-                False, reason.REJECTED_MIRRORED, f"{_command_text(command)} mirrored: {text}"
-            )
-    for command, sent in standby.awaiting.items():
-        if now - sent > MIRROR_ACK_TIMEOUT_S:
-            return InStep(
-                False,
-                reason.SILENT,
-                f"no answer to mirrored {_command_text(command)} for {now - sent:.1f} s",
-            )
-    if active.heartbeat_at is None or active.armed is None:
-        return InStep(None, reason.NO_DATA, "no heartbeat from the active autopilot")
-    if standby.armed != active.armed:
-        state = "armed" if standby.armed else "disarmed"
-        return InStep(False, reason.ARMED_DIFFERS, f"{state}, the active is not")
-    if standby.stack == active.stack and standby.mode != active.mode:
-        return InStep(
-            False, reason.MODE_DIFFERS, f"mode {standby.mode}, the active flies {active.mode}"
-        )
-    if (
-        active.lat_deg is not None
-        and active.lon_deg is not None
-        and standby.lat_deg is not None
-        and standby.lon_deg is not None
-    ):
-        apart = horizontal_m(active.lat_deg, active.lon_deg, standby.lat_deg, standby.lon_deg)
-        if apart > limits.position_m:
-            return InStep(
-                False,
-                reason.POSITION_DIFFERS,
-                f"position {apart:.1f} m from the active's (limit {limits.position_m:g} m)",
-            )
-    if active.relative_alt_m is not None and standby.relative_alt_m is not None:
-        dz = abs(active.relative_alt_m - standby.relative_alt_m)
-        if dz > limits.altitude_m:
-            return InStep(
-                False,
-                reason.ALTITUDE_DIFFERS,
-                f"altitude {dz:.1f} m from the active's (limit {limits.altitude_m:g} m)",
-            )
-    if active.lat_deg is None or standby.lat_deg is None:
-        return InStep(None, reason.NO_DATA, "no position from both autopilots yet")
-    modes = "" if standby.stack == active.stack else " (modes not compared across stacks)"
-    return InStep(True, reason.IN_STEP, f"armed state, mode and position agree{modes}")
-
-
-class InStepTracker:
-    """Confirms a standby's verdict: a change counts after ``confirm_s`` (hysteresis)."""
-
-    def __init__(self, confirm_s: float) -> None:
-        self.confirm_s = confirm_s
-        self._shown: dict[str, InStep] = {}
-        self._since: dict[str, tuple[bool | None, float]] = {}
-
-    def update(self, name: str, verdict: InStep, now: float) -> InStep:
-        """The verdict to show for ``name`` after seeing ``verdict`` at ``now``."""
-        shown = self._shown.get(name)
-        if shown is None or shown.status == verdict.status:
-            self._since.pop(name, None)
-            self._shown[name] = verdict
-            return verdict
-        status, since = self._since.get(name, (verdict.status, now))
-        if status != verdict.status:
-            since = now
-        self._since[name] = (verdict.status, since)
-        if now - since >= self.confirm_s:
-            self._since.pop(name, None)
-            self._shown[name] = verdict
-            return verdict
-        return shown
-
-    def forget(self, name: str) -> None:
-        self._shown.pop(name, None)
-        self._since.pop(name, None)
-
-
 # -- the hub ---------------------------------------------------------------------------
 
 
 class HubLink(Protocol):
-    """What the hub needs from an autopilot link (:class:`roost_agent.links.AutopilotLink`)."""
+    """What the hub needs from an autopilot link (:class:`roost_agent.link.AutopilotLink`)."""
 
     name: str
     spec: AutopilotSpec
@@ -704,7 +541,7 @@ class Hub:
         )
         if name != self._active:
             if kind == "COMMAND_ACK" and not for_agent:
-                self._standby_answered(seen, int(msg.command), int(msg.result), now)
+                note_answer(seen, int(msg.command), int(msg.result), now)
             self.counters.dropped_standby += 1
             return
         if for_agent:  # the agent's own answers stay with it (a gap in clients' seq)
@@ -754,18 +591,6 @@ class Hub:
         if wanted is not None and wanted is not signer.key:
             signer.use(wanted)
         return signer.sign(frame)
-
-    @staticmethod
-    def _standby_answered(seen: Snapshot, command: int, result: int, now: float) -> None:
-        if command not in MIRRORED_COMMANDS:
-            return
-        if result == MavResult.IN_PROGRESS:
-            return
-        seen.awaiting.pop(command, None)
-        if result == MavResult.ACCEPTED:
-            seen.rejected.pop(command, None)
-        else:
-            seen.rejected[command] = (f"answered {mav_result_name(result)}", now)
 
     # -- clients -> autopilots ---------------------------------------------------------
 

@@ -1,8 +1,10 @@
 """Roost node agent: watches a vehicle's autopilots and keeps a healthy one on the motors.
 
-Modules, from the wire up: :mod:`~roost_agent.links` (one MAVLink connection per
-autopilot, one reader thread for them all; frames are read and written by
-:mod:`roost_mavlink.codec`, the agent never imports pymavlink),
+Modules, from the wire up: :mod:`~roost_agent.transport` (byte pipes: UDP, TCP,
+serial), :mod:`~roost_agent.trust` (the source lock), :mod:`~roost_agent.reader` (one
+reader thread for every link, which also runs the decision loop),
+:mod:`~roost_agent.link` (one MAVLink connection per autopilot; frames are read and
+written by :mod:`roost_mavlink.codec`, the agent never imports pymavlink),
 :mod:`~roost_agent.health` (messages -> OK/WARN/ERROR/STALE),
 :mod:`~roost_agent.arbiter` (pure failover state machine), :mod:`~roost_agent.bridge`
 (GPIO or simulated switch), :mod:`~roost_agent.safety` (hold, then land),
@@ -10,6 +12,8 @@ autopilot, one reader thread for them all; frames are read and written by
 Never imports kopf: the agent must run on a vehicle that cannot reach the cluster.
 """
 
-from roost_agent.agent import Agent, AgentEvent, EventKind, FailoverEvent, restore_state
+from roost_agent.agent import Agent
+from roost_agent.events import AgentEvent, EventKind, FailoverEvent
+from roost_agent.spec_changes import restore_state
 
 __all__ = ["Agent", "AgentEvent", "EventKind", "FailoverEvent", "restore_state"]

@@ -59,7 +59,7 @@ from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
-from roost_agent.agent import AgentEvent, EventKind
+from roost_agent.events import AgentEvent, EventKind
 from roost_agent.kube import AgentKube
 from roost_agent.report import change_class, set_condition, write_delay
 from roost_agent.state import StateFile

@@ -26,7 +26,7 @@ soon a datagram is read, never whether it is, and every datagram still passes th
 link's source lock, CRC and signature checks after it is read.
 
 Order: the two sockets are read together and merged by arrival stamp (the UDP
-transport's ``receive_batch`` in :mod:`roost_agent.links`), because claims are settled
+transport's ``receive_batch`` in :mod:`roost_agent.transport`), because claims are settled
 by the sequence numbers of the frames that follow them (:mod:`roost_agent.health`).
 
 Linux only; elsewhere, and where the kernel refuses the program, a link keeps one

@@ -1,8 +1,14 @@
 """The node agent: links, health, arbiter, bridge and safety routine wired together.
 
+This module is the wiring and the decision loop. What the arbiter's actions do (the
+bridge switch, the safety routine, landing, the emergency stop, command results) is
+:mod:`roost_agent.actions`; adopting a new spec while running is
+:mod:`roost_agent.spec_changes`; the events subscribers get are :mod:`roost_agent.events`;
+the state and outlets those parts share are declared in :mod:`roost_agent.parts`.
+
 Threads and why:
 
-- one reader thread (:class:`roost_agent.links.LinkReader`) reads every autopilot link,
+- one reader thread (:class:`roost_agent.reader.LinkReader`) reads every autopilot link,
   feeds the health trackers and runs the decision loop: every ``tick_s``, at once when a
   link saw something the arbiter acts on change or a command came, and exactly when the
   last tick said a judgement turns with nothing arriving (a silence threshold, the end
@@ -48,69 +54,35 @@ import time
 from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import Future
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from datetime import UTC, datetime
-from enum import StrEnum
-from typing import Any
 
 from roost_agent import firmware
-from roost_agent.arbiter import (
-    Action,
-    ArbiterState,
-    AutopilotView,
-    CommandDone,
-    Decision,
-    ForceDisarm,
-    LandInPlace,
-    NoHealthyStandby,
-    Policy,
-    RunSafetyRoutine,
-    SafetyPlan,
-    SwitchBridge,
-    Trigger,
-    handle_command,
-    next_due,
-    settled,
-    step,
-)
-from roost_agent.bridge import Bridge, BridgeError
+from roost_agent.actions import Actions, SafetyWorker
+from roost_agent.arbiter import AutopilotView, Policy, handle_command, next_due, settled, step
+from roost_agent.bridge import Bridge
+from roost_agent.events import AgentEvent, EventKind, FailoverEvent, Listener
 from roost_agent.fence import Fences
 from roost_agent.fence import Verdict as FenceVerdict
-from roost_agent.health import Assessment, HealthTracker
-from roost_agent.hub import Hub, InStep, hub_for, hub_identity
-from roost_agent.links import AutopilotLink, LinkReader
+from roost_agent.health import Assessment
+from roost_agent.hub import Hub, hub_for
+from roost_agent.instep import InStep
+from roost_agent.link import AutopilotLink
 from roost_agent.params import ParamKeeper, Read, Verdict
+from roost_agent.parts import Running
+from roost_agent.reader import LinkReader
 from roost_agent.report import report, set_condition
-from roost_agent.safety import (
-    DEFAULT_TIMING,
-    TERMINAL_PHASES,
-    WARNING_PHASES,
-    Phase,
-    Progress,
-    SafetyRunner,
-    Timing,
-)
+from roost_agent.safety import DEFAULT_TIMING, Timing
 from roost_agent.signing import LinkSigning
-from roost_agent.state import (
-    MAX_REMEMBERED_COMMANDS,
-    PersistedState,
-    SafetyProgress,
-    StateFile,
-)
+from roost_agent.spec_changes import SpecChanges, restore_state
+from roost_agent.state import SafetyProgress, StateFile
 from roost_agent.streams import StreamKeeper, Why, send_requests
-from roost_api.autopilot_enums import (
-    AutopilotEntryConditionType,
-    CommandResultKind,
-    DriftPolicy,
-    FinalAction,
-    SafetyRoutinePhase,
-)
+from roost_api.autopilot_enums import AutopilotEntryConditionType, DriftPolicy
 from roost_api.core import ConditionStatus, HealthLevel, Stack
 from roost_api.fence import LatLon
 from roost_api.plain import (
     AutopilotCommand,
     AutopilotHealth,
-    AutopilotSpec,
     CommandResult,
     FailoverRecord,
     FirmwareInfo,
@@ -123,7 +95,6 @@ from roost_mavlink import (
     MAV_CMD_REQUEST_MESSAGE,
     MAV_CMD_SET_MESSAGE_INTERVAL,
     MAV_MODE_FLAG_SAFETY_ARMED,
-    pymavlink_device,
 )
 
 log = logging.getLogger(__name__)
@@ -150,183 +121,6 @@ FAILOVER_HISTORY = 100
 
 def _utc_now() -> datetime:
     return datetime.now(UTC)
-
-
-class EventKind(StrEnum):
-    """What an :class:`AgentEvent` is about."""
-
-    STARTED = "Started"
-    FAILOVER = "Failover"
-    HEALTH = "HealthChanged"
-    SAFETY = "SafetyRoutine"
-    COMMAND = "Command"
-    LAND_ORDERED = "LandOrdered"
-    NO_HEALTHY_STANDBY = "NoHealthyStandby"
-    EMERGENCY_STOP = "EmergencyStop"
-    SPEC = "Spec"
-    BRIDGE_ERROR = "BridgeError"
-    LINK = "Link"
-    PARAMETERS = "Parameters"
-    FENCE = "Fence"
-
-
-@dataclass(frozen=True)
-class FailoverEvent:
-    """One bridge switch with its timing (monotonic seconds)."""
-
-    record: FailoverRecord
-    detected_at: float
-    switched_at: float
-    onset_at: float | None
-
-    @property
-    def latency_ms(self) -> float:
-        """Detection to bridge switched."""
-        return (self.switched_at - self.detected_at) * 1000
-
-    @property
-    def onset_to_switch_ms(self) -> float | None:
-        """Start of the failure (as the findings know it) to bridge switched."""
-        return None if self.onset_at is None else (self.switched_at - self.onset_at) * 1000
-
-
-@dataclass(frozen=True)
-class AgentEvent:
-    """Something a publisher reports; ``reason``/``message``/``warning`` map onto a
-    Kubernetes Event, the optional payloads onto status fields."""
-
-    kind: EventKind
-    reason: str
-    message: str
-    warning: bool
-    time: datetime
-    autopilot: str | None = None
-    failover: FailoverEvent | None = None
-    health: AutopilotHealth | None = None
-    command: CommandResult | None = None
-
-    def to_json(self) -> dict[str, Any]:
-        """A JSON-ready dict (the standalone agent prints these, one per line)."""
-        doc: dict[str, Any] = {
-            "event": self.kind.value,
-            "reason": self.reason,
-            "message": self.message,
-            "warning": self.warning,
-            "time": self.time.isoformat(),
-        }
-        if self.autopilot is not None:
-            doc["autopilot"] = self.autopilot
-        if self.failover is not None:
-            doc["failover"] = self.failover.record.to_api()
-            doc["latencyMs"] = self.failover.latency_ms
-            doc["onsetToSwitchMs"] = self.failover.onset_to_switch_ms
-            # CLOCK_MONOTONIC seconds, comparable with time.monotonic() in any process
-            # on the same host (benchmarks measure fault onset -> switch with them).
-            doc["monotonic"] = {
-                "detectedAt": self.failover.detected_at,
-                "switchedAt": self.failover.switched_at,
-                "onsetAt": self.failover.onset_at,
-            }
-        if self.health is not None:
-            doc["health"] = self.health.to_api()
-        if self.command is not None:
-            doc["command"] = self.command.to_api()
-        return doc
-
-
-Listener = Callable[[AgentEvent], None]
-
-
-@dataclass(frozen=True)
-class _Running:
-    """The configuration the decision loop works with; swapped as one object."""
-
-    spec: RedundantAutopilotSpec
-    generation: int | None
-    policy: Policy
-    links: Mapping[str, AutopilotLink]
-    channels: Mapping[str, int]
-
-
-@dataclass
-class _Job:
-    """One unit of work for the safety worker."""
-
-    title: str
-    run: Callable[[threading.Event], None]
-    emergency: bool = False
-    cancel: threading.Event = field(default_factory=threading.Event)
-
-
-class _SafetyWorker:
-    """Runs one job at a time. A new job cancels the running one and replaces a pending
-    one, except that nothing but another emergency stop cancels or replaces an emergency
-    stop."""
-
-    def __init__(self) -> None:
-        self._cond = threading.Condition()
-        self._pending: _Job | None = None
-        self._current: _Job | None = None
-        self._stopping = False
-        self._thread = threading.Thread(target=self._run, name="safety-worker", daemon=True)
-
-    def start(self) -> None:
-        self._thread.start()
-
-    def submit(self, job: _Job) -> None:
-        with self._cond:
-            current, pending = self._current, self._pending
-            if current is not None and (job.emergency or not current.emergency):
-                current.cancel.set()
-            if pending is not None and pending.emergency and not job.emergency:
-                log.warning("dropping %s: an emergency stop is pending", job.title)
-                return
-            self._pending = job
-            self._cond.notify()
-
-    def stop(self) -> None:
-        with self._cond:
-            self._stopping = True
-            if self._current is not None:
-                self._current.cancel.set()
-            self._cond.notify()
-        if self._thread.is_alive():
-            self._thread.join(timeout=5)
-
-    def _run(self) -> None:
-        while True:
-            with self._cond:
-                while self._pending is None and not self._stopping:
-                    self._cond.wait()
-                if self._stopping:
-                    return
-                job, self._pending = self._pending, None
-                assert job is not None
-                self._current = job
-            try:
-                job.run(job.cancel)
-            except Exception:
-                log.exception("%s failed", job.title)
-            finally:
-                with self._cond:
-                    self._current = None
-
-
-def restore_state(spec: RedundantAutopilotSpec, saved: PersistedState | None) -> ArbiterState:
-    """The arbiter state to start from: the saved one when it fits the spec, else primary.
-
-    Only durable facts are restored (active, latch, failed-from, count); timers and the
-    flight state are rebuilt from live telemetry, so nothing is decided on stale data.
-    """
-    names = {a.name for a in spec.autopilots}
-    if saved is None or saved.active not in names:
-        return ArbiterState(active=spec.primary)
-    return ArbiterState(
-        active=saved.active,
-        latched=saved.latched,
-        failed_from=frozenset(saved.failed_from) & names,
-        failover_count=saved.failover_count,
-    )
 
 
 def _rates(keeper: StreamKeeper) -> str:
@@ -375,17 +169,6 @@ def _declared_for(declared: ParametersSpec, stack: Stack) -> dict[str, float]:
     return {p.name: p.value for p in entries}
 
 
-def connection_problems(spec: RedundantAutopilotSpec) -> list[str]:
-    """One line per autopilot whose connection URL the agent could not open."""
-    problems = []
-    for autopilot in spec.autopilots:
-        try:
-            pymavlink_device(autopilot.connection)
-        except ValueError as exc:
-            problems.append(f"autopilot {autopilot.name}: {exc}")
-    return problems
-
-
 def _with_link_error(health: AutopilotHealth, error: str | None) -> AutopilotHealth:
     """The health entry with a failing link's last error first among its reasons."""
     if error is None:
@@ -393,7 +176,7 @@ def _with_link_error(health: AutopilotHealth, error: str | None) -> AutopilotHea
     return replace(health, reasons=[f"link error: {error}", *health.reasons])
 
 
-class Agent:
+class Agent(Actions, SpecChanges):
     """Watches the autopilots of one vehicle and keeps a healthy one on the motors."""
 
     def __init__(
@@ -454,11 +237,11 @@ class Agent:
         self._listeners: list[Listener] = []
         self._events: queue.SimpleQueue[AgentEvent | None] = queue.SimpleQueue()
         self._stop = threading.Event()
-        self._worker = _SafetyWorker()
+        self._worker = SafetyWorker()
         self._threads: list[threading.Thread] = []
         self._reader = LinkReader()
         self._reader.drive(self._tick_while_running, tick_s, steered_tick_s)
-        self._cfg = _Running(
+        self._cfg = Running(
             spec=spec,
             generation=generation,
             policy=Policy.from_spec(spec),
@@ -476,7 +259,7 @@ class Agent:
         self._views: dict[str, tuple[tuple[object, ...], AutopilotView]] = {}
         # The configuration the arbiter was settled under after the last full tick
         # (None: it was not, or no tick yet): see _nothing_new.
-        self._settled_with: _Running | None = None
+        self._settled_with: Running | None = None
 
     # -- lifecycle ---------------------------------------------------------------------
 
@@ -798,9 +581,7 @@ class Agent:
         self._settled_with = None
         return next_due(self._state, cfg.policy, now)
 
-    def _nothing_new(
-        self, cfg: _Running, now: float, in_step: Mapping[str, InStep]
-    ) -> float | None:
+    def _nothing_new(self, cfg: Running, now: float, in_step: Mapping[str, InStep]) -> float | None:
         """Until when a full tick would decide exactly what the last one did (None: not
         now): the arbiter was settled after it (:func:`roost_agent.arbiter.settled`: no
         timer runs, nothing pending) under the same configuration, no command waits,
@@ -821,7 +602,7 @@ class Agent:
         return until
 
     @staticmethod
-    def _judgements_hold_until(cfg: _Running, judged: Mapping[str, Assessment]) -> float:
+    def _judgements_hold_until(cfg: Running, judged: Mapping[str, Assessment]) -> float:
         """The first time an autopilot's last judgement stops holding (minus infinity:
         one has no judgement yet, or already changed)."""
         until = math.inf
@@ -844,246 +625,6 @@ class Agent:
         self._views[a.name] = (key, view)
         return view
 
-    def _execute(self, cfg: _Running, decision: Decision) -> None:
-        before = self._state
-        self._state = decision.state
-        for action in decision.actions:
-            self._perform(cfg, before, action)
-        after = self._state
-        durable = (after.active, after.latched, after.failed_from, after.failover_count)
-        if durable != (before.active, before.latched, before.failed_from, before.failover_count):
-            self._persist()
-
-    def _perform(self, cfg: _Running, before: ArbiterState, action: Action) -> None:
-        if isinstance(action, SwitchBridge):
-            self._switch(cfg, before, action)
-        elif isinstance(action, RunSafetyRoutine):
-            self._start_routine(cfg, action.autopilot)
-        elif isinstance(action, LandInPlace):
-            self._start_landing(cfg, action)
-        elif isinstance(action, NoHealthyStandby):
-            self._emit(
-                EventKind.NO_HEALTHY_STANDBY,
-                "NoHealthyStandby",
-                f"{action.reason}; pilot flies manually, no landing ordered",
-                warning=True,
-                autopilot=action.autopilot,
-            )
-        elif isinstance(action, ForceDisarm):
-            self._emergency_stop(cfg, action)
-        else:
-            self._command_done(action)
-
-    def _switch(self, cfg: _Running, before: ArbiterState, action: SwitchBridge) -> None:
-        hub = self._hub
-        try:
-            self._bridge.select(cfg.channels[action.to_autopilot])
-            if hub is not None:  # the clients' route moves with the motors, same tick
-                hub.set_active(action.to_autopilot)
-        except BridgeError as exc:
-            # The motors stay where they were: undo the decision, the next tick retries.
-            self._state = replace(
-                self._state,
-                active=before.active,
-                latched=before.latched,
-                failed_from=before.failed_from,
-                failover_count=before.failover_count,
-            )
-            self._emit(
-                EventKind.BRIDGE_ERROR,
-                "BridgeSwitchFailed",
-                f"could not switch to {action.to_autopilot}: {exc}",
-                warning=True,
-                autopilot=action.to_autopilot,
-            )
-            return
-        switched_at = self._clock()
-        record = FailoverRecord(
-            time=self._wall_clock().replace(microsecond=0),
-            from_autopilot=action.from_autopilot,
-            to_autopilot=action.to_autopilot,
-            reason=action.reason,
-            latency_ms=round((switched_at - action.detected_at) * 1000, 3),
-            trigger=action.trigger,
-            safety_routine=None
-            if action.safety == SafetyPlan.NONE
-            else SafetyRoutinePhase(action.safety.value),
-            standby_in_step=action.in_step,
-        )
-        event = FailoverEvent(record, action.detected_at, switched_at, action.onset)
-        with self._lock:
-            self._last_failover = record
-            self._failovers.append(event)
-        if action.safety == SafetyPlan.RUN:
-            self._start_routine(cfg, action.to_autopilot)
-        if hub is not None:
-            hub.aux_standby(action.to_autopilot)
-        onset = event.onset_to_switch_ms
-        timing = f"switched {event.latency_ms:.3f} ms after detection" + (
-            f", {onset:.0f} ms after onset" if onset is not None else ""
-        )
-        reasons = {
-            Trigger.AUTOMATIC: "FailedOver",
-            Trigger.COMMAND: "SwitchedByCommand",
-            Trigger.FAILBACK: "FailedBack",
-        }
-        self._emit(
-            EventKind.FAILOVER,
-            reasons[action.trigger],
-            f"{action.from_autopilot} -> {action.to_autopilot}: {action.reason} ({timing})",
-            warning=action.trigger == Trigger.AUTOMATIC,
-            autopilot=action.to_autopilot,
-            failover=event,
-        )
-
-    def _command_done(self, done: CommandDone) -> None:
-        result = CommandResult(
-            id=done.command_id,
-            result=done.result,
-            message=done.message,
-            time=self._wall_clock().replace(microsecond=0),
-        )
-        with self._lock:
-            self._processed[done.command_id] = result
-            while len(self._processed) > MAX_REMEMBERED_COMMANDS:
-                self._processed.popitem(last=False)
-            self._last_command = result
-            future = self._pending.pop(done.command_id, None)
-        self._persist()
-        if future is not None:
-            future.set_result(result)
-        self._emit(
-            EventKind.COMMAND,
-            f"Command{done.result.value}",
-            f"{done.command_id}: {done.message}",
-            warning=done.result != CommandResultKind.EXECUTED,
-            command=result,
-        )
-
-    # -- safety jobs ---------------------------------------------------------------------
-
-    def _reporter(self, autopilot: str) -> Callable[[Phase, str], None]:
-        def report(phase: Phase, message: str) -> None:
-            with self._lock:
-                record = self._last_failover
-                if record is not None and record.to_autopilot == autopilot:
-                    self._last_failover = replace(record, safety_routine=phase)
-            self._persist()
-            self._emit(
-                EventKind.SAFETY,
-                f"SafetyRoutine{phase.value}",
-                message,
-                warning=phase in WARNING_PHASES,
-                autopilot=autopilot,
-            )
-
-        return report
-
-    def _runner(self, link: AutopilotLink, cancel: threading.Event) -> SafetyRunner:
-        return SafetyRunner(
-            link,
-            cancel,
-            self._reporter(link.name),
-            self._timing,
-            self._clock,
-            progress=self._record_progress,
-        )
-
-    def _record_progress(self, progress: Progress) -> None:
-        """Keep the routine's progress in the state file (written before it goes on)."""
-        with self._lock:
-            self._safety = SafetyProgress(
-                autopilot=progress.autopilot,
-                phase=progress.phase.value,
-                final_action=progress.final_action,
-                hold_seconds=progress.hold_seconds,
-                hold_started=progress.hold_started,
-                land_started=progress.land_started,
-                holds=progress.holds,
-            )
-
-    def _start_routine(self, cfg: _Running, autopilot: str) -> None:
-        link = cfg.links[autopilot]
-        routine = cfg.spec.failover_policy.safety_routine
-        # Durable before the worker starts: an agent killed right after the switch still
-        # finds the routine to run in its state file.
-        self._record_progress(
-            Progress(autopilot, Phase.STARTED, routine.final_action, routine.hold_seconds)
-        )
-        self._persist()
-
-        def run(cancel: threading.Event) -> None:
-            self._runner(link, cancel).run(routine)
-
-        self._worker.submit(_Job(f"safety routine on {autopilot}", run))
-
-    def _resume_safety(self, cfg: _Running) -> None:
-        """After a restart: continue a safety routine or landing the last run left open."""
-        saved = self._safety
-        if saved is None or Phase(saved.phase) in TERMINAL_PHASES:
-            return
-        link = cfg.links.get(saved.autopilot)
-        if link is None:
-            return
-        progress = Progress(
-            saved.autopilot,
-            Phase(saved.phase),
-            saved.final_action,
-            saved.hold_seconds,
-            saved.hold_started,
-            saved.land_started,
-            saved.holds,
-        )
-        self._emit(
-            EventKind.SAFETY,
-            "SafetyRoutineResumed",
-            f"{saved.autopilot}: resuming the safety routine from {saved.phase} after a restart",
-            warning=True,
-            autopilot=saved.autopilot,
-        )
-
-        def run(cancel: threading.Event) -> None:
-            self._runner(link, cancel).resume(progress)
-
-        self._worker.submit(_Job(f"resumed safety routine on {saved.autopilot}", run))
-
-    def _start_landing(self, cfg: _Running, action: LandInPlace) -> None:
-        self._emit(
-            EventKind.LAND_ORDERED,
-            "LandOrdered",
-            f"{action.autopilot}: {action.reason}",
-            warning=True,
-            autopilot=action.autopilot,
-        )
-        link = cfg.links[action.autopilot]
-        self._record_progress(
-            Progress(action.autopilot, Phase.STARTED, FinalAction.LAND, 0.0, holds=False)
-        )
-        self._persist()
-
-        def run(cancel: threading.Event) -> None:
-            self._runner(link, cancel).land_now()
-
-        self._worker.submit(_Job(f"landing {action.autopilot}", run))
-
-    def _emergency_stop(self, cfg: _Running, action: ForceDisarm) -> None:
-        self._emit(EventKind.EMERGENCY_STOP, "EmergencyStop", action.reason, warning=True)
-        active = self._state.active
-        order = sorted(action.autopilots, key=lambda n: n != active)
-        links = [cfg.links[n] for n in order]
-
-        def run(cancel: threading.Event) -> None:
-            threads = [
-                threading.Thread(target=self._runner(link, cancel).force_disarm, daemon=True)
-                for link in links
-            ]
-            for thread in threads:
-                thread.start()
-            for thread in threads:
-                thread.join()
-
-        self._worker.submit(_Job("emergency stop", run, emergency=True))
-
     # -- health events, conditions -----------------------------------------------------
 
     def _note_health_changes(self, assessments: Mapping[str, Assessment]) -> None:
@@ -1104,91 +645,7 @@ class Agent:
                 health=a.to_api(),
             )
 
-    # -- spec changes --------------------------------------------------------------------
-
-    def _new_link(self, spec_ap: AutopilotSpec, spec: RedundantAutopilotSpec) -> AutopilotLink:
-        tracker = HealthTracker(spec_ap.name, spec_ap.stack, spec.failover_policy.thresholds)
-        name = spec_ap.name
-
-        def link_event(reason: str, message: str, warning: bool) -> None:
-            self._emit(EventKind.LINK, reason, message, warning=warning, autopilot=name)
-
-        return AutopilotLink(
-            spec_ap,
-            tracker,
-            on_change=self._reader.poke,
-            clock=self._clock,
-            signing=self._signing,
-            on_event=link_event,
-            reader=self._reader,
-        )
-
-    def _apply_spec(self, spec: RedundantAutopilotSpec, generation: int | None) -> str | None:
-        with self._spec_lock:
-            cfg = self._cfg
-            old = {a.name: a for a in cfg.spec.autopilots}
-            new = {a.name: a for a in spec.autopilots}
-            channels = {a.name: a.bridge_channel for a in spec.autopilots}
-            if set(old) != set(new) or channels != dict(cfg.channels):
-                return "the autopilots or their bridge channels changed; restart the agent"
-            if hub_identity(spec) != hub_identity(cfg.spec):
-                return "the hub's endpoints or identity changed; restart the agent"
-            unusable = connection_problems(spec)
-            if unusable:
-                return "; ".join(unusable)
-            changed = [n for n in new if new[n] != old[n]]
-            in_flight = self._state.in_flight is True or any(
-                a.in_air is True for a in self.assessments().values()
-            )
-            if changed and in_flight:
-                return f"connection details of {', '.join(changed)} change only on the ground"
-            links = dict(cfg.links)
-            retired = [links[n] for n in changed]
-            for name in changed:
-                links[name] = self._new_link(new[name], spec)
-                if self._hub is not None:
-                    self._hub.attach(links[name])
-                links[name].start()
-            for link in links.values():
-                link.tracker.set_thresholds(spec.failover_policy.thresholds)
-            if self._hub is not None and spec.hub is not None:
-                self._hub.configure(spec.hub)
-            self._cfg = _Running(
-                spec=spec,
-                generation=generation,
-                policy=Policy.from_spec(spec),
-                links=links,
-                channels=channels,
-            )
-        for link in retired:
-            link.stop()
-        self._persist()
-        return None
-
     # -- persistence, heartbeats, events -------------------------------------------------
-
-    def _persist(self) -> None:
-        if self._state_file is None:
-            return
-        with self._lock:
-            cfg, state = self._cfg, self._state
-            snapshot = PersistedState(
-                spec=cfg.spec,
-                generation=cfg.generation,
-                active=state.active,
-                latched=state.latched,
-                failed_from=sorted(state.failed_from),
-                failover_count=state.failover_count,
-                last_failover=self._last_failover,
-                commands=list(self._processed.values()),
-                safety=self._safety,
-                saved_at=self._wall_clock(),
-            )
-        with self._persist_lock:
-            try:
-                self._state_file.save(snapshot)
-            except OSError:
-                log.exception("cannot write the state file %s", self._state_file.path)
 
     def _heartbeat_forever(self) -> None:
         next_beat = 0.0
@@ -1220,7 +677,7 @@ class Agent:
                 log.exception("fence keeping failed")
             self._rest(cfg, STREAM_CHECK_S)
 
-    def _rest(self, cfg: _Running, period_s: float) -> None:
+    def _rest(self, cfg: Running, period_s: float) -> None:
         """Wait ``period_s`` between heartbeat rounds; while a fence transfer runs, step
         the fence keepers every :data:`FENCE_POLL_S` meanwhile (a transfer is one round
         trip per item: at the round's pace a 20-vertex upload and its read-back would
@@ -1273,7 +730,7 @@ class Agent:
         link.send_command(MAV_CMD_REQUEST_MESSAGE, (request, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
 
     def _keep_fence(
-        self, cfg: _Running, received: dict[str, list[tuple[str, float, int, float]]]
+        self, cfg: Running, received: dict[str, list[tuple[str, float, int, float]]]
     ) -> None:
         """Step every autopilot's fence keeper (roost_agent.fence) with what its link
         received."""
@@ -1295,7 +752,7 @@ class Agent:
         )
 
     def _keep_params(
-        self, cfg: _Running, received: dict[str, list[tuple[str, float, int, float]]]
+        self, cfg: Running, received: dict[str, list[tuple[str, float, int, float]]]
     ) -> None:
         """Step every autopilot's parameter keeper: take the PARAM_VALUEs its link
         received, send the reads and writes it asks for, report what changed."""
@@ -1381,32 +838,6 @@ class Agent:
 
     def _hub_event(self, reason: str, message: str, warning: bool) -> None:
         self._emit(EventKind.LINK, reason, message, warning=warning)
-
-    def _emit(
-        self,
-        kind: EventKind,
-        reason: str,
-        message: str,
-        *,
-        warning: bool = False,
-        autopilot: str | None = None,
-        failover: FailoverEvent | None = None,
-        health: AutopilotHealth | None = None,
-        command: CommandResult | None = None,
-    ) -> None:
-        self._events.put(
-            AgentEvent(
-                kind,
-                reason,
-                message,
-                warning,
-                self._wall_clock(),
-                autopilot,
-                failover,
-                health,
-                command,
-            )
-        )
 
     def _notify_forever(self) -> None:
         while True:

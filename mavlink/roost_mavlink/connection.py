@@ -4,7 +4,7 @@ Connection URLs (``AutopilotSpec.connection``) as the agent reads them:
 
 - ``udp://HOST:PORT``: the agent LISTENS on HOST:PORT; the autopilot sends there. The
   agent locks onto the address the autopilot proves to send from and replies only there
-  (pymavlink ``udpin:``; see ``roost_agent.links``). ``udp://HOST:PORT@PEER[:PEERPORT]``
+  (pymavlink ``udpin:``; see ``roost_agent.trust``). ``udp://HOST:PORT@PEER[:PEERPORT]``
   (mavros' spelling of a remote end) fixes that address instead. An empty HOST listens
   on every interface.
 - ``udpout://HOST:PORT``: the agent SENDS to HOST:PORT (pymavlink ``udpout:``).
