@@ -29,3 +29,4 @@ def test_a_standby_takes_over_a_killed_leader_and_does_nothing_twice(
     assert result.pods == 100, "every vehicle's pod, once"
     assert (result.claims, result.jobs) == (2, 2), "the Mission's claims and Jobs, once"
     assert result.fences == 2, "the Mission's fence sent to each crew vehicle, once"
+    assert result.standby_acted == (), "a standby watches, queues and reconciles nothing"

@@ -93,6 +93,8 @@ class Takeover:
     at_kill: Moment
     fences: int = 0
     """Fence writes into the crew's RedundantAutopilots."""
+    standby_acted: tuple[str, ...] = ()
+    """What the standby logged, other than its Lease attempts, before it led."""
 
 
 State = Callable[[dict[str, Any]], tuple[Hashable, Hashable] | None]
@@ -244,6 +246,20 @@ def leader(kube: Kube) -> str:
     return str((lease.get("spec") or {}).get("holderIdentity") or "")
 
 
+def before_leading(log: Path) -> tuple[str, ...]:
+    """The lines a replica logged before it held the Lease, other than its election's:
+    a standby that watched, queued or reconciled anything would log it (kopf's start,
+    a handler, a controller)."""
+    lines = []
+    for line in log.read_text().splitlines():
+        if "holds Lease" in line:
+            break
+        acting = " roost_operator." in line or " kopf." in line
+        if acting and " roost_operator.engine.leader:" not in line:
+            lines.append(line)
+    return tuple(lines)
+
+
 def replica(cluster: Cluster, log_dir: Path, identity: str) -> OperatorProcess:
     return OperatorProcess(
         cluster,
@@ -381,6 +397,7 @@ def kill_the_leader(cluster: Cluster, log_dir: Path, fleet: int = 100) -> Takeov
                     jobs=jobs.count(),
                     at_kill=at_kill,
                     fences=sum(fences),
+                    standby_acted=before_leading(log_dir / f"operator-{two}.log"),
                 )
             cluster.kubectl("delete", "mission", name, "-n", FLIGHTS, "--timeout=120s")
             for n in crew:
