@@ -29,17 +29,20 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any, TypeVar
 
 from roost_api.meta import now
 from roost_kube.client import Kube
 from roost_kube.errors import ApiError
 from roost_kube.resources import MISSIONS
-from roost_operator.missions.cluster import reconcile_mission, release_deleted_mission
+from roost_operator.missions.cluster import Outcome, reconcile_mission, release_deleted_mission
 from roost_operator.missions.interest import Interest, next_look
 from roost_operator.settings import Settings
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 
 def mission_key(namespace: str, name: str) -> str:
@@ -66,19 +69,25 @@ class MissionController:
         with self._guard:
             return self._locks.setdefault(key, threading.Lock())
 
-    def reconcile(self, key: str) -> float | None:
-        """One reconcile of Mission ``key``; seconds until the next without an event
-        (None: only on an event)."""
+    def _under_lock(self, key: str, step: Callable[..., T], **more: Any) -> T:
+        """Run ``step`` (reconcile or delete) on Mission ``key`` holding its lock."""
         namespace, name = split_key(key)
         with self._lock(key):
-            outcome = reconcile_mission(
+            return step(
                 self.kube,
                 namespace=namespace,
                 name=name,
                 operator_namespace=self.settings.namespace,
                 guards=self.settings.guards,
-                records=self.settings.records,
+                **more,
             )
+
+    def reconcile(self, key: str) -> float | None:
+        """One reconcile of Mission ``key``; seconds until the next without an event
+        (None: only on an event)."""
+        outcome: Outcome | None = self._under_lock(
+            key, reconcile_mission, records=self.settings.records
+        )
         self._reported.pop(key, None)
         if outcome is None or outcome.finished:
             self.interest.forget(key)
@@ -95,14 +104,7 @@ class MissionController:
         reconcile of it that is running; what could not be done (see
         :func:`release_deleted_mission`)."""
         key = mission_key(namespace, name)
-        with self._lock(key):
-            left = release_deleted_mission(
-                self.kube,
-                namespace=namespace,
-                name=name,
-                operator_namespace=self.settings.namespace,
-                guards=self.settings.guards,
-            )
+        left: list[str] = self._under_lock(key, release_deleted_mission)
         self.interest.forget(key)
         return left
 
