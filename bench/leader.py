@@ -7,7 +7,9 @@ of a two-vehicle Mission that is starting (:mod:`tests.support.takeover`). The t
 from the kill until the standby holds the Lease (polled every 50 ms); the standby waits
 for one whole lease (8 s) without a renewal on its own clock, then looks every second.
 Double actions are the objects the actions make (component Pods, claim Leases, the
-Mission's Jobs) that were made twice or removed though they should stay.
+Mission's Jobs) that were made twice or removed though they should stay, status
+transitions made twice (a Vehicle's ``Ready``, the Mission's phase and its Events) and
+fence commands sent twice.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ def run() -> list[Figure]:
         result = kill_the_leader(cluster, Path(tmp), fleet=100)
     note = (
         f"killed at {result.at_kill}; after: {result.pods} pods, {result.claims} claims, "
-        f"{result.jobs} Jobs"
+        f"{result.jobs} Jobs, {result.fences} fence writes"
     )
     return [
         Figure(

@@ -2,12 +2,12 @@
 
 :func:`roost_operator.main.main` builds the :class:`~roost_operator.settings.Settings`
 and hands them to kopf in the operator's ``memo``; the startup handler adds the API
-client, the controllers that keep per-process state (locks, the failover ledger) and
-the Vehicle controller's work queue (:mod:`roost_operator.engine.workqueue`), whose workers
-start with it and stop at the operator's cleanup, and Roost's own watches that feed it
-and whose stores the controller reads (:mod:`roost_operator.vehicles.watched`, claims
-here). Handlers call :func:`runtime` to get
-it typed. Nothing here talks to kopf's own API client: all of Roost's reads and writes
+client, the controllers that keep per-process state (locks, the failover ledger), one
+work queue per controller (:mod:`roost_operator.engine.workqueue`: Vehicles, Missions),
+whose workers start with it and stop at the operator's cleanup, and Roost's own watches
+that feed them and whose stores the Vehicle controller reads
+(:mod:`roost_operator.vehicles.watched`, claims here). Handlers call :func:`runtime` to
+get it typed. Nothing here talks to kopf's own API client: all of Roost's reads and writes
 go through :class:`roost_kube.client.Kube`.
 """
 
@@ -23,12 +23,13 @@ from typing import Any, cast
 from roost_api.wellknown import LABEL_COMPONENT, LABEL_MANAGED_BY, LABEL_VEHICLE, MANAGED_BY
 from roost_kube.client import Kube
 from roost_kube.resources import CONFIGMAPS, LEASES, NODES, PODS, VEHICLES
-from roost_operator.claims import CLAIM_COMPONENT, Claim, claim_of
+from roost_operator.claims import CLAIM_COMPONENT, claim_of
 from roost_operator.edge import HandlerTiming
 from roost_operator.engine.cache import Cached
 from roost_operator.engine.errors import error_kind, is_permanent
 from roost_operator.engine.watches import Store, Watcher
 from roost_operator.engine.workqueue import Backoff, WorkQueue
+from roost_operator.missions.controller import MissionController
 from roost_operator.settings import Settings
 from roost_operator.vehicles.controller import VehicleController
 from roost_operator.vehicles.observe import Peers
@@ -42,12 +43,15 @@ CLAIM_SELECTOR = f"{LABEL_MANAGED_BY}={MANAGED_BY},{LABEL_COMPONENT}={CLAIM_COMP
 
 @dataclass
 class Runtime:
-    """The API client, the settings, the Vehicle controller and its queue."""
+    """The API client, the settings, the Vehicle and Mission controllers and their
+    queues."""
 
     kube: Kube
     settings: Settings
     vehicles: VehicleController
+    missions: MissionController
     vehicle_queue: WorkQueue = field(init=False)
+    mission_queue: WorkQueue = field(init=False)
     peers: Peers | None = None
     """The kopf indexes as :class:`Peers` (bound by the first handler that runs: kopf
     hands its live index objects only to handlers)."""
@@ -59,9 +63,6 @@ class Runtime:
     """Where each queued reconcile's duration goes (the operator's metrics), if anywhere."""
     watchers: list[Watcher] = field(default_factory=list)
     """Roost's own watches (Nodes, claim Leases): see :mod:`roost_operator.engine.watches`."""
-    claim_listeners: list[Callable[[Claim], None]] = field(default_factory=list)
-    """Called (from the claim watch's thread) with every claim Lease event; the Vehicle
-    queue is always told, the mission controller adds itself here at startup."""
     _sweep_stop: threading.Event = field(default_factory=threading.Event)
 
     @classmethod
@@ -75,7 +76,8 @@ class Runtime:
     ) -> Runtime:
         """The runtime of an operator with ``settings`` talking through ``kube``; its
         queue's workers run ``reconcile(runtime, vehicle)`` (none: the queue is not
-        started, for unit tests)."""
+        started, for unit tests); the Mission queue's workers, with it, run the
+        :class:`~roost_operator.missions.controller.MissionController`."""
         namespace = settings.namespace
         stores = {
             NODES.kind: Store(index_label=LABEL_VEHICLE, trim=node_kept),
@@ -98,17 +100,33 @@ class Runtime:
                 VEHICLES.kind: Cached(Store(), listed=False),
             },
         )
-        rt = cls(kube=kube, settings=settings, vehicles=controller, timing=timing)
+        rt = cls(
+            kube=kube,
+            settings=settings,
+            vehicles=controller,
+            missions=MissionController(kube, settings),
+            timing=timing,
+        )
         rt.vehicle_queue = WorkQueue(
-            lambda vehicle: rt._timed(reconcile, vehicle),
+            lambda vehicle: rt._timed("vehicles", reconcile, vehicle),
             workers=settings.reconcile_workers,
             backoff=Backoff(settings.retry_backoff_seconds, settings.max_backoff_seconds),
             is_permanent=is_permanent,
             on_permanent=rt._report_permanent,
             name="vehicle-reconcile",
         )
+        timings = settings.missions
+        rt.mission_queue = WorkQueue(
+            lambda mission: rt._timed("missions", Runtime._reconcile_mission, mission),
+            workers=timings.workers,
+            backoff=Backoff(timings.error_backoff_seconds, timings.max_backoff_seconds),
+            is_permanent=is_permanent,
+            on_permanent=rt.missions.report_permanent,
+            name="mission-reconcile",
+        )
         if reconcile is not None:
             rt.vehicle_queue.start()
+            rt.mission_queue.start()
             enqueue = rt.vehicle_queue.add
             rt.watchers = [
                 node_watcher(kube, lambda: rt.peers, enqueue, stores[NODES.kind]),
@@ -141,37 +159,53 @@ class Runtime:
         if self.peers is None:
             self.peers = make()
 
-    def _timed(self, reconcile: Callable[[Runtime, str], None] | None, vehicle: str) -> None:
-        """Run one queued reconcile, reporting its duration (resource ``vehicles``,
-        handler ``reconcile``) and how it failed, as every kopf handler's run is."""
+    def _timed(
+        self, resource: str, reconcile: Callable[[Runtime, str], None] | None, key: str
+    ) -> None:
+        """Run one queued reconcile, reporting its duration (``resource``, handler
+        ``reconcile``) and how it failed, as every kopf handler's run is."""
         if reconcile is None:
             return
         started, failed = time.perf_counter(), None
         try:
-            reconcile(self, vehicle)
+            reconcile(self, key)
         except Exception as error:
             failed = error_kind(error)
             raise
         finally:
             if self.timing is not None:
-                self.timing.observe("vehicles", "reconcile", time.perf_counter() - started, failed)
+                self.timing.observe(resource, "reconcile", time.perf_counter() - started, failed)
+
+    def _reconcile_mission(self, key: str) -> None:
+        """One queued Mission reconcile; its next look without an event becomes the key's
+        deadline (a finished Mission has none)."""
+        delay = self.missions.reconcile(key)
+        if delay is None:
+            self.mission_queue.forget(key)
+        else:
+            self.mission_queue.add_at(key, time.monotonic() + delay)
+
+    def queue_missions(self, keys: set[str]) -> None:
+        """Queue a reconcile of each Mission in ``keys``."""
+        for key in keys:
+            self.mission_queue.add(key)
 
     def stop(self) -> None:
-        """Stop the sweep and the queue's workers (after their running reconciles)."""
+        """Stop the sweep and the queues' workers (after their running reconciles)."""
         self._sweep_stop.set()
         for watcher in self.watchers:
             watcher.stop()
         self.vehicle_queue.stop()
+        self.mission_queue.stop()
 
     def _claim_changed(self, lease: Mapping[str, Any]) -> None:
-        """A mission claimed or released a vehicle: queue it (``status.claimedBy``) and
-        tell the mission controller."""
+        """A mission claimed or released a vehicle: queue it (``status.claimedBy``), its
+        claimant and the Missions waiting for vehicles."""
         claim = claim_of(lease)
         if claim is None:
             return
         self.vehicle_queue.add(claim.vehicle)
-        for listener in list(self.claim_listeners):
-            listener(claim)
+        self.queue_missions(self.missions.interest.for_vehicle(claim.vehicle, claim.holder_key))
 
     def _claims_listed(
         self, leases: list[Mapping[str, Any]], vanished: list[Mapping[str, Any]]

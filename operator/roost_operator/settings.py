@@ -23,7 +23,8 @@ from roost_operator.records.settings import RecordsSettings
 
 @dataclass(frozen=True)
 class MissionTimings:
-    """How often the mission controller looks at a Mission, and how it backs off."""
+    """How often the Mission controller looks at a Mission without an event, how its
+    work queue backs off, and how many workers it has."""
 
     resync_seconds: float = 10.0
     """Reconcile every Mission at least this often, even without an event: Jobs, agents
@@ -36,16 +37,13 @@ class MissionTimings:
     max_backoff_seconds: float = 60.0
     """Longest wait between retries of a failing Mission reconcile."""
 
-    coalesce_seconds: float = 0.5
-    """After a wake-up, wait this long so a burst of events costs one reconcile."""
+    workers: int = 4
+    """Threads reconciling Missions from their work queue (``ROOST_MISSION_WORKERS``):
+    how many Mission reconciles run at once, however many Missions there are."""
 
     delete_backoff_seconds: float = 2.0
     """kopf's backoff before retrying a Mission's deletion handler after a temporary
     error (the Mission keeps its finalizer meanwhile)."""
-
-    stop_timeout_seconds: float = 30.0
-    """How long a Mission's reconcile loop may take to stop when the Mission is deleted
-    or the operator shuts down (kopf's daemon cancellation timeout)."""
 
 
 @dataclass(frozen=True)
@@ -121,11 +119,12 @@ class Settings:
     @property
     def api_connections(self) -> int:
         """Connections Roost's API client keeps open: one per thread that may send at
-        once — the reconcile workers, kopf's handler threads, and Roost's own watches
-        (nodes, claims, ConfigMaps, component Pods), each holding one for its whole length —
+        once — the Vehicle and Mission reconcile workers, kopf's handler threads, and
+        Roost's own watches (nodes, claims, ConfigMaps, component Pods), each holding one
+        for its whole length —
         plus a few for the rest. A request beyond the pool opens, and then throws away,
         a connection of its own: a TLS handshake per request on both ends."""
-        return self.reconcile_workers + self.kopf.handler_threads + 8
+        return self.reconcile_workers + self.missions.workers + self.kopf.handler_threads + 8
 
     retry_backoff_seconds: float = 2.0
     """First wait before retrying a Vehicle reconcile (or kopf's handler for a Vehicle's
@@ -156,7 +155,7 @@ class Settings:
     :class:`~roost_operator.autopilots.guards.FleetGuards`)."""
 
     missions: MissionTimings = field(default_factory=MissionTimings)
-    """Timings of the mission controller (``ROOST_MISSION_*``)."""
+    """Timings and workers of the Mission controller (``ROOST_MISSION_*``)."""
 
     kopf: KopfTimings = field(default_factory=KopfTimings)
     """Watch and request timeouts of kopf (``ROOST_WATCH_*``, ``ROOST_*_TIMEOUT_SECONDS``)."""
@@ -232,6 +231,7 @@ def load_settings(environ: Mapping[str, str]) -> Settings:
             error_backoff_seconds=float(
                 environ.get("ROOST_MISSION_ERROR_BACKOFF_SECONDS", timings.error_backoff_seconds)
             ),
+            workers=int(environ.get("ROOST_MISSION_WORKERS", timings.workers)),
         ),
         kopf=load_kopf_timings(environ),
         records=load_records(environ),

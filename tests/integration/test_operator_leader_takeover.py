@@ -1,7 +1,9 @@
 """Two operator replicas with leader election on the real control plane: the leader is
 killed (SIGKILL) in the middle of a 100-Vehicle rollout and a Mission start, the standby
-takes the Lease and finishes both, and nothing is done twice
-(:mod:`tests.support.takeover` says how it is counted). How long the takeover took is a
+takes the Lease and finishes both — the Vehicles and the Missions run on one engine, so
+one Lease covers both — and every action is done exactly once: pods, claims and Jobs
+made, Vehicle and Mission status transitions, the Mission's fence command sent
+(:mod:`tests.support.takeover` says how each is counted). How long the takeover took is a
 figure (``python -m bench leader``), not a limit here. About two minutes warm.
 """
 
@@ -26,3 +28,5 @@ def test_a_standby_takes_over_a_killed_leader_and_does_nothing_twice(
     assert result.doubles == []
     assert result.pods == 100, "every vehicle's pod, once"
     assert (result.claims, result.jobs) == (2, 2), "the Mission's claims and Jobs, once"
+    assert result.fences == 2, "the Mission's fence sent to each crew vehicle, once"
+    assert result.standby_acted == (), "a standby watches, queues and reconciles nothing"

@@ -34,7 +34,7 @@ def test_handler_edge_reports_runs_and_errors_by_kind_to_the_memo() -> None:
         raise kopf.TemporaryError("later", delay=1)
 
     @handler_edge
-    async def mission_daemon(**_: Any) -> None:
+    async def mission_deleted(**_: Any) -> None:
         raise ValueError("bug")
 
     assert vehicle_changed(memo=memo, resource=vehicles) == "done"
@@ -42,15 +42,15 @@ def test_handler_edge_reports_runs_and_errors_by_kind_to_the_memo() -> None:
     with pytest.raises(kopf.TemporaryError):
         vehicle_resync(memo=memo, resource=vehicles)
     with pytest.raises(ValueError, match="bug"):
-        asyncio.run(mission_daemon(memo=memo, resource=missions))
+        asyncio.run(mission_deleted(memo=memo, resource=missions))
     got = parse(generate_latest(registry).decode())
     count = "roost_operator_reconcile_duration_seconds_count"
     assert got[(count, (("handler", "vehicle_changed"), ("resource", "vehicles")))] == 1
     assert got[(count, (("handler", "vehicle_resync"), ("resource", "vehicles")))] == 1
-    assert got[(count, (("handler", "mission_daemon"), ("resource", "missions")))] == 1
+    assert got[(count, (("handler", "mission_deleted"), ("resource", "missions")))] == 1
     errors = "roost_operator_reconcile_errors_total"
     key = (("error", "temporary"), ("handler", "vehicle_resync"), ("resource", "vehicles"))
     assert got[(errors, key)] == 1
-    key = (("error", "other"), ("handler", "mission_daemon"), ("resource", "missions"))
+    key = (("error", "other"), ("handler", "mission_deleted"), ("resource", "missions"))
     assert got[(errors, key)] == 1
     assert not [k for k in got if k[0] == errors and ("handler", "vehicle_changed") in k[1]]

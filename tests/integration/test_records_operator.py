@@ -273,8 +273,8 @@ def test_a_mission_that_never_flew_has_no_record_and_get_says_so(
 def test_an_unusable_records_volume_fails_the_record_once_with_why(
     kube: Kube, tmp_path: Path
 ) -> None:
-    """The volume is a file, not a directory: the round ends Failed (final, so the loop
-    stops) with the volume's error, without contacting any vehicle."""
+    """The volume is a file, not a directory: the round ends Failed (final, so the
+    Mission is not looked at again) with the volume's error, without contacting any vehicle."""
     (tmp_path / "volume").write_text("not a directory")
     status = MissionStatus(
         phase=MissionPhase.SUCCEEDED,

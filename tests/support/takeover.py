@@ -3,12 +3,22 @@ what the standby does: how long it takes the Lease, and whether anything was don
 
 Two ``roost-operator --leader-election`` processes watch the same cluster; the first
 leads. A fleet of Vehicles is applied; once a tenth of its pods exist, a Mission for two
-other vehicles (Ready, stand-in agents report for them) is created, and at its first
-claim the leader is killed (SIGKILL).
+other vehicles (Ready, stand-in agents report for them) with a geofence is created, and
+at its first claim the leader is killed (SIGKILL).
 The standby takes the Lease and finishes the rollout and the Mission's
-start. Watches record every object the actions make (component Pods, claim Leases, the
-Mission's Jobs) by name and uid: an object made twice (a second uid, or a deletion of one
-that should stay) is a double action.
+start. Watches record every action of either leader, and any action done twice is a
+double action:
+
+* objects made (component Pods, claim Leases, the Mission's Jobs), by name and uid: an
+  object made twice (a second uid), or deleted though it should stay;
+* status transitions: each Vehicle's ``Ready`` condition and the Mission's phase, in the
+  order written; a state entered twice (``Ready`` True written again with a new
+  ``lastTransitionTime``, the Mission back in a phase it had left), and the Mission's
+  transition Events (named by their time, so a transition made again posts a second
+  one with the same reason and message);
+* commands sent: the fence written into each crew vehicle's RedundantAutopilot
+  (``spec.fence``, the command its agent uploads to the autopilots): each spec change
+  bumps the RedundantAutopilot's generation, which must move exactly once.
 
 Used by ``tests/integration/test_operator_leader_takeover.py`` (the verdicts) and ``python
 -m bench leader`` (the figures).
@@ -20,7 +30,7 @@ import json
 import threading
 import time
 from collections import defaultdict
-from collections.abc import Iterator
+from collections.abc import Callable, Hashable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -30,7 +40,16 @@ from typing import Any
 from roost_api.wellknown import LABEL_MANAGED_BY, MANAGED_BY
 from roost_kube.client import Kube
 from roost_kube.errors import ApiError
-from roost_kube.resources import JOBS, LEASES, MISSIONS, PODS, VEHICLES, Resource
+from roost_kube.resources import (
+    EVENTS,
+    JOBS,
+    LEASES,
+    MISSIONS,
+    PODS,
+    REDUNDANT_AUTOPILOTS,
+    VEHICLES,
+    Resource,
+)
 from roost_localcluster import nodes
 from roost_localcluster.cluster import Cluster
 from roost_operator.engine.leader import LEASE_NAME
@@ -72,20 +91,39 @@ class Takeover:
     claims: int
     jobs: int
     at_kill: Moment
+    fences: int = 0
+    """Fence writes into the crew's RedundantAutopilots."""
+    standby_acted: tuple[str, ...] = ()
+    """What the standby logged, other than its Lease attempts, before it led."""
+
+
+State = Callable[[dict[str, Any]], tuple[Hashable, Hashable] | None]
+"""An object's state and when it was entered (None: no state yet)."""
 
 
 class Births:
-    """Every object of a kind seen by a watch, by name: its uids and deletions."""
+    """Every object of a kind seen by a watch, by name: its uids and deletions, and the
+    states ``state`` reads from it, in order (repeats of the last one dropped)."""
 
-    def __init__(self, kube: Kube, resource: Resource, namespace: str, selector: str = "") -> None:
+    def __init__(
+        self,
+        kube: Kube,
+        resource: Resource,
+        namespace: str | None,
+        selector: str = "",
+        state: State | None = None,
+    ) -> None:
         self.kube, self.resource, self.namespace, self.selector = (
             kube,
             resource,
             namespace,
             selector,
         )
+        self.state = state
         self.uids: dict[str, set[str]] = defaultdict(set)
         self.deleted: dict[str, int] = defaultdict(int)
+        self.states: dict[str, list[tuple[Hashable, Hashable]]] = defaultdict(list)
+        self.events: dict[str, dict[str, Any]] = {}
         self.lock = threading.Lock()
         self.stopping = threading.Event()
         self.thread = threading.Thread(target=self._run, daemon=True, name="births")
@@ -98,6 +136,13 @@ class Births:
             self.uids[meta["name"]].add(meta.get("uid", ""))
             if kind == "DELETED":
                 self.deleted[meta["name"]] += 1
+                return
+            if self.resource is EVENTS:
+                self.events[meta["name"]] = obj
+            entered = self.state(obj) if self.state else None
+            history = self.states[meta["name"]]
+            if entered is not None and (not history or history[-1] != entered):
+                history.append(entered)
 
     def _run(self) -> None:
         while not self.stopping.is_set():
@@ -132,12 +177,62 @@ class Births:
             gone = [f"{kind} {n} deleted" for n in keep if self.deleted.get(n)]
         return made + gone
 
+    def entered_twice(self, names: Iterable[str] | None = None) -> list[str]:
+        """Objects that entered one state twice (at two different times)."""
+        kind = self.resource.kind
+        found = []
+        with self.lock:
+            for name in self.states if names is None else names:
+                entered = [state for state, _ in self.states.get(name, [])]
+                again = sorted({str(s) for s in entered if entered.count(s) > 1})
+                if again:
+                    found.append(f"{kind} {name} entered {', '.join(again)} twice")
+        return found
+
+    def changes(self, name: str) -> int:
+        """How often the state of ``name`` changed after it was first seen."""
+        with self.lock:
+            return max(0, len(self.states.get(name, [])) - 1)
+
+    def events_twice(self) -> list[str]:
+        """Events (of an Events watch) posted twice for one reason and message."""
+        seen: dict[tuple[str, str, str], int] = defaultdict(int)
+        with self.lock:
+            for event in self.events.values():
+                about = event.get("involvedObject") or {}
+                seen[
+                    (str(about.get("name")), event.get("reason", ""), event.get("message", ""))
+                ] += 1
+        return [
+            f"Event {r} ({m}) on {n} posted {c} times" for (n, r, m), c in seen.items() if c > 1
+        ]
+
     def __enter__(self) -> Births:
         self.thread.start()
         return self
 
     def __exit__(self, *_: object) -> None:
         self.stopping.set()
+
+
+def ready_condition(vehicle: dict[str, Any]) -> tuple[Hashable, Hashable] | None:
+    for condition in (vehicle.get("status") or {}).get("conditions") or []:
+        if condition.get("type") == "Ready":
+            return condition.get("status"), condition.get("lastTransitionTime")
+    return None
+
+
+def mission_phase(body: dict[str, Any]) -> tuple[Hashable, Hashable] | None:
+    found = (body.get("status") or {}).get("phase")
+    return None if not found else (found, found)
+
+
+def generation(body: dict[str, Any]) -> tuple[Hashable, Hashable] | None:
+    found = (body.get("metadata") or {}).get("generation")
+    return None if found is None else (found, found)
+
+
+FENCE = {"circle": {"latitude": 47.3977, "longitude": 8.5456, "radiusM": 80}, "maxAltitudeM": 30}
 
 
 def claimed(leases: Births) -> int:
@@ -149,6 +244,20 @@ def claimed(leases: Births) -> int:
 def leader(kube: Kube) -> str:
     lease = kube.get(LEASES, LEASE_NAME, NAMESPACE) or {}
     return str((lease.get("spec") or {}).get("holderIdentity") or "")
+
+
+def before_leading(log: Path) -> tuple[str, ...]:
+    """The lines a replica logged before it held the Lease, other than its election's:
+    a standby that watched, queued or reconciled anything would log it (kopf's start,
+    a handler, a controller)."""
+    lines = []
+    for line in log.read_text().splitlines():
+        if "holds Lease" in line:
+            break
+        acting = " roost_operator." in line or " kopf." in line
+        if acting and " roost_operator.engine.leader:" not in line:
+            lines.append(line)
+    return tuple(lines)
 
 
 def replica(cluster: Cluster, log_dir: Path, identity: str) -> OperatorProcess:
@@ -179,6 +288,7 @@ def mission(name: str, vehicles: list[str]) -> dict[str, Any]:
         "metadata": {"name": name, "namespace": FLIGHTS},
         "spec": {
             "vehicles": {"names": vehicles, "count": len(vehicles)},
+            "fence": FENCE,
             "onboard": {
                 "spec": {
                     "restartPolicy": "Never",
@@ -242,6 +352,10 @@ def kill_the_leader(cluster: Cluster, log_dir: Path, fleet: int = 100) -> Takeov
                 Births(kube, PODS, NAMESPACE, owned) as pods,
                 Births(kube, LEASES, NAMESPACE) as leases,
                 Births(kube, JOBS, FLIGHTS) as jobs,
+                Births(kube, VEHICLES, None, state=ready_condition) as vehicles,
+                Births(kube, MISSIONS, FLIGHTS, state=mission_phase) as missions,
+                Births(kube, EVENTS, FLIGHTS) as events,
+                Births(kube, REDUNDANT_AUTOPILOTS, None, state=generation) as autopilots,
             ):
                 listing = {"apiVersion": "v1", "kind": "List", "items": objects}
                 cluster.kubectl("apply", "--server-side", "-f", "-", input_text=json.dumps(listing))
@@ -261,10 +375,19 @@ def kill_the_leader(cluster: Cluster, log_dir: Path, fleet: int = 100) -> Takeov
                 wait_until("the Mission Running", lambda: phase(kube, name) == "Running", WAIT_S)
                 wait_until("both Jobs seen", lambda: jobs.count() >= len(crew), WAIT_S)
                 claims = [c for c in leases.uids if c != LEASE_NAME]
+                fences = [autopilots.changes(n) for n in crew]
                 doubles = [
                     *pods.doubles(set(pods.uids)),
                     *leases.doubles(set(claims)),
                     *jobs.doubles(set(jobs.uids)),
+                    *vehicles.entered_twice([*fleet_names, *crew]),
+                    *missions.entered_twice(),
+                    *events.events_twice(),
+                    *[
+                        f"fence sent {n} times to {v}"
+                        for v, n in zip(crew, fences, strict=True)
+                        if n > 1
+                    ],
                 ]
                 result = Takeover(
                     takeover_s=takeover_s,
@@ -273,6 +396,8 @@ def kill_the_leader(cluster: Cluster, log_dir: Path, fleet: int = 100) -> Takeov
                     claims=len(claims),
                     jobs=jobs.count(),
                     at_kill=at_kill,
+                    fences=sum(fences),
+                    standby_acted=before_leading(log_dir / f"operator-{two}.log"),
                 )
             cluster.kubectl("delete", "mission", name, "-n", FLIGHTS, "--timeout=120s")
             for n in crew:

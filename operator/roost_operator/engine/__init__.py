@@ -13,7 +13,9 @@
 ``leader``
     Leader election on a Lease: one replica acts, the others stand by.
 
-kopf delivers the custom resources' events and holds the settings; the Vehicle
-controller runs on this engine's queue, watches and caches; the Mission controller uses
-its backoff and errors from one kopf daemon per Mission.
+kopf delivers the custom resources' events, runs the Missions' deletion behind their
+finalizer and holds the settings. Both controllers run on this engine: a work queue
+each (Vehicles, Missions) with the same coalescing, backoff, error split and deadlines,
+fed by kopf's event handlers and by Roost's own watches, all of it only in the replica
+holding the Lease. The Vehicle controller also reads through the watches' caches.
 """

@@ -18,8 +18,13 @@ Split like the vehicle controller — pure decisions, thin I/O, thin kopf handle
 ``cluster``
     Reads an Observation from the API and carries out a Plan (claims use optimistic
     concurrency on Vehicle status).
+``interest``
+    Which Missions an event on a Vehicle, claim or RedundantAutopilot concerns, and
+    when a Mission is looked at again without an event.
+``controller``
+    One queued Mission key, one reconcile on the engine's work queue
+    (:mod:`roost_operator.engine`); the deletion after any running reconcile.
 ``handlers``
-    kopf: one daemon per Mission that reconciles when woken (by Vehicle,
-    RedundantAutopilot, Job or Mission events) or on a resync period, and a deletion
-    handler that releases the vehicles.
+    kopf: event handlers that queue Mission keys (Mission, Vehicle,
+    RedundantAutopilot, Job events), and a deletion handler that releases the vehicles.
 """

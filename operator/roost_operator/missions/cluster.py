@@ -185,6 +185,7 @@ def observe(
         live_missions=live,
         now=datetime.now(UTC),
         guards=guards,
+        deleting=bool(meta.get("deletionTimestamp")),
     )
 
 
@@ -497,7 +498,8 @@ def reconcile_mission(
     guards: FleetGuards,
     records: RecordsSettings | None = None,
 ) -> Outcome | None:
-    """Observe, plan, claim (all or nothing), carry out. None when the Mission is gone.
+    """Observe, plan, claim (all or nothing), carry out. None when the Mission is gone
+    or being deleted (its deletion handler acts then).
 
     ``records``: gather the flight records of a mission that flew once it has ended
     (a round per reconcile while ``status.records`` says Gathering; its result goes
@@ -505,7 +507,7 @@ def reconcile_mission(
     obs = observe(
         kube, namespace=namespace, name=name, operator_namespace=operator_namespace, guards=guards
     )
-    if obs is None:
+    if obs is None or obs.deleting:
         return None
     gathering = records is not None and records.directory is not None
     obs = replace(obs, records=gathering)

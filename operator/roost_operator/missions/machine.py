@@ -173,6 +173,9 @@ class Observation:
     records: bool = False
     """The operator gathers flight records (:mod:`roost_operator.records`): a mission that
     flew gets ``status.records`` when it ends."""
+    deleting: bool = False
+    """The Mission is marked for deletion: its deletion handler, not its reconcile, acts
+    on it now (:func:`plan_deletion`)."""
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 
 The agent on each vehicle records its flights and serves them over HTTP (``/records``,
 reached through the API server's pod proxy of the agent pod). When a Mission that flew
-ends, its reconcile loop gathers the flights of its claimed vehicles that overlap the
+ends, its reconciles gather the flights of its claimed vehicles that overlap the
 Mission's run into one bundle on the operator's records volume. Split like the mission
 controller — pure decisions, thin I/O:
 

@@ -1,9 +1,9 @@
 """One gathering round for one finished Mission: observe the agents, plan, fetch, record.
 
-Called by the Mission's reconcile loop (:func:`~roost_operator.missions.cluster.reconcile_mission`)
+Called by the Mission's reconcile (:func:`~roost_operator.missions.cluster.reconcile_mission`)
 once the Mission has ended and its ``status.records`` says Gathering; what it returns
-goes into the same status write as the rest of the Mission's status, so the mission loop
-stays the only writer. A round never raises for a vehicle: what it cannot do becomes
+goes into the same status write as the rest of the Mission's status, so the Mission's
+reconcile stays the only writer. A round never raises for a vehicle: what it cannot do becomes
 that vehicle's Pending (tried again in ``retry_seconds``) or Missing state. Only an
 unusable records volume fails the bundle (state Failed, said once).
 
