@@ -40,6 +40,15 @@ AGENT_USER = "system:serviceaccount:roost-system:roost-agent"
 
 # Value sets every rendering test runs with: the defaults, both shipped values files,
 # and the switches that change which objects exist.
+S3_VALUES = {
+    "endpoint": "https://s3.example.org",
+    "bucket": "flights",
+    "region": "eu-central-1",
+    "prefix": "site-1",
+    "secretName": "bucket-key",
+    "accessKeyIdKey": "AWS_ACCESS_KEY_ID",
+    "secretAccessKeyKey": "AWS_SECRET_ACCESS_KEY",
+}
 VALUE_SETS: dict[str, tuple[dict[str, Any], tuple[Path, ...]]] = {
     "defaults": ({}, ()),
     "hardware": ({}, (HARDWARE_VALUES,)),
@@ -72,7 +81,13 @@ VALUE_SETS: dict[str, tuple[dict[str, Any], tuple[Path, ...]]] = {
         },
         (),
     ),
-    "records": ({"agent": {"records": {"enabled": True, "bindNodeAddress": True}}}, ()),
+    "records": (
+        {
+            "agent": {"records": {"enabled": True, "bindNodeAddress": True}},
+            "operator": {"records": {"s3": S3_VALUES}},
+        },
+        (),
+    ),
     "no-metrics": (
         {"operator": {"metrics": {"enabled": False}}, "agent": {"metrics": {"enabled": False}}},
         (),
@@ -244,6 +259,37 @@ def test_operator_keeps_mission_records_on_its_own_claim_and_may_reach_the_agent
     assert not [m for m in scratch if m["kind"] == "PersistentVolumeClaim"]
     assert {"name": "records", "emptyDir": {}} in pod["volumes"]
     assert "ROOST_RECORDS_DIR" in {e["name"] for e in pod["containers"][0]["env"]}
+
+
+def test_operator_copies_bundles_to_a_bucket_with_credentials_from_an_optional_secret() -> None:
+    pod = find(_render_set("records"), "Deployment", "-operator")["spec"]["template"]["spec"]
+    container = pod["containers"][0]
+    env = {e["name"]: e.get("value") for e in container["env"]}
+    assert {k: v for k, v in env.items() if k.startswith("ROOST_RECORDS_S3_")} == {
+        "ROOST_RECORDS_S3_ENDPOINT": "https://s3.example.org",
+        "ROOST_RECORDS_S3_BUCKET": "flights",
+        "ROOST_RECORDS_S3_REGION": "eu-central-1",
+        "ROOST_RECORDS_S3_PREFIX": "site-1",
+        "ROOST_RECORDS_S3_CREDENTIALS_DIR": "/etc/roost/records-s3",
+    }
+    (mount,) = [m for m in container["volumeMounts"] if m["name"] == "records-s3"]
+    assert mount == {"name": "records-s3", "mountPath": "/etc/roost/records-s3", "readOnly": True}
+    (volume,) = [v for v in pod["volumes"] if v["name"] == "records-s3"]
+    assert volume["secret"] == {
+        "secretName": "bucket-key",
+        "optional": True,  # without it the operator runs; the uploads say why they fail
+        "items": [
+            {"key": "AWS_ACCESS_KEY_ID", "path": "accessKeyId"},
+            {"key": "AWS_SECRET_ACCESS_KEY", "path": "secretAccessKey"},
+        ],
+    }
+    # The operator's role still reads no Secret: the kubelet mounts it.
+    assert not _grants(_rules(_render_set("records"), "-operator"), "", "secrets", "get")
+
+    default = find(_render_set("defaults"), "Deployment", "-operator")["spec"]["template"]
+    assert "records-s3" not in {v["name"] for v in default["spec"]["volumes"]}
+    with pytest.raises(ChartError, match=r"operator\.records\.s3\.secretName is required"):
+        render({"operator": {"records": {"s3": {**S3_VALUES, "secretName": ""}}}})
 
 
 # -- agent -----------------------------------------------------------------------------
