@@ -317,3 +317,32 @@ def test_a_second_flight_fetches_only_its_own_logs(
     logs = sorted(f.path for f in second.files if f.autopilot and f.path.startswith("autopilot"))
     px4, ardupilot = v.sims
     assert logs == [f"autopilot-logs/{px4.name}/2.ulg", f"autopilot-logs/{ardupilot.name}/2.bin"]
+
+
+def test_a_flight_that_would_take_the_disk_below_its_reserve_fails_and_the_vehicle_flies_on(
+    tmp_path: Path,
+) -> None:
+    """The reserve is the whole disk here (keep_free 1.0: no filesystem has that much
+    free), so the first budget check finds no room: the real disk's figures, no stand-in."""
+    root = tmp_path / "records"
+    with hub_vehicle(["px4", "px4"]) as v:
+        recorder = FlightRecorder(
+            v.agent, root, budget_bytes=10**12, budget_check_s=0.2, keep_free=1.0
+        )
+        recorder.start()
+        try:
+            assert v.client.command(VEHICLE_SYSID, MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
+            wait_until(
+                "the flight failed",
+                lambda: (
+                    read_manifests(root) and read_manifests(root)[0].state is FlightState.FAILED
+                ),
+                30,
+            )
+            failed = read_manifests(root)[0]
+            assert failed.message.startswith("the disk is nearly full: it keeps 100% free")
+            assert v.client.command(VEHICLE_SYSID, MAV_CMD_COMPONENT_ARM_DISARM, 0) == 0
+            wait_until("disarmed", lambda: not any(s.snapshot().armed for s in v.sims), 5)
+            assert {a.level.value for a in v.agent.assessments().values()} == {"OK"}
+        finally:
+            recorder.stop()

@@ -320,29 +320,35 @@ def test_agent_uses_the_host_network_and_learns_its_node_from_the_downward_api()
 
 
 def test_agent_without_devices_is_unprivileged_and_mounts_nothing_from_the_host() -> None:
-    """Nothing from the host but its signing key directory, read-only."""
+    """Nothing from the host but its signing key directory, read-only, and its node's
+    own directory of flight records."""
     pod = _agent_pod("defaults")
     context = pod["containers"][0]["securityContext"]
     assert "privileged" not in context
     assert context["capabilities"] == {"drop": ["ALL"]}
     assert context["readOnlyRootFilesystem"] is True
     host = [v["name"] for v in pod["volumes"] if "hostPath" in v]
+    assert host == ["records", "signing-keys"]
+    mounts = {m["name"]: m for m in pod["containers"][0]["volumeMounts"] if m["name"] in host}
+    assert mounts["signing-keys"]["readOnly"]
+    assert mounts["records"]["subPathExpr"] == "$(NODE_NAME)"
+    off = find(render({"agent": {"records": {"enabled": False}}}), "DaemonSet", "-agent")
+    host = [v["name"] for v in off["spec"]["template"]["spec"]["volumes"] if "hostPath" in v]
     assert host == ["signing-keys"]
-    mounts = [m for m in pod["containers"][0]["volumeMounts"] if m["name"] in host]
-    assert all(m["readOnly"] for m in mounts)
 
 
-def test_agent_records_flights_on_a_host_directory_of_its_node_when_asked() -> None:
-    off = _agent_pod("defaults")
+def test_agent_records_flights_on_a_host_directory_of_its_node_by_default() -> None:
+    off = find(render({"agent": {"records": {"enabled": False}}}), "DaemonSet", "-agent")
+    off = off["spec"]["template"]["spec"]
     assert "initContainers" not in off
     assert not [a for a in off["containers"][0]["args"] if a.startswith("--records")]
-    on = find(render({"agent": {"records": {"enabled": True}}}), "DaemonSet", "-agent")
-    pod = on["spec"]["template"]["spec"]
+    pod = _agent_pod("defaults")
     container = pod["containers"][0]
     for arg in (
         "--records-dir=/var/lib/roost/records",
         "--records-port=9468",
-        "--records-budget-mb=2048",
+        "--records-budget-mb=1024",
+        "--records-keep-free-percent=15",
     ):
         assert arg in container["args"]
     assert {"name": "records", "containerPort": 9468, "hostPort": 9468, "protocol": "TCP"} in (
@@ -582,6 +588,7 @@ def test_agent_metrics_stay_on_the_vehicle_unless_the_node_address_is_bound() ->
     }
     assert address in container["env"]
     assert container["ports"] == [
+        {"name": "records", "containerPort": 9468, "hostPort": 9468, "protocol": "TCP"},
         {"name": "metrics", "containerPort": 9465, "hostPort": 9465, "protocol": "TCP"},
         {"name": "mavlink", "containerPort": 14550, "hostPort": 14550, "protocol": "UDP"},
     ]
