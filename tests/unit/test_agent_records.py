@@ -236,11 +236,12 @@ DISK_TABLE = [
 
 
 @pytest.mark.parametrize(
-    ("budget", "records", "free", "disk", "keep_free", "expected"),
-    [case[1:] for case in DISK_TABLE],
+    ("figures", "expected"),
+    [(case[1:-1], case[-1]) for case in DISK_TABLE],
     ids=[case[0] for case in DISK_TABLE],
 )
 def test_the_records_never_take_the_disk_below_its_reserve(
-    budget: int, records: int, free: int, disk: int, keep_free: float, expected: tuple[int, bool]
+    figures: tuple[int, int, int, int, float], expected: tuple[int, bool]
 ) -> None:
+    budget, records, free, disk, keep_free = figures
     assert budget_within_disk(budget, records, free, disk, keep_free) == expected
