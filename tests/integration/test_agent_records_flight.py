@@ -346,3 +346,65 @@ def test_a_flight_that_would_take_the_disk_below_its_reserve_fails_and_the_vehic
             assert {a.level.value for a in v.agent.assessments().values()} == {"OK"}
         finally:
             recorder.stop()
+
+
+def test_a_log_download_whose_autopilot_never_comes_back_fails_with_how_much_came(
+    tmp_path: Path,
+) -> None:
+    """The WiFi drop outlasts the fetcher's patience (1 s here, 30 s by default): that
+    log is Failed with how much came, and the next autopilot's log is still fetched."""
+    with hub_vehicle(["px4", "px4"]) as v:
+        settings = FetchSettings(
+            rate_bytes_per_s=2500, window=450, request_timeout_s=0.2, give_up_s=1.0
+        )
+        fetcher = LogFetcher(lambda: v.agent.links, settings=settings)
+        recorder = FlightRecorder(
+            v.agent, tmp_path / "records", budget_bytes=50_000_000, fetch_logs=fetcher
+        )
+        recorder.start()
+        try:
+            gone, other = v.sims
+            fly_once(v)
+            wait_until("the download started", lambda: fetcher.bytes_fetched > 0, 10, 0.01)
+            gone.inject("silence")  # out of range for good
+            manifest = settled(recorder.root)
+        finally:
+            recorder.stop()
+    assert manifest.state is FlightState.FAILED
+    lost = manifest.file(f"autopilot-logs/{gone.name}/1.ulg")
+    assert lost is not None and lost.state is FileState.FAILED
+    assert lost.message.startswith("the autopilot sent nothing for 1 s (")
+    assert f"of {len(gone.logs.logs[0].data)} bytes fetched)" in lost.message
+    assert manifest.message.startswith(f"{lost.path}: the autopilot sent nothing")
+    fetched = manifest.file(f"autopilot-logs/{other.name}/1.ulg")
+    assert fetched is not None and fetched.state is FileState.COMPLETE
+
+
+def test_a_disk_full_during_a_log_download_fails_that_log_and_the_next_is_fetched(
+    recorded: tuple[HubVehicle, FlightRecorder],
+) -> None:
+    v, recorder = recorded
+    px4, ardupilot = v.sims
+    assert v.client.command(VEHICLE_SYSID, MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
+    wait_until("recording", lambda: recorder.current is not None, 5)
+    # The one stand-in, as in the full-disk test above: the PX4 log's file is a link to
+    # /dev/full (a real device whose every write fails with ENOSPC).
+    target = recorder.root / str(recorder.current) / f"autopilot-logs/{px4.name}/1.ulg"
+    target.parent.mkdir(parents=True)
+    target.symlink_to("/dev/full")
+    wait_until(
+        "a second of samples logged",
+        lambda: all(s.logs.samples_logging >= SAMPLES for s in v.sims),
+        10,
+    )
+    assert v.client.command(VEHICLE_SYSID, MAV_CMD_COMPONENT_ARM_DISARM, 0) == 0
+    manifest = settled(recorder.root)
+    assert manifest.state is FlightState.FAILED
+    full = manifest.file(f"autopilot-logs/{px4.name}/1.ulg")
+    assert full is not None and full.state is FileState.FAILED
+    assert full.message.startswith("the disk is full (0 of ")
+    assert manifest.message.startswith(f"{full.path}: the disk is full")
+    fetched = manifest.file(f"autopilot-logs/{ardupilot.name}/1.bin")
+    assert fetched is not None and fetched.state is FileState.COMPLETE
+    assert {a.level.value for a in v.agent.assessments().values()} == {"OK"}
+
