@@ -600,7 +600,8 @@ def _address_text(address: Address | None) -> str:
     return "the serial/TCP peer" if address is None else f"{address[0]}:{address[1]}"
 
 
-_LOG_REPLIES = frozenset({"LOG_ENTRY", "LOG_DATA"})
+LOG_REPLIES = frozenset({"LOG_ENTRY", "LOG_DATA"})
+"""The log protocol's answers: no target field, so routed by who holds the session."""
 
 
 class _Writer:
@@ -1304,7 +1305,7 @@ class AutopilotLink:
                 self.mission.put((kind, msg.to_dict(), now))
         elif kind == "AUTOPILOT_VERSION":
             self.version = msg
-        elif kind in _LOG_REPLIES:
+        elif kind in LOG_REPLIES:
             sink = self.log_sink
             if sink is not None:
                 sink(msg)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import struct
+import time
 from collections.abc import Callable, Iterator
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -408,3 +409,26 @@ def test_a_disk_full_during_a_log_download_fails_that_log_and_the_next_is_fetche
     assert fetched is not None and fetched.state is FileState.COMPLETE
     assert {a.level.value for a in v.agent.assessments().values()} == {"OK"}
 
+
+def test_the_agents_own_log_download_stays_with_the_agent_and_a_clients_is_answered(
+    recorded: tuple[HubVehicle, FlightRecorder],
+) -> None:
+    """LOG_ENTRY and LOG_DATA carry no target; the hub sends them where the request came
+    from, as routing by target would: the agent's download to the agent alone, a ground
+    station's own request to the ground station."""
+    v, recorder = recorded
+    fly_once(v)
+    manifest = settled(recorder.root)
+    assert manifest.state is FlightState.COMPLETE, manifest
+    assert any(f.path.startswith("autopilot-logs/") for f in manifest.files)
+    assert v.client.messages("LOG_ENTRY") == []
+    assert v.client.messages("LOG_DATA") == []
+    assert v.agent.hub is not None and v.agent.hub.counters.kept_for_agent > 0
+
+    since = time.monotonic()
+    v.client.mav.log_request_list_send(VEHICLE_SYSID, 1, 0, 0xFFFF)
+    entry = v.client.wait_for(lambda r: r.kind == "LOG_ENTRY", 5, since).msg
+    v.client.mav.log_request_data_send(VEHICLE_SYSID, 1, int(entry.id), 0, 90)
+    data = v.client.wait_for(lambda r: r.kind == "LOG_DATA", 5, since).msg
+    assert (int(data.id), int(data.ofs), int(data.count)) == (int(entry.id), 0, 90)
+    v.client.mav.log_request_end_send(VEHICLE_SYSID, 1)
