@@ -82,20 +82,20 @@ def test_a_bundle_is_uploaded_whole_once_and_each_object_carries_its_sha256(
     server: S3Server, tmp_path: Path
 ) -> None:
     root = make_bundle(tmp_path)
-    settings = settings_for(server, tmp_path, prefix="site-1/")
+    settings = settings_for(server, tmp_path, prefix="site 1:a/")  # encoded once, signed
     now = datetime.now(UTC)
     records = upload_round(final_records(now), settings, now)
     upload = records.upload
     assert upload is not None and upload.state == UploadState.COMPLETE, upload
-    assert upload.location == f"s3://{server.bucket}/site-1/{NAME}/"
+    assert upload.location == f"s3://{server.bucket}/site 1:a/{NAME}/"
     assert upload.objects == len(FILES) + 2  # mission.json and the manifest
 
     objects = server.objects()
     for path, data in FILES.items():
-        assert objects[f"site-1/{NAME}/{path}"] == data
-    assert objects[f"site-1/{NAME}/manifest.json"] == (root / "manifest.json").read_bytes()
+        assert objects[f"site 1:a/{NAME}/{path}"] == data
+    assert objects[f"site 1:a/{NAME}/manifest.json"] == (root / "manifest.json").read_bytes()
     head = server.client().head_object(
-        Bucket=server.bucket, Key=f"site-1/{NAME}/{next(iter(FILES))}"
+        Bucket=server.bucket, Key=f"site 1:a/{NAME}/{next(iter(FILES))}"
     )
     assert head["Metadata"]["sha256"] == sha256(next(iter(FILES.values())))
 

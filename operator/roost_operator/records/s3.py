@@ -133,7 +133,7 @@ def sign(
     canonical = "\n".join(
         [
             method,
-            quote(parts.path or "/", safe="/-_.~"),
+            parts.path or "/",  # as sent: the caller encoded it once (Client.url)
             query,
             "".join(f"{name}:{signed[name]}\n" for name in names),
             ";".join(names),
