@@ -179,7 +179,7 @@ def test_refused_credentials_fail_the_upload_once_and_for_good(
     assert not [k for k in server.objects() if k.startswith("refused/")]
 
 
-def test_a_missing_bucket_and_a_missing_secret_are_refusals_with_why(
+def test_a_missing_bucket_secret_or_bundle_fails_the_upload_with_why(
     server: S3Server, tmp_path: Path
 ) -> None:
     make_bundle(tmp_path)
@@ -196,3 +196,8 @@ def test_a_missing_bucket_and_a_missing_secret_are_refusals_with_why(
     upload = upload_round(final_records(now), no_secret, now).upload
     assert upload is not None and upload.state == UploadState.FAILED
     assert "credentials cannot be read" in (upload.message or "")
+    # A bundle retention removed before it went up (a bucket configured later).
+    gone = final_records(now).model_copy(update={"bundle": "flights_gone_00000000"})
+    upload = upload_round(gone, settings, now).upload
+    assert upload is not None and upload.state == UploadState.FAILED
+    assert "the bundle is not on the records volume" in (upload.message or "")

@@ -144,7 +144,11 @@ def upload_bundle(root: Path, client: Client) -> Attempt:
     bundle = Bundle(root)
     manifest = bundle.manifest()
     if not manifest:
-        return Attempt(error=BucketError(f"{root} has no manifest", permanent=True))
+        return Attempt(
+            error=BucketError(
+                f"the bundle is not on the records volume ({root}: no manifest)", permanent=True
+            )
+        )
     files = [(str(f["path"]), str(f["sha256"])) for f in manifest.get("files", [])]
     files.append((MANIFEST, ""))
     objects = put = sent = 0
