@@ -79,6 +79,7 @@ from roost_agent.instep import (
     judge_standby,
     note_answer,
 )
+from roost_agent.link import LOG_REPLIES
 from roost_agent.signing import LinkSigning
 from roost_api.autopilot_enums import HubTransport, StandbyInStepReason
 from roost_api.core import Stack
@@ -217,6 +218,8 @@ class HubLink(Protocol):
     name: str
     spec: AutopilotSpec
     tap: Callable[[Any, float], None] | None
+    log_sink: Callable[[Any], None] | None
+    """Set while the agent's own log download holds the autopilot's log session."""
 
     def send_frame(self, frame: bytes) -> bool: ...
 
@@ -519,6 +522,13 @@ class Hub:
         )
 
     # -- autopilot -> clients ----------------------------------------------------------
+    # What the agent asked for stays with the agent: answers addressed to its component,
+    # and the log protocol's replies (LOG_ENTRY, LOG_DATA carry no target) while the
+    # agent's own log download holds the autopilot's log session (the link's
+    # ``log_sink`` is set, roost_agent.records_logs). A client's own log request, at any
+    # other time, is answered to the clients as before. An autopilot serves one log
+    # transfer at a time, so a ground station's download during the agent's (minutes,
+    # after landing) would collide at the autopilot whatever the hub did.
 
     def _from_autopilot(self, name: str, spec: AutopilotSpec, msg: Any, now: float) -> None:
         kind = msg.get_type()
@@ -538,7 +548,7 @@ class Hub:
         for_agent = (
             getattr(msg, "target_component", None) == AGENT_COMPONENT_ID
             and getattr(msg, "target_system", None) == spec.sysid
-        )
+        ) or (kind in LOG_REPLIES and self._links[name].log_sink is not None)
         if name != self._active:
             if kind == "COMMAND_ACK" and not for_agent:
                 note_answer(seen, int(msg.command), int(msg.result), now)

@@ -87,7 +87,8 @@ class LinkCounters:
     relocked: int = 0
 
 
-_LOG_REPLIES = frozenset({"LOG_ENTRY", "LOG_DATA"})
+LOG_REPLIES = frozenset({"LOG_ENTRY", "LOG_DATA"})
+"""The log protocol's answers: no target field, so routed by who holds the session."""
 
 
 class _Writer:
@@ -489,7 +490,7 @@ class AutopilotLink:
                 self.mission.put((kind, msg.to_dict(), now))
         elif kind == "AUTOPILOT_VERSION":
             self.version = msg
-        elif kind in _LOG_REPLIES:
+        elif kind in LOG_REPLIES:
             sink = self.log_sink
             if sink is not None:
                 sink(msg)

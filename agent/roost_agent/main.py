@@ -47,7 +47,7 @@ import yaml
 from roost_agent.agent import Agent
 from roost_agent.bridge import Bridge, GpioBridge, SimulatedBridge
 from roost_agent.hub_policy import HubConfigError
-from roost_agent.records import DEFAULT_BUDGET_MB, DEFAULT_PORT
+from roost_agent.records import DEFAULT_BUDGET_MB, DEFAULT_KEEP_FREE_PERCENT, DEFAULT_PORT
 from roost_agent.signing import (
     DEFAULT_KEY_DIR,
     KeyWatcher,
@@ -213,6 +213,15 @@ def build_parser() -> argparse.ArgumentParser:
         "current one",
     )
     parser.add_argument(
+        "--records-keep-free-percent",
+        type=float,
+        default=float(
+            os.environ.get("ROOST_AGENT_RECORDS_KEEP_FREE_PERCENT", DEFAULT_KEEP_FREE_PERCENT)
+        ),
+        help="the records never bring their filesystem below this much free: the oldest "
+        "flights go first (the kubelet evicts pods below 10%%)",
+    )
+    parser.add_argument(
         "--records-port",
         type=int,
         default=int(os.environ.get("ROOST_AGENT_RECORDS_PORT", str(DEFAULT_PORT))),
@@ -352,6 +361,7 @@ def start_records(
             agent,
             args.records_dir,
             budget_bytes=int(args.records_budget_mb * 1e6),
+            keep_free=args.records_keep_free_percent / 100,
             fetch_logs=fetcher,
         )
     except OSError as exc:

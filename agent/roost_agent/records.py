@@ -39,7 +39,10 @@ PARAMS_DIR = "params"
 LOGS_DIR = "autopilot-logs"
 DEFAULT_PORT = 9468
 DEFAULT_DIR = "/var/lib/roost/records"
-DEFAULT_BUDGET_MB = 2048
+DEFAULT_BUDGET_MB = 1024
+DEFAULT_KEEP_FREE_PERCENT = 15.0
+"""The records never bring their filesystem below this much free (the kubelet's
+default hard eviction threshold is 10 % free on the node's filesystem)."""
 
 _ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 
@@ -204,6 +207,27 @@ def choose_deletions(
         delete.append(flight.flight_id)
         total -= flight.bytes
     return BudgetChoice(tuple(delete), total <= budget_bytes)
+
+
+def budget_within_disk(
+    budget_bytes: int,
+    records_bytes: int,
+    free_bytes: int,
+    disk_bytes: int,
+    keep_free: float,
+) -> tuple[int, bool]:
+    """The budget the disk allows, and whether the disk (not ``budget_bytes``) set it.
+
+    The records may grow only while the filesystem keeps ``keep_free`` (a fraction of
+    ``disk_bytes``) free: on a vehicle's SD card the kubelet starts evicting pods, the
+    agent's among them, when the node's filesystem falls below 10 % free, and the
+    container runtime and the system need the same card. So the records get at most what
+    they hold now plus the free space above that reserve."""
+    reserve = int(disk_bytes * keep_free)
+    room = max(records_bytes + free_bytes - reserve, 0)
+    if room < budget_bytes:
+        return room, True
+    return budget_bytes, False
 
 
 def directory_bytes(path: Path) -> int:

@@ -24,6 +24,7 @@ one per arming, and a reboot in flight starts another): :func:`logs_to_fetch`.
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import queue
@@ -400,6 +401,13 @@ class LogFetcher:
                     progress_at = self._clock()
                     update(partial(_with_entry, replace(entry, bytes=have.covered())))
             os.fsync(fd)
+        except OSError as exc:  # this log fails; the next autopilot's is still tried
+            why = "the disk is full" if exc.errno == errno.ENOSPC else f"cannot write: {exc}"
+            return (
+                FileState.FAILED,
+                f"{why} ({have.covered()} of {size} bytes fetched)",
+                have.covered(),
+            )
         finally:
             os.close(fd)
             self.seconds += self._clock() - started

@@ -37,6 +37,7 @@ import errno
 import json
 import logging
 import os
+import shutil
 import struct
 import threading
 import time
@@ -50,11 +51,13 @@ from typing import IO, Any, Protocol
 
 from roost_agent.records import (
     DECISIONS,
+    DEFAULT_KEEP_FREE_PERCENT,
     LOGS_DIR,
     PARAMS_DIR,
     TLOG,
     FileEntry,
     Manifest,
+    budget_within_disk,
     choose_deletions,
     delete_flight,
     flight_id,
@@ -194,10 +197,12 @@ class FlightRecorder:
         wall_clock: Callable[[], datetime] = lambda: datetime.now(UTC),
         queue_frames: int = QUEUE_FRAMES,
         budget_check_s: float = BUDGET_CHECK_S,
+        keep_free: float = DEFAULT_KEEP_FREE_PERCENT / 100,
     ) -> None:
         self._agent = agent
         self.root = root
         self.budget_bytes = budget_bytes
+        self.keep_free = keep_free
         self._fetch_logs = fetch_logs
         self._clock = clock
         self._wall_clock = wall_clock
@@ -598,7 +603,15 @@ class FlightRecorder:
             # flight too big for the budget alone keeps its record of why it failed)
             last = max(flights, key=lambda f: (f.armed_at, f.flight_id), default=None)
             keep = self.current or (last.flight_id if last is not None else None)
-            choice = choose_deletions(flights, keep, self.budget_bytes)
+            disk = shutil.disk_usage(self.root)
+            budget, by_disk = budget_within_disk(
+                self.budget_bytes,
+                sum(f.bytes for f in flights),
+                disk.free,
+                disk.total,
+                self.keep_free,
+            )
+            choice = choose_deletions(flights, keep, budget)
         except OSError:
             log.exception("records: cannot measure the records")
             return
@@ -609,7 +622,13 @@ class FlightRecorder:
         if not choice.fits and flight is not None:
             self._give_up(
                 flight,
-                f"the disk budget of {self.budget_bytes / 1e6:g} MB is reached by this "
+                (
+                    f"the disk is nearly full: it keeps {self.keep_free * 100:g}% free for "
+                    "the node (the kubelet evicts pods below 10%), and this flight alone "
+                    "reaches that: recording stopped"
+                )
+                if by_disk
+                else f"the disk budget of {self.budget_bytes / 1e6:g} MB is reached by this "
                 "flight alone: recording stopped",
             )
 

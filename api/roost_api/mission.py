@@ -444,6 +444,38 @@ class VehicleRecordsStatus(ApiModel):
     message: str | None = Field(default=None, description="What is pending or missing, and why.")
 
 
+class UploadState(StrEnum):
+    """Where the copy of a Mission's bundle in the configured bucket stands."""
+
+    PENDING = "Pending"
+    """Being uploaded, or waiting to try again after a temporary failure."""
+    COMPLETE = "Complete"
+    """Every file and the manifest are in the bucket with their SHA-256."""
+    FAILED = "Failed"
+    """The bucket refused it for good (credentials, bucket, region), or stayed
+    unreachable too long; the message says which. Not tried again."""
+
+    @property
+    def final(self) -> bool:
+        return self is not UploadState.PENDING
+
+
+class RecordsUploadStatus(ApiModel):
+    """The copy of the bundle in an S3-compatible bucket."""
+
+    state: UploadState = Field(description="Pending, Complete or Failed.")
+    location: str = Field(description="s3://bucket/prefix/bundle/ the bundle goes to.")
+    message: str | None = Field(default=None, description="Why it is pending or failed.")
+    objects: int = Field(default=0, description="Objects in the bucket so far.")
+    attempts: int = Field(default=0, description="Tries that failed for a temporary reason.")
+    next_attempt_time: datetime | None = Field(
+        default=None, description="When a Pending upload is tried again."
+    )
+    complete_time: datetime | None = Field(
+        default=None, description="When the last object was in the bucket."
+    )
+
+
 class MissionRecordsStatus(ApiModel):
     """The Mission's record: one bundle on the operator's records volume."""
 
@@ -455,6 +487,10 @@ class MissionRecordsStatus(ApiModel):
     )
     vehicles: list[VehicleRecordsStatus] = Field(
         default_factory=list, description="Per claimed vehicle."
+    )
+    upload: RecordsUploadStatus | None = Field(
+        default=None,
+        description="The copy in the configured S3-compatible bucket, once the bundle is final.",
     )
 
 

@@ -244,7 +244,9 @@ def records_list(
     if output is Output.JSON:
         _print_json([asdict(row) for row in rows])
         return
-    table = Table("NAMESPACE", "MISSION", "PHASE", "RECORD", "VEHICLES", "BUNDLE", "MESSAGE")
+    table = Table(
+        "NAMESPACE", "MISSION", "PHASE", "RECORD", "VEHICLES", "BUNDLE", "UPLOAD", "MESSAGE"
+    )
     for row in rows:
         table.add_row(
             row.namespace,
@@ -253,6 +255,7 @@ def records_list(
             row.records,
             row.vehicles,
             row.bundle,
+            row.upload or "-",
             row.message,
         )
     console.print(table if rows else "no Mission has a flight record yet")

@@ -44,6 +44,8 @@ class RecordRow:
     bundle: str
     vehicles: str
     message: str
+    upload: str = ""
+    """The copy in the bucket: Pending, Complete, Failed ('' when none is configured)."""
 
 
 def record_rows(missions: Sequence[Mapping[str, Any]]) -> list[RecordRow]:
@@ -56,6 +58,11 @@ def record_rows(missions: Sequence[Mapping[str, Any]]) -> list[RecordRow]:
             continue
         per_vehicle = records.get("vehicles") or []
         done = sum(1 for v in per_vehicle if v.get("state") != "Pending")
+        upload = records.get("upload") or {}
+        messages = [
+            records.get("message"),
+            upload.get("message") and f"upload: {upload['message']}",
+        ]
         rows.append(
             (
                 str(status.get("completionTime") or ""),
@@ -66,7 +73,8 @@ def record_rows(missions: Sequence[Mapping[str, Any]]) -> list[RecordRow]:
                     records=str(records.get("state") or ""),
                     bundle=str(records.get("bundle") or ""),
                     vehicles=f"{done}/{len(per_vehicle)}",
-                    message=str(records.get("message") or ""),
+                    message="; ".join(str(m) for m in messages if m),
+                    upload=str(upload.get("state") or ""),
                 ),
             )
         )

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from roost_operator.autopilots.conditions import DEFAULT_AGENT_STALE_AFTER
 from roost_operator.autopilots.guards import TRUE_VALUES, FleetGuards
+from roost_operator.records.s3 import BucketSettings
 from roost_operator.records.settings import RecordsSettings
 
 
@@ -252,4 +253,22 @@ def load_records(environ: Mapping[str, str]) -> RecordsSettings:
         give_up_after=_seconds(environ, "ROOST_RECORDS_GIVE_UP_SECONDS", defaults.give_up_after),
         keep_count=int(environ.get("ROOST_RECORDS_KEEP", defaults.keep_count)),
         keep_for=timedelta(days=days) if days > 0 else None,
+        bucket=load_bucket(environ),
+    )
+
+
+def load_bucket(environ: Mapping[str, str]) -> BucketSettings | None:
+    """The bucket bundles are copied to; None unless both endpoint and bucket are set."""
+    endpoint = environ.get("ROOST_RECORDS_S3_ENDPOINT", "")
+    bucket = environ.get("ROOST_RECORDS_S3_BUCKET", "")
+    if not (endpoint and bucket):
+        return None
+    credentials = environ.get("ROOST_RECORDS_S3_CREDENTIALS_DIR")
+    defaults = BucketSettings(endpoint, bucket)
+    return BucketSettings(
+        endpoint=endpoint,
+        bucket=bucket,
+        region=environ.get("ROOST_RECORDS_S3_REGION") or defaults.region,
+        prefix=environ.get("ROOST_RECORDS_S3_PREFIX", ""),
+        credentials_dir=Path(credentials) if credentials else defaults.credentials_dir,
     )

@@ -30,7 +30,7 @@ from roost_localcluster.realnode import RealNodes
 from roost_operator.engine.leader import LEASE_NAME
 from roost_sim.faults import FaultKind
 from tests.support.images import missing_tools
-from tests.support.realfleet import GROUND_NODE, VEHICLE, WAIT_S, RealFleet, chart_values
+from tests.support.realfleet import GROUND_NODE, VEHICLE, WAIT_S, RealFleet
 from tests.support.waiting import wait_until
 
 pytestmark = [
@@ -135,7 +135,7 @@ def test_helm_upgrade_leaves_the_agent_of_a_flying_vehicle_running(fleet: RealFl
     before = fleet.agent_pod()
     assert before is not None and fleet.ground is not None
     daemonset = fleet.get("daemonset", fleet.agent_daemonset, namespaced=True)
-    fleet.helm(chart_values(fleet.ground.name, logLevel="DEBUG"))
+    fleet.helm(fleet.values(logLevel="DEBUG"))
     wait_until(
         "the DaemonSet controller to see the new template",
         lambda: (

@@ -34,6 +34,7 @@ class RecordingLink:
         self.name = spec.name
         self.spec = spec
         self.tap: Any = None
+        self.log_sink: Any = None
         self.frames: list[Any] = []
         self.commands: list[tuple[int, tuple[float, ...]]] = []
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import struct
+import time
 from collections.abc import Callable, Iterator
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -317,3 +318,117 @@ def test_a_second_flight_fetches_only_its_own_logs(
     logs = sorted(f.path for f in second.files if f.autopilot and f.path.startswith("autopilot"))
     px4, ardupilot = v.sims
     assert logs == [f"autopilot-logs/{px4.name}/2.ulg", f"autopilot-logs/{ardupilot.name}/2.bin"]
+
+
+def test_a_flight_that_would_take_the_disk_below_its_reserve_fails_and_the_vehicle_flies_on(
+    tmp_path: Path,
+) -> None:
+    """The reserve is the whole disk here (keep_free 1.0: no filesystem has that much
+    free), so the first budget check finds no room: the real disk's figures, no stand-in."""
+    root = tmp_path / "records"
+    with hub_vehicle(["px4", "px4"]) as v:
+        recorder = FlightRecorder(
+            v.agent, root, budget_bytes=10**12, budget_check_s=0.2, keep_free=1.0
+        )
+        recorder.start()
+        try:
+            assert v.client.command(VEHICLE_SYSID, MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
+            wait_until(
+                "the flight failed",
+                lambda: (
+                    read_manifests(root) and read_manifests(root)[0].state is FlightState.FAILED
+                ),
+                30,
+            )
+            failed = read_manifests(root)[0]
+            assert failed.message.startswith("the disk is nearly full: it keeps 100% free")
+            assert v.client.command(VEHICLE_SYSID, MAV_CMD_COMPONENT_ARM_DISARM, 0) == 0
+            wait_until("disarmed", lambda: not any(s.snapshot().armed for s in v.sims), 5)
+            assert {a.level.value for a in v.agent.assessments().values()} == {"OK"}
+        finally:
+            recorder.stop()
+
+
+def test_a_log_download_whose_autopilot_never_comes_back_fails_with_how_much_came(
+    tmp_path: Path,
+) -> None:
+    """The WiFi drop outlasts the fetcher's patience (1 s here, 30 s by default): that
+    log is Failed with how much came, and the next autopilot's log is still fetched."""
+    with hub_vehicle(["px4", "px4"]) as v:
+        settings = FetchSettings(
+            rate_bytes_per_s=2500, window=450, request_timeout_s=0.2, give_up_s=1.0
+        )
+        fetcher = LogFetcher(lambda: v.agent.links, settings=settings)
+        recorder = FlightRecorder(
+            v.agent, tmp_path / "records", budget_bytes=50_000_000, fetch_logs=fetcher
+        )
+        recorder.start()
+        try:
+            gone, other = v.sims
+            fly_once(v)
+            wait_until("the download started", lambda: fetcher.bytes_fetched > 0, 10, 0.01)
+            gone.inject("silence")  # out of range for good
+            manifest = settled(recorder.root)
+        finally:
+            recorder.stop()
+    assert manifest.state is FlightState.FAILED
+    lost = manifest.file(f"autopilot-logs/{gone.name}/1.ulg")
+    assert lost is not None and lost.state is FileState.FAILED
+    assert lost.message.startswith("the autopilot sent nothing for 1 s (")
+    assert f"of {len(gone.logs.logs[0].data)} bytes fetched)" in lost.message
+    assert manifest.message.startswith(f"{lost.path}: the autopilot sent nothing")
+    fetched = manifest.file(f"autopilot-logs/{other.name}/1.ulg")
+    assert fetched is not None and fetched.state is FileState.COMPLETE
+
+
+def test_a_disk_full_during_a_log_download_fails_that_log_and_the_next_is_fetched(
+    recorded: tuple[HubVehicle, FlightRecorder],
+) -> None:
+    v, recorder = recorded
+    px4, ardupilot = v.sims
+    assert v.client.command(VEHICLE_SYSID, MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
+    wait_until("recording", lambda: recorder.current is not None, 5)
+    # The one stand-in, as in the full-disk test above: the PX4 log's file is a link to
+    # /dev/full (a real device whose every write fails with ENOSPC).
+    target = recorder.root / str(recorder.current) / f"autopilot-logs/{px4.name}/1.ulg"
+    target.parent.mkdir(parents=True)
+    target.symlink_to("/dev/full")
+    wait_until(
+        "a second of samples logged",
+        lambda: all(s.logs.samples_logging >= SAMPLES for s in v.sims),
+        10,
+    )
+    assert v.client.command(VEHICLE_SYSID, MAV_CMD_COMPONENT_ARM_DISARM, 0) == 0
+    manifest = settled(recorder.root)
+    assert manifest.state is FlightState.FAILED
+    full = manifest.file(f"autopilot-logs/{px4.name}/1.ulg")
+    assert full is not None and full.state is FileState.FAILED
+    assert full.message.startswith("the disk is full (0 of ")
+    assert manifest.message.startswith(f"{full.path}: the disk is full")
+    fetched = manifest.file(f"autopilot-logs/{ardupilot.name}/1.bin")
+    assert fetched is not None and fetched.state is FileState.COMPLETE
+    assert {a.level.value for a in v.agent.assessments().values()} == {"OK"}
+
+
+def test_the_agents_own_log_download_stays_with_the_agent_and_a_clients_is_answered(
+    recorded: tuple[HubVehicle, FlightRecorder],
+) -> None:
+    """LOG_ENTRY and LOG_DATA carry no target; the hub sends them where the request came
+    from, as routing by target would: the agent's download to the agent alone, a ground
+    station's own request to the ground station."""
+    v, recorder = recorded
+    fly_once(v)
+    manifest = settled(recorder.root)
+    assert manifest.state is FlightState.COMPLETE, manifest
+    assert any(f.path.startswith("autopilot-logs/") for f in manifest.files)
+    assert v.client.messages("LOG_ENTRY") == []
+    assert v.client.messages("LOG_DATA") == []
+    assert v.agent.hub is not None and v.agent.hub.counters.kept_for_agent > 0
+
+    since = time.monotonic()
+    v.client.mav.log_request_list_send(VEHICLE_SYSID, 1, 0, 0xFFFF)
+    entry = v.client.wait_for(lambda r: r.kind == "LOG_ENTRY", 5, since).msg
+    v.client.mav.log_request_data_send(VEHICLE_SYSID, 1, int(entry.id), 0, 90)
+    data = v.client.wait_for(lambda r: r.kind == "LOG_DATA", 5, since).msg
+    assert (int(data.id), int(data.ofs), int(data.count)) == (int(entry.id), 0, 90)
+    v.client.mav.log_request_end_send(VEHICLE_SYSID, 1)

@@ -40,6 +40,15 @@ AGENT_USER = "system:serviceaccount:roost-system:roost-agent"
 
 # Value sets every rendering test runs with: the defaults, both shipped values files,
 # and the switches that change which objects exist.
+S3_VALUES = {
+    "endpoint": "https://s3.example.org",
+    "bucket": "flights",
+    "region": "eu-central-1",
+    "prefix": "site-1",
+    "secretName": "bucket-key",
+    "accessKeyIdKey": "AWS_ACCESS_KEY_ID",
+    "secretAccessKeyKey": "AWS_SECRET_ACCESS_KEY",
+}
 VALUE_SETS: dict[str, tuple[dict[str, Any], tuple[Path, ...]]] = {
     "defaults": ({}, ()),
     "hardware": ({}, (HARDWARE_VALUES,)),
@@ -72,7 +81,13 @@ VALUE_SETS: dict[str, tuple[dict[str, Any], tuple[Path, ...]]] = {
         },
         (),
     ),
-    "records": ({"agent": {"records": {"enabled": True, "bindNodeAddress": True}}}, ()),
+    "records": (
+        {
+            "agent": {"records": {"enabled": True, "bindNodeAddress": True}},
+            "operator": {"records": {"s3": S3_VALUES}},
+        },
+        (),
+    ),
     "no-metrics": (
         {"operator": {"metrics": {"enabled": False}}, "agent": {"metrics": {"enabled": False}}},
         (),
@@ -246,6 +261,37 @@ def test_operator_keeps_mission_records_on_its_own_claim_and_may_reach_the_agent
     assert "ROOST_RECORDS_DIR" in {e["name"] for e in pod["containers"][0]["env"]}
 
 
+def test_operator_copies_bundles_to_a_bucket_with_credentials_from_an_optional_secret() -> None:
+    pod = find(_render_set("records"), "Deployment", "-operator")["spec"]["template"]["spec"]
+    container = pod["containers"][0]
+    env = {e["name"]: e.get("value") for e in container["env"]}
+    assert {k: v for k, v in env.items() if k.startswith("ROOST_RECORDS_S3_")} == {
+        "ROOST_RECORDS_S3_ENDPOINT": "https://s3.example.org",
+        "ROOST_RECORDS_S3_BUCKET": "flights",
+        "ROOST_RECORDS_S3_REGION": "eu-central-1",
+        "ROOST_RECORDS_S3_PREFIX": "site-1",
+        "ROOST_RECORDS_S3_CREDENTIALS_DIR": "/etc/roost/records-s3",
+    }
+    (mount,) = [m for m in container["volumeMounts"] if m["name"] == "records-s3"]
+    assert mount == {"name": "records-s3", "mountPath": "/etc/roost/records-s3", "readOnly": True}
+    (volume,) = [v for v in pod["volumes"] if v["name"] == "records-s3"]
+    assert volume["secret"] == {
+        "secretName": "bucket-key",
+        "optional": True,  # without it the operator runs; the uploads say why they fail
+        "items": [
+            {"key": "AWS_ACCESS_KEY_ID", "path": "accessKeyId"},
+            {"key": "AWS_SECRET_ACCESS_KEY", "path": "secretAccessKey"},
+        ],
+    }
+    # The operator's role still reads no Secret: the kubelet mounts it.
+    assert not _grants(_rules(_render_set("records"), "-operator"), "", "secrets", "get")
+
+    default = find(_render_set("defaults"), "Deployment", "-operator")["spec"]["template"]
+    assert "records-s3" not in {v["name"] for v in default["spec"]["volumes"]}
+    with pytest.raises(ChartError, match=r"operator\.records\.s3\.secretName is required"):
+        render({"operator": {"records": {"s3": {**S3_VALUES, "secretName": ""}}}})
+
+
 # -- agent -----------------------------------------------------------------------------
 
 
@@ -274,29 +320,35 @@ def test_agent_uses_the_host_network_and_learns_its_node_from_the_downward_api()
 
 
 def test_agent_without_devices_is_unprivileged_and_mounts_nothing_from_the_host() -> None:
-    """Nothing from the host but its signing key directory, read-only."""
+    """Nothing from the host but its signing key directory, read-only, and its node's
+    own directory of flight records."""
     pod = _agent_pod("defaults")
     context = pod["containers"][0]["securityContext"]
     assert "privileged" not in context
     assert context["capabilities"] == {"drop": ["ALL"]}
     assert context["readOnlyRootFilesystem"] is True
     host = [v["name"] for v in pod["volumes"] if "hostPath" in v]
+    assert host == ["records", "signing-keys"]
+    mounts = {m["name"]: m for m in pod["containers"][0]["volumeMounts"] if m["name"] in host}
+    assert mounts["signing-keys"]["readOnly"]
+    assert mounts["records"]["subPathExpr"] == "$(NODE_NAME)"
+    off = find(render({"agent": {"records": {"enabled": False}}}), "DaemonSet", "-agent")
+    host = [v["name"] for v in off["spec"]["template"]["spec"]["volumes"] if "hostPath" in v]
     assert host == ["signing-keys"]
-    mounts = [m for m in pod["containers"][0]["volumeMounts"] if m["name"] in host]
-    assert all(m["readOnly"] for m in mounts)
 
 
-def test_agent_records_flights_on_a_host_directory_of_its_node_when_asked() -> None:
-    off = _agent_pod("defaults")
+def test_agent_records_flights_on_a_host_directory_of_its_node_by_default() -> None:
+    off = find(render({"agent": {"records": {"enabled": False}}}), "DaemonSet", "-agent")
+    off = off["spec"]["template"]["spec"]
     assert "initContainers" not in off
     assert not [a for a in off["containers"][0]["args"] if a.startswith("--records")]
-    on = find(render({"agent": {"records": {"enabled": True}}}), "DaemonSet", "-agent")
-    pod = on["spec"]["template"]["spec"]
+    pod = _agent_pod("defaults")
     container = pod["containers"][0]
     for arg in (
         "--records-dir=/var/lib/roost/records",
         "--records-port=9468",
-        "--records-budget-mb=2048",
+        "--records-budget-mb=1024",
+        "--records-keep-free-percent=15",
     ):
         assert arg in container["args"]
     assert {"name": "records", "containerPort": 9468, "hostPort": 9468, "protocol": "TCP"} in (
@@ -536,6 +588,7 @@ def test_agent_metrics_stay_on_the_vehicle_unless_the_node_address_is_bound() ->
     }
     assert address in container["env"]
     assert container["ports"] == [
+        {"name": "records", "containerPort": 9468, "hostPort": 9468, "protocol": "TCP"},
         {"name": "metrics", "containerPort": 9465, "hostPort": 9465, "protocol": "TCP"},
         {"name": "mavlink", "containerPort": 14550, "hostPort": 14550, "protocol": "UDP"},
     ]

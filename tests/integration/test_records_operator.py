@@ -15,6 +15,8 @@ final state; a transfer cut mid-file resumes with a Range request; a vehicle awa
 the end is gathered when it is back; a file whose sha256 does not match is downloaded
 again, then named as corrupt (bundle Partial); another bundle on the volume is not
 touched; ``roost records get`` fetches the bundle through the operator's records server;
+the final bundle is copied to an S3-compatible bucket (moto's server on 127.0.0.1, not
+AWS: :mod:`tests.support.s3server`), every object with its sha256;
 a Mission that never flew has no record and ``roost records get`` says so, exit 1; an
 unusable records volume fails the record with why.
 About 30 s on two cores (most of it the Vehicles becoming Ready).
@@ -49,6 +51,7 @@ from roost_operator.records.settings import RecordsSettings
 from tests.support.fakeagents import FakeAgents
 from tests.support.missionfleet import FLIGHTS, AddNode, Fleet, mission_status, wait_phase
 from tests.support.operator import OperatorProcess
+from tests.support.s3server import REGION, S3Server, s3_server
 from tests.support.waiting import unique, wait_until
 from tests.support.wifilink import WifiLink, land, write_flight
 
@@ -75,12 +78,21 @@ def records_port() -> int:
 
 
 @pytest.fixture(scope="module")
+def bucket(tmp_path_factory: pytest.TempPathFactory) -> Iterator[S3Server]:
+    """An S3-compatible server on 127.0.0.1 (moto's; not AWS) the operator copies to."""
+    with s3_server(tmp_path_factory.mktemp("s3") / "server.log") as server:
+        yield server
+
+
+@pytest.fixture(scope="module")
 def operator(
     roost_crds: Cluster,
     tmp_path_factory: pytest.TempPathFactory,
     records_dir: Path,
     records_port: int,
+    bucket: S3Server,
 ) -> Iterator[OperatorProcess]:
+    secret = bucket.write_credentials(tmp_path_factory.mktemp("records-s3"))
     with OperatorProcess(
         roost_crds,
         tmp_path_factory.mktemp("operator-records") / "operator.log",
@@ -89,6 +101,11 @@ def operator(
             "ROOST_RECORDS_DIR": str(records_dir),
             "ROOST_RECORDS_PORT": str(records_port),
             "ROOST_RECORDS_RETRY_SECONDS": "1",
+            "ROOST_RECORDS_S3_ENDPOINT": bucket.endpoint,
+            "ROOST_RECORDS_S3_BUCKET": bucket.bucket,
+            "ROOST_RECORDS_S3_REGION": REGION,
+            "ROOST_RECORDS_S3_PREFIX": "roost",
+            "ROOST_RECORDS_S3_CREDENTIALS_DIR": str(secret),
         },
     ) as proc:
         yield proc
@@ -141,6 +158,7 @@ def sha256(path: Path) -> str:
 def test_a_missions_record_survives_a_cut_a_vehicle_away_and_a_corrupt_file(
     *,
     fleet: Fleet,
+    bucket: S3Server,
     kube: Kube,
     roost_crds: Cluster,
     records_dir: Path,
@@ -252,6 +270,19 @@ def test_a_missions_record_survives_a_cut_a_vehicle_away_and_a_corrupt_file(
     assert "missing:" in got.stdout and "decisions.jsonl" in got.stdout
     for entry in manifest["files"]:
         assert sha256(out / entry["path"]) == entry["sha256"]
+
+    # The final bundle is copied to the bucket, the manifest with it.
+    uploaded = wait_records(
+        kube, name, "the bundle in the bucket",
+        lambda r: (r.get("upload") or {}).get("state") == "Complete",
+    )["upload"]  # fmt: skip
+    assert uploaded["location"] == f"s3://{bucket.bucket}/roost/{final['bundle']}/"
+    objects = bucket.objects()
+    prefix = f"roost/{final['bundle']}/"
+    assert objects[prefix + "manifest.json"] == (bundle / "manifest.json").read_bytes()
+    for entry in manifest["files"]:
+        assert hashlib.sha256(objects[prefix + entry["path"]]).hexdigest() == entry["sha256"]
+    assert uploaded["objects"] == len(manifest["files"]) + 1
 
 
 def test_a_mission_that_never_flew_has_no_record_and_get_says_so(

@@ -184,9 +184,16 @@ class RealFleet:
         args = [a for a in args if a != "--wait"]  # the steps are waited for (and timed) here
         self.cluster.helm(*args, *extra)
 
-    def install(self) -> None:
+    def values(self, **agent: Any) -> dict[str, Any]:
+        """:func:`chart_values` for this fleet: the agents record their flights (the
+        chart's default) under this fleet's directory, not the machine's
+        /var/lib/roost/records."""
         assert self.ground is not None
-        self.helm(chart_values(self.ground.name, **self.agent_values))
+        records = {"dir": str(self.directory / "agent-records")}
+        return chart_values(self.ground.name, records=records, **{**self.agent_values, **agent})
+
+    def install(self) -> None:
+        self.helm(self.values())
         self.installed = True
 
     def wait_operator_ready(self) -> float:

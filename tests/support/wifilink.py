@@ -73,6 +73,7 @@ class WifiLink:
         self._listener: socket.socket | None = None
         self._open: set[socket.socket] = set()
         self.cuts = 0
+        self._refuse_in: int | None = None
 
     @property
     def url(self) -> str:
@@ -81,6 +82,12 @@ class WifiLink:
     def cut_after(self, after_bytes: int) -> None:
         """Drop the first connection whose server sends more than ``after_bytes`` bytes."""
         self._cut = after_bytes
+
+    def drop_connection(self, nth: int) -> None:
+        """Drop the ``nth`` connection from now as soon as it is accepted, before anything
+        is relayed (a link lost between two requests of a client that opens one
+        connection per request); the ones before it go through."""
+        self._refuse_in = nth
 
     def up(self) -> WifiLink:
         listener = socket.create_server(("127.0.0.1", self.port))
@@ -106,6 +113,9 @@ class WifiLink:
                 client, _ = listener.accept()
             except OSError:
                 return
+            if self._dropped_now():
+                client.close()
+                continue
             try:
                 server = socket.create_connection(self.target, timeout=10)
             except OSError:
@@ -115,6 +125,17 @@ class WifiLink:
                 self._open.update((client, server))
             threading.Thread(target=self._pump, args=(client, server, False), daemon=True).start()
             threading.Thread(target=self._pump, args=(server, client, True), daemon=True).start()
+
+    def _dropped_now(self) -> bool:
+        with self._lock:
+            if self._refuse_in is None:
+                return False
+            self._refuse_in -= 1
+            if self._refuse_in > 0:
+                return False
+            self._refuse_in = None
+            self.cuts += 1
+            return True
 
     def _take_cut(self, sent: int) -> int | None:
         """Where to cut a connection that has sent ``sent`` bytes and more coming (once)."""

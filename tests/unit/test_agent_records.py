@@ -13,6 +13,7 @@ from roost_agent.records import (
     Manifest,
     RangeNotSatisfiableError,
     StoredFlight,
+    budget_within_disk,
     choose_deletions,
     flight_id,
     parse_range,
@@ -217,3 +218,30 @@ def test_flights_interrupted_by_a_restart_are_closed_as_they_stand(tmp_path: Pat
     assert log is not None and log.state is FileState.FAILED
     assert "download" in log.message
     assert after["v-3"] == done
+
+
+MB = 1_000_000
+# budget, records now, free, disk size, keep free -> (budget used, set by the disk)
+DISK_TABLE = [
+    ("a big card: the budget", 1024 * MB, 100 * MB, 20_000 * MB, 32_000 * MB, 0.15,
+     (1024 * MB, False)),
+    ("a small card: the reserve", 1024 * MB, 100 * MB, 1_500 * MB, 8_000 * MB, 0.15,
+     (400 * MB, True)),
+    ("records already fill the room", 1024 * MB, 600 * MB, 800 * MB, 8_000 * MB, 0.15,
+     (200 * MB, True)),
+    ("below the reserve already: none", 1024 * MB, 0, 500 * MB, 8_000 * MB, 0.15, (0, True)),
+    ("no reserve", 1024 * MB, 0, 500 * MB, 8_000 * MB, 0.0, (500 * MB, True)),
+    ("the whole disk reserved", 1024 * MB, 10 * MB, 500 * MB, 8_000 * MB, 1.0, (0, True)),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("figures", "expected"),
+    [(case[1:-1], case[-1]) for case in DISK_TABLE],
+    ids=[case[0] for case in DISK_TABLE],
+)
+def test_the_records_never_take_the_disk_below_its_reserve(
+    figures: tuple[int, int, int, int, float], expected: tuple[int, bool]
+) -> None:
+    budget, records, free, disk, keep_free = figures
+    assert budget_within_disk(budget, records, free, disk, keep_free) == expected

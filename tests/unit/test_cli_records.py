@@ -61,3 +61,20 @@ def test_the_list_shows_missions_with_a_record_newest_first() -> None:
         ("new", "Gathering", "1/2", "pending: y"),
         ("old", "Complete", "0/0", ""),
     ]
+
+
+def test_the_list_shows_where_the_copy_in_the_bucket_stands() -> None:
+    refused = {
+        "state": "Failed",
+        "location": "s3://flights/a/",
+        "message": "the bucket refused the bundle: HTTP 403 (InvalidAccessKeyId: no such key)",
+    }
+    rows = record_rows(
+        [
+            mission("a", phase="Succeeded", completionTime="2026-01-01T00:00Z",
+                    records={**RECORD, "upload": refused}),
+            mission("b", phase="Succeeded", completionTime="2026-01-02T00:00Z", records=RECORD),
+        ]
+    )  # fmt: skip
+    assert [(r.mission, r.upload) for r in rows] == [("b", ""), ("a", "Failed")]
+    assert rows[1].message == f"upload: {refused['message']}"

@@ -38,7 +38,16 @@ from pydantic import ValidationError
 from roost_api.autopilot import AssignedFence, AutopilotCommand
 from roost_api.commands import command_patch
 from roost_api.meta import API_VERSION
-from roost_api.mission import MissionPhase, MissionReason, MissionSpec, MissionStatus, RecordsState
+from roost_api.mission import (
+    MissionPhase,
+    MissionReason,
+    MissionRecordsStatus,
+    MissionSpec,
+    MissionStatus,
+    RecordsState,
+    RecordsUploadStatus,
+    UploadState,
+)
 from roost_api.resources import MISSION, VEHICLE
 from roost_api.wellknown import (
     LABEL_COMPONENT,
@@ -69,6 +78,7 @@ from roost_operator.missions.selection import holding_missions
 from roost_operator.missions.workloads import bounded_name, template_probes
 from roost_operator.records.gather import VehicleTarget, gather_round
 from roost_operator.records.settings import RecordsSettings
+from roost_operator.records.upload import upload_round
 from roost_operator.vehicles.config import CONFIG_COMPONENT, config_map_name, config_values_of
 
 log = logging.getLogger(__name__)
@@ -527,6 +537,12 @@ def reconcile_mission(
             plan.requeue_after = min(
                 plan.requeue_after or records.retry_seconds, records.retry_seconds
             )
+    if records is not None and records.bucket is not None and _uploading(obs, plan.status):
+        assert plan.status.records is not None
+        plan.status.records = upload_round(plan.status.records, records, obs.now)
+        wait = _upload_wait(plan.status.records.upload, obs.now)
+        if wait is not None:
+            plan.requeue_after = min(plan.requeue_after or wait, wait)
     if plan.claims:
         refused = check_templates(kube, obs, plan.claims)
         if refused is not None:
@@ -559,7 +575,7 @@ def reconcile_mission(
         plan=plan,
         requeue_after=plan.requeue_after,
         finished=phase_finished
-        and (status.records is None or RecordsState(status.records.state).final)
+        and (status.records is None or _records_final(status.records))
         and not (plan.releases or plan.jobs_to_delete or plan.requeue_after is not None),
         assigned=tuple(v.name for v in status.vehicles),
         waiting_for_vehicles=status.start_time is None,
@@ -574,6 +590,34 @@ def _gathering(obs: Observation) -> bool:
         and obs.status.records is not None
         and not RecordsState(obs.status.records.state).final
         and obs.status.start_time is not None
+    )
+
+
+def _uploading(obs: Observation, status: MissionStatus) -> bool:
+    """The mission's bundle is final and its copy in the bucket is not (or not begun)."""
+    records = status.records
+    return (
+        obs.records
+        and MissionPhase(status.phase).finished
+        and records is not None
+        and RecordsState(records.state).final
+        and (records.upload is None or not UploadState(records.upload.state).final)
+    )
+
+
+def _upload_wait(upload: RecordsUploadStatus | None, now: datetime) -> float | None:
+    """Seconds until the next upload round (None: nothing more to do)."""
+    if upload is None or UploadState(upload.state).final:
+        return None
+    if upload.next_attempt_time is None:
+        return 0.1
+    return max((upload.next_attempt_time - now).total_seconds(), 0.1)
+
+
+def _records_final(records: MissionRecordsStatus) -> bool:
+    """Gathering is over and so is the upload, if there is one."""
+    return RecordsState(records.state).final and (
+        records.upload is None or UploadState(records.upload.state).final
     )
 
 

@@ -10,6 +10,8 @@ from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
 
+from roost_operator.records.s3 import BucketSettings
+
 
 @dataclass(frozen=True)
 class RecordsSettings:
@@ -47,3 +49,7 @@ class RecordsSettings:
 
     fetch_attempts: int = 3
     """Downloads of one file whose sha256 does not match before it counts as corrupt."""
+
+    bucket: BucketSettings | None = None
+    """Copy each final bundle to this S3-compatible bucket (``ROOST_RECORDS_S3_*``;
+    None: the bundles stay on the records volume only)."""
