@@ -69,7 +69,11 @@ def test_twenty_five_vehicles_come_up_fail_over_one_and_stop_cleanly(tmp_path: P
         assert record["failover"]["from"] == "px4-a"
         assert record["failover"]["to"] == "px4-b"
         assert record["failover"]["trigger"] == "Automatic"
-        assert "silent" in record["failover"]["reason"]
+        # The scripted fault is a silence: judged on the fast stream ("silent"), or on the
+        # heartbeat when a starved machine has slowed the 50 simulated autopilots' streams
+        # below what the agent counts as fast (their three processes share two cores).
+        reason = record["failover"]["reason"]
+        assert "silent" in reason or "heartbeat lost" in reason, reason
         assert record["onsetToSwitchMs"] is not None
         # The agent logs the failover at once; the sandbox tells it once the API shows it.
         told = f"{FAULT_VEHICLE} failed over px4-a → px4-b"

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import statistics
 import subprocess
 import sys
 import time
@@ -421,7 +422,10 @@ def test_fault_jitter_delays_frames_in_order(udp_sim: tuple[SimulatedAutopilot, 
     sim.inject(FaultKind.JITTER, 200)
     time.sleep(0.3)  # frames sent before the fault drain first; a measurement window, not a wait
     jittery = lateness(1.5)
-    assert max(jittery) - min(jittery) > 0.1 > max(base) - min(base)
+    # The unimpaired spread is read between the 10th and 90th percentiles: a loaded
+    # machine stalls the odd frame for 100 ms, which says nothing about the link.
+    deciles = statistics.quantiles(base, n=10)
+    assert max(jittery) - min(jittery) > 0.1 > deciles[-1] - deciles[0]
     in_order = [m.time_boot_ms for _, m in client.collect(0.5) if m.get_type() == "ATTITUDE"]
     assert in_order == sorted(in_order)
 
