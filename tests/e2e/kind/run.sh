@@ -66,8 +66,11 @@ case "$provider" in
     docker_answers || skip "docker is installed but no container engine answers"
     engine=docker ;;
   podman)
-    command -v podman >/dev/null 2>&1 || skip "no docker engine and no podman on PATH"
     [[ $(id -u) -eq 0 ]] || skip "podman runs KinD nodes here only as root (rootless podman cannot give a node its cgroups)"
+    # A fresh Debian machine (CI) gets podman from Debian's packages, as the image
+    # build gets buildah; where that cannot be done, the run skips saying why.
+    docker/debian-packages.sh podman=podman >/dev/null \
+      || skip "no docker engine, and podman is not installed and could not be (above: why)"
     podman info >/dev/null 2>&1 || skip "podman is installed but \`podman info\` fails"
     engine=podman
     export KIND_EXPERIMENTAL_PROVIDER=podman
