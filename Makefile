@@ -71,6 +71,13 @@ cluster-down: $(STAMP) ## stop the control plane started by cluster-up
 # all, plus the control-plane suites again on kine, as CI does.
 REPORTS := .test-reports
 PYTEST_REPORT = $(BIN)/pytest --junitxml=$(REPORTS)/$(1).xml
+# Most integration files wait (on sockets, timers, the control plane), so two pytest
+# workers (pytest-xdist) take whole files each, each worker with its own control plane;
+# files marked `serial` (they measure time, or need the whole machine) run after, alone.
+WORKERS ?= 2
+PARALLEL := -n $(WORKERS) --dist loadfile -m 'not serial'
+# the serial pass of $(2) (pytest's 5, "no tests collected", when none of them is serial)
+PYTEST_SERIAL = $(call PYTEST_REPORT,$(1)) -m serial $(2) || [ $$? -eq 5 ]
 
 .PHONY: check
 check: $(STAMP) lint typecheck ## lint, types and the unit tests: what to run before every commit
@@ -84,7 +91,8 @@ unit: $(STAMP) ## the unit tests only (pure: no cluster, sockets, threads or sle
 .PHONY: integration
 integration: $(STAMP) cluster-build ## real parts together: UDP MAVLink, processes, the control plane; and the sync-paths example
 	@mkdir -p $(REPORTS)
-	$(call PYTEST_REPORT,integration) tests/integration
+	$(call PYTEST_REPORT,integration) $(PARALLEL) tests/integration
+	$(call PYTEST_SERIAL,integration-serial,tests/integration)
 	$(call PYTEST_REPORT,sync-paths) examples/missions/sync-paths
 
 .PHONY: e2e
@@ -99,7 +107,8 @@ e2e: $(STAMP) cluster-build ## end to end: the sandbox, the chart, the images, t
 test: ## the whole suite: check, integration, e2e, the control-plane suites on kine; then the 25 slowest tests
 	@rm -rf $(REPORTS)
 	@$(MAKE) --no-print-directory check integration e2e
-	$(call PYTEST_REPORT,kine) --datastore kine $(KINE_SUITES)
+	$(call PYTEST_REPORT,kine) --datastore kine $(PARALLEL) $(KINE_SUITES)
+	$(call PYTEST_SERIAL,kine-serial,--datastore kine $(KINE_SUITES))
 	@$(PY) -m tests.support.durations $(REPORTS)/*.xml
 
 # The control-plane and operator suites again on kine+SQLite, the datastore K3s runs on

@@ -20,11 +20,11 @@ from roost_localcluster.binaries import REPO_ROOT
 COMMAND = "python -m bench dev"
 
 
-def _make_check() -> tuple[float, float]:
-    """One ``make check``: (wall seconds, CPU seconds of its processes)."""
+def make(target: str) -> tuple[float, float]:
+    """One ``make TARGET``: (wall seconds, CPU seconds of its processes)."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     started = time.monotonic()
-    subprocess.run(["make", "--no-print-directory", "check"], cwd=REPO_ROOT, check=True)
+    subprocess.run(["make", "--no-print-directory", target], cwd=REPO_ROOT, check=True)
     wall = time.monotonic() - started
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
@@ -33,9 +33,9 @@ def _make_check() -> tuple[float, float]:
 
 def run() -> list[Figure]:
     if not (REPO_ROOT / ".mypy_cache").is_dir():
-        _make_check()
+        make("check")
     load = os.getloadavg()[0]
-    wall, cpu = _make_check()
+    wall, cpu = make("check")
     note = (
         f"lint + types + unit, warm; {cpu:.0f} s CPU, load average {load:.1f} "
         f"on {os.cpu_count()} cores at the start"

@@ -27,6 +27,9 @@ from roost_api.autopilot import (
 from roost_mavlink import MavLandedState, MavState, SensorBit
 from tests.support.feed import SENSORS, Feed, two_px4_spec
 
+# serial: a silence judged at its threshold in real time
+pytestmark = pytest.mark.serial
+
 TICK_S = 0.01
 RATE_HZ = 50
 # A fixed silence threshold (floor = ceiling): the ticks are what is tested here; the

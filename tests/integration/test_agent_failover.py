@@ -53,7 +53,8 @@ from tests.support.agent import AgentProcess
 from tests.support.flight import CLEAR_S, HOLD_S, POLL_S, Flight, make_spec, take_off
 from tests.support.waiting import wait_until
 
-pytestmark = pytest.mark.slow
+# serial: silence thresholds and failovers judged in real time
+pytestmark = [pytest.mark.slow, pytest.mark.serial]
 
 # Sub-second start-up; ArduPilot streams only what the agent requests, as the firmware.
 SIM_CONFIG = SimConfig.fast()

@@ -47,7 +47,8 @@ from tests.support.hubclient import (
 )
 from tests.support.waiting import wait_until
 
-pytestmark = pytest.mark.slow
+# serial: T_off and beat rates judged in real time
+pytestmark = [pytest.mark.slow, pytest.mark.serial]
 
 POLL_S = 0.02
 MAV_CMD_COMPONENT_ARM_DISARM = 400

@@ -26,6 +26,9 @@ from tests.support.agentspec import SPEC
 from tests.support.kernelstamps import until_the_kernel_stamps_arrivals
 from tests.support.waiting import wait_until
 
+# serial: delivery within tens of milliseconds
+pytestmark = pytest.mark.serial
+
 
 def test_udp_listener_replies_only_to_the_locked_autopilot_address() -> None:
     port = free_udp_port()

@@ -30,7 +30,8 @@ from roost_sim import FaultKind, SimConfig, autopilot_specs, start_vehicle_sims,
 from tests.support.agent import AgentProcess
 from tests.support.flight import take_off
 
-pytestmark = pytest.mark.slow
+# serial: silence thresholds judged in real time
+pytestmark = [pytest.mark.slow, pytest.mark.serial]
 
 LEARN_S = 3.0  # two complete one-second windows, and a margin
 STOPS = 5

@@ -31,7 +31,11 @@ from roost_mavlink.signing import sign_frame
 from tests.support.kernelstamps import until_the_kernel_stamps_arrivals
 from tests.support.waiting import wait_until
 
-pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="steering is Linux's")
+# serial: reads within tens of milliseconds
+pytestmark = [
+    pytest.mark.skipif(sys.platform != "linux", reason="steering is Linux's"),
+    pytest.mark.serial,
+]
 
 ENCODER = Encoder(1, 1)
 HEARTBEAT_FRAME = ENCODER.encode(

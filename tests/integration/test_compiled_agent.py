@@ -22,6 +22,10 @@ import pytest
 from roost_localcluster.binaries import REPO_ROOT
 from tests.support.compiled import compiled_modules, compiled_tree, environment
 
+# serial: the agent's timing-sensitive suites again, in a pytest of its own
+pytestmark = pytest.mark.serial
+
+FAILOVER = "tests/integration/test_agent_failover.py"
 SUITES = (
     # the compiled modules' own tests
     "tests/unit/test_mavlink_codec.py",
@@ -52,15 +56,29 @@ SUITES = (
     "tests/unit/test_agent_metrics.py",
     "tests/integration/test_agent_metrics_on_links.py",
     "tests/unit/test_agent_telemetry.py",
-    # the fence keeper's mission protocol inbox and sends on the compiled links
-    "tests/integration/test_agent_geofence.py",
-    # the agent as a process, over real UDP, against simulated autopilots; what goes
-    # through the message path (not the restarts of the safety routine, whose state
-    # handling the compiled modules take no part in: the interpreted run covers those)
-    "tests/integration/test_agent_failover.py",
+    # the fence keeper's mission protocol inbox and sends on the compiled links: an
+    # upload read back from each stack, and a breach seen in the position stream
+    "tests/integration/test_agent_geofence.py::"
+    "test_the_fence_reaches_every_autopilot_of_each_stack_and_the_previous_comes_back",
+    "tests/integration/test_agent_geofence.py::test_a_breach_in_flight_triggers_the_configured_action",
+    # the agent as a process, over real UDP, against simulated autopilots: each kind of
+    # message path once (a fault read from the messages' content on each stack, command
+    # answers on udp and udpout, the agent's beat on udp and a serial line, garbage in
+    # the stream, streams requested from ArduPilot). Not the other fault kinds, the
+    # restarts of the safety routine or the console script: the same path, and state
+    # handling the compiled modules take no part in; the interpreted run covers those.
+    f"{FAILOVER}::test_fault_on_active_switches_bridge_and_runs_safety_routine[sensor-gyro-px4]",
+    f"{FAILOVER}::test_fault_on_active_switches_bridge_and_runs_safety_routine"
+    "[state-emergency-ardupilot]",
+    f"{FAILOVER}::test_a_fatal_heartbeat_and_command_answers_are_read_when_they_arrive",
+    f"{FAILOVER}::test_every_autopilot_hears_the_agent_beat",
+    f"{FAILOVER}::test_garbage_and_spoofed_traffic_never_cause_a_failover[px4]",
     "tests/integration/test_firmware_truth.py::test_ardupilot_streaming_only_on_request_fails_over_unaided",
-    "tests/integration/test_firmware_truth.py::test_streams_are_requested_again_after_the_autopilot_reboots",
-    "tests/integration/test_link_trust.py",
+    # foreign senders, signing and a relocked peer on the links (not the opening and
+    # refusing of a link at start, which no message takes part in)
+    "tests/integration/test_link_trust.py::test_a_hostile_sender_costs_the_autopilots_nothing_and_hears_nothing",
+    "tests/integration/test_link_trust.py::test_signing_required_hears_only_well_signed_autopilots",
+    "tests/integration/test_link_trust.py::test_the_link_relocks_when_the_autopilot_comes_back_on_another_port",
     # the flight recorder's taps and the autopilot log download on the links
     "tests/integration/test_agent_records_flight.py::"
     "test_a_flight_leaves_tlog_decisions_params_and_both_autopilots_logs",

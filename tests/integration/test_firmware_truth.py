@@ -65,7 +65,8 @@ from tests.support.agent import AgentProcess
 from tests.support.flight import CLEAR_S, POLL_S, Flight, make_spec, take_off
 from tests.support.waiting import wait_until
 
-pytestmark = pytest.mark.slow
+# serial: stream gaps and failovers judged in real time
+pytestmark = [pytest.mark.slow, pytest.mark.serial]
 
 HOLD_PX4 = custom_mode(Stack.PX4, "AUTO.LOITER")
 # No RC: ArduCopter LOITER reads the throttle stick as low and sinks (the sim's default).

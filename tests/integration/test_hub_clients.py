@@ -31,7 +31,8 @@ from roost_sim import FaultKind, SimConfig
 from tests.support.hubclient import VEHICLE_SYSID, HubVehicle, hub_vehicle, repeating
 from tests.support.waiting import wait_until
 
-pytestmark = pytest.mark.slow
+# serial: T_off and failovers judged in real time
+pytestmark = [pytest.mark.slow, pytest.mark.serial]
 
 BIN = Path(sys.executable).parent
 

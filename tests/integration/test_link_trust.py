@@ -48,6 +48,9 @@ from roost_sim.link import UdpLink
 from tests.support.flight import take_off
 from tests.support.waiting import wait_until
 
+# serial: no failover under a flood, judged in real time
+pytestmark = pytest.mark.serial
+
 # Sub-second start-up; ArduPilot streams as with its SRn_* parameters set, since this
 # agent does not request streams itself.
 SIM_CONFIG = SimConfig.fast(preset_streams=True)

@@ -266,9 +266,14 @@ def test_a_fence_every_autopilot_must_hold_before_the_start_and_lose_after(
     }
     name = fleet.mission(unique("fenced"), names=[drone], count=1, fence=fence)
 
-    status = wait_phase(kube, name, "Preflight")
-    written = (kube.get(REDUNDANT_AUTOPILOTS, drone) or {})["spec"].get("fence")
-    assert written is not None and written["mission"] == f"{FLIGHTS}/{name}"
+    wait_phase(kube, name, "Preflight")
+    # the phase and the fence are separate writes: under load the phase may show first
+    written = wait_until(
+        "the fence in the RedundantAutopilot",
+        lambda: (kube.get(REDUNDANT_AUTOPILOTS, drone) or {})["spec"].get("fence"),
+        WAIT_S,
+    )
+    assert written["mission"] == f"{FLIGHTS}/{name}"
     assert written["fence"]["maxAltitudeM"] == 30
     wait_until(
         "preflight names fc2",

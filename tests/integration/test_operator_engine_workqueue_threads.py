@@ -7,8 +7,13 @@ import threading
 import time
 from collections import Counter
 
+import pytest
+
 from roost_operator.engine.workqueue import Backoff, Permanent, WorkQueue
 from tests.support.waiting import wait_until
+
+# serial: the queue's delays measured in real time
+pytestmark = pytest.mark.serial
 
 WAIT_S = 5.0
 

@@ -16,7 +16,8 @@ import pytest
 from roost_localcluster.cluster import Cluster
 from tests.support.takeover import kill_the_leader
 
-pytestmark = pytest.mark.cluster
+# serial: a 100-Vehicle rollout and a kill timed into its middle
+pytestmark = [pytest.mark.cluster, pytest.mark.serial]
 
 
 def test_a_standby_takes_over_a_killed_leader_and_does_nothing_twice(

@@ -25,6 +25,7 @@ from tests.support.sandbox import (
     still_running,
 )
 
+# serial: the largest sandbox keeps both cores busy
 pytestmark = [
     pytest.mark.cluster,
     pytest.mark.slow,
@@ -34,6 +35,7 @@ pytestmark = [
         reason="ROOST_SANDBOX_FULL=0: the 25-vehicle sandbox (most of both cores for about "
         "80 s) is skipped",
     ),
+    pytest.mark.serial,
 ]
 
 VEHICLES = plan.MAX_VEHICLES

@@ -20,7 +20,8 @@ from roost_localcluster.processes import ManagedProcess
 from roost_sim.control import request
 from tests.support.waiting import wait_until
 
-pytestmark = pytest.mark.slow
+# serial: transits compared with the plan to half a second
+pytestmark = [pytest.mark.slow, pytest.mark.serial]
 
 LEG_S = 8.0
 TRAJECTORY = "time_s,north_m,east_m,down_m\n0,{n},0,-5\n8,{n},12,-5\n16,{n},0,-5\n"

@@ -45,6 +45,9 @@ from roost_sim.streams import PX4_STREAMS
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil
 
+# serial: the simulators' rates measured in real time
+pytestmark = pytest.mark.serial
+
 REPO = Path(__file__).resolve().parents[2]
 CAPTURES_ENV = "ROOST_CAPTURES_DIR"
 PX4_FLIGHT = "px4-v1.16-sih-boot-arm-takeoff-loiter-land.tlog"

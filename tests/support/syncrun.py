@@ -5,7 +5,7 @@ runs on threads instead of in pods: each follower reaches its own simulated auto
 over real UDP MAVLink through ``syncpaths.vehicle.MavlinkVehicle`` and the monitor over
 real UDP datagrams. Delays are created as a lab would see them, with the simulator's
 ``lag`` fault (the vehicle flies slower than planned) on chosen vehicles and transits.
-Used by the mission's integration test and by ``python -m bench sync``.
+Used by ``python -m bench sync``; the real-node test shares its paths and log reader.
 """
 
 from __future__ import annotations
