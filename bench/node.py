@@ -22,6 +22,7 @@
 The chart figures are one run of :class:`tests.support.realfleet.RealFleet`, the same
 steps ``make e2e-node`` tests (``tests/e2e_node/test_arm64_node.py`` for arm64). Needs
 root (namespaces, cgroups); elsewhere the module reports why and returns no figures.
+``python -m bench nodearm64`` runs the arm64 part alone (:mod:`bench.nodearm64`).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import psutil
@@ -199,18 +201,28 @@ def arm64_run(cluster: Cluster, directory: Path) -> list[Figure]:
     return figures
 
 
-def run() -> list[Figure]:
-    figures = cold_build()
+Part = Callable[[Cluster, Path], list[Figure]]
+
+
+def measure(parts: Sequence[Part]) -> list[Figure]:
+    """Run ``parts`` in turn on one fresh control plane (skipped, saying why, without
+    root or the image tools)."""
     reasons = missing_prerequisites() + [f"no {tool}" for tool in missing_tools()]
     if reasons:
         print(f"bench node: skipped ({'; '.join(reasons)})", file=sys.stderr)
-        return figures
+        return []
+    figures: list[Figure] = []
     with (
         tempfile.TemporaryDirectory(prefix="bench-node-") as tmp,
         ControlPlane(Path(tmp) / "control-plane") as plane,
     ):
         cluster = Cluster.of(plane)
-        figures.append(node_starts(cluster, Path(tmp)))
-        figures += chart_run(cluster, Path(tmp))
-        figures += arm64_run(cluster, Path(tmp))
+        for part in parts:
+            figures += part(cluster, Path(tmp))
     return figures
+
+
+def run() -> list[Figure]:
+    return cold_build() + measure(
+        (lambda cluster, directory: [node_starts(cluster, directory)], chart_run, arm64_run)
+    )
