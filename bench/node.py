@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import os
 import statistics
 import sys
 import tempfile
@@ -157,7 +158,9 @@ def arm64_run(cluster: Cluster, directory: Path) -> list[Figure]:
             agent_values=EMULATED_NODE_AGENT,
         )
         try:
+            load_start = os.getloadavg()[0]
             fleet.start()
+            load_reported = os.getloadavg()[0]
             programs = node_programs_rss_mb(fleet)
             peak, cpu_s = 0.0, 0.0
             proc = fleet.agent_process()
@@ -181,7 +184,8 @@ def arm64_run(cluster: Cluster, directory: Path) -> list[Figure]:
             COMMAND,
             note="arm64 vehicle node under qemu-user-static (its node start to Ready "
             f"{vehicle_ready_s:.1f} s): agent pod (arm64 image) created to its first report "
-            "of two simulated autopilots healthy",
+            f"of two simulated autopilots healthy; 1-min load {load_start:.1f} at the node's "
+            f"start, {load_reported:.1f} at the first report",
         )
     ]
     if peak:
