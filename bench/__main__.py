@@ -49,7 +49,11 @@ MODULES: tuple[str, ...] = (
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("modules", nargs="*", help=f"subset of {', '.join(MODULES)}")
+    parser.add_argument(
+        "modules",
+        nargs="*",
+        help=f"subset of {', '.join(MODULES)}; also nodearm64 (node's arm64 part alone)",
+    )
     parser.add_argument(
         "--readme-only",
         action="store_true",

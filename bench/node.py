@@ -22,16 +22,19 @@
 The chart figures are one run of :class:`tests.support.realfleet.RealFleet`, the same
 steps ``make e2e-node`` tests (``tests/e2e_node/test_arm64_node.py`` for arm64). Needs
 root (namespaces, cgroups); elsewhere the module reports why and returns no figures.
+``python -m bench nodearm64`` runs the arm64 part alone (:mod:`bench.nodearm64`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import csv
+import os
 import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import psutil
@@ -155,7 +158,9 @@ def arm64_run(cluster: Cluster, directory: Path) -> list[Figure]:
             agent_values=EMULATED_NODE_AGENT,
         )
         try:
+            load_start = os.getloadavg()[0]
             fleet.start()
+            load_reported = os.getloadavg()[0]
             programs = node_programs_rss_mb(fleet)
             peak, cpu_s = 0.0, 0.0
             proc = fleet.agent_process()
@@ -179,7 +184,8 @@ def arm64_run(cluster: Cluster, directory: Path) -> list[Figure]:
             COMMAND,
             note="arm64 vehicle node under qemu-user-static (its node start to Ready "
             f"{vehicle_ready_s:.1f} s): agent pod (arm64 image) created to its first report "
-            "of two simulated autopilots healthy",
+            f"of two simulated autopilots healthy; 1-min load {load_start:.1f} at the node's "
+            f"start, {load_reported:.1f} at the first report",
         )
     ]
     if peak:
@@ -199,18 +205,28 @@ def arm64_run(cluster: Cluster, directory: Path) -> list[Figure]:
     return figures
 
 
-def run() -> list[Figure]:
-    figures = cold_build()
+Part = Callable[[Cluster, Path], list[Figure]]
+
+
+def measure(parts: Sequence[Part]) -> list[Figure]:
+    """Run ``parts`` in turn on one fresh control plane (skipped, saying why, without
+    root or the image tools)."""
     reasons = missing_prerequisites() + [f"no {tool}" for tool in missing_tools()]
     if reasons:
         print(f"bench node: skipped ({'; '.join(reasons)})", file=sys.stderr)
-        return figures
+        return []
+    figures: list[Figure] = []
     with (
         tempfile.TemporaryDirectory(prefix="bench-node-") as tmp,
         ControlPlane(Path(tmp) / "control-plane") as plane,
     ):
         cluster = Cluster.of(plane)
-        figures.append(node_starts(cluster, Path(tmp)))
-        figures += chart_run(cluster, Path(tmp))
-        figures += arm64_run(cluster, Path(tmp))
+        for part in parts:
+            figures += part(cluster, Path(tmp))
     return figures
+
+
+def run() -> list[Figure]:
+    return cold_build() + measure(
+        (lambda cluster, directory: [node_starts(cluster, directory)], chart_run, arm64_run)
+    )

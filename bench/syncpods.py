@@ -19,8 +19,11 @@ Not on the emulated arm64 node: tried (the third vehicle's node arm64 under
 qemu-user-static, its follower pod privileged for the seccomp reason in
 docs/real-node.md), the pod started and ran the image's arm64 half, but its arm command
 through the emulated agent's hub got no answer within the follower's 3 s, twice (Job
-retries), so the monitor never started the legs: everything on that node runs about ten
-times slower. ``RealMission(arches=(..., "arm64"))`` is that run.
+retries), so the monitor never started the legs. Measured since (docs/real-node.md): the
+emulated hub answers a native client on that node in milliseconds, every time; an arm64
+client under emulation reading the hub's full stream misses about a third of its answers
+(its receive buffer overflows: the kernel drops them). Emulation speed on the follower's
+side, not the hub. ``RealMission(arches=(..., "arm64"))`` is that run.
 
 Needs root (namespaces, cgroups); elsewhere it reports why and returns no figures.
 """
