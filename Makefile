@@ -104,11 +104,12 @@ e2e: $(STAMP) cluster-build ## end to end: the sandbox, the chart, the images, t
 	$(call PYTEST_REPORT,e2e) -m 'not arm64_node' tests/e2e tests/e2e_node
 
 .PHONY: test
-test: ## the whole suite: check, integration, e2e, the control-plane suites on kine; then the 25 slowest tests
+test: ## the whole suite: check, integration, e2e, the control-plane suites on kine, KinD; then the 25 slowest tests
 	@rm -rf $(REPORTS)
 	@$(MAKE) --no-print-directory check integration e2e
 	$(call PYTEST_REPORT,kine) --datastore kine $(PARALLEL) $(KINE_SUITES)
 	$(call PYTEST_SERIAL,kine-serial,--datastore kine $(KINE_SUITES))
+	ROOST_KIND_JUNIT=$(CURDIR)/$(REPORTS)/kind.xml tests/e2e/kind/run.sh
 	@$(PY) -m tests.support.durations $(REPORTS)/*.xml
 
 # The control-plane and operator suites again on kine+SQLite, the datastore K3s runs on

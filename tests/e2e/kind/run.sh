@@ -17,6 +17,7 @@
 # images; `helm install`; the tests in tests/e2e/kind/; everything is removed on exit
 # (also on Ctrl-C or SIGTERM) unless ROOST_KIND_KEEP=1. Where it cannot run (no engine,
 # no root for podman, no kind) it prints why and exits 0 (SKIPPED); every wait is bounded.
+# ROOST_KIND_JUNIT=FILE: the tests' JUnit report (`make test` puts it beside the others).
 set -euo pipefail
 
 repo="$(cd "$(dirname "$0")/../../.." && pwd)"
@@ -263,5 +264,6 @@ step "$bin/helm" --kubeconfig "$kubeconfig" upgrade --install roost charts/roost
 say "running the KinD end-to-end tests"
 t0=$(now)
 ROOST_KIND_KUBECONFIG="$kubeconfig" ROOST_KIND_NAMESPACE="$namespace" ROOST_KIND_ENGINE="$engine" \
-  ROOST_KIND_CLUSTER="$cluster" step timeout 1800 "$bin/pytest" -p no:cacheprovider -v "$here"
+  ROOST_KIND_CLUSTER="$cluster" step timeout 1800 "$bin/pytest" -p no:cacheprovider -v \
+  ${ROOST_KIND_JUNIT:+"--junitxml=$ROOST_KIND_JUNIT"} "$here"
 mark e2e_suite_s "$t0"
