@@ -27,6 +27,8 @@ PX4_LAND = (4, 6)  # AUTO.LAND
 ARDUPILOT_GUIDED = 4
 ARDUPILOT_LAND = 9
 POSITION_ONLY = 0b0000_1111_1111_1000  # SET_POSITION_TARGET type_mask: x, y, z only
+COMMAND_TRIES = 3  # a command and two resends ...
+COMMAND_TRY_S = 1.0  # ... each waited for this long for its answer
 
 
 class Vehicle(Protocol):
@@ -102,20 +104,27 @@ class MavlinkVehicle:
             return self._position
 
     def _command(self, command: int, *params: float, wait: bool = True) -> int | None:
+        """Send a COMMAND_LONG and return its COMMAND_ACK's result.
+
+        A command or its answer lost on the link is sent again, as the MAVLink command
+        protocol has it: the same command with its confirmation field counting the
+        resends, which an autopilot answers whether or not it acted on an earlier copy.
+        """
         assert self.target is not None
         full = (list(params) + [0.0] * 7)[:7]
         with self._lock:
             self._acks.pop(command, None)
-        self.conn.mav.command_long_send(*self.target, command, 0, *full)
-        if not wait:
-            return None
-        deadline = time.monotonic() + 3.0
-        while time.monotonic() < deadline:
-            with self._lock:
-                if command in self._acks:
-                    return self._acks[command]
-            time.sleep(0.02)
-        raise TimeoutError(f"no answer to command {command}")
+        for confirmation in range(COMMAND_TRIES):
+            self.conn.mav.command_long_send(*self.target, command, confirmation, *full)
+            if not wait:
+                return None
+            deadline = time.monotonic() + COMMAND_TRY_S
+            while time.monotonic() < deadline:
+                with self._lock:
+                    if command in self._acks:
+                        return self._acks[command]
+                time.sleep(0.02)
+        raise TimeoutError(f"no answer to command {command} in {COMMAND_TRIES} tries")
 
     def _mode(self, px4: tuple[int, int], ardupilot: int) -> int | None:
         params = (1, *px4) if self.px4 else (1, ardupilot)
