@@ -151,7 +151,9 @@ def test_a_vehicle_kept_on_board_says_where_its_flights_are_and_how_to_gather_th
         assert words in kept.message
     off = not_gathered("a", AgentRecords.OFF, direct=False, node="node-a", port=9468)
     assert off is not None and "agent.records.enabled: false" in (off.message or "")
-    status = records_status("b", [kept, VehiclePlan("c", VehicleState.COMPLETE)], previous=None, now=at(1))
+    status = records_status(
+        "b", [kept, VehiclePlan("c", VehicleState.COMPLETE)], previous=None, now=at(1)
+    )
     assert status.state == RecordsState.PARTIAL and status.ready_time == at(1)
     assert status.message == "not gathered: a (each vehicle's message says where its flights are)"
     assert [(v.name, v.state, v.message) for v in status.vehicles] == [

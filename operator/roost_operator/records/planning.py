@@ -204,13 +204,15 @@ def not_gathered(
         return VehiclePlan(
             vehicle, VehicleState.NOT_RECORDED, reason, missing=[Missing(vehicle, reason)]
         )
-    where = f"node {node}'s records directory (agent.records.dir/{node})" if node else (
-        "the vehicle's records directory (agent.records.dir)"
+    where = (
+        f"on node {node} (agent.records.dir/{node}/, /var/lib/roost/records/{node}/ by default)"
+        if node
+        else "in the vehicle's records directory (agent.records.dir)"
     )
     reason = (
         "not gathered: the flights stay on the vehicle, whose agent serves them on its "
-        "127.0.0.1 only (chart value agent.records.bindNodeAddress: false). They are in "
-        f"{where}, and on the vehicle at http://127.0.0.1:{port}/records; set "
+        "127.0.0.1 only (chart value agent.records.bindNodeAddress: false). They are "
+        f"{where} and served on the vehicle at http://127.0.0.1:{port}/records; set "
         "agent.records.bindNodeAddress: true for later Missions' bundles to include them"
     )
     return VehiclePlan(vehicle, VehicleState.ON_VEHICLE, reason, missing=[Missing(vehicle, reason)])
