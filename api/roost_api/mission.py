@@ -439,7 +439,10 @@ class VehicleRecordsStatus(ApiModel):
     """One claimed vehicle's part of the Mission's record."""
 
     name: str = Field(description="The Vehicle.")
-    state: str = Field(description="Pending, Complete, Partial or Missing.")
+    state: str = Field(
+        description="Pending, Complete, Partial, Missing, OnVehicle (the flights stay on the"
+        " vehicle: the operator cannot reach its records by its settings) or NotRecorded."
+    )
     flights: int = Field(default=0, description="Flights of this mission gathered so far.")
     message: str | None = Field(default=None, description="What is pending or missing, and why.")
 

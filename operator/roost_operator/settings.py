@@ -19,7 +19,7 @@ from pathlib import Path
 from roost_operator.autopilots.conditions import DEFAULT_AGENT_STALE_AFTER
 from roost_operator.autopilots.guards import TRUE_VALUES, FleetGuards
 from roost_operator.records.s3 import BucketSettings
-from roost_operator.records.settings import RecordsSettings
+from roost_operator.records.settings import RecordsSettings, parse_agent_records
 
 
 @dataclass(frozen=True)
@@ -247,6 +247,7 @@ def load_records(environ: Mapping[str, str]) -> RecordsSettings:
     return RecordsSettings(
         directory=Path(directory) if directory else None,
         agent_port=int(environ.get("ROOST_RECORDS_AGENT_PORT", defaults.agent_port)),
+        agents=parse_agent_records(environ.get("ROOST_RECORDS_AGENTS") or defaults.agents),
         agent_namespace=environ.get("ROOST_RECORDS_AGENT_NAMESPACE", defaults.agent_namespace),
         retry_seconds=float(environ.get("ROOST_RECORDS_RETRY_SECONDS", defaults.retry_seconds)),
         settle_after=_seconds(environ, "ROOST_RECORDS_SETTLE_SECONDS", defaults.settle_after),

@@ -23,6 +23,7 @@ import yaml
 
 from roost_api.wellknown import LABEL_NODE, LABEL_VEHICLE, TAINT_VEHICLE
 from roost_localcluster.binaries import REPO_ROOT
+from roost_operator.settings import load_settings
 from tests.support.chart import (
     CHART_CRDS_DIR,
     CHART_DIR,
@@ -259,6 +260,26 @@ def test_operator_keeps_mission_records_on_its_own_claim_and_may_reach_the_agent
     assert not [m for m in scratch if m["kind"] == "PersistentVolumeClaim"]
     assert {"name": "records", "emptyDir": {}} in pod["volumes"]
     assert "ROOST_RECORDS_DIR" in {e["name"] for e in pod["containers"][0]["env"]}
+
+
+@pytest.mark.parametrize(
+    ("records", "expected"),
+    [
+        ({}, "on-vehicle"),  # the defaults: recorded, served on the vehicle's 127.0.0.1
+        ({"bindNodeAddress": True}, "reachable"),
+        ({"enabled": False}, "off"),
+        ({"enabled": False, "bindNodeAddress": True}, "off"),
+    ],
+)
+def test_operator_knows_whether_the_agents_records_can_be_gathered(
+    records: dict[str, Any], expected: str
+) -> None:
+    objects = render({"agent": {"records": records}} if records else None)
+    container = find(objects, "Deployment", "-operator")["spec"]["template"]["spec"]
+    env = {e["name"]: e.get("value") for e in container["containers"][0]["env"]}
+    assert env["ROOST_RECORDS_AGENTS"] == expected
+    plain = {name: value for name, value in env.items() if value is not None}
+    assert load_settings(plain).records.agents == expected  # what the operator makes of it
 
 
 def test_operator_copies_bundles_to_a_bucket_with_credentials_from_an_optional_secret() -> None:

@@ -18,7 +18,8 @@ touched; ``roost records get`` fetches the bundle through the operator's records
 the final bundle is copied to an S3-compatible bucket (moto's server on 127.0.0.1, not
 AWS: :mod:`tests.support.s3server`), every object with its sha256;
 a Mission that never flew has no record and ``roost records get`` says so, exit 1; an
-unusable records volume fails the record with why.
+unusable records volume fails the record with why; with the agents serving on their
+vehicles only (the chart's default) the bundle is final in its first round.
 About 30 s on two cores (most of it the Vehicles becoming Ready).
 """
 
@@ -47,7 +48,7 @@ from roost_localcluster.cluster import Cluster
 from roost_localcluster.controlplane import free_port
 from roost_operator.records.gather import VehicleTarget, gather_round
 from roost_operator.records.planning import gathering
-from roost_operator.records.settings import RecordsSettings
+from roost_operator.records.settings import AgentRecords, RecordsSettings
 from tests.support.fakeagents import FakeAgents
 from tests.support.missionfleet import FLIGHTS, AddNode, Fleet, mission_status, wait_phase
 from tests.support.operator import OperatorProcess
@@ -325,3 +326,40 @@ def test_an_unusable_records_volume_fails_the_record_once_with_why(
     )
     assert result.state == RecordsState.FAILED and RecordsState(result.state).final
     assert "records volume" in (result.message or "")
+
+
+def test_agents_serving_on_the_vehicle_only_give_a_final_bundle_at_once(
+    kube: Kube, tmp_path: Path
+) -> None:
+    """The chart's default (``ROOST_RECORDS_AGENTS=on-vehicle``): the first round writes
+    the bundle from what the operator holds and it is final, each vehicle saying where its
+    flights are; no vehicle is contacted (the one with a records URL on a closed port
+    would otherwise be Pending, a deleted one "unreachable")."""
+    status = MissionStatus(
+        phase=MissionPhase.SUCCEEDED,
+        start_time=datetime.now(UTC) - timedelta(minutes=5),
+        completion_time=datetime.now(UTC),
+        records=gathering("flights_y_00000000", ["a", "gone"]),
+    )
+    now = datetime.now(UTC)
+    result = gather_round(
+        kube,
+        RecordsSettings(directory=tmp_path, agents=AgentRecords.ON_VEHICLE),
+        namespace=FLIGHTS,
+        name="y",
+        uid="1",
+        status=status,
+        vehicles=[VehicleTarget("a", "a-node", {}), VehicleTarget("gone")],
+        now=now,
+    )
+    assert result.state == RecordsState.PARTIAL and result.ready_time == now
+    assert [(v.name, v.state) for v in result.vehicles] == [
+        ("a", "OnVehicle"),
+        ("gone", "OnVehicle"),
+    ]
+    assert "agent.records.bindNodeAddress: true" in (result.vehicles[0].message or "")
+    bundle = tmp_path / "flights_y_00000000"
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    assert manifest["state"] == "Partial" and manifest["flights"] == []
+    assert {m["vehicle"] for m in manifest["missing"]} == {"a", "gone"}
+    assert (bundle / "mission.json").exists() and (bundle / "events.json").exists()

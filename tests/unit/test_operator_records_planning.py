@@ -25,12 +25,13 @@ from roost_operator.records.planning import (
     bundle_name,
     bundle_state,
     expired,
+    not_gathered,
     overlaps,
     plan_vehicle,
     records_status,
     safe_path,
 )
-from roost_operator.records.settings import RecordsSettings
+from roost_operator.records.settings import AgentRecords, RecordsSettings, parse_agent_records
 from tests.support.missions import claimed, job, mission_spec, observe, started
 
 START = datetime(2026, 5, 1, 12, 0, tzinfo=UTC)
@@ -116,6 +117,68 @@ def test_a_vehicle_that_did_not_fly_is_complete_and_says_so() -> None:
     result = plan(Listing("a", ()))
     assert result.state is VehicleState.COMPLETE
     assert "no flight" in (result.message or "")
+
+
+@pytest.mark.parametrize(
+    ("agents", "direct", "state"),
+    [
+        # the agents serve where the operator reaches them: gather
+        (AgentRecords.REACHABLE, False, None),
+        (AgentRecords.REACHABLE, True, None),
+        # the chart's default, loopback only: final at once, never retried
+        (AgentRecords.ON_VEHICLE, False, VehicleState.ON_VEHICLE),
+        # a Vehicle naming its records server's URL is reached whatever the setting
+        (AgentRecords.ON_VEHICLE, True, None),
+        (AgentRecords.OFF, False, VehicleState.NOT_RECORDED),
+        (AgentRecords.OFF, True, None),
+    ],
+)
+def test_a_vehicle_is_contacted_only_when_its_records_can_be_reached(
+    agents: AgentRecords, direct: bool, state: VehicleState | None
+) -> None:
+    result = not_gathered("a", agents, direct=direct, node="node-a", port=9468)
+    if state is None:
+        assert result is None
+        return
+    assert result is not None and result.state is state and result.fetch == []
+    assert [(m.vehicle, m.reason) for m in result.missing] == [("a", result.message)]
+
+
+def test_a_vehicle_kept_on_board_says_where_its_flights_are_and_how_to_gather_them() -> None:
+    kept = not_gathered("a", AgentRecords.ON_VEHICLE, direct=False, node="node-a", port=9468)
+    assert kept is not None and kept.message is not None
+    for words in ("agent.records.bindNodeAddress: true", "node-a", "127.0.0.1:9468/records"):
+        assert words in kept.message
+    off = not_gathered("a", AgentRecords.OFF, direct=False, node="node-a", port=9468)
+    assert off is not None and "agent.records.enabled: false" in (off.message or "")
+    status = records_status(
+        "b", [kept, VehiclePlan("c", VehicleState.COMPLETE)], previous=None, now=at(1)
+    )
+    assert status.state == RecordsState.PARTIAL and status.ready_time == at(1)
+    assert status.message == "not gathered: a (each vehicle's message says where its flights are)"
+    assert [(v.name, v.state, v.message) for v in status.vehicles] == [
+        ("a", "OnVehicle", kept.message),
+        ("c", "Complete", None),
+    ]
+
+
+@pytest.mark.parametrize(
+    ("text", "agents"),
+    [
+        ("reachable", AgentRecords.REACHABLE),
+        ("on-vehicle", AgentRecords.ON_VEHICLE),
+        (" OFF ", AgentRecords.OFF),
+        ("yes", None),
+    ],
+)
+def test_the_agents_records_setting_is_parsed_or_refused_with_the_accepted_values(
+    text: str, agents: AgentRecords | None
+) -> None:
+    if agents is None:
+        with pytest.raises(ValueError, match="reachable, on-vehicle, off"):
+            parse_agent_records(text)
+    else:
+        assert parse_agent_records(text) is agents
 
 
 @pytest.mark.parametrize(
@@ -214,6 +277,9 @@ def test_a_corrupt_file_is_downloaded_again_then_counted_corrupt(
         ([VehicleState.PARTIAL, VehicleState.PENDING], RecordsState.GATHERING),
         ([VehicleState.COMPLETE, VehicleState.PARTIAL], RecordsState.PARTIAL),
         ([VehicleState.COMPLETE, VehicleState.MISSING], RecordsState.PARTIAL),
+        ([VehicleState.ON_VEHICLE, VehicleState.ON_VEHICLE], RecordsState.PARTIAL),
+        ([VehicleState.NOT_RECORDED], RecordsState.PARTIAL),
+        ([VehicleState.ON_VEHICLE, VehicleState.PENDING], RecordsState.GATHERING),
     ],
 )
 def test_the_bundle_is_gathering_while_a_vehicle_is_pending(

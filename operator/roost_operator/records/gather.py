@@ -11,7 +11,10 @@ Per vehicle: list its flights (``GET /records``), keep those overlapping the Mis
 run (:func:`~roost_operator.records.planning.plan_vehicle`), download what the bundle
 lacks (resuming ``.part`` files), verify each against the agent's sha256, and plan again
 until nothing is left to fetch or the vehicle cannot be reached. A vehicle already final
-in the manifest is not contacted again.
+in the manifest is not contacted again, nor is one the settings say the operator cannot
+reach (:func:`~roost_operator.records.planning.not_gathered`): with every vehicle so, the
+first round writes the bundle from what the operator holds (the Mission, its Events, the
+manifest) and it is final at once.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from typing import Any
 import urllib3
 
 from roost_api.mission import MissionRecordsStatus, MissionStatus, RecordsState
+from roost_api.wellknown import ANNOTATION_RECORDS
 from roost_kube.client import Kube
 from roost_kube.errors import ApiError
 from roost_kube.resources import EVENTS, MISSIONS
@@ -37,6 +41,7 @@ from roost_operator.records.planning import (
     VehicleState,
     Window,
     expired,
+    not_gathered,
     plan_vehicle,
     records_status,
 )
@@ -173,6 +178,16 @@ def gather_round(
     for target in vehicles:
         if target.name in done:
             plans.append(_final_plan(done[target.name], before))
+            continue
+        kept = not_gathered(
+            target.name,
+            settings.agents,
+            direct=bool((target.annotations or {}).get(ANNOTATION_RECORDS)),
+            node=target.node,
+            port=settings.agent_port,
+        )
+        if kept is not None:
+            plans.append(kept)
             continue
         endpoint: Endpoint | None = None
         unreachable = None

@@ -10,9 +10,16 @@
   the agent marks Failed is missing with the agent's message. A file still Partial is
   waited for while its flight is still recording or fetching autopilot logs, and taken
   as it is (and named in ``missing``) once the flight is final or the settle time passed.
+* **Whether to reach a vehicle at all** (:func:`not_gathered`): only when the agents'
+  records can be reached (the operator's ``agents`` setting) or the Vehicle names its
+  records server's URL. Otherwise its entry is final at once — OnVehicle (the agent
+  serves on the vehicle's loopback only, the chart's default) or NotRecorded (recording
+  is off) — and says where the flights are and which setting gathers them: a vehicle the
+  operator cannot reach by design is not waited for (a day of "unreachable" retries
+  would say nothing true).
 * **A vehicle's state**: Pending (unreachable, or a flight not yet final, or files still
-  to fetch), Complete, Partial (final, something missing), or Missing (unreachable for
-  longer than the give-up time).
+  to fetch), Complete, Partial (final, something missing), Missing (unreachable for
+  longer than the give-up time), OnVehicle or NotRecorded (not gathered, see above).
 * **The bundle's state**: Gathering while any vehicle is Pending; Complete when all are;
   Partial otherwise.
 * **Retention**: final bundles beyond the newest ``keep_count`` or older than
@@ -31,7 +38,7 @@ from typing import Any
 
 from roost_api.mission import MissionRecordsStatus, RecordsState, VehicleRecordsStatus
 from roost_api.records import FileState, FlightState
-from roost_operator.records.settings import RecordsSettings
+from roost_operator.records.settings import AgentRecords, RecordsSettings
 
 FINAL_FLIGHT_STATES = frozenset({FlightState.COMPLETE, FlightState.FAILED})
 """Agent flight states after which nothing more is written to the flight."""
@@ -42,6 +49,12 @@ class VehicleState(StrEnum):
     COMPLETE = "Complete"
     PARTIAL = "Partial"
     MISSING = "Missing"
+    ON_VEHICLE = "OnVehicle"
+    NOT_RECORDED = "NotRecorded"
+
+
+NOT_GATHERED = frozenset({VehicleState.ON_VEHICLE, VehicleState.NOT_RECORDED})
+"""Vehicles the operator does not reach by its settings: final without a contact."""
 
 
 @dataclass(frozen=True)
@@ -171,6 +184,38 @@ def safe_path(path: str) -> bool:
     """A relative path that stays inside its flight's directory."""
     pure = PurePosixPath(path)
     return bool(path) and not pure.is_absolute() and ".." not in pure.parts and "\\" not in path
+
+
+def not_gathered(
+    vehicle: str, agents: AgentRecords, *, direct: bool, node: str, port: int
+) -> VehiclePlan | None:
+    """The vehicle's final plan when the operator does not contact it, else None (gather).
+
+    ``agents``: the operator's setting; ``direct``: the Vehicle names its records
+    server's URL (``roost.dev/records``), which the operator reaches whatever the
+    setting. ``node``/``port``: where the flights are, for the message."""
+    if direct or agents is AgentRecords.REACHABLE:
+        return None
+    if agents is AgentRecords.OFF:
+        reason = (
+            "not recorded: flight recording is off on the agents (chart value "
+            "agent.records.enabled: false)"
+        )
+        return VehiclePlan(
+            vehicle, VehicleState.NOT_RECORDED, reason, missing=[Missing(vehicle, reason)]
+        )
+    where = (
+        f"on node {node} (agent.records.dir/{node}/, /var/lib/roost/records/{node}/ by default)"
+        if node
+        else "in the vehicle's records directory (agent.records.dir)"
+    )
+    reason = (
+        "not gathered: the flights stay on the vehicle, whose agent serves them on its "
+        "127.0.0.1 only (chart value agent.records.bindNodeAddress: false). They are "
+        f"{where} and served on the vehicle at http://127.0.0.1:{port}/records; set "
+        "agent.records.bindNodeAddress: true for later Missions' bundles to include them"
+    )
+    return VehiclePlan(vehicle, VehicleState.ON_VEHICLE, reason, missing=[Missing(vehicle, reason)])
 
 
 def plan_vehicle(
@@ -308,12 +353,17 @@ def records_status(
     incomplete = [
         p.vehicle for p in plans if p.state in (VehicleState.PARTIAL, VehicleState.MISSING)
     ]
-    if pending:
-        message = f"pending: {', '.join(pending)}"
-    elif incomplete:
-        message = f"incomplete: {', '.join(incomplete)} (the bundle's manifest says what and why)"
-    else:
-        message = None
+    kept = [p.vehicle for p in plans if p.state in NOT_GATHERED]
+    parts = []
+    if incomplete:
+        parts.append(
+            f"incomplete: {', '.join(incomplete)} (the bundle's manifest says what and why)"
+        )
+    if kept:
+        parts.append(
+            f"not gathered: {', '.join(kept)} (each vehicle's message says where its flights are)"
+        )
+    message = f"pending: {', '.join(pending)}" if pending else "; ".join(parts) or None
     return MissionRecordsStatus(
         state=state,
         bundle=bundle,

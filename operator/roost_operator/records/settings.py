@@ -8,9 +8,37 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from datetime import timedelta
+from enum import StrEnum
 from pathlib import Path
 
 from roost_operator.records.s3 import BucketSettings
+
+
+class AgentRecords(StrEnum):
+    """Whether the agents record flights and whether the operator can reach their records
+    servers (``ROOST_RECORDS_AGENTS``; the chart derives it from ``agent.records.enabled``
+    and ``agent.records.bindNodeAddress``)."""
+
+    REACHABLE = "reachable"
+    """The agents serve their records where the operator reaches them: on the node's
+    address (through the API server's pod proxy), or at a Vehicle's ``roost.dev/records``
+    URL. The operator gathers them into Mission bundles."""
+    ON_VEHICLE = "on-vehicle"
+    """The agents record but serve on the vehicle's 127.0.0.1 only (the chart's default:
+    the records server is unauthenticated). The operator does not try to reach them: a
+    Mission's bundle is made at once without its flights, and each vehicle's entry says
+    where they are instead."""
+    OFF = "off"
+    """The agents do not record flights: there is nothing to gather."""
+
+
+def parse_agent_records(text: str) -> AgentRecords:
+    """``ROOST_RECORDS_AGENTS``; ValueError naming the accepted values otherwise."""
+    try:
+        return AgentRecords(text.strip().lower())
+    except ValueError:
+        accepted = ", ".join(a.value for a in AgentRecords)
+        raise ValueError(f"ROOST_RECORDS_AGENTS={text!r}: expected one of {accepted}") from None
 
 
 @dataclass(frozen=True)
@@ -24,6 +52,11 @@ class RecordsSettings:
     agent_port: int = 9468
     """The agents' records port (``ROOST_RECORDS_AGENT_PORT``), reached through the API
     server's pod proxy of the agent pod on the vehicle's node."""
+
+    agents: AgentRecords = AgentRecords.REACHABLE
+    """Whether the agents' records can be gathered (``ROOST_RECORDS_AGENTS``: reachable,
+    on-vehicle or off; see :class:`AgentRecords`). Reachable when unset, as for an
+    operator run beside its agents; the chart always sets it."""
 
     agent_namespace: str = ""
     """Namespace of the agent pods (``ROOST_RECORDS_AGENT_NAMESPACE``; empty: the
