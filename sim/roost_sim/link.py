@@ -179,14 +179,18 @@ class Link(ABC):
 
     def send(self, frame: bytes) -> None:
         """Send one frame, subject to loss and jitter."""
-        signing = self._signing
-        if signing is not None:
-            frame = signing.signer.sign(frame)
-        if self._closed.is_set() or self._lost():
-            return
-        self.frames_sent += 1
         jitter = self.impairment.jitter_ms
         with self._queue_ready:
+            # Signed under the lock that orders delivery, so frames of several threads
+            # leave in the order of their signing timestamps, as from one autopilot's
+            # link: a peer rightly drops a frame older than the last it saw on the
+            # stream as a replay.
+            signing = self._signing
+            if signing is not None:
+                frame = signing.signer.sign(frame)
+            if self._closed.is_set() or self._lost():
+                return
+            self.frames_sent += 1
             if jitter <= 0 and not self._queue:
                 self._deliver(frame)
                 return
