@@ -195,18 +195,32 @@ class RealMission:
         started = time.monotonic()
         self.apply()
         lags.start()
+        # The operator stops the offboard workload (the monitor) as soon as the Mission
+        # has succeeded, which can be right after the monitor printed its results: its
+        # log and node are kept as they are seen, not read once it has finished.
+        seen: dict[str, str] = {"log": "", "node": ""}
+
+        def results_seen() -> bool:
+            pods = self._pods(MONITOR_SELECTOR)
+            if pods:
+                seen["node"] = pods[0]["spec"].get("nodeName", "") or seen["node"]
+            log = self.monitor_log()
+            if log:
+                seen["log"] = log
+            return self.monitor_done() or results_from_log(seen["log"]) is not None
+
         try:
-            wait_until("the monitor pod finished", self.monitor_done, FLIGHT_S, poll_s=1.0)
+            wait_until("the monitor's results", results_seen, FLIGHT_S, poll_s=1.0)
         finally:
             stop.set()
-        results = results_from_log(self.monitor_log())
-        assert results is not None, self.monitor_log()[-3000:]
+        results = results_from_log(seen["log"])
+        assert results is not None, seen["log"][-3000:]
         return MissionRun(
             results=results,
             follower_nodes={
                 name: pod["spec"]["nodeName"] for name, pod in self.followers().items()
             },
-            monitor_node=self.monitor_pod()["spec"]["nodeName"],
+            monitor_node=seen["node"],
             lags_sent=lags.sent,
             flight_s=time.monotonic() - started,
         )
