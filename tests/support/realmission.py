@@ -48,6 +48,7 @@ HUB = "127.0.0.1:14550"
 """Where each vehicle's agent serves its MAVLink hub: what ``mission.yaml``'s followers use."""
 MONITOR_SELECTOR = "app=sync-monitor"
 FOLLOWER_SELECTOR = "app=sync-follower"
+FINISHED_PHASES = ("Succeeded", "Failed")
 FLIGHT_S = 900.0
 """Upper bound on the whole flight (about 3 minutes: five 20 s legs plus delays)."""
 
@@ -207,7 +208,8 @@ class RealMission:
             log = self.monitor_log()
             if log:
                 seen["log"] = log
-            return self.monitor_done() or results_from_log(seen["log"]) is not None
+            finished = bool(pods) and pods[0]["status"].get("phase") in FINISHED_PHASES
+            return finished or results_from_log(seen["log"]) is not None
 
         try:
             wait_until("the monitor's results", results_seen, FLIGHT_S, poll_s=1.0)
@@ -246,14 +248,6 @@ class RealMission:
             names = str(env["ROOST_MISSION_VEHICLES"]).split(",")
             found[names[int(str(env["ROOST_MISSION_VEHICLE_INDEX"]))]] = pod
         return found
-
-    def monitor_pod(self) -> dict[str, Any]:
-        (pod,) = self._pods(MONITOR_SELECTOR)
-        return pod
-
-    def monitor_done(self) -> bool:
-        pods = self._pods(MONITOR_SELECTOR)
-        return bool(pods) and pods[0]["status"].get("phase") in ("Succeeded", "Failed")
 
     def monitor_log(self) -> str:
         done = self.cluster.kubectl(
