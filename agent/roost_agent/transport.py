@@ -24,6 +24,7 @@ answers land on the urgent one. Connection URLs are read by
 from __future__ import annotations
 
 import errno
+import importlib
 import logging
 import math
 import socket
@@ -32,7 +33,7 @@ import sys
 import time
 from collections.abc import Callable
 from functools import partial
-from typing import Final
+from typing import Final, cast
 
 from roost_agent.steering import steered_sockets
 from roost_mavlink import pymavlink_device
@@ -210,12 +211,14 @@ class _Udp(Transport):
         before and after the bulk, and whatever it held is merged in by arrival stamp;
         once the bulk is read to its end, anything arriving on either socket after that
         read is later than all of these."""
-        urgent = self.urgent
-        if urgent is None or not self._stamped:
+        if not self._stamped:
             return super().receive_batch(limit)
-        first = _read_all(partial(_receive_stamped, urgent), limit)
-        bulk = _read_all(partial(_receive_stamped, self._sock), limit)
-        later = _read_all(partial(_receive_stamped, urgent), limit)
+        urgent = self.urgent
+        if urgent is None:
+            return receive_all(self._sock, limit)
+        first = receive_all(urgent, limit)
+        bulk = receive_all(self._sock, limit)
+        later = receive_all(urgent, limit)
         if not first and not later:
             return bulk
         return sorted(first + bulk + later, key=_arrival)
@@ -239,6 +242,34 @@ def _receive_stamped(sock: socket.socket) -> Received:
         seconds, nanoseconds = _TIMESPEC.unpack_from(ancillary[0][2])
         return data, address, seconds + nanoseconds * 1e-9
     return data, address, None
+
+
+def _batch_receiver() -> Callable[[int, int], list[Received]] | None:
+    """The C extension's ``receive`` (``_udpbatch.c``: one recvmmsg for the queue, no
+    failing read at its end), or None where it is not built (an editable install)."""
+    try:
+        module = importlib.import_module("roost_agent._udpbatch")
+    except ImportError:
+        return None
+    return cast("Callable[[int, int], list[Received]]", module.receive)
+
+
+BATCH_RECEIVE: Final = _batch_receiver()
+
+
+def receive_all(sock: socket.socket, limit: int) -> list[Received]:
+    """Every datagram queued on ``sock`` (up to ``limit``) with its sender and kernel
+    arrival stamp: in one system call per 16 where the C extension is built, else one
+    read each and a last one that finds the queue empty."""
+    receive = BATCH_RECEIVE
+    if receive is not None:
+        return receive(sock.fileno(), limit)
+    return receive_each(sock, limit)
+
+
+def receive_each(sock: socket.socket, limit: int) -> list[Received]:
+    """:func:`receive_all` in Python, a read per datagram (the C extension's fallback)."""
+    return _read_all(partial(_receive_stamped, sock), limit)
 
 
 def _read_all(receive: Callable[[], Received], limit: int) -> list[Received]:
