@@ -167,6 +167,7 @@ class _Udp(Transport):
                 self._sock.close()
                 raise
         self._stamped = all(self._prepare(sock) for sock in self._sockets())
+        self._held: list[Received] = []  # read, but not yet in order (receive_batch)
 
     def _sockets(self) -> list[socket.socket]:
         return [self._sock] if self.urgent is None else [self._sock, self.urgent]
@@ -207,21 +208,47 @@ class _Udp(Transport):
         return _receive_stamped(self._sock)
 
     def receive_batch(self, limit: int) -> list[Received]:
-        """Up to ``limit`` datagrams in arrival order. Steered: the urgent socket is read
-        before and after the bulk, and whatever it held is merged in by arrival stamp;
-        once the bulk is read to its end, anything arriving on either socket after that
-        read is later than all of these."""
+        """Up to ``limit`` datagrams from each socket per look, in arrival order.
+
+        Steered, a frame must never be delivered before an older one of the other socket:
+        the signing replay check and the settling of claims go by the order frames are
+        read. So the time is noted, then both sockets are read, and only what arrived
+        before that moment is delivered, merged by arrival stamp. Everything else read
+        (arrived during the reads, or behind a socket read only up to ``limit``) waits in
+        :attr:`_held` for the next look: it arrived after everything delivered now, and
+        everything still queued arrived after the moment noted. A second look follows at
+        once when something was held, so a frame waits for a later call only when another
+        one arrived during that look too.
+        """
         if not self._stamped:
             return super().receive_batch(limit)
         urgent = self.urgent
         if urgent is None:
             return receive_all(self._sock, limit)
+        ready = self._in_order(urgent, limit)
+        if self._held:
+            ready += self._in_order(urgent, limit)
+        return ready
+
+    def _in_order(self, urgent: socket.socket, limit: int) -> list[Received]:
+        """One look at both sockets (:meth:`receive_batch`)."""
+        cutoff = time.time()  # the arrival stamps' clock (CLOCK_REALTIME)
         first = receive_all(urgent, limit)
         bulk = receive_all(self._sock, limit)
-        later = receive_all(urgent, limit)
-        if not first and not later:
-            return bulk
-        return sorted(first + bulk + later, key=_arrival)
+        looked = time.time()
+        for read in (first, bulk):
+            if len(read) >= limit:  # more queued behind it: complete only up to its last
+                cutoff = min(cutoff, _arrival(read[-1]))
+        ready: list[Received] = []
+        held: list[Received] = []
+        for received in sorted(self._held + first + bulk, key=_arrival):
+            # Unstamped (stamping not on yet): as read, now. Stamped after the look
+            # itself: from before the wall clock stepped back, so never held for it.
+            stamp = received[2]
+            later = stamp is not None and cutoff < stamp <= looked
+            (held if later else ready).append(received)
+        self._held = held
+        return ready
 
     def close(self) -> None:
         for sock in self._sockets():
