@@ -3,7 +3,8 @@
 Every datagram an autopilot sends passes through the MAVLink parser
 (``roost_mavlink.codec``), the link's modules that read, trust and account for it
 (``roost_agent.transport``, ``roost_agent.reader``, ``roost_agent.trust``,
-``roost_agent.link``) and the health tracker that judges it (``roost_agent.health``).
+``roost_agent.link``), the health tracker that judges it (``roost_agent.health``) and
+the hub that routes it to clients (``roost_agent.hub``).
 They are mypy-strict, so mypyc can compile them to C extension modules that run the same
 code cheaper (``agent.cpu_ms_per_10k_msgs`` against ``agent.cpu_ms_per_10k_msgs_interpreted``
 in the README's benchmark table). The image build sets ``ROOST_COMPILE=1``
@@ -18,9 +19,10 @@ wheel is built without build isolation: ``ROOST_COMPILE=1 pip wheel --no-build-i
 from __future__ import annotations
 
 import os
+import sys
 from typing import Any
 
-from setuptools import setup
+from setuptools import Extension, setup
 
 COMPILED_MODULES = (
     "mavlink/roost_mavlink/codec.py",
@@ -29,6 +31,7 @@ COMPILED_MODULES = (
     "agent/roost_agent/trust.py",
     "agent/roost_agent/reader.py",
     "agent/roost_agent/link.py",
+    "agent/roost_agent/hub.py",
 )
 """The modules compiled with ``ROOST_COMPILE=1``, as paths from the repository root."""
 
@@ -39,7 +42,16 @@ def _ext_modules() -> list[Any]:
     # Only here: mypy is a build tool, not a dependency.
     from mypyc.build import mypycify  # noqa: PLC0415
 
-    return list(mypycify(list(COMPILED_MODULES), opt_level="3"))
+    native = C_EXTENSIONS if sys.platform == "linux" else ()
+    return [*mypycify(list(COMPILED_MODULES), opt_level="3"), *native]
+
+
+C_EXTENSIONS = (
+    # recvmmsg with kernel arrival stamps for the UDP links (roost_agent.transport falls
+    # back to Python reads without it)
+    Extension("roost_agent._udpbatch", ["agent/roost_agent/_udpbatch.c"]),
+)
+"""Hand-written C extension modules, built with the compiled modules (Linux only)."""
 
 
 setup(ext_modules=_ext_modules())

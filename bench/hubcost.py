@@ -37,14 +37,17 @@ import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
+from typing import Any
 
 import psutil
 
 from bench.agent import _load
 from bench.core import Figure
 from roost_api.autopilot import AutopilotSpec, HubSpec, RedundantAutopilotSpec
+from roost_mavlink.codec import CRC_BYTES, frame_crc
 from roost_sim.streams import PX4_STREAMS
 from roost_sim.vehicle import free_udp_port
 from tests.support.agent import AgentProcess
@@ -58,38 +61,82 @@ SETTLE_S = 1.0
 BASE_RATE = sum(s.hz for s in PX4_STREAMS.values())
 
 
-def _frames(kinds: list[int], sysid: int) -> list[list[bytes]]:
-    """Per message kind, its frame encoded with each of the 256 sequence numbers (the
-    number is under the CRC), fields zero but what a flying PX4's heartbeat says."""
+BOOT_MS = 100_000
+"""The senders' first ``time_boot_ms``: it advances with the stream (a PX4 in flight),
+and from here until 4.6 h its third byte is never zero and its fourth always is, so a
+frame's truncated MAVLink 2 payload keeps its length when the time is written into it."""
+ESTIMATOR_HEALTHY = 0x3F  # attitude, velocities, positions: what a flying PX4 reports
+
+
+@dataclass
+class _Kind:
+    """One message kind's frames, one per sequence number, and where their
+    ``time_boot_ms`` sits (None: the message has none)."""
+
+    by_seq: list[bytes]
+    time_at: int | None
+    crc_extra: int
+
+
+def _encode(mavlink: Any, mav: Any, cls: Any, boot_ms: int, seq: int) -> bytes:
+    """One frame of message class ``cls``: fields zero but what a healthy flying PX4
+    says (armed heartbeat, healthy estimator, ``time_boot_ms``)."""
+    values: list[object] = []
+    lengths = dict(zip(cls.ordered_fieldnames, cls.array_lengths, strict=True))
+    for name, kind in zip(cls.fieldnames, cls.fieldtypes, strict=True):
+        length = lengths[name]
+        if kind == "char":
+            values.append(b"")
+        elif length:
+            values.append([0] * length)
+        elif kind in ("float", "double"):
+            values.append(0.0)
+        else:
+            values.append(0)
+        if name == "time_boot_ms":
+            values[-1] = boot_ms
+        elif name == "flags" and cls.id == mavlink.MAVLINK_MSG_ID_ESTIMATOR_STATUS:
+            values[-1] = ESTIMATOR_HEALTHY
+    msg = cls(*values)
+    if cls.id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:  # PX4, armed, ACTIVE
+        msg = mavlink.MAVLink_heartbeat_message(2, 12, 0xD9, 0, 4, 3)
+    mav.seq = seq
+    return bytes(msg.pack(mav, force_mavlink1=False))
+
+
+def _frames(kinds: list[int], sysid: int) -> list[_Kind]:
+    """Per message kind, its frame (:func:`_encode`) with each of the 256 sequence
+    numbers (the number is under the CRC); ``time_boot_ms`` is written in as it is sent."""
     from pymavlink.dialects.v20 import all as mavlink  # noqa: PLC0415 - the sender only
 
     mav = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=1)
     out = []
     for msg_id in kinds:
         cls = mavlink.mavlink_map[msg_id]
-        values: list[object] = []
-        lengths = dict(zip(cls.ordered_fieldnames, cls.array_lengths, strict=True))
-        for name, kind in zip(cls.fieldnames, cls.fieldtypes, strict=True):
-            length = lengths[name]
-            if kind == "char":
-                values.append(b"")
-            elif length:
-                values.append([0] * length)
-            elif kind in ("float", "double"):
-                values.append(0.0)
-            else:
-                values.append(0)
-            if name == "time_boot_ms":
-                values[-1] = 1000
-        msg = cls(*values)
-        if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
-            msg = mavlink.MAVLink_heartbeat_message(2, 12, 0xD9, 0, 4, 3)  # PX4, armed, ACTIVE
-        by_seq = []
-        for seq in range(256):
-            mav.seq = seq
-            by_seq.append(bytes(msg.pack(mav, force_mavlink1=False)))
-        out.append(by_seq)
+
+        by_seq = [_encode(mavlink, mav, cls, BOOT_MS, seq) for seq in range(256)]
+        # where the time is: the first byte that differs between two times
+        other = _encode(mavlink, mav, cls, BOOT_MS + 0x101, 0)
+        time_at = next(
+            (i for i, (a, b) in enumerate(zip(by_seq[0], other, strict=True)) if a != b), None
+        )
+        out.append(_Kind(by_seq, time_at, cls.crc_extra))
     return out
+
+
+def _stamped(kind: _Kind, seq: int, boot_ms: int) -> bytes:
+    """``kind``'s frame numbered ``seq`` saying ``boot_ms`` (its CRC recomputed)."""
+    frame = kind.by_seq[seq]
+    at = kind.time_at
+    if at is None:
+        return frame
+    out = bytearray(frame)
+    out[at : at + 4] = boot_ms.to_bytes(4, "little")
+    end = len(out) - CRC_BYTES
+    crc = frame_crc(out[1:end], kind.crc_extra)
+    out[end] = crc & 0xFF
+    out[end + 1] = crc >> 8
+    return bytes(out)
 
 
 def _sender(conn: Connection, port: int, sysid: int) -> None:
@@ -99,6 +146,7 @@ def _sender(conn: Connection, port: int, sysid: int) -> None:
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 << 20)
     kinds = sorted(PX4_STREAMS)
     frames = _frames(kinds, sysid)
+    born = time.monotonic()
     while True:
         request = conn.recv()
         if request is None:
@@ -119,7 +167,8 @@ def _sender(conn: Connection, port: int, sysid: int) -> None:
                 wait = due - time.monotonic()
                 if wait > 0.0005:
                     time.sleep(wait)
-                sock.sendto(frames[n][seq], ("127.0.0.1", port))
+                boot_ms = BOOT_MS + int((due - born) * 1000)
+                sock.sendto(_stamped(frames[n], seq, boot_ms), ("127.0.0.1", port))
                 seq = (seq + 1) % 256
                 sent += 1
         conn.send(sent)

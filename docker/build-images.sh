@@ -214,7 +214,7 @@ arm64_dependencies() {
 sources_key() {
   cd "$repo" || exit 1
   {
-    find "${packages[@]}" -type f \( -name '*.py' -o -name py.typed \) \
+    find "${packages[@]}" -type f \( -name '*.py' -o -name '*.pyi' -o -name '*.c' -o -name py.typed \) \
       ! -path '*/__pycache__/*' -print0 | sort -z | xargs -0 sha256sum
     sha256sum pyproject.toml setup.py docker/*
     echo "base=$base_ref archs=${archs[*]}"

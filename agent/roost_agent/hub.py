@@ -48,6 +48,7 @@ active, right after the route moved (never before the bridge write).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import select
 import socket
@@ -115,7 +116,7 @@ SIGNED_FLAG = 0x01
 CLIENT_TIMEOUT_S = 30.0  # a UDP client not heard this long gets nothing more
 MAX_CLIENTS = 32
 HUB_LINK_ID = 0xF0  # the MAVLink signing link id of the hub's frames to clients
-SELECT_WAIT_S = 0.1
+SELECT_WAIT_S = 1.0  # the hub thread's longest sleep: clients expire after 30 s; stop wakes it
 UDP_MAX = 65535
 TCP_SEND_BUFFER = 1 << 18
 
@@ -329,7 +330,12 @@ class Hub:
         self._by_sock: dict[socket.socket, _Client] = {}  # TCP clients, ready or not
         self._clients_lock = threading.Lock()
         self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        # (not "_thread": compiled, that attribute becomes the C keyword __thread)
+        self._serving: threading.Thread | None = None
+        # Wakes the hub thread's select at once to stop (it sleeps up to SELECT_WAIT_S).
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._wake_r.setblocking(False)
+        self._wake_w.setblocking(False)
         plans = plan_endpoints(hub, signing is not None)
         self._signing = signing
         self._signer: Signer | None = None
@@ -374,7 +380,8 @@ class Hub:
         known = (signing.key, signing.previous)
         with self._clients_lock:  # a client with a key retired twice must sign in again
             for client in self._clients.values():
-                if client.signs and client.signing_key not in (None, *known):
+                key = client.signing_key
+                if client.signs and key is not None and key not in known:
                     client.ready = False
                     client.signing_key = None
             self._sinks = tuple(c for c in self._clients.values() if c.ready)
@@ -448,8 +455,8 @@ class Hub:
                 f"anyone who reaches it may send what scope {plan.scope.value} allows",
                 True,
             )
-        self._thread = threading.Thread(target=self._serve, name="mavlink-hub", daemon=True)
-        self._thread.start()
+        self._serving = threading.Thread(target=self._serve, name="mavlink-hub", daemon=True)
+        self._serving.start()
 
     def _event(self, reason: str, message: str, warning: bool) -> None:
         if self._on_event is not None:
@@ -457,8 +464,10 @@ class Hub:
 
     def stop(self) -> None:
         self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2)
+        with contextlib.suppress(OSError):  # already awake (full), or closed
+            self._wake_w.send(b"\0")
+        if self._serving is not None:
+            self._serving.join(timeout=2)
         self.close()
 
     def close(self) -> None:
@@ -470,6 +479,8 @@ class Hub:
                 client.sock.close()
         for endpoint in self.endpoints:
             endpoint.sock.close()
+        self._wake_r.close()
+        self._wake_w.close()
 
     def has_clients(self) -> bool:
         """Whether any client gets the vehicle's messages now (cheap: the reader asks
@@ -545,10 +556,16 @@ class Hub:
             seen.lat_deg = msg.lat / 1e7
             seen.lon_deg = msg.lon / 1e7
             seen.relative_alt_m = msg.relative_alt / 1000
-        for_agent = (
-            getattr(msg, "target_component", None) == AGENT_COMPONENT_ID
-            and getattr(msg, "target_system", None) == spec.sysid
-        ) or (kind in LOG_REPLIES and self._links[name].log_sink is not None)
+        if isinstance(msg, Frame) and not msg.has_field("target_component"):
+            targets_agent = False  # most of the stream: no lookup that raises
+        else:
+            targets_agent = (
+                getattr(msg, "target_component", None) == AGENT_COMPONENT_ID
+                and getattr(msg, "target_system", None) == spec.sysid
+            )
+        for_agent = targets_agent or (
+            kind in LOG_REPLIES and self._links[name].log_sink is not None
+        )
         if name != self._active:
             if kind == "COMMAND_ACK" and not for_agent:
                 note_answer(seen, int(msg.command), int(msg.result), now)
@@ -612,12 +629,14 @@ class Hub:
                 log.exception("hub: serving failed")
 
     def _serve_once(self) -> None:
-        watched: list[socket.socket] = [e.sock for e in self.endpoints]
+        watched: list[socket.socket] = [self._wake_r, *(e.sock for e in self.endpoints)]
         watched.extend(self._by_sock)
         readable, _, _ = select.select(watched, [], [], SELECT_WAIT_S)
         now = self._clock()
         for sock in readable:
             endpoint = self._listening.get(sock)
+            if sock is self._wake_r:
+                return  # stopping
             if endpoint is None:
                 self._read_tcp(sock, now)
             elif endpoint.udp:

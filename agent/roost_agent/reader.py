@@ -15,14 +15,14 @@ import contextlib
 import heapq
 import logging
 import math
-import selectors
+import select
 import socket
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Protocol
 
 from roost_agent.transport import Transport
 from roost_agent.trust import SourceLock
@@ -68,6 +68,41 @@ class Session:
     arrived: float = float("-inf")  # the time given to the last datagram read
 
 
+class Poller:
+    """A poll set of descriptors, each with what the reader reads there (a session, or
+    None for the wake-up socket): :mod:`selectors` without its key objects. The reader
+    waits in it at every wake-up, which while a hub client waits for routed frames is
+    once per datagram; the selectors module is interpreted and built a key tuple per
+    ready descriptor, this is compiled with the reader. ``poll`` rather than ``epoll``:
+    the set is a few descriptors, and poll exists wherever the agent runs."""
+
+    def __init__(self) -> None:
+        self._poll = select.poll()
+        self._data: dict[int, Session | None] = {}
+
+    def register(self, fd: int, data: Session | None) -> None:
+        """Watch ``fd`` for reading (KeyError: already watched)."""
+        if fd in self._data:
+            raise KeyError(fd)
+        self._poll.register(fd, select.POLLIN)
+        self._data[fd] = data
+
+    def unregister(self, fd: int) -> None:
+        """Stop watching ``fd`` (KeyError: not watched)."""
+        del self._data[fd]
+        self._poll.unregister(fd)
+
+    def select(self, timeout: float) -> list[Session | None]:
+        """What is readable (or failed: a read tells how), waiting up to ``timeout`` s."""
+        events = self._poll.poll(math.ceil(timeout * 1000) if timeout > 0 else 0)
+        data = self._data
+        return [data[fd] for fd, _ in events if fd in data]
+
+    def close(self) -> None:
+        for fd in list(self._data):
+            self.unregister(fd)
+
+
 class LinkReader:
     """One thread that reads every link: a selector over their transports.
 
@@ -96,11 +131,11 @@ class LinkReader:
         self.hurry = hurry
         self.batch_s = batch_s
         self._name = name
-        self._selector = selectors.DefaultSelector()
+        self._selector = Poller()
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_r.setblocking(False)
         self._wake_w.setblocking(False)
-        self._selector.register(self._wake_r, selectors.EVENT_READ, None)
+        self._selector.register(self._wake_r.fileno(), None)
         self._calls: deque[tuple[Callable[[], None], threading.Event]] = deque()
         self._timers: list[tuple[float, int, Callable[[], None]]] = []
         self._timer_serial = 0
@@ -109,10 +144,10 @@ class LinkReader:
         # woke it, on the wake-up socket alone (_calls_only): a sender flooding the
         # urgent socket (heartbeats are easy to forge) cannot make it wake more often
         # than the unsteered reader would.
-        self._idle = selectors.DefaultSelector()
-        self._idle.register(self._wake_r, selectors.EVENT_READ, None)
-        self._calls_only = selectors.DefaultSelector()
-        self._calls_only.register(self._wake_r, selectors.EVENT_READ, None)
+        self._idle = Poller()
+        self._idle.register(self._wake_r.fileno(), None)
+        self._calls_only = Poller()
+        self._calls_only.register(self._wake_r.fileno(), None)
         self._urgent_quiet_until = -math.inf
         self._sessions: dict[int, Session] = {}
         self._stopping = False
@@ -195,11 +230,11 @@ class LinkReader:
         fd = session.transport.fileno()
         self._sessions[fd] = session
         session.fd = fd
-        self._selector.register(fd, selectors.EVENT_READ, session)
+        self._selector.register(fd, session)
         session.urgent_fd = session.transport.urgent_fileno()
         if session.urgent_fd is not None:  # wakes the reader whether it hurries or not
-            self._selector.register(session.urgent_fd, selectors.EVENT_READ, session)
-            self._idle.register(session.urgent_fd, selectors.EVENT_READ, session)
+            self._selector.register(session.urgent_fd, session)
+            self._idle.register(session.urgent_fd, session)
         self._choose_interval()
 
     def detach(self, session: Session) -> None:
@@ -263,10 +298,16 @@ class LinkReader:
         for session in list(self._sessions.values()):
             self.detach(session)
 
-    def _read(self, ready: list[tuple[selectors.SelectorKey, int]]) -> None:
+    def _read(self, ready: list[Session | None]) -> None:
+        if len(ready) == 1:  # most wake-ups: one link's socket, or the wake-up socket
+            only = ready[0]
+            if only is None:
+                self._run_calls()
+            else:
+                self._drain(only)
+            return
         drained: set[int] = set()  # a steered link can be ready on both of its sockets
-        for key, _ in ready:
-            session = key.data
+        for session in ready:
             if session is None:
                 self._run_calls()
             elif id(session) not in drained:
@@ -292,7 +333,7 @@ class LinkReader:
         than a failing read of every idle link at every tick."""
         self._read(self._select(self._selector, 0.0))
 
-    def _select(self, selector: selectors.BaseSelector, timeout: float) -> list[Any]:
+    def _select(self, selector: Poller, timeout: float) -> list[Session | None]:
         try:
             return selector.select(timeout)
         except OSError:
@@ -316,7 +357,7 @@ class LinkReader:
             self._read(self._select(self._calls_only, min(timeout, self._urgent_quiet_until - now)))
             return
         ready = self._select(self._idle, timeout)
-        if any(key.data is not None for key, _ in ready):
+        if any(session is not None for session in ready):
             self._urgent_quiet_until = time.monotonic() + self._short_tick_s
         self._read(ready)
 

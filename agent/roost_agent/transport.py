@@ -24,6 +24,7 @@ answers land on the urgent one. Connection URLs are read by
 from __future__ import annotations
 
 import errno
+import importlib
 import logging
 import math
 import socket
@@ -32,7 +33,7 @@ import sys
 import time
 from collections.abc import Callable
 from functools import partial
-from typing import Final
+from typing import Final, cast
 
 from roost_agent.steering import steered_sockets
 from roost_mavlink import pymavlink_device
@@ -166,6 +167,7 @@ class _Udp(Transport):
                 self._sock.close()
                 raise
         self._stamped = all(self._prepare(sock) for sock in self._sockets())
+        self._held: list[Received] = []  # read, but not yet in order (receive_batch)
 
     def _sockets(self) -> list[socket.socket]:
         return [self._sock] if self.urgent is None else [self._sock, self.urgent]
@@ -206,19 +208,47 @@ class _Udp(Transport):
         return _receive_stamped(self._sock)
 
     def receive_batch(self, limit: int) -> list[Received]:
-        """Up to ``limit`` datagrams in arrival order. Steered: the urgent socket is read
-        before and after the bulk, and whatever it held is merged in by arrival stamp;
-        once the bulk is read to its end, anything arriving on either socket after that
-        read is later than all of these."""
-        urgent = self.urgent
-        if urgent is None or not self._stamped:
+        """Up to ``limit`` datagrams from each socket per look, in arrival order.
+
+        Steered, a frame must never be delivered before an older one of the other socket:
+        the signing replay check and the settling of claims go by the order frames are
+        read. So the time is noted, then both sockets are read, and only what arrived
+        before that moment is delivered, merged by arrival stamp. Everything else read
+        (arrived during the reads, or behind a socket read only up to ``limit``) waits in
+        :attr:`_held` for the next look: it arrived after everything delivered now, and
+        everything still queued arrived after the moment noted. A second look follows at
+        once when something was held, so a frame waits for a later call only when another
+        one arrived during that look too.
+        """
+        if not self._stamped:
             return super().receive_batch(limit)
-        first = _read_all(partial(_receive_stamped, urgent), limit)
-        bulk = _read_all(partial(_receive_stamped, self._sock), limit)
-        later = _read_all(partial(_receive_stamped, urgent), limit)
-        if not first and not later:
-            return bulk
-        return sorted(first + bulk + later, key=_arrival)
+        urgent = self.urgent
+        if urgent is None:
+            return receive_all(self._sock, limit)
+        ready = self._in_order(urgent, limit)
+        if self._held:
+            ready += self._in_order(urgent, limit)
+        return ready
+
+    def _in_order(self, urgent: socket.socket, limit: int) -> list[Received]:
+        """One look at both sockets (:meth:`receive_batch`)."""
+        cutoff = time.time()  # the arrival stamps' clock (CLOCK_REALTIME)
+        first = receive_all(urgent, limit)
+        bulk = receive_all(self._sock, limit)
+        looked = time.time()
+        for read in (first, bulk):
+            if len(read) >= limit:  # more queued behind it: complete only up to its last
+                cutoff = min(cutoff, _arrival(read[-1]))
+        ready: list[Received] = []
+        held: list[Received] = []
+        for received in sorted(self._held + first + bulk, key=_arrival):
+            # Unstamped (stamping not on yet): as read, now. Stamped after the look
+            # itself: from before the wall clock stepped back, so never held for it.
+            stamp = received[2]
+            later = stamp is not None and cutoff < stamp <= looked
+            (held if later else ready).append(received)
+        self._held = held
+        return ready
 
     def close(self) -> None:
         for sock in self._sockets():
@@ -239,6 +269,34 @@ def _receive_stamped(sock: socket.socket) -> Received:
         seconds, nanoseconds = _TIMESPEC.unpack_from(ancillary[0][2])
         return data, address, seconds + nanoseconds * 1e-9
     return data, address, None
+
+
+def _batch_receiver() -> Callable[[int, int], list[Received]] | None:
+    """The C extension's ``receive`` (``_udpbatch.c``: one recvmmsg for the queue, no
+    failing read at its end), or None where it is not built (an editable install)."""
+    try:
+        module = importlib.import_module("roost_agent._udpbatch")
+    except ImportError:
+        return None
+    return cast("Callable[[int, int], list[Received]]", module.receive)
+
+
+BATCH_RECEIVE: Final = _batch_receiver()
+
+
+def receive_all(sock: socket.socket, limit: int) -> list[Received]:
+    """Every datagram queued on ``sock`` (up to ``limit``) with its sender and kernel
+    arrival stamp: in one system call per 16 where the C extension is built, else one
+    read each and a last one that finds the queue empty."""
+    receive = BATCH_RECEIVE
+    if receive is not None:
+        return receive(sock.fileno(), limit)
+    return receive_each(sock, limit)
+
+
+def receive_each(sock: socket.socket, limit: int) -> list[Received]:
+    """:func:`receive_all` in Python, a read per datagram (the C extension's fallback)."""
+    return _read_all(partial(_receive_stamped, sock), limit)
 
 
 def _read_all(receive: Callable[[], Received], limit: int) -> list[Received]:

@@ -244,6 +244,13 @@ class Frame:
         """The whole frame as received (signature included)."""
         return self._data[self._start : self._end]
 
+    def has_field(self, name: str) -> bool:
+        """Whether this frame's message type has a field ``name``: a dictionary lookup,
+        where ``getattr(frame, name, None)`` raises and catches AttributeError for a
+        type without it (the hub asks every routed frame whether it targets the agent)."""
+        layout = self._layout
+        return name in layout.scalars or name in layout.arrays
+
     def boot_time(self) -> int | None:
         """``time_boot_ms``, or None for a message without one: the field every frame is
         asked for, read from its offset without a lookup by name."""

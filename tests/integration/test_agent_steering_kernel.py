@@ -151,6 +151,32 @@ def test_a_steered_link_reads_both_sockets_in_arrival_order() -> None:
         sender.close()
 
 
+def test_a_heartbeat_behind_a_bulk_read_only_in_part_waits_for_the_telemetry_before_it() -> None:
+    """Signed frames are checked for replays in the order they are read, so a heartbeat
+    that arrived after telemetry still queued (the bulk read stopped at its limit) must
+    not be delivered first: it waits for a look after that telemetry's."""
+    listener = UdpListen("127.0.0.1", 0, steer=True)
+    sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        urgent = listener.urgent_fileno()
+        assert urgent is not None
+        until_the_kernel_stamps_arrivals()
+        port = listener.local_address()[1]
+        sent = [ATTITUDE_FRAME + bytes((n,)) for n in range(6)] + [HEARTBEAT_FRAME]
+        for data in sent:
+            sender.sendto(data, ("127.0.0.1", port))
+            time.sleep(0.005)  # arrival order = sending order (see above)
+        select.select([urgent], [], [], 5.0)
+        time.sleep(0.1)  # every datagram delivered
+        received: list[bytes] = []
+        for _ in range(len(sent)):  # reads of at most 4 a socket, until all are in
+            received += [data for data, _, _ in listener.receive_batch(4)]
+        assert received == sent
+    finally:
+        listener.close()
+        sender.close()
+
+
 def test_a_udpout_link_is_steered_on_the_address_its_peer_is_reached_from() -> None:
     peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     peer.bind(("127.0.0.1", 0))

@@ -34,6 +34,7 @@ SUITES = (
     "tests/integration/test_agent_steering_kernel.py",
     "tests/unit/test_agent_trust.py",
     "tests/integration/test_agent_links_sockets.py",
+    "tests/integration/test_agent_udp_batch.py",  # the C extension (recvmmsg) and its fallback
     "tests/unit/test_agent_health_replay.py",
     # their callers: the agent's parts, its decisions, its routine, its outputs
     "tests/unit/test_agent_bridge.py",
@@ -53,6 +54,9 @@ SUITES = (
     "tests/unit/test_agent_streams.py",
     "tests/unit/test_agent_hub_rules.py",
     "tests/integration/test_agent_hub_routing.py",
+    # the hub itself is compiled: its clients, mirroring and standby judgement
+    "tests/integration/test_agent_hub.py",
+    "tests/integration/test_hub_clients.py",
     "tests/unit/test_agent_metrics.py",
     "tests/integration/test_agent_metrics_on_links.py",
     "tests/unit/test_agent_telemetry.py",
@@ -99,6 +103,8 @@ def test_the_agent_suites_pass_against_the_compiled_build() -> None:
         "roost_agent.trust",
         "roost_agent.reader",
         "roost_agent.link",
+        "roost_agent.hub",
+        "roost_agent._udpbatch",
     } <= set(compiled_modules(tree))
     run = subprocess.run(
         [sys.executable, "-m", "pytest", "-p", "no:cacheprovider", *SUITES],

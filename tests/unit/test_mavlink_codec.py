@@ -134,10 +134,15 @@ def _same(frame: Any, msg: Any) -> None:
 
 
 def _same_natively(frame: Frame, msg: Any, names: list[str]) -> None:
-    """What the link and the health tracker read without a lookup by name
-    (``Frame.boot_time``, ``Frame.read_fields``) is what the attributes read."""
+    """What the link, the health tracker and the hub read without a lookup by name
+    (``Frame.boot_time``, ``Frame.read_fields``, ``Frame.has_field``) is what the
+    attributes read."""
     boot_ms = msg.time_boot_ms if "time_boot_ms" in names else None
     assert frame.boot_time() == boot_ms, msg.get_type()
+    # Frame.has_field: what the hub asks every routed frame instead of a getattr that raises
+    assert all(frame.has_field(name) for name in names), msg.get_type()
+    unreadable = set(msg.fieldnames) - set(names) | {"no_such_field"}
+    assert not any(frame.has_field(name) for name in unreadable), msg.get_type()
     declared = DECLARED.get(msg.get_msgId())
     if declared is None:
         return

@@ -1,0 +1,3 @@
+# The C extension _udpbatch.c (built with ROOST_COMPILE=1; see setup.py).
+
+def receive(fd: int, limit: int, /) -> list[tuple[bytes, tuple[str, int] | None, float | None]]: ...

@@ -1,0 +1,130 @@
+"""The links' batch reception: the C extension (``roost_agent/_udpbatch.c``, one recvmmsg
+for the queue) and its Python fallback give the same datagrams, senders and arrival
+stamps, over real UDP sockets on loopback.
+
+The interpreted checkout has no C extension: there its half skips, and the compiled
+build's run (tests/integration/test_compiled_agent.py) runs it.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import socket
+from collections.abc import Callable, Iterator
+
+import pytest
+
+from roost_agent.transport import (
+    BATCH_RECEIVE,
+    SO_TIMESTAMPNS,
+    Received,
+    UdpListen,
+    receive_each,
+)
+
+Receive = Callable[[socket.socket, int], list[Received]]
+
+
+def _compiled(sock: socket.socket, limit: int) -> list[Received]:
+    assert BATCH_RECEIVE is not None
+    return BATCH_RECEIVE(sock.fileno(), limit)
+
+
+WAYS = [
+    pytest.param(receive_each, id="python"),
+    pytest.param(
+        _compiled,
+        id="recvmmsg",
+        marks=pytest.mark.skipif(BATCH_RECEIVE is None, reason="the C extension is not built"),
+    ),
+]
+
+
+@pytest.fixture
+def pair() -> Iterator[tuple[socket.socket, socket.socket]]:
+    """A stamped, non-blocking receiver (as a link's) and a sender, on loopback."""
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", 0))
+    rx.setblocking(False)
+    rx.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+    rx.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+    tx.bind(("127.0.0.1", 0))
+    yield rx, tx
+    rx.close()
+    tx.close()
+
+
+def _queued(rx: socket.socket, tx: socket.socket, payloads: list[bytes]) -> None:
+    for payload in payloads:
+        tx.sendto(payload, rx.getsockname())
+    assert select.select([rx], [], [], 5)[0]
+
+
+@pytest.mark.parametrize("receive", WAYS)
+def test_every_queued_datagram_comes_in_order_with_its_sender_and_stamp(
+    pair: tuple[socket.socket, socket.socket], receive: Receive
+) -> None:
+    rx, tx = pair
+    # more than one recvmmsg batch (16), and the largest datagram UDP carries
+    payloads = [bytes([i]) * (1 + i * 7) for i in range(40)] + [os.urandom(65507)]
+    _queued(rx, tx, payloads)
+    got: list[Received] = []
+    while len(got) < len(payloads):  # loopback delivers at once; a read never waits
+        batch = receive(rx, 256)
+        assert batch, f"{len(got)} of {len(payloads)} came"
+        got += batch
+    assert [data for data, _, _ in got] == payloads
+    assert {sender for _, sender, _ in got} == {tx.getsockname()}
+    stamps = [stamp for _, _, stamp in got]
+    assert all(stamp is not None for stamp in stamps)
+    assert stamps == sorted(stamps)  # type: ignore[type-var]
+    assert receive(rx, 256) == []  # an empty queue is an empty batch, no error
+
+
+@pytest.mark.parametrize("receive", WAYS)
+def test_a_batch_stops_at_its_limit_and_the_rest_waits(
+    pair: tuple[socket.socket, socket.socket], receive: Receive
+) -> None:
+    rx, tx = pair
+    payloads = [b"%d" % i for i in range(30)]
+    _queued(rx, tx, payloads)
+    first = receive(rx, 20)
+    assert [data for data, _, _ in first] == payloads[:20]
+    rest = receive(rx, 256)
+    assert [data for data, _, _ in rest] == payloads[20:]
+
+
+@pytest.mark.parametrize("receive", WAYS)
+def test_an_unstamped_socket_gives_no_stamp(receive: Receive) -> None:
+    with (
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rx,
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx,
+    ):
+        rx.bind(("127.0.0.1", 0))
+        rx.setblocking(False)
+        tx.bind(("127.0.0.1", 0))
+        _queued(rx, tx, [b"x"])
+        assert receive(rx, 4) == [(b"x", tx.getsockname(), None)]
+
+
+def test_a_link_reads_its_queue_the_same_either_way() -> None:
+    """A listening UDP link's whole read (steered or not, as the kernel allows) gives
+    what was sent, in order, from its sender."""
+    link = UdpListen("127.0.0.1", 0, steer=True)
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+            tx.bind(("127.0.0.1", 0))
+            payloads = [b"\xfd" + bytes([i]) * 20 for i in range(50)]
+            for payload in payloads:
+                tx.sendto(payload, link.local_address())
+            got: list[Received] = []
+            while len(got) < len(payloads):
+                assert select.select([link.fileno()], [], [], 5)[0]
+                got += link.receive_batch(256)
+            source = tx.getsockname()
+        assert [data for data, _, _ in got] == payloads
+        assert {sender for _, sender, _ in got} == {source}
+    finally:
+        link.close()
