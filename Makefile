@@ -72,11 +72,10 @@ cluster-down: $(STAMP) ## stop the control plane started by cluster-up
 REPORTS := .test-reports
 PYTEST_REPORT = $(BIN)/pytest --junitxml=$(REPORTS)/$(1).xml
 # Most integration files wait (on sockets, timers, the control plane), so pytest-xdist
-# workers can take whole files each, each worker with its own control plane; files marked
-# `serial` (they measure time, or need the whole machine) run after, alone. One worker by
-# default: with two, a loopback connection of one file's test timed out while the other
-# worker ran (docs/contributing.md); `WORKERS=2 make integration` runs them side by side.
-WORKERS ?= 1
+# workers take whole files each, two side by side, each worker with its own control
+# plane; tests marked `serial` (they judge real time, or need the whole machine) run
+# after, alone. `WORKERS=1` runs the first pass in one worker.
+WORKERS ?= 2
 PARALLEL := -n $(WORKERS) --dist loadfile -m 'not serial'
 # the serial pass of $(2) (pytest's 5, "no tests collected", when none of them is serial)
 PYTEST_SERIAL = $(call PYTEST_REPORT,$(1)) -m serial $(2) || [ $$? -eq 5 ]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gc
 import os
+import socket
 from collections.abc import Iterator
 
 import pytest
@@ -12,6 +13,7 @@ from roost_kube.client import Kube
 from roost_localcluster.cluster import Cluster, FakeNodes
 from roost_localcluster.controlplane import DATASTORES, ControlPlane, Settings
 from tests.support.compiled import check_compiled_imports
+from tests.support.natports import hold, nat_rules, redirected_loopback_ports
 from tests.support.operator import OperatorProcess
 
 
@@ -26,20 +28,28 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 
 _COMPILED_MODULES = pytest.StashKey[list[str]]()
+_HELD_PORTS = pytest.StashKey[list[socket.socket]]()
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    """A run against Roost's compiled build (``ROOST_COMPILED_TREE``) proves it is one."""
+    """A run against Roost's compiled build (``ROOST_COMPILED_TREE``) proves it is one.
+
+    Loopback ports the host's NAT table redirects are held for the session, so no test
+    server is given one (tests/support/natports.py)."""
     try:
         config.stash[_COMPILED_MODULES] = check_compiled_imports()
     except RuntimeError as error:
         raise pytest.UsageError(str(error)) from error
+    config.stash[_HELD_PORTS] = hold(redirected_loopback_ports(nat_rules()))
 
 
 def pytest_report_header(config: pytest.Config) -> list[str]:
     lines = [f"control-plane datastore: {config.getoption('--datastore')}"]
     if compiled := config.stash.get(_COMPILED_MODULES, []):
         lines.append(f"compiled (mypyc): {', '.join(compiled)}")
+    if held := config.stash.get(_HELD_PORTS, []):
+        ports = ", ".join(str(sock.getsockname()[1]) for sock in held)
+        lines.append(f"held (the host's NAT redirects them): 127.0.0.1 port {ports}")
     return lines
 
 

@@ -47,8 +47,7 @@ from tests.support.hubclient import (
 )
 from tests.support.waiting import wait_until
 
-# serial: T_off and beat rates judged in real time
-pytestmark = [pytest.mark.slow, pytest.mark.serial]
+pytestmark = pytest.mark.slow
 
 POLL_S = 0.02
 MAV_CMD_COMPONENT_ARM_DISARM = 400
@@ -116,6 +115,8 @@ def test_client_flies_the_vehicle_through_the_hub_and_the_standby_follows() -> N
         assert {"HEARTBEAT", "GLOBAL_POSITION_INT", "COMMAND_ACK"} <= kinds
 
 
+# serial: a failover after T_off, judged in real time
+@pytest.mark.serial
 def test_failover_keeps_the_client_connected_and_its_setpoint_stream_moves() -> None:
     with hub_vehicle(["px4", "px4"]) as v:
         take_off_through_hub(v)
@@ -150,6 +151,8 @@ def test_failover_keeps_the_client_connected_and_its_setpoint_stream_moves() -> 
         assert {r.sysid for r in v.client.messages()} == {VEHICLE_SYSID}
 
 
+# serial: switches after T_off; heartbeats counted per second
+@pytest.mark.serial
 def test_after_a_switch_nothing_from_the_old_active_reaches_the_client() -> None:
     with hub_vehicle(["px4", "px4"]) as v:
         ready_to_switch(v)
@@ -179,6 +182,8 @@ def switch(v: HubVehicle, target: str, n: int) -> None:
     assert v.agent.submit(command).result(timeout=5).result == "Executed"
 
 
+# serial: 22 switches, each allowed only after T_off
+@pytest.mark.serial
 def test_switching_back_and_forth_leaks_no_threads_sockets_or_clients() -> None:
     with hub_vehicle(["px4", "px4"]) as v:
         ready_to_switch(v)
@@ -195,6 +200,8 @@ def test_switching_back_and_forth_leaks_no_threads_sockets_or_clients() -> None:
         assert (threading.active_count(), me.num_fds(), hub.clients()) == (threads, fds, clients)
 
 
+# serial: a silence threshold judged in real time
+@pytest.mark.serial
 def test_unmirrored_standby_drifts_out_of_step_and_a_dead_active_still_fails_over() -> None:
     with hub_vehicle(["px4", "px4"], mirror=False) as v:
         for sim in v.sims:
@@ -229,6 +236,8 @@ def test_standby_rejecting_a_mirrored_mode_is_out_of_step() -> None:
         assert cond is not None and "DO_SET_MODE" in cond.message
 
 
+# serial: a silence threshold judged in real time
+@pytest.mark.serial
 def test_silent_standby_is_out_of_step() -> None:
     with hub_vehicle(["ardupilot", "ardupilot"]) as v:
         for sim in v.sims:
@@ -286,6 +295,8 @@ def test_an_agent_whose_hub_endpoint_is_taken_refuses_in_one_line(tmp_path: Path
     assert "Traceback" not in done.stderr
 
 
+# serial: positions compared to a metre while flying a 20 Hz setpoint stream
+@pytest.mark.serial
 @pytest.mark.parametrize("mirror", [True, False], ids=["mirrored", "unmirrored"])
 def test_a_mirrored_standby_flies_the_clients_path_and_an_unmirrored_one_stays_behind(
     mirror: bool,
@@ -308,6 +319,8 @@ def test_a_mirrored_standby_flies_the_clients_path_and_an_unmirrored_one_stays_b
             )
 
 
+# serial: a failover mid-circle, where the vehicle is judged to metres
+@pytest.mark.serial
 def test_a_failover_under_a_setpoint_stream_continues_from_where_the_vehicle_was() -> None:
     """The client's circle goes on through the hub to fc2, which was flying the same path
     (mirrored): the vehicle does not jump at the switch; the safety routine then holds it

@@ -26,9 +26,6 @@ from tests.support.agentspec import SPEC
 from tests.support.kernelstamps import until_the_kernel_stamps_arrivals
 from tests.support.waiting import wait_until
 
-# serial: delivery within tens of milliseconds
-pytestmark = pytest.mark.serial
-
 
 def test_udp_listener_replies_only_to_the_locked_autopilot_address() -> None:
     port = free_udp_port()
@@ -198,6 +195,8 @@ def _connected(port: int) -> socket.socket | None:
         return None
 
 
+# serial: reads 50 ms late judged against a slack
+@pytest.mark.serial
 @pytest.mark.parametrize("later_than_slack", [False, True])
 def test_a_datagram_read_late_keeps_its_kernel_arrival_time(
     monkeypatch: pytest.MonkeyPatch, later_than_slack: bool

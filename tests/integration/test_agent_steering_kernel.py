@@ -31,11 +31,7 @@ from roost_mavlink.signing import sign_frame
 from tests.support.kernelstamps import until_the_kernel_stamps_arrivals
 from tests.support.waiting import wait_until
 
-# serial: reads within tens of milliseconds
-pytestmark = [
-    pytest.mark.skipif(sys.platform != "linux", reason="steering is Linux's"),
-    pytest.mark.serial,
-]
+pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="steering is Linux's")
 
 ENCODER = Encoder(1, 1)
 HEARTBEAT_FRAME = ENCODER.encode(
@@ -121,6 +117,8 @@ def test_a_port_in_use_is_refused_as_a_single_socket_would_be() -> None:
         first.close()
 
 
+# serial: datagrams 5 ms apart must arrive in order
+@pytest.mark.serial
 def test_a_steered_link_reads_both_sockets_in_arrival_order() -> None:
     """Claims are settled by the sequence numbers of the frames after them, so a
     heartbeat read from the urgent socket must not jump the telemetry sent before it."""
@@ -239,6 +237,8 @@ def test_the_reader_reads_rarely_only_while_every_link_is_steered() -> None:
         plain.close()
 
 
+# serial: a read within 50 ms
+@pytest.mark.serial
 def test_health_judged_between_reads_stands_for_the_last_read() -> None:
     """Status and metrics judge at any time; what arrived since the last read is not read
     yet, so the judgement is as of that read, but never more than half a second back."""
@@ -267,6 +267,8 @@ class _CountingLink:
         session.transport.receive_batch(1 << 16)
 
 
+# serial: wake-ups per 20 ms interval counted
+@pytest.mark.serial
 @pytest.mark.interpreted_only  # the link that counts drains stands in for an AutopilotLink
 def test_a_flood_of_forged_heartbeats_wakes_the_reader_no_more_than_the_short_interval() -> None:
     """Heartbeats are easy to forge, and each one lands on the urgent socket: the reader

@@ -31,8 +31,7 @@ from roost_sim import FaultKind, SimConfig
 from tests.support.hubclient import VEHICLE_SYSID, HubVehicle, hub_vehicle, repeating
 from tests.support.waiting import wait_until
 
-# serial: T_off and failovers judged in real time
-pytestmark = [pytest.mark.slow, pytest.mark.serial]
+pytestmark = pytest.mark.slow
 
 BIN = Path(sys.executable).parent
 
@@ -78,6 +77,8 @@ def test_mavsdk_flies_the_vehicle_through_the_hub() -> None:
             mavsdk.destroy()
 
 
+# serial: T_off and a failover judged in real time
+@pytest.mark.serial
 def test_mavsdk_offboard_stream_continues_to_the_new_autopilot_after_a_failover() -> None:
     with hub_vehicle(["px4", "px4"]) as v:
         mavsdk, telemetry, action, offboard = mavsdk_on(v)

@@ -146,6 +146,10 @@ def _heartbeat(sysid: int) -> bytes:
     return bytes(msg.pack(mav))
 
 
+# serial: the legitimate client must keep up with the vehicle's stream, losing nothing,
+# through a 3000-datagram flood (its reader is a thread of this process); beside a second
+# worker at load 8-9 it lost 9 frames
+@pytest.mark.serial
 def test_attacks_get_nothing_through_and_the_legitimate_client_loses_nothing(
     vehicle: HubVehicle,
 ) -> None:

@@ -48,9 +48,6 @@ from roost_sim.link import UdpLink
 from tests.support.flight import take_off
 from tests.support.waiting import wait_until
 
-# serial: no failover under a flood, judged in real time
-pytestmark = pytest.mark.serial
-
 # Sub-second start-up; ArduPilot streams as with its SRn_* parameters set, since this
 # agent does not request streams itself.
 SIM_CONFIG = SimConfig.fast(preset_streams=True)
@@ -137,6 +134,8 @@ def _quiet_counts(sim: SimulatedAutopilot, link: AutopilotLink) -> tuple[int, in
     return sim.link.frames_sent, link.counters.accepted
 
 
+# serial: no failover under a flood, judged in real time
+@pytest.mark.serial
 def test_a_hostile_sender_costs_the_autopilots_nothing_and_hears_nothing(tmp_path: Path) -> None:
     """Partly a "nothing happens for N s" test: 6 s of hostile traffic (10 rounds/s of
     garbage, truncated, bad-CRC and spoofed frames per autopilot port) must cause no

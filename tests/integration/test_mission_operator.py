@@ -558,9 +558,19 @@ def test_a_restarted_operator_resumes_without_duplicating_workloads(
         n: u for n, u in before.items() if n != lost
     }
     assert after[lost] != before[lost]
-    survivors = {p["metadata"]["uid"] for p in pods_of(kube, name)}
-    assert len(pods_of(kube, name)) == 3
-    assert len(pods_before & survivors) == 2
+
+    def settled() -> set[str] | None:
+        """The pods once the job controller made the new Job's and the garbage
+        collector took the lost one's (both after the Job is back, each in its time)."""
+        uids = {p["metadata"]["uid"] for p in pods_of(kube, name)}
+        return uids if len(uids) == 3 and len(pods_before & uids) == 2 else None
+
+    wait_until(
+        "the new Job's pod beside the two that survived",
+        settled,
+        WAIT_S,
+        explain=lambda: f"pods: {[p['metadata']['name'] for p in pods_of(kube, name)]}",
+    )
     release_holds(kube, name)
     status = wait_phase(kube, name, "Succeeded")
     assert sorted(assigned(status)) == sorted(vehicles)

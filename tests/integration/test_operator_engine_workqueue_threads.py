@@ -12,9 +12,6 @@ import pytest
 from roost_operator.engine.workqueue import Backoff, Permanent, WorkQueue
 from tests.support.waiting import wait_until
 
-# serial: the queue's delays measured in real time
-pytestmark = pytest.mark.serial
-
 WAIT_S = 5.0
 
 
@@ -113,6 +110,8 @@ def test_a_permanent_failure_is_reported_once_and_not_retried() -> None:
         queue.stop()
 
 
+# serial: deadlines 50 ms apart, set before the first fires
+@pytest.mark.serial
 def test_a_deadline_fires_once_and_a_later_one_replaces_it() -> None:
     runs: list[tuple[str, float]] = []
     queue = WorkQueue(lambda key: runs.append((key, time.monotonic())), workers=1)
@@ -131,6 +130,8 @@ def test_a_deadline_fires_once_and_a_later_one_replaces_it() -> None:
         queue.stop()
 
 
+# serial: forgotten within the 50 ms before its deadline
+@pytest.mark.serial
 def test_a_forgotten_name_loses_its_deadline() -> None:
     runs: list[str] = []
     queue = WorkQueue(runs.append, workers=1)
@@ -144,6 +145,8 @@ def test_a_forgotten_name_loses_its_deadline() -> None:
         queue.stop()
 
 
+# serial: cancelled within the 50 ms before its deadline
+@pytest.mark.serial
 def test_a_cancelled_deadline_never_fires_but_one_moved_since_does() -> None:
     runs: list[str] = []
     queue = WorkQueue(runs.append, workers=1)

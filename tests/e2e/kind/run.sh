@@ -117,8 +117,46 @@ remove_everything() {
       [[ -n $ids ]] && podman volume rm -f $ids >/dev/null 2>&1
     done
     podman network exists "$cluster" 2>/dev/null && podman network rm -f "$cluster" >/dev/null 2>&1
+    remove_leftover_nat
   fi
   true
+}
+# podman's CNI portmap has left a removed cluster's NAT rules behind here (nodes removed
+# without their network's teardown), among them a DNAT of 127.0.0.1:<the API server's
+# host port> to a node address that is gone. That port is an ordinary ephemeral one: a
+# server the kernel later gives it (any test's bind to port 0) never sees a connection,
+# and its clients' connects time out. The rules name the network in their comments:
+# remove them, and the chains they jump to. ROOST_NAT_DRY_RUN=1 only prints them.
+remove_leftover_nat() {
+  command -v iptables >/dev/null 2>&1 || return 0
+  "$bin/python" - "$cluster" <<'PY'
+import os, shlex, subprocess, sys
+
+named = f'name: "{sys.argv[1]}"'
+dry = os.environ.get("ROOST_NAT_DRY_RUN") == "1"
+for tool in ("iptables", "ip6tables"):
+    for table in ("nat", "filter"):
+        def run(*args: str) -> str:
+            if dry and args[0] != "-S":
+                print(tool, "-t", table, *args)
+                return ""
+            done = subprocess.run(
+                [tool, "-w", "5", "-t", table, *args], capture_output=True, text=True, check=False
+            )
+            return done.stdout
+        chains = set()
+        for rule in run("-S").splitlines():
+            argv = shlex.split(rule)
+            if argv[:1] != ["-A"] or not any(named in arg for arg in argv):
+                continue
+            target = argv[argv.index("-j") + 1] if "-j" in argv else ""
+            if target.startswith("CNI-") and not target.startswith("CNI-HOSTPORT-"):
+                chains.add(target)
+            run("-D", *argv[1:])
+        for chain in sorted(chains):
+            run("-F", chain)
+            run("-X", chain)
+PY
 }
 cleanup() {
   local status=$?
