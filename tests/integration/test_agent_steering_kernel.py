@@ -149,6 +149,8 @@ def test_a_steered_link_reads_both_sockets_in_arrival_order() -> None:
         sender.close()
 
 
+# serial: datagrams 5 ms apart must arrive in order
+@pytest.mark.serial
 def test_a_heartbeat_behind_a_bulk_read_only_in_part_waits_for_the_telemetry_before_it() -> None:
     """Signed frames are checked for replays in the order they are read, so a heartbeat
     that arrived after telemetry still queued (the bulk read stopped at its limit) must
