@@ -71,6 +71,7 @@ from roost_api.meta import HealthLevel
 from roost_sim import (
     FaultKind,
     SimConfig,
+    SimulatedAutopilot,
     autopilot_specs,
     message_id,
     start_vehicle_sims,
@@ -81,7 +82,7 @@ from tests.support.agent import AgentProcess
 from tests.support.compiled import compiled_tree
 from tests.support.compiled import environment as compiled_environment
 from tests.support.flight import take_off
-from tests.support.simprocess import REALTIME_PRIORITY, FaultTarget, SimProcess
+from tests.support.simprocess import REALTIME_PRIORITY, FaultTarget, RemoteSim, SimProcess
 
 FAILOVERS = int(os.environ.get("ROOST_BENCH_FAILOVERS", "100"))
 HEARTBEAT_FAILOVERS = int(os.environ.get("ROOST_BENCH_HEARTBEAT_FAILOVERS", "12"))
@@ -139,38 +140,56 @@ def vehicle(
     *,
     stacks: Sequence[str] = ("px4", "px4"),
     extra_args: Sequence[str] = (),
-    apart: bool = False,
-) -> Iterator[tuple[list[FaultTarget], AgentProcess]]:
-    """Two flying PX4 sims and an agent watching them, standbys ready (``mode`` Manual:
-    the agent judges but never switches on its own). ``apart``: the sims run in a
-    process of their own at real-time priority (:mod:`tests.support.simprocess`, the
-    firmware's default rates), as autopilots on their own MCUs; else in this process."""
-    with (
-        _autopilots(stacks, rates, apart) as (sims, specs, take_off_all),
-        vehicle_agent(thresholds, specs, status_interval_s, mode, extra_args) as agent,
-    ):
-        take_off_all()
-        agent.wait_ok([s.name for s in sims])
-        # The any-message age applies once a full rate window has been seen (1 s).
-        time.sleep(thresholds.clear_ms / 1000 + 1.5)
-        yield sims, agent
+) -> Iterator[tuple[list[SimulatedAutopilot], AgentProcess]]:
+    """Two flying PX4 sims in this process and an agent watching them, standbys ready
+    (``mode`` Manual: the agent judges but never switches on its own)."""
+    sims = start_vehicle_sims(list(stacks), rates=rates, config=SimConfig.fast())
+    try:
+        specs = autopilot_specs(sims)
+        with _flying(
+            thresholds,
+            specs,
+            lambda: take_off(sims),
+            status_interval_s=status_interval_s,
+            mode=mode,
+            extra_args=extra_args,
+        ) as agent:
+            yield sims, agent
+    finally:
+        stop_sims(sims)
 
 
 @contextmanager
-def _autopilots(
-    stacks: Sequence[str], rates: dict[int, float] | None, apart: bool
-) -> Iterator[tuple[list[FaultTarget], list[AutopilotSpec], Callable[[], None]]]:
-    """The sims, their specs and how to get them airborne: apart or in this process."""
-    if apart:
-        assert rates is None, "a sim process streams the firmware's default rates"
-        with SimProcess(stacks) as process:
-            yield list(process.sims), process.specs(), process.take_off
-        return
-    sims = start_vehicle_sims(list(stacks), rates=rates, config=SimConfig.fast())
-    try:
-        yield list(sims), autopilot_specs(sims), lambda: take_off(sims)
-    finally:
-        stop_sims(sims)
+def vehicle_apart(
+    thresholds: Thresholds, stacks: Sequence[str] = ("px4", "px4")
+) -> Iterator[tuple[list[RemoteSim], AgentProcess]]:
+    """As :func:`vehicle`, the sims in a process of their own at real-time priority
+    (:mod:`tests.support.simprocess`, the firmware's default rates), as autopilots on
+    their own MCUs."""
+    with (
+        SimProcess(stacks) as process,
+        _flying(thresholds, process.specs(), process.take_off) as agent,
+    ):
+        yield process.sims, agent
+
+
+@contextmanager
+def _flying(
+    thresholds: Thresholds,
+    specs: list[AutopilotSpec],
+    take_off_all: Callable[[], None],
+    *,
+    status_interval_s: float = 0.25,
+    mode: FailoverMode = FailoverMode.AUTOMATIC,
+    extra_args: Sequence[str] = (),
+) -> Iterator[AgentProcess]:
+    """The agent over ``specs``, the autopilots airborne, every standby ready."""
+    with vehicle_agent(thresholds, specs, status_interval_s, mode, extra_args) as agent:
+        take_off_all()
+        agent.wait_ok([s.name for s in specs])
+        # The any-message age applies once a full rate window has been seen (1 s).
+        time.sleep(thresholds.clear_ms / 1000 + 1.5)
+        yield agent
 
 
 @contextmanager
@@ -208,7 +227,7 @@ def vehicle_agent(
                 agent.stop()
 
 
-def _by_name(sims: list[FaultTarget]) -> dict[str, FaultTarget]:
+def _by_name(sims: Sequence[FaultTarget]) -> dict[str, FaultTarget]:
     return {s.name: s for s in sims}
 
 
@@ -252,7 +271,8 @@ def failover_cycles(
     and each autopilot silenced only once its last silence has left the learning
     windows: :func:`rest_after_outage`)."""
     cycles = Cycles()
-    with vehicle(thresholds, extra_args=extra_args, apart=apart) as (sims, agent):
+    fleet = vehicle_apart(thresholds) if apart else vehicle(thresholds, extra_args=extra_args)
+    with fleet as (sims, agent):
         by_name, active = _by_name(sims), "fc1"
         recovered = dict.fromkeys(by_name, time.monotonic())
         for i in range(count):
@@ -427,7 +447,7 @@ def false_failovers(thresholds: Thresholds = FAST) -> Soak:
     jitter on every autopilot link, the sims apart (:data:`SIMS_APART`). Each ERROR comes
     with the other autopilot's warnings within a second of it: both late at once points
     at the agent's host, not at one link."""
-    with vehicle(thresholds, apart=True) as (sims, agent):
+    with vehicle_apart(thresholds) as (sims, agent):
         for sim in sims:
             sim.inject(FaultKind.LOSS, 5)
             sim.inject(FaultKind.JITTER, 50)
