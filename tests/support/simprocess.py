@@ -34,8 +34,10 @@ from typing import Any, Protocol
 
 from roost_api.autopilot import AutopilotSpec
 from roost_api.meta import Stack
+from roost_mavlink import AUTOPILOT_COMPONENT_ID
 from roost_sim.control import request
 from roost_sim.faults import FaultKind
+from roost_sim.vehicle import autopilot_specs
 from tests.support.flight import AIRBORNE_M, BOOT_TIMEOUT_S, TAKEOFF_TIMEOUT_S
 
 REALTIME_PRIORITY = 10
@@ -67,6 +69,7 @@ class RemoteSim:
     sysid: int
     connection: str
     control: Path
+    component_id: int = AUTOPILOT_COMPONENT_ID  # what roost-sim runs them with
 
     def _ask(self, message: dict[str, Any], timeout: float = 10.0) -> dict[str, Any]:
         answer = request(self.control, message, timeout)
@@ -129,17 +132,8 @@ class SimProcess:
         return f"{names.get(policy, str(policy))} priority {priority}"
 
     def specs(self) -> list[AutopilotSpec]:
-        """``AutopilotSpec`` entries: bridge channel = position, as ``autopilot_specs``."""
-        return [
-            AutopilotSpec(
-                name=s.name,
-                stack=s.stack,
-                connection=s.connection,
-                sysid=s.sysid,
-                bridge_channel=channel,
-            )
-            for channel, s in enumerate(self.sims)
-        ]
+        """``AutopilotSpec`` entries: bridge channel = position in the list."""
+        return autopilot_specs(self.sims)
 
     def take_off(self) -> None:
         """Every autopilot armed and airborne (above :data:`AIRBORNE_M`)."""
