@@ -1,9 +1,20 @@
 """Node-agent benchmarks: failover latency, link-loss detection next to MAVSDK and
 MAVProxy, false failovers under loss and jitter, CPU time and resident memory.
 
-How it measures: the simulated autopilots (``roost_sim``) run in this process and the
-agent runs as its own process (``roost-agent``, standalone, simulated bridge), as on a
-vehicle. The agent is the build the image ships: its per-message path compiled by mypyc
+How it measures: the agent runs as its own process (``roost-agent``, standalone,
+simulated bridge, normal priority), as on a vehicle. The simulated autopilots
+(``roost_sim``) stand for flight controllers, which are microcontrollers of their own
+that no load on the companion computer can stall. In the silent-onset figures at the
+defaults (``onset``, ``defaults``) and in every soak (``soak``, ``defaults``,
+``starved``) they run that way: ``roost-sim run`` in a process of its own under
+``SCHED_RR`` (:mod:`tests.support.simprocess`), so a busy host starves the agent (what
+``starved`` is about) and never the autopilots, and an ERROR judgement in a soak is the
+agent's, not a simulator's stall. Every ERROR judgement of a (healthy) autopilot in a
+soak is a false one: ``failover.healthy_errors_10min_*`` count them beside the false
+failovers, target 0. The other parts run the sims in this process (threads sharing the
+bench's interpreter), as they were measured.
+
+The agent is the build the image ships: its per-message path compiled by mypyc
 (``tests.support.compiled``); ``agent.cpu_ms_per_10k_msgs_interpreted`` measures the same
 agent from the checkout's Python modules, for comparison. The agent prints every failover
 as a JSON line that carries CLOCK_MONOTONIC timestamps (``time.monotonic()`` is that
@@ -46,7 +57,9 @@ import psutil
 
 from bench.core import Figure
 from roost_agent.agent import STEERED_TICK_S
+from roost_agent.health import LEARN_WINDOWS
 from roost_api.autopilot import (
+    AutopilotSpec,
     FailoverMode,
     FailoverPolicy,
     FinalAction,
@@ -69,6 +82,7 @@ from tests.support.agent import AgentProcess
 from tests.support.compiled import compiled_tree
 from tests.support.compiled import environment as compiled_environment
 from tests.support.flight import take_off
+from tests.support.simprocess import REALTIME_PRIORITY, FaultTarget, RemoteSim, SimProcess
 
 FAILOVERS = int(os.environ.get("ROOST_BENCH_FAILOVERS", "100"))
 HEARTBEAT_FAILOVERS = int(os.environ.get("ROOST_BENCH_HEARTBEAT_FAILOVERS", "12"))
@@ -105,6 +119,10 @@ HEARTBEAT_ONLY_RATES = {
 }
 # The simulated PX4 streams its onboard link's real set and rates (~400 messages/s).
 PX4_ONBOARD_RATES: dict[int, float] = {}
+SIMS_APART = (
+    f"the sims in a process of their own at SCHED_RR priority {REALTIME_PRIORITY}, as "
+    "autopilots on their own MCUs; the agent at normal priority"
+)
 
 
 def percentile(values: list[float], q: float) -> float:
@@ -123,15 +141,72 @@ def vehicle(
     stacks: Sequence[str] = ("px4", "px4"),
     extra_args: Sequence[str] = (),
 ) -> Iterator[tuple[list[SimulatedAutopilot], AgentProcess]]:
-    """Two flying PX4 sims and an agent watching them, standbys ready (``mode`` Manual:
-    the agent judges but never switches on its own)."""
+    """Two flying PX4 sims in this process and an agent watching them, standbys ready
+    (``mode`` Manual: the agent judges but never switches on its own)."""
     sims = start_vehicle_sims(list(stacks), rates=rates, config=SimConfig.fast())
+    try:
+        specs = autopilot_specs(sims)
+        with _flying(
+            thresholds,
+            specs,
+            lambda: take_off(sims),
+            status_interval_s=status_interval_s,
+            mode=mode,
+            extra_args=extra_args,
+        ) as agent:
+            yield sims, agent
+    finally:
+        stop_sims(sims)
+
+
+@contextmanager
+def vehicle_apart(
+    thresholds: Thresholds, stacks: Sequence[str] = ("px4", "px4")
+) -> Iterator[tuple[list[RemoteSim], AgentProcess]]:
+    """As :func:`vehicle`, the sims in a process of their own at real-time priority
+    (:mod:`tests.support.simprocess`, the firmware's default rates), as autopilots on
+    their own MCUs."""
+    with (
+        SimProcess(stacks) as process,
+        _flying(thresholds, process.specs(), process.take_off) as agent,
+    ):
+        yield process.sims, agent
+
+
+@contextmanager
+def _flying(
+    thresholds: Thresholds,
+    specs: list[AutopilotSpec],
+    take_off_all: Callable[[], None],
+    *,
+    status_interval_s: float = 0.25,
+    mode: FailoverMode = FailoverMode.AUTOMATIC,
+    extra_args: Sequence[str] = (),
+) -> Iterator[AgentProcess]:
+    """The agent over ``specs``, the autopilots airborne, every standby ready."""
+    with vehicle_agent(thresholds, specs, status_interval_s, mode, extra_args) as agent:
+        take_off_all()
+        agent.wait_ok([s.name for s in specs])
+        # The any-message age applies once a full rate window has been seen (1 s).
+        time.sleep(thresholds.clear_ms / 1000 + 1.5)
+        yield agent
+
+
+@contextmanager
+def vehicle_agent(
+    thresholds: Thresholds,
+    specs: list[AutopilotSpec],
+    status_interval_s: float = 0.25,
+    mode: FailoverMode = FailoverMode.AUTOMATIC,
+    extra_args: Sequence[str] = (),
+) -> Iterator[AgentProcess]:
+    """A standalone agent (its own process, normal priority) over ``specs``, fc1 primary."""
     agent: AgentProcess | None = None
     with tempfile.TemporaryDirectory(prefix="roost-bench-agent-") as tmp:
         try:
             spec = RedundantAutopilotSpec(
                 vehicle_name="bench",
-                autopilots=autopilot_specs(sims),
+                autopilots=specs,
                 primary="fc1",
                 failover_policy=FailoverPolicy(
                     mode=mode,
@@ -146,22 +221,17 @@ def vehicle(
                 log_level="WARNING",
                 extra_args=extra_args,
             )
-            take_off(sims)
-            agent.wait_ok([s.name for s in sims])
-            # The any-message age applies once a full rate window has been seen (1 s).
-            time.sleep(thresholds.clear_ms / 1000 + 1.5)
-            yield sims, agent
+            yield agent
         finally:
             if agent is not None:
                 agent.stop()
-            stop_sims(sims)
 
 
-def _by_name(sims: list[SimulatedAutopilot]) -> dict[str, SimulatedAutopilot]:
+def _by_name(sims: Sequence[FaultTarget]) -> dict[str, FaultTarget]:
     return {s.name: s for s in sims}
 
 
-def _recover(agent: AgentProcess, sim: SimulatedAutopilot, thresholds: Thresholds) -> None:
+def _recover(agent: AgentProcess, sim: FaultTarget, thresholds: Thresholds) -> None:
     """Clear the fault, unlatch, and wait until the failed autopilot is a target again."""
     sim.clear()
     assert agent.command("ClearLatch")["result"] == "Executed"
@@ -194,13 +264,21 @@ def failover_cycles(
     extra_args: Sequence[str] = (),
     thresholds: Thresholds = FAST,
     faults: Sequence[tuple[FaultKind, str | None]] = ALTERNATING_FAULTS,
+    *,
+    apart: bool = False,
 ) -> Cycles:
-    """Faults in turn on whichever autopilot is active."""
+    """Faults in turn on whichever autopilot is active (``apart``: as :func:`vehicle`,
+    and each autopilot silenced only once its last silence has left the learning
+    windows: :func:`rest_after_outage`)."""
     cycles = Cycles()
-    with vehicle(thresholds, extra_args=extra_args) as (sims, agent):
+    fleet = vehicle_apart(thresholds) if apart else vehicle(thresholds, extra_args=extra_args)
+    with fleet as (sims, agent):
         by_name, active = _by_name(sims), "fc1"
+        recovered = dict.fromkeys(by_name, time.monotonic())
         for i in range(count):
             kind, value = faults[i % len(faults)]
+            if apart:
+                rest_after_outage(recovered.get(active))
             onset = time.monotonic()
             by_name[active].inject(kind, value)
             event = agent.wait_for(lambda d: d.get("event") == "Failover", 10)
@@ -213,8 +291,20 @@ def failover_cycles(
             if kind is FaultKind.STATE and claimed_at is not None:
                 cycles.claim_ms.append((switched_at - claimed_at) * 1000)
             _recover(agent, by_name[active], thresholds)
+            recovered[active] = time.monotonic()
             active = event["failover"]["to"]
     return cycles
+
+
+def rest_after_outage(recovered_at: float | None) -> None:
+    """Wait until an autopilot's last outage, or its streams' start, has left its
+    learning windows. An outage shorter than the ceiling is learnt as a gap of its
+    stream, and so are the longer gaps while requested streams start, so for
+    LEARN_WINDOWS seconds after either the silence threshold sits higher, up to the
+    ceiling (conservative by design). The onset figures measure an autopilot going
+    silent out of a steady stream, not one that stalled or started seconds before."""
+    if recovered_at is not None:
+        time.sleep(max(0.0, recovered_at + LEARN_WINDOWS + 1.0 - time.monotonic()))
 
 
 def heartbeat_only_cycles() -> list[float]:
@@ -354,10 +444,10 @@ class Soak:
 
 def false_failovers(thresholds: Thresholds = FAST) -> Soak:
     """Failovers and judgements in SOAK_S of healthy flight with 5 % loss and 50 ms
-    jitter on every autopilot link. Each ERROR comes with the other autopilot's warnings
-    within a second of it: both late at once points at a stall of the host (both sims
-    share this process), not at one link."""
-    with vehicle(thresholds) as (sims, agent):
+    jitter on every autopilot link, the sims apart (:data:`SIMS_APART`). Each ERROR comes
+    with the other autopilot's warnings within a second of it: both late at once points
+    at the agent's host, not at one link."""
+    with vehicle_apart(thresholds) as (sims, agent):
         for sim in sims:
             sim.inject(FaultKind.LOSS, 5)
             sim.inject(FaultKind.JITTER, 50)
@@ -418,9 +508,10 @@ def _soak_note(th: Thresholds, soak: Soak, meanwhile: str = "") -> str:
     judgements = "; ".join(soak.errors) or "none"
     warnings = ", ".join(f"{why} x{n}" for why, n in soak.warnings.most_common()) or "none"
     return (
-        f"{SOAK_S:.0f} s of healthy flight{meanwhile}, two PX4 sims, 5 % loss and 50 ms jitter on "
-        f"every link, {_thresholds_text(th)}; {soak.received} messages accepted; "
-        f"{len(soak.errors)} ERROR judgements: {judgements}; "
+        f"{SOAK_S:.0f} s of healthy flight{meanwhile}, two PX4 sims ({SIMS_APART}), 5 % loss "
+        f"and 50 ms jitter on every link, {_thresholds_text(th)}; {soak.received} messages "
+        f"accepted; {len(soak.errors)} ERROR judgements of healthy autopilots "
+        f"(failover.healthy_errors_* counts them): {judgements}; "
         f"{soak.warnings.total()} WARN judgements: {warnings}; 1-min load {_load()} at the end"
     )
 
@@ -592,18 +683,21 @@ def peer_figures() -> list[Figure]:
     ]
 
 
+def soak_result_figures(suffix: str, command: str, soak: Soak, note: str) -> list[Figure]:
+    """The false failovers and the ERROR judgements of healthy autopilots of one soak."""
+    return [
+        Figure(f"failover.false_failovers_10min{suffix}", float(soak.failovers), "count",
+               "== 0", command, note),
+        Figure(f"failover.healthy_errors_10min{suffix}", float(len(soak.errors)), "count",
+               "== 0", command, f"ERROR judgements of healthy autopilots in the soak of "
+               f"failover.false_failovers_10min{suffix}, whose note lists them"),
+    ]  # fmt: skip
+
+
 def soak_figures() -> list[Figure]:
     soak = false_failovers(FAST)
-    return [
-        Figure(
-            "failover.false_failovers_10min",
-            float(soak.failovers),
-            "count",
-            "== 0",
-            f"ROOST_BENCH_SOAK_S={SOAK_S:.0f} {COMMAND}",
-            _soak_note(FAST, soak),
-        )
-    ]
+    command = f"ROOST_BENCH_SOAK_S={SOAK_S:.0f} {COMMAND}"
+    return soak_result_figures("", command, soak, _soak_note(FAST, soak))
 
 
 def cluster_rss(seconds: float = CPU_S) -> float:
@@ -666,7 +760,9 @@ def onset_figures() -> list[Figure]:
     """The vehicle as shipped: silent onsets at the default thresholds."""
     defaults = Thresholds()
     silences = [(FaultKind.SILENCE, None)]
-    cycles = failover_cycles(max(1, FAILOVERS // 2), thresholds=defaults, faults=silences)
+    cycles = failover_cycles(
+        max(1, FAILOVERS // 2), thresholds=defaults, faults=silences, apart=True
+    )
     silent = cycles.silent_ms
     load = _load()
     return [
@@ -677,7 +773,10 @@ def onset_figures() -> list[Figure]:
             "<= 100",
             COMMAND,
             f"{len(silent)} silent autopilots streaming PX4's recorded onboard set (~400 "
-            "messages/s, ATTITUDE 100 Hz); from the injection to the bridge write; default "
+            f"messages/s, ATTITUDE 100 Hz), {SIMS_APART}; each autopilot silenced at least "
+            f"{LEARN_WINDOWS + 1} s after its last silence "
+            "ended or the flight began (rest_after_outage); from "
+            "the injection request to the bridge write; default "
             f"{_thresholds_text(defaults)}; median {statistics.median(silent):.0f} ms; "
             f"silence thresholds learnt from the streams: {_limits_text(cycles.limits_ms)}; "
             f"1-min load {load}",
@@ -690,17 +789,8 @@ def default_figures() -> list[Figure]:
     defaults = Thresholds()
     figures = onset_figures()
     soak = false_failovers(defaults)
-    return [
-        *figures,
-        Figure(
-            "failover.false_failovers_10min_default",
-            float(soak.failovers),
-            "count",
-            "== 0",
-            f"ROOST_BENCH_SOAK_S={SOAK_S:.0f} {COMMAND}",
-            _soak_note(defaults, soak),
-        ),
-    ]
+    command = f"ROOST_BENCH_SOAK_S={SOAK_S:.0f} {COMMAND}"
+    return [*figures, *soak_result_figures("_default", command, soak, _soak_note(defaults, soak))]
 
 
 @contextmanager
@@ -722,17 +812,13 @@ def starved_figures() -> list[Figure]:
     with busy_cores() as count:
         soak = false_failovers(defaults)
         load = _load()
-    meanwhile = f" while {count} busy-looping processes kept the {count} cores busy"
-    return [
-        Figure(
-            "failover.false_failovers_10min_cpu_starved",
-            float(soak.failovers),
-            "count",
-            "== 0",
-            f"ROOST_BENCH_SOAK_S={SOAK_S:.0f} ROOST_BENCH_AGENT_PARTS=starved {COMMAND}",
-            _soak_note(defaults, soak, meanwhile) + f" (1-min load {load} with the spinners)",
-        )
-    ]
+    meanwhile = (
+        f" while {count} busy-looping processes (normal priority, as the agent) kept the "
+        f"{count} cores busy"
+    )
+    command = f"ROOST_BENCH_SOAK_S={SOAK_S:.0f} ROOST_BENCH_AGENT_PARTS=starved {COMMAND}"
+    note = _soak_note(defaults, soak, meanwhile) + f" (1-min load {load} with the spinners)"
+    return soak_result_figures("_cpu_starved", command, soak, note)
 
 
 def replay_figures() -> list[Figure]:

@@ -4,8 +4,10 @@ and the altitude a post-failover hold gives away.
 - ``failover.ardupilot_unaided_onset_to_switch_p99_ms``: two simulated ArduCopters that,
   like the real firmware, send nothing but HEARTBEAT until streams are requested; the
   agent (its own process, default thresholds) must ask for them itself. The active one
-  goes silent; onset (taken here when the fault is injected) to the bridge switch (the
-  agent's CLOCK_MONOTONIC timestamp), over repeated failovers.
+  goes silent; onset (taken here when the fault is requested) to the bridge switch (the
+  agent's CLOCK_MONOTONIC timestamp), over repeated failovers. The sims run as the
+  firmware does on its own MCU, out of reach of the host's load: in a process of their
+  own at real-time priority (:mod:`tests.support.simprocess`); the agent at normal.
 - ``safety.hold_altitude_loss_m``: after each failover the safety routine holds for
   :data:`HOLD_S` s and lands; the simulator's own altitude is sampled every 20 ms and the
   most altitude lost between entering the hold mode and leaving it is recorded, for the
@@ -26,9 +28,19 @@ import threading
 import time
 from pathlib import Path
 
-from bench.agent import _limits_text, _load, _thresholds_text, percentile, silence_limits
+from bench.agent import (
+    SIMS_APART,
+    _limits_text,
+    _load,
+    _thresholds_text,
+    percentile,
+    rest_after_outage,
+    silence_limits,
+)
 from bench.core import Figure
+from roost_agent.health import LEARN_WINDOWS
 from roost_api.autopilot import (
+    AutopilotSpec,
     FailoverPolicy,
     FinalAction,
     RedundantAutopilotSpec,
@@ -45,6 +57,7 @@ from roost_sim import (
 )
 from tests.support.agent import AgentProcess
 from tests.support.flight import take_off
+from tests.support.simprocess import SimProcess
 
 UNAIDED_FAILOVERS = int(os.environ.get("ROOST_BENCH_UNAIDED_FAILOVERS", "20"))
 HOLD_SAMPLES = int(os.environ.get("ROOST_BENCH_HOLD_SAMPLES", "3"))
@@ -56,10 +69,10 @@ LOITER_NO_RC = SimConfig.fast(takeoff_alt_m=6.0)
 HOLD_MODES = {"px4": "AUTO.LOITER", "ardupilot": "BRAKE"}
 
 
-def _spec(sims: list[SimulatedAutopilot], routine: SafetyRoutine) -> RedundantAutopilotSpec:
+def _spec(specs: list[AutopilotSpec], routine: SafetyRoutine) -> RedundantAutopilotSpec:
     return RedundantAutopilotSpec(
         vehicle_name="bench",
-        autopilots=autopilot_specs(sims),
+        autopilots=specs,
         primary="fc1",
         failover_policy=FailoverPolicy(thresholds=Thresholds(), safety_routine=routine),
     )
@@ -71,17 +84,22 @@ def unaided_ardupilot_cycles() -> tuple[list[float], list[int]]:
     onset_ms: list[float] = []
     limits: list[int] = []
     defaults = Thresholds()
-    sims = start_vehicle_sims(["ardupilot", "ardupilot"], config=SimConfig.fast())
     agent: AgentProcess | None = None
-    with tempfile.TemporaryDirectory(prefix="roost-bench-firmware-") as tmp:
+    with (
+        SimProcess(["ardupilot", "ardupilot"]) as process,
+        tempfile.TemporaryDirectory(prefix="roost-bench-firmware-") as tmp,
+    ):
         try:
             routine = SafetyRoutine(hold_seconds=0, final_action=FinalAction.HOLD)
-            agent = AgentProcess.standalone(Path(tmp), _spec(sims, routine), log_level="WARNING")
-            take_off(sims)
+            spec = _spec(process.specs(), routine)
+            agent = AgentProcess.standalone(Path(tmp), spec, log_level="WARNING")
+            process.take_off()
             agent.wait_ok(["fc1", "fc2"])
             time.sleep(defaults.clear_ms / 1000 + 1.5)  # T_off, and a full rate window
-            by_name, active = {s.name: s for s in sims}, "fc1"
+            by_name, active = {s.name: s for s in process.sims}, "fc1"
+            recovered = dict.fromkeys(by_name, time.monotonic())
             for _ in range(UNAIDED_FAILOVERS):
+                rest_after_outage(recovered.get(active))
                 onset = time.monotonic()
                 by_name[active].inject(FaultKind.SILENCE)
                 event = agent.wait_for(lambda d: d.get("event") == "Failover", 15)
@@ -91,11 +109,11 @@ def unaided_ardupilot_cycles() -> tuple[list[float], list[int]]:
                 assert agent.command("ClearLatch")["result"] == "Executed"
                 agent.wait_ok([active])
                 time.sleep(defaults.clear_ms / 1000 + 0.2)
+                recovered[active] = time.monotonic()
                 active = event["failover"]["to"]
         finally:
             if agent is not None:
                 agent.stop()
-            stop_sims(sims)
     return onset_ms, limits
 
 
@@ -125,7 +143,7 @@ def hold_losses(stack: str) -> list[float]:
             try:
                 routine = SafetyRoutine(hold_seconds=HOLD_S, final_action=FinalAction.LAND)
                 agent = AgentProcess.standalone(
-                    Path(tmp), _spec(sims, routine), log_level="WARNING"
+                    Path(tmp), _spec(autopilot_specs(sims), routine), log_level="WARNING"
                 )
                 take_off(sims)
                 agent.wait_ok(["fc1", "fc2"])
@@ -165,7 +183,10 @@ def run() -> list[Figure]:
             "<= 120",
             COMMAND,
             f"{len(unaided)} silent simulated ArduCopters that send only HEARTBEAT until "
-            f"the agent requests streams; default {_thresholds_text(Thresholds())}; "
+            f"the agent requests streams, {SIMS_APART}; each silenced at least "
+            f"{LEARN_WINDOWS + 1} s after its last silence "
+            "ended or the flight began (rest_after_outage); default "
+            f"{_thresholds_text(Thresholds())}; "
             f"median {statistics.median(unaided):.0f} ms, max {max(unaided):.0f} ms; "
             f"silence thresholds learnt from the streams: {_limits_text(limits)}; "
             f"1-min load {unaided_load}",

@@ -89,17 +89,14 @@ class Thresholds(ApiModel):
     """Health thresholds; see the MAVLink health reference for their origin."""
 
     # Defaults: a PX4 or ArduPilot link streams ATTITUDE at 50 Hz (roost_agent.streams), so
-    # 200 ms of silence is 10 missed samples; on links with 5 % loss and 50 ms jitter
-    # these defaults gave no false failover in a 10-minute soak (bench agent).
-    # The silence threshold is learnt per autopilot from the gaps between its messages
-    # (roost_agent.health: the worst gap of the last seconds times silenceMargin) and
-    # kept between messageErrorMinMs and messageErrorMs; the ceiling also applies while
-    # it learns (after start-up, a reboot, a stream-rate request). Recorded PX4 (~400
-    # messages/s) and ArduCopter (~70/s) streams put it at the floor; 50 ms of jitter
-    # lifts it to ~125 ms. messageErrorMinMs = messageErrorMs: a fixed threshold, the
-    # default until the learnt one has flown as long as the fixed one has (with a floor
-    # of 60 ms it switched in 78 ms on a quiet machine; on a loaded one the simulated
-    # autopilots' own stalls were learnt and it did not switch sooner).
+    # 200 ms of silence is 10 missed samples. The silence threshold is learnt per autopilot
+    # from the gaps between its messages (roost_agent.health: the worst gap of the last
+    # seconds times silenceMargin) and kept between messageErrorMinMs and messageErrorMs;
+    # the ceiling also applies while it learns (after start-up, a reboot, a stream-rate
+    # request). The floor of 60 ms comes from the recordings (docs/health-model.md): PX4's
+    # worst healthy gap is 9-12 ms (2.5 x 12 = 30 ms, held at 60), ArduCopter's ~25 ms
+    # (~63 ms); 50 ms of jitter lifts it to ~125 ms, a 10 Hz link to the ceiling.
+    # messageErrorMinMs = messageErrorMs gives back a fixed threshold.
     message_warn_ms: int = Field(
         default=100,
         ge=10,
@@ -113,7 +110,7 @@ class Thresholds(ApiModel):
         description="Any-message age ERROR (silent link): the learnt threshold's ceiling.",
     )
     message_error_min_ms: int = Field(
-        default=200,
+        default=60,
         ge=10,
         le=60000,
         description="Floor of the learnt silence threshold (above messageErrorMs: no effect).",

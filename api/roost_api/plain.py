@@ -180,7 +180,7 @@ class Thresholds:
 
     message_warn_ms: int = 100
     message_error_ms: int = 200
-    message_error_min_ms: int = 200
+    message_error_min_ms: int = 60
     silence_margin: float = 2.5
     heartbeat_warn_ms: int = 2500
     heartbeat_error_ms: int = 4500
@@ -206,7 +206,7 @@ class Thresholds:
         )
         v = check.get(d, "messageErrorMinMs", "message_error_min_ms")
         message_error_min_ms = (
-            200
+            60
             if v is check.MISSING
             else check.integer(v, at + "messageErrorMinMs", ge=10, le=60000)
         )

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import socket
 from collections.abc import Callable, Sequence
+from typing import Protocol
 
 from roost_api.autopilot import AutopilotSpec
 from roost_api.meta import Stack
@@ -94,7 +95,22 @@ def stop_sims(sims: Sequence[SimulatedAutopilot]) -> None:
         sim.stop()
 
 
-def autopilot_specs(sims: Sequence[SimulatedAutopilot]) -> list[AutopilotSpec]:
+class Reachable(Protocol):
+    """What an agent's spec needs of a running sim: in this process or another."""
+
+    @property
+    def name(self) -> str: ...
+    @property
+    def stack(self) -> Stack: ...
+    @property
+    def connection(self) -> str: ...
+    @property
+    def sysid(self) -> int: ...
+    @property
+    def component_id(self) -> int: ...
+
+
+def autopilot_specs(sims: Sequence[Reachable]) -> list[AutopilotSpec]:
     """``AutopilotSpec`` entries for running sims: bridge channel = position in the list."""
     return [
         AutopilotSpec(

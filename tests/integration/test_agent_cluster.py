@@ -37,7 +37,7 @@ from roost_operator.vehicles.pods import mavros_follows
 from roost_sim import SimConfig, SimulatedAutopilot, autopilot_specs, start_vehicle_sims, stop_sims
 from tests.support.agent import AgentProcess
 from tests.support.apiwrites import write_requests
-from tests.support.flight import land
+from tests.support.flight import SIM_THRESHOLDS, land
 from tests.support.operator import OperatorProcess
 from tests.support.waiting import unique, wait_until
 
@@ -165,7 +165,12 @@ def rig(
                 "apiVersion": "roost.dev/v1alpha1",
                 "kind": "RedundantAutopilot",
                 "metadata": {"name": name},
-                "spec": {"vehicleName": name, "primary": "fc1", "autopilots": specs},
+                "spec": {
+                    "vehicleName": name,
+                    "primary": "fc1",
+                    "autopilots": specs,
+                    "failoverPolicy": {"thresholds": SIM_THRESHOLDS.to_api()},
+                },
             },
         ):
             roost_crds.kubectl("apply", "-f", "-", input_text=json.dumps(manifest))

@@ -43,7 +43,7 @@ def test_silence_fails_over_on_the_learnt_threshold_and_a_stopped_agent_is_not_s
 ) -> None:
     sims = start_vehicle_sims(["px4", "px4"], config=SimConfig.fast())
     by_name = {s.name: s for s in sims}
-    th = Thresholds(message_error_min_ms=60)
+    th = Thresholds()  # the defaults: this is the detector's test
     spec = RedundantAutopilotSpec(
         vehicle_name="silence",
         autopilots=autopilot_specs(sims),

@@ -62,7 +62,7 @@ from roost_sim import (
     stop_sims,
 )
 from tests.support.agent import AgentProcess
-from tests.support.flight import CLEAR_S, POLL_S, Flight, make_spec, take_off
+from tests.support.flight import CLEAR_S, POLL_S, SIM_THRESHOLDS, Flight, make_spec, take_off
 from tests.support.waiting import wait_until
 
 # serial: stream gaps and failovers judged in real time
@@ -356,7 +356,8 @@ def test_agent_killed_in_each_phase_completes_the_routine_after_restart(
     spec = make_spec(sims).model_copy(
         update={
             "failover_policy": FailoverPolicy(
-                safety_routine=SafetyRoutine(hold_seconds=hold_s, final_action=FinalAction.LAND)
+                thresholds=SIM_THRESHOLDS,
+                safety_routine=SafetyRoutine(hold_seconds=hold_s, final_action=FinalAction.LAND),
             )
         }
     )

@@ -203,7 +203,12 @@ class AgentProcess:
         deadline = time.monotonic() + timeout
         while True:
             exited = not self.process.alive()  # checked first: its last lines are read below
-            for doc in self.read():
+            self._pull()
+            # One line at a time: the lines after the match stay unread for the next wait
+            # (a busy machine delivers a failover and the routine's next phase together).
+            while self._cursor < len(self.seen):
+                doc = self.seen[self._cursor]
+                self._cursor += 1
                 if predicate(doc):
                     return doc
             if exited:

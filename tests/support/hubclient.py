@@ -42,6 +42,7 @@ from roost_sim import (
     start_vehicle_sims,
     stop_sims,
 )
+from tests.support.flight import SIM_THRESHOLDS
 from tests.support.waiting import wait_until
 
 GCS_SYSID = 255
@@ -274,7 +275,9 @@ def hub_vehicle(
             vehicle_name="v1",
             autopilots=autopilot_specs(sims),
             primary=sims[0].name,
-            failover_policy=FailoverPolicy(safety_routine=SafetyRoutine(hold_seconds=30)),
+            failover_policy=FailoverPolicy(
+                thresholds=SIM_THRESHOLDS, safety_routine=SafetyRoutine(hold_seconds=30)
+            ),
             hub=HubSpec(
                 sysid=VEHICLE_SYSID,
                 udp="127.0.0.1:0",

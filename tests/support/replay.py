@@ -27,9 +27,8 @@ from roost_mavlink.codec import BadData, UnknownFrame, scan
 from tests.support.captures import capture
 
 STEP_S = 0.05
-# The learnt silence threshold on, at the floor its figures were measured with (the
-# default floor equals the ceiling: a fixed threshold, which the recordings pass too).
-TH = Thresholds(message_error_min_ms=60)
+# The default thresholds: the silence threshold learnt from each recording's stream.
+TH = Thresholds()
 
 
 @dataclass

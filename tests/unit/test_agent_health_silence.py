@@ -19,11 +19,12 @@ from hypothesis import strategies as st
 from roost_agent.health import LEARN_WINDOWS, Assessment, HealthTracker
 from roost_api.autopilot import Thresholds
 from roost_api.meta import HealthLevel, Stack
+from roost_api.plain import Thresholds as PlainThresholds
 from tests.support.feed import Feed
 
 OK, WARN, ERROR = HealthLevel.OK, HealthLevel.WARN, HealthLevel.ERROR
-# Learning on (the default floor equals the ceiling: a fixed threshold).
-DEFAULTS = Thresholds(message_error_min_ms=60)
+# The defaults: learning is on (the floor below the ceiling).
+DEFAULTS = Thresholds()
 FLOOR_S = DEFAULTS.message_error_min_ms / 1000  # 60 ms
 CEILING_S = DEFAULTS.message_error_ms / 1000  # 200 ms
 MARGIN = DEFAULTS.silence_margin  # 2.5
@@ -96,6 +97,13 @@ def test_the_ceiling_bounds_a_link_with_long_gaps() -> None:
     v = vehicle()
     arrive(v, steady(0.0, 3.0, 0.1))  # 10 Hz: 250 ms learnt, held at 200
     assert v.tracker.silence_threshold_s() == CEILING_S
+
+
+def test_learning_is_on_by_default() -> None:
+    """The default floor sits under the ceiling, at twice PX4's learnt 30 ms (2.5 x its
+    12 ms worst healthy gap) and under ArduCopter's ~63 ms (docs/health-model.md)."""
+    assert FLOOR_S == 0.06 and FLOOR_S < CEILING_S
+    assert Thresholds().message_error_min_ms == PlainThresholds().message_error_min_ms
 
 
 def test_floor_equal_to_ceiling_is_a_fixed_threshold() -> None:

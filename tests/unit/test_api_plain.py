@@ -255,7 +255,7 @@ def test_a_state_file_written_by_the_hand_written_loader_still_loads() -> None:
     expected["spec"].update({"firmware": None, "parameters": None, "fence": None})
     expected["spec"]["hub"]["endpoints"] = []
     expected["spec"]["failoverPolicy"]["thresholds"].update(
-        {"messageErrorMinMs": 200, "silenceMargin": 2.5}
+        {"messageErrorMinMs": 60, "silenceMargin": 2.5}
     )
     assert state.api_dump() == expected
 

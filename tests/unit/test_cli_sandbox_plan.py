@@ -83,6 +83,9 @@ def test_manifests_fit_the_models_and_the_crd_schemas() -> None:
         assert [a.connection for a in ra_spec.autopilots] == list(_connections(vehicle).values())
         assert ra_spec.hub is not None
         assert ra_spec.hub.udp == hub
+        # simulators sharing the cores: a fixed silence threshold, not the learnt default
+        th = ra_spec.failover_policy.thresholds
+        assert th.message_error_min_ms == th.message_error_ms
         jsonschema.Draft4Validator(_schema("Vehicle")).validate(v)
         jsonschema.Draft4Validator(_schema("RedundantAutopilot")).validate(ra)
     mission = plan.mission_manifest(len(fleet))

@@ -42,6 +42,13 @@ MISSION_NAMESPACE = "default"
 VEHICLE_SYSID_BASE = 10
 """Vehicle ids start at Starling's lowest VEHICLE_MAVLINK_SYSID."""
 HOLD_SECONDS = 3.0
+SIM_THRESHOLDS = {"messageErrorMinMs": 200}
+"""The sandbox's autopilots are simulators sharing the machine's cores (ten vehicles to a
+process and thread) with the control plane and every agent, not firmware on MCUs of their
+own: they stall for tens of milliseconds, which the silence threshold learnt from their
+steady streams (60 ms floor by default) would call silent. Their RedundantAutopilots
+fix the threshold at the 200 ms ceiling instead (floor = ceiling); real vehicles keep
+the learnt default (docs/health-model.md, "Tuning per airframe")."""
 MISSION_RUNTIME = "10m"
 """How long kwok lets each onboard pod run: long enough to watch a failover mid-mission."""
 HUB_HOST = "127.0.0.1"
@@ -175,6 +182,7 @@ def autopilot_manifest(
                 "mode": "Automatic",
                 "safetyRoutine": {"holdSeconds": HOLD_SECONDS, "finalAction": "Land"},
                 "failback": "Manual",
+                "thresholds": dict(SIM_THRESHOLDS),
             },
         },
     }
