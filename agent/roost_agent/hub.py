@@ -615,9 +615,7 @@ class Hub:
             return frame
         signing = self._signing
         wanted = key if key is not None else signing.key if signing is not None else None
-        if wanted is not None and wanted is not signer.key:
-            signer.use(wanted)
-        return signer.sign(frame)
+        return signer.sign(frame, wanted)  # the reader and hub threads both sign
 
     # -- clients -> autopilots ---------------------------------------------------------
 

@@ -237,6 +237,10 @@ class Signer:
             raise ValueError(f"a signing key is {KEY_BYTES} bytes")
         self._key = key
 
-    def sign(self, frame: bytes) -> bytes:
-        """``frame`` signed with the next timestamp."""
-        return sign_frame(frame, self._key, self.link_id, self._clock.next())
+    def sign(self, frame: bytes, key: bytes | None = None) -> bytes:
+        """``frame`` signed with the next timestamp, with ``key`` (a peer's, for this frame
+        only: threads that sign for different peers never change each other's key) or
+        else the key in use."""
+        return sign_frame(
+            frame, self._key if key is None else key, self.link_id, self._clock.next()
+        )

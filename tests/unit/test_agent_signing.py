@@ -52,6 +52,16 @@ def test_a_signer_signs_with_the_key_it_is_told_to_use() -> None:
     assert Verifier(OLD, Timestamps()).check(signer.sign(heartbeat())) is Verdict.GOOD
 
 
+def test_a_frame_signed_for_one_peer_leaves_the_key_in_use_alone() -> None:
+    """The hub signs for clients with different keys from two threads: a key given for
+    one frame must not become the key another thread signs with."""
+    signer = Signer(NEW, 1, Timestamps())
+    for_old = signer.sign(heartbeat(), OLD)
+    assert signer.key == NEW
+    assert Verifier(OLD, Timestamps()).check(for_old) is Verdict.GOOD
+    assert Verifier(NEW, Timestamps()).check(signer.sign(heartbeat())) is Verdict.GOOD
+
+
 def write(path: Path, key: bytes) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(key.hex() + "\n")
