@@ -24,6 +24,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from roost_api.autopilot import Thresholds
 from roost_api.meta import API_VERSION, Stack
 from roost_api.resources import MISSION, REDUNDANT_AUTOPILOT, VEHICLE
 from roost_api.sitl import sitl_instance
@@ -42,7 +43,7 @@ MISSION_NAMESPACE = "default"
 VEHICLE_SYSID_BASE = 10
 """Vehicle ids start at Starling's lowest VEHICLE_MAVLINK_SYSID."""
 HOLD_SECONDS = 3.0
-SIM_THRESHOLDS = {"messageErrorMinMs": 200}
+SIM_THRESHOLDS = {"messageErrorMinMs": Thresholds().message_error_ms}
 """The sandbox's autopilots are simulators sharing the machine's cores (ten vehicles to a
 process and thread) with the control plane and every agent, not firmware on MCUs of their
 own: they stall for tens of milliseconds, which the silence threshold learnt from their
