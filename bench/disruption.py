@@ -5,13 +5,14 @@ On the local control plane with ``roost-operator`` running and a simulated Vehic
 (mavros and two SITL pods run by kwok on a fake node) with a RedundantAutopilot: the
 agent's report says both autopilots are armed, the Vehicle's config changes (which
 replaces its pods on the ground), and ``kubectl drain`` of its node runs (Eviction API,
-10 s timeout); then the report says disarmed and the node is drained again. The script
-is :func:`tests.support.disruption.fly_change_and_drain`, which the integration test
-runs too.
+10 s timeout), then one Eviction per pod for the refusal's reason; then the report says
+disarmed and the node is drained again. The script is
+:func:`tests.support.disruption.fly_change_and_drain`, which the integration test runs
+too.
 
 - ``disruption.drain_refused_in_flight``: 1 when the drain in flight was refused (a
-  non-zero exit, "would violate the pod's disruption budget") and the one after landing
-  succeeded, else 0;
+  non-zero exit, and every eviction "would violate the pod's disruption budget") and the
+  one after landing succeeded, else 0;
 - ``disruption.pod_replacements_in_flight``: the vehicle's component pods replaced
   between the arm and the drain's end (the config change is deferred to the landing).
 """
@@ -72,8 +73,8 @@ def run() -> list[Figure]:
                 )
         finally:
             operator.stop()
-    refused = outcome.drain_in_flight.returncode != 0 and (
-        "disruption budget" in outcome.drain_in_flight.stderr
+    refused = outcome.drain_in_flight.returncode != 0 and all(
+        "disruption budget" in answer for answer in outcome.evictions_in_flight.values()
     )
     proceeded = outcome.drain_after_landing.returncode == 0
     return [
@@ -84,7 +85,8 @@ def run() -> list[Figure]:
             "== 1",
             COMMAND,
             f"kubectl drain of an armed vehicle's node refused (exit "
-            f"{outcome.drain_in_flight.returncode}, disruption budget), the same drain after "
+            f"{outcome.drain_in_flight.returncode}; every pod's eviction: disruption budget), "
+            "the same drain after "
             f"the disarm report proceeded (exit {outcome.drain_after_landing.returncode})",
         ),
         Figure(

@@ -4,7 +4,7 @@ the cluster may and may not change under a vehicle in the air.
 The node agent's report is the one stand-in: the script writes the RedundantAutopilot's
 status as an agent would (an autopilot armed, then disarmed); everything else is real —
 kube-apiserver, the disruption controller of kube-controller-manager, kwok running the
-vehicle's pods on its fake node, ``kubectl drain`` using the Eviction API. Shared by the
+vehicle's pods on its fake node, ``kubectl drain`` and the Eviction API. Shared by the
 integration test (``tests/integration/test_vehicle_operator.py``) and ``bench
 disruption``.
 """
@@ -16,6 +16,7 @@ import subprocess
 from dataclasses import dataclass
 
 from roost_kube.client import Kube
+from roost_kube.errors import ApiError
 from roost_kube.patches import Obj
 from roost_kube.resources import PODDISRUPTIONBUDGETS, PODS, REDUNDANT_AUTOPILOTS, VEHICLES
 from roost_localcluster.cluster import Cluster
@@ -23,6 +24,11 @@ from roost_operator.vehicles.manifests import is_component_pod
 from tests.support.waiting import wait_until
 
 DRAIN_TIMEOUT = "10s"
+REQUEST_TIMEOUT = "3s"
+"""kubectl's client waits out the Retry-After (10 s) of every eviction the API server
+refuses, ten times over, before its drain sees the refusal: a refused drain took about
+100 s whatever ``--timeout`` said. Bounding each request ends the drain after the first
+refusal; the refusal's own words come from one Eviction per pod (:func:`_evict`)."""
 
 
 @dataclass
@@ -30,6 +36,7 @@ class FlightOutcome:
     """What happened to the vehicle's pods and node over the flight."""
 
     drain_in_flight: subprocess.CompletedProcess[str]
+    evictions_in_flight: dict[str, str]  # pod name -> the API server's answer
     replacements_in_flight: int
     deferred: list[str]
     hold_reason: str
@@ -67,8 +74,28 @@ def _drain(cluster: Cluster, node: str) -> subprocess.CompletedProcess[str]:
         "--ignore-daemonsets",
         "--delete-emptydir-data",
         f"--timeout={DRAIN_TIMEOUT}",
+        f"--request-timeout={REQUEST_TIMEOUT}",
         check=False,
     )
+
+
+def _evict(kube: Kube, pods: list[str], namespace: str) -> dict[str, str]:
+    """Ask the Eviction API, once, to evict each pod (as a drain does): the answer per pod,
+    "evicted" or the refusal's message."""
+    answers: dict[str, str] = {}
+    for name in pods:
+        eviction = {
+            "apiVersion": "policy/v1",
+            "kind": "Eviction",
+            "metadata": {"name": name, "namespace": namespace},
+        }
+        path = f"{PODS.object_path(name, namespace)}/eviction"
+        try:
+            kube.request("POST", path, body=eviction)
+            answers[name] = "evicted"
+        except ApiError as refused:
+            answers[name] = refused.message
+    return answers
 
 
 def fly_change_and_drain(
@@ -90,6 +117,7 @@ def fly_change_and_drain(
         "the replacement to be deferred", lambda: (_hold(kube, vehicle) or {}).get("deferred")
     )
     drained = _drain(cluster, node)
+    evictions = _evict(kube, sorted(before), namespace)
     during = _pod_uids(kube, vehicle, namespace)
     replacements = sum(1 for name, uid in before.items() if during.get(name) != uid)
     reason = (_hold(kube, vehicle) or {}).get("reason", "")
@@ -107,6 +135,7 @@ def fly_change_and_drain(
     cluster.kubectl("uncordon", node)
     return FlightOutcome(
         drain_in_flight=drained,
+        evictions_in_flight=evictions,
         replacements_in_flight=replacements,
         deferred=list(hold),
         hold_reason=str(reason),
