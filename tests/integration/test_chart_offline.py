@@ -19,11 +19,11 @@ from typing import Any
 import jsonschema
 import kubernetes_validate
 import pytest
-import yaml
 
 from roost_api.wellknown import LABEL_NODE, LABEL_VEHICLE, TAINT_VEHICLE
 from roost_localcluster.binaries import REPO_ROOT
 from roost_operator.settings import load_settings
+from tests.support import yamldocs
 from tests.support.chart import (
     CHART_CRDS_DIR,
     CHART_DIR,
@@ -105,11 +105,13 @@ def _render_set(name: str, *, include_crds: bool = False) -> list[Manifest]:
     return render(values, values_files=files, include_crds=include_crds)
 
 
+@functools.cache
 def _chart_crd_schemas() -> dict[tuple[str, str], dict[str, Any]]:
-    """(apiVersion, kind) -> openAPIV3Schema of every version of every chart CRD."""
+    """(apiVersion, kind) -> openAPIV3Schema of every version of every chart CRD (read
+    once: callers must not modify the result)."""
     schemas = {}
     for path in CHART_CRDS_DIR.glob("*.yaml"):
-        crd = yaml.safe_load(path.read_text())
+        crd = yamldocs.load(path.read_text())
         for version in crd["spec"]["versions"]:
             key = (f"{crd['spec']['group']}/{version['name']}", crd["spec"]["names"]["kind"])
             schemas[key] = version["schema"]["openAPIV3Schema"]
@@ -394,7 +396,7 @@ def test_agent_records_flights_on_a_host_directory_of_its_node_by_default() -> N
 
 def test_agent_with_hardware_mounts_exactly_the_listed_devices_and_stays_non_root() -> None:
     pod = _agent_pod("hardware")
-    listed = yaml.safe_load(HARDWARE_VALUES.read_text())["agent"]["devices"]["paths"]
+    listed = yamldocs.load(HARDWARE_VALUES.read_text())["agent"]["devices"]["paths"]
     host_paths = [v["hostPath"] for v in pod["volumes"] if v["name"].startswith("device")]
     assert host_paths == [{"path": path, "type": "CharDevice"} for path in listed]
     container = pod["containers"][0]

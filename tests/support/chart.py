@@ -19,6 +19,7 @@ import yaml
 
 from roost_localcluster.binaries import REPO_ROOT
 from roost_localcluster.clients import tool_path
+from tests.support import yamldocs
 
 CHART_DIR = REPO_ROOT / "charts" / "roost"
 CHART_CRDS_DIR = CHART_DIR / "crds"
@@ -77,7 +78,7 @@ def render(
         result = helm(*args)
     if result.returncode != 0:
         raise ChartError(result.stderr.strip())
-    return [doc for doc in yaml.safe_load_all(result.stdout) if doc]
+    return [doc for doc in yamldocs.load_all(result.stdout) if doc]
 
 
 def find(manifests: Sequence[Manifest], kind: str, name_suffix: str = "") -> Manifest:
