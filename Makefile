@@ -104,9 +104,20 @@ e2e: $(STAMP) cluster-build ## end to end: the sandbox, the chart, the images, t
 	@mkdir -p $(REPORTS)
 	$(call PYTEST_REPORT,e2e) -m 'not arm64_node' tests/e2e tests/e2e_node
 
+# `make test` starts the image builds first, in the background at the lowest CPU
+# priority: most of the integration tier waits on sockets, timers and the control plane,
+# so a build (minutes when Roost's sources changed) runs in the idle time, and the e2e
+# tier's own call finds it done or waits for it (the image cache's lock).
+.PHONY: images-background
+images-background: $(STAMP)
+	@mkdir -p $(REPORTS)
+	@echo "images: building in the background at low priority (log: $(REPORTS)/images.log)"
+	@{ nice -n 19 docker/build-images.sh && nice -n 19 docker/build-images.sh --mission examples/missions/sync-paths; } >$(REPORTS)/images.log 2>&1 </dev/null &
+
 .PHONY: test
 test: ## the whole suite: check, integration, e2e, the control-plane suites on kine, KinD; then the 25 slowest tests
 	@rm -rf $(REPORTS)
+	@$(MAKE) --no-print-directory images-background
 	@$(MAKE) --no-print-directory check integration e2e
 	$(call PYTEST_REPORT,kine) --datastore kine $(PARALLEL) $(KINE_SUITES)
 	$(call PYTEST_SERIAL,kine-serial,--datastore kine $(KINE_SUITES))

@@ -36,10 +36,15 @@ command -v apt-get >/dev/null 2>&1 || {
   echo "missing packages: ${missing[*]} (no apt-get on this machine to install them)" >&2
   exit 1
 }
+# One install at a time: `make test` builds the images in the background while other
+# steps may install what they need, and apt-get refuses to run beside another apt-get.
+exec 8>"${TMPDIR:-/tmp}/roost-debian-packages.lock"
+flock 8
 echo "installing Debian packages: ${missing[*]}" >&2
 log=$(mktemp)
 export DEBIAN_FRONTEND=noninteractive
-if ! { "${as_root[@]}" apt-get update && "${as_root[@]}" apt-get install -y --no-install-recommends "${missing[@]}"; } >"$log" 2>&1; then
+apt=("${as_root[@]}" apt-get -o DPkg::Lock::Timeout=600)
+if ! { "${apt[@]}" update && "${apt[@]}" install -y --no-install-recommends "${missing[@]}"; } >"$log" 2>&1; then
   tail -n 30 "$log" >&2
   echo "apt-get failed installing: ${missing[*]}" >&2
   rm -f "$log"
