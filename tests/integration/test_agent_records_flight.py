@@ -21,7 +21,7 @@ from typing import Any
 import pytest
 from pymavlink import DFReader, mavutil
 
-from roost_agent.records import Manifest, flight_id, read_manifests, write_manifest
+from roost_agent.records import MANIFEST, Manifest, flight_id, read_manifests, write_manifest
 from roost_agent.records_logs import FetchSettings, LogFetcher, check_ulog
 from roost_agent.records_recorder import FlightRecorder
 from roost_api.records import FileState, FlightState
@@ -387,10 +387,12 @@ def test_a_disk_full_during_a_log_download_fails_that_log_and_the_next_is_fetche
     v, recorder = recorded
     px4, ardupilot = v.sims
     assert v.client.command(VEHICLE_SYSID, MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
-    wait_until("recording", lambda: recorder.current is not None, 5)
+    # the flight's directory is the recorder's to make: wait for its manifest in it
+    flight = wait_until("recording", lambda: recorder.current, 5)
+    wait_until("the flight's manifest", (recorder.root / flight / MANIFEST).exists, 5)
     # The one stand-in, as in the full-disk test above: the PX4 log's file is a link to
     # /dev/full (a real device whose every write fails with ENOSPC).
-    target = recorder.root / str(recorder.current) / f"autopilot-logs/{px4.name}/1.ulg"
+    target = recorder.root / flight / f"autopilot-logs/{px4.name}/1.ulg"
     target.parent.mkdir(parents=True)
     target.symlink_to("/dev/full")
     wait_until(
