@@ -68,6 +68,21 @@ def source_system(msg: Any) -> int:
     return int(msg.get_srcSystem())
 
 
+class _OneSenderAtATime(mavlink.MAVLink):  # type: ignore[misc]  # pymavlink is untyped
+    """pymavlink's MAVLink, whose ``send`` numbers, signs (the signing timestamp) and
+    writes a frame in steps no lock holds together: the heartbeat thread and a test's
+    command sent at once could leave in the opposite order of their signing timestamps,
+    and the hub rightly drops the second to arrive, older-stamped, as a replay."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._send_lock = threading.Lock()
+
+    def send(self, mavmsg: Any, force_mavlink1: bool = False) -> None:
+        with self._send_lock:
+            super().send(mavmsg, force_mavlink1=force_mavlink1)
+
+
 class HubClient:
     """A ground station on ``address`` (the hub's UDP endpoint)."""
 
@@ -87,7 +102,7 @@ class HubClient:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(("127.0.0.1", 0))
         self.sock.settimeout(0.1)
-        self.mav = mavlink.MAVLink(_SocketFile(self), srcSystem=sysid, srcComponent=GCS_COMPONENT)
+        self.mav = _OneSenderAtATime(_SocketFile(self), srcSystem=sysid, srcComponent=GCS_COMPONENT)
         if key is not None:
             _sign_with(self.mav, key, link_id)
         self.received: list[Received] = []
