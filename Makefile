@@ -91,8 +91,16 @@ unit: $(STAMP) ## the unit tests only (pure: no cluster, sockets, threads or sle
 
 .PHONY: integration
 integration: $(STAMP) cluster-build ## real parts together: UDP MAVLink, processes, the control plane; and the sync-paths example
+	@$(MAKE) --no-print-directory integration-parallel integration-serial
+
+# integration's two passes: the files in $(WORKERS) workers, then what must run alone and
+# the sync-paths example
+.PHONY: integration-parallel integration-serial
+integration-parallel: $(STAMP) cluster-build
 	@mkdir -p $(REPORTS)
 	$(call PYTEST_REPORT,integration) $(PARALLEL) tests/integration
+integration-serial: $(STAMP) cluster-build
+	@mkdir -p $(REPORTS)
 	$(call PYTEST_SERIAL,integration-serial,tests/integration)
 	$(call PYTEST_REPORT,sync-paths) examples/missions/sync-paths
 
@@ -118,16 +126,28 @@ images-background: $(STAMP)
 test: ## the whole suite: check, integration, e2e, the control-plane suites on kine, KinD; then the 25 slowest tests
 	@rm -rf $(REPORTS)
 	@$(MAKE) --no-print-directory images-background
-	@$(MAKE) --no-print-directory check integration e2e
-	$(call PYTEST_REPORT,kine) --datastore kine $(PARALLEL) $(KINE_SUITES)
+	@$(MAKE) --no-print-directory check
+	@$(MAKE) --no-print-directory -j2 integration-parallel kine-beside
+	@$(MAKE) --no-print-directory integration-serial e2e
 	$(call PYTEST_SERIAL,kine-serial,--datastore kine $(KINE_SUITES))
 	ROOST_KIND_JUNIT=$(CURDIR)/$(REPORTS)/kind.xml tests/e2e/kind/run.sh
 	@$(PY) -m tests.support.durations $(REPORTS)/*.xml
 
-# The control-plane and operator suites again on kine+SQLite, the datastore K3s runs on
-# (about 3.5 min warm here); `make test-kine` runs every control-plane test on it.
+# The control-plane and operator suites again on kine+SQLite, the datastore K3s runs on;
+# `make test-kine` runs every control-plane test on it. In `make test` they run in one
+# worker beside the integration tier's first pass, which leaves most of the CPU idle
+# (its tests wait on sockets, timers and the control plane); the output goes to a log,
+# so the integration pass's progress stays readable, and its summary line follows.
 KINE_SUITES := tests/integration/test_control_plane.py tests/integration/test_vehicle_operator.py \
   tests/integration/test_mission_operator.py
+
+.PHONY: kine-beside
+kine-beside: $(STAMP) cluster-build
+	@mkdir -p $(REPORTS)
+	@echo "kine: the control-plane suites on kine+SQLite, beside the integration pass (log: $(REPORTS)/kine.log)"
+	@$(call PYTEST_REPORT,kine) --datastore kine -m 'not serial' $(KINE_SUITES) >$(REPORTS)/kine.log 2>&1 \
+	  || { tail -n 80 $(REPORTS)/kine.log; echo "kine: failed (above: the end of its log)"; exit 1; }
+	@echo "kine: $$(tail -n 1 $(REPORTS)/kine.log)"
 
 .PHONY: test-kine
 test-kine: $(STAMP) cluster-build ## every control-plane test on kine+SQLite (K3s's datastore) instead of etcd
