@@ -200,8 +200,6 @@ def test_switching_back_and_forth_leaks_no_threads_sockets_or_clients() -> None:
         assert (threading.active_count(), me.num_fds(), hub.clients()) == (threads, fds, clients)
 
 
-# serial: a silence threshold judged in real time
-@pytest.mark.serial
 def test_unmirrored_standby_drifts_out_of_step_and_a_dead_active_still_fails_over() -> None:
     with hub_vehicle(["px4", "px4"], mirror=False) as v:
         for sim in v.sims:
@@ -236,8 +234,6 @@ def test_standby_rejecting_a_mirrored_mode_is_out_of_step() -> None:
         assert cond is not None and "DO_SET_MODE" in cond.message
 
 
-# serial: a silence threshold judged in real time
-@pytest.mark.serial
 def test_silent_standby_is_out_of_step() -> None:
     with hub_vehicle(["ardupilot", "ardupilot"]) as v:
         for sim in v.sims:
