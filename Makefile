@@ -104,13 +104,20 @@ integration-serial: $(STAMP) cluster-build
 	$(call PYTEST_SERIAL,integration-serial,tests/integration)
 	$(call PYTEST_REPORT,sync-paths) examples/missions/sync-paths
 
+# The e2e files wait on pods, kubelets, timers and flights, not on the CPU: two workers
+# take whole files each, each worker with its own control plane and real-node pool (the
+# node network's subnets, namespaces and cgroups are per pool; tests/e2e_node/conftest.py
+# puts the longest file first). The flights judged in real time (`serial`) run after, alone.
+E2E_PARALLEL := -n $(WORKERS) --dist loadfile -m 'not arm64_node and not serial'
+
 .PHONY: e2e
 e2e: $(STAMP) cluster-build ## end to end: the sandbox, the chart, the images, the dashboard in a browser, real nodes (skip without)
 	@docker/build-images.sh >/dev/null || echo "images: not built (above: why); tests/e2e/test_image_run.py skips or fails with the reason"
 	@docker/build-images.sh --mission examples/missions/sync-paths >/dev/null || echo "sync-paths image: not built (above: why); tests/e2e_node/test_sync_paths_real.py fails with the reason"
 	@$(MAKE) --no-print-directory browser || echo "browser: not installed (above: why); the dashboard's browser tests skip"
 	@mkdir -p $(REPORTS)
-	$(call PYTEST_REPORT,e2e) -m 'not arm64_node' tests/e2e tests/e2e_node
+	$(call PYTEST_REPORT,e2e) $(E2E_PARALLEL) tests/e2e tests/e2e_node
+	$(call PYTEST_SERIAL,e2e-serial,tests/e2e tests/e2e_node)
 
 # `make test` starts the image builds first, in the background at the lowest CPU
 # priority: most of the integration tier waits on sockets, timers and the control plane,

@@ -95,7 +95,7 @@ def sizes(images_dir: Path) -> list[Figure]:
                         )
                     )
         finally:
-            podman.call("system", "reset", "--force")
+            podman.reset()
     return figures
 
 

@@ -8,10 +8,17 @@ one, and no file in the image keeps a setuid or
 setgid bit. Skipped where buildah/podman are not installed (``make images`` installs
 them on Debian; other systems need a container engine for ``make e2e-kind`` instead).
 
-Every test runs on both platforms of the archives' image indexes: amd64 natively, arm64
+The tests run on both platforms of the archives' image indexes: amd64 natively, arm64
 under qemu-user-static (docker/binfmt.sh; skipped, saying why, where the kernel refuses),
 so the arm64 build's cross-compiled per-message path is imported and run by an arm64
-Python.
+Python. The operator and agent images of one platform are one root filesystem (the
+Dockerfile's runtime stage) with another entry point, which
+``test_operator_and_agent_images_share_one_root_filesystem`` checks on both platforms; so
+under emulation, where every container start costs seconds of qemu, only the agent image
+is run: what the emulated operator runs would be the same files (its ``roost_operator``
+modules import in ``test_image_modules_import_from_bytecode_on_a_read_only_root``, its
+entry point script is there), and what only the runtime decides (the entry point, the
+user) is the same on both platforms.
 """
 
 from __future__ import annotations
@@ -21,6 +28,7 @@ from pathlib import Path
 
 import pytest
 
+from roost_localcluster.binaries import HOST_ARCH
 from tests.support.images import (
     ARCHS,
     Podman,
@@ -41,6 +49,19 @@ pytestmark = [
 ]
 
 UID = 65532
+
+
+def operator_run_natively_only(request: pytest.FixtureRequest) -> None:
+    """Skip the emulated platform's run of the operator image: it would run the files the
+    agent image's emulated tests run (see the module docstring)."""
+    arch = request.node.callspec.params["podman"]
+    if arch != HOST_ARCH:
+        pytest.skip(
+            f"{arch} (emulated): the operator image is the agent image's root filesystem "
+            "(test_operator_and_agent_images_share_one_root_filesystem), run under emulation "
+            "by the agent image's tests"
+        )
+
 
 # Walks the image's root filesystem (there is no find(1) in it) for setuid/setgid files.
 SETUID_SCAN = """
@@ -72,7 +93,7 @@ def podman(
     for image in loaded.values():
         assert store.inspect(image)["Architecture"] == arch
     yield store, loaded
-    store.call("system", "reset", "--force")
+    store.reset()
 
 
 def test_agent_image_prints_usage_on_a_read_only_root(
@@ -84,7 +105,23 @@ def test_agent_image_prints_usage_on_a_read_only_root(
     assert done.stdout.startswith("usage: roost-agent"), done.stdout
 
 
-def test_operator_image_prints_usage(podman: tuple[Podman, dict[str, str]]) -> None:
+def test_operator_and_agent_images_share_one_root_filesystem(
+    podman: tuple[Podman, dict[str, str]],
+) -> None:
+    store, images = podman
+    operator, agent = (store.inspect(images[target]) for target in ("operator", "agent"))
+    assert operator["RootFS"]["Layers"] == agent["RootFS"]["Layers"]
+    assert operator["Config"]["User"] == agent["Config"]["User"]
+    assert (operator["Config"]["Entrypoint"], agent["Config"]["Entrypoint"]) == (
+        ["roost-operator"],
+        ["roost-agent"],
+    )
+
+
+def test_operator_image_prints_usage(
+    podman: tuple[Podman, dict[str, str]], request: pytest.FixtureRequest
+) -> None:
+    operator_run_natively_only(request)
     store, images = podman
     done = store.run(images["operator"], "--help")
     assert done.returncode == 0, done.stderr
@@ -92,7 +129,11 @@ def test_operator_image_prints_usage(podman: tuple[Podman, dict[str, str]]) -> N
 
 
 @pytest.mark.parametrize("target", ["operator", "agent"])
-def test_image_runs_as_non_root(podman: tuple[Podman, dict[str, str]], target: str) -> None:
+def test_image_runs_as_non_root(
+    podman: tuple[Podman, dict[str, str]], target: str, request: pytest.FixtureRequest
+) -> None:
+    if target == "operator":
+        operator_run_natively_only(request)
     store, images = podman
     assert store.inspect(images[target])["Config"]["User"] == f"{UID}:{UID}"
     probe = "import os, pwd; print(os.getuid(), os.getgid(), pwd.getpwuid(os.getuid()).pw_name)"
@@ -109,14 +150,15 @@ def test_image_modules_import_from_bytecode_on_a_read_only_root(
     MAVLink dialects the agent and the simulator speak."""
     store, images = podman
     probe = (
-        "import sys, roost_agent.main, roost_operator.main, roost_sim.main, kopf;"
+        "import shutil, sys, roost_agent.main, roost_operator.main, roost_sim.main, kopf;"
         "from kubernetes import watch, client;"
         "w = watch.Watch();"
         "print(w.get_return_type(client.CoreV1Api().list_node).__name__);"
+        "print(*(bool(shutil.which(s)) for s in ('roost-operator', 'roost-agent')));"
         "open('/opt/roost/probe', 'w')"
     )
     done = store.run(images["agent"], "-c", probe, entrypoint="python3")
-    assert done.stdout.strip() == "V1Node", done.stderr
+    assert done.stdout.split() == ["V1Node", "True", "True"], done.stdout + done.stderr
     assert "Read-only file system" in done.stderr, done.stderr
 
 

@@ -30,8 +30,11 @@ from tests.support.realfleet import GROUND_NODE
 from tests.support.realmission import MissionRun, RealMission
 from tests.support.syncrun import TRAJECTORIES
 
+# serial: every corrected transit is judged to half a second, and the simulated autopilots
+# fly in real time against a 200 ms silence limit; `make e2e` runs this alone, after the rest.
 pytestmark = [
     pytest.mark.slow,
+    pytest.mark.serial,
     pytest.mark.timeout(3600),  # builds the mission image first when not cached
     pytest.mark.skipif(
         bool(missing_tools()),

@@ -10,10 +10,12 @@ needs: the same ones docker/buildah.sh uses.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
 import subprocess
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -73,15 +75,29 @@ def archive(images_dir: Path, target: str) -> Path:
 
 @dataclass(frozen=True)
 class Podman:
-    """podman on an image store under ``root`` (delete the directory to drop it)."""
+    """podman on an image store under ``root``; :meth:`reset` drops it.
+
+    Its run root (locks, container state) is a short directory of its own in the system's
+    temporary directory: podman refuses a run root longer than 50 characters, which a
+    store under pytest's per-worker temporary directories exceeds."""
 
     root: Path
+
+    @property
+    def runroot(self) -> Path:
+        digest = hashlib.sha256(str(self.root.resolve()).encode()).hexdigest()[:12]
+        return Path(tempfile.gettempdir()) / f"podman-{digest}"
+
+    def reset(self) -> None:
+        """Remove every image and container of the store, and its run root."""
+        self.call("system", "reset", "--force")
+        shutil.rmtree(self.runroot, ignore_errors=True)
 
     def command(self, *args: str) -> list[str]:
         return [
             "podman",
             "--root", str(self.root / "storage"),
-            "--runroot", str(self.root / "run"),
+            "--runroot", str(self.runroot),
             "--storage-driver", "vfs",
             "--runtime", "runc",
             "--cgroup-manager", "cgroupfs",
