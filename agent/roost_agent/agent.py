@@ -260,11 +260,14 @@ class Agent(Actions, SpecChanges):
         )
         if self._hub is not None:  # routed frames are not held back while clients wait
             self._reader.hurry = self._hub.has_clients
+            self._reader.fast_route = self._hub.fast_route
+            self._reader.postponable = self.postponable
         self._in_step: dict[str, InStep] = {}
         self._views: dict[str, tuple[tuple[object, ...], AutopilotView]] = {}
         # The configuration the arbiter was settled under after the last full tick
         # (None: it was not, or no tick yet): see _nothing_new.
         self._settled_with: Running | None = None
+        self._postponable: tuple[AutopilotLink, float, float] | None = None
 
     # -- lifecycle ---------------------------------------------------------------------
 
@@ -536,7 +539,41 @@ class Agent(Actions, SpecChanges):
         if any(link.tracker.claim_pending for link in self._cfg.links.values()):
             soon = self._clock() + self._tick_s  # read the message that settles it soon
             due = soon if due is None else min(due, soon)
+            split = self._postponable
+            if split is not None:
+                self._postponable = (split[0], min(split[1], soon), split[2])
         return due
+
+    def postponable(self) -> tuple[AutopilotLink, float, float] | None:
+        """After a tick that returned a due from health thresholds: the active
+        autopilot's link, the first of those thresholds a new message of it would not
+        postpone, and the age of its last message at which the first one it would falls
+        (the late or silent stream). The reader's fast path waits for that age past the
+        active autopilot's latest frame instead of waking at the due while frames come
+        (roost_agent.fastpath). None: the due is the arbiter's, not a threshold's."""
+        return self._postponable
+
+    def _split_due(self, cfg: Running, judged: Mapping[str, Assessment], holding: bool) -> None:
+        """Set :meth:`postponable` for the thresholds of ``judged`` (``holding``: the
+        due is when the judgements stop holding, else when the next threshold falls)."""
+        self._postponable = None
+        active = cfg.links.get(self._state.active)
+        if active is None:
+            return
+        fixed, age = math.inf, math.inf
+        for name, link in cfg.links.items():
+            last = judged.get(name)
+            if last is None:
+                return
+            tracker = link.tracker
+            if link is active:
+                own, age = tracker.postponed_by_messages(last)
+                fixed = min(fixed, own)
+            else:
+                fixed = min(
+                    fixed, tracker.holds_until(last) if holding else tracker.next_threshold(last)
+                )
+        self._postponable = (active, fixed + JUDGE_LATE_S, age + JUDGE_LATE_S)
 
     def tick(self) -> float | None:
         """One decision: assess, step the arbiter, switch first, then everything else.
@@ -558,6 +595,7 @@ class Agent(Actions, SpecChanges):
             if in_step:
                 with self._lock:
                     self._in_step = in_step
+            self._split_due(cfg, self._assessments, holding=True)
             return quiet_until + JUDGE_LATE_S
         assessments = {name: link.tracker.assess(now) for name, link in cfg.links.items()}
         views = {name: self._view(a, in_step.get(name)) for name, a in assessments.items()}
@@ -582,8 +620,10 @@ class Agent(Actions, SpecChanges):
         if settled(self._state, views, cfg.policy):
             self._settled_with = cfg
             due = min(link.tracker.next_threshold(assessments[n]) for n, link in cfg.links.items())
+            self._split_due(cfg, assessments, holding=False)
             return due + JUDGE_LATE_S
         self._settled_with = None
+        self._postponable = None
         return next_due(self._state, cfg.policy, now)
 
     def _nothing_new(self, cfg: Running, now: float, in_step: Mapping[str, InStep]) -> float | None:

@@ -89,6 +89,8 @@ SUITES = (
     # signed hub endpoints and a key rotation (the links re-key, answer each autopilot
     # with the key it proved)
     "tests/integration/test_hub_signing.py",
+    # the hub's fast path (_udpbatch.c) against the Python path: the same frames routed
+    "tests/integration/test_hub_fast_path.py",
 )
 
 
