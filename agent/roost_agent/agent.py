@@ -267,7 +267,10 @@ class Agent(Actions, SpecChanges):
         # The configuration the arbiter was settled under after the last full tick
         # (None: it was not, or no tick yet): see _nothing_new.
         self._settled_with: Running | None = None
-        self._postponable: tuple[AutopilotLink, float, float] | None = None
+        # What the last tick's due came from (Agent.postponable): the configuration, the
+        # judgements, whether it was when they stop holding; None: the arbiter's due.
+        self._due_from: tuple[Running, Mapping[str, Assessment], bool] | None = None
+        self._postpone_before = math.inf  # a claim waits: read again by then at the latest
 
     # -- lifecycle ---------------------------------------------------------------------
 
@@ -535,13 +538,12 @@ class Agent(Actions, SpecChanges):
     def _tick_while_running(self) -> float | None:
         if self._stop.is_set():  # stopping: the links close, nothing is decided on that
             return None
+        self._postpone_before = math.inf
         due = self.tick()
         if any(link.tracker.claim_pending for link in self._cfg.links.values()):
             soon = self._clock() + self._tick_s  # read the message that settles it soon
             due = soon if due is None else min(due, soon)
-            split = self._postponable
-            if split is not None:
-                self._postponable = (split[0], min(split[1], soon), split[2])
+            self._postpone_before = soon
         return due
 
     def postponable(self) -> tuple[AutopilotLink, float, float] | None:
@@ -550,30 +552,29 @@ class Agent(Actions, SpecChanges):
         postpone, and the age of its last message at which the first one it would falls
         (the late or silent stream). The reader's fast path waits for that age past the
         active autopilot's latest frame instead of waking at the due while frames come
-        (roost_agent.fastpath). None: the due is the arbiter's, not a threshold's."""
-        return self._postponable
-
-    def _split_due(self, cfg: Running, judged: Mapping[str, Assessment], holding: bool) -> None:
-        """Set :meth:`postponable` for the thresholds of ``judged`` (``holding``: the
-        due is when the judgements stop holding, else when the next threshold falls)."""
-        self._postponable = None
+        (roost_agent.fastpath). None: the due is the arbiter's, not a threshold's.
+        Worked out when asked (on the reader thread, before it waits), not at every tick:
+        only the fast path asks."""
+        judged = self._due_from
+        if judged is None:
+            return None
+        cfg, assessments, holding = judged
         active = cfg.links.get(self._state.active)
         if active is None:
-            return
-        fixed, age = math.inf, math.inf
+            return None
+        fixed, age = self._postpone_before, math.inf
         for name, link in cfg.links.items():
-            last = judged.get(name)
+            last = assessments.get(name)
             if last is None:
-                return
+                return None
             tracker = link.tracker
             if link is active:
                 own, age = tracker.postponed_by_messages(last)
-                fixed = min(fixed, own)
+                fixed = min(fixed, own + JUDGE_LATE_S)
             else:
-                fixed = min(
-                    fixed, tracker.holds_until(last) if holding else tracker.next_threshold(last)
-                )
-        self._postponable = (active, fixed + JUDGE_LATE_S, age + JUDGE_LATE_S)
+                later = tracker.holds_until(last) if holding else tracker.next_threshold(last)
+                fixed = min(fixed, later + JUDGE_LATE_S)
+        return active, fixed, age + JUDGE_LATE_S
 
     def tick(self) -> float | None:
         """One decision: assess, step the arbiter, switch first, then everything else.
@@ -595,7 +596,7 @@ class Agent(Actions, SpecChanges):
             if in_step:
                 with self._lock:
                     self._in_step = in_step
-            self._split_due(cfg, self._assessments, holding=True)
+            self._due_from = (cfg, self._assessments, True)
             return quiet_until + JUDGE_LATE_S
         assessments = {name: link.tracker.assess(now) for name, link in cfg.links.items()}
         views = {name: self._view(a, in_step.get(name)) for name, a in assessments.items()}
@@ -620,10 +621,10 @@ class Agent(Actions, SpecChanges):
         if settled(self._state, views, cfg.policy):
             self._settled_with = cfg
             due = min(link.tracker.next_threshold(assessments[n]) for n, link in cfg.links.items())
-            self._split_due(cfg, assessments, holding=False)
+            self._due_from = (cfg, assessments, False)
             return due + JUDGE_LATE_S
         self._settled_with = None
-        self._postponable = None
+        self._due_from = None
         return next_due(self._state, cfg.policy, now)
 
     def _nothing_new(self, cfg: Running, now: float, in_step: Mapping[str, InStep]) -> float | None:
