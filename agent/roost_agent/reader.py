@@ -414,7 +414,11 @@ class LinkReader:
                 for s in self._sessions.values()
                 if s is not session and s.urgent_fd is not None
             )
-        items, _ = pump(route, wake, timeout, due, urgent_returns=urgent_ok, limit=_PUMP_LIMIT)
+        try:
+            items, _ = pump(route, wake, timeout, due, urgent_returns=urgent_ok, limit=_PUMP_LIMIT)
+        except OSError:
+            # The link's own read meets the failure again and reports it (ReadLink.failed).
+            return [session]
         if time.monotonic() < now + timeout:  # early: urgent sockets wait a short interval
             self._urgent_quiet_until = time.monotonic() + self._short_tick_s
         ready: list[Session | None] = [
