@@ -114,6 +114,10 @@ class _Writer:
         self.write(self.encoder.encode(name, **values))
 
 
+def _nothing() -> None:
+    pass
+
+
 class AckMailbox:
     """COMMAND_ACKs by command number, so a sender can wait for the answer to its command."""
 
@@ -241,11 +245,26 @@ class AutopilotLink:
         self._record: Callable[[bytes], None] | None = None
         # LOG_ENTRY and LOG_DATA go here while an autopilot log is being fetched
         # (roost_agent.records_logs); dropped otherwise.
-        self.log_sink: Callable[[Frame], None] | None = None
+        self._log_sink: Callable[[Frame], None] | None = None
         self.params = ParamInbox(PARAM_INBOX_MAX)
         self.mission = MissionInbox(MISSION_INBOX_MAX)
         # The autopilot's last AUTOPILOT_VERSION (roost_agent.firmware reads it).
         self.version: Frame | None = None
+
+    @property
+    def log_sink(self) -> Callable[[Frame], None] | None:
+        """Where LOG_ENTRY and LOG_DATA go while the agent fetches the autopilot's logs."""
+        return self._log_sink
+
+    @log_sink.setter
+    def log_sink(self, sink: Callable[[Frame], None] | None) -> None:
+        self._log_sink = sink
+        reader = self._own_reader or self._reader
+        if reader is not None:
+            # Once set, the hub's fast path must not route a log reply: the reader's wait
+            # in C (roost_agent.fastpath) began before, so it is woken and this returns
+            # once the reader is back in Python; its next route sees the sink.
+            reader.call(_nothing)
 
     @property
     def record(self) -> Callable[[bytes], None] | None:
@@ -525,7 +544,7 @@ class AutopilotLink:
         elif kind == "AUTOPILOT_VERSION":
             self.version = msg
         elif kind in LOG_REPLIES:
-            sink = self.log_sink
+            sink = self._log_sink
             if sink is not None:
                 sink(msg)
         if self.tracker.observe(msg, now):
