@@ -48,7 +48,8 @@ def _ext_modules() -> list[Any]:
 
 C_EXTENSIONS = (
     # recvmmsg with kernel arrival stamps for the UDP links (roost_agent.transport falls
-    # back to Python reads without it)
+    # back to Python reads without it), and the hub's fast path: the active autopilot's
+    # frames routed to plain UDP clients in C (roost_agent.fastpath; without it, in Python)
     Extension("roost_agent._udpbatch", ["agent/roost_agent/_udpbatch.c"]),
 )
 """Hand-written C extension modules, built with the compiled modules (Linux only)."""

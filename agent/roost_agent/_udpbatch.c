@@ -13,61 +13,306 @@
  * time (SO_TIMESTAMPNS) in seconds, None when the socket does not ask for it. Empty
  * datagrams carry nothing and are skipped. OSError for a failure other than an empty
  * queue or a refused earlier send (ECONNREFUSED, which the Python reads also ignore).
+ *
+ * The hub's fast path (roost_agent.fastpath), in the same module as its reads are these:
+ * the active autopilot's frames routed to plain UDP clients in C. Why: with a hub client connected the link reader woke for every datagram so routed
+ * frames were not held back, and each wake-up (poll, read, parse, the source lock and
+ * health bookkeeping, the send) cost the agent more in Python than a C router spends on
+ * a whole message. Here the reader waits in C (the GIL released), and each datagram of
+ * the active autopilot is read (recvmmsg, kernel arrival stamps), checked and sent on to
+ * the clients (sendmmsg) in C at once; Python gets what was read in one batch, when the
+ * decision loop is due, when something must be seen at once, or when the batch is full,
+ * and judges it exactly as before (source lock, health, the hub's own bookkeeping).
+ *
+ * What is forwarded here is exactly what the Python path would forward to a plain
+ * client, or nothing (then Python forwards it, and this call forwards nothing more, so
+ * clients see frames in arrival order): a datagram from the locked address that holds
+ * only whole MAVLink 2 frames, unsigned, of known message ids with a good CRC, from the
+ * autopilot's system and component, none addressed to the agent (its component and the
+ * autopilot's system) and no log reply while the agent holds the log session. The hub
+ * hands a route here only when no rewrite, signature or TCP client is involved
+ * (roost_agent.hub.Hub.fast_route).
+ *
+ * set_messages(table): {msg_id: (crc_extra, target_system offset, target_component
+ * offset)} (offset -1: the message has no such field), the known message ids.
+ *
+ * pump(bulk_fd, urgent_fd, wake_fds, (timeout_s, due_s, age_s, offset), clients, locked, sysid,
+ *      compid, agent_comp, log_busy, urgent_returns, held, limit)
+ *   -> (items, held, woke): waits up to timeout_s, and up to due_s unless the autopilot's
+ *   frames keep coming: with age_s >= 0, each datagram routed postpones that deadline to
+ *   its arrival (kernel stamp minus offset: the agent's monotonic clock) plus age_s (the
+ *   health tracker's thresholds on the last message's age: a silence is seen when it
+ *   falls due, and a stream that flows wakes nobody). items are (data, sender, stamp, routed)
+ *   in arrival order (routed: sent to every client here); held: read but possibly
+ *   newer than something still queued on the other socket of a steered pair (the
+ *   Python reader's rule, roost_agent.transport._Udp.receive_batch), to be passed back;
+ *   woke: whether a wake fd became readable.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
 #include <arpa/inet.h>
 #include <errno.h>
+#include <math.h>
 #include <netinet/in.h>
+#include <poll.h>
 #include <string.h>
 #include <sys/socket.h>
 #include <time.h>
 
 #define BATCH 16
-#define SLOT 65536 /* a UDP datagram's payload is at most 65,507 bytes: never truncated */
-#define CONTROL 64 /* room for one timespec control message, as the Python read asks */
+#define SLOT 65536
+#define CONTROL 64
+#define MAX_CLIENTS 32
+#define MAX_WAKE 16
+#define MAX_FRAMES 64 /* frames of one datagram forwarded here; more: Python's */
+#define V2_MAGIC 0xFD
+#define V2_HEADER 10
+#define LOG_ENTRY 118
+#define LOG_DATA 120
 
-static char *slots; /* BATCH * SLOT, allocated on first use; only touched pages count */
+typedef struct {
+    unsigned int id;
+    unsigned char crc_extra;
+    int target_system, target_component;
+} Known;
 
-static PyObject *sender(const struct sockaddr_in *address, socklen_t length) {
-    char host[INET_ADDRSTRLEN];
-    if (length < sizeof(struct sockaddr_in) || address->sin_family != AF_INET ||
-        inet_ntop(AF_INET, &address->sin_addr, host, sizeof host) == NULL) {
-        Py_RETURN_NONE;
+static Known *known;
+static Py_ssize_t known_count;
+static char *slots;
+
+typedef struct {
+    PyObject *data;
+    PyObject *sender;
+    double stamp; /* NAN: none */
+    int urgent;
+} Entry;
+
+static const Known *lookup(unsigned int id) {
+    Py_ssize_t lo = 0, hi = known_count;
+    while (lo < hi) {
+        Py_ssize_t mid = (lo + hi) / 2;
+        if (known[mid].id < id) {
+            lo = mid + 1;
+        } else {
+            hi = mid;
+        }
     }
-    return Py_BuildValue("(si)", host, (int)ntohs(address->sin_port));
+    return lo < known_count && known[lo].id == id ? &known[lo] : NULL;
 }
 
-static PyObject *stamp(struct msghdr *header) {
+static int compare_known(const void *a, const void *b) {
+    unsigned int x = ((const Known *)a)->id, y = ((const Known *)b)->id;
+    return x < y ? -1 : x > y;
+}
+
+static PyObject *set_messages(PyObject *module, PyObject *table) {
+    (void)module;
+    if (!PyDict_Check(table)) {
+        PyErr_SetString(PyExc_TypeError, "set_messages: a dict");
+        return NULL;
+    }
+    Py_ssize_t n = PyDict_Size(table), pos = 0, i = 0;
+    Known *out = PyMem_RawMalloc(sizeof(Known) * (size_t)(n ? n : 1));
+    if (out == NULL) {
+        return PyErr_NoMemory();
+    }
+    PyObject *key, *value;
+    while (PyDict_Next(table, &pos, &key, &value)) {
+        unsigned long id = PyLong_AsUnsignedLong(key);
+        int crc, ts, tc;
+        if ((id == (unsigned long)-1 && PyErr_Occurred()) ||
+            !PyArg_ParseTuple(value, "iii", &crc, &ts, &tc)) {
+            PyMem_RawFree(out);
+            return NULL;
+        }
+        out[i].id = (unsigned int)id;
+        out[i].crc_extra = (unsigned char)crc;
+        out[i].target_system = ts;
+        out[i].target_component = tc;
+        i++;
+    }
+    qsort(out, (size_t)n, sizeof(Known), compare_known);
+    PyMem_RawFree(known);
+    known = out;
+    known_count = n;
+    Py_RETURN_NONE;
+}
+
+/* X.25 (MCRF4XX), as MAVLink's crc_accumulate. */
+static unsigned short crc_add(unsigned short crc, unsigned char byte) {
+    unsigned char tmp = byte ^ (unsigned char)(crc & 0xFF);
+    tmp ^= (unsigned char)(tmp << 4);
+    return (unsigned short)((crc >> 8) ^ ((unsigned short)tmp << 8) ^ ((unsigned short)tmp << 3) ^
+                            (tmp >> 4));
+}
+
+typedef struct {
+    int sysid, compid, agent_comp, log_busy;
+} Rules;
+
+/* Where the frames of a forwardable datagram start and end (count), or -1. */
+static int frames_of(const unsigned char *d, Py_ssize_t total, const Rules *rules,
+                     Py_ssize_t *starts, Py_ssize_t *ends) {
+    Py_ssize_t at = 0;
+    int count = 0;
+    if (total == 0) {
+        return -1;
+    }
+    while (at < total) {
+        if (count == MAX_FRAMES || total - at < V2_HEADER + 2 || d[at] != V2_MAGIC) {
+            return -1;
+        }
+        unsigned int mlen = d[at + 1];
+        if (d[at + 2] != 0) { /* signed, or flags nobody knows: Python's */
+            return -1;
+        }
+        Py_ssize_t end = at + V2_HEADER + mlen + 2;
+        if (end > total) {
+            return -1;
+        }
+        unsigned int id = d[at + 7] | (unsigned int)d[at + 8] << 8 | (unsigned int)d[at + 9] << 16;
+        const Known *k = lookup(id);
+        if (k == NULL || d[at + 5] != rules->sysid || d[at + 6] != rules->compid) {
+            return -1;
+        }
+        if (rules->log_busy && (id == LOG_ENTRY || id == LOG_DATA)) {
+            return -1;
+        }
+        const unsigned char *payload = d + at + V2_HEADER;
+        if (k->target_component >= 0) {
+            int tc = (unsigned int)k->target_component < mlen ? payload[k->target_component] : 0;
+            int ts = k->target_system < 0                           ? -1
+                     : (unsigned int)k->target_system < mlen ? payload[k->target_system]
+                                                              : 0;
+            if (tc == rules->agent_comp && ts == rules->sysid) {
+                return -1; /* an answer to the agent: it stays with the agent */
+            }
+        }
+        unsigned short crc = 0xFFFF;
+        for (Py_ssize_t i = at + 1; i < at + V2_HEADER + (Py_ssize_t)mlen; i++) {
+            crc = crc_add(crc, d[i]);
+        }
+        crc = crc_add(crc, k->crc_extra);
+        Py_ssize_t crc_at = at + V2_HEADER + mlen;
+        if ((crc & 0xFF) != d[crc_at] || (crc >> 8) != d[crc_at + 1]) {
+            return -1;
+        }
+        starts[count] = at;
+        ends[count] = end;
+        count++;
+        at = end;
+    }
+    return count;
+}
+
+typedef struct {
+    int fd;
+    struct sockaddr_in address;
+} Client;
+
+static void forward(const unsigned char *d, int count, const Py_ssize_t *starts,
+                    const Py_ssize_t *ends, const Client *clients, int n_clients) {
+    struct mmsghdr messages[MAX_FRAMES];
+    struct iovec vectors[MAX_FRAMES];
+    for (int c = 0; c < n_clients; c++) {
+        memset(messages, 0, sizeof(struct mmsghdr) * (size_t)count);
+        for (int i = 0; i < count; i++) {
+            vectors[i].iov_base = (void *)(d + starts[i]);
+            vectors[i].iov_len = (size_t)(ends[i] - starts[i]);
+            messages[i].msg_hdr.msg_iov = &vectors[i];
+            messages[i].msg_hdr.msg_iovlen = 1;
+            messages[i].msg_hdr.msg_name = (void *)&clients[c].address;
+            messages[i].msg_hdr.msg_namelen = sizeof(struct sockaddr_in);
+        }
+        int sent = 0;
+        while (sent < count) {
+            int got = sendmmsg(clients[c].fd, messages + sent, (unsigned int)(count - sent),
+                               MSG_DONTWAIT);
+            if (got <= 0) {
+                break; /* as the Python path: a failed send to a UDP client is dropped */
+            }
+            sent += got;
+        }
+    }
+}
+
+static double stamp_of(struct msghdr *header) {
     for (struct cmsghdr *c = CMSG_FIRSTHDR(header); c != NULL; c = CMSG_NXTHDR(header, c)) {
         if (c->cmsg_level == SOL_SOCKET && c->cmsg_type == SCM_TIMESTAMPNS &&
             c->cmsg_len >= CMSG_LEN(sizeof(struct timespec))) {
             struct timespec ts;
             memcpy(&ts, CMSG_DATA(c), sizeof ts);
-            return PyFloat_FromDouble((double)ts.tv_sec + (double)ts.tv_nsec * 1e-9);
+            return (double)ts.tv_sec + (double)ts.tv_nsec * 1e-9;
         }
     }
-    Py_RETURN_NONE;
+    return NAN;
 }
 
-static PyObject *receive(PyObject *module, PyObject *args) {
-    (void)module;
-    int fd;
-    Py_ssize_t limit;
-    if (!PyArg_ParseTuple(args, "in:receive", &fd, &limit)) {
-        return NULL;
+/* The sender as a (host, port) tuple: ``locked`` itself when it is that address. */
+static PyObject *sender_of(const struct sockaddr_in *a, socklen_t length,
+                           const struct sockaddr_in *locked, PyObject *locked_obj) {
+    if (length < sizeof(struct sockaddr_in) || a->sin_family != AF_INET) {
+        Py_RETURN_NONE;
     }
-    if (slots == NULL) {
-        slots = PyMem_RawMalloc((size_t)BATCH * SLOT);
-        if (slots == NULL) {
-            return PyErr_NoMemory();
-        }
+    if (locked_obj != Py_None && a->sin_port == locked->sin_port &&
+        a->sin_addr.s_addr == locked->sin_addr.s_addr) {
+        Py_INCREF(locked_obj);
+        return locked_obj;
     }
-    PyObject *out = PyList_New(0);
-    if (out == NULL) {
-        return NULL;
+    char host[INET_ADDRSTRLEN];
+    if (inet_ntop(AF_INET, &a->sin_addr, host, sizeof host) == NULL) {
+        Py_RETURN_NONE;
     }
+    return Py_BuildValue("(si)", host, (int)ntohs(a->sin_port));
+}
+
+typedef struct {
+    Entry *items;
+    Py_ssize_t count, size;
+} Entries;
+
+/* Room for ``more`` entries, so that moving entries between lists cannot fail. */
+static int reserve(Entries *list, Py_ssize_t more) {
+    if (list->count + more <= list->size) {
+        return 0;
+    }
+    Py_ssize_t size = list->size ? list->size : 64;
+    while (size < list->count + more) {
+        size *= 2;
+    }
+    Entry *grown = PyMem_Realloc(list->items, sizeof(Entry) * (size_t)size);
+    if (grown == NULL) {
+        PyErr_NoMemory();
+        return -1;
+    }
+    list->items = grown;
+    list->size = size;
+    return 0;
+}
+
+static int push(Entries *list, Entry entry) {
+    if (reserve(list, 1) < 0) {
+        return -1;
+    }
+    list->items[list->count++] = entry;
+    return 0;
+}
+
+static void clear(Entries *list) {
+    for (Py_ssize_t i = 0; i < list->count; i++) {
+        Py_XDECREF(list->items[i].data);
+        Py_XDECREF(list->items[i].sender);
+    }
+    PyMem_Free(list->items);
+    list->items = NULL;
+    list->count = list->size = 0;
+}
+
+/* Up to ``limit`` queued datagrams of ``fd`` appended to ``out`` (senders equal to
+ * ``locked`` as that very object); -1 on error. */
+static int read_socket(int fd, Py_ssize_t limit, int urgent, const struct sockaddr_in *locked,
+                       PyObject *locked_obj, Entries *out) {
     struct mmsghdr messages[BATCH];
     struct iovec vectors[BATCH];
     struct sockaddr_in addresses[BATCH];
@@ -75,6 +320,7 @@ static PyObject *receive(PyObject *module, PyObject *args) {
         char bytes[CONTROL];
         struct cmsghdr align;
     } controls[BATCH];
+    int total = 0;
     while (limit > 0) {
         unsigned int want = limit < BATCH ? (unsigned int)limit : BATCH;
         memset(messages, 0, sizeof(struct mmsghdr) * want);
@@ -94,47 +340,414 @@ static PyObject *receive(PyObject *module, PyObject *args) {
             if (errno == EAGAIN || errno == EWOULDBLOCK || errno == ECONNREFUSED) {
                 break;
             }
-            Py_DECREF(out);
-            return PyErr_SetFromErrno(PyExc_OSError);
+            PyErr_SetFromErrno(PyExc_OSError);
+            return -1;
         }
         for (int i = 0; i < got; i++) {
             struct msghdr *h = &messages[i].msg_hdr;
             if (messages[i].msg_len == 0) {
                 continue;
             }
-            PyObject *data = PyBytes_FromStringAndSize(slots + (size_t)i * SLOT,
-                                                       (Py_ssize_t)messages[i].msg_len);
-            PyObject *from = data == NULL ? NULL : sender(&addresses[i], h->msg_namelen);
-            PyObject *when = from == NULL ? NULL : stamp(h);
-            PyObject *item = when == NULL ? NULL : PyTuple_Pack(3, data, from, when);
-            Py_XDECREF(data);
-            Py_XDECREF(from);
-            Py_XDECREF(when);
-            if (item == NULL || PyList_Append(out, item) < 0) {
-                Py_XDECREF(item);
-                Py_DECREF(out);
-                return NULL;
+            Entry e;
+            e.urgent = urgent;
+            e.stamp = stamp_of(h);
+            e.data = PyBytes_FromStringAndSize(slots + (size_t)i * SLOT,
+                                               (Py_ssize_t)messages[i].msg_len);
+            e.sender = e.data == NULL ? NULL
+                                      : sender_of(&addresses[i], h->msg_namelen, locked, locked_obj);
+            if (e.sender == NULL || push(out, e) < 0) {
+                Py_XDECREF(e.data);
+                Py_XDECREF(e.sender);
+                return -1;
             }
-            Py_DECREF(item);
+            total++;
         }
         limit -= got;
         if ((unsigned int)got < want) {
-            break; /* the queue is empty now: no read that fails to say so */
+            break;
         }
     }
+    return total;
+}
+
+static double realtime(void) {
+    struct timespec ts;
+    clock_gettime(CLOCK_REALTIME, &ts);
+    return (double)ts.tv_sec + (double)ts.tv_nsec * 1e-9;
+}
+
+static double monotonic(void) {
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (double)ts.tv_sec + (double)ts.tv_nsec * 1e-9;
+}
+
+static double arrival(const Entry *e) { return isnan(e->stamp) ? INFINITY : e->stamp; }
+
+static int compare_entries(const void *a, const void *b) {
+    double x = arrival(a), y = arrival(b);
+    return x < y ? -1 : x > y;
+}
+
+static int address_of(PyObject *pair, struct sockaddr_in *out) {
+    const char *host;
+    int port;
+    if (!PyArg_ParseTuple(pair, "si", &host, &port)) {
+        return -1;
+    }
+    memset(out, 0, sizeof *out);
+    out->sin_family = AF_INET;
+    out->sin_port = htons((unsigned short)port);
+    if (inet_pton(AF_INET, host, &out->sin_addr) != 1) {
+        PyErr_Format(PyExc_ValueError, "not an IPv4 address: %s", host);
+        return -1;
+    }
+    return 0;
+}
+
+static PyObject *entry_tuple(const Entry *e, int routed) {
+    PyObject *when = isnan(e->stamp) ? Py_NewRef(Py_None) : PyFloat_FromDouble(e->stamp);
+    if (when == NULL) {
+        return NULL;
+    }
+    PyObject *out = routed < 0 ? PyTuple_Pack(3, e->data, e->sender, when)
+                               : PyTuple_Pack(4, e->data, e->sender, when,
+                                              routed ? Py_True : Py_False);
+    Py_DECREF(when);
     return out;
+}
+
+static int ensure_slots(void) {
+    if (slots == NULL) {
+        slots = PyMem_RawMalloc((size_t)BATCH * SLOT);
+        if (slots == NULL) {
+            PyErr_NoMemory();
+            return -1;
+        }
+    }
+    return 0;
+}
+
+static PyObject *receive(PyObject *module, PyObject *args) {
+    (void)module;
+    int fd;
+    Py_ssize_t limit;
+    if (!PyArg_ParseTuple(args, "in:receive", &fd, &limit)) {
+        return NULL;
+    }
+    struct sockaddr_in nobody;
+    memset(&nobody, 0, sizeof nobody);
+    Entries read = {0};
+    PyObject *out = NULL;
+    if (ensure_slots() < 0 || read_socket(fd, limit, 0, &nobody, Py_None, &read) < 0) {
+        goto done;
+    }
+    out = PyList_New(read.count);
+    for (Py_ssize_t i = 0; out != NULL && i < read.count; i++) {
+        PyObject *item = entry_tuple(&read.items[i], -1);
+        if (item == NULL) {
+            Py_CLEAR(out);
+            break;
+        }
+        PyList_SET_ITEM(out, i, item);
+    }
+done:
+    clear(&read);
+    return out;
+}
+
+static PyObject *pump(PyObject *module, PyObject *args) {
+    (void)module;
+    int bulk_fd, urgent_fd, sysid, compid, agent_comp, log_busy, urgent_returns;
+    double timeout_s, due_s, age_s, offset;
+    PyObject *wake_list, *client_list, *locked_obj, *held_in;
+    Py_ssize_t limit;
+    if (!PyArg_ParseTuple(args, "iiO(dddd)OOiiippOn:pump", &bulk_fd, &urgent_fd, &wake_list,
+                          &timeout_s, &due_s, &age_s, &offset, &client_list, &locked_obj,
+                          &sysid, &compid, &agent_comp, &log_busy, &urgent_returns, &held_in,
+                          &limit)) {
+        return NULL;
+    }
+    if (ensure_slots() < 0) {
+        return NULL;
+    }
+    struct pollfd fds[2 + MAX_WAKE];
+    int nfds = 0, n_wake = 0;
+    fds[nfds++] = (struct pollfd){.fd = bulk_fd, .events = POLLIN};
+    if (urgent_fd >= 0) {
+        fds[nfds++] = (struct pollfd){.fd = urgent_fd, .events = POLLIN};
+    }
+    int wake_at = nfds;
+    Py_ssize_t wakes = PySequence_Size(wake_list);
+    if (wakes < 0) {
+        return NULL;
+    }
+    for (Py_ssize_t i = 0; i < wakes && n_wake < MAX_WAKE; i++) {
+        PyObject *item = PySequence_GetItem(wake_list, i);
+        if (item == NULL) {
+            return NULL;
+        }
+        int fd = (int)PyLong_AsLong(item);
+        Py_DECREF(item);
+        if (fd == -1 && PyErr_Occurred()) {
+            return NULL;
+        }
+        fds[nfds++] = (struct pollfd){.fd = fd, .events = POLLIN};
+        n_wake++;
+    }
+    Client clients[MAX_CLIENTS];
+    int n_clients = 0;
+    Py_ssize_t given = PySequence_Size(client_list);
+    if (given < 0) {
+        return NULL;
+    }
+    for (Py_ssize_t i = 0; i < given && n_clients < MAX_CLIENTS; i++) {
+        PyObject *item = PySequence_GetItem(client_list, i);
+        if (item == NULL) {
+            return NULL;
+        }
+        PyObject *where;
+        int ok = PyArg_ParseTuple(item, "iO", &clients[n_clients].fd, &where) &&
+                 address_of(where, &clients[n_clients].address) == 0;
+        Py_DECREF(item);
+        if (!ok) {
+            return NULL;
+        }
+        n_clients++;
+    }
+    struct sockaddr_in locked;
+    memset(&locked, 0, sizeof locked);
+    if (locked_obj != Py_None && address_of(locked_obj, &locked) < 0) {
+        return NULL;
+    }
+    Rules rules = {sysid, compid, agent_comp, log_busy};
+
+    Entries held = {0}, fresh = {0}, out = {0};
+    unsigned char *routed = NULL;
+    Py_ssize_t routed_size = 0;
+    PyObject *result = NULL;
+    /* what the caller held from before */
+    Py_ssize_t n_held = PySequence_Size(held_in);
+    if (n_held < 0) {
+        return NULL;
+    }
+    for (Py_ssize_t i = 0; i < n_held; i++) {
+        PyObject *item = PySequence_GetItem(held_in, i);
+        if (item == NULL) {
+            goto fail;
+        }
+        PyObject *data, *from, *when;
+        if (!PyArg_ParseTuple(item, "OOO", &data, &from, &when)) {
+            Py_DECREF(item);
+            goto fail;
+        }
+        Entry e = {Py_NewRef(data), Py_NewRef(from), when == Py_None ? NAN : PyFloat_AsDouble(when),
+                   0};
+        Py_DECREF(item);
+        if (push(&held, e) < 0) {
+            Py_DECREF(e.data);
+            Py_DECREF(e.sender);
+            goto fail;
+        }
+    }
+
+    int forwarding = n_clients > 0 && locked_obj != Py_None;
+    int woke = 0, done = 0, looks_after_hold = 0;
+    double started = monotonic();
+    double hard = started + (timeout_s > 0 ? timeout_s : 0);
+    double due = started + (due_s > 0 ? due_s : 0); /* moves with arrivals (age_s >= 0) */
+    double deadline = due < hard ? due : hard;
+    while (!done) {
+        int ready_data = 0;
+        if (held.count > 0 && looks_after_hold < 2) {
+            ready_data = 1; /* one more look at once, as the Python reader takes */
+            looks_after_hold++;
+        } else {
+            double left = deadline - monotonic();
+            int wait_ms = left > 0 ? (int)ceil(left * 1000) : 0;
+            int polled;
+            Py_BEGIN_ALLOW_THREADS;
+            polled = poll(fds, (nfds_t)nfds, wait_ms);
+            Py_END_ALLOW_THREADS;
+            if (polled < 0) {
+                if (errno == EINTR) {
+                    if (PyErr_CheckSignals() < 0) {
+                        goto fail;
+                    }
+                    continue;
+                }
+                PyErr_SetFromErrno(PyExc_OSError);
+                goto fail;
+            }
+            if (polled == 0) {
+                break; /* timed out: the decision loop is due */
+            }
+            for (int i = wake_at; i < nfds; i++) {
+                if (fds[i].revents) {
+                    woke = 1;
+                }
+            }
+            for (int i = 0; i < wake_at; i++) {
+                if (fds[i].revents) {
+                    ready_data = 1;
+                }
+            }
+            if (fds[0].revents & (POLLERR | POLLNVAL) ||
+                (urgent_fd >= 0 && fds[1].revents & (POLLERR | POLLNVAL))) {
+                done = 1; /* the reads tell Python what failed */
+            }
+            if (woke) {
+                done = 1;
+            }
+        }
+        if (ready_data) {
+            double cutoff = realtime();
+            int got_urgent = 0, got_bulk = 0;
+            if (urgent_fd >= 0) {
+                got_urgent = read_socket(urgent_fd, BATCH * 4, 1, &locked, locked_obj, &fresh);
+                if (got_urgent < 0) {
+                    goto fail;
+                }
+                if (got_urgent >= BATCH * 4) {
+                    cutoff = fmin(cutoff, arrival(&fresh.items[fresh.count - 1]));
+                }
+            }
+            got_bulk = read_socket(bulk_fd, BATCH * 4, 0, &locked, locked_obj, &fresh);
+            if (got_bulk < 0) {
+                goto fail;
+            }
+            if (urgent_fd >= 0 && got_bulk >= BATCH * 4) {
+                cutoff = fmin(cutoff, arrival(&fresh.items[fresh.count - 1]));
+            }
+            double looked = realtime();
+            /* merge what was held with what was read, by arrival (room first: moving
+             * an entry must not fail halfway) */
+            if (reserve(&fresh, held.count) < 0) {
+                goto fail;
+            }
+            memcpy(fresh.items + fresh.count, held.items, sizeof(Entry) * (size_t)held.count);
+            fresh.count += held.count;
+            held.count = 0;
+            if (reserve(&held, fresh.count) < 0 || reserve(&out, fresh.count) < 0) {
+                goto fail;
+            }
+            if (out.count + fresh.count > routed_size) {
+                Py_ssize_t size = routed_size ? routed_size : 64;
+                while (size < out.count + fresh.count) {
+                    size *= 2;
+                }
+                unsigned char *grown = PyMem_Realloc(routed, (size_t)size);
+                if (grown == NULL) {
+                    PyErr_NoMemory();
+                    goto fail;
+                }
+                routed = grown;
+                routed_size = size;
+            }
+            qsort(fresh.items, (size_t)fresh.count, sizeof(Entry), compare_entries);
+            Py_ssize_t moved = fresh.count;
+            fresh.count = 0; /* every entry goes to held or out below */
+            for (Py_ssize_t i = 0; i < moved; i++) {
+                Entry *e = &fresh.items[i];
+                int later = urgent_fd >= 0 && !isnan(e->stamp) && cutoff < e->stamp &&
+                            e->stamp <= looked;
+                if (later) {
+                    held.items[held.count++] = *e;
+                    continue;
+                }
+                out.items[out.count++] = *e;
+                int sent = 0;
+                int from_locked = e->sender == locked_obj && locked_obj != Py_None;
+                if (forwarding && from_locked) {
+                    Py_ssize_t starts[MAX_FRAMES], ends[MAX_FRAMES];
+                    const unsigned char *d = (const unsigned char *)PyBytes_AS_STRING(e->data);
+                    int count = frames_of(d, PyBytes_GET_SIZE(e->data), &rules, starts, ends);
+                    if (count > 0) {
+                        forward(d, count, starts, ends, clients, n_clients);
+                        sent = 1;
+                        if (age_s >= 0) { /* the autopilot's last message is this one now */
+                            double arrived = isnan(e->stamp) ? monotonic() : e->stamp - offset;
+                            if (arrived + age_s > due) {
+                                due = arrived + age_s;
+                                deadline = due < hard ? due : hard;
+                            }
+                        }
+                    } else {
+                        /* Python must see it now, and forwards it and what follows */
+                        forwarding = 0;
+                        done = 1;
+                    }
+                }
+                if (e->urgent && urgent_returns) {
+                    done = 1;
+                }
+                routed[out.count - 1] = (unsigned char)sent;
+            }
+            if (held.count == 0) {
+                looks_after_hold = 0;
+            }
+            if (out.count >= limit) {
+                done = 1;
+            }
+        }
+        if (!done && held.count == 0 && monotonic() >= deadline) {
+            break;
+        }
+    }
+
+    {
+        PyObject *items = PyList_New(out.count);
+        PyObject *held_out = items == NULL ? NULL : PyList_New(held.count);
+        if (held_out == NULL) {
+            Py_XDECREF(items);
+            goto fail;
+        }
+        for (Py_ssize_t i = 0; i < out.count; i++) {
+            PyObject *t = entry_tuple(&out.items[i], routed[i]);
+            if (t == NULL) {
+                Py_DECREF(items);
+                Py_DECREF(held_out);
+                goto fail;
+            }
+            PyList_SET_ITEM(items, i, t);
+        }
+        for (Py_ssize_t i = 0; i < held.count; i++) {
+            PyObject *t = entry_tuple(&held.items[i], -1);
+            if (t == NULL) {
+                Py_DECREF(items);
+                Py_DECREF(held_out);
+                goto fail;
+            }
+            PyList_SET_ITEM(held_out, i, t);
+        }
+        result = Py_BuildValue("(NNO)", items, held_out, woke ? Py_True : Py_False);
+    }
+fail:
+    clear(&held);
+    clear(&out);
+    clear(&fresh);
+    PyMem_Free(routed);
+    return result;
 }
 
 static PyMethodDef methods[] = {
     {"receive", receive, METH_VARARGS,
      "receive(fd, limit) -> [(data, (host, port) | None, stamp | None)]: up to limit "
      "queued datagrams, one recvmmsg per 16."},
+    {"set_messages", set_messages, METH_O,
+     "set_messages({msg_id: (crc_extra, target_system_at, target_component_at)})"},
+    {"pump", pump, METH_VARARGS,
+     "pump(bulk_fd, urgent_fd, wake_fds, (timeout_s, due_s, age_s, offset), clients, locked, "
+     "sysid, compid, "
+     "agent_comp, log_busy, urgent_returns, held, limit) -> (items, held, woke)"},
     {NULL, NULL, 0, NULL},
 };
 
 static struct PyModuleDef module = {
     PyModuleDef_HEAD_INIT, "roost_agent._udpbatch",
-    "Batch UDP reception (recvmmsg, kernel arrival stamps) for the agent's links.", -1,
+    "Batch UDP reception (recvmmsg, kernel arrival stamps) for the agent's links, and the "
+    "hub's fast path: the active autopilot's frames to plain UDP clients in C.",
+    -1,
     methods, NULL, NULL, NULL, NULL,
 };
 

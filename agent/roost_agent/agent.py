@@ -260,11 +260,17 @@ class Agent(Actions, SpecChanges):
         )
         if self._hub is not None:  # routed frames are not held back while clients wait
             self._reader.hurry = self._hub.has_clients
+            self._reader.fast_route = self._hub.fast_route
+            self._reader.postponable = self.postponable
         self._in_step: dict[str, InStep] = {}
         self._views: dict[str, tuple[tuple[object, ...], AutopilotView]] = {}
         # The configuration the arbiter was settled under after the last full tick
         # (None: it was not, or no tick yet): see _nothing_new.
         self._settled_with: Running | None = None
+        # What the last tick's due came from (Agent.postponable): the configuration, the
+        # judgements, whether it was when they stop holding; None: the arbiter's due.
+        self._due_from: tuple[Running, Mapping[str, Assessment], bool] | None = None
+        self._postpone_before = math.inf  # a claim waits: read again by then at the latest
 
     # -- lifecycle ---------------------------------------------------------------------
 
@@ -532,11 +538,43 @@ class Agent(Actions, SpecChanges):
     def _tick_while_running(self) -> float | None:
         if self._stop.is_set():  # stopping: the links close, nothing is decided on that
             return None
+        self._postpone_before = math.inf
         due = self.tick()
         if any(link.tracker.claim_pending for link in self._cfg.links.values()):
             soon = self._clock() + self._tick_s  # read the message that settles it soon
             due = soon if due is None else min(due, soon)
+            self._postpone_before = soon
         return due
+
+    def postponable(self) -> tuple[AutopilotLink, float, float] | None:
+        """After a tick that returned a due from health thresholds: the active
+        autopilot's link, the first of those thresholds a new message of it would not
+        postpone, and the age of its last message at which the first one it would falls
+        (the late or silent stream). The reader's fast path waits for that age past the
+        active autopilot's latest frame instead of waking at the due while frames come
+        (roost_agent.fastpath). None: the due is the arbiter's, not a threshold's.
+        Worked out when asked (on the reader thread, before it waits), not at every tick:
+        only the fast path asks."""
+        judged = self._due_from
+        if judged is None:
+            return None
+        cfg, assessments, holding = judged
+        active = cfg.links.get(self._state.active)
+        if active is None:
+            return None
+        fixed, age = self._postpone_before, math.inf
+        for name, link in cfg.links.items():
+            last = assessments.get(name)
+            if last is None:
+                return None
+            tracker = link.tracker
+            if link is active:
+                own, age = tracker.postponed_by_messages(last)
+                fixed = min(fixed, own + JUDGE_LATE_S)
+            else:
+                later = tracker.holds_until(last) if holding else tracker.next_threshold(last)
+                fixed = min(fixed, later + JUDGE_LATE_S)
+        return active, fixed, age + JUDGE_LATE_S
 
     def tick(self) -> float | None:
         """One decision: assess, step the arbiter, switch first, then everything else.
@@ -558,6 +596,7 @@ class Agent(Actions, SpecChanges):
             if in_step:
                 with self._lock:
                     self._in_step = in_step
+            self._due_from = (cfg, self._assessments, True)
             return quiet_until + JUDGE_LATE_S
         assessments = {name: link.tracker.assess(now) for name, link in cfg.links.items()}
         views = {name: self._view(a, in_step.get(name)) for name, a in assessments.items()}
@@ -582,8 +621,10 @@ class Agent(Actions, SpecChanges):
         if settled(self._state, views, cfg.policy):
             self._settled_with = cfg
             due = min(link.tracker.next_threshold(assessments[n]) for n, link in cfg.links.items())
+            self._due_from = (cfg, assessments, False)
             return due + JUDGE_LATE_S
         self._settled_with = None
+        self._due_from = None
         return next_due(self._state, cfg.policy, now)
 
     def _nothing_new(self, cfg: Running, now: float, in_step: Mapping[str, InStep]) -> float | None:

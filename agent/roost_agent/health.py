@@ -650,6 +650,20 @@ class HealthTracker:
         with self._lock:
             return _next_threshold(self._o, self.thresholds, judged.at)
 
+    def postponed_by_messages(self, judged: Assessment) -> tuple[float, float]:
+        """:meth:`next_threshold` split for a reader that watches arrivals itself (the
+        hub's fast path, :mod:`roost_agent.fastpath`): (the first threshold no new
+        message postpones, the age of the last message at which the first one a new
+        message postpones falls; infinity where there is none). Each message postpones
+        the second one to its own arrival plus that age."""
+        with self._lock:
+            o = self._o
+            ages, fixed = _threshold_times(o, self.thresholds)
+            first_age = _first_after(ages, judged.at)
+            last_at = o.last_at
+            age = math.inf if last_at is None else first_age - last_at
+            return _first_after(fixed, judged.at), age
+
     @property
     def claim_pending(self) -> bool:
         """A claim (reboot, fatal state) waits for the message that settles it."""
@@ -841,14 +855,27 @@ def _next_threshold(o: _Observed, th: Thresholds, after: float) -> float:
     appear, go or change level with nothing new observed (see
     :meth:`HealthTracker.holds`): every threshold of :func:`_findings`. Thresholds passed
     by then were part of that judgement; one within float rounding of it still counts."""
+    ages, fixed = _threshold_times(o, th)
+    return _first_after([*ages, *fixed], after)
+
+
+def _first_after(times: list[float], after: float) -> float:
+    upcoming = [t for t in times if t > after - _RECHECK_EARLY_S]
+    return min(upcoming) - _RECHECK_EARLY_S if upcoming else math.inf
+
+
+def _threshold_times(o: _Observed, th: Thresholds) -> tuple[list[float], list[float]]:
+    """The thresholds of :func:`_next_threshold`: those a new message postpones (the
+    last message's age: late, silent) and the others."""
     if o.last_at is None or o.first_at is None:
-        return math.inf  # "no data" lasts until a message comes (a new version)
+        return [], []  # "no data" lasts until a message comes (a new version)
     fast = _fast_stream(o, th)
     silence_s = _silence_s(o, th)
     if fast:
-        times = [o.last_at + _late_s(silence_s, th), o.last_at + silence_s]
+        ages = [o.last_at + _late_s(silence_s, th), o.last_at + silence_s]
     else:
-        times = [o.last_at + th.heartbeat_error_ms / 1000]
+        ages = [o.last_at + th.heartbeat_error_ms / 1000]
+    times: list[float] = []
     if o.heartbeat_at is not None:
         times.append(o.heartbeat_at + th.heartbeat_warn_ms / 1000)
     else:
@@ -864,8 +891,7 @@ def _next_threshold(o: _Observed, th: Thresholds, after: float) -> float:
         times.append(o.estimator_bad_since + persist_s)
     if o.tilt_over_since is not None:
         times.append(o.tilt_over_since + TILT_PERSIST_S)
-    upcoming = [t for t in times if t > after - _RECHECK_EARLY_S]
-    return min(upcoming) - _RECHECK_EARLY_S if upcoming else math.inf
+    return ages, times
 
 
 def _newly_fatal(status: int, previous: int | None) -> bool:

@@ -59,6 +59,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from roost_agent.fastpath import PUMP, FastRoute
 from roost_agent.hub_policy import (
     ACCEPT,
     COMMAND_INT_ID,
@@ -81,6 +82,7 @@ from roost_agent.instep import (
     note_answer,
 )
 from roost_agent.link import LOG_REPLIES
+from roost_agent.reader import Session
 from roost_agent.signing import LinkSigning
 from roost_api.autopilot_enums import HubTransport, StandbyInStepReason
 from roost_api.core import Stack
@@ -221,6 +223,10 @@ class HubLink(Protocol):
     tap: Callable[[Any, float], None] | None
     log_sink: Callable[[Any], None] | None
     """Set while the agent's own log download holds the autopilot's log session."""
+    routed: bool
+    """The datagram being read was routed to the fast route's clients in C already."""
+
+    def fast_source(self) -> tuple[Session, Address] | None: ...
 
     def send_frame(self, frame: bytes) -> bool: ...
 
@@ -241,6 +247,7 @@ class HubCounters:
     kept_for_agent: int = 0  # active autopilot frames addressed to the agent, not forwarded
     forwarded: dict[str, int] = field(default_factory=dict)  # per autopilot, to clients
     switches: int = 0
+    routed_in_c: int = 0  # active autopilot frames the fast path routed (roost_agent.fastpath)
 
 
 class _Endpoint:
@@ -327,6 +334,9 @@ class Hub:
         self._tracker = InStepTracker(hub.standby_limits.confirm_ms / 1000)
         self._clients: OrderedDict[ClientKey, _Client] = OrderedDict()
         self._sinks: tuple[_Client, ...] = ()  # clients that get the vehicle's messages
+        self._route: FastRoute | None = None  # the last fast route made (fast_route)
+        # Whether routes are offered to the fast path (it is built; tests turn it off).
+        self.fast = PUMP is not None
         self._by_sock: dict[socket.socket, _Client] = {}  # TCP clients, ready or not
         self._clients_lock = threading.Lock()
         self._stop = threading.Event()
@@ -430,7 +440,7 @@ class Hub:
         self._seen.setdefault(name, Snapshot(Stack(link.spec.stack)))
 
         def tap(msg: Any, now: float) -> None:
-            self._from_autopilot(name, link.spec, msg, now)
+            self._from_autopilot(name, link.spec, msg, now, link.routed)
 
         link.tap = tap
 
@@ -541,7 +551,9 @@ class Hub:
     # transfer at a time, so a ground station's download during the agent's (minutes,
     # after landing) would collide at the autopilot whatever the hub did.
 
-    def _from_autopilot(self, name: str, spec: AutopilotSpec, msg: Any, now: float) -> None:
+    def _from_autopilot(
+        self, name: str, spec: AutopilotSpec, msg: Any, now: float, routed: bool
+    ) -> None:
         kind = msg.get_type()
         seen = self._seen[name]
         if kind == "HEARTBEAT":
@@ -575,6 +587,8 @@ class Hub:
             self.counters.kept_for_agent += 1
             return
         sinks = self._sinks
+        if routed:  # sent to the fast route's clients in C already
+            sinks = self._not_routed(sinks)
         if not sinks:
             return
         frame = rewrite_source(bytes(msg.get_msgbuf()), self.sysid)
@@ -607,6 +621,62 @@ class Hub:
         counters = self.counters
         counters.to_clients += sent
         counters.forwarded[name] = counters.forwarded.get(name, 0) + 1
+
+    def _not_routed(self, sinks: tuple[_Client, ...]) -> tuple[_Client, ...]:
+        """Of ``sinks``, the clients a frame routed in C did not reach (those that came
+        since the route was made); the routed ones are counted here."""
+        route = self._route
+        if route is None:
+            return sinks
+        counters = self.counters
+        counters.routed_in_c += 1
+        counters.to_clients += len(route.clients)
+        if sinks is route.sinks:  # the common case: nobody came or went since
+            return ()
+        return tuple(c for c in sinks if c.key not in route.keys)
+
+    def fast_route(self) -> FastRoute | None:
+        """Where the fast path (:mod:`roost_agent.fastpath`) may route the active
+        autopilot's frames in C, or None: the extension is not built, nobody listens,
+        a frame would need its source rewritten, a client is on TCP or signs, or the
+        active link cannot be read in C (not UDP, not locked, signatures required).
+        Called by the reader before each wait while hurried (on the reader thread, as
+        the routing itself)."""
+        sinks = self._sinks
+        link = self._links.get(self._active)
+        if not self.fast or not sinks or link is None or link.spec.sysid != self.sysid:
+            self._route = None
+            return None
+        source = link.fast_source()
+        if source is None or any(c.sock is not None or c.signs for c in sinks):
+            self._route = None
+            return None
+        session, locked = source
+        log_busy = link.log_sink is not None
+        route = self._route
+        if (
+            route is not None
+            and route.sinks is sinks
+            and route.session is session
+            and route.locked == locked
+            and route.log_busy == log_busy
+        ):
+            return route
+        fds = session.transport.fast_fds()
+        assert fds is not None  # fast_source checked it
+        route = self._route = FastRoute(
+            session=session,
+            clients=tuple((c.out.fileno(), c.address) for c in sinks),
+            keys=frozenset(c.key for c in sinks),
+            sinks=sinks,
+            locked=locked,
+            sysid=link.spec.sysid,
+            compid=link.spec.component_id,
+            log_busy=log_busy,
+            bulk_fd=fds[0],
+            urgent_fd=fds[1],
+        )
+        return route
 
     def _sign(self, frame: bytes, key: bytes | None) -> bytes:
         """``frame`` signed with ``key`` (None: the current key) for a signed client."""

@@ -114,6 +114,10 @@ class _Writer:
         self.write(self.encoder.encode(name, **values))
 
 
+def _nothing() -> None:
+    pass
+
+
 class AckMailbox:
     """COMMAND_ACKs by command number, so a sender can wait for the answer to its command."""
 
@@ -232,17 +236,35 @@ class AutopilotLink:
         self._locked: Address | None = None
         # Called by the reader with every accepted message (the hub routes them to clients).
         self.tap: Callable[[Any, float], None] | None = None
+        # Whether the datagram being read was routed to the hub's plain UDP clients in C
+        # already (roost_agent.fastpath): the hub's tap sends it to the others only.
+        self.routed = False
         # The flight recorder's tap (roost_agent.records_recorder): every frame accepted
         # from the autopilot (after the hub routed it and the tracker judged it) and
         # every frame written to it (after the write).
         self._record: Callable[[bytes], None] | None = None
         # LOG_ENTRY and LOG_DATA go here while an autopilot log is being fetched
         # (roost_agent.records_logs); dropped otherwise.
-        self.log_sink: Callable[[Frame], None] | None = None
+        self._log_sink: Callable[[Frame], None] | None = None
         self.params = ParamInbox(PARAM_INBOX_MAX)
         self.mission = MissionInbox(MISSION_INBOX_MAX)
         # The autopilot's last AUTOPILOT_VERSION (roost_agent.firmware reads it).
         self.version: Frame | None = None
+
+    @property
+    def log_sink(self) -> Callable[[Frame], None] | None:
+        """Where LOG_ENTRY and LOG_DATA go while the agent fetches the autopilot's logs."""
+        return self._log_sink
+
+    @log_sink.setter
+    def log_sink(self, sink: Callable[[Frame], None] | None) -> None:
+        self._log_sink = sink
+        reader = self._own_reader or self._reader
+        if reader is not None:
+            # Once set, the hub's fast path must not route a log reply: the reader's wait
+            # in C (roost_agent.fastpath) began before, so it is woken and this returns
+            # once the reader is back in Python; its next route sees the sink.
+            reader.call(_nothing)
 
     @property
     def record(self) -> Callable[[bytes], None] | None:
@@ -254,6 +276,18 @@ class AutopilotLink:
             self._record = record
             if self._writer is not None:
                 self._writer.record = record
+
+    def fast_source(self) -> tuple[Session, Address] | None:
+        """The session the hub's fast path may read in C and the address its frames
+        must come from (:mod:`roost_agent.fastpath`): a UDP link with kernel arrival
+        stamps, holding its source lock, not requiring signatures. None otherwise."""
+        session = self._session
+        if session is None or not self._stamps or session.verifier is not None:
+            return None
+        locked = session.lock.locked
+        if locked is None or session.transport.fast_fds() is None:
+            return None
+        return session, locked
 
     @property
     def locked_address(self) -> Address | None:
@@ -389,22 +423,41 @@ class AutopilotLink:
         return Session(transport, lock, verifier, accepted_at_open=self.counters.accepted)
 
     def drain(self, session: Session) -> None:
-        """Read what the transport has (up to :data:`DRAIN_MAX`); failures propagate."""
+        """Read what the transport has (up to :data:`DRAIN_MAX`), or take what the hub's
+        fast path read of it (:mod:`roost_agent.fastpath`); failures propagate."""
         stamps = self._stamps
         offset = recent_realtime_offset() if stamps else 0.0
+        pushed = session.pushed
+        if pushed is not None:
+            session.pushed = None
+            try:
+                for data, sender, stamp, routed in pushed:
+                    self.routed = routed
+                    now = self._arrival(session, stamp, offset)
+                    self._datagram(session, data, sender, now)
+            finally:
+                self.routed = False
+            return
         for data, sender, stamp in session.transport.receive_batch(DRAIN_MAX):
-            now = self._clock()
-            if stamp is not None and stamps:
-                arrived = stamp - offset
-                if arrived < now:  # a stamp after the read is not believed at all
-                    # never before an earlier datagram's time, nor more than the slack
-                    # before the read (compared one by one: max() would box the floats)
-                    earliest = now - STAMP_SLACK_S
-                    now = arrived if arrived > earliest else earliest
-                    last = session.arrived
-                    now = last if last > now else now
-            session.arrived = now
+            now = self._arrival(session, stamp, offset)
             self._datagram(session, data, sender, now)
+
+    def _arrival(self, session: Session, stamp: float | None, offset: float) -> float:
+        """The time a datagram is judged to have arrived: its kernel stamp on the
+        agent's clock (``offset``: realtime minus monotonic), never before an earlier
+        datagram's time, nor more than the slack before the read; a stamp after the
+        read is not believed at all."""
+        now = self._clock()
+        if stamp is not None and self._stamps:
+            arrived = stamp - offset
+            if arrived < now:
+                # compared one by one: max() would box the floats
+                earliest = now - STAMP_SLACK_S
+                now = arrived if arrived > earliest else earliest
+                last = session.arrived
+                now = last if last > now else now
+        session.arrived = now
+        return now
 
     def _datagram(self, session: Session, data: bytes, sender: Address | None, now: float) -> None:
         self.counters.bytes += len(data)
@@ -491,7 +544,7 @@ class AutopilotLink:
         elif kind == "AUTOPILOT_VERSION":
             self.version = msg
         elif kind in LOG_REPLIES:
-            sink = self.log_sink
+            sink = self._log_sink
             if sink is not None:
                 sink(msg)
         if self.tracker.observe(msg, now):

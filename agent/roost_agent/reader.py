@@ -24,6 +24,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
+from roost_agent.fastpath import NOT_POSTPONED, Due, FastRoute, Routed, pump
 from roost_agent.transport import Transport
 from roost_agent.trust import SourceLock
 from roost_mavlink.codec import StreamParser
@@ -40,6 +41,7 @@ READ_WAIT_S = 0.5  # longest the reader blocks in select() (timers and stop wake
 # (Linux turns arrival stamping on globally a moment after the first socket asks for it;
 # until then a datagram's stamp is its read time, which is what an unstamped read gets.)
 BATCH_S = 0.005
+_PUMP_LIMIT = 256  # datagrams the fast path reads before Python takes them
 
 
 class ReadLink(Protocol):
@@ -66,6 +68,9 @@ class Session:
     fd: int = -1  # the descriptor the reader selects on
     urgent_fd: int | None = None  # a steered link's urgent socket (it selects on it too)
     arrived: float = float("-inf")  # the time given to the last datagram read
+    # What the hub's fast path read of this session in C (roost_agent.fastpath), for the
+    # next drain to take instead of reading the transport.
+    pushed: list[Routed] | None = None
 
 
 class Poller:
@@ -103,6 +108,14 @@ class Poller:
             self.unregister(fd)
 
 
+def _no_route() -> FastRoute | None:
+    return None
+
+
+def _no_split() -> tuple[object, float, float] | None:
+    return None
+
+
 class LinkReader:
     """One thread that reads every link: a selector over their transports.
 
@@ -129,6 +142,13 @@ class LinkReader:
         name: str = "link-reader",
     ) -> None:
         self.hurry = hurry
+        # While hurried, the hub's route for the fast path (roost_agent.fastpath), if any.
+        self.fast_route: Callable[[], FastRoute | None] = _no_route
+        # After a tick: the link whose message age the tick's due is (or may be), the
+        # first due no message postpones, and that age (Agent.postponable).
+        self.postponable: Callable[[], tuple[object, float, float] | None] = _no_split
+        self._postponed_due = math.nan  # the next tick when it is the tick's own due
+        self._periodic_tick = math.nan  # the next tick the read interval alone sets
         self.batch_s = batch_s
         self._name = name
         self._selector = Poller()
@@ -361,6 +381,55 @@ class LinkReader:
             self._urgent_quiet_until = time.monotonic() + self._short_tick_s
         self._read(ready)
 
+    def _pump(self, route: FastRoute, timeout: float, next_tick: float) -> list[Session | None]:
+        """Wait for the next tick in C (:mod:`roost_agent.fastpath`): the active
+        autopilot's frames are routed as they come; what C read is the fast session's
+        next drain. Wakes early for a call (the wake-up socket), for what must be read at
+        once (another link's urgent socket, a heartbeat or command answer on the fast
+        link's, a datagram C did not route), at most once per short interval for the
+        urgent sockets as the unhurried reader, or when the batch is full. Then every
+        other link with data is read too (as an unhurried reader reads them).
+
+        When the tick is due for the fast link's message age (a late or silent stream),
+        C keeps postponing it while that link's frames come, so a stream that flows wakes
+        the reader at the read interval only, and a silence at the moment it falls due;
+        every other deadline (timers, the read interval, thresholds no message
+        postpones) stays as it was."""
+        session = route.session
+        now = time.monotonic()
+        due = NOT_POSTPONED
+        split = self.postponable() if next_tick == self._postponed_due and timeout > 0 else None
+        if split is not None and split[0] is session.link and math.isfinite(split[2]):
+            _, fixed, age = split
+            timers = self._timers
+            timer_at = timers[0][0] if timers else math.inf
+            hard = min(timer_at, now + READ_WAIT_S, self._periodic_tick, fixed)
+            due = Due(next_tick - now, age)
+            timeout = max(0.0, hard - now)
+        urgent_ok = now >= self._urgent_quiet_until
+        wake = [self._wake_r.fileno()]
+        if urgent_ok:
+            wake.extend(
+                s.urgent_fd
+                for s in self._sessions.values()
+                if s is not session and s.urgent_fd is not None
+            )
+        try:
+            items, _ = pump(route, wake, timeout, due, urgent_returns=urgent_ok, limit=_PUMP_LIMIT)
+        except OSError:
+            # The link's own read meets the failure again and reports it (ReadLink.failed).
+            return [session]
+        if time.monotonic() < now + timeout:  # early: urgent sockets wait a short interval
+            self._urgent_quiet_until = time.monotonic() + self._short_tick_s
+        ready: list[Session | None] = [
+            s for s in self._select(self._selector, 0.0) if s is not session
+        ]
+        if items:
+            previous = session.pushed
+            session.pushed = items if previous is None else previous + items
+            ready.append(session)
+        return ready
+
     def _serve_ticking(self, tick: Callable[[], float | None]) -> None:
         """Read and decide: wake for the next tick (for data too while hurried), read
         everything that arrived, then tick when due or poked; the next tick is
@@ -369,7 +438,11 @@ class LinkReader:
         while not self._stopping:
             timeout = min(self._run_timers(), max(0.0, next_tick - time.monotonic()))
             if self.hurry():
-                ready = self._select(self._selector, timeout)
+                route = self.fast_route()
+                if route is not None and self._sessions.get(route.session.fd) is route.session:
+                    ready = self._pump(route, 0.0 if self._urgent else timeout, next_tick)
+                else:
+                    ready = self._select(self._selector, timeout)
                 self._read_at = time.monotonic()
                 self._read(ready)
             else:
@@ -386,9 +459,10 @@ class LinkReader:
                 except Exception:  # the loop must outlive any bug in one tick
                     log.exception("decision tick failed")
                 now = time.monotonic()
-                next_tick = now + self._tick_s
+                next_tick = self._periodic_tick = now + self._tick_s
+                self._postponed_due = math.nan
                 if due is not None and now < due < next_tick:
-                    next_tick = due
+                    next_tick = self._postponed_due = due
                 elif due is not None and due <= now:
                     # A decision the tick waits for is already due (the tick ran late,
                     # or the time it named passed while it ran): look again as soon as

@@ -124,6 +124,19 @@ class Transport:
         steered UDP link's urgent socket), or None: then every read is urgent."""
         return None
 
+    def fast_fds(self) -> tuple[int, int] | None:
+        """(bulk socket, urgent socket or -1) where the hub's fast path
+        (:mod:`roost_agent.fastpath`) may read this transport in C: a UDP link with
+        kernel arrival stamps. None: it may not."""
+        return None
+
+    def take_held(self) -> list[Received]:
+        """What a read left held for order (:meth:`_Udp.receive_batch`), handed over."""
+        return []
+
+    def keep_held(self, held: list[Received]) -> None:
+        """Hold ``held`` for the next read (the fast path read it in C)."""
+
     def send(self, data: bytes) -> None:
         raise NotImplementedError
 
@@ -188,6 +201,18 @@ class _Udp(Transport):
 
     def urgent_fileno(self) -> int | None:
         return None if self.urgent is None else self.urgent.fileno()
+
+    def fast_fds(self) -> tuple[int, int] | None:
+        if not self._stamped:
+            return None
+        return self._sock.fileno(), -1 if self.urgent is None else self.urgent.fileno()
+
+    def take_held(self) -> list[Received]:
+        held, self._held = self._held, []
+        return held
+
+    def keep_held(self, held: list[Received]) -> None:
+        self._held = held
 
     def local_address(self) -> Address:
         """Where this link receives (host, port)."""

@@ -35,6 +35,7 @@ class RecordingLink:
         self.spec = spec
         self.tap: Any = None
         self.log_sink: Any = None
+        self.routed = False
         self.frames: list[Any] = []
         self.commands: list[tuple[int, tuple[float, ...]]] = []
 
@@ -45,6 +46,9 @@ class RecordingLink:
     def send_command(self, command: int, params: tuple[float, ...]) -> bool:
         self.commands.append((command, params))
         return True
+
+    def fast_source(self) -> None:
+        return None  # no socket: the hub routes in Python
 
 
 def hub_spec(

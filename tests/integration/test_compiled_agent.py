@@ -118,6 +118,8 @@ SUITES = (
     "test_a_tcp_client_gets_nothing_until_it_signs_and_then_only_signed_frames",
     "tests/integration/test_hub_signing.py::"
     "test_a_rotated_key_is_taken_without_a_restart_and_nothing_breaks_meanwhile",
+    # the hub's fast path (_udpbatch.c) against the Python path: the same frames routed
+    "tests/integration/test_hub_fast_path.py",
 )
 
 

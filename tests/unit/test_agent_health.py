@@ -815,3 +815,45 @@ def test_the_first_message_after_a_silence_tells_the_decision_loop() -> None:
     assert v.attitude_changes() is True  # heard again
     v.t += 0.01
     assert v.attitude_changes() is False  # and then nothing new
+
+
+# What the hub's fast path postpones (roost_agent.fastpath): the thresholds on the last
+# message's age move with each message; no other threshold does.
+def _frozen_for(v: Vehicle, seconds: float) -> float:
+    """Messages keep coming for ``seconds``, their time_boot_ms stuck; the last one's time."""
+    for _ in range(round(seconds * 50)):
+        v.t += 1 / 50
+        v.attitude(advance=False)
+    return v.t
+
+
+POSTPONE_TABLE: list[tuple[str, Callable[[Vehicle], float | None], float]] = [
+    # (what, then, the first threshold no message postpones, after the last time_boot_ms
+    #  advance: frozen telemetry at 500 ms)
+    ("a healthy fast stream", lambda _: None, 0.5),
+    ("frozen for 200 ms: messages do not postpone it", lambda v: _frozen_for(v, 0.2), 0.5),
+]
+
+
+@pytest.mark.parametrize(
+    ("what", "then", "fixed_after"), POSTPONE_TABLE, ids=[r[0] for r in POSTPONE_TABLE]
+)
+def test_only_the_thresholds_on_the_last_messages_age_are_postponed_by_messages(
+    what: str, then: Callable[[Vehicle], float | None], fixed_after: float
+) -> None:
+    v = Vehicle()
+    v.fly(2.0)
+    advanced = v.t - 1 / 50  # the last ATTITUDE of the flight, its time_boot_ms advancing
+    last = then(v) or advanced
+    judged = v.tracker.assess(v.t)
+    fixed, age = v.tracker.postponed_by_messages(judged)
+    assert age == pytest.approx(0.2, abs=1e-5), what  # late: 200 ms after the last message
+    assert fixed - advanced == pytest.approx(fixed_after, abs=1e-5), what
+    # together they are the next threshold
+    assert v.tracker.next_threshold(judged) == pytest.approx(min(fixed, last + age)), what
+
+
+def test_a_tracker_without_messages_postpones_nothing() -> None:
+    v = Vehicle()
+    judged = v.tracker.assess(1.0)
+    assert v.tracker.postponed_by_messages(judged) == (math.inf, math.inf)

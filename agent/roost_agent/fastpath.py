@@ -1,0 +1,140 @@
+"""The hub's fast path: the active autopilot's frames to plain UDP clients without Python.
+
+Why: routed frames must not wait for the decision loop's next read, so while a hub
+client was connected the link reader woke for every datagram, and in Python each
+wake-up (poll, read, parse, source lock, health bookkeeping, send) cost more than a C
+router spends per message. With the C extension ``_udpbatch.c`` built, the reader waits
+in C instead: each datagram of the active autopilot is read, checked and sent to the
+clients there at once (GIL released while it waits), and Python reads what C read in
+one batch when the decision loop is due (or something must be seen at once: a wake-up
+call, a heartbeat or command answer on a steered link's urgent socket, a datagram C does
+not forward). The health tracker, the source lock and the hub's bookkeeping see every
+datagram as before, with its kernel arrival stamp, in arrival order.
+
+C forwards only what the Python path would forward unchanged to a plain client
+(``_udpbatch.c`` lists the checks); the hub offers a route (:class:`FastRoute`) only when
+that is all there is to do: the active autopilot's system id is the vehicle's (no source
+rewrite), its link is UDP with kernel stamps and does not require signatures, it holds
+its source lock, and every client is a UDP client of an unsigned endpoint. Anything else
+(a TCP or signed client, a rewrite, an unlocked or signed link, the extension not built)
+is the Python path, as before.
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Final, cast
+
+from roost_agent.transport import recent_realtime_offset
+from roost_mavlink import AGENT_COMPONENT_ID
+from roost_mavlink.checked_messages import CHECKED_MESSAGES
+from roost_mavlink.codec import DECLARED, layout
+
+if TYPE_CHECKING:
+    from roost_agent.reader import Session
+    from roost_agent.transport import Address, Received
+
+Routed = tuple[bytes, "Address | None", "float | None", bool]  # ..., sent on by C already
+"""A datagram the fast path read: data, sender, kernel arrival stamp, routed by C."""
+
+PumpResult = tuple[list[Routed], list["Received"], bool]
+
+
+def _pump() -> Callable[..., PumpResult] | None:
+    """The C extension's ``pump`` with the known messages loaded, or None (not built)."""
+    try:
+        module = importlib.import_module("roost_agent._udpbatch")
+    except ImportError:
+        return None
+    module.set_messages(message_table())
+    return cast("Callable[..., PumpResult]", module.pump)
+
+
+def message_table() -> dict[int, tuple[int, int, int]]:
+    """What C checks a frame against: per known message id, its CRC_EXTRA and the
+    payload offsets of ``target_system`` and ``target_component`` (-1: none), the fields
+    by which the hub keeps answers to the agent from clients."""
+    table: dict[int, tuple[int, int, int]] = {}
+    for msg_id in {*DECLARED, *CHECKED_MESSAGES}:
+        known = layout(msg_id)
+        if known is None:
+            continue
+        system = known.scalars.get("target_system")
+        component = known.scalars.get("target_component")
+        table[msg_id] = (
+            known.crc_extra,
+            -1 if system is None else system[0],
+            -1 if component is None else component[0],
+        )
+    return table
+
+
+PUMP: Final = _pump()
+
+
+@dataclass(frozen=True)
+class Due:
+    """When the reader must wake unless the fast link's messages keep coming: ``in_s``
+    from now, postponed by each routed datagram to its arrival plus ``age_s`` (negative:
+    never postponed)."""
+
+    in_s: float
+    age_s: float
+
+
+NOT_POSTPONED: Final = Due(math.inf, -1.0)
+
+
+@dataclass(frozen=True)
+class FastRoute:
+    """What the reader hands C: the active autopilot's session and where its frames go."""
+
+    session: Session
+    clients: tuple[tuple[int, Address], ...]  # (endpoint socket fd, client address)
+    keys: frozenset[object]  # the hub's keys of those clients
+    sinks: tuple[Any, ...]  # the hub's sinks when the route was made (all of them fast)
+    locked: Address
+    sysid: int
+    compid: int
+    log_busy: bool
+    bulk_fd: int
+    urgent_fd: int  # -1: the link is one socket
+
+
+def pump(
+    route: FastRoute,
+    wake_fds: list[int],
+    timeout_s: float,
+    due: Due,
+    *,
+    urgent_returns: bool,
+    limit: int,
+) -> tuple[list[Routed], bool]:
+    """Wait up to ``timeout_s`` in C, and up to ``due`` unless the autopilot's frames keep
+    postponing it, forwarding as datagrams come; what was read (in arrival order) and
+    whether a ``wake_fds`` descriptor woke it. What may be newer than something still
+    queued on the other socket of a steered pair stays in the transport's held list, as
+    the Python reads leave it."""
+    assert PUMP is not None
+    session = route.session
+    transport = session.transport
+    items, still_held, woke = PUMP(
+        route.bulk_fd,
+        route.urgent_fd,
+        wake_fds,
+        (timeout_s, due.in_s, due.age_s, recent_realtime_offset()),
+        route.clients,
+        route.locked,
+        route.sysid,
+        route.compid,
+        AGENT_COMPONENT_ID,
+        route.log_busy,
+        urgent_returns,
+        transport.take_held(),
+        limit,
+    )
+    transport.keep_held(still_held)
+    return items, woke

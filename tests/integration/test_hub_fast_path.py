@@ -1,0 +1,309 @@
+"""The hub's fast path (``roost_agent/_udpbatch.c``, :mod:`roost_agent.fastpath`) routes
+exactly what the Python path routes, over real UDP on loopback.
+
+An agent (in this process, a simulated bridge: the only stand-in) hubs two autopilots
+played by test sockets that send real MAVLink 2 frames; a raw UDP client greets the
+hub and keeps every datagram it gets. Each case runs twice: routed in Python (the fast
+path off) and routed in C (skipped where the extension is not built, as in the
+interpreted checkout; the compiled build's run, tests/integration/test_compiled_agent.py,
+runs it). Either way the client must get the active autopilot's frames byte for byte, in
+the order sent, one frame per datagram, and nothing else: not a forged copy from another
+address (the source lock), not a frame of another system id, not an answer addressed to
+the agent, not a frame of a corrupted datagram; and after a switch nothing more of the
+old active autopilot, the new one's frames (its system id rewritten to the vehicle's)
+and, switched back, the first one's again.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from datetime import UTC, datetime
+
+import pytest
+from pymavlink.dialects.v20 import common as mavlink
+
+from roost_agent import Agent
+from roost_agent.bridge import SimulatedBridge
+from roost_agent.fastpath import PUMP
+from roost_api.autopilot import (
+    AutopilotCommand,
+    AutopilotSpec,
+    CommandAction,
+    FailoverPolicy,
+    HubSpec,
+    RedundantAutopilotSpec,
+)
+from roost_sim.vehicle import free_udp_port
+from tests.support.flight import SIM_THRESHOLDS
+from tests.support.waiting import wait_until
+
+ATTITUDE = mavlink.MAVLINK_MSG_ID_ATTITUDE
+COMMAND_ACK = mavlink.MAVLINK_MSG_ID_COMMAND_ACK
+AGENT_COMPONENT = 191
+POLL_S = 0.01
+
+WAYS = [
+    pytest.param(False, id="python"),
+    pytest.param(
+        True,
+        id="c",
+        marks=pytest.mark.skipif(PUMP is None, reason="the C extension is not built"),
+    ),
+]
+
+
+class Autopilot:
+    """A socket that speaks for autopilot ``sysid``: heartbeats at 10 Hz from a thread
+    (it proves itself and stays healthy), frames on request, numbered in one sequence."""
+
+    def __init__(self, sysid: int, port: int) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.to = ("127.0.0.1", port)
+        self.mav = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=1)
+        self.lock = threading.Lock()
+        self.stopping = threading.Event()
+        self.thread = threading.Thread(target=self._beat, daemon=True)
+        self.thread.start()
+
+    def frame(self, msg: mavlink.MAVLink_message, mav: mavlink.MAVLink | None = None) -> bytes:
+        with self.lock:
+            return bytes(msg.pack(mav or self.mav))
+
+    def attitude(self, boot_ms: int) -> bytes:
+        return self.frame(mavlink.MAVLink_attitude_message(boot_ms, 0.1, 0.2, 0.3, 0, 0, 0))
+
+    def send(self, *frames: bytes) -> None:
+        self.sock.sendto(b"".join(frames), self.to)
+
+    def _beat(self) -> None:
+        while not self.stopping.wait(0.1):
+            # PX4, quadrotor, on the ground and disarmed, MAV_STATE STANDBY
+            self.send(self.frame(mavlink.MAVLink_heartbeat_message(2, 12, 0x81, 0, 3, 3)))
+
+    def close(self) -> None:
+        self.stopping.set()
+        self.thread.join(2)
+        self.sock.close()
+
+
+class Client:
+    """A hub client: greets the hub, keeps every datagram it gets."""
+
+    def __init__(self, hub: tuple[str, int]) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.05)
+        self.hub = hub
+        mav = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
+        self.sock.sendto(bytes(mavlink.MAVLink_heartbeat_message(6, 8, 0, 0, 4, 3).pack(mav)), hub)
+        self.datagrams: list[bytes] = []
+        self.lock = threading.Lock()
+        self.stopping = threading.Event()
+        self.thread = threading.Thread(target=self._read, daemon=True)
+        self.thread.start()
+
+    def _read(self) -> None:
+        while not self.stopping.is_set():
+            try:
+                data = self.sock.recv(65535)
+            except TimeoutError:
+                continue
+            with self.lock:
+                self.datagrams.append(data)
+
+    def frames(self, msg_id: int) -> list[bytes]:
+        """The datagrams holding one frame of ``msg_id`` (every datagram is checked to
+        hold exactly one frame)."""
+        with self.lock:
+            got = list(self.datagrams)
+        for data in got:
+            assert len(data) == 12 + data[1], data.hex()  # one unsigned MAVLink 2 frame
+        return [d for d in got if d[7] | d[8] << 8 | d[9] << 16 == msg_id]
+
+    def close(self) -> None:
+        self.stopping.set()
+        self.thread.join(2)
+        self.sock.close()
+
+
+@dataclass
+class Rig:
+    agent: Agent
+    fc1: Autopilot
+    fc2: Autopilot
+    client: Client
+
+
+@pytest.fixture(params=WAYS)
+def rig(request: pytest.FixtureRequest) -> Iterator[Rig]:
+    """The agent and its autopilots, routing in C (param True) or in Python."""
+    ports = [free_udp_port(), free_udp_port()]
+    spec = RedundantAutopilotSpec(
+        vehicle_name="fastpath",
+        primary="fc1",
+        autopilots=[
+            AutopilotSpec(
+                name=f"fc{i + 1}",
+                stack="px4",
+                connection=f"udp://127.0.0.1:{port}",
+                sysid=i + 1,
+                bridge_channel=i,
+            )
+            for i, port in enumerate(ports)
+        ],
+        failover_policy=FailoverPolicy(thresholds=SIM_THRESHOLDS),
+        hub=HubSpec(udp="127.0.0.1:0", sysid=1),
+    )
+    agent = Agent(spec, SimulatedBridge(range(2)))
+    assert agent.hub is not None
+    agent.hub.fast = request.param
+    fc1, fc2 = Autopilot(1, ports[0]), Autopilot(2, ports[1])
+    client = None
+    try:
+        agent.start()
+        hub = agent.hub
+        assert hub is not None
+        links = agent.links
+        wait_until(
+            "both autopilots locked",
+            lambda: all(link.locked_address for link in links.values()),
+            10,
+            POLL_S,
+        )
+        client = Client(hub.udp_address)
+        wait_until("the client gets heartbeats", lambda: client.frames(0), 10, POLL_S)
+        yield Rig(agent, fc1, fc2, client)
+    finally:
+        agent.stop()
+        fc1.close()
+        fc2.close()
+        if client is not None:
+            client.close()
+
+
+def _switch(rig: Rig, target: str, n: int) -> None:
+    command = AutopilotCommand(
+        id=f"switch-{n}", action=CommandAction.SWITCH, target=target, issued_at=datetime.now(UTC)
+    )
+    result = rig.agent.submit(command).result(10)
+    assert result.result == "Executed", result
+
+
+def _arrived(rig: Rig, expected: list[bytes]) -> list[bytes]:
+    wait_until(
+        "the frames reach the client",
+        lambda: len(rig.client.frames(ATTITUDE)) >= len(expected),
+        10,
+        POLL_S,
+    )
+    time.sleep(0.3)  # not a wait for a condition: anything that should not come would by now
+    return rig.client.frames(ATTITUDE)
+
+
+def test_the_active_autopilots_frames_arrive_byte_identical_and_in_order(rig: Rig) -> None:
+    fc1 = rig.fc1
+    forger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    forger.bind(("127.0.0.1", 0))
+    other = mavlink.MAVLink(None, srcSystem=9, srcComponent=1)
+    expected: list[bytes] = []
+    try:
+        for i in range(300):
+            boot_ms = 1000 + 2 * i  # time_boot_ms advances: a live autopilot
+            frame = fc1.attitude(boot_ms)
+            if i % 50 == 7:  # two frames in one datagram (as ArduPilot sends)
+                second = fc1.attitude(boot_ms + 1)
+                fc1.send(frame, second)
+                expected += [frame, second]
+            elif i % 50 == 13:  # a corrupted frame beside a good one: the good one is routed
+                bad = bytearray(fc1.attitude(boot_ms))
+                bad[-1] ^= 0xFF
+                fc1.send(bytes(bad), frame)
+                expected.append(frame)
+            elif i % 50 == 21:  # another system's frame from the autopilot's address
+                fc1.send(
+                    fc1.frame(mavlink.MAVLink_attitude_message(boot_ms, 0, 0, 0, 0, 0, 0), other)
+                )
+                fc1.send(frame)
+                expected.append(frame)
+            elif i % 50 == 33:  # an answer addressed to the agent stays with the agent
+                fc1.send(
+                    fc1.frame(mavlink.MAVLink_command_ack_message(511, 0, 0, 0, 1, AGENT_COMPONENT))
+                )
+                fc1.send(frame)
+                expected.append(frame)
+            else:
+                fc1.send(frame)
+                expected.append(frame)
+            # a forged copy of the autopilot's frame from another address
+            forger.sendto(fc1.attitude(boot_ms), fc1.to)
+            time.sleep(0.001)
+        got = _arrived(rig, expected)
+    finally:
+        forger.close()
+    assert got == expected
+    with rig.client.lock:
+        acks = [d for d in rig.client.datagrams if d[7] == COMMAND_ACK]
+    assert acks == []
+    hub = rig.agent.hub
+    assert hub is not None
+    assert (hub.counters.routed_in_c > 0) == hub.fast
+
+
+def test_a_switch_re_points_the_route(rig: Rig) -> None:
+    first = [rig.fc1.attitude(1000 + i) for i in range(20)]
+    for frame in first:
+        rig.fc1.send(frame)
+        time.sleep(0.002)
+    assert _arrived(rig, first) == first
+
+    _switch(rig, "fc2", 1)
+    for i in range(20):
+        rig.fc1.send(rig.fc1.attitude(5000 + i))  # the standby's: kept from the client
+        rig.fc2.send(rig.fc2.attitude(9000 + i))
+        time.sleep(0.002)
+    wait_until("fc2's frames arrive", lambda: len(rig.client.frames(ATTITUDE)) >= 40, 10, POLL_S)
+    time.sleep(0.3)  # not a wait for a condition: anything that should not come would by now
+    after = rig.client.frames(ATTITUDE)[20:]
+    boot = [int.from_bytes(d[10:14], "little") for d in after]
+    assert boot == [9000 + i for i in range(20)]
+    assert {d[5] for d in after} == {1}  # fc2 (system 2) shown as the vehicle (1)
+
+    _switch(rig, "fc1", 2)
+    last = [rig.fc1.attitude(20_000 + i) for i in range(20)]
+    for frame in last:
+        rig.fc1.send(frame)
+        time.sleep(0.002)
+    wait_until("fc1's frames again", lambda: len(rig.client.frames(ATTITUDE)) >= 60, 10, POLL_S)
+    time.sleep(0.3)  # not a wait for a condition: anything that should not come would by now
+    assert rig.client.frames(ATTITUDE)[40:] == last
+    hub = rig.agent.hub
+    assert hub is not None
+    assert (hub.counters.routed_in_c > 0) == hub.fast
+
+
+def test_the_active_autopilot_falling_silent_is_judged_while_its_frames_are_routed(
+    rig: Rig,
+) -> None:
+    """The reader sleeps in C while the stream flows; the silence deadline still wakes it."""
+    fc1 = rig.fc1
+    boot_ms = 1000
+    end = time.monotonic() + 2.5  # over two rate windows: a fast stream, its threshold learnt
+    while time.monotonic() < end:
+        boot_ms += 5
+        fc1.send(fc1.attitude(boot_ms))
+        time.sleep(0.005)
+    fc1.stopping.set()  # and its heartbeats stop too
+
+    def silent() -> bool:
+        judged = rig.agent.assessments().get("fc1")
+        return judged is not None and "silent" in {f.code for f in judged.findings}
+
+    wait_until("fc1 judged silent", silent, 10, POLL_S)
+    hub = rig.agent.hub
+    assert hub is not None
+    assert (hub.counters.routed_in_c > 0) == hub.fast
