@@ -304,7 +304,8 @@ mission_image() {
   image="roost-$name:$version"
   archive="$out/roost-$name.oci.tar"
   key=$(cd "$dir" && {
-    find . -type f ! -path '*/__pycache__/*' ! -path './tests/*' ! -name '*.md' -print0 \
+    # not the tools' caches: running the mission's tests leaves a .pytest_cache in DIR
+    find . -type f ! -path '*/__pycache__/*' ! -path './.*' ! -path './tests/*' ! -name '*.md' -print0 \
       | sort -z | xargs -0 sha256sum
     sha256sum "$here/build-images.sh" "$here/build-base.sh" "$here/base.Dockerfile"
     echo "base=$base_ref archs=${archs[*]}"
