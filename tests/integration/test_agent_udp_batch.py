@@ -22,6 +22,7 @@ from roost_agent.transport import (
     UdpListen,
     receive_each,
 )
+from tests.support.kernelstamps import until_the_kernel_stamps_arrivals
 
 Receive = Callable[[socket.socket, int], list[Received]]
 
@@ -51,6 +52,8 @@ def pair() -> Iterator[tuple[socket.socket, socket.socket]]:
     rx.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
     rx.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
     tx.bind(("127.0.0.1", 0))
+    # before, a datagram is stamped when read: later than the ones stamped after it
+    until_the_kernel_stamps_arrivals()
     yield rx, tx
     rx.close()
     tx.close()
