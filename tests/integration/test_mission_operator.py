@@ -173,6 +173,15 @@ def test_three_vehicles_fly_to_succeeded_with_an_offboard_monitor(
     name = fleet.mission(
         unique("happy"), selector={"fleet": fleet.label}, count=3, hold=False, offboard=True
     )
+    # the offboard monitor's Job ends with the Mission: its pod is seen, placed, while it runs
+    (monitor,) = wait_until(
+        "the offboard monitor's pod on a node",
+        lambda: [
+            p
+            for p in pods_of(kube, name)
+            if not p["metadata"]["labels"].get(LABEL_VEHICLE) and p["spec"].get("nodeName")
+        ],
+    )
 
     status = wait_phase(kube, name, "Succeeded")
     assert sorted(assigned(status)) == sorted(vehicles)
@@ -189,7 +198,6 @@ def test_three_vehicles_fly_to_succeeded_with_an_offboard_monitor(
     assert env[ENV_MISSION_VEHICLES]["value"] == ",".join(assigned(status))
     assert "configMapKeyRef" in env["VEHICLE_NAME"]["valueFrom"]
     assert {m["mountPath"] for m in container["volumeMounts"]} >= {"/etc/roost", "/etc/starling"}
-    (monitor,) = [p for p in pods if not p["metadata"]["labels"].get(LABEL_VEHICLE)]
     assert monitor["spec"]["nodeName"] not in {f"{v}-node" for v in vehicles}
 
     wait_until(
