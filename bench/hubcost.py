@@ -46,13 +46,14 @@ import psutil
 
 from bench.agent import _load
 from bench.core import Figure
-from roost_api.autopilot import AutopilotSpec, HubSpec, RedundantAutopilotSpec
+from roost_api.autopilot import HubSpec
 from roost_mavlink.codec import CRC_BYTES, frame_crc
 from roost_sim.streams import PX4_STREAMS
 from roost_sim.vehicle import free_udp_port
 from tests.support.agent import AgentProcess
 from tests.support.compiled import compiled_tree
 from tests.support.compiled import environment as compiled_environment
+from tests.support.flight import px4_pair_on_udp
 
 SECONDS = float(os.environ.get("ROOST_BENCH_HUBCOST_S", "20"))
 COMMAND = "python -m bench hubcost"
@@ -217,21 +218,7 @@ class _Counter(threading.Thread):
 def _rig(clients: int) -> Iterator[tuple[AgentProcess, list[Connection], list[_Counter]]]:
     ports = [free_udp_port(), free_udp_port()]
     hub_port = free_udp_port()
-    spec = RedundantAutopilotSpec(
-        vehicle_name="hubcost",
-        primary="fc1",
-        autopilots=[
-            AutopilotSpec(
-                name=f"fc{i + 1}",
-                stack="px4",
-                connection=f"udp://127.0.0.1:{port}",
-                sysid=i + 1,
-                bridge_channel=i,
-            )
-            for i, port in enumerate(ports)
-        ],
-        hub=HubSpec(udp=f"127.0.0.1:{hub_port}", sysid=1),
-    )
+    spec = px4_pair_on_udp("hubcost", ports, HubSpec(udp=f"127.0.0.1:{hub_port}", sysid=1))
     ctx = multiprocessing.get_context("spawn")
     pipes, senders = [], []
     for i, port in enumerate(ports):

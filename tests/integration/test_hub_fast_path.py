@@ -31,14 +31,12 @@ from roost_agent.bridge import SimulatedBridge
 from roost_agent.fastpath import PUMP
 from roost_api.autopilot import (
     AutopilotCommand,
-    AutopilotSpec,
     CommandAction,
     FailoverPolicy,
     HubSpec,
-    RedundantAutopilotSpec,
 )
 from roost_sim.vehicle import free_udp_port
-from tests.support.flight import SIM_THRESHOLDS
+from tests.support.flight import SIM_THRESHOLDS, px4_pair_on_udp
 from tests.support.waiting import wait_until
 
 ATTITUDE = mavlink.MAVLINK_MSG_ID_ATTITUDE
@@ -143,21 +141,11 @@ class Rig:
 def rig(request: pytest.FixtureRequest) -> Iterator[Rig]:
     """The agent and its autopilots, routing in C (param True) or in Python."""
     ports = [free_udp_port(), free_udp_port()]
-    spec = RedundantAutopilotSpec(
-        vehicle_name="fastpath",
-        primary="fc1",
-        autopilots=[
-            AutopilotSpec(
-                name=f"fc{i + 1}",
-                stack="px4",
-                connection=f"udp://127.0.0.1:{port}",
-                sysid=i + 1,
-                bridge_channel=i,
-            )
-            for i, port in enumerate(ports)
-        ],
-        failover_policy=FailoverPolicy(thresholds=SIM_THRESHOLDS),
-        hub=HubSpec(udp="127.0.0.1:0", sysid=1),
+    spec = px4_pair_on_udp(
+        "fastpath",
+        ports,
+        HubSpec(udp="127.0.0.1:0", sysid=1),
+        FailoverPolicy(thresholds=SIM_THRESHOLDS),
     )
     agent = Agent(spec, SimulatedBridge(range(2)))
     assert agent.hub is not None

@@ -16,8 +16,10 @@ from typing import Any
 from roost_agent import Agent
 from roost_agent.bridge import SimulatedBridge
 from roost_api.autopilot import (
+    AutopilotSpec,
     FailoverPolicy,
     FinalAction,
+    HubSpec,
     RedundantAutopilotSpec,
     SafetyRoutine,
     Thresholds,
@@ -114,4 +116,31 @@ def make_spec(
             thresholds=thresholds if thresholds is not None else SIM_THRESHOLDS,
             safety_routine=SafetyRoutine(hold_seconds=HOLD_S, final_action=final_action),
         ),
+    )
+
+
+def px4_pair_on_udp(
+    vehicle: str,
+    ports: Sequence[int],
+    hub: HubSpec,
+    failover_policy: FailoverPolicy | None = None,
+) -> RedundantAutopilotSpec:
+    """Vehicle ``vehicle`` with PX4 autopilots fc1, fc2 (system ids 1, 2, bridge channels
+    0, 1) listened for on 127.0.0.1 ``ports``, and ``hub``: for tests and benches whose
+    autopilots are plain sockets rather than simulators."""
+    return RedundantAutopilotSpec(
+        vehicle_name=vehicle,
+        primary="fc1",
+        autopilots=[
+            AutopilotSpec(
+                name=f"fc{i + 1}",
+                stack="px4",
+                connection=f"udp://127.0.0.1:{port}",
+                sysid=i + 1,
+                bridge_channel=i,
+            )
+            for i, port in enumerate(ports)
+        ],
+        failover_policy=failover_policy or FailoverPolicy(),
+        hub=hub,
     )
