@@ -10,7 +10,7 @@ checks), measured.
   safety routine and boots again: from containerd and the kubelet starting to the
   agent's first report (informational).
 
-The cut lasts :data:`~tests.support.partition.CUT_S` (45 s) on a control plane with a
+The cut lasts :data:`~tests.support.partition.BENCH_CUT_S` (45 s) on a control plane with a
 20 s node-monitor grace period and a 5 s eviction window, so it outlasts both; a bare
 pod on the same node is evicted in it, which the run waits for. Needs root (namespaces,
 cgroups) and the image tools; elsewhere the module reports why and returns no figures.
@@ -75,7 +75,7 @@ def run() -> list[Figure]:
         tempfile.TemporaryDirectory(prefix="bench-partition-") as tmp,
         partition.flying_fleet(Path(tmp)) as fleet,
     ):
-        measured = partition.cut_and_restore(fleet)
+        measured = partition.cut_and_restore(fleet, cut_s=partition.BENCH_CUT_S)
         partition.stop_workloads(fleet)  # the Mission's Job pod does not reboot
         rebooted = partition.power_cycle(fleet)
     return [*figures(measured), reboot_figure(rebooted)]

@@ -5,9 +5,9 @@ Vehicle; ``roost dashboard`` follows the vehicle through the API server's pod pr
 
 The control plane here is this module's own, started with a 20 s node-monitor grace
 period and a 5 s eviction window (:mod:`tests.support.partition`), so a cut longer than
-both takes under a minute. The vehicle node runs the chart's agent, a component pod the
-operator made (vicon), a Mission's onboard pod, and a bare witness pod that has only the
-API server's default tolerations.
+both (and the node controller's next look) takes 30 s. The vehicle node runs the chart's
+agent, a component pod the operator made (vicon), a Mission's onboard pod, and a bare
+witness pod that has only the API server's default tolerations.
 
 * A cut longer than the grace period plus the eviction window, with a failover inside
   it: the witness is evicted (the window passed), nothing of Roost's is — zero container
@@ -24,8 +24,8 @@ API server's default tolerations.
   its node keeps no Roost label; when the link does return, the kubelet stops what the
   API server no longer has: nothing is left on the node.
 
-About four minutes with the images cached (two cuts of about a minute, four boots, the
-fleet's start).
+About three minutes with the images cached (a cut of 30 s and one of about 20 s with
+the kubelet's reconnection after it, four boots, the fleet's start).
 The tests run in file order on one fleet.
 """
 

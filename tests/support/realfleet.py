@@ -136,12 +136,18 @@ class RealFleet:
     extra_images: list[Path] = field(default_factory=list)
     """OCI archives imported on every node besides Roost's own (a mission's image)."""
     more: list[VehicleRig] = field(default_factory=list)
-    """Vehicles added after the first (:meth:`join`)."""
+    """Vehicles after the first (``start(*more)``)."""
     images: Path = field(default_factory=Path)
     """The directory of Roost's image archives (set by :meth:`start`)."""
 
     # ---- bring-up ------------------------------------------------------------------------
-    def start(self) -> None:
+    def start(self, *more: tuple[plan.VehiclePlan, str]) -> None:
+        """Ground node, the first vehicle's node, the chart, and the vehicle reporting.
+
+        ``more``: further vehicles (plan, architecture), in :attr:`more`. Their nodes start
+        before the chart is installed and their objects are applied with the first's, so
+        every agent starts at once instead of each after the one before; returns once all
+        reported. :attr:`timings` stay the first vehicle's."""
         self.images = images = build_images()
         t0 = time.monotonic()
         self.ground = self.pool.add(
@@ -152,9 +158,14 @@ class RealFleet:
         rig = self.start_vehicle(self.vehicle, self.vehicle_arch)
         self.timings.vehicle_start_to_ready_s = time.monotonic() - t0
         self.vehicle_node, self.simulated, self.launcher = rig.node, rig.simulated, rig.launcher
+        self.more.extend(self.start_vehicle(vehicle, arch) for vehicle, arch in more)
         self.install()
         self.timings.install_to_operator_ready_s = self.wait_operator_ready()
+        for extra in self.more:
+            self.apply_vehicle(extra.plan, extra.simulated)
         self.timings.agent_pod_to_first_report_s = self.add_vehicle()
+        for extra in self.more:
+            self.await_report(extra.plan)
 
     def start_vehicle(self, vehicle: plan.VehiclePlan, arch: str) -> VehicleRig:
         """A vehicle node of ``arch`` (Ready) and the vehicle's simulated autopilots in it."""
@@ -168,16 +179,11 @@ class RealFleet:
         [simulated] = sims.start(launcher, [vehicle], self.directory)
         return VehicleRig(vehicle, node, simulated, launcher)
 
-    def join(self, vehicle: plan.VehiclePlan, arch: str = binaries.HOST_ARCH) -> VehicleRig:
-        """One more vehicle once the chart runs: its node, simulators and objects; returns
-        once its agent reported both autopilots healthy."""
-        rig = self.start_vehicle(vehicle, arch)
-        self.more.append(rig)
-        self.apply_vehicle(vehicle, rig.simulated)
+    def await_report(self, vehicle: plan.VehiclePlan) -> None:
+        """Returns once ``vehicle``'s agent reported both autopilots healthy."""
         wait_until(
             f"{vehicle.name}'s agent's first report", lambda: self.reported(vehicle), self.wait_s
         )
-        return rig
 
     def helm(self, values: Mapping[str, Any], *extra: str) -> None:
         args = install_args(self.release, self.namespace, values, self.directory)

@@ -144,9 +144,7 @@ class RealMission:
             hub=HUB,
             extra_images=[mission_image()],
         )
-        self.fleet.start()
-        for vehicle, arch in zip(rest, self.arches[1:], strict=True):
-            self.fleet.join(vehicle, arch)
+        self.fleet.start(*zip(rest, self.arches[1:], strict=True))
 
     @property
     def rigs(self) -> list[VehicleRig]:
