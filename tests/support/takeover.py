@@ -26,7 +26,6 @@ Used by ``tests/integration/test_operator_leader_takeover.py`` (the verdicts) an
 
 from __future__ import annotations
 
-import json
 import threading
 import time
 from collections import defaultdict
@@ -260,15 +259,16 @@ def before_leading(log: Path) -> tuple[str, ...]:
     return tuple(lines)
 
 
-def replica(cluster: Cluster, log_dir: Path, identity: str) -> OperatorProcess:
+def replica(
+    cluster: Cluster, log_dir: Path, identity: str, workers: int | None = None
+) -> OperatorProcess:
+    """A replica; ``workers``: its reconcile workers (None: the operator's default)."""
     return OperatorProcess(
         cluster,
         log_dir / f"operator-{identity}.log",
         namespace=NAMESPACE,
         args=["--leader-election", f"--identity={identity}"],
-        # two reconcile workers instead of 16: a 100-Vehicle rollout then spans seconds,
-        # long enough to kill the leader in the middle of it
-        environment={"ROOST_RECONCILE_WORKERS": "2"},
+        environment={} if workers is None else {"ROOST_RECONCILE_WORKERS": str(workers)},
     )
 
 
@@ -310,6 +310,11 @@ def phase(kube: Kube, name: str) -> str:
     return str((body.get("status") or {}).get("phase") or "")
 
 
+def _gone(kube: Kube, names: list[str]) -> bool:
+    """None of the Vehicles ``names`` exists any more."""
+    return not {v["metadata"]["name"] for v in kube.list_objects(VEHICLES)} & set(names)
+
+
 @contextmanager
 def _nodes(cluster: Cluster, names: list[str]) -> Iterator[None]:
     with ThreadPoolExecutor(max_workers=4) as pool:
@@ -331,7 +336,11 @@ def kill_the_leader(cluster: Cluster, log_dir: Path, fleet: int = 100) -> Takeov
     fleet_names = [f"{run}-{i:03d}" for i in range(fleet)]
     crew = [f"{run}-crew-{i}" for i in range(2)]
     one, two = f"{run}-a", f"{run}-b"
-    first, second = replica(cluster, log_dir, one), replica(cluster, log_dir, two)
+    # The first leader has two reconcile workers instead of 16: the 100-Vehicle rollout
+    # then spans seconds, long enough to kill it in the middle. The standby has the
+    # default, as a real replica does: it finishes the rollout (and the clean-up's
+    # deletions) as fast as the operator can, with as many reconciles racing as in use.
+    first, second = replica(cluster, log_dir, one, workers=2), replica(cluster, log_dir, two)
     objects = [*[vehicle(n, f"{n}-node", 1 + i % 250) for i, n in enumerate(fleet_names)]]
     with (
         _nodes(cluster, [f"{n}-node" for n in [*fleet_names, *crew]]),
@@ -357,8 +366,11 @@ def kill_the_leader(cluster: Cluster, log_dir: Path, fleet: int = 100) -> Takeov
                 Births(kube, EVENTS, FLIGHTS) as events,
                 Births(kube, REDUNDANT_AUTOPILOTS, None, state=generation) as autopilots,
             ):
-                listing = {"apiVersion": "v1", "kind": "List", "items": objects}
-                cluster.kubectl("apply", "--server-side", "-f", "-", input_text=json.dumps(listing))
+                # created side by side (one kubectl apply sends them one at a time): the
+                # whole fleet is queued within a second or two, while the leader's two
+                # workers roll it out
+                with ThreadPoolExecutor(max_workers=8) as pool:
+                    list(pool.map(kube.create, objects))
                 under_way = lambda: pods.count() >= fleet // 10  # noqa: E731
                 wait_until("the rollout under way", under_way, WAIT_S, 0.02)
                 name = f"{run}-mission"
@@ -403,9 +415,11 @@ def kill_the_leader(cluster: Cluster, log_dir: Path, fleet: int = 100) -> Takeov
             for n in crew:
                 agents.forget(n)
                 cluster.kubectl("delete", "redundantautopilot", n, check=False)
-            cluster.kubectl(
-                "delete", "vehicle", *fleet_names, *crew, "--ignore-not-found", "--timeout=300s"
-            )
+            # side by side (one kubectl delete sends them one at a time), then until gone
+            everyone = [*fleet_names, *crew]
+            with ThreadPoolExecutor(max_workers=8) as pool:
+                list(pool.map(lambda n: kube.delete(VEHICLES, n), everyone))
+            wait_until("the Vehicles gone", lambda: _gone(kube, everyone), WAIT_S)
         finally:
             first.stop()
             second.stop()
