@@ -34,16 +34,22 @@
  * (roost_agent.hub.Hub.fast_route).
  *
  * set_messages(table): {msg_id: (crc_extra, target_system offset, target_component
- * offset)} (offset -1: the message has no such field), the known message ids.
+ * offset, time_boot_ms offset)} (offset -1: the message has no such field), the known
+ * message ids.
  *
  * pump(bulk_fd, urgent_fd, wake_fds, (timeout_s, due_s, age_s, offset), clients, locked, sysid,
- *      compid, agent_comp, log_busy, urgent_returns, held, limit)
+ *      compid, agent_comp, log_busy, urgent_returns, held, limit, routine)
  *   -> (items, held, woke): waits up to timeout_s, and up to due_s unless the autopilot's
  *   frames keep coming: with age_s >= 0, each datagram routed postpones that deadline to
  *   its arrival (kernel stamp minus offset: the agent's monotonic clock) plus age_s (the
  *   health tracker's thresholds on the last message's age: a silence is seen when it
- *   falls due, and a stream that flows wakes nobody). items are (data, sender, stamp, routed)
- *   in arrival order (routed: sent to every client here); held: read but possibly
+ *   falls due, and a stream that flows wakes nobody). items are (data, sender, stamp, routed,
+ *   frames) in arrival order (routed: sent to every client here; frames: for a routed
+ *   datagram of routine frames only, their summary (id, sequence number, time_boot_ms or
+ *   -1, ...), else None: ``routine`` is a bitmap of the message ids Python reads no further
+ *   than that, roost_agent.fastpath.routine_bitmap; why: parsing them and running them
+ *   through the link, the hub and the tracker was most of Python's time per message);
+ *   held: read but possibly
  *   newer than something still queued on the other socket of a steered pair (the
  *   Python reader's rule, roost_agent.transport._Udp.receive_batch), to be passed back;
  *   woke: whether a wake fd became readable.
@@ -799,7 +805,7 @@ static PyMethodDef methods[] = {
     {"pump", pump, METH_VARARGS,
      "pump(bulk_fd, urgent_fd, wake_fds, (timeout_s, due_s, age_s, offset), clients, locked, "
      "sysid, compid, "
-     "agent_comp, log_busy, urgent_returns, held, limit) -> (items, held, woke)"},
+     "agent_comp, log_busy, urgent_returns, held, limit, routine) -> (items, held, woke)"},
     {NULL, NULL, 0, NULL},
 };
 

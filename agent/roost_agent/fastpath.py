@@ -9,7 +9,10 @@ clients there at once (GIL released while it waits), and Python reads what C rea
 one batch when the decision loop is due (or something must be seen at once: a wake-up
 call, a heartbeat or command answer on a steered link's urgent socket, a datagram C does
 not forward). The health tracker, the source lock and the hub's bookkeeping see every
-datagram as before, with its kernel arrival stamp, in arrival order.
+datagram as before, with its kernel arrival stamp, in arrival order; a datagram C routed
+whose frames are all routine (:func:`routine_bitmap`: no one reads their content) comes
+with their summary instead of being parsed again (id, sequence number, ``time_boot_ms``),
+which is all the link, the hub and the tracker read of them.
 
 C forwards only what the Python path would forward unchanged to a plain client
 (``_udpbatch.c`` lists the checks); the hub offers a route (:class:`FastRoute`) only when
