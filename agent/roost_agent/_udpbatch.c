@@ -34,16 +34,22 @@
  * (roost_agent.hub.Hub.fast_route).
  *
  * set_messages(table): {msg_id: (crc_extra, target_system offset, target_component
- * offset)} (offset -1: the message has no such field), the known message ids.
+ * offset, time_boot_ms offset)} (offset -1: the message has no such field), the known
+ * message ids.
  *
  * pump(bulk_fd, urgent_fd, wake_fds, (timeout_s, due_s, age_s, offset), clients, locked, sysid,
- *      compid, agent_comp, log_busy, urgent_returns, held, limit)
+ *      compid, agent_comp, log_busy, urgent_returns, held, limit, routine)
  *   -> (items, held, woke): waits up to timeout_s, and up to due_s unless the autopilot's
  *   frames keep coming: with age_s >= 0, each datagram routed postpones that deadline to
  *   its arrival (kernel stamp minus offset: the agent's monotonic clock) plus age_s (the
  *   health tracker's thresholds on the last message's age: a silence is seen when it
- *   falls due, and a stream that flows wakes nobody). items are (data, sender, stamp, routed)
- *   in arrival order (routed: sent to every client here); held: read but possibly
+ *   falls due, and a stream that flows wakes nobody). items are (data, sender, stamp, routed,
+ *   frames) in arrival order (routed: sent to every client here; frames: for a routed
+ *   datagram of routine frames only, their summary (id, sequence number, time_boot_ms or
+ *   -1, ...), else None: ``routine`` is a bitmap of the message ids Python reads no further
+ *   than that, roost_agent.fastpath.routine_bitmap; why: parsing them and running them
+ *   through the link, the hub and the tracker was most of Python's time per message);
+ *   held: read but possibly
  *   newer than something still queued on the other socket of a steered pair (the
  *   Python reader's rule, roost_agent.transport._Udp.receive_batch), to be passed back;
  *   woke: whether a wake fd became readable.
@@ -74,7 +80,7 @@
 typedef struct {
     unsigned int id;
     unsigned char crc_extra;
-    int target_system, target_component;
+    int target_system, target_component, boot_at;
 } Known;
 
 static Known *known;
@@ -86,6 +92,7 @@ typedef struct {
     PyObject *sender;
     double stamp; /* NAN: none */
     int urgent;
+    PyObject *frames; /* routed, every frame routine: (id, seq, time_boot_ms | -1, ...) */
 } Entry;
 
 static const Known *lookup(unsigned int id) {
@@ -120,9 +127,9 @@ static PyObject *set_messages(PyObject *module, PyObject *table) {
     PyObject *key, *value;
     while (PyDict_Next(table, &pos, &key, &value)) {
         unsigned long id = PyLong_AsUnsignedLong(key);
-        int crc, ts, tc;
+        int crc, ts, tc, boot;
         if ((id == (unsigned long)-1 && PyErr_Occurred()) ||
-            !PyArg_ParseTuple(value, "iii", &crc, &ts, &tc)) {
+            !PyArg_ParseTuple(value, "iiii", &crc, &ts, &tc, &boot)) {
             PyMem_RawFree(out);
             return NULL;
         }
@@ -130,6 +137,7 @@ static PyObject *set_messages(PyObject *module, PyObject *table) {
         out[i].crc_extra = (unsigned char)crc;
         out[i].target_system = ts;
         out[i].target_component = tc;
+        out[i].boot_at = boot;
         i++;
     }
     qsort(out, (size_t)n, sizeof(Known), compare_known);
@@ -149,13 +157,35 @@ static unsigned short crc_add(unsigned short crc, unsigned char byte) {
 
 typedef struct {
     int sysid, compid, agent_comp, log_busy;
+    const unsigned char *routine; /* bit per message id: Python needs only its summary */
+    Py_ssize_t routine_bytes;
 } Rules;
 
-/* Where the frames of a forwardable datagram start and end (count), or -1. */
+static int is_routine(const Rules *rules, unsigned int id) {
+    return (Py_ssize_t)(id >> 3) < rules->routine_bytes && (rules->routine[id >> 3] >> (id & 7)) & 1;
+}
+
+/* A frame's time_boot_ms (MAVLink 2 drops a payload's trailing zeros), or -1: none. */
+static long long boot_time_of(const unsigned char *payload, unsigned int mlen, const Known *k) {
+    if (k->boot_at < 0) {
+        return -1;
+    }
+    unsigned long long value = 0;
+    for (int i = 3; i >= 0; i--) {
+        unsigned int at = (unsigned int)k->boot_at + (unsigned int)i;
+        value = value << 8 | (at < mlen ? payload[at] : 0);
+    }
+    return (long long)value;
+}
+
+/* Where the frames of a forwardable datagram start and end (count), or -1; ``*routine``:
+ * whether every frame is of a routine message id, each then summarised in ``summary``
+ * (id, sequence number, time_boot_ms or -1). */
 static int frames_of(const unsigned char *d, Py_ssize_t total, const Rules *rules,
-                     Py_ssize_t *starts, Py_ssize_t *ends) {
+                     Py_ssize_t *starts, Py_ssize_t *ends, int *routine, long long *summary) {
     Py_ssize_t at = 0;
     int count = 0;
+    *routine = 1;
     if (total == 0) {
         return -1;
     }
@@ -197,6 +227,13 @@ static int frames_of(const unsigned char *d, Py_ssize_t total, const Rules *rule
         Py_ssize_t crc_at = at + V2_HEADER + mlen;
         if ((crc & 0xFF) != d[crc_at] || (crc >> 8) != d[crc_at + 1]) {
             return -1;
+        }
+        if (*routine && is_routine(rules, id)) {
+            summary[count * 3] = id;
+            summary[count * 3 + 1] = d[at + 4];
+            summary[count * 3 + 2] = boot_time_of(payload, mlen, k);
+        } else {
+            *routine = 0;
         }
         starts[count] = at;
         ends[count] = end;
@@ -303,6 +340,7 @@ static void clear(Entries *list) {
     for (Py_ssize_t i = 0; i < list->count; i++) {
         Py_XDECREF(list->items[i].data);
         Py_XDECREF(list->items[i].sender);
+        Py_XDECREF(list->items[i].frames);
     }
     PyMem_Free(list->items);
     list->items = NULL;
@@ -350,6 +388,7 @@ static int read_socket(int fd, Py_ssize_t limit, int urgent, const struct sockad
             }
             Entry e;
             e.urgent = urgent;
+            e.frames = NULL;
             e.stamp = stamp_of(h);
             e.data = PyBytes_FromStringAndSize(slots + (size_t)i * SLOT,
                                                (Py_ssize_t)messages[i].msg_len);
@@ -411,8 +450,9 @@ static PyObject *entry_tuple(const Entry *e, int routed) {
         return NULL;
     }
     PyObject *out = routed < 0 ? PyTuple_Pack(3, e->data, e->sender, when)
-                               : PyTuple_Pack(4, e->data, e->sender, when,
-                                              routed ? Py_True : Py_False);
+                               : PyTuple_Pack(5, e->data, e->sender, when,
+                                              routed ? Py_True : Py_False,
+                                              e->frames != NULL ? e->frames : Py_None);
     Py_DECREF(when);
     return out;
 }
@@ -456,16 +496,31 @@ done:
     return out;
 }
 
+/* (id, seq, time_boot_ms | -1, ...) of ``count`` routine frames, for Python. */
+static PyObject *summarise(const long long *summary, int count) {
+    PyObject *out = PyTuple_New(count * 3);
+    for (int i = 0; out != NULL && i < count * 3; i++) {
+        PyObject *value = PyLong_FromLongLong(summary[i]);
+        if (value == NULL) {
+            Py_CLEAR(out);
+            break;
+        }
+        PyTuple_SET_ITEM(out, i, value);
+    }
+    return out;
+}
+
 static PyObject *pump(PyObject *module, PyObject *args) {
     (void)module;
     int bulk_fd, urgent_fd, sysid, compid, agent_comp, log_busy, urgent_returns;
     double timeout_s, due_s, age_s, offset;
     PyObject *wake_list, *client_list, *locked_obj, *held_in;
-    Py_ssize_t limit;
-    if (!PyArg_ParseTuple(args, "iiO(dddd)OOiiippOn:pump", &bulk_fd, &urgent_fd, &wake_list,
+    Py_ssize_t limit, routine_bytes;
+    const char *routine;
+    if (!PyArg_ParseTuple(args, "iiO(dddd)OOiiippOny#:pump", &bulk_fd, &urgent_fd, &wake_list,
                           &timeout_s, &due_s, &age_s, &offset, &client_list, &locked_obj,
                           &sysid, &compid, &agent_comp, &log_busy, &urgent_returns, &held_in,
-                          &limit)) {
+                          &limit, &routine, &routine_bytes)) {
         return NULL;
     }
     if (ensure_slots() < 0) {
@@ -520,7 +575,8 @@ static PyObject *pump(PyObject *module, PyObject *args) {
     if (locked_obj != Py_None && address_of(locked_obj, &locked) < 0) {
         return NULL;
     }
-    Rules rules = {sysid, compid, agent_comp, log_busy};
+    Rules rules = {sysid, compid, agent_comp, log_busy, (const unsigned char *)routine,
+                   routine_bytes};
 
     Entries held = {0}, fresh = {0}, out = {0};
     unsigned char *routed = NULL;
@@ -542,7 +598,7 @@ static PyObject *pump(PyObject *module, PyObject *args) {
             goto fail;
         }
         Entry e = {Py_NewRef(data), Py_NewRef(from), when == Py_None ? NAN : PyFloat_AsDouble(when),
-                   0};
+                   0, NULL};
         Py_DECREF(item);
         if (push(&held, e) < 0) {
             Py_DECREF(e.data);
@@ -660,11 +716,21 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                 int from_locked = e->sender == locked_obj && locked_obj != Py_None;
                 if (forwarding && from_locked) {
                     Py_ssize_t starts[MAX_FRAMES], ends[MAX_FRAMES];
+                    long long summary[MAX_FRAMES * 3];
+                    int routine = 0;
                     const unsigned char *d = (const unsigned char *)PyBytes_AS_STRING(e->data);
-                    int count = frames_of(d, PyBytes_GET_SIZE(e->data), &rules, starts, ends);
+                    int count = frames_of(d, PyBytes_GET_SIZE(e->data), &rules, starts, ends,
+                                          &routine, summary);
                     if (count > 0) {
                         forward(d, count, starts, ends, clients, n_clients);
                         sent = 1;
+                        if (routine) {
+                            /* without it (no memory), Python reads the frames themselves */
+                            out.items[out.count - 1].frames = summarise(summary, count);
+                            if (out.items[out.count - 1].frames == NULL) {
+                                PyErr_Clear();
+                            }
+                        }
                         if (age_s >= 0) { /* the autopilot's last message is this one now */
                             double arrived = isnan(e->stamp) ? monotonic() : e->stamp - offset;
                             if (arrived + age_s > due) {
@@ -739,7 +805,7 @@ static PyMethodDef methods[] = {
     {"pump", pump, METH_VARARGS,
      "pump(bulk_fd, urgent_fd, wake_fds, (timeout_s, due_s, age_s, offset), clients, locked, "
      "sysid, compid, "
-     "agent_comp, log_busy, urgent_returns, held, limit) -> (items, held, woke)"},
+     "agent_comp, log_busy, urgent_returns, held, limit, routine) -> (items, held, woke)"},
     {NULL, NULL, 0, NULL},
 };
 

@@ -1,7 +1,7 @@
 # The C extension _udpbatch.c (built with ROOST_COMPILE=1; see setup.py).
 
 def receive(fd: int, limit: int, /) -> list[tuple[bytes, tuple[str, int] | None, float | None]]: ...
-def set_messages(table: dict[int, tuple[int, int, int]], /) -> None: ...
+def set_messages(table: dict[int, tuple[int, int, int, int]], /) -> None: ...
 def pump(
     bulk_fd: int,
     urgent_fd: int,
@@ -16,9 +16,10 @@ def pump(
     urgent_returns: bool,
     held: list[tuple[bytes, tuple[str, int] | None, float | None]],
     limit: int,
+    routine: bytes,
     /,
 ) -> tuple[
-    list[tuple[bytes, tuple[str, int] | None, float | None, bool]],
+    list[tuple[bytes, tuple[str, int] | None, float | None, bool, tuple[int, ...] | None]],
     list[tuple[bytes, tuple[str, int] | None, float | None]],
     bool,
 ]: ...

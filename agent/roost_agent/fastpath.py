@@ -9,7 +9,10 @@ clients there at once (GIL released while it waits), and Python reads what C rea
 one batch when the decision loop is due (or something must be seen at once: a wake-up
 call, a heartbeat or command answer on a steered link's urgent socket, a datagram C does
 not forward). The health tracker, the source lock and the hub's bookkeeping see every
-datagram as before, with its kernel arrival stamp, in arrival order.
+datagram as before, with its kernel arrival stamp, in arrival order; a datagram C routed
+whose frames are all routine (:func:`routine_bitmap`: no one reads their content) comes
+with their summary instead of being parsed again (id, sequence number, ``time_boot_ms``),
+which is all the link, the hub and the tracker read of them.
 
 C forwards only what the Python path would forward unchanged to a plain client
 (``_udpbatch.c`` lists the checks); the hub offers a route (:class:`FastRoute`) only when
@@ -37,8 +40,10 @@ if TYPE_CHECKING:
     from roost_agent.reader import Session
     from roost_agent.transport import Address, Received
 
-Routed = tuple[bytes, "Address | None", "float | None", bool]  # ..., sent on by C already
-"""A datagram the fast path read: data, sender, kernel arrival stamp, routed by C."""
+Routed = tuple[bytes, "Address | None", "float | None", bool, "tuple[int, ...] | None"]
+"""A datagram the fast path read: data, sender, kernel arrival stamp, routed by C, and for
+a routed datagram of routine frames only (:func:`routine_bitmap`) their summary: message
+id, sequence number and ``time_boot_ms`` (-1: none) of each, in order (else None)."""
 
 PumpResult = tuple[list[Routed], list["Received"], bool]
 
@@ -53,11 +58,12 @@ def _pump() -> Callable[..., PumpResult] | None:
     return cast("Callable[..., PumpResult]", module.pump)
 
 
-def message_table() -> dict[int, tuple[int, int, int]]:
+def message_table() -> dict[int, tuple[int, int, int, int]]:
     """What C checks a frame against: per known message id, its CRC_EXTRA and the
     payload offsets of ``target_system`` and ``target_component`` (-1: none), the fields
-    by which the hub keeps answers to the agent from clients."""
-    table: dict[int, tuple[int, int, int]] = {}
+    by which the hub keeps answers to the agent from clients, and of ``time_boot_ms``
+    (-1: none), which a routine frame's summary carries."""
+    table: dict[int, tuple[int, int, int, int]] = {}
     for msg_id in {*DECLARED, *CHECKED_MESSAGES}:
         known = layout(msg_id)
         if known is None:
@@ -68,8 +74,34 @@ def message_table() -> dict[int, tuple[int, int, int]]:
             known.crc_extra,
             -1 if system is None else system[0],
             -1 if component is None else component[0],
+            known.boot_at,
         )
     return table
+
+
+def routine_bitmap(read: frozenset[str]) -> bytes:
+    """Which message ids are routine, a bit per id: known, addressed to nobody (no
+    ``target_component``) and not of the kinds in ``read`` (those whose content the
+    agent reads). Of a routed datagram of routine frames only, C hands Python a summary
+    (:data:`Routed`): the agent does no more with such a frame than count it and judge
+    its arrival, sequence number and ``time_boot_ms``."""
+    ids = [
+        msg_id
+        for msg_id in message_table()
+        if (known := layout(msg_id)) is not None
+        and known.name not in read
+        and "target_component" not in known.scalars
+        and "target_system" not in known.scalars
+    ]
+    bits = bytearray((max(ids, default=0) >> 3) + 1)
+    for msg_id in ids:
+        bits[msg_id >> 3] |= 1 << (msg_id & 7)
+    return bytes(bits)
+
+
+def kind_names() -> dict[int, str]:
+    """Every known message id's name (a routine frame's summary carries its id)."""
+    return {msg_id: known.name for msg_id in message_table() if (known := layout(msg_id))}
 
 
 PUMP: Final = _pump()
@@ -102,6 +134,7 @@ class FastRoute:
     log_busy: bool
     bulk_fd: int
     urgent_fd: int  # -1: the link is one socket
+    routine: bytes  # routine_bitmap: the ids whose routed frames Python takes summarised
 
 
 def pump(
@@ -135,6 +168,7 @@ def pump(
         urgent_returns,
         transport.take_held(),
         limit,
+        route.routine,
     )
     transport.keep_held(still_held)
     return items, woke

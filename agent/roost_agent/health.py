@@ -397,8 +397,23 @@ class HealthTracker:
         finally:
             lock.release()
 
+    def observe_routine(self, kind: str, boot_ms: int | None, seq: int, now: float) -> bool:
+        """:meth:`observe` for a message of a kind whose content the tracker does not read
+        (not in :data:`READ_KINDS`), given by what it is judged by: its type,
+        ``time_boot_ms`` (None: it has none) and sequence number. The hub's fast path hands
+        the bulk of the stream over so (:mod:`roost_agent.fastpath`), and it is judged by
+        the same code as a message observed whole."""
+        lock = self._lock
+        lock.acquire()
+        try:
+            return self._record(None, kind, boot_ms, seq, now)
+        finally:
+            lock.release()
+
     def _record(self, msg: Any, kind: str, boot_ms: int | None, seq: int, now: float) -> bool:
-        """:meth:`observe` under the lock, the message's type, time and number read."""
+        """:meth:`observe` under the lock, the message's type, time and number read
+        (``msg`` itself is read only for a kind in :data:`READ_KINDS`; None for others
+        observed by :meth:`observe_routine`)."""
         o = self._o
         th = self.thresholds
         # Messages that can change a judgement other than by their arrival time are
@@ -796,6 +811,11 @@ _READERS: Final[dict[str, Callable[[HealthTracker, Any, float], bool]]] = {
     "EKF_STATUS_REPORT": _read_estimator,
     "GLOBAL_POSITION_INT": _read_position,
 }
+
+READ_KINDS: Final = frozenset(_READERS)
+"""The message types whose content the tracker reads (HEARTBEAT's also to settle a
+claim); of every other type only the type, arrival time, sequence number and
+``time_boot_ms`` (:meth:`HealthTracker.observe_routine`)."""
 
 # Whether a message type carries ``time_boot_ms``, learnt from its first message (asking
 # each message would cost a failed attribute lookup for every type without one).

@@ -57,9 +57,10 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Final, Protocol
 
-from roost_agent.fastpath import PUMP, FastRoute
+from roost_agent.fastpath import PUMP, FastRoute, routine_bitmap
+from roost_agent.health import READ_KINDS as HEALTH_READ_KINDS
 from roost_agent.hub_policy import (
     ACCEPT,
     COMMAND_INT_ID,
@@ -82,6 +83,7 @@ from roost_agent.instep import (
     note_answer,
 )
 from roost_agent.link import LOG_REPLIES
+from roost_agent.link import READ_KINDS as LINK_READ_KINDS
 from roost_agent.reader import Session
 from roost_agent.signing import LinkSigning
 from roost_api.autopilot_enums import HubTransport, StandbyInStepReason
@@ -118,6 +120,11 @@ SIGNED_FLAG = 0x01
 CLIENT_TIMEOUT_S = 30.0  # a UDP client not heard this long gets nothing more
 MAX_CLIENTS = 32
 HUB_LINK_ID = 0xF0  # the MAVLink signing link id of the hub's frames to clients
+READ_KINDS: Final = frozenset({"HEARTBEAT", "GLOBAL_POSITION_INT", "COMMAND_ACK"}) | LOG_REPLIES
+"""The message types whose content the hub reads (:meth:`Hub._from_autopilot`: a
+snapshot for the standby judgement, an answer from a standby, the log session)."""
+ROUTINE: Final = routine_bitmap(READ_KINDS | LINK_READ_KINDS | HEALTH_READ_KINDS)
+"""The message ids the fast path hands Python summarised (:mod:`roost_agent.fastpath`)."""
 SELECT_WAIT_S = 1.0  # the hub thread's longest sleep: clients expire after 30 s; stop wakes it
 UDP_MAX = 65535
 TCP_SEND_BUFFER = 1 << 18
@@ -225,6 +232,8 @@ class HubLink(Protocol):
     """Set while the agent's own log download holds the autopilot's log session."""
     routed: bool
     """The datagram being read was routed to the fast route's clients in C already."""
+    tap_routed: Callable[[int], bool] | None
+    """Given the count of a routed datagram's routine frames (read no further)."""
 
     def fast_source(self) -> tuple[Session, Address] | None: ...
 
@@ -442,7 +451,11 @@ class Hub:
         def tap(msg: Any, now: float) -> None:
             self._from_autopilot(name, link.spec, msg, now, link.routed)
 
+        def tap_routed(frames: int) -> bool:
+            return self._routed_routine(name, frames)
+
         link.tap = tap
+        link.tap_routed = tap_routed
 
     def set_active(self, name: str) -> None:
         """Move the clients' route to ``name`` (the agent calls it right after the bridge
@@ -622,6 +635,19 @@ class Hub:
         counters.to_clients += sent
         counters.forwarded[name] = counters.forwarded.get(name, 0) + 1
 
+    def _routed_routine(self, name: str, frames: int) -> bool:
+        """What :meth:`_from_autopilot` does with ``frames`` routine frames (none of
+        :data:`READ_KINDS`, addressed to nobody) routed in C, when that is only counting
+        them: they are the active autopilot's and the route's clients are still all the
+        clients. False otherwise, having done nothing (they come to the tap whole)."""
+        route = self._route
+        if name != self._active or route is None or self._sinks is not route.sinks:
+            return False
+        counters = self.counters
+        counters.routed_in_c += frames
+        counters.to_clients += frames * len(route.clients)
+        return True
+
     def _not_routed(self, sinks: tuple[_Client, ...]) -> tuple[_Client, ...]:
         """Of ``sinks``, the clients a frame routed in C did not reach (those that came
         since the route was made); the routed ones are counted here."""
@@ -675,6 +701,7 @@ class Hub:
             log_busy=log_busy,
             bulk_fd=fds[0],
             urgent_fd=fds[1],
+            routine=ROUTINE,
         )
         return route
 

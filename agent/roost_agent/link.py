@@ -32,6 +32,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, Final, Generic, TypeVar
 
+from roost_agent.fastpath import kind_names
 from roost_agent.health import Fix, HealthTracker, Motion
 from roost_agent.reader import LinkReader, Session
 from roost_agent.signing import LinkSigning
@@ -164,6 +165,12 @@ MISSION_MESSAGES: Final = frozenset(
     {"MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_COUNT", "MISSION_ITEM_INT", "MISSION_ACK"}
 )
 """The mission protocol messages an autopilot sends the agent (roost_agent.fence)."""
+READ_KINDS: Final = (
+    frozenset({"COMMAND_ACK", "PARAM_VALUE", "AUTOPILOT_VERSION"}) | MISSION_MESSAGES | LOG_REPLIES
+)
+"""The message types whose content the link itself reads (:meth:`AutopilotLink._message`):
+never summarised by the hub's fast path (:func:`roost_agent.fastpath.routine_bitmap`)."""
+_KIND_NAMES: Final = kind_names()
 
 
 class Inbox(Generic[T]):
@@ -239,6 +246,10 @@ class AutopilotLink:
         # Whether the datagram being read was routed to the hub's plain UDP clients in C
         # already (roost_agent.fastpath): the hub's tap sends it to the others only.
         self.routed = False
+        # Called by the reader with the number of routine frames of a datagram the hub's
+        # fast path routed in C (roost_agent.fastpath): True when the hub has counted
+        # them and has nothing else to do with them; False: they go to ``tap`` whole.
+        self.tap_routed: Callable[[int], bool] | None = None
         # The flight recorder's tap (roost_agent.records_recorder): every frame accepted
         # from the autopilot (after the hub routed it and the tracker judged it) and
         # every frame written to it (after the write).
@@ -431,10 +442,11 @@ class AutopilotLink:
         if pushed is not None:
             session.pushed = None
             try:
-                for data, sender, stamp, routed in pushed:
+                for data, sender, stamp, routed, frames in pushed:
                     self.routed = routed
                     now = self._arrival(session, stamp, offset)
-                    self._datagram(session, data, sender, now)
+                    if frames is None or not self._routine(session, data, sender, frames, now):
+                        self._datagram(session, data, sender, now)
             finally:
                 self.routed = False
             return
@@ -495,6 +507,52 @@ class AutopilotLink:
         except Exception:  # a bug reading one message must not stop the reader
             self.counters.errors += 1
 
+    def _routine(
+        self,
+        session: Session,
+        data: bytes,
+        sender: Address | None,
+        frames: tuple[int, ...],
+        now: float,
+    ) -> bool:
+        """A datagram the hub's fast path routed in C, of routine frames only, taken by
+        their summary (id, sequence number, ``time_boot_ms`` or -1 each: the kinds no one
+        reads the content of, :func:`roost_agent.fastpath.routine_bitmap`): accepted,
+        counted by the hub and judged by the tracker as :meth:`_message` does with them
+        whole. False, having done nothing, when it must be read whole instead: the
+        recorder wants the frames, signatures are checked, the lock moved since C read
+        it, or the hub has more to do (:attr:`tap_routed`)."""
+        if self._record is not None or session.verifier is not None:
+            return False
+        if sender is None or sender != session.lock.locked:
+            return False
+        tap_routed = self.tap_routed
+        if tap_routed is None or not tap_routed(len(frames) // 3):
+            return False
+        self.counters.bytes += len(data)
+        tracker = self.tracker
+        names = _KIND_NAMES
+        try:
+            for i in range(0, len(frames), 3):
+                self._accepted(session.lock, now)
+                boot_ms = frames[i + 2]
+                kind = names[frames[i]]
+                if tracker.observe_routine(
+                    kind, None if boot_ms < 0 else boot_ms, frames[i + 1], now
+                ):
+                    self._on_change()
+        except Exception:  # a bug reading one message must not stop the reader
+            self.counters.errors += 1
+        return True
+
+    def _accepted(self, lock: SourceLock, now: float) -> None:
+        """A frame of this autopilot from the locked address is taken."""
+        lock.seen(now)
+        self.counters.accepted += 1
+        if self.error is not None:
+            self.error = None
+            self._event("LinkRecovered", "receiving again", False)
+
     def _message(
         self, session: Session, msg: Frame, sender: Address | None, now: float, locked: bool
     ) -> None:
@@ -516,11 +574,7 @@ class AutopilotLink:
                 self.counters.unlocked += 1
                 return
             self._took_lock(session, sender)
-        lock.seen(now)
-        self.counters.accepted += 1
-        if self.error is not None:
-            self.error = None
-            self._event("LinkRecovered", "receiving again", False)
+        self._accepted(lock, now)
         tap = self.tap
         if tap is not None:
             tap(msg, now)

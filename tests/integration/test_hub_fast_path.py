@@ -22,6 +22,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime
+from typing import Any
 
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
@@ -40,6 +41,7 @@ from tests.support.flight import SIM_THRESHOLDS, px4_pair_on_udp
 from tests.support.waiting import wait_until
 
 ATTITUDE = mavlink.MAVLINK_MSG_ID_ATTITUDE
+LOCAL_POSITION = mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED
 COMMAND_ACK = mavlink.MAVLINK_MSG_ID_COMMAND_ACK
 AGENT_COMPONENT = 191
 POLL_S = 0.01
@@ -295,3 +297,46 @@ def test_the_active_autopilot_falling_silent_is_judged_while_its_frames_are_rout
     hub = rig.agent.hub
     assert hub is not None
     assert (hub.counters.routed_in_c > 0) == hub.fast
+
+
+def test_routine_frames_are_routed_and_judged_without_being_read_whole(rig: Rig) -> None:
+    """LOCAL_POSITION_NED, whose content the agent never reads: routed byte for byte and
+    counted by the tracker either way; in C the hub's tap never gets one whole (C hands
+    Python each datagram's summary: id, sequence number, time_boot_ms)."""
+    link = rig.agent.links["fc1"]
+    tap = link.tap
+    assert tap is not None
+    whole: list[str] = []
+
+    def watching(msg: Any, now: float) -> None:
+        if msg.get_type() == "LOCAL_POSITION_NED":
+            whole.append(msg.get_type())
+        tap(msg, now)
+
+    link.tap = watching
+    fc1 = rig.fc1
+    before = link.tracker.stream_facts().counts.get("LOCAL_POSITION_NED", 0)
+    expected = []
+    for i in range(200):
+        frame = fc1.frame(
+            mavlink.MAVLink_local_position_ned_message(10_000 + 2 * i, i, 0, 0, 0, 0, 0)
+        )
+        fc1.send(frame)
+        expected.append(frame)
+        time.sleep(0.002)
+    wait_until(
+        "the frames reach the client",
+        lambda: len(rig.client.frames(LOCAL_POSITION)) >= len(expected),
+        10,
+        POLL_S,
+    )
+    assert rig.client.frames(LOCAL_POSITION) == expected
+    wait_until(
+        "the tracker counted them",
+        lambda: link.tracker.stream_facts().counts.get("LOCAL_POSITION_NED", 0) == before + 200,
+        10,
+        POLL_S,
+    )
+    hub = rig.agent.hub
+    assert hub is not None
+    assert len(whole) == (0 if hub.fast else 200)

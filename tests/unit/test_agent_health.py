@@ -49,9 +49,16 @@ class Vehicle(Feed):
     """A feed into a tracker of its own with this module's thresholds."""
 
     def __init__(
-        self, stack: Stack = Stack.PX4, thresholds: Thresholds | None = None, *, codec: bool = False
+        self,
+        stack: Stack = Stack.PX4,
+        thresholds: Thresholds | None = None,
+        *,
+        codec: bool = False,
+        summarise: bool = False,
     ) -> None:
-        super().__init__(HealthTracker("fc1", stack, thresholds or TH), codec=codec)
+        super().__init__(
+            HealthTracker("fc1", stack, thresholds or TH), codec=codec, summarise=summarise
+        )
 
 
 def codes(a: Assessment) -> set[str]:
@@ -713,6 +720,91 @@ def test_the_agents_frames_are_judged_as_pymavlinks_messages(
         assert judgement(ours.at(0.01)) == judgement(theirs.at(0.01))
         assert ours.tracker.motion() == theirs.tracker.motion()
         assert ours.tracker.fix() == theirs.tracker.fix()
+
+
+def _local_position(v: Vehicle, back_ms: int = 0) -> None:
+    """LOCAL_POSITION_NED (read by nobody: the fast path's routine kind) saying
+    ``back_ms`` before the stream's time (a back-step of more than the reboot rule's is a
+    reboot claim)."""
+    v.observe(mav.MAVLink_local_position_ned_message(max(0, v.boot_ms - back_ms), 1, 2, 3, 0, 0, 0))
+
+
+ROUTINE_STEP = st.tuples(
+    st.sampled_from([0.001, 0.02, 0.1, 0.3, 0.6, 1.2]),
+    st.sampled_from(
+        [
+            "routine",
+            "routine",
+            "routine-back",
+            "routine-burst",
+            "attitude",
+            "heartbeat",
+            "reboot",
+            "boot-state",
+            "critical",
+            "nothing",
+        ]
+    ),
+)
+
+
+def _routine(v: Vehicle, action: str) -> None:
+    if action == "routine":
+        _local_position(v)
+    elif action == "routine-back":
+        _local_position(v, back_ms=60_000)
+    elif action == "routine-burst":
+        for _ in range(20):
+            v.t += 0.002
+            _local_position(v)
+    else:
+        _act(v, action)
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.lists(ROUTINE_STEP, min_size=1, max_size=40))
+def test_routine_frames_summarised_are_judged_as_whole_frames(
+    steps: list[tuple[float, str]],
+) -> None:
+    """The hub's fast path hands the tracker a routine frame (a kind whose content no
+    one reads) by its type, ``time_boot_ms`` and sequence number alone
+    (``observe_routine``): the same flight, reboot claims by ``time_boot_ms`` going back,
+    their corroboration and refutation by sequence numbers, silences and rate windows
+    included, leaves the same observations and judgements as the frames observed whole."""
+    whole, summarised = Vehicle(codec=True), Vehicle(summarise=True)
+    for v in (whole, summarised):
+        v.fly(1.5)
+    for dt, action in steps:
+        changed = []
+        for v in (whole, summarised):
+            v.t += dt
+            _routine(v, action)
+            changed.append(observed(v))
+        assert changed[0] == changed[1], action
+        assert judgement(summarised.at(0.01)) == judgement(whole.at(0.01))
+
+
+def test_a_routine_frames_summary_reports_a_confirmed_reboot_as_a_change() -> None:
+    """Decision table: what ``observe_routine`` returns, as ``observe`` would."""
+    whole, summarised = Vehicle(codec=True), Vehicle(summarise=True)
+    for v in (whole, summarised):
+        v.fly(1.5)
+    # a frame, a reboot claim (time_boot_ms back a minute), the next frame on the new
+    # timeline confirming it, then one after a silence
+    rows = [(0.02, 0, False), (0.02, 60_000, False), (0.02, 60_000, True), (0.5, 60_000, True)]
+    for dt, back_ms, changes in rows:
+        said = []
+        for v in (whole, summarised):
+            v.t += dt
+            said.append(
+                v.observe(
+                    mav.MAVLink_local_position_ned_message(
+                        max(0, v.boot_ms - back_ms), 1, 2, 3, 0, 0, 0
+                    )
+                )
+            )
+        assert said == [changes, changes], (dt, back_ms)
+    assert summarised.tracker.stream_facts().reboots == whole.tracker.stream_facts().reboots == 1
 
 
 # -- the default thresholds: decision tables at their boundaries ---------------------------
