@@ -134,9 +134,10 @@ test: ## the whole suite: check, integration, e2e, the control-plane suites on k
 	@rm -rf $(REPORTS)
 	@$(MAKE) --no-print-directory images-background
 	@$(MAKE) --no-print-directory check
-	@$(MAKE) --no-print-directory -j2 integration-parallel beside-integration
+	@$(MAKE) --no-print-directory -j2 integration-parallel kine-beside
 	@$(MAKE) --no-print-directory integration-serial e2e
 	$(call PYTEST_SERIAL,kine-serial,--datastore kine $(KINE_SUITES))
+	ROOST_KIND_JUNIT=$(CURDIR)/$(REPORTS)/kind.xml tests/e2e/kind/run.sh
 	@$(PY) -m tests.support.durations $(REPORTS)/*.xml
 
 # The control-plane and operator suites again on kine+SQLite, the datastore K3s runs on;
@@ -154,20 +155,6 @@ kine-beside: $(STAMP) cluster-build
 	@$(call PYTEST_REPORT,kine) --datastore kine -m 'not serial' $(KINE_SUITES) >$(REPORTS)/kine.log 2>&1 \
 	  || { tail -n 80 $(REPORTS)/kine.log; echo "kine: failed (above: the end of its log)"; exit 1; }
 	@echo "kine: $$(tail -n 1 $(REPORTS)/kine.log)"
-
-# What runs beside the integration tier's first pass in `make test`, one after the other:
-# the kine pass, then the KinD run (its cluster's nodes mostly wait on pods too). Each
-# writes a log of its own and prints its summary line.
-.PHONY: beside-integration kind-beside
-beside-integration:
-	@$(MAKE) --no-print-directory kine-beside
-	@$(MAKE) --no-print-directory kind-beside
-kind-beside: $(STAMP)
-	@mkdir -p $(REPORTS)
-	@echo "kind: the KinD end-to-end run, beside the integration pass (log: $(REPORTS)/kind.log)"
-	@ROOST_KIND_JUNIT=$(CURDIR)/$(REPORTS)/kind.xml tests/e2e/kind/run.sh >$(REPORTS)/kind.log 2>&1 </dev/null \
-	  || { tail -n 80 $(REPORTS)/kind.log; echo "kind: failed (above: the end of its log)"; exit 1; }
-	@echo "kind: $$(grep -E '^=+ .*(passed|failed|skipped|error)' $(REPORTS)/kind.log | tail -n 1 || tail -n 1 $(REPORTS)/kind.log)"
 
 .PHONY: test-kine
 test-kine: $(STAMP) cluster-build ## every control-plane test on kine+SQLite (K3s's datastore) instead of etcd
