@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any, Final, cast
 from roost_agent.transport import recent_realtime_offset
 from roost_mavlink import AGENT_COMPONENT_ID
 from roost_mavlink.checked_messages import CHECKED_MESSAGES
-from roost_mavlink.codec import DECLARED, layout
+from roost_mavlink.codec import DECLARED, Layout, layout
 
 if TYPE_CHECKING:
     from roost_agent.reader import Session
@@ -58,16 +58,20 @@ def _pump() -> Callable[..., PumpResult] | None:
     return cast("Callable[..., PumpResult]", module.pump)
 
 
+def _known_layouts() -> dict[int, Layout]:
+    """Every message id the agent's codec knows, with its layout: what C checks frames
+    against, summarises and names."""
+    known = {msg_id: layout(msg_id) for msg_id in {*DECLARED, *CHECKED_MESSAGES}}
+    return {msg_id: found for msg_id, found in known.items() if found is not None}
+
+
 def message_table() -> dict[int, tuple[int, int, int, int]]:
     """What C checks a frame against: per known message id, its CRC_EXTRA and the
     payload offsets of ``target_system`` and ``target_component`` (-1: none), the fields
     by which the hub keeps answers to the agent from clients, and of ``time_boot_ms``
     (-1: none), which a routine frame's summary carries."""
     table: dict[int, tuple[int, int, int, int]] = {}
-    for msg_id in {*DECLARED, *CHECKED_MESSAGES}:
-        known = layout(msg_id)
-        if known is None:
-            continue
+    for msg_id, known in _known_layouts().items():
         system = known.scalars.get("target_system")
         component = known.scalars.get("target_component")
         table[msg_id] = (
@@ -81,15 +85,14 @@ def message_table() -> dict[int, tuple[int, int, int, int]]:
 
 def routine_bitmap(read: frozenset[str]) -> bytes:
     """Which message ids are routine, a bit per id: known, addressed to nobody (no
-    ``target_component``) and not of the kinds in ``read`` (those whose content the
-    agent reads). Of a routed datagram of routine frames only, C hands Python a summary
-    (:data:`Routed`): the agent does no more with such a frame than count it and judge
-    its arrival, sequence number and ``time_boot_ms``."""
+    ``target_system`` or ``target_component``) and not of the kinds in ``read`` (those
+    whose content the agent reads). Of a routed datagram of routine frames only, C hands
+    Python a summary (:data:`Routed`): the agent does no more with such a frame than
+    count it and judge its arrival, sequence number and ``time_boot_ms``."""
     ids = [
         msg_id
-        for msg_id in message_table()
-        if (known := layout(msg_id)) is not None
-        and known.name not in read
+        for msg_id, known in _known_layouts().items()
+        if known.name not in read
         and "target_component" not in known.scalars
         and "target_system" not in known.scalars
     ]
@@ -101,7 +104,7 @@ def routine_bitmap(read: frozenset[str]) -> bytes:
 
 def kind_names() -> dict[int, str]:
     """Every known message id's name (a routine frame's summary carries its id)."""
-    return {msg_id: known.name for msg_id in message_table() if (known := layout(msg_id))}
+    return {msg_id: known.name for msg_id, known in _known_layouts().items()}
 
 
 PUMP: Final = _pump()

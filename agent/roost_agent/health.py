@@ -388,6 +388,20 @@ class HealthTracker:
                 carries_boot_time = _learn_boot_time(kind, msg)
             boot_ms = msg.time_boot_ms if carries_boot_time else None
             seq = msg.get_seq()
+        return self._locked_record(msg, kind, boot_ms, seq, now)
+
+    def observe_routine(self, kind: str, boot_ms: int | None, seq: int, now: float) -> bool:
+        """:meth:`observe` for a message of a kind whose content the tracker does not read
+        (not in :data:`READ_KINDS`), given by what it is judged by: its type,
+        ``time_boot_ms`` (None: it has none) and sequence number. The hub's fast path hands
+        the bulk of the stream over so (:mod:`roost_agent.fastpath`), and it is judged by
+        the same code as a message observed whole."""
+        return self._locked_record(None, kind, boot_ms, seq, now)
+
+    def _locked_record(
+        self, msg: Any, kind: str, boot_ms: int | None, seq: int, now: float
+    ) -> bool:
+        """:meth:`_record` under the tracker's lock."""
         # acquire/release rather than ``with``: compiled, ``with`` looks __enter__ and
         # __exit__ up on the lock's type and calls each with an argument tuple.
         lock = self._lock
@@ -397,23 +411,10 @@ class HealthTracker:
         finally:
             lock.release()
 
-    def observe_routine(self, kind: str, boot_ms: int | None, seq: int, now: float) -> bool:
-        """:meth:`observe` for a message of a kind whose content the tracker does not read
-        (not in :data:`READ_KINDS`), given by what it is judged by: its type,
-        ``time_boot_ms`` (None: it has none) and sequence number. The hub's fast path hands
-        the bulk of the stream over so (:mod:`roost_agent.fastpath`), and it is judged by
-        the same code as a message observed whole."""
-        lock = self._lock
-        lock.acquire()
-        try:
-            return self._record(None, kind, boot_ms, seq, now)
-        finally:
-            lock.release()
-
     def _record(self, msg: Any, kind: str, boot_ms: int | None, seq: int, now: float) -> bool:
-        """:meth:`observe` under the lock, the message's type, time and number read
-        (``msg`` itself is read only for a kind in :data:`READ_KINDS`; None for others
-        observed by :meth:`observe_routine`)."""
+        """Judge one message by its type, time and number (``msg`` itself is read only
+        for a kind in :data:`READ_KINDS`; None for others observed by
+        :meth:`observe_routine`)."""
         o = self._o
         th = self.thresholds
         # Messages that can change a judgement other than by their arrival time are
