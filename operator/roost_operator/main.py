@@ -37,6 +37,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import signal
 import socket
 import threading
 from collections.abc import Iterable, Mapping
@@ -240,8 +241,12 @@ def main(argv: list[str] | None = None) -> int:
             args.identity,
             on_lost=lose_leadership,
         )
-        with standby_health(args.liveness):
+        with standing_by(args.liveness, elector):
             elector.acquire()
+        if elector.cancelled:
+            elector.stop()  # hands back a Lease taken just before the signal
+            logging.getLogger(__name__).info("leader election: stopped while standing by")
+            return 0
         elector.keep()
     try:
         kopf.run(
@@ -277,16 +282,33 @@ class _Healthy(BaseHTTPRequestHandler):
         return
 
 
-class standby_health:  # noqa: N801 (a context manager used as a function)
-    """While a replica stands by (kopf not started), answer the liveness URL itself."""
+class standing_by:  # noqa: N801 (a context manager used as a function)
+    """While a replica stands by (kopf not started): answer the liveness URL itself, and
+    stop standing by on SIGTERM or SIGINT.
 
-    def __init__(self, url: str | None) -> None:
+    kopf handles those signals once it runs; before that, Python's default would apply,
+    and in a container the operator is its PID namespace's init, for which the kernel
+    drops a signal that has no handler: a standby pod would sit out its whole
+    termination grace period (30 s) on every rollout, scale-down and uninstall, and then
+    be killed. The handler only cancels the election; :func:`main` returns.
+    """
+
+    SIGNALS = (signal.SIGTERM, signal.SIGINT)
+
+    def __init__(self, url: str | None, elector: LeaderElector) -> None:
+        self.elector = elector
+        self.previous: dict[int, Any] = {}
         self.server: ThreadingHTTPServer | None = None
         if url:
             parts = urlsplit(url)
             self.server = ThreadingHTTPServer((parts.hostname or "", parts.port or 80), _Healthy)
 
+    def _stop(self, signum: int, _frame: object) -> None:
+        self.elector.cancel()
+
     def __enter__(self) -> None:
+        for signum in self.SIGNALS:
+            self.previous[signum] = signal.signal(signum, self._stop)
         if self.server is not None:
             threading.Thread(target=self.server.serve_forever, daemon=True).start()
 
@@ -294,6 +316,8 @@ class standby_health:  # noqa: N801 (a context manager used as a function)
         if self.server is not None:
             self.server.shutdown()
             self.server.server_close()
+        for signum, handler in self.previous.items():
+            signal.signal(signum, handler)
 
 
 if __name__ == "__main__":

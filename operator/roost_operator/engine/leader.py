@@ -173,7 +173,7 @@ class LeaderElector:
         return True
 
     def acquire(self) -> None:
-        """Block until this replica holds the Lease."""
+        """Block until this replica holds the Lease or :meth:`cancel` is called."""
         announced = False
         while not self._stop.is_set():
             try:
@@ -187,6 +187,15 @@ class LeaderElector:
                 log.info("leader election: standing by (%s leads)", holder)
                 announced = True
             self._stop.wait(self.timings.retry_s)
+
+    def cancel(self) -> None:
+        """Stop standing by (safe in a signal handler: it only sets an event); whoever
+        called :meth:`acquire` checks :attr:`cancelled` before acting."""
+        self._stop.set()
+
+    @property
+    def cancelled(self) -> bool:
+        return self._stop.is_set()
 
     def keep(self) -> None:
         """Renew the Lease from a daemon thread until :meth:`stop`; call ``on_lost`` when
