@@ -94,14 +94,16 @@ integration: $(STAMP) cluster-build ## real parts together: UDP MAVLink, process
 	@$(MAKE) --no-print-directory integration-parallel integration-serial
 
 # integration's two passes: the files in $(WORKERS) workers, then what must run alone and
-# the sync-paths example
+# the sync-paths example. The tests tests/integration/test_compiled_agent.py runs against
+# the compiled build (the agent's message path, as the images ship it) run there only.
+LEAVE := --leave-to-compiled
 .PHONY: integration-parallel integration-serial
 integration-parallel: $(STAMP) cluster-build
 	@mkdir -p $(REPORTS)
-	$(call PYTEST_REPORT,integration) $(PARALLEL) tests/integration
+	$(call PYTEST_REPORT,integration) $(PARALLEL) $(LEAVE) tests/integration
 integration-serial: $(STAMP) cluster-build
 	@mkdir -p $(REPORTS)
-	$(call PYTEST_SERIAL,integration-serial,tests/integration)
+	$(call PYTEST_SERIAL,integration-serial,$(LEAVE) tests/integration)
 	$(call PYTEST_REPORT,sync-paths) examples/missions/sync-paths
 
 # The e2e files wait on pods, kubelets, timers and flights, not on the CPU: two workers

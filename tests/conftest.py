@@ -12,7 +12,7 @@ import pytest
 from roost_kube.client import Kube
 from roost_localcluster.cluster import Cluster, FakeNodes
 from roost_localcluster.controlplane import DATASTORES, ControlPlane, Settings
-from tests.support.compiled import check_compiled_imports
+from tests.support.compiled import check_compiled_imports, left_to_compiled
 from tests.support.natports import hold, nat_rules, redirected_loopback_ports
 from tests.support.operator import OperatorProcess
 
@@ -24,6 +24,13 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         default=os.environ.get("ROOST_DATASTORE", "etcd"),
         help="the control plane's datastore: etcd, or kine over SQLite as in K3s "
         "(default: $ROOST_DATASTORE, else etcd)",
+    )
+    parser.addoption(
+        "--leave-to-compiled",
+        action="store_true",
+        help="deselect the integration tests that tests/integration/test_compiled_agent.py "
+        "runs against the compiled build (make test: each runs once, against what the "
+        "images ship)",
     )
 
 
@@ -71,15 +78,27 @@ def _no_collector_pause() -> None:
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Every test that uses the control plane is marked ``cluster`` (run/skip as a group);
-    against the compiled build, tests marked ``interpreted_only`` are skipped."""
+    against the compiled build, tests marked ``interpreted_only`` are skipped; with
+    ``--leave-to-compiled``, the compiled run's integration tests are deselected here
+    (not those marked ``interpreted_only``: the compiled run skips them)."""
     compiled = config.stash.get(_COMPILED_MODULES, [])
+    leave = config.getoption("--leave-to-compiled") and not compiled
+    kept, left = [], []
     for item in items:
         if "cluster" in getattr(item, "fixturenames", ()):
             item.add_marker(pytest.mark.cluster)
-        if compiled and item.get_closest_marker("interpreted_only"):
+        only_interpreted = item.get_closest_marker("interpreted_only") is not None
+        if compiled and only_interpreted:
             item.add_marker(
                 pytest.mark.skip(reason="a stand-in in a class the compiled build makes native")
             )
+        if leave and not only_interpreted and left_to_compiled(item.nodeid):
+            left.append(item)
+        else:
+            kept.append(item)
+    if left:
+        config.hook.pytest_deselected(items=left)
+        items[:] = kept
 
 
 @pytest.fixture(scope="session")
