@@ -109,8 +109,11 @@ integration-serial: $(STAMP) cluster-build
 # The e2e files wait on pods, kubelets, timers and flights, not on the CPU: two workers
 # take whole files each, each worker with its own control plane and real-node pool (the
 # node network's subnets, namespaces and cgroups are per pool; tests/e2e_node/conftest.py
-# puts the longest file first). The flights judged in real time (`serial`) run after, alone.
+# puts the longest file first). The flights judged in real time (`serial`) run after, two
+# files at a time: a flight costs a fraction of a core, and what starved them was the
+# first pass's images under qemu, image builds and the browser tests beside them.
 E2E_PARALLEL := -n $(WORKERS) --dist loadfile -m 'not arm64_node and not serial'
+E2E_SERIAL := -n $(WORKERS) --dist loadfile
 
 .PHONY: e2e
 e2e: $(STAMP) cluster-build ## end to end: the sandbox, the chart, the images, the dashboard in a browser, real nodes (skip without)
@@ -119,7 +122,7 @@ e2e: $(STAMP) cluster-build ## end to end: the sandbox, the chart, the images, t
 	@$(MAKE) --no-print-directory browser || echo "browser: not installed (above: why); the dashboard's browser tests skip"
 	@mkdir -p $(REPORTS)
 	$(call PYTEST_REPORT,e2e) $(E2E_PARALLEL) tests/e2e tests/e2e_node
-	$(call PYTEST_SERIAL,e2e-serial,tests/e2e tests/e2e_node)
+	$(call PYTEST_SERIAL,e2e-serial,$(E2E_SERIAL) tests/e2e tests/e2e_node)
 
 # `make test` starts the image builds first, in the background at the lowest CPU
 # priority: most of the integration tier waits on sockets, timers and the control plane,

@@ -34,7 +34,8 @@ from tests.support.sandbox import RunningSandbox, await_running, running_sandbox
 
 # serial: the sandbox's simulated autopilots and agents run in real time against a 200 ms
 # silence limit; on two busy cores a stall of both autopilots of a vehicle lands it (the
-# agent rightly finds no healthy standby), so `make e2e` runs these alone, after the rest.
+# agent rightly finds no healthy standby), so `make e2e` runs these after the rest,
+# beside at most one other serial file (Makefile, E2E_SERIAL).
 pytestmark = [
     pytest.mark.cluster,
     pytest.mark.slow,

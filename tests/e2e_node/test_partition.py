@@ -57,7 +57,8 @@ BIN = Path(sys.executable).parent
 # serial: the vehicle flies its simulated autopilots in real time against a 200 ms silence
 # limit through a 120 s hold; beside the other worker's qemu-emulated image runs at a load
 # of 18-21, the standby it had failed over to went silent too and the agent landed,
-# cancelling the hold that the reboot must resume. `make e2e` runs this alone, after the rest.
+# cancelling the hold that the reboot must resume. `make e2e` runs this after the rest,
+# beside at most one other serial file (Makefile, E2E_SERIAL).
 pytestmark = [
     pytest.mark.slow,
     pytest.mark.serial,

@@ -31,7 +31,8 @@ from tests.support.realmission import MissionRun, RealMission
 from tests.support.syncrun import TRAJECTORIES
 
 # serial: every corrected transit is judged to half a second, and the simulated autopilots
-# fly in real time against a 200 ms silence limit; `make e2e` runs this alone, after the rest.
+# fly in real time against a 200 ms silence limit; `make e2e` runs this after the rest,
+# beside at most one other serial file (Makefile, E2E_SERIAL).
 pytestmark = [
     pytest.mark.slow,
     pytest.mark.serial,
