@@ -189,7 +189,8 @@ def test_the_sync_paths_mission_flies_through_the_hubs_and_goes_on_without_a_fai
     connection to the hub is untouched), the Mission's ``onFailover: AbortVehicle`` takes
     it out, the sandbox stops its follower as the kubelet would stop its pod, and drone-1
     flies every task without waiting for drone-2's delay reports. The followers fly the
-    tests' shorter trajectories (6 s legs instead of the example's 20 s: about 40 s less)."""
+    tests' shorter trajectories (6 s legs instead of the example's 20 s: the test takes
+    about 45 s instead of 105)."""
     recorded = await_running(sandbox)
     hubs = {v.name: v.hub for v in recorded.vehicles}
     assert all(hub is not None and hub.startswith("127.0.0.1:") for hub in hubs.values())
