@@ -529,6 +529,13 @@ def sandbox_up(
             "creating delays (--no-fault: none)."
         ),
     ] = None,
+    trajectories: Annotated[
+        Path | None,
+        typer.Option(
+            help="With --mission: a directory of <vehicle>.csv trajectories to fly instead "
+            "of the mission's own (the lag faults follow their legs)."
+        ),
+    ] = None,
     dashboard: Annotated[
         bool, typer.Option(help="Serve `roost dashboard` for the sandbox (its URL is printed).")
     ] = True,
@@ -537,6 +544,8 @@ def sandbox_up(
     ] = runner.DEFAULT_DASHBOARD_PORT,
 ) -> None:
     """Start the sandbox and keep it running until Ctrl-C (`make demo` runs this)."""
+    if trajectories is not None and mission is None:
+        raise CliError("--trajectories is for a mission's own programs: add --mission")
     options = runner.Options(
         directory=_context(ctx).sandbox_dir,
         vehicles=vehicles,
@@ -544,6 +553,7 @@ def sandbox_up(
         fault_after_s=fault_after,
         live=live and console.is_terminal,
         mission=mission,
+        trajectories=trajectories.resolve() if trajectories is not None else None,
         dashboard=dashboard,
         dashboard_port=dashboard_port,
     )

@@ -9,8 +9,13 @@ autopilots through the Roost agent's hub on the vehicle, lagged on the sandbox's
 schedule; the monitor's results (read back from its finished pod's log) are the paper's
 Table I, with every corrected transit within 0.5 s of the planned one.
 
-Two vehicles on nodes of this machine's architecture: about 3 minutes here (the flight
-itself is five 20 s legs plus the delays, take-off and landing). Not on the emulated
+The followers fly the tests' shorter trajectories (``SHORT_TRAJECTORIES``: the example's
+shape in 6 s legs of 9 m, from a ConfigMap mounted into the follower pods; the image and
+its own 20 s legs are unchanged), and the lag schedule follows those legs: drone-1 about
+2 s late at task 1, drone-2 about 1.7 s at task 2, each waited for by the other. Two
+vehicles on nodes of this machine's architecture: about 90 s here, the flight (four 6 s
+legs plus the delays, take-off and landing) about 45 s of it; with the example's 20 s
+legs the test took about 150 s. Not on the emulated
 arm64 node: there the follower pod starts (privileged, see ``EMULATED_ONBOARD`` in
 :mod:`tests.support.realmission`) and runs the image's arm64 half, but its arm command
 through the emulated agent's hub gets no answer within the follower's 3 s, so the
@@ -28,7 +33,7 @@ from roost_localcluster.realnode import RealNodes
 from tests.support.images import missing_tools
 from tests.support.realfleet import GROUND_NODE
 from tests.support.realmission import MissionRun, RealMission
-from tests.support.syncrun import TRAJECTORIES
+from tests.support.syncrun import SHORT_TRAJECTORIES
 
 # serial: every corrected transit is judged to half a second, and the simulated autopilots
 # fly in real time against a 200 ms silence limit; `make e2e` runs this after the rest,
@@ -49,7 +54,9 @@ pytestmark = [
 def flight(
     cluster: Cluster, real_nodes: RealNodes, tmp_path_factory: pytest.TempPathFactory
 ) -> Iterator[tuple[RealMission, MissionRun]]:
-    mission = RealMission(cluster, real_nodes, tmp_path_factory.mktemp("sync-real"))
+    mission = RealMission(
+        cluster, real_nodes, tmp_path_factory.mktemp("sync-real"), trajectories=SHORT_TRAJECTORIES
+    )
     try:
         mission.start()
         yield mission, mission.fly()
@@ -66,7 +73,8 @@ def check_flight(mission: RealMission, run: MissionRun) -> None:
     assert sorted(run.results) == sorted(names)
     assert all(result["type"] == "done" for result in run.results.values())
     tasks = {
-        name: len((TRAJECTORIES / f"{name}.csv").read_text().splitlines()) - 2 for name in names
+        name: len((mission.trajectory_dir / f"{name}.csv").read_text().splitlines()) - 2
+        for name in names
     }
     records = [r for name in names for r in run.results[name]["records"]]
     assert {name: len(run.results[name]["records"]) for name in names} == tasks

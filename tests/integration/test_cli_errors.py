@@ -41,6 +41,12 @@ def run(tmp_path: Path, *args: str) -> subprocess.CompletedProcess[str]:
         (["estop", "--all", "--wait", "-inf"], 2, "-inf is not a number from 0 to 3600"),
         (["sandbox", "up", "--fault-after", "inf"], 2, "'--fault-after': inf"),
         (["sandbox", "up", "--vehicles", "0"], 2, "--vehicles"),
+        (["sandbox", "up", "--trajectories", "."], 1, "add --mission"),
+        (
+            ["sandbox", "up", "--mission", "sync-paths", "--trajectories", "/no/trajectories"],
+            1,
+            "/no/trajectories is not a directory of trajectories",
+        ),
         (["fault", "drone-1", "px4-a", "jitter", "--value", "inf"], 1, "jitter value 'inf'"),
         (["fault", "drone-1", "px4-a", "loss", "--value", "nan"], 1, "loss value 'nan'"),
         (["fault", "drone-1", "px4-a", "loss", "--value", "101"], 1, "from 0 to 100"),

@@ -2,7 +2,8 @@
 real simulator processes (the sandbox's own ``sims.start``), the monitor and followers as
 separate processes over real UDP, and a lag fault sent through the simulators' control
 sockets once the monitor starts the vehicles. The control plane is left out (the
-programs do not use it); short trajectories keep the run to about half a minute."""
+programs do not use it); short trajectories (two 6 s legs of 9 m) keep the flight to
+about 20 s."""
 
 from __future__ import annotations
 
@@ -23,8 +24,8 @@ from tests.support.waiting import wait_until
 # serial: transits compared with the plan to half a second
 pytestmark = [pytest.mark.slow, pytest.mark.serial]
 
-LEG_S = 8.0
-TRAJECTORY = "time_s,north_m,east_m,down_m\n0,{n},0,-5\n8,{n},12,-5\n16,{n},0,-5\n"
+LEG_S = 6.0
+TRAJECTORY = "time_s,north_m,east_m,down_m\n0,{n},0,-5\n6,{n},9,-5\n12,{n},0,-5\n"
 
 
 def _wait_for(what: str, check: Any, procs: list[ManagedProcess], timeout_s: float) -> Any:

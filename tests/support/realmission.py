@@ -13,6 +13,12 @@ to the monitor through the ``sync-monitor`` Service, as in a cluster. The sandbo
 sockets: the followers know nothing of it), so the monitor has delays to absorb; the
 results are read back from the finished monitor pod's log and make the paper's Table I.
 
+A test flies shorter trajectories than the image's own (``trajectories``: a directory of
+``<vehicle>.csv``) without rebuilding the image: they go into a ConfigMap mounted into the
+onboard pods, and ``SYNC_TRAJECTORY_DIR`` points the followers at it
+(:func:`with_trajectories`); the lag schedule follows the same legs. The monitor reads no
+trajectory (each follower sends its plan with its results).
+
 One difference from a production cluster, and why: the harness runs no cluster DNS
 (kubelets have no ``clusterDNS``; CoreDNS is not among the node programs), so the
 Service's name does not resolve in the pods. The followers are given the Service's
@@ -50,7 +56,13 @@ MONITOR_SELECTOR = "app=sync-monitor"
 FOLLOWER_SELECTOR = "app=sync-follower"
 FINISHED_PHASES = ("Succeeded", "Failed")
 FLIGHT_S = 900.0
-"""Upper bound on the whole flight (about 3 minutes: five 20 s legs plus delays)."""
+"""Upper bound on the whole flight, from the Mission applied to the monitor's results
+(about 45 s with the tests' four 6 s legs plus delays, take-off and landing; the
+example's 20 s legs take about a minute more)."""
+TRAJECTORIES_CONFIGMAP = "sync-trajectories"
+TRAJECTORIES_MOUNT = "/sync-trajectories"
+FIRST_KINDS = ("Service", "ConfigMap")
+"""Applied before the Mission: its pods need the Service's address and the ConfigMap."""
 
 
 def mission_image() -> Path:
@@ -94,6 +106,33 @@ def through_cluster_ip(documents: list[dict[str, Any]], address: str) -> list[di
     return documents
 
 
+def with_trajectories(documents: list[dict[str, Any]], directory: Path) -> list[dict[str, Any]]:
+    """``documents`` and a ConfigMap of ``directory``'s ``<vehicle>.csv`` files, which the
+    Mission's onboard containers mount at :data:`TRAJECTORIES_MOUNT` and fly
+    (``SYNC_TRAJECTORY_DIR``) instead of the image's own trajectories."""
+    for doc in documents:
+        if doc.get("kind") != "Mission":
+            continue
+        pod = doc["spec"]["onboard"]["spec"]
+        pod.setdefault("volumes", []).append(
+            {"name": "trajectories", "configMap": {"name": TRAJECTORIES_CONFIGMAP}}
+        )
+        for container in pod["containers"]:
+            container.setdefault("volumeMounts", []).append(
+                {"name": "trajectories", "mountPath": TRAJECTORIES_MOUNT, "readOnly": True}
+            )
+            container.setdefault("env", []).append(
+                {"name": "SYNC_TRAJECTORY_DIR", "value": TRAJECTORIES_MOUNT}
+            )
+    configmap = {
+        "apiVersion": "v1",
+        "kind": "ConfigMap",
+        "metadata": {"name": TRAJECTORIES_CONFIGMAP, "namespace": "default"},
+        "data": {path.name: path.read_text() for path in sorted(directory.glob("*.csv"))},
+    }
+    return [configmap, *documents]
+
+
 @dataclass
 class MissionRun:
     """What one flight on real pods produced."""
@@ -115,6 +154,9 @@ class RealMission:
     pool: RealNodes
     directory: Path
     arches: Sequence[str] = (binaries.HOST_ARCH, binaries.HOST_ARCH)
+    trajectories: Path | None = None
+    """A directory of ``<vehicle>.csv`` to fly instead of the image's own (see the module
+    docstring)."""
     wait_s: float = 180.0
     fleet: RealFleet | None = None
     documents: list[dict[str, Any]] = field(default_factory=list)
@@ -158,19 +200,29 @@ class RealMission:
         )
         return [first, *self.fleet.more]
 
+    @property
+    def trajectory_dir(self) -> Path:
+        """The trajectories flown: :attr:`trajectories`, else the example's own."""
+        return missionrun.check(
+            missionrun.SYNC_PATHS, [p.name for p in self.plans], trajectories=self.trajectories
+        )
+
     def apply(self) -> None:
-        """``mission.yaml`` sized to the fleet: its Service first, then its Mission with
-        the Service's ClusterIP for the monitor's address."""
+        """``mission.yaml`` sized to the fleet: its Service (and the trajectories'
+        ConfigMap) first, then its Mission with the Service's ClusterIP for the monitor's
+        address."""
         documents = missionrun.mission_manifests(missionrun.SYNC_PATHS, len(self.arches), {})
-        services = [d for d in documents if d.get("kind") == "Service"]
-        self._kubectl_apply(services)
-        (service,) = services
+        if self.trajectories is not None:
+            documents = with_trajectories(documents, self.trajectory_dir)
+        first = [d for d in documents if d.get("kind") in FIRST_KINDS]
+        self._kubectl_apply(first)
+        (service,) = [d for d in first if d.get("kind") == "Service"]
         meta = service["metadata"]
         found = self._get("service", meta["name"], "-n", meta.get("namespace", "default"))
         documents = through_cluster_ip(documents, found["spec"]["clusterIP"])
         if self.emulated:
             documents = privileged_onboard(documents)
-        self._kubectl_apply([d for d in documents if d.get("kind") != "Service"])
+        self._kubectl_apply([d for d in documents if d.get("kind") not in FIRST_KINDS])
         self.documents = documents
 
     def fly(self) -> MissionRun:
@@ -189,7 +241,10 @@ class RealMission:
             return missionrun.started(self.monitor_log())
 
         lags = missionrun.LagInjector(
-            missionrun.lag_schedule(tuple(primaries)), send, stop, has_started
+            missionrun.lag_schedule(tuple(primaries), self.trajectory_dir),
+            send,
+            stop,
+            has_started,
         )
         started = time.monotonic()
         self.apply()

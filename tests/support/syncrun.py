@@ -14,6 +14,7 @@ import sys
 import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from roost_localcluster.binaries import REPO_ROOT
@@ -31,7 +32,19 @@ from syncpaths.trajectory import Task, load  # noqa: E402
 from syncpaths.vehicle import MavlinkVehicle  # noqa: E402
 
 TRAJECTORIES = EXAMPLE / "trajectories"
-__all__ = ["EXAMPLE", "SyncRun", "fly_mission", "paper_plans", "results_from_log"]
+SHORT_TRAJECTORIES = Path(__file__).parent / "sync_trajectories"
+"""The tests' flights: the shipped trajectories' shape (three drones, five tasks, four
+legs at 1.5 m/s) scaled down to 9 m squares flown in 6 s legs, 15 m apart; the injected
+lags still make delays of one to two seconds (the sandbox's schedule follows these legs:
+``roost_cli.sandbox.missionrun.lag_schedule``). About 24 s of legs instead of 80 s."""
+__all__ = [
+    "EXAMPLE",
+    "SHORT_TRAJECTORIES",
+    "SyncRun",
+    "fly_mission",
+    "paper_plans",
+    "results_from_log",
+]
 
 
 @dataclass

@@ -13,7 +13,8 @@ import pytest
 
 from roost_cli.sandbox import missionrun
 from roost_cli.sandbox.missionrun import Lag
-from tests.support.realmission import through_cluster_ip
+from tests.support.realmission import through_cluster_ip, with_trajectories
+from tests.support.syncrun import SHORT_TRAJECTORIES
 
 NAMES = ["drone-1", "drone-2", "drone-3"]
 
@@ -94,10 +95,71 @@ def test_lag_schedule_follows_the_planned_legs() -> None:
     schedule = missionrun.lag_schedule(("drone-1", "drone-2"))
     assert {lag.vehicle for lag in schedule} == {"drone-1", "drone-2"}  # drone-3 absent
     first = schedule[0]
-    planned = missionrun.LEG_S + missionrun.LAG_OVERRUN_S
+    planned = 20.0 + missionrun.LAG_OVERRUN_S  # the example's legs: 20 s
     assert first == Lag("drone-1", missionrun.START_DELAY_S, planned, 23.0)
     assert [lag.start_s for lag in schedule] == sorted(lag.start_s for lag in schedule)
     assert all(1 <= lag.percent <= 100 for lag in schedule)
+
+
+def test_lag_schedule_follows_the_legs_of_other_trajectories(tmp_path: Path) -> None:
+    """The tests' shorter trajectories: each lag starts with its leg and lasts it."""
+    schedule = missionrun.lag_schedule(("drone-1", "drone-2"), SHORT_TRAJECTORIES)
+    start = missionrun.START_DELAY_S
+    overrun = missionrun.LAG_OVERRUN_S
+    assert [(lag.vehicle, lag.start_s, lag.duration_s) for lag in schedule] == [
+        ("drone-1", start, 6.0 + overrun),  # leg 1: 0-6 s
+        ("drone-2", start + 6.0, 6.0 + overrun),  # leg 2: 6-12 s
+        ("drone-1", start + 18.0, 6.0 + overrun),  # leg 4: 18-24 s
+    ]
+    # A trajectory without leg 4 gets no lag there; one of uneven legs gets their times.
+    (tmp_path / "drone-1.csv").write_text("time_s,north_m,east_m,down_m\n0,0,0,-5\n5,6,0,-5\n")
+    (tmp_path / "drone-2.csv").write_text("0,0,0,-5\n4,5,0,-5\n13,5,9,-5\n")
+    assert missionrun.lag_schedule(("drone-1", "drone-2"), tmp_path) == (
+        Lag("drone-1", start, 5.0 + overrun, 23.0),
+        Lag("drone-2", start + 4.0, 9.0 + overrun, 26.0),
+    )
+
+
+def test_a_trajectory_time_that_is_not_a_number_is_refused(tmp_path: Path) -> None:
+    (tmp_path / "drone-1.csv").write_text("time_s,north_m,east_m,down_m\n0,0,0,-5\nsoon,1,0,-5\n")
+    with pytest.raises(ValueError, match="task time 'soon' is not a number"):
+        missionrun.lag_schedule(("drone-1",), tmp_path)
+
+
+def test_followers_fly_another_trajectory_directory_when_given(tmp_path: Path) -> None:
+    connections = {"drone-1": missionrun.hub_url("127.0.0.1:24550")}
+    (follower,) = missionrun.follower_programs(
+        missionrun.SYNC_PATHS, connections, "127.0.0.1:7711", trajectories=SHORT_TRAJECTORIES
+    )
+    assert follower.env["SYNC_TRAJECTORY_DIR"] == str(SHORT_TRAJECTORIES)
+    with pytest.raises(ValueError, match="no trajectory for drone-1"):
+        missionrun.follower_programs(
+            missionrun.SYNC_PATHS, connections, "127.0.0.1:7711", trajectories=tmp_path
+        )
+    with pytest.raises(ValueError, match="is not a directory of trajectories"):
+        missionrun.monitor_program(
+            missionrun.SYNC_PATHS, ["drone-1"], tmp_path, trajectories=tmp_path / "none"
+        )
+
+
+def test_real_pods_fly_trajectories_from_a_configmap() -> None:
+    """The follower pods mount the ConfigMap and are pointed at it; the image is unchanged."""
+    documents = with_trajectories(
+        missionrun.mission_manifests(missionrun.SYNC_PATHS, 2, {}), SHORT_TRAJECTORIES
+    )
+    configmap, mission, _ = documents
+    assert configmap["kind"] == "ConfigMap"
+    assert sorted(configmap["data"]) == ["drone-1.csv", "drone-2.csv", "drone-3.csv"]
+    assert configmap["data"]["drone-1.csv"] == (SHORT_TRAJECTORIES / "drone-1.csv").read_text()
+    pod = mission["spec"]["onboard"]["spec"]
+    (volume,) = pod["volumes"]
+    assert volume["configMap"]["name"] == configmap["metadata"]["name"]
+    (follower,) = pod["containers"]
+    (mount,) = follower["volumeMounts"]
+    assert mount["name"] == volume["name"]
+    env = {e["name"]: e["value"] for e in follower["env"]}
+    assert env["SYNC_TRAJECTORY_DIR"] == mount["mountPath"]
+    assert "volumes" not in mission["spec"]["offboard"]["spec"]  # the monitor reads none
 
 
 def test_the_mission_file_puts_followers_on_the_vehicle_network_and_sizes_the_monitor() -> None:

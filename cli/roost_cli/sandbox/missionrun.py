@@ -11,7 +11,9 @@ follower's connection. When the operator takes a vehicle out of the Mission (an 
 or ``onFailover: AbortVehicle``) it would stop that vehicle's pod; the sandbox stops the
 follower (:func:`vehicles_out`), which tells the monitor it leaves, so the others do not
 wait for it. ``lag`` faults on a time schedule slow chosen vehicles on chosen legs, so
-the monitor has delays like the paper's Table I to absorb.
+the monitor has delays like the paper's Table I to absorb; the schedule follows the legs
+of the trajectories flown (the mission's own, or another directory of them: a shorter
+flight for tests).
 
 Pure except :class:`LagInjector`, so the processes, manifests and schedule are
 unit-tested without a cluster.
@@ -19,6 +21,7 @@ unit-tested without a cluster.
 
 from __future__ import annotations
 
+import csv
 import json
 import sys
 import threading
@@ -36,13 +39,14 @@ SYNC_PATHS = "sync-paths"
 MISSIONS = (SYNC_PATHS,)
 REPO_ROOT = Path(__file__).resolve().parents[3]
 EXAMPLE_DIR = REPO_ROOT / "examples" / "missions" / SYNC_PATHS
-LEG_S = 20.0
-"""Planned transit between the reference trajectories' tasks."""
 START_DELAY_S = 2.0
 """The monitor starts the vehicles this long after it says so (``syncpaths.monitor``)."""
 LAG_OVERRUN_S = 4.0
-"""A lag lasts this much past the planned arrival: the slowed vehicle arrives late (at a
-quarter of PX4's 5 m/s a 30 m leg takes about 24 s), and the next leg is flown at speed."""
+"""A lag lasts this much past its leg's planned arrival: the slowed vehicle arrives late
+(at a quarter of PX4's 5 m/s a 30 m leg planned for 20 s takes about 24 s), and earlier
+delays shift a leg later than its planned time, which the schedule counts in (a few
+seconds: on 6 s legs without this margin a fourth leg's lag would end before most of the
+leg was flown). The next leg is flown at speed once it ends."""
 STARTING_MARK = "starting "
 """What the monitor logs when every vehicle is ready: the legs' clock starts."""
 
@@ -75,18 +79,41 @@ LAG_LEGS: dict[tuple[str, int], float] = {
 }
 
 
-def lag_schedule(vehicles: tuple[str, ...]) -> tuple[Lag, ...]:
+def task_times(path: Path) -> list[float]:
+    """The planned times of a trajectory file's tasks: its first column, a header row
+    skipped (the follower reads the whole file, ``syncpaths.trajectory``)."""
+    times: list[float] = []
+    with path.open(newline="") as f:
+        for row in csv.reader(f):
+            if not row or not row[0].strip():
+                continue
+            try:
+                times.append(float(row[0]))
+            except ValueError:
+                if times:
+                    raise ValueError(f"{path}: task time {row[0]!r} is not a number") from None
+    return times
+
+
+def lag_schedule(
+    vehicles: tuple[str, ...], trajectories: Path = EXAMPLE_DIR / "trajectories"
+) -> tuple[Lag, ...]:
     """Lags for the legs in :data:`LAG_LEGS` flown by ``vehicles``, by planned time.
 
-    Times count from the monitor's start mark: leg k is planned from ``(k-1)·LEG_S`` to
-    ``k·LEG_S`` after the start; the lag lasts the leg and :data:`LAG_OVERRUN_S` more
-    (earlier delays shift later legs by a few seconds, which only moves where it bites).
+    Times count from the monitor's start mark: leg k is planned from task k-1's time to
+    task k's in the vehicle's trajectory (``<vehicle>.csv`` in ``trajectories``); the lag
+    lasts the leg and :data:`LAG_OVERRUN_S` more (earlier delays shift later legs by a
+    few seconds, which only moves where it bites). A leg the trajectory has not gets none.
     """
-    return tuple(
-        Lag(vehicle, START_DELAY_S + (leg - 1) * LEG_S, LEG_S + LAG_OVERRUN_S, percent)
-        for (vehicle, leg), percent in sorted(LAG_LEGS.items(), key=lambda item: item[0][1])
-        if vehicle in vehicles
-    )
+    lags = []
+    for (vehicle, leg), percent in LAG_LEGS.items():
+        if vehicle not in vehicles:
+            continue
+        times = task_times(trajectories / f"{vehicle}.csv")
+        if leg < len(times):
+            start, end = times[leg - 1], times[leg]
+            lags.append(Lag(vehicle, START_DELAY_S + start, end - start + LAG_OVERRUN_S, percent))
+    return tuple(sorted(lags, key=lambda lag: lag.start_s))
 
 
 OUT_OF_MISSION = frozenset(
@@ -155,11 +182,20 @@ LISTENING_KEY = "listening"
 """The monitor's first stdout line, ``{"listening": "HOST:PORT"}``: it binds port 0 itself."""
 
 
-def check(mission: str, vehicles: Collection[str], example_dir: Path = EXAMPLE_DIR) -> Path:
-    """The trajectory directory, or ValueError saying why the mission cannot run."""
+def check(
+    mission: str,
+    vehicles: Collection[str],
+    example_dir: Path = EXAMPLE_DIR,
+    trajectories: Path | None = None,
+) -> Path:
+    """The trajectory directory (``trajectories``, else the mission's own), or ValueError
+    saying why the mission cannot run."""
     if mission not in MISSIONS:
         raise ValueError(f"unknown mission {mission!r}: one of {', '.join(MISSIONS)}")
-    trajectories = example_dir / "trajectories"
+    if trajectories is None:
+        trajectories = example_dir / "trajectories"
+    elif not trajectories.is_dir():
+        raise ValueError(f"{trajectories} is not a directory of trajectories (<vehicle>.csv)")
     missing = [name for name in vehicles if not (trajectories / f"{name}.csv").is_file()]
     if missing:
         have = len(list(trajectories.glob("*.csv")))
@@ -179,10 +215,15 @@ def _common(example_dir: Path, vehicles: Collection[str]) -> dict[str, str]:
 
 
 def monitor_program(
-    mission: str, vehicles: Collection[str], output: Path, example_dir: Path = EXAMPLE_DIR
+    mission: str,
+    vehicles: Collection[str],
+    output: Path,
+    example_dir: Path = EXAMPLE_DIR,
+    trajectories: Path | None = None,
 ) -> Program:
-    """The offboard monitor, on a port it chooses (see :data:`LISTENING_KEY`)."""
-    check(mission, vehicles, example_dir)
+    """The offboard monitor, on a port it chooses (see :data:`LISTENING_KEY`), for the
+    followers of :func:`follower_programs` (the same ``trajectories``)."""
+    check(mission, vehicles, example_dir, trajectories)
     return Program(
         "sync-monitor",
         (sys.executable, "-m", "syncpaths.monitor"),
@@ -205,8 +246,7 @@ def follower_programs(
     """One onboard follower per vehicle (name -> pymavlink URL of its vehicle: the agent's
     hub, see :func:`hub_url`); ``trajectories``: another directory of ``<vehicle>.csv``
     than the mission's own."""
-    if trajectories is None:
-        trajectories = check(mission, list(connections), example_dir)
+    trajectories = check(mission, list(connections), example_dir, trajectories)
     return tuple(
         Program(
             f"sync-follower-{name}",

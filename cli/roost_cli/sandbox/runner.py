@@ -82,6 +82,8 @@ class Options:
     live: bool = True
     mission: str | None = None
     """Run that mission's own programs (see :mod:`.missionrun`) instead of the demo."""
+    trajectories: Path | None = None
+    """With ``mission``: a directory of ``<vehicle>.csv`` to fly instead of its own."""
     dashboard: bool = True
     """Run ``roost dashboard`` (read-write, the sandbox's kubeconfig) beside the fleet."""
     dashboard_port: int = DEFAULT_DASHBOARD_PORT
@@ -110,6 +112,8 @@ class Sandbox:
         self.mission_ref = (plan.MISSION_NAMESPACE, plan.MISSION_NAME)
         self.followers: dict[str, ManagedProcess] = {}
         """A mission's onboard programs by vehicle (``--mission`` only)."""
+        self.trajectories: Path | None = None
+        """The trajectories the mission's followers fly (``--mission`` only)."""
         self._mission_fleet: Fleet | None = None
         self._stop = threading.Event()
 
@@ -180,7 +184,11 @@ class Sandbox:
         self.fleet_plan = plan.plan_fleet(self.options.vehicles)
         if self.options.mission is not None:  # refused before anything starts
             try:
-                missionrun.check(self.options.mission, [v.name for v in self.fleet_plan])
+                self.trajectories = missionrun.check(
+                    self.options.mission,
+                    [v.name for v in self.fleet_plan],
+                    trajectories=self.options.trajectories,
+                )
             except ValueError as error:
                 raise CliError(str(error)) from None
         bin_dir = build_control_plane(self.console)
@@ -345,7 +353,9 @@ class Sandbox:
         }
         output = self.directory / "mission-results"
         try:
-            monitor = missionrun.monitor_program(mission, names, output)
+            monitor = missionrun.monitor_program(
+                mission, names, output, trajectories=self.trajectories
+            )
         except ValueError as error:
             raise CliError(str(error)) from None
         proc = self.launcher.start(monitor.name, list(monitor.argv), monitor.env)
@@ -357,7 +367,9 @@ class Sandbox:
             with contextlib.suppress(OSError):
                 address = missionrun.listening_address(proc.log.read_text())
             time.sleep(0.1)
-        for program in missionrun.follower_programs(mission, connections, address):
+        for program in missionrun.follower_programs(
+            mission, connections, address, trajectories=self.trajectories
+        ):
             self.followers[program.env["SYNC_VEHICLE"]] = self.launcher.start(
                 program.name, list(program.argv), program.env
             )
@@ -410,7 +422,12 @@ class Sandbox:
                     return missionrun.started(monitor_log.read_text())
                 return False
 
-            schedule = missionrun.lag_schedule(tuple(primaries)) if self.options.fault else ()
+            assert self.trajectories is not None
+            schedule = (
+                missionrun.lag_schedule(tuple(primaries), self.trajectories)
+                if self.options.fault
+                else ()
+            )
             missionrun.LagInjector(schedule, send, self._stop, has_started).start()
             return
         cue = (
