@@ -73,10 +73,12 @@ REPORTS := .test-reports
 PYTEST_REPORT = $(BIN)/pytest --junitxml=$(REPORTS)/$(1).xml
 # Most integration files wait (on sockets, timers, the control plane), so pytest-xdist
 # workers take whole files each, two side by side, each worker with its own control
-# plane; tests marked `serial` (they judge real time, or need the whole machine) run
-# after, alone. `WORKERS=1` runs the first pass in one worker.
+# plane, the longest files first (LONGEST_FIRST in tests/conftest.py: xdist's own order,
+# by test count, left the longest files to the end); tests marked `serial` (they judge
+# real time, or need the whole machine) run after, alone. `WORKERS=1` runs the first pass
+# in one worker.
 WORKERS ?= 2
-PARALLEL := -n $(WORKERS) --dist loadfile -m 'not serial'
+PARALLEL := -n $(WORKERS) --dist loadfile --no-loadscope-reorder -m 'not serial'
 # the serial pass of $(2) (pytest's 5, "no tests collected", when none of them is serial)
 PYTEST_SERIAL = $(call PYTEST_REPORT,$(1)) -m serial $(2) || [ $$? -eq 5 ]
 
@@ -108,11 +110,11 @@ integration-serial: $(STAMP) cluster-build
 
 # The e2e files wait on pods, kubelets, timers and flights, not on the CPU: two workers
 # take whole files each, each worker with its own control plane and real-node pool (the
-# node network's subnets, namespaces and cgroups are per pool; tests/e2e_node/conftest.py
+# node network's subnets, namespaces and cgroups are per pool; tests/conftest.py
 # puts the longest file first). The flights judged in real time (`serial`) run after, two
 # files at a time: a flight costs a fraction of a core, and what starved them was the
 # first pass's images under qemu, image builds and the browser tests beside them.
-E2E_PARALLEL := -n $(WORKERS) --dist loadfile -m 'not arm64_node and not serial'
+E2E_PARALLEL := -n $(WORKERS) --dist loadfile --no-loadscope-reorder -m 'not arm64_node and not serial'
 E2E_SERIAL := -n $(WORKERS) --dist loadfile
 
 .PHONY: e2e

@@ -76,11 +76,37 @@ def _no_collector_pause() -> None:
     gc.freeze()
 
 
+LONGEST_FIRST = (
+    # the integration tier's first pass, longest first (about 180 to 50 s each)
+    "test_agent_cluster.py",
+    "test_compiled_agent.py",
+    "test_firmware_truth.py",
+    "test_simulator.py",
+    "test_mission_operator.py",
+    "test_vehicle_operator.py",
+    "test_control_plane.py",
+    "test_agent_records_flight.py",
+    # the e2e tier's (its arm64 cases under qemu: minutes on a loaded machine)
+    "test_image_run.py",
+    "test_chart_real.py",
+)
+"""Files that take longest, in that order. The Makefile's workers (``--dist loadfile
+--no-loadscope-reorder``) take whole files in collection order, and each queues the next
+file as soon as its own has two tests left: a long file taken last keeps one worker busy
+for minutes after the other ran out of work."""
+
+
+def _duration_rank(item: pytest.Item) -> int:
+    name = item.path.name
+    return LONGEST_FIRST.index(name) if name in LONGEST_FIRST else len(LONGEST_FIRST)
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Every test that uses the control plane is marked ``cluster`` (run/skip as a group);
     against the compiled build, tests marked ``interpreted_only`` are skipped; with
     ``--leave-to-compiled``, the compiled run's integration tests are deselected here
-    (not those marked ``interpreted_only``: the compiled run skips them)."""
+    (not those marked ``interpreted_only``: the compiled run skips them). The files of
+    :data:`LONGEST_FIRST` come first (the order within a file stays)."""
     compiled = config.stash.get(_COMPILED_MODULES, [])
     leave = config.getoption("--leave-to-compiled") and not compiled
     kept, left = [], []
@@ -98,7 +124,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             kept.append(item)
     if left:
         config.hook.pytest_deselected(items=left)
-        items[:] = kept
+    items[:] = sorted(kept, key=_duration_rank)
 
 
 @pytest.fixture(scope="session")

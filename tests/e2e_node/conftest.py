@@ -15,17 +15,6 @@ from roost_localcluster.cluster import Cluster
 from roost_localcluster.nodenet import missing_prerequisites
 from roost_localcluster.realnode import RealNodes
 
-LONGEST_FIRST = ("test_image_run.py",)
-"""The parallel pass's longest file (its arm64 cases under qemu: minutes on a loaded machine)."""
-
-
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """The longest files first: ``make e2e``'s workers take whole files in collection
-    order, and a worker that started one of these last would leave the other idle for
-    minutes. Within a file the order stays. (Every collected item passes here, those of
-    tests/e2e too.)"""
-    items.sort(key=lambda item: item.path.name not in LONGEST_FIRST)
-
 
 @pytest.fixture(scope="session")
 def real_nodes(cluster: Cluster, tmp_path_factory: pytest.TempPathFactory) -> Iterator[RealNodes]:
