@@ -20,7 +20,8 @@
  * health bookkeeping, the send) cost the agent more in Python than a C router spends on
  * a whole message. Here the reader waits in C (the GIL released), and each datagram of
  * the active autopilot is read (recvmmsg, kernel arrival stamps), checked and sent on to
- * the clients (sendmmsg) in C at once; Python gets what was read in one batch, when the
+ * the clients (sendmmsg: one per client for the frames of every datagram one read took)
+ * in C at once; Python gets what was read in one batch, when the
  * decision loop is due, when something must be seen at once, or when the batch is full,
  * and judges it exactly as before (source lock, health, the hub's own bookkeeping).
  *
@@ -72,6 +73,7 @@
 #define MAX_CLIENTS 32
 #define MAX_WAKE 16
 #define MAX_FRAMES 64 /* frames of one datagram forwarded here; more: Python's */
+#define OUTBOX MAX_FRAMES /* frames sent with one sendmmsg per client (Outbox) */
 #define V2_MAGIC 0xFD
 #define V2_HEADER 10
 #define LOG_ENTRY 118
@@ -248,29 +250,45 @@ typedef struct {
     struct sockaddr_in address;
 } Client;
 
-static void forward(const unsigned char *d, int count, const Py_ssize_t *starts,
-                    const Py_ssize_t *ends, const Client *clients, int n_clients) {
-    struct mmsghdr messages[MAX_FRAMES];
-    struct iovec vectors[MAX_FRAMES];
+/* The frames of one read's datagrams go out together: one sendmmsg per client for all of
+ * them instead of one per datagram (a read takes every datagram queued, so under load
+ * several share a wake-up, and each system call has a fixed price). The frames stay in
+ * arrival order, and leave before the next wait or the return to Python. */
+typedef struct {
+    struct iovec vectors[OUTBOX];
+    int count;
+} Outbox;
+
+static void flush(Outbox *box, const Client *clients, int n_clients) {
+    struct mmsghdr messages[OUTBOX];
     for (int c = 0; c < n_clients; c++) {
-        memset(messages, 0, sizeof(struct mmsghdr) * (size_t)count);
-        for (int i = 0; i < count; i++) {
-            vectors[i].iov_base = (void *)(d + starts[i]);
-            vectors[i].iov_len = (size_t)(ends[i] - starts[i]);
-            messages[i].msg_hdr.msg_iov = &vectors[i];
+        memset(messages, 0, sizeof(struct mmsghdr) * (size_t)box->count);
+        for (int i = 0; i < box->count; i++) {
+            messages[i].msg_hdr.msg_iov = &box->vectors[i];
             messages[i].msg_hdr.msg_iovlen = 1;
             messages[i].msg_hdr.msg_name = (void *)&clients[c].address;
             messages[i].msg_hdr.msg_namelen = sizeof(struct sockaddr_in);
         }
         int sent = 0;
-        while (sent < count) {
-            int got = sendmmsg(clients[c].fd, messages + sent, (unsigned int)(count - sent),
+        while (sent < box->count) {
+            int got = sendmmsg(clients[c].fd, messages + sent, (unsigned int)(box->count - sent),
                                MSG_DONTWAIT);
-            if (got <= 0) {
-                break; /* as the Python path: a failed send to a UDP client is dropped */
-            }
-            sent += got;
+            /* as the Python path: a frame whose send to a UDP client fails is dropped */
+            sent += got > 0 ? got : 1;
         }
+    }
+    box->count = 0;
+}
+
+static void forward(Outbox *box, const unsigned char *d, int count, const Py_ssize_t *starts,
+                    const Py_ssize_t *ends, const Client *clients, int n_clients) {
+    if (box->count + count > OUTBOX) {
+        flush(box, clients, n_clients);
+    }
+    for (int i = 0; i < count; i++) {
+        box->vectors[box->count].iov_base = (void *)(d + starts[i]);
+        box->vectors[box->count].iov_len = (size_t)(ends[i] - starts[i]);
+        box->count++;
     }
 }
 
@@ -579,6 +597,8 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                    routine_bytes};
 
     Entries held = {0}, fresh = {0}, out = {0};
+    Outbox box;
+    box.count = 0;
     unsigned char *routed = NULL;
     Py_ssize_t routed_size = 0;
     PyObject *result = NULL;
@@ -722,7 +742,7 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                     int count = frames_of(d, PyBytes_GET_SIZE(e->data), &rules, starts, ends,
                                           &routine, summary);
                     if (count > 0) {
-                        forward(d, count, starts, ends, clients, n_clients);
+                        forward(&box, d, count, starts, ends, clients, n_clients);
                         sent = 1;
                         if (routine) {
                             /* without it (no memory), Python reads the frames themselves */
@@ -749,6 +769,7 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                 }
                 routed[out.count - 1] = (unsigned char)sent;
             }
+            flush(&box, clients, n_clients); /* the data stays alive in out until the return */
             if (held.count == 0) {
                 looks_after_hold = 0;
             }

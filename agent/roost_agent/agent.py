@@ -68,7 +68,7 @@ from roost_agent.health import Assessment
 from roost_agent.hub import Hub, hub_for
 from roost_agent.instep import InStep
 from roost_agent.link import AutopilotLink
-from roost_agent.params import ParamKeeper, Read, Verdict
+from roost_agent.params import ParamKeeper, Read, Verdict, nothing_declared
 from roost_agent.parts import Running
 from roost_agent.reader import LinkReader
 from roost_agent.report import report, set_condition
@@ -785,10 +785,18 @@ class Agent(Actions, SpecChanges):
             self._emit(EventKind.FENCE, reason, message, warning=warning, autopilot=autopilot)
             self._reader.poke()
 
+        messages = {name: link.mission.take() for name, link in cfg.links.items()}
+        if (
+            cfg.spec.fence is None
+            and not any(messages.values())
+            and not any(received.values())
+            and self._fences.at_rest(cfg.links)
+        ):
+            return  # no fence, none to restore, nothing arrived: the step would do nothing
         self._fences.step(
             cfg.links,
             cfg.spec.fence,
-            messages={name: link.mission.take() for name, link in cfg.links.items()},
+            messages=messages,
             params=received,
             capabilities={name: fw[2] for name, fw in self._firmware.items()},
             positions=_positions(cfg.links.values()),
@@ -803,6 +811,9 @@ class Agent(Actions, SpecChanges):
         """Step every autopilot's parameter keeper: take the PARAM_VALUEs its link
         received, send the reads and writes it asks for, report what changed."""
         declared = cfg.spec.parameters
+        keepers = (keeper for _, keeper in self._param_keepers.values())
+        if declared is None and nothing_declared(keepers, self._param_verdicts):
+            return  # every keeper would stay empty, no verdict to withdraw: nothing to do
         restore = declared is not None and declared.on_drift == DriftPolicy.RESTORE
         armed = any(_armed(link) for link in cfg.links.values())
         now = self._clock()

@@ -139,6 +139,17 @@ class FenceKeeper:
         """Whether a fence transfer waits for the autopilot."""
         return self._transfer is not None
 
+    @property
+    def at_rest(self) -> bool:
+        """Idle with no fence: stepped with none declared and nothing received, the
+        keeper sends nothing, reports nothing and stays as it is."""
+        return (
+            self.phase is Phase.IDLE
+            and self.target is None
+            and self._transfer is None
+            and not self._deferred
+        )
+
     def set_capabilities(self, capabilities: int) -> None:
         """AUTOPILOT_VERSION's capability bits (the parameters' integer encoding)."""
         self._params.set_capabilities(capabilities)
@@ -405,6 +416,18 @@ class Fences:
     def verdict(self, name: str) -> Verdict | None:
         with self.lock:
             return self._verdicts.get(name)
+
+    def at_rest(self, links: Mapping[str, FenceLink]) -> bool:
+        """Whether a :meth:`step` with no fence assigned and nothing received would change
+        nothing and send nothing: every link has its keeper, each idle (no fence, none
+        to restore, no transfer, nothing deferred), and no verdict is reported. The
+        agent's heartbeat round then leaves the step out (most rounds of most flights)."""
+        if self._verdicts or self._keepers.keys() != links.keys():
+            return False
+        return all(
+            known is links[name] and keeper.at_rest
+            for name, (known, keeper) in self._keepers.items()
+        )
 
     def keeper(self, link: FenceLink) -> FenceKeeper:
         """The link's keeper (a new link is a new keeper)."""

@@ -123,6 +123,10 @@ HUB_LINK_ID = 0xF0  # the MAVLink signing link id of the hub's frames to clients
 READ_KINDS: Final = frozenset({"HEARTBEAT", "GLOBAL_POSITION_INT", "COMMAND_ACK"}) | LOG_REPLIES
 """The message types whose content the hub reads (:meth:`Hub._from_autopilot`: a
 snapshot for the standby judgement, an answer from a standby, the log session)."""
+_ACTIVE_IN_STEP: Final = InStep(
+    True, StandbyInStepReason.ACTIVE, "the active autopilot: clients fly it"
+)
+"""The active autopilot's verdict (the same at every tick: built once)."""
 ROUTINE: Final = routine_bitmap(READ_KINDS | LINK_READ_KINDS | HEALTH_READ_KINDS)
 """The message ids the fast path hands Python summarised (:mod:`roost_agent.fastpath`)."""
 SELECT_WAIT_S = 1.0  # the hub thread's longest sleep: clients expire after 30 s; stop wakes it
@@ -528,9 +532,7 @@ class Hub:
         for name, seen in self._seen.items():
             if name == active_name or active is None:
                 self._tracker.forget(name)
-                out[name] = InStep(
-                    True, StandbyInStepReason.ACTIVE, "the active autopilot: clients fly it"
-                )
+                out[name] = _ACTIVE_IN_STEP
                 continue
             verdict = judge_standby(active, seen, limits, stale_s=self.stale_s, now=now)
             out[name] = self._tracker.update(name, verdict, now)

@@ -35,7 +35,7 @@ changed since is ``Drifted`` and written back only when ``onDrift`` is ``Restore
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, replace
 from enum import Enum
 
@@ -354,6 +354,14 @@ _WHAT = {
 }
 
 
+def nothing_declared(keepers: Iterable[ParamKeeper], verdicts: Mapping[str, object]) -> bool:
+    """Whether, with no parameters in the spec, stepping the agent's keepers would change
+    nothing and send nothing: no keeper holds a declaration (the values received are
+    read only for declared parameters; a new link's keeper starts empty) and no
+    ParametersInSync verdict is left to withdraw. The heartbeat round then skips them."""
+    return not verdicts and not any(keeper.declared for keeper in keepers)
+
+
 __all__ = [
     "Do",
     "Drift",
@@ -366,6 +374,7 @@ __all__ = [
     "bytewise_from_capabilities",
     "decide",
     "from_wire",
+    "nothing_declared",
     "same",
     "to_wire",
     "value_problem",

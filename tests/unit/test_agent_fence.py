@@ -14,7 +14,7 @@ from typing import Any
 
 import pytest
 
-from roost_agent.fence import REVERIFY_S, FenceKeeper, Phase, Send, Target, target_of
+from roost_agent.fence import REVERIFY_S, FenceKeeper, Fences, Phase, Send, Target, target_of
 from roost_agent.params import Read, Write
 from roost_api.autopilot import AssignedFence, Fence, FencePoint
 from roost_api.autopilot_enums import FenceReason
@@ -277,3 +277,106 @@ def test_nothing_declared_nothing_sent() -> None:
     keeper = FenceKeeper(Stack.PX4)
     keeper.declare(None)
     assert keeper.step(0.0, armed=False) == [] and keeper.verdict() is None
+
+
+# -- the heartbeat round's skip: Fences at rest ---------------------------------------------
+
+
+@dataclass
+class QuietLink:
+    """A heard autopilot's link that records what the keepers send it (the Fences'
+    FenceLink protocol; the keeper's exchanges with a real autopilot are the Peer's)."""
+
+    name: str
+    stack: Stack = Stack.PX4
+    sent: list[object] = field(default_factory=list)
+
+    def heartbeat(self) -> tuple[int, int, float] | None:
+        return (0, 0, 0.0)
+
+    def read_param(self, name: str) -> bool:
+        self.sent.append(name)
+        return True
+
+    def write_param(self, name: str, wire: float, ptype: int) -> bool:
+        self.sent.append(name)
+        return True
+
+    def send_mission(self, name: str, fields: Any) -> bool:
+        self.sent.append(name)
+        return True
+
+
+def _step(fences: Fences, links: dict[str, QuietLink], emitted: list[str]) -> None:
+    fences.step(
+        links,
+        None,
+        messages={},
+        params={},
+        capabilities={},
+        positions={},
+        armed=False,
+        now=1.0,
+        emit=lambda reason, *_: emitted.append(reason),
+    )
+
+
+def _held_then(change: str) -> tuple[Fences, dict[str, QuietLink]]:
+    links = {"fc1": QuietLink("fc1"), "fc2": QuietLink("fc2")}
+    fences = Fences()
+    _step(fences, links, [])
+    keeper = fences.keeper(links["fc1"])
+    if change == "new link":
+        links["fc2"] = QuietLink("fc2")
+    elif change == "link gone":
+        del links["fc2"]
+    elif change == "fence declared":
+        keeper.declare(target())
+    elif change == "restoring":
+        keeper.previous_items = [Item(V, 3.0, 7, 8)]
+        keeper.declare(target())
+        keeper.declare(None)
+    elif change == "deferred":
+        keeper.declare(target())
+        keeper.phase = Phase.UPLOAD
+        keeper.step(2.0, armed=True)
+        keeper.declare(None)
+    elif change == "transfer":
+        peer = Peer(silent=True)
+        keeper.declare(target())
+        run(keeper, peer, steps=1)
+    elif change == "failed":
+        keeper.declare(target())
+        run(keeper, Peer(refuse=True), steps=40)
+        _step(fences, links, [])  # the failure is reported
+        keeper.declare(None)
+    return fences, links
+
+
+@pytest.mark.parametrize(
+    ("change", "at_rest"),
+    [
+        ("nothing", True),
+        ("new link", False),  # a replaced link gets a new keeper
+        ("link gone", False),  # its keeper is dropped
+        ("fence declared", False),
+        ("restoring", False),  # the previous fence is to be put back
+        ("deferred", False),
+        ("transfer", False),
+        ("failed", False),  # a verdict is still reported
+    ],
+)
+def test_fences_are_at_rest_only_when_a_step_would_do_nothing(change: str, at_rest: bool) -> None:
+    fences, links = _held_then(change)
+    assert fences.at_rest(links) is at_rest
+
+
+def test_fresh_fences_are_stepped_once_before_they_rest() -> None:
+    links = {"fc1": QuietLink("fc1")}
+    fences = Fences()
+    assert not fences.at_rest(links)
+    emitted: list[str] = []
+    _step(fences, links, emitted)
+    assert fences.at_rest(links)
+    _step(fences, links, emitted)  # what a skipped step would have done: nothing
+    assert (emitted, links["fc1"].sent, fences.at_rest(links)) == ([], [], True)

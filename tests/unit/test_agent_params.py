@@ -22,6 +22,7 @@ from roost_agent.params import (
     Write,
     decide,
     from_wire,
+    nothing_declared,
     same,
     to_wire,
     value_problem,
@@ -164,3 +165,35 @@ def test_a_new_declared_value_is_written_not_drift() -> None:
     [op] = keeper.step(1.0, armed=False, restore=False)
     assert op == Write("MIS_TAKEOFF_ALT", to_wire(6.2, F, bytewise=True), F)
     assert keeper.verdict().reason is R.WRITING
+
+
+# -- the heartbeat round's skip: nothing declared, nothing to do -----------------------------
+
+
+def _declared(names: dict[str, float]) -> ParamKeeper:
+    keeper = ParamKeeper(Stack.PX4)
+    keeper.declare(names)
+    return keeper
+
+
+@pytest.mark.parametrize(
+    ("keepers", "verdicts", "skipped"),
+    [
+        ([], {}, True),  # no link keeper yet: a round would create empty ones
+        ([_declared({}), _declared({})], {}, True),  # empty keepers, nothing reported
+        ([_declared({}), _declared({"GF_ACTION": 2.0})], {}, False),  # a declaration to drop
+        ([_declared({})], {"fc1": object()}, False),  # a verdict to withdraw
+    ],
+)
+def test_a_round_with_nothing_declared_is_skipped_only_when_it_would_do_nothing(
+    keepers: list[ParamKeeper], verdicts: dict[str, object], skipped: bool
+) -> None:
+    assert nothing_declared(keepers, verdicts) is skipped
+
+
+def test_an_undeclared_keeper_ignores_what_it_receives_and_asks_nothing() -> None:
+    """Why the skip may leave received values unread: an empty keeper reads none of them."""
+    keeper = _declared({})
+    assert keeper.observe("GF_ACTION", 2.0, int(I32), NOW) is None
+    assert keeper.step(NOW, armed=False, restore=True) == []
+    assert nothing_declared([keeper], {})
