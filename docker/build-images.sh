@@ -307,7 +307,9 @@ mission_image() {
     # not the tools' caches: running the mission's tests leaves a .pytest_cache in DIR
     find . -type f ! -path '*/__pycache__/*' ! -path './.*' ! -path './tests/*' ! -name '*.md' -print0 \
       | sort -z | xargs -0 sha256sum
-    sha256sum "$here/build-images.sh" "$here/build-base.sh" "$here/base.Dockerfile"
+    # by name, not path: the key of one checkout is the key of any other (a clone's path
+    # is not what the image is made of)
+    (cd "$here" && sha256sum build-images.sh build-base.sh base.Dockerfile)
     echo "base=$base_ref archs=${archs[*]}"
   } | sha256sum | cut -c1-16)
   if [[ -s "$out/roost-$name.key" && "$(cat "$out/roost-$name.key")" == "$key" && -s "$archive" ]]; then
