@@ -28,11 +28,23 @@ from roost_operator.claims import micro_time
 from roost_operator.engine.leader import LEASE_NAME
 from tests.support.waiting import wait_until
 
+
+def _pid_namespaces() -> bool:
+    """Whether this machine lets the test start a PID namespace (root, util-linux's
+    ``unshare``, and a kernel or container that allows it)."""
+    if os.geteuid() != 0 or shutil.which("unshare") is None:
+        return False
+    probe = subprocess.run(
+        ["unshare", "--pid", "--fork", "true"], capture_output=True, timeout=30, check=False
+    )
+    return probe.returncode == 0
+
+
 pytestmark = [
     pytest.mark.cluster,
     pytest.mark.skipif(
-        os.geteuid() != 0 or shutil.which("unshare") is None,
-        reason="a new PID namespace needs root and util-linux's unshare",
+        not _pid_namespaces(),
+        reason="a new PID namespace needs root, util-linux's unshare and a kernel that allows it",
     ),
 ]
 
