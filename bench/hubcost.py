@@ -17,17 +17,25 @@ paced message to a second after the last, per 10,000 frames that reached the cli
   autopilot HEARTBEATs (``roost_agent.trust``), a second or two of its stream.
 - ``hub.agent_cpu_ms_per_10k_routed_2x2_400``: both autopilots send at 400 messages/s
   (the agent reads both), the active one's stream goes to two clients.
+- ``hub.router_cpu_ms_per_10k_routed_1to1_400`` / ``_2000`` (only with
+  ``ROOST_BENCH_ROUTER``: the path of a ``mavlink-routerd`` binary): the C router measured
+  the same way, right before the agent, on the same machine: the side-by-side that says
+  what the agent's figures are worth there (a router's cost per message follows the
+  machine's system-call and wake-up costs, which differ by several times between hosts).
 - ``hub.syscalls_per_routed_msg``: ``strace -c -f`` on the agent for a window at 2,000
   messages/s, every system call of every thread, per frame routed in it (strace slows
   the agent, so fewer messages share a wake-up than without it: an upper bound).
 
-Knobs (environment): ``ROOST_BENCH_HUBCOST_S`` (seconds per measurement, default 20).
+Knobs (environment): ``ROOST_BENCH_HUBCOST_S`` (seconds per measurement, default 20),
+``ROOST_BENCH_ROUTER`` (a ``mavlink-routerd`` to measure beside the agent; none: the
+agent alone).
 """
 
 from __future__ import annotations
 
 import multiprocessing
 import os
+import random
 import re
 import shutil
 import socket
@@ -154,10 +162,14 @@ def _sender(conn: Connection, port: int, sysid: int) -> None:
             return
         _, rate, seconds = request
         scale = rate / BASE_RATE
-        # one second of the mix, (offset, frame) in time order, repeated
+        # one second of the mix, (offset, frame) in time order, repeated; each stream at
+        # a phase of its own, so few messages leave together and nearly every one is a
+        # wake-up of its own for whoever reads them (the harder case for a router)
+        phases = random.Random(sysid)
         second = sorted(
-            (i / (PX4_STREAMS[k].hz * scale), n)
+            ((phase + i) / (PX4_STREAMS[k].hz * scale), n)
             for n, k in enumerate(kinds)
+            for phase in [phases.random()]
             for i in range(max(1, round(PX4_STREAMS[k].hz * scale)))
         )
         seq = sent = 0
@@ -179,7 +191,7 @@ class _Counter(threading.Thread):
     """A hub client: greets the hub once a second, counts the MAVLink 2 frames arriving
     from the autopilot's component (1; the agent's own frames, component 191, are not)."""
 
-    def __init__(self, hub: tuple[str, int]) -> None:
+    def __init__(self, hub: tuple[str, int] | None) -> None:
         super().__init__(daemon=True)
         from pymavlink.dialects.v20 import common as mavlink  # noqa: PLC0415
 
@@ -196,7 +208,7 @@ class _Counter(threading.Thread):
     def run(self) -> None:
         greeted = 0.0
         while not self.stopping.is_set():
-            if time.monotonic() - greeted > 1.0:
+            if self.hub is not None and time.monotonic() - greeted > 1.0:
                 self.sock.sendto(self.greeting, self.hub)
                 greeted = time.monotonic()
             try:
@@ -246,6 +258,50 @@ def _rig(clients: int) -> Iterator[tuple[AgentProcess, list[Connection], list[_C
                     proc.kill()
 
 
+@contextmanager
+def _router_rig(router: str) -> Iterator[tuple[int, list[Connection], list[_Counter]]]:
+    """``mavlink-routerd`` (a build of it given by path, kept outside the repository)
+    with one UDP endpoint in (server: the autopilot sends to it) and one out (to a
+    counting client), fed by the same paced sender as the agent: its pid, the sender's
+    pipe, the client."""
+    in_port = free_udp_port()
+    counter = _Counter(None)
+    out_port = counter.sock.getsockname()[1]
+    ctx = multiprocessing.get_context("spawn")
+    ours, theirs = ctx.Pipe()
+    sender = ctx.Process(target=_sender, args=(theirs, in_port, 1), daemon=True)
+    with tempfile.TemporaryDirectory(prefix="roost-bench-router-") as tmp:
+        conf = Path(tmp) / "router.conf"
+        conf.write_text(
+            "[General]\nTcpServerPort = 0\nReportStats = false\n"
+            f"[UdpEndpoint in]\nMode = Server\nAddress = 127.0.0.1\nPort = {in_port}\n"
+            f"[UdpEndpoint out]\nMode = Normal\nAddress = 127.0.0.1\nPort = {out_port}\n"
+        )
+        (Path(tmp) / "conf.d").mkdir()
+        proc = subprocess.Popen(
+            [router, "-c", str(conf), "-d", str(Path(tmp) / "conf.d")],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        try:
+            sender.start()
+            counter.start()
+            time.sleep(1.0)
+            yield proc.pid, [ours], [counter]
+        finally:
+            proc.terminate()
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+            counter.stop()
+            ours.send(None)
+            sender.join(5)
+            if sender.is_alive():
+                sender.kill()
+
+
 def _cpu_s(pid: int) -> float:
     times = psutil.Process(pid).cpu_times()
     return float(times.user + times.system)
@@ -258,14 +314,15 @@ def _run(pipes: list[Connection], rate: float, seconds: float) -> list[int]:
 
 
 def _measure(
-    agent: AgentProcess, pipes: list[Connection], counters: list[_Counter], rate: float
+    pid: int, pipes: list[Connection], counters: list[_Counter], rate: float
 ) -> tuple[float, float, int]:
-    """(CPU ms per 10k frames routed, % of the active's frames lost, frames routed)."""
+    """(CPU ms per 10k frames routed, % of the active's frames lost, frames routed) of
+    the process ``pid``."""
     before = sum(c.frames for c in counters)
-    cpu0 = _cpu_s(agent.pid)
+    cpu0 = _cpu_s(pid)
     sent = _run(pipes, rate, SECONDS)
     time.sleep(SETTLE_S)
-    cpu1 = _cpu_s(agent.pid)
+    cpu1 = _cpu_s(pid)
     routed = sum(c.frames for c in counters) - before
     per_client = routed / len(counters)
     lost_pct = max(0.0, (sent[0] - per_client) * 100 / sent[0])
@@ -297,18 +354,49 @@ def _syscalls(agent: AgentProcess, pipes: list[Connection], counters: list[_Coun
     return f"{total / max(routed, 1):.2f}|{routed}|{per}"
 
 
+def _router_figures() -> tuple[list[Figure], dict[int, str]]:
+    """The router's own figures (``ROOST_BENCH_ROUTER`` set), and per rate what the
+    agent's notes say of it; nothing when no router is given."""
+    router = os.environ.get("ROOST_BENCH_ROUTER", "")
+    if not router:
+        return [], {}
+    if not os.access(router, os.X_OK):
+        raise SystemExit(f"ROOST_BENCH_ROUTER: {router} is not an executable")
+    with _router_rig(router) as (pid, pipes, counters):
+        _run(pipes, 400, WARM_S)
+        measured = {rate: _measure(pid, pipes, counters, rate) for rate in (400, 2000)}
+        load = _load()
+    figures, notes = [], {}
+    for rate, (cpu, lost, routed) in measured.items():
+        notes[rate] = f"; mavlink-routerd in the same run, same sender and client: {cpu:.0f}"
+        figures.append(
+            Figure(
+                f"hub.router_cpu_ms_per_10k_routed_1to1_{rate}",
+                round(cpu, 1),
+                "ms",
+                "informational",
+                f"ROOST_BENCH_ROUTER=/path/to/mavlink-routerd {COMMAND}",
+                f"mavlink-routerd (a build kept outside the repository) as the agent is "
+                f"measured right after it: process user+system CPU per 10,000 frames that "
+                f"reached its one UDP client, {rate} msg/s of the same paced mix for "
+                f"{SECONDS:.0f} s, {routed} routed, {lost:.2f} % lost; 1-min load {load}",
+            )
+        )
+    return figures, notes
+
+
 def run() -> list[Figure]:
     os.environ.update(compiled_environment(compiled_tree()))
-    figures: list[Figure] = []
+    figures, router_notes = _router_figures()
     with _rig(clients=1) as (agent, pipes, counters):
         one = pipes[:1]
         _run(one, 400, WARM_S)  # the source lock, the agent's stream checks
-        results = {rate: _measure(agent, one, counters, rate) for rate in (400, 2000, 5000)}
+        results = {rate: _measure(agent.pid, one, counters, rate) for rate in (400, 2000, 5000)}
         load = _load()
         traced = _syscalls(agent, pipes, counters)
     with _rig(clients=2) as (agent, pipes, counters):
         _run(pipes, 400, WARM_S)
-        both = _measure(agent, pipes, counters, 400)
+        both = _measure(agent.pid, pipes, counters, 400)
         load2 = _load()
     where = (
         "roost-agent (the image's compiled build) process user+system CPU, one autopilot "
@@ -324,7 +412,7 @@ def run() -> list[Figure]:
                 "<= 120",
                 COMMAND,
                 f"{where}: {rate} msg/s for {SECONDS:.0f} s, {routed} routed, {lost:.2f} % "
-                f"lost; 1-min load {load} (2 cores shared)",
+                f"lost; 1-min load {load} (2 cores shared){router_notes.get(rate, '')}",
             )
         )
     cpu, lost, routed = results[5000]
