@@ -167,7 +167,7 @@ def _sender(conn: Connection, port: int, sysid: int) -> None:
         # wake-up of its own for whoever reads them (the harder case for a router)
         phases = random.Random(sysid)
         second = sorted(
-            ((phase + i) / (PX4_STREAMS[k].hz * scale), n)
+            (((phase + i) / (PX4_STREAMS[k].hz * scale)) % 1.0, n)
             for n, k in enumerate(kinds)
             for phase in [phases.random()]
             for i in range(max(1, round(PX4_STREAMS[k].hz * scale)))

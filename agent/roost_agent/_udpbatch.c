@@ -95,6 +95,7 @@ typedef struct {
     double stamp; /* NAN: none */
     int urgent;
     PyObject *frames; /* routed, every frame routine: (id, seq, time_boot_ms | -1, ...) */
+    PyObject *run;    /* not a datagram: a run of them, taken together (Run) */
 } Entry;
 
 static const Known *lookup(unsigned int id) {
@@ -180,9 +181,9 @@ static long long boot_time_of(const unsigned char *payload, unsigned int mlen, c
     return (long long)value;
 }
 
-/* Where the frames of a forwardable datagram start and end (count), or -1; ``*routine``:
- * whether every frame is of a routine message id, each then summarised in ``summary``
- * (id, sequence number, time_boot_ms or -1). */
+/* Where the frames of a forwardable datagram start and end (count), or -1, each
+ * summarised in ``summary`` (id, sequence number, time_boot_ms or -1); ``*routine``:
+ * whether every frame is of a routine message id. */
 static int frames_of(const unsigned char *d, Py_ssize_t total, const Rules *rules,
                      Py_ssize_t *starts, Py_ssize_t *ends, int *routine, long long *summary) {
     Py_ssize_t at = 0;
@@ -230,13 +231,12 @@ static int frames_of(const unsigned char *d, Py_ssize_t total, const Rules *rule
         if ((crc & 0xFF) != d[crc_at] || (crc >> 8) != d[crc_at + 1]) {
             return -1;
         }
-        if (*routine && is_routine(rules, id)) {
-            summary[count * 3] = id;
-            summary[count * 3 + 1] = d[at + 4];
-            summary[count * 3 + 2] = boot_time_of(payload, mlen, k);
-        } else {
+        if (!is_routine(rules, id)) {
             *routine = 0;
         }
+        summary[count * 3] = id;
+        summary[count * 3 + 1] = d[at + 4];
+        summary[count * 3 + 2] = boot_time_of(payload, mlen, k);
         starts[count] = at;
         ends[count] = end;
         count++;
@@ -359,6 +359,7 @@ static void clear(Entries *list) {
         Py_XDECREF(list->items[i].data);
         Py_XDECREF(list->items[i].sender);
         Py_XDECREF(list->items[i].frames);
+        Py_XDECREF(list->items[i].run);
     }
     PyMem_Free(list->items);
     list->items = NULL;
@@ -407,6 +408,7 @@ static int read_socket(int fd, Py_ssize_t limit, int urgent, const struct sockad
             Entry e;
             e.urgent = urgent;
             e.frames = NULL;
+            e.run = NULL;
             e.stamp = stamp_of(h);
             e.data = PyBytes_FromStringAndSize(slots + (size_t)i * SLOT,
                                                (Py_ssize_t)messages[i].msg_len);
@@ -463,6 +465,9 @@ static int address_of(PyObject *pair, struct sockaddr_in *out) {
 }
 
 static PyObject *entry_tuple(const Entry *e, int routed) {
+    if (e->run != NULL) {
+        return Py_NewRef(e->run);
+    }
     PyObject *when = isnan(e->stamp) ? Py_NewRef(Py_None) : PyFloat_FromDouble(e->stamp);
     if (when == NULL) {
         return NULL;
@@ -528,17 +533,292 @@ static PyObject *summarise(const long long *summary, int count) {
     return out;
 }
 
+/* Runs: the bulk of the active autopilot's stream taken by Python as a whole.
+ *
+ * Why: even summarised, each routed datagram cost Python a tuple, a float and a pass
+ * through the link, the hub and the health tracker, and the kinds whose content the
+ * tracker reads (ATTITUDE at 100 Hz, GLOBAL_POSITION_INT at 50 Hz) were parsed whole:
+ * most of the agent's CPU time per routed message. Of what the tracker reads there, only
+ * a change matters (the tilt's class) or the latest value (attitude, position). So
+ * consecutive routed datagrams of such kinds become one run: its first and last arrival
+ * (the agent's monotonic clock), its worst gap, its frames per message id, its highest
+ * time_boot_ms and when that arrived, the last sequence number, and the last frame of
+ * each kept kind whole (ATTITUDE, GLOBAL_POSITION_INT) for Python to read.
+ *
+ * A run ends, so that Python judges exactly what it judged frame by frame: before a
+ * datagram it does not take (a kind outside the rules, from another address, not routed
+ * here), before a gap of ``gap_limit`` (the tracker's silence threshold: Python sees the
+ * silence end), with the datagram that reaches ``window_end`` (the tracker's rate window
+ * closes at that message; the next window ends window_s after it), and when its table of
+ * message ids is full. A datagram whose time_boot_ms steps back by ``backstep`` or more
+ * (a reboot claim), or which holds a HEARTBEAT (a claim may follow), goes to Python
+ * whole and stops runs for the rest of the call, as does an ATTITUDE whose tilt class
+ * (0: level, 1: past warn_deg, 2: past max_deg) differs from the last one's (Python sees
+ * each change; the class it knew comes in as tilt_class, -1: none yet).
+ *
+ * rules: (kinds bitmap, (kept ids...), heartbeat id, (attitude id, roll at, pitch at,
+ *         warn_deg, max_deg, tilt_class), gap_limit_s, window_end, window_s, boot_max,
+ *         backstep_ms)
+ * run tuple: (first_at, last_at, max_gap, frames, datagrams, bytes, last_seq, boot_max,
+ *             boot_max_at, (id, count, ...), (frame, at, ...)) */
+#define RUN_KINDS 64
+#define MAX_KEPT 4
+#define FRAME_MAX 280
+
+typedef struct {
+    int on;
+    const unsigned char *kinds;
+    Py_ssize_t kinds_bytes;
+    unsigned int kept_ids[MAX_KEPT];
+    int n_kept;
+    unsigned int heartbeat_id, attitude_id;
+    int roll_at, pitch_at, tilt_class;
+    double warn_deg, max_deg, gap_limit, window_end, window_s;
+    long long boot_max, backstep;
+} RunRules;
+
+typedef struct {
+    int open;
+    double first_at, last_at, max_gap, boot_max_at;
+    long frames, datagrams, bytes;
+    int last_seq, n_kinds;
+    long long boot_max;
+    unsigned int ids[RUN_KINDS];
+    long counts[RUN_KINDS];
+    unsigned char kept[MAX_KEPT][FRAME_MAX];
+    int kept_len[MAX_KEPT];
+    double kept_at[MAX_KEPT];
+} Run;
+
+static int parse_run_rules(PyObject *in, RunRules *r) {
+    memset(r, 0, sizeof *r);
+    if (in == Py_None) {
+        return 0;
+    }
+    PyObject *kept, *tilt;
+    Py_ssize_t kinds_bytes;
+    const char *kinds;
+    if (!PyArg_ParseTuple(in, "y#OIOdddLL", &kinds, &kinds_bytes, &kept, &r->heartbeat_id,
+                          &tilt, &r->gap_limit, &r->window_end, &r->window_s, &r->boot_max,
+                          &r->backstep) ||
+        !PyArg_ParseTuple(tilt, "Iiiddi", &r->attitude_id, &r->roll_at, &r->pitch_at,
+                          &r->warn_deg, &r->max_deg, &r->tilt_class)) {
+        return -1;
+    }
+    r->kinds = (const unsigned char *)kinds;
+    r->kinds_bytes = kinds_bytes;
+    Py_ssize_t n = PySequence_Size(kept);
+    if (n < 0) {
+        return -1;
+    }
+    for (Py_ssize_t i = 0; i < n && r->n_kept < MAX_KEPT; i++) {
+        PyObject *item = PySequence_GetItem(kept, i);
+        if (item == NULL) {
+            return -1;
+        }
+        r->kept_ids[r->n_kept++] = (unsigned int)PyLong_AsUnsignedLong(item);
+        Py_DECREF(item);
+        if (PyErr_Occurred()) {
+            return -1;
+        }
+    }
+    r->on = 1;
+    return 0;
+}
+
+static int in_bitmap(const unsigned char *bits, Py_ssize_t size, unsigned int id) {
+    return (Py_ssize_t)(id >> 3) < size && (bits[id >> 3] >> (id & 7)) & 1;
+}
+
+static float float_at(const unsigned char *payload, unsigned int mlen, int at) {
+    unsigned char raw[4];
+    for (int i = 0; i < 4; i++) {
+        unsigned int where = (unsigned int)at + (unsigned int)i;
+        raw[i] = where < mlen ? payload[where] : 0;
+    }
+    float value;
+    memcpy(&value, raw, sizeof value); /* little-endian, as the wire and the hosts */
+    return value;
+}
+
+/* The tilt class of an ATTITUDE frame: the health tracker's tilt_degrees, compared. */
+static int tilt_class_of(const unsigned char *frame, const RunRules *r) {
+    unsigned int mlen = frame[1];
+    const unsigned char *payload = frame + V2_HEADER;
+    double c = cos((double)float_at(payload, mlen, r->roll_at)) *
+               cos((double)float_at(payload, mlen, r->pitch_at));
+    double tilt = acos(c < -1.0 ? -1.0 : c > 1.0 ? 1.0 : c) * 180.0 / M_PI;
+    double warn = r->warn_deg < r->max_deg ? r->warn_deg : r->max_deg;
+    return tilt > r->max_deg ? 2 : tilt > warn ? 1 : 0;
+}
+
+/* The run as its tuple (NULL: no memory). */
+static PyObject *run_tuple(const Run *run) {
+    PyObject *counts = PyTuple_New(run->n_kinds * 2);
+    PyObject *kept = NULL;
+    int n_kept = 0;
+    for (int i = 0; i < MAX_KEPT; i++) {
+        n_kept += run->kept_len[i] > 0;
+    }
+    if (counts != NULL) {
+        kept = PyTuple_New(n_kept * 2);
+    }
+    if (kept == NULL) {
+        Py_XDECREF(counts);
+        return NULL;
+    }
+    for (int i = 0; i < run->n_kinds; i++) {
+        PyTuple_SET_ITEM(counts, i * 2, PyLong_FromUnsignedLong(run->ids[i]));
+        PyTuple_SET_ITEM(counts, i * 2 + 1, PyLong_FromLong(run->counts[i]));
+    }
+    int j = 0;
+    for (int i = 0; i < MAX_KEPT; i++) {
+        if (run->kept_len[i] > 0) {
+            PyTuple_SET_ITEM(kept, j * 2,
+                             PyBytes_FromStringAndSize((const char *)run->kept[i], run->kept_len[i]));
+            PyTuple_SET_ITEM(kept, j * 2 + 1, PyFloat_FromDouble(run->kept_at[i]));
+            j++;
+        }
+    }
+    if (PyErr_Occurred()) {
+        Py_DECREF(counts);
+        Py_DECREF(kept);
+        return NULL;
+    }
+    return Py_BuildValue("(dddllliLdNN)", run->first_at, run->last_at, run->max_gap, run->frames,
+                         run->datagrams, run->bytes, run->last_seq, run->boot_max,
+                         run->boot_max_at, counts, kept);
+}
+
+/* Ends the open run, if any, as an entry of ``out`` (room for one reserved); -1: no memory. */
+static int run_close(Run *run, Entries *out, unsigned char *routed) {
+    if (!run->open) {
+        return 0;
+    }
+    run->open = 0;
+    PyObject *tuple = run_tuple(run);
+    if (tuple == NULL) {
+        return -1;
+    }
+    Entry e = {NULL, NULL, NAN, 0, NULL, tuple};
+    routed[out->count] = 1;
+    out->items[out->count++] = e;
+    return 0;
+}
+
+/* Whether a routed datagram of ``count`` frames may join a run (else it goes whole; *stop:
+ * and no more runs this call); the tilt class moves on with each ATTITUDE either way. */
+static int joins_run(RunRules *r, const unsigned char *d, int count, const Py_ssize_t *starts,
+                     const long long *summary, long long *boot_high, int *stop) {
+    int joins = 1;
+    for (int i = 0; i < count; i++) {
+        unsigned int id = (unsigned int)summary[i * 3];
+        long long boot = summary[i * 3 + 2];
+        if (id == r->heartbeat_id) {
+            *stop = 1;
+            joins = 0;
+        }
+        if (boot >= 0) {
+            if (*boot_high >= 0 && boot < *boot_high - r->backstep) {
+                *stop = 1; /* a reboot claim: Python settles it frame by frame */
+                return 0;
+            }
+            if (boot > *boot_high) {
+                *boot_high = boot;
+            }
+        }
+        if (id == r->attitude_id) {
+            int tilt = tilt_class_of(d + starts[i], r);
+            if (tilt != r->tilt_class) {
+                joins = 0;
+                r->tilt_class = tilt;
+            }
+        }
+        if (!in_bitmap(r->kinds, r->kinds_bytes, id)) {
+            joins = 0;
+        }
+    }
+    return joins;
+}
+
+static void run_add(Run *run, const RunRules *r, const unsigned char *d, int count,
+                    const Py_ssize_t *starts, const Py_ssize_t *ends, const long long *summary,
+                    double at, Py_ssize_t size) {
+    if (!run->open) {
+        memset(run, 0, sizeof *run);
+        run->open = 1;
+        run->first_at = run->last_at = at;
+        run->boot_max = -1;
+    }
+    double gap = at - run->last_at;
+    if (gap > run->max_gap) {
+        run->max_gap = gap;
+    }
+    run->last_at = at;
+    run->datagrams++;
+    run->bytes += (long)size;
+    for (int i = 0; i < count; i++) {
+        unsigned int id = (unsigned int)summary[i * 3];
+        long long boot = summary[i * 3 + 2];
+        int k = 0;
+        while (k < run->n_kinds && run->ids[k] != id) {
+            k++;
+        }
+        if (k == run->n_kinds) { /* room checked by the caller */
+            run->ids[k] = id;
+            run->counts[k] = 0;
+            run->n_kinds++;
+        }
+        run->counts[k]++;
+        run->frames++;
+        run->last_seq = (int)summary[i * 3 + 1];
+        if (boot > run->boot_max) {
+            run->boot_max = boot;
+            run->boot_max_at = at;
+        }
+        for (int j = 0; j < r->n_kept; j++) {
+            Py_ssize_t length = ends[i] - starts[i];
+            if (r->kept_ids[j] == id && length <= FRAME_MAX) {
+                memcpy(run->kept[j], d + starts[i], (size_t)length);
+                run->kept_len[j] = (int)length;
+                run->kept_at[j] = at;
+            }
+        }
+    }
+}
+
+/* Whether adding a datagram of these frames would overflow the run's table of ids. */
+static int run_full(const Run *run, int count, const long long *summary) {
+    if (!run->open) {
+        return 0;
+    }
+    int more = 0;
+    for (int i = 0; i < count; i++) {
+        unsigned int id = (unsigned int)summary[i * 3];
+        int k = 0;
+        while (k < run->n_kinds && run->ids[k] != id) {
+            k++;
+        }
+        more += k == run->n_kinds;
+    }
+    return run->n_kinds + more > RUN_KINDS;
+}
+
 static PyObject *pump(PyObject *module, PyObject *args) {
     (void)module;
     int bulk_fd, urgent_fd, sysid, compid, agent_comp, log_busy, urgent_returns;
     double timeout_s, due_s, age_s, offset;
-    PyObject *wake_list, *client_list, *locked_obj, *held_in;
+    PyObject *wake_list, *client_list, *locked_obj, *held_in, *runs_in;
     Py_ssize_t limit, routine_bytes;
     const char *routine;
-    if (!PyArg_ParseTuple(args, "iiO(dddd)OOiiippOny#:pump", &bulk_fd, &urgent_fd, &wake_list,
+    if (!PyArg_ParseTuple(args, "iiO(dddd)OOiiippOny#O:pump", &bulk_fd, &urgent_fd, &wake_list,
                           &timeout_s, &due_s, &age_s, &offset, &client_list, &locked_obj,
                           &sysid, &compid, &agent_comp, &log_busy, &urgent_returns, &held_in,
-                          &limit, &routine, &routine_bytes)) {
+                          &limit, &routine, &routine_bytes, &runs_in)) {
+        return NULL;
+    }
+    RunRules runs;
+    if (parse_run_rules(runs_in, &runs) < 0) {
         return NULL;
     }
     if (ensure_slots() < 0) {
@@ -596,11 +876,12 @@ static PyObject *pump(PyObject *module, PyObject *args) {
     Rules rules = {sysid, compid, agent_comp, log_busy, (const unsigned char *)routine,
                    routine_bytes};
 
-    Entries held = {0}, fresh = {0}, out = {0};
+    Entries held = {0}, fresh = {0}, out = {0}, spent = {0};
     Outbox box;
     box.count = 0;
     unsigned char *routed = NULL;
     Py_ssize_t routed_size = 0;
+    Run *run = NULL;
     PyObject *result = NULL;
     /* what the caller held from before */
     Py_ssize_t n_held = PySequence_Size(held_in);
@@ -618,7 +899,7 @@ static PyObject *pump(PyObject *module, PyObject *args) {
             goto fail;
         }
         Entry e = {Py_NewRef(data), Py_NewRef(from), when == Py_None ? NAN : PyFloat_AsDouble(when),
-                   0, NULL};
+                   0, NULL, NULL};
         Py_DECREF(item);
         if (push(&held, e) < 0) {
             Py_DECREF(e.data);
@@ -628,6 +909,14 @@ static PyObject *pump(PyObject *module, PyObject *args) {
     }
 
     int forwarding = n_clients > 0 && locked_obj != Py_None;
+    run = runs.on ? PyMem_Calloc(1, sizeof(Run)) : NULL;
+    if (runs.on && run == NULL) {
+        PyErr_NoMemory();
+        goto fail;
+    }
+    int running = runs.on; /* runs may still be taken this call */
+    long long boot_high = runs.boot_max;
+    double last_arrived = -INFINITY;
     int woke = 0, done = 0, looks_after_hold = 0;
     double started = monotonic();
     double hard = started + (timeout_s > 0 ? timeout_s : 0);
@@ -635,6 +924,10 @@ static PyObject *pump(PyObject *module, PyObject *args) {
     double deadline = due < hard ? due : hard;
     while (!done) {
         int ready_data = 0;
+        /* which sockets to read: both after a hold, else those poll found readable (a
+         * read of an empty socket is a system call for nothing, at every datagram) */
+        int read_urgent = urgent_fd >= 0, read_bulk = 1;
+        double polled_at = INFINITY;
         if (held.count > 0 && looks_after_hold < 2) {
             ready_data = 1; /* one more look at once, as the Python reader takes */
             looks_after_hold++;
@@ -668,6 +961,9 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                     ready_data = 1;
                 }
             }
+            polled_at = realtime();
+            read_bulk = fds[0].revents != 0;
+            read_urgent = urgent_fd >= 0 && fds[1].revents != 0;
             if (fds[0].revents & (POLLERR | POLLNVAL) ||
                 (urgent_fd >= 0 && fds[1].revents & (POLLERR | POLLNVAL))) {
                 done = 1; /* the reads tell Python what failed */
@@ -677,9 +973,11 @@ static PyObject *pump(PyObject *module, PyObject *args) {
             }
         }
         if (ready_data) {
-            double cutoff = realtime();
+            /* What arrived after poll looked may be newer than something then queued on
+             * a socket not read now: it is held for the next look (as below). */
+            double cutoff = fmin(realtime(), polled_at);
             int got_urgent = 0, got_bulk = 0;
-            if (urgent_fd >= 0) {
+            if (read_urgent) {
                 got_urgent = read_socket(urgent_fd, BATCH * 4, 1, &locked, locked_obj, &fresh);
                 if (got_urgent < 0) {
                     goto fail;
@@ -688,9 +986,11 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                     cutoff = fmin(cutoff, arrival(&fresh.items[fresh.count - 1]));
                 }
             }
-            got_bulk = read_socket(bulk_fd, BATCH * 4, 0, &locked, locked_obj, &fresh);
-            if (got_bulk < 0) {
-                goto fail;
+            if (read_bulk) {
+                got_bulk = read_socket(bulk_fd, BATCH * 4, 0, &locked, locked_obj, &fresh);
+                if (got_bulk < 0) {
+                    goto fail;
+                }
             }
             if (urgent_fd >= 0 && got_bulk >= BATCH * 4) {
                 cutoff = fmin(cutoff, arrival(&fresh.items[fresh.count - 1]));
@@ -704,12 +1004,14 @@ static PyObject *pump(PyObject *module, PyObject *args) {
             memcpy(fresh.items + fresh.count, held.items, sizeof(Entry) * (size_t)held.count);
             fresh.count += held.count;
             held.count = 0;
-            if (reserve(&held, fresh.count) < 0 || reserve(&out, fresh.count) < 0) {
+            /* one more in out: a run ending with or after these */
+            if (reserve(&held, fresh.count) < 0 || reserve(&out, fresh.count + 1) < 0 ||
+                reserve(&spent, fresh.count) < 0) {
                 goto fail;
             }
-            if (out.count + fresh.count > routed_size) {
+            if (out.count + fresh.count + 1 > routed_size) {
                 Py_ssize_t size = routed_size ? routed_size : 64;
-                while (size < out.count + fresh.count) {
+                while (size < out.count + fresh.count + 1) {
                     size *= 2;
                 }
                 unsigned char *grown = PyMem_Realloc(routed, (size_t)size);
@@ -731,28 +1033,48 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                     held.items[held.count++] = *e;
                     continue;
                 }
-                out.items[out.count++] = *e;
-                int sent = 0;
+                int sent = 0, in_run = 0;
+                PyObject *summarised = NULL;
                 int from_locked = e->sender == locked_obj && locked_obj != Py_None;
+                double arrived = isnan(e->stamp) ? monotonic() : e->stamp - offset;
+                if (arrived < last_arrived) {
+                    arrived = last_arrived; /* as Python's: never before an earlier one */
+                }
+                last_arrived = arrived;
                 if (forwarding && from_locked) {
                     Py_ssize_t starts[MAX_FRAMES], ends[MAX_FRAMES];
                     long long summary[MAX_FRAMES * 3];
                     int routine = 0;
                     const unsigned char *d = (const unsigned char *)PyBytes_AS_STRING(e->data);
-                    int count = frames_of(d, PyBytes_GET_SIZE(e->data), &rules, starts, ends,
-                                          &routine, summary);
+                    Py_ssize_t size = PyBytes_GET_SIZE(e->data);
+                    int count = frames_of(d, size, &rules, starts, ends, &routine, summary);
                     if (count > 0) {
                         forward(&box, d, count, starts, ends, clients, n_clients);
                         sent = 1;
-                        if (routine) {
+                        if (running) {
+                            int stop = 0;
+                            int joins = joins_run(&runs, d, count, starts, summary, &boot_high,
+                                                  &stop);
+                            running = !stop;
+                            if (joins && !(e->urgent && urgent_returns)) {
+                                if (run->open && (arrived - run->last_at >= runs.gap_limit ||
+                                                  run_full(run, count, summary))) {
+                                    if (run_close(run, &out, routed) < 0) {
+                                        goto fail;
+                                    }
+                                }
+                                run_add(run, &runs, d, count, starts, ends, summary, arrived, size);
+                                in_run = 1;
+                            }
+                        }
+                        if (!in_run && routine) {
                             /* without it (no memory), Python reads the frames themselves */
-                            out.items[out.count - 1].frames = summarise(summary, count);
-                            if (out.items[out.count - 1].frames == NULL) {
+                            summarised = summarise(summary, count);
+                            if (summarised == NULL) {
                                 PyErr_Clear();
                             }
                         }
                         if (age_s >= 0) { /* the autopilot's last message is this one now */
-                            double arrived = isnan(e->stamp) ? monotonic() : e->stamp - offset;
                             if (arrived + age_s > due) {
                                 due = arrived + age_s;
                                 deadline = due < hard ? due : hard;
@@ -761,15 +1083,39 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                     } else {
                         /* Python must see it now, and forwards it and what follows */
                         forwarding = 0;
+                        running = 0;
                         done = 1;
+                    }
+                }
+                if (!in_run) {
+                    /* what Python reads whole comes after the run before it */
+                    if (runs.on && run_close(run, &out, routed) < 0) {
+                        Py_XDECREF(summarised);
+                        goto fail;
+                    }
+                    e->frames = summarised;
+                    out.items[out.count++] = *e;
+                    routed[out.count - 1] = (unsigned char)sent;
+                } else {
+                    spent.items[spent.count++] = *e; /* its bytes go out at the flush */
+                }
+                if (runs.on && from_locked && arrived >= runs.window_end) {
+                    /* the tracker's rate window closes at this message */
+                    runs.window_end = arrived + runs.window_s;
+                    if (in_run && run_close(run, &out, routed) < 0) {
+                        goto fail;
                     }
                 }
                 if (e->urgent && urgent_returns) {
                     done = 1;
                 }
-                routed[out.count - 1] = (unsigned char)sent;
             }
             flush(&box, clients, n_clients); /* the data stays alive in out until the return */
+            for (Py_ssize_t i = 0; i < spent.count; i++) { /* in a run: sent, and done with */
+                Py_CLEAR(spent.items[i].data);
+                Py_CLEAR(spent.items[i].sender);
+            }
+            spent.count = 0;
             if (held.count == 0) {
                 looks_after_hold = 0;
             }
@@ -782,6 +1128,23 @@ static PyObject *pump(PyObject *module, PyObject *args) {
         }
     }
 
+    if (runs.on && run->open) {
+        if (reserve(&out, 1) < 0) {
+            goto fail;
+        }
+        if (out.count + 1 > routed_size) {
+            unsigned char *grown = PyMem_Realloc(routed, (size_t)(out.count + 1));
+            if (grown == NULL) {
+                PyErr_NoMemory();
+                goto fail;
+            }
+            routed = grown;
+            routed_size = out.count + 1;
+        }
+        if (run_close(run, &out, routed) < 0) {
+            goto fail;
+        }
+    }
     {
         PyObject *items = PyList_New(out.count);
         PyObject *held_out = items == NULL ? NULL : PyList_New(held.count);
@@ -813,7 +1176,9 @@ fail:
     clear(&held);
     clear(&out);
     clear(&fresh);
+    clear(&spent);
     PyMem_Free(routed);
+    PyMem_Free(run);
     return result;
 }
 
@@ -826,7 +1191,7 @@ static PyMethodDef methods[] = {
     {"pump", pump, METH_VARARGS,
      "pump(bulk_fd, urgent_fd, wake_fds, (timeout_s, due_s, age_s, offset), clients, locked, "
      "sysid, compid, "
-     "agent_comp, log_busy, urgent_returns, held, limit, routine) -> (items, held, woke)"},
+     "agent_comp, log_busy, urgent_returns, held, limit, routine, runs) -> (items, held, woke)"},
     {NULL, NULL, 0, NULL},
 };
 

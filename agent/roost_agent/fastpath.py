@@ -31,10 +31,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Final, cast
 
+from roost_agent.health import RunState
 from roost_agent.transport import recent_realtime_offset
 from roost_mavlink import AGENT_COMPONENT_ID
 from roost_mavlink.checked_messages import CHECKED_MESSAGES
-from roost_mavlink.codec import DECLARED, Layout, layout
+from roost_mavlink.codec import DECLARED, Layout, layout, message
 
 if TYPE_CHECKING:
     from roost_agent.reader import Session
@@ -45,7 +46,27 @@ Routed = tuple[bytes, "Address | None", "float | None", bool, "tuple[int, ...] |
 a routed datagram of routine frames only (:func:`routine_bitmap`) their summary: message
 id, sequence number and ``time_boot_ms`` (-1: none) of each, in order (else None)."""
 
-PumpResult = tuple[list[Routed], list["Received"], bool]
+Run = tuple[
+    float,
+    float,
+    float,
+    int,
+    int,
+    int,
+    int,
+    int,
+    float,
+    tuple[int, ...],
+    tuple["bytes | float", ...],
+]
+"""Consecutive routed datagrams taken together (``_udpbatch.c`` says when a run ends):
+first and last arrival and the worst gap between them (the agent's monotonic clock,
+seconds), frames, datagrams, bytes, the last sequence number, the highest
+``time_boot_ms`` (-1: none) and its arrival, (message id, frames, ...), and the last
+frame of each kept kind whole with its arrival (frame, at, ...)."""
+RUN_FIELDS: Final = 11
+
+PumpResult = tuple[list["Routed | Run"], list["Received"], bool]
 
 
 def _pump() -> Callable[..., PumpResult] | None:
@@ -138,6 +159,8 @@ class FastRoute:
     bulk_fd: int
     urgent_fd: int  # -1: the link is one socket
     routine: bytes  # routine_bitmap: the ids whose routed frames Python takes summarised
+    run_kinds: bytes  # routine_bitmap: the ids whose routed frames may join a run
+    kept_ids: tuple[int, ...]  # the ids whose last frame in a run Python reads whole
 
 
 def pump(
@@ -148,12 +171,14 @@ def pump(
     *,
     urgent_returns: bool,
     limit: int,
-) -> tuple[list[Routed], bool]:
+    runs: RunState | None = None,
+) -> tuple[list[Routed | Run], bool]:
     """Wait up to ``timeout_s`` in C, and up to ``due`` unless the autopilot's frames keep
     postponing it, forwarding as datagrams come; what was read (in arrival order) and
     whether a ``wake_fds`` descriptor woke it. What may be newer than something still
     queued on the other socket of a steered pair stays in the transport's held list, as
-    the Python reads leave it."""
+    the Python reads leave it. With ``runs`` (the tracker's state), the bulk of the
+    stream comes as runs (:data:`Run`) instead of datagram by datagram."""
     assert PUMP is not None
     session = route.session
     transport = session.transport
@@ -172,6 +197,34 @@ def pump(
         transport.take_held(),
         limit,
         route.routine,
+        None if runs is None else _run_rules(route, runs),
     )
     transport.keep_held(still_held)
     return items, woke
+
+
+def _attitude_offsets() -> tuple[int, int, int]:
+    """ATTITUDE's id and the payload offsets of its roll and pitch (C classifies tilt)."""
+    found = layout(message("ATTITUDE").id)
+    assert found is not None
+    return found.msg_id, found.scalars["roll"][0], found.scalars["pitch"][0]
+
+
+HEARTBEAT_ID: Final = message("HEARTBEAT").id
+_ATTITUDE: Final = _attitude_offsets()
+
+
+def _run_rules(route: FastRoute, runs: RunState) -> tuple[object, ...]:
+    warn_deg, max_deg, tilt_class, gap_s, window_end, window_s, boot_max, backstep = runs
+    attitude_id, roll_at, pitch_at = _ATTITUDE
+    return (
+        route.run_kinds,
+        route.kept_ids,
+        HEARTBEAT_ID,
+        (attitude_id, roll_at, pitch_at, warn_deg, max_deg, tilt_class),
+        gap_s,
+        window_end,
+        window_s,
+        boot_max,
+        backstep,
+    )

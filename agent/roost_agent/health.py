@@ -243,6 +243,28 @@ def tilt_degrees(roll: float, pitch: float) -> float:
     return math.degrees(math.acos(max(-1.0, min(1.0, cos_tilt))))
 
 
+RunState = tuple[float, float, int, float, float, float, int, int]
+""":meth:`HealthTracker.run_state`: the tilt warn and envelope angles and the class of
+the last tilt (-1: none yet; 0 level, 1 past warn, 2 past the envelope), the silence
+threshold, when the rate window ends and its length, the highest ``time_boot_ms`` (-1:
+none) and the step back in it that claims a reboot (ms)."""
+
+
+@dataclass(frozen=True)
+class ObservedRun:
+    """Consecutive messages of one autopilot taken together (:meth:`HealthTracker.observe_run`)."""
+
+    first_at: float
+    last_at: float
+    max_gap: float  # the longest time between two of them
+    frames: int
+    counts: tuple[tuple[str, int], ...]  # (message type, messages)
+    boot_max: int  # the highest time_boot_ms (-1: none carried one)
+    boot_max_at: float  # when the message that carried it arrived
+    last_seq: int
+    latest: tuple[tuple[str, Any, float], ...]  # (type, message, arrival): the last of a kind
+
+
 @dataclass(frozen=True)
 class _Claim:
     """A reboot or fatal state one message asserted, waiting for corroboration."""
@@ -397,6 +419,87 @@ class HealthTracker:
         the bulk of the stream over so (:mod:`roost_agent.fastpath`), and it is judged by
         the same code as a message observed whole."""
         return self._locked_record(None, kind, boot_ms, seq, now)
+
+    def run_state(self) -> RunState | None:
+        """What a run of messages taken together (:meth:`observe_run`) must respect, or
+        None while messages must be judged one by one: a claim waits for the message that
+        settles it, or no ``time_boot_ms`` has been seen yet (every message is then
+        compared before and after, as :meth:`_record` does)."""
+        with self._lock:
+            o = self._o
+            if o.claim is not None or o.boot_advanced_at is None:
+                return None
+            th = self.thresholds
+            tilt = o.tilt_deg
+            tilt_class = (
+                -1
+                if tilt is None
+                else 2
+                if tilt > th.max_tilt_deg
+                else 1
+                if _tilt_warned(o, th)
+                else 0
+            )
+            return (
+                TILT_WARN_DEG,
+                th.max_tilt_deg,
+                tilt_class,
+                _silence_s(o, th),
+                o.window_start + RATE_WINDOW_S,
+                RATE_WINDOW_S,
+                -1 if o.boot_ms_max is None else o.boot_ms_max,
+                REBOOT_BACKSTEP_MS,
+            )
+
+    def observe_run(self, run: ObservedRun) -> bool:
+        """:meth:`observe` for consecutive messages taken together (the hub's fast path,
+        :mod:`roost_agent.fastpath`), made while :meth:`run_state` held, of kinds the
+        tracker does not read or reads only the latest of (:data:`LATEST_ONLY_KINDS`):
+        the same arrival, gap, count, rate window, ``time_boot_ms`` and sequence
+        bookkeeping as message by message, then the latest of each kind read. The run
+        ends where a message would have changed more (``_udpbatch.c``): before a
+        silence, at the message that closes the rate window, before a tilt class change
+        or a step back in ``time_boot_ms``. Returns what :meth:`observe` returns."""
+        lock = self._lock
+        lock.acquire()
+        try:
+            return self._record_run(run)
+        finally:
+            lock.release()
+
+    def _record_run(self, run: ObservedRun) -> bool:
+        o = self._o
+        th = self.thresholds
+        silence_ended = False
+        if o.last_at is None:
+            o.first_at = o.window_start = run.first_at
+        else:
+            gap = run.first_at - o.last_at
+            if gap > o.window_gap and gap * 1000 < th.message_error_ms:
+                o.window_gap = gap
+            silence_ended = gap >= _silence_s(o, th)
+            if silence_ended:
+                o.version += 1
+        if run.max_gap > o.window_gap and run.max_gap * 1000 < th.message_error_ms:
+            o.window_gap = run.max_gap
+        o.last_at = run.last_at
+        counts = o.counts
+        for kind, count in run.counts:
+            counts[kind] = counts.get(kind, 0) + count
+        o.window_count += run.frames
+        if run.last_at - o.window_start >= RATE_WINDOW_S:
+            self._close_rate_window(run.last_at)
+        if run.boot_max >= 0 and o.claim is None:
+            high = o.boot_ms_max
+            if high is None or run.boot_max > high:
+                o.boot_ms_max, o.boot_advanced_at = run.boot_max, run.boot_max_at
+        o.last_seq = run.last_seq
+        changed = False
+        for kind, msg, at in run.latest:
+            read = _READERS.get(kind)
+            if read is not None:
+                changed = read(self, msg, at) or changed
+        return changed or silence_ended
 
     def _locked_record(
         self, msg: Any, kind: str, boot_ms: int | None, seq: int, now: float
@@ -813,6 +916,10 @@ _READERS: Final[dict[str, Callable[[HealthTracker, Any, float], bool]]] = {
     "GLOBAL_POSITION_INT": _read_position,
 }
 
+LATEST_ONLY_KINDS: Final = frozenset({"ATTITUDE", "GLOBAL_POSITION_INT"})
+"""Of :data:`READ_KINDS`, those whose reading leaves nothing but the latest value, for
+ATTITUDE as long as the tilt stays in its class (level, past the warning angle, past the
+envelope): a run (:meth:`HealthTracker.observe_run`) reads only its last one of each."""
 READ_KINDS: Final = frozenset(_READERS)
 """The message types whose content the tracker reads (HEARTBEAT's also to settle a
 claim); of every other type only the type, arrival time, sequence number and

@@ -55,11 +55,12 @@ import socket
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Final, Protocol
 
 from roost_agent.fastpath import PUMP, FastRoute, routine_bitmap
+from roost_agent.health import LATEST_ONLY_KINDS as HEALTH_LATEST_ONLY_KINDS
 from roost_agent.health import READ_KINDS as HEALTH_READ_KINDS
 from roost_agent.hub_policy import (
     ACCEPT,
@@ -107,6 +108,7 @@ from roost_mavlink.codec import (
     StreamParser,
     crc_extra_of,
     frame_crc,
+    message,
     scan,
 )
 from roost_mavlink.signing import Signer
@@ -129,6 +131,14 @@ _ACTIVE_IN_STEP: Final = InStep(
 """The active autopilot's verdict (the same at every tick: built once)."""
 ROUTINE: Final = routine_bitmap(READ_KINDS | LINK_READ_KINDS | HEALTH_READ_KINDS)
 """The message ids the fast path hands Python summarised (:mod:`roost_agent.fastpath`)."""
+LATEST_ONLY_KINDS: Final = frozenset({"GLOBAL_POSITION_INT"})
+"""Of :data:`READ_KINDS`, those of which the hub keeps only the latest (a snapshot)."""
+_KEPT_KINDS: Final = LATEST_ONLY_KINDS | HEALTH_LATEST_ONLY_KINDS
+RUN_KINDS: Final = routine_bitmap((READ_KINDS | LINK_READ_KINDS | HEALTH_READ_KINDS) - _KEPT_KINDS)
+"""The message ids whose routed frames may be taken as a run (:mod:`roost_agent.fastpath`):
+the routine ones, and those of which the hub and the tracker read only the latest."""
+KEPT_IDS: Final = tuple(sorted(message(name).id for name in _KEPT_KINDS))
+"""The message ids whose last frame in a run Python reads whole."""
 SELECT_WAIT_S = 1.0  # the hub thread's longest sleep: clients expire after 30 s; stop wakes it
 UDP_MAX = 65535
 TCP_SEND_BUFFER = 1 << 18
@@ -226,6 +236,14 @@ def retarget(msg: Parsed, vehicle_sysid: int, sysid: int) -> bytes:
 # -- the hub ---------------------------------------------------------------------------
 
 
+def _note_position(seen: Snapshot, msg: Any, now: float) -> None:
+    """The position a GLOBAL_POSITION_INT gives the autopilot's snapshot."""
+    seen.position_at = now
+    seen.lat_deg = msg.lat / 1e7
+    seen.lon_deg = msg.lon / 1e7
+    seen.relative_alt_m = msg.relative_alt / 1000
+
+
 class HubLink(Protocol):
     """What the hub needs from an autopilot link (:class:`roost_agent.link.AutopilotLink`)."""
 
@@ -238,6 +256,10 @@ class HubLink(Protocol):
     """The datagram being read was routed to the fast route's clients in C already."""
     tap_routed: Callable[[int], bool] | None
     """Given the count of a routed datagram's routine frames (read no further)."""
+
+    tap_run: Callable[[int, Sequence[tuple[Any, float]]], None] | None
+    """Given a run's frame count and the last frame of each kept kind with its arrival
+    (message, at): a run of datagrams routed in C (:mod:`roost_agent.fastpath`)."""
 
     def fast_source(self) -> tuple[Session, Address] | None: ...
 
@@ -458,8 +480,12 @@ class Hub:
         def tap_routed(frames: int) -> bool:
             return self._routed_routine(name, frames)
 
+        def tap_run(frames: int, latest: Sequence[tuple[Any, float]]) -> None:
+            self._routed_run(name, frames, latest)
+
         link.tap = tap
         link.tap_routed = tap_routed
+        link.tap_run = tap_run
 
     def set_active(self, name: str) -> None:
         """Move the clients' route to ``name`` (the agent calls it right after the bridge
@@ -579,10 +605,7 @@ class Hub:
             if fresh and seen.stack is Stack.ARDUPILOT:  # (re)connected: tell it its role
                 self._aux_standby(name, standby=name != self._active)
         elif kind == "GLOBAL_POSITION_INT":
-            seen.position_at = now
-            seen.lat_deg = msg.lat / 1e7
-            seen.lon_deg = msg.lon / 1e7
-            seen.relative_alt_m = msg.relative_alt / 1000
+            _note_position(seen, msg, now)
         if isinstance(msg, Frame) and not msg.has_field("target_component"):
             targets_agent = False  # most of the stream: no lookup that raises
         else:
@@ -636,6 +659,20 @@ class Hub:
         counters = self.counters
         counters.to_clients += sent
         counters.forwarded[name] = counters.forwarded.get(name, 0) + 1
+
+    def _routed_run(self, name: str, frames: int, latest: Sequence[tuple[Any, float]]) -> None:
+        """A run of ``frames`` routed in C (:mod:`roost_agent.fastpath`) with the last
+        frame of each kept kind, read for the snapshot (the position). Counted as routed
+        to the route's clients: a client that came while C routed them missed them."""
+        route = self._route
+        if name == self._active and route is not None:
+            counters = self.counters
+            counters.routed_in_c += frames
+            counters.to_clients += frames * len(route.clients)
+        seen = self._seen[name]
+        for msg, now in latest:
+            if msg.get_type() == "GLOBAL_POSITION_INT":
+                _note_position(seen, msg, now)
 
     def _routed_routine(self, name: str, frames: int) -> bool:
         """What :meth:`_from_autopilot` does with ``frames`` routine frames (none of
@@ -704,6 +741,8 @@ class Hub:
             bulk_fd=fds[0],
             urgent_fd=fds[1],
             routine=ROUTINE,
+            run_kinds=RUN_KINDS,
+            kept_ids=KEPT_IDS,
         )
         return route
 

@@ -28,12 +28,12 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Final, Generic, TypeVar
+from typing import Any, Final, Generic, TypeVar, cast
 
-from roost_agent.fastpath import kind_names
-from roost_agent.health import Fix, HealthTracker, Motion
+from roost_agent.fastpath import RUN_FIELDS, Routed, Run, kind_names
+from roost_agent.health import Fix, HealthTracker, Motion, ObservedRun, RunState
 from roost_agent.reader import LinkReader, Session
 from roost_agent.signing import LinkSigning
 from roost_agent.transport import (
@@ -250,6 +250,9 @@ class AutopilotLink:
         # fast path routed in C (roost_agent.fastpath): True when the hub has counted
         # them and has nothing else to do with them; False: they go to ``tap`` whole.
         self.tap_routed: Callable[[int], bool] | None = None
+        # Called by the reader with a run of datagrams the hub's fast path routed in C
+        # (roost_agent.fastpath): their frame count and the last frame of each kept kind.
+        self.tap_run: Callable[[int, Sequence[tuple[Any, float]]], None] | None = None
         # The flight recorder's tap (roost_agent.records_recorder): every frame accepted
         # from the autopilot (after the hub routed it and the tracker judged it) and
         # every frame written to it (after the write).
@@ -442,7 +445,11 @@ class AutopilotLink:
         if pushed is not None:
             session.pushed = None
             try:
-                for data, sender, stamp, routed, frames in pushed:
+                for item in pushed:
+                    if len(item) == RUN_FIELDS:
+                        self._run(session, cast("Run", item))
+                        continue
+                    data, sender, stamp, routed, frames = cast("Routed", item)
                     self.routed = routed
                     now = self._arrival(session, stamp, offset)
                     if frames is None or not self._routine(session, data, sender, frames, now):
@@ -544,6 +551,62 @@ class AutopilotLink:
         except Exception:  # a bug reading one message must not stop the reader
             self.counters.errors += 1
         return True
+
+    def run_state(self) -> RunState | None:
+        """What the hub's fast path must respect to hand this link's stream over in runs
+        (:data:`roost_agent.fastpath.Run`), or None: datagram by datagram (the recorder
+        wants every frame, signatures are checked, the hub takes no runs, or the tracker
+        judges message by message now: :meth:`HealthTracker.run_state`)."""
+        session = self._session
+        if self._record is not None or self.tap_run is None:
+            return None
+        if session is None or session.verifier is not None:
+            return None
+        return self.tracker.run_state()
+
+    def _run(self, session: Session, run: Run) -> None:
+        """A run of datagrams the hub's fast path routed in C, taken together: accepted,
+        counted by the hub and judged by the tracker as their frames one by one would
+        be (:meth:`HealthTracker.observe_run`). Only the last frame of each kept kind is
+        read whole."""
+        first_at, last_at, max_gap, frames, _, size, last_seq, boot_max, boot_at, ids, kept = run
+        earliest = session.arrived
+        first_at = first_at if first_at > earliest else earliest
+        last_at = last_at if last_at > first_at else first_at
+        session.arrived = last_at
+        self.counters.bytes += size
+        names = _KIND_NAMES
+        latest: list[tuple[str, Any, float]] = []
+        try:
+            for i in range(0, len(kept), 2):
+                data = kept[i]
+                assert isinstance(data, bytes)
+                at = kept[i + 1]
+                assert isinstance(at, float)
+                items, _ = scan(data)
+                for frame in items:
+                    if isinstance(frame, Frame):
+                        latest.append((frame.get_type(), frame, at))
+            self._accepted(session.lock, last_at)
+            self.counters.accepted += frames - 1
+            tap_run = self.tap_run
+            if tap_run is not None:
+                tap_run(frames, [(msg, at) for _, msg, at in latest])
+            observed = ObservedRun(
+                first_at,
+                last_at,
+                max_gap,
+                frames,
+                tuple((names[ids[i]], ids[i + 1]) for i in range(0, len(ids), 2)),
+                boot_max,
+                boot_at,
+                last_seq,
+                tuple(latest),
+            )
+            if self.tracker.observe_run(observed):
+                self._on_change()
+        except Exception:  # a bug reading one run must not stop the reader
+            self.counters.errors += 1
 
     def _accepted(self, lock: SourceLock, now: float) -> None:
         """A frame of this autopilot from the locked address is taken."""

@@ -24,7 +24,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from roost_agent.fastpath import NOT_POSTPONED, Due, FastRoute, Routed, pump
+from roost_agent.fastpath import NOT_POSTPONED, Due, FastRoute, Routed, Run, pump
+from roost_agent.health import RunState
 from roost_agent.transport import Transport
 from roost_agent.trust import SourceLock
 from roost_mavlink.codec import StreamParser
@@ -54,6 +55,9 @@ class ReadLink(Protocol):
     def failed(self, exc: Exception, session: Session | None) -> None:
         """Report a failure, close, and reopen with backoff (on the reader thread)."""
 
+    def run_state(self) -> RunState | None:
+        """What the fast path must respect to hand the stream over in runs (None: not)."""
+
 
 @dataclass
 class Session:
@@ -70,7 +74,7 @@ class Session:
     arrived: float = float("-inf")  # the time given to the last datagram read
     # What the hub's fast path read of this session in C (roost_agent.fastpath), for the
     # next drain to take instead of reading the transport.
-    pushed: list[Routed] | None = None
+    pushed: list[Routed | Run] | None = None
 
 
 class Poller:
@@ -414,8 +418,18 @@ class LinkReader:
                 for s in self._sessions.values()
                 if s is not session and s.urgent_fd is not None
             )
+        link = session.link
+        runs = link.run_state() if link is not None else None
         try:
-            items, _ = pump(route, wake, timeout, due, urgent_returns=urgent_ok, limit=_PUMP_LIMIT)
+            items, _ = pump(
+                route,
+                wake,
+                timeout,
+                due,
+                urgent_returns=urgent_ok,
+                limit=_PUMP_LIMIT,
+                runs=runs,
+            )
         except OSError:
             # The link's own read meets the failure again and reports it (ReadLink.failed).
             return [session]

@@ -15,7 +15,15 @@ os.environ.setdefault("MAVLINK20", "1")
 
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from roost_agent.health import READ_KINDS, Assessment, HealthTracker
+from roost_agent.health import (
+    LATEST_ONLY_KINDS,
+    READ_KINDS,
+    TILT_WARN_DEG,
+    Assessment,
+    HealthTracker,
+    ObservedRun,
+    tilt_degrees,
+)
 from roost_api.autopilot import (
     AutopilotSpec,
     FailoverPolicy,
@@ -41,11 +49,19 @@ class Feed:
     """
 
     def __init__(
-        self, tracker: HealthTracker, *, codec: bool = False, summarise: bool = False
+        self,
+        tracker: HealthTracker,
+        *,
+        codec: bool = False,
+        summarise: bool = False,
+        runs: bool = False,
     ) -> None:
         self.tracker = tracker
-        self.codec = codec or summarise
+        self.codec = codec or summarise or runs
         self.summarise = summarise
+        # Frames handed over as the hub's fast path does with runs (_udpbatch.c): a
+        # model of its rules, between flush() calls as between two of its calls.
+        self.runs = RunModel(tracker) if runs else None
         self.boot_ms = 100_000
         self.t = 0.0
         self.sensors_health = SENSORS
@@ -65,6 +81,8 @@ class Feed:
         if self.codec:
             (msg,), _ = scan(bytes(frame))
             kind = msg.get_type()
+            if self.runs is not None:
+                return self.runs.take(msg, self.t)
             if self.summarise and kind not in READ_KINDS:
                 # as the hub's fast path hands such a frame over: by its summary
                 return self.tracker.observe_routine(kind, msg.boot_time(), msg.get_seq(), self.t)
@@ -124,7 +142,13 @@ class Feed:
             n += 1
 
     def at(self, dt: float) -> Assessment:
+        self.flush()
         return self.tracker.assess(self.t + dt)
+
+    def flush(self) -> bool:
+        """Hand over the run being gathered, as the fast path does when it returns;
+        what the tracker said of it."""
+        return self.runs.flush() if self.runs is not None else False
 
 
 def two_px4_spec(first_port: int, thresholds: Thresholds | None = None) -> RedundantAutopilotSpec:
@@ -145,3 +169,102 @@ def two_px4_spec(first_port: int, thresholds: Thresholds | None = None) -> Redun
         primary="fc1",
         failover_policy=FailoverPolicy(thresholds=thresholds or Thresholds()),
     )
+
+
+_RUN_KINDS_READ = READ_KINDS - LATEST_ONLY_KINDS  # what never joins a run (read whole)
+
+
+class RunModel:
+    """The hub fast path's rules for runs (``roost_agent/_udpbatch.c``) over frames
+    decoded by the agent's codec, for the health model's tests: between two
+    :meth:`flush` calls (two returns of the C call) frames join a run while
+    :meth:`HealthTracker.run_state` allowed runs at the first of them, and go whole
+    (:meth:`HealthTracker.observe`) otherwise, ending the run before them; a run also
+    ends before a gap of the silence threshold and with the frame that closes the rate
+    window; a HEARTBEAT or a step back in ``time_boot_ms`` ends runs until the flush;
+    an ATTITUDE whose tilt class changes goes whole."""
+
+    def __init__(self, tracker: HealthTracker) -> None:
+        self.tracker = tracker
+        self.state = tracker.run_state()
+        self.running = self.state is not None
+        self.frames: list[tuple[Any, float]] = []
+
+    def _tilt_class(self, msg: Any) -> int:
+        assert self.state is not None
+        _, max_deg, _, _, _, _, _, _ = self.state
+        tilt = tilt_degrees(float(msg.roll), float(msg.pitch))
+        return 2 if tilt > max_deg else 1 if tilt > min(TILT_WARN_DEG, max_deg) else 0
+
+    def take(self, msg: Any, at: float) -> bool:
+        if self.state is None:
+            return self.tracker.observe(msg, at)
+        warn, max_deg, tilt_class, gap, window_end, window_s, boot_high, backstep = self.state
+        kind, boot = msg.get_type(), msg.boot_time()
+        joins = self.running
+        if self.running:
+            if kind == "HEARTBEAT":
+                self.running = joins = False
+            if boot is not None and boot_high >= 0 and boot < boot_high - backstep:
+                self.running = joins = False
+            elif boot is not None:
+                boot_high = max(boot_high, boot)
+            if kind == "ATTITUDE":
+                now_class = self._tilt_class(msg)
+                joins = joins and now_class == tilt_class
+                tilt_class = now_class
+            joins = joins and kind not in _RUN_KINDS_READ
+        changed = False
+        if joins:
+            if self.frames and at - self.frames[-1][1] >= gap:
+                changed = self._close()
+            self.frames.append((msg, at))
+        else:
+            changed = self._close()
+            changed = self.tracker.observe(msg, at) or changed
+        if at >= window_end:
+            window_end = at + window_s
+            if joins:
+                changed = self._close() or changed
+        self.state = (warn, max_deg, tilt_class, gap, window_end, window_s, boot_high, backstep)
+        return changed
+
+    def flush(self) -> bool:
+        """The gathered run to the tracker, and the rules start again from its state
+        (the C call returns, and the next one is made)."""
+        changed = self._close()
+        self.state = self.tracker.run_state()
+        self.running = self.state is not None
+        return changed
+
+    def _close(self) -> bool:
+        frames, self.frames = self.frames, []
+        changed = False
+        if frames:
+            counts: dict[str, int] = {}
+            latest: dict[str, tuple[str, Any, float]] = {}
+            boot_max, boot_at, max_gap = -1, 0.0, 0.0
+            for i, (msg, at) in enumerate(frames):
+                kind = msg.get_type()
+                counts[kind] = counts.get(kind, 0) + 1
+                if kind in LATEST_ONLY_KINDS:
+                    latest[kind] = (kind, msg, at)
+                boot = msg.boot_time()
+                if boot is not None and boot > boot_max:
+                    boot_max, boot_at = boot, at
+                if i:
+                    max_gap = max(max_gap, at - frames[i - 1][1])
+            changed = self.tracker.observe_run(
+                ObservedRun(
+                    frames[0][1],
+                    frames[-1][1],
+                    max_gap,
+                    len(frames),
+                    tuple(counts.items()),
+                    boot_max,
+                    boot_at,
+                    frames[-1][0].get_seq(),
+                    tuple(latest.values()),
+                )
+            )
+        return changed

@@ -55,9 +55,13 @@ class Vehicle(Feed):
         *,
         codec: bool = False,
         summarise: bool = False,
+        runs: bool = False,
     ) -> None:
         super().__init__(
-            HealthTracker("fc1", stack, thresholds or TH), codec=codec, summarise=summarise
+            HealthTracker("fc1", stack, thresholds or TH),
+            codec=codec,
+            summarise=summarise,
+            runs=runs,
         )
 
 
@@ -782,6 +786,125 @@ def test_routine_frames_summarised_are_judged_as_whole_frames(
             changed.append(observed(v))
         assert changed[0] == changed[1], action
         assert judgement(summarised.at(0.01)) == judgement(whole.at(0.01))
+
+
+RUN_STEP = st.tuples(
+    st.sampled_from([0.001, 0.02, 0.05, 0.1, 0.3, 0.6, 1.2]),
+    st.sampled_from(
+        [
+            "routine",
+            "routine-burst",
+            "routine-back",
+            "burst-back",
+            "attitude-burst",
+            "tilt-burst",
+            "mixed-burst",
+            "gap-burst",
+            "position",
+            "heartbeat",
+            "reboot",
+            "boot-state",
+            "critical",
+            "gyro",
+            "nothing",
+        ]
+    ),
+)
+
+
+def _position(v: Vehicle) -> None:
+    """GLOBAL_POSITION_INT (read for its latest value only) on the stream's timeline."""
+    v.boot_ms = 100_000 + round(v.t * 1000)
+    v.observe(
+        mav.MAVLink_global_position_int_message(
+            v.boot_ms, 473977418, 85455939, 488000, round(v.t * 1000), 0, 0, -50, 9000
+        )
+    )
+
+
+def _burst(v: Vehicle, frames: list[Callable[[], object]], spacing_s: float = 0.002) -> None:
+    for frame in frames:
+        v.t += spacing_s
+        frame()
+
+
+def _run_action(v: Vehicle, action: str) -> None:
+    level = v.attitude
+    tilted = lambda: v.attitude(roll=math.radians(70))  # noqa: E731
+    warned = lambda: v.attitude(roll=math.radians(40))  # noqa: E731
+    routine = lambda: _local_position(v)  # noqa: E731
+    bursts: dict[str, Callable[[], None]] = {
+        "routine-burst": lambda: _burst(v, [routine] * 40),
+        "burst-back": lambda: _burst(
+            v, [routine] * 10 + [lambda: _local_position(v, back_ms=60_000)] + [routine] * 10
+        ),
+        "attitude-burst": lambda: _burst(v, [level] * 30),
+        "tilt-burst": lambda: _burst(v, [level] * 5 + [tilted] * 10 + [warned] * 5 + [level] * 5),
+        "mixed-burst": lambda: _burst(
+            v, [level, routine, lambda: _position(v), tilted, routine, level] * 6, 0.004
+        ),
+        # frames 30 ms apart, then one 80 ms later: gaps about the learnt silence
+        # threshold, and rate windows closing inside the burst
+        "gap-burst": lambda: (
+            _burst(v, [routine] * 8 + [level] * 4, 0.03) or _burst(v, [routine, level], 0.08)
+        ),
+        "position": lambda: _position(v),
+    }
+    burst = bursts.get(action)
+    if burst is not None:
+        burst()
+    else:
+        _routine(v, action)
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.sampled_from([TH, Thresholds()]), st.lists(RUN_STEP, min_size=1, max_size=40))
+def test_runs_taken_together_are_judged_as_their_frames_one_by_one(
+    thresholds: Thresholds, steps: list[tuple[float, str]]
+) -> None:
+    """The hub's fast path hands the tracker the bulk of the stream as runs
+    (``observe_run``: routine kinds, and ATTITUDE and GLOBAL_POSITION_INT of which the
+    last counts), ended by the C rules (tests/support/feed.py ``RunModel``: before a
+    gap of the silence threshold, at the frame that closes a rate window, before a frame
+    read whole; a tilt class change, a step back in ``time_boot_ms`` and a HEARTBEAT go
+    whole). The same flight, silences, rate windows, tilts, reboots and their claims
+    included, leaves the same observations and judgements as every frame observed
+    whole."""
+    whole = Vehicle(thresholds=thresholds, codec=True)
+    runs = Vehicle(thresholds=thresholds, runs=True)
+    for v in (whole, runs):
+        v.fly(9)  # the default thresholds learn the silence threshold from 8 windows
+        v.flush()
+    for dt, action in steps:
+        seen = []
+        for v in (whole, runs):
+            v.t += dt
+            _run_action(v, action)
+            v.flush()
+            seen.append(observed(v))
+        assert seen[0] == seen[1], action
+        assert judgement(runs.at(0.01)) == judgement(whole.at(0.01))
+
+
+def test_a_tilt_beyond_the_envelope_inside_a_run_is_timed_from_its_first_frame() -> None:
+    """Decision table: a tilt class change never disappears inside a run; the time the
+    attitude left the envelope is that of the first frame beyond it, kept while it
+    stays beyond, and gone with the first frame back inside."""
+    v = Vehicle(runs=True)
+    v.fly(1.5)
+    v.flush()
+    left_at = None
+    rows = [(0, False), (70, True), (70, True), (40, False), (70, True), (0, False)]
+    for roll_deg, beyond in rows:
+        first = v.t + 0.002
+        _burst(v, [lambda r=roll_deg: v.attitude(roll=math.radians(r))] * 5)
+        v.flush()
+        if beyond and left_at is None:
+            left_at = first
+        elif not beyond:
+            left_at = None
+        assert v.tracker._o.tilt_over_since == left_at, roll_deg
+        assert v.tracker._o.tilt_deg == pytest.approx(roll_deg, abs=0.01)
 
 
 def test_a_routine_frames_summary_reports_a_confirmed_reboot_as_a_change() -> None:
