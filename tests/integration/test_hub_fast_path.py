@@ -340,3 +340,67 @@ def test_routine_frames_are_routed_and_judged_without_being_read_whole(rig: Rig)
     hub = rig.agent.hub
     assert hub is not None
     assert len(whole) == (0 if hub.fast else 200)
+
+
+def test_runs_keep_what_the_health_model_and_the_hub_read(rig: Rig) -> None:
+    """Routed in C, the bulk of the stream reaches Python as runs (``_udpbatch.c``):
+    either way every frame reaches the client and is counted by the tracker, the hub's
+    snapshot holds the last position, the time the attitude left its envelope is that
+    of the first frame beyond it, and a step back in ``time_boot_ms`` is judged a
+    reboot."""
+    fc1 = rig.fc1
+    link = rig.agent.links["fc1"]
+    tracker = link.tracker
+    hub = rig.agent.hub
+    assert hub is not None
+    before = dict(tracker.stream_facts().counts)
+    boot_ms = 50_000
+    sent: dict[str, int] = {}
+
+    def send(msg: mavlink.MAVLink_message) -> None:
+        fc1.send(fc1.frame(msg))
+        sent[msg.get_type()] = sent.get(msg.get_type(), 0) + 1
+        time.sleep(0.002)
+
+    for i in range(60):  # level flight: attitude, positions
+        boot_ms += 4
+        send(mavlink.MAVLink_attitude_message(boot_ms, 0.01, 0.02, 0, 0, 0, 0))
+        send(mavlink.MAVLink_local_position_ned_message(boot_ms, i, 0, 0, 0, 0, 0))
+        send(
+            mavlink.MAVLink_global_position_int_message(
+                boot_ms, 470_000_000 + i, 0, 0, 0, 0, 0, 0, 0
+            )
+        )
+
+    def counted() -> bool:
+        counts = tracker.stream_facts().counts
+        return all(counts.get(kind, 0) - before.get(kind, 0) == n for kind, n in sent.items())
+
+    wait_until("the tracker counted every frame", counted, 10, POLL_S)
+    snapshot = hub.snapshot("fc1")
+    assert snapshot is not None
+    assert snapshot.lat_deg == pytest.approx((470_000_000 + 59) / 1e7)
+    left = time.monotonic()
+    for _ in range(20):  # beyond the envelope (70 degrees of roll)
+        boot_ms += 4
+        send(mavlink.MAVLink_attitude_message(boot_ms, 1.22, 0, 0, 0, 0, 0))
+    wait_until("the tracker counted every frame", counted, 10, POLL_S)
+    over_since = tracker._o.tilt_over_since
+    assert over_since is not None
+    # the first tilted frame's arrival: the second left at least 2 ms after it
+    assert left <= over_since < left + 0.002
+    for _ in range(20):
+        boot_ms += 4
+        send(mavlink.MAVLink_attitude_message(boot_ms, 0.01, 0, 0, 0, 0, 0))
+    wait_until("the tracker counted every frame", counted, 10, POLL_S)
+    assert tracker._o.tilt_over_since is None
+    reboots = tracker.stream_facts().reboots
+    boot_ms = 100  # a new timeline: the autopilot rebooted
+    for i in range(20):
+        boot_ms += 4
+        send(mavlink.MAVLink_local_position_ned_message(boot_ms, i, 0, 0, 0, 0, 0))
+    wait_until(
+        "the reboot is judged", lambda: tracker.stream_facts().reboots == reboots + 1, 10, POLL_S
+    )
+    assert len(rig.client.frames(LOCAL_POSITION)) == sent["LOCAL_POSITION_NED"]
+    assert (hub.counters.routed_in_c > 0) == hub.fast
