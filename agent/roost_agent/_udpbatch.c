@@ -39,7 +39,7 @@
  * message ids.
  *
  * pump(bulk_fd, urgent_fd, wake_fds, (timeout_s, due_s, age_s, offset), clients, locked, sysid,
- *      compid, agent_comp, log_busy, urgent_returns, held, limit, routine)
+ *      compid, agent_comp, log_busy, urgent_returns, held, limit, routine, runs)
  *   -> (items, held, woke): waits up to timeout_s, and up to due_s unless the autopilot's
  *   frames keep coming: with age_s >= 0, each datagram routed postpones that deadline to
  *   its arrival (kernel stamp minus offset: the agent's monotonic clock) plus age_s (the
@@ -50,6 +50,8 @@
  *   -1, ...), else None: ``routine`` is a bitmap of the message ids Python reads no further
  *   than that, roost_agent.fastpath.routine_bitmap; why: parsing them and running them
  *   through the link, the hub and the tracker was most of Python's time per message);
+ *   with ``runs`` (None: none), datagrams of the stream's bulk come as runs instead (see
+ *   "Runs" below);
  *   held: read but possibly
  *   newer than something still queued on the other socket of a steered pair (the
  *   Python reader's rule, roost_agent.transport._Udp.receive_batch), to be passed back;
