@@ -812,14 +812,11 @@ RUN_STEP = st.tuples(
 )
 
 
-def _position(v: Vehicle) -> None:
-    """GLOBAL_POSITION_INT (read for its latest value only) on the stream's timeline."""
+def _moving(v: Vehicle) -> None:
+    """GLOBAL_POSITION_INT (read for its latest value only) on the stream's timeline,
+    climbing."""
     v.boot_ms = 100_000 + round(v.t * 1000)
-    v.observe(
-        mav.MAVLink_global_position_int_message(
-            v.boot_ms, 473977418, 85455939, 488000, round(v.t * 1000), 0, 0, -50, 9000
-        )
-    )
+    _position(v, round(v.t * 1000), -50, 9000)
 
 
 def _burst(v: Vehicle, frames: list[Callable[[], object]], spacing_s: float = 0.002) -> None:
@@ -841,14 +838,14 @@ def _run_action(v: Vehicle, action: str) -> None:
         "attitude-burst": lambda: _burst(v, [level] * 30),
         "tilt-burst": lambda: _burst(v, [level] * 5 + [tilted] * 10 + [warned] * 5 + [level] * 5),
         "mixed-burst": lambda: _burst(
-            v, [level, routine, lambda: _position(v), tilted, routine, level] * 6, 0.004
+            v, [level, routine, lambda: _moving(v), tilted, routine, level] * 6, 0.004
         ),
         # frames 30 ms apart, then one 80 ms later: gaps about the learnt silence
         # threshold, and rate windows closing inside the burst
         "gap-burst": lambda: (
             _burst(v, [routine] * 8 + [level] * 4, 0.03) or _burst(v, [routine, level], 0.08)
         ),
-        "position": lambda: _position(v),
+        "position": lambda: _moving(v),
     }
     burst = bursts.get(action)
     if burst is not None:
