@@ -152,7 +152,9 @@ def test_helm_upgrade_leaves_the_agent_of_a_flying_vehicle_running(fleet: RealFl
     assert after["metadata"]["uid"] == before["metadata"]["uid"]
     assert after["status"]["containerStatuses"][0]["restartCount"] == 0
     assert "--log-level=INFO" in after["spec"]["containers"][0]["args"]  # the old template
-    assert fleet.reported()
+    # the same agent, never restarted, still reports every autopilot healthy (a flying
+    # autopilot's level may pass through a warning on a loaded machine: waited out)
+    wait_until("the agent reporting every autopilot OK", fleet.reported, WAIT_S)
 
 
 def test_silenced_autopilot_fails_over_and_roost_status_shows_it(fleet: RealFleet) -> None:
