@@ -475,13 +475,11 @@ class HealthTracker:
             o.first_at = o.window_start = run.first_at
         else:
             gap = run.first_at - o.last_at
-            if gap > o.window_gap and gap * 1000 < th.message_error_ms:
-                o.window_gap = gap
+            _learn_gap(o, th, gap)
             silence_ended = gap >= _silence_s(o, th)
             if silence_ended:
                 o.version += 1
-        if run.max_gap > o.window_gap and run.max_gap * 1000 < th.message_error_ms:
-            o.window_gap = run.max_gap
+        _learn_gap(o, th, run.max_gap)
         o.last_at = run.last_at
         counts = o.counts
         for kind, count in run.counts:
@@ -533,8 +531,7 @@ class HealthTracker:
             # of the ceiling or more is an outage (the autopilot was silent, the link
             # lost), not the stream's rhythm: it is not learnt.
             gap = now - last_at
-            if gap > o.window_gap and gap * 1000 < th.message_error_ms:
-                o.window_gap = gap
+            _learn_gap(o, th, gap)
             silence_ended = gap >= _silence_s(o, th)
             if silence_ended:
                 # A silence ends: what is judged only while messages come (frozen
@@ -1136,6 +1133,13 @@ def _liveness(o: _Observed, th: Thresholds, now: float) -> list[Finding]:
                 )
             )
     return found
+
+
+def _learn_gap(o: _Observed, th: Thresholds, gap: float) -> None:
+    """A gap between messages joins the rate window's worst, unless it is an outage (the
+    ceiling or more: the autopilot was silent, the link lost), not the stream's rhythm."""
+    if gap > o.window_gap and gap * 1000 < th.message_error_ms:
+        o.window_gap = gap
 
 
 def _learnt_silence_s(o: _Observed, th: Thresholds) -> float | None:

@@ -257,9 +257,9 @@ class HubLink(Protocol):
     tap_routed: Callable[[int], bool] | None
     """Given the count of a routed datagram's routine frames (read no further)."""
 
-    tap_run: Callable[[int, Sequence[tuple[Any, float]]], None] | None
-    """Given a run's frame count and the last frame of each kept kind with its arrival
-    (message, at): a run of datagrams routed in C (:mod:`roost_agent.fastpath`)."""
+    tap_run: Callable[[int, Sequence[tuple[str, Any, float]]], None] | None
+    """Given a run's frame count and the last frame of each kept kind (type, message,
+    arrival): a run of datagrams routed in C (:mod:`roost_agent.fastpath`)."""
 
     def fast_source(self) -> tuple[Session, Address] | None: ...
 
@@ -480,7 +480,7 @@ class Hub:
         def tap_routed(frames: int) -> bool:
             return self._routed_routine(name, frames)
 
-        def tap_run(frames: int, latest: Sequence[tuple[Any, float]]) -> None:
+        def tap_run(frames: int, latest: Sequence[tuple[str, Any, float]]) -> None:
             self._routed_run(name, frames, latest)
 
         link.tap = tap
@@ -660,7 +660,7 @@ class Hub:
         counters.to_clients += sent
         counters.forwarded[name] = counters.forwarded.get(name, 0) + 1
 
-    def _routed_run(self, name: str, frames: int, latest: Sequence[tuple[Any, float]]) -> None:
+    def _routed_run(self, name: str, frames: int, latest: Sequence[tuple[str, Any, float]]) -> None:
         """A run of ``frames`` routed in C (:mod:`roost_agent.fastpath`) with the last
         frame of each kept kind, read for the snapshot (the position). Counted as routed
         to the route's clients: a client that came while C routed them missed them."""
@@ -670,8 +670,8 @@ class Hub:
             counters.routed_in_c += frames
             counters.to_clients += frames * len(route.clients)
         seen = self._seen[name]
-        for msg, now in latest:
-            if msg.get_type() == "GLOBAL_POSITION_INT":
+        for kind, msg, now in latest:
+            if kind == "GLOBAL_POSITION_INT":
                 _note_position(seen, msg, now)
 
     def _routed_routine(self, name: str, frames: int) -> bool:

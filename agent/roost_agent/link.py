@@ -252,7 +252,7 @@ class AutopilotLink:
         self.tap_routed: Callable[[int], bool] | None = None
         # Called by the reader with a run of datagrams the hub's fast path routed in C
         # (roost_agent.fastpath): their frame count and the last frame of each kept kind.
-        self.tap_run: Callable[[int, Sequence[tuple[Any, float]]], None] | None = None
+        self.tap_run: Callable[[int, Sequence[tuple[str, Any, float]]], None] | None = None
         # The flight recorder's tap (roost_agent.records_recorder): every frame accepted
         # from the autopilot (after the hub routed it and the tracker judged it) and
         # every frame written to it (after the write).
@@ -591,7 +591,7 @@ class AutopilotLink:
             self.counters.accepted += frames - 1
             tap_run = self.tap_run
             if tap_run is not None:
-                tap_run(frames, [(msg, at) for _, msg, at in latest])
+                tap_run(frames, latest)
             observed = ObservedRun(
                 first_at,
                 last_at,
