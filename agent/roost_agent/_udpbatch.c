@@ -551,7 +551,8 @@ static PyObject *summarise(const long long *summary, int count) {
  * datagram it does not take (a kind outside the rules, from another address, not routed
  * here), before a gap of ``gap_limit`` (the tracker's silence threshold: Python sees the
  * silence end), with the datagram that reaches ``window_end`` (the tracker's rate window
- * closes at that message; the next window ends window_s after it), and when its table of
+ * closes at that message and may learn another silence threshold: runs stop for the rest
+ * of the call), and when its table of
  * message ids is full. A datagram whose time_boot_ms steps back by ``backstep`` or more
  * (a reboot claim), or which holds a HEARTBEAT (a claim may follow), goes to Python
  * whole and stops runs for the rest of the call, as does an ATTITUDE whose tilt class
@@ -559,7 +560,7 @@ static PyObject *summarise(const long long *summary, int count) {
  * each change; the class it knew comes in as tilt_class, -1: none yet).
  *
  * rules: (kinds bitmap, (kept ids...), heartbeat id, (attitude id, roll at, pitch at,
- *         warn_deg, max_deg, tilt_class), gap_limit_s, window_end, window_s, boot_max,
+ *         warn_deg, max_deg, tilt_class), gap_limit_s, window_end, boot_max,
  *         backstep_ms)
  * run tuple: (first_at, last_at, max_gap, frames, datagrams, bytes, last_seq, boot_max,
  *             boot_max_at, (id, count, ...), (frame, at, ...)) */
@@ -575,7 +576,7 @@ typedef struct {
     int n_kept;
     unsigned int heartbeat_id, attitude_id;
     int roll_at, pitch_at, tilt_class;
-    double warn_deg, max_deg, gap_limit, window_end, window_s;
+    double warn_deg, max_deg, gap_limit, window_end;
     long long boot_max, backstep;
 } RunRules;
 
@@ -600,8 +601,8 @@ static int parse_run_rules(PyObject *in, RunRules *r) {
     PyObject *kept, *tilt;
     Py_ssize_t kinds_bytes;
     const char *kinds;
-    if (!PyArg_ParseTuple(in, "y#OIOdddLL", &kinds, &kinds_bytes, &kept, &r->heartbeat_id,
-                          &tilt, &r->gap_limit, &r->window_end, &r->window_s, &r->boot_max,
+    if (!PyArg_ParseTuple(in, "y#OIOddLL", &kinds, &kinds_bytes, &kept, &r->heartbeat_id,
+                          &tilt, &r->gap_limit, &r->window_end, &r->boot_max,
                           &r->backstep) ||
         !PyArg_ParseTuple(tilt, "Iiiddi", &r->attitude_id, &r->roll_at, &r->pitch_at,
                           &r->warn_deg, &r->max_deg, &r->tilt_class)) {
@@ -1101,9 +1102,10 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                 } else {
                     spent.items[spent.count++] = *e; /* its bytes go out at the flush */
                 }
-                if (runs.on && from_locked && arrived >= runs.window_end) {
-                    /* the tracker's rate window closes at this message */
-                    runs.window_end = arrived + runs.window_s;
+                if (running && from_locked && arrived >= runs.window_end) {
+                    /* the tracker's rate window closes at this message, and may learn
+                     * another silence threshold: no more runs this call */
+                    running = 0;
                     if (in_run && run_close(run, &out, routed) < 0) {
                         goto fail;
                     }

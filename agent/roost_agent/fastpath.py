@@ -215,7 +215,7 @@ _ATTITUDE: Final = _attitude_offsets()
 
 
 def _run_rules(route: FastRoute, runs: RunState) -> tuple[object, ...]:
-    warn_deg, max_deg, tilt_class, gap_s, window_end, window_s, boot_max, backstep = runs
+    warn_deg, max_deg, tilt_class, gap_s, window_end, boot_max, backstep = runs
     attitude_id, roll_at, pitch_at = _ATTITUDE
     return (
         route.run_kinds,
@@ -224,7 +224,6 @@ def _run_rules(route: FastRoute, runs: RunState) -> tuple[object, ...]:
         (attitude_id, roll_at, pitch_at, warn_deg, max_deg, tilt_class),
         gap_s,
         window_end,
-        window_s,
         boot_max,
         backstep,
     )

@@ -243,10 +243,11 @@ def tilt_degrees(roll: float, pitch: float) -> float:
     return math.degrees(math.acos(max(-1.0, min(1.0, cos_tilt))))
 
 
-RunState = tuple[float, float, int, float, float, float, int, int]
+RunState = tuple[float, float, int, float, float, int, int]
 """:meth:`HealthTracker.run_state`: the tilt warn and envelope angles and the class of
 the last tilt (-1: none yet; 0 level, 1 past warn, 2 past the envelope), the silence
-threshold, when the rate window ends and its length, the highest ``time_boot_ms`` (-1:
+threshold, when the rate window ends (its closing may learn another silence threshold:
+runs stop there until the state is asked again), the highest ``time_boot_ms`` (-1:
 none) and the step back in it that claims a reboot (ms)."""
 
 
@@ -446,7 +447,6 @@ class HealthTracker:
                 tilt_class,
                 _silence_s(o, th),
                 o.window_start + RATE_WINDOW_S,
-                RATE_WINDOW_S,
                 -1 if o.boot_ms_max is None else o.boot_ms_max,
                 REBOOT_BACKSTEP_MS,
             )

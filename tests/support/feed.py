@@ -180,8 +180,8 @@ class RunModel:
     :meth:`flush` calls (two returns of the C call) frames join a run while
     :meth:`HealthTracker.run_state` allowed runs at the first of them, and go whole
     (:meth:`HealthTracker.observe`) otherwise, ending the run before them; a run also
-    ends before a gap of the silence threshold and with the frame that closes the rate
-    window; a HEARTBEAT or a step back in ``time_boot_ms`` ends runs until the flush;
+    ends before a gap of the silence threshold; the frame that closes the rate window,
+    a HEARTBEAT or a step back in ``time_boot_ms`` ends runs until the flush;
     an ATTITUDE whose tilt class changes goes whole."""
 
     def __init__(self, tracker: HealthTracker) -> None:
@@ -192,14 +192,14 @@ class RunModel:
 
     def _tilt_class(self, msg: Any) -> int:
         assert self.state is not None
-        _, max_deg, _, _, _, _, _, _ = self.state
+        _, max_deg, _, _, _, _, _ = self.state
         tilt = tilt_degrees(float(msg.roll), float(msg.pitch))
         return 2 if tilt > max_deg else 1 if tilt > min(TILT_WARN_DEG, max_deg) else 0
 
     def take(self, msg: Any, at: float) -> bool:
         if self.state is None:
             return self.tracker.observe(msg, at)
-        warn, max_deg, tilt_class, gap, window_end, window_s, boot_high, backstep = self.state
+        warn, max_deg, tilt_class, gap, window_end, boot_high, backstep = self.state
         kind, boot = msg.get_type(), msg.boot_time()
         joins = self.running
         if self.running:
@@ -222,11 +222,13 @@ class RunModel:
         else:
             changed = self._close()
             changed = self.tracker.observe(msg, at) or changed
-        if at >= window_end:
-            window_end = at + window_s
+        if self.running and at >= window_end:
+            # the rate window closes at this frame and may learn another silence
+            # threshold: runs stop until the flush
+            self.running = False
             if joins:
                 changed = self._close() or changed
-        self.state = (warn, max_deg, tilt_class, gap, window_end, window_s, boot_high, backstep)
+        self.state = (warn, max_deg, tilt_class, gap, window_end, boot_high, backstep)
         return changed
 
     def flush(self) -> bool:
