@@ -552,9 +552,9 @@ static PyObject *summarise(const long long *summary, int count) {
  * here), before a gap of ``gap_limit`` (the tracker's silence threshold: Python sees the
  * silence end), with the datagram that reaches ``window_end`` (the tracker's rate window
  * closes at that message and may learn another silence threshold: runs stop for the rest
- * of the call), and when its table of
- * message ids is full. A datagram whose time_boot_ms steps back by ``backstep`` or more
- * (a reboot claim), or which holds a HEARTBEAT (a claim may follow), goes to Python
+ * of the call, as they do once a wake-up descriptor woke the call), and when its table
+ * of message ids is full. A datagram whose time_boot_ms steps back by ``backstep`` or
+ * more (a reboot claim), or which holds a HEARTBEAT (a claim may follow), goes to Python
  * whole and stops runs for the rest of the call, as does an ATTITUDE whose tilt class
  * (0: level, 1: past warn_deg, 2: past max_deg) differs from the last one's (Python sees
  * each change; the class it knew comes in as tilt_class, -1: none yet).
@@ -972,7 +972,11 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                 done = 1; /* the reads tell Python what failed */
             }
             if (woke) {
+                /* Python looks again after this read (a call, another link's answer, the
+                 * hub's clients changed): what is read with it goes whole, not in a run a
+                 * route made for other clients would have routed alone */
                 done = 1;
+                running = 0;
             }
         }
         if (ready_data) {

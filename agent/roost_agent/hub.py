@@ -244,6 +244,10 @@ def _note_position(seen: Snapshot, msg: Any, now: float) -> None:
     seen.relative_alt_m = msg.relative_alt / 1000
 
 
+def _nothing() -> None:
+    pass
+
+
 class HubLink(Protocol):
     """What the hub needs from an autopilot link (:class:`roost_agent.link.AutopilotLink`)."""
 
@@ -370,6 +374,9 @@ class Hub:
         self._clients: OrderedDict[ClientKey, _Client] = OrderedDict()
         self._sinks: tuple[_Client, ...] = ()  # clients that get the vehicle's messages
         self._route: FastRoute | None = None  # the last fast route made (fast_route)
+        # Told when the clients change: the reader waiting in C on a route made for the
+        # clients before looks again (a run routed meanwhile would miss a new client).
+        self.on_sinks_changed: Callable[[], None] = _nothing
         # Whether routes are offered to the fast path (it is built; tests turn it off).
         self.fast = PUMP is not None
         self._by_sock: dict[socket.socket, _Client] = {}  # TCP clients, ready or not
@@ -429,7 +436,12 @@ class Hub:
                 if client.signs and key is not None and key not in known:
                     client.ready = False
                     client.signing_key = None
-            self._sinks = tuple(c for c in self._clients.values() if c.ready)
+            self._resink()
+
+    def _resink(self) -> None:
+        """The clients that get the vehicle's messages, again (under the clients lock)."""
+        self._sinks = tuple(c for c in self._clients.values() if c.ready)
+        self.on_sinks_changed()
 
     # -- wiring ------------------------------------------------------------------------
 
@@ -663,7 +675,8 @@ class Hub:
     def _routed_run(self, name: str, frames: int, latest: Sequence[tuple[str, Any, float]]) -> None:
         """A run of ``frames`` routed in C (:mod:`roost_agent.fastpath`) with the last
         frame of each kept kind, read for the snapshot (the position). Counted as routed
-        to the route's clients: a client that came while C routed them missed them."""
+        to the route's clients: a client that came while C routed them (before
+        :attr:`on_sinks_changed` woke the reader) missed them."""
         route = self._route
         if name == self._active and route is not None:
             counters = self.counters
@@ -847,7 +860,7 @@ class Hub:
                 if dropped.sock is not None:
                     self._by_sock.pop(dropped.sock, None)
                     dropped.sock.close()
-            self._sinks = tuple(c for c in self._clients.values() if c.ready)
+            self._resink()
         # an unproven connection is not news (a flood of them must not flood the log)
         (log.info if client.ready else log.debug)(
             "hub: client %s:%d connected to %s", *client.address, client.endpoint.name
@@ -857,7 +870,7 @@ class Hub:
     def _ready(self, client: _Client) -> None:
         with self._clients_lock:
             client.ready = True
-            self._sinks = tuple(c for c in self._clients.values() if c.ready)
+            self._resink()
         log.info("hub: client %s:%d signed in on %s", *client.address, client.endpoint.name)
 
     def _remove(self, client: _Client) -> None:
@@ -865,7 +878,7 @@ class Hub:
             self._clients.pop(client.key, None)
             if client.sock is not None:
                 self._by_sock.pop(client.sock, None)
-            self._sinks = tuple(c for c in self._clients.values() if c.ready)
+            self._resink()
         if client.sock is not None:
             client.sock.close()
         (log.info if client.ready else log.debug)("hub: client %s:%d gone", *client.address)

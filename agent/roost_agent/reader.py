@@ -218,6 +218,13 @@ class LinkReader:
         if threading.current_thread() is not self._serving_thread:
             self._wake()
 
+    def look_again(self) -> None:
+        """Wake the reader to look again at what it waits for, without a tick (from any
+        thread): the hub's clients changed, and the fast path waits with a route made
+        for the ones before."""
+        if threading.current_thread() is not self._serving_thread:
+            self._wake()
+
     def start(self) -> None:
         self._serving_thread = threading.Thread(target=self._serve, name=self._name, daemon=True)
         self._serving_thread.start()
@@ -432,6 +439,13 @@ class LinkReader:
             )
         except OSError:
             # The link's own read meets the failure again and reports it (ReadLink.failed).
+            return [session]
+        except Exception:
+            # A fault in the fast path itself (not the socket's) would meet every call
+            # again, and the thread that decides failovers must not die of it: what this
+            # call read is lost, and the link is read and routed in Python from now on.
+            log.exception("the hub's fast path failed; the hub routes in Python from now on")
+            self.fast_route = _no_route
             return [session]
         if time.monotonic() < now + timeout:  # early: urgent sockets wait a short interval
             self._urgent_quiet_until = time.monotonic() + self._short_tick_s

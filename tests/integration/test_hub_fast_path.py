@@ -299,6 +299,72 @@ def test_the_active_autopilot_falling_silent_is_judged_while_its_frames_are_rout
     assert (hub.counters.routed_in_c > 0) == hub.fast
 
 
+def test_a_client_that_comes_while_the_stream_flows_gets_it_from_then_on(rig: Rig) -> None:
+    """Routed in C, the stream's bulk reaches Python as runs, which Python cannot send
+    again: a client the hub takes while C waits on a route made without it wakes the
+    reader, and every frame sent once the hub counts the client reaches it."""
+    fc1 = rig.fc1
+    hub = rig.agent.hub
+    assert hub is not None
+    boot_ms = 5000
+    for _ in range(100):  # the stream flows (in runs, in C)
+        boot_ms += 2
+        fc1.send(fc1.attitude(boot_ms))
+        time.sleep(0.002)
+    late = Client(hub.udp_address)
+    try:
+        address = late.sock.getsockname()
+        wait_until("the hub takes the client", lambda: address in hub.clients(), 10, POLL_S)
+        expected = []
+        for _ in range(100):
+            boot_ms += 2
+            frame = fc1.attitude(boot_ms)
+            fc1.send(frame)
+            expected.append(frame)
+            time.sleep(0.002)
+        wait_until(
+            "the frames reach the new client",
+            lambda: len(late.frames(ATTITUDE)) >= len(expected),
+            10,
+            POLL_S,
+        )
+        assert late.frames(ATTITUDE)[-len(expected) :] == expected
+    finally:
+        late.close()
+
+
+def test_a_fault_in_the_fast_path_leaves_the_hub_routing_in_python(
+    rig: Rig, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A fault of the fast path itself (not its sockets': a bug) is reported once, and the
+    reader goes on reading, routing in Python and deciding. The fault is a stand-in: the
+    C call is replaced by one that raises, as no real input makes it fail."""
+    hub = rig.agent.hub
+    assert hub is not None
+    if not hub.fast:
+        pytest.skip("routed in Python: there is no fast path to fail")
+    fc1 = rig.fc1
+    calls = []
+
+    def failing(*args: Any, **kwargs: Any) -> Any:
+        calls.append(args)
+        raise RuntimeError("a fault in the fast path")
+
+    monkeypatch.setattr("roost_agent.reader.pump", failing)
+    expected = []
+    for i in range(100):
+        frame = fc1.attitude(5000 + 4 * i)
+        fc1.send(frame)
+        expected.append(frame)
+        time.sleep(0.002)
+    got = _arrived(rig, expected)
+    assert got[-len(expected) :] == expected
+    assert len(calls) == 1
+    assert caplog.text.count("the hub's fast path failed") == 1
+    _switch(rig, "fc2", 1)  # and the agent still decides
+    assert rig.agent.active == "fc2"
+
+
 def test_routine_frames_are_routed_and_judged_without_being_read_whole(rig: Rig) -> None:
     """LOCAL_POSITION_NED, whose content the agent never reads: routed byte for byte and
     counted by the tracker either way; in C the hub's tap never gets one whole (C hands
