@@ -11,6 +11,7 @@ stand-in (no GPIO hardware here).
 from __future__ import annotations
 
 import math
+import time
 
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
@@ -62,6 +63,28 @@ def test_declared_parameters_reach_every_autopilot_of_each_stack_with_its_types(
         assert v.sim("fc2").config.takeoff_alt_m == pytest.approx(6.2)  # it acts on it
         cond = v.condition("fc1", KIND)
         assert cond is not None and cond.status == "True"
+
+
+def test_the_keepers_rest_between_heartbeats_and_a_declaration_wakes_them() -> None:
+    """With nothing to ask (the streams arrive as requested, the firmware is known,
+    nothing declared) the keepers are stepped with the 1 Hz heartbeat, not every
+    STREAM_CHECK_S; a spec that declares parameters starts the conversation at once, and
+    it is carried to its end."""
+    with hub_vehicle(["px4", "ardupilot"]) as v:
+        agent = v.agent
+
+        def at_rest() -> bool:
+            before = agent.keeper_rounds
+            time.sleep(2.0)  # not a wait for a condition: the window rounds are counted in
+            return agent.keeper_rounds - before <= 3  # 1 Hz: 2 or 3; every 0.25 s: 8
+
+        wait_until("the keepers at rest", at_rest, 30, POLL_S)
+        params = declared({"GF_ACTION": 3}, {"DISARM_DELAY": 5})
+        agent.apply_spec(v.spec_with(parameters=params))
+        for sim in v.sims:
+            wait_until(f"{sim.name} in sync", lambda s=sim: reason_is(v, s.name, "InSync"), 15)
+        assert v.sim("fc1").params.get("GF_ACTION") == 3
+        assert v.sim("fc2").params.get("DISARM_DELAY") == 5
 
 
 def test_a_change_by_another_client_is_drift_naming_both_values() -> None:
