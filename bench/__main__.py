@@ -67,8 +67,11 @@ def main(argv: list[str] | None = None) -> int:
     for name in args.modules or MODULES:
         module = importlib.import_module(f"bench.{name}")
         print(f"bench: running {name} ...", file=sys.stderr, flush=True)
-        figures.extend(module.run())
-    update_readme(write_results(figures))
+        measured = module.run()
+        figures.extend(measured)
+        # kept as each module ends: a later module that fails or is stopped loses no
+        # figure measured before it
+        update_readme(write_results(measured))
     for fig in figures:
         verdict = {True: "meets", False: "MISSES", None: ""}[fig.meets_target()]
         print(f"{fig.name:45} {fig.value:12.3f} {fig.unit:6} target {fig.target:10} {verdict}")
