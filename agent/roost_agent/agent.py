@@ -118,13 +118,16 @@ HEARTBEAT_PERIOD_S = 1.0
 STREAM_CHECK_S = 0.25
 """The heartbeat thread's round while a conversation runs: stream keepers, firmware
 questions, parameter and fence keepers step this often after a round that sent them a
-request or brought them an answer. A round that did neither is followed by the next
-heartbeat's: their own clocks run in seconds (a stream's measuring window is
+request or brought them an answer, and while an autopilot's streams are not settled
+(just heard, rebooted, a stream missing: ``Agent._settled``). A
+round that did neither once all are settled is followed by the next heartbeat's: the
+keepers' own clocks run in seconds (a stream's measuring window is
 :data:`roost_agent.streams.CHECK_S`, a parameter is read again after
-:data:`roost_agent.params.RETRY_S`), a fence transfer steps faster (:data:`FENCE_POLL_S`),
-and a new spec starts a round at once. Each round is a wake-up, and on these machines a
-wake-up from idle costs ten times the round's work: at 0.1 s the round was a third of an
-idle agent's CPU time, at 0.25 s still a fifteenth of one routing 400 messages a second."""
+:data:`roost_agent.params.RETRY_S`), a fence transfer steps faster
+(:data:`FENCE_POLL_S`), and a new spec starts a round at once. Each round is a wake-up,
+and on these machines a wake-up from idle costs ten times the round's work: at 0.1 s the
+round was a third of an idle agent's CPU time, at 0.25 s still a fifteenth of one
+routing 400 messages a second."""
 FENCE_POLL_S = 0.005
 FAILOVER_HISTORY = 100
 
@@ -697,6 +700,7 @@ class Agent(Actions, SpecChanges):
             if signature == previous:
                 continue
             self._signatures[name] = signature
+            self._round_now.set()  # heard first or again, rebooted: the keepers look now
             was = previous[0].value if previous else "unknown"
             why = "; ".join(a.reasons) or "healthy"
             self._emit(
@@ -740,8 +744,24 @@ class Agent(Actions, SpecChanges):
                 self._keep_fence(cfg, received)
             except Exception:  # nor a fence transfer
                 log.exception("fence keeping failed")
-            talking = asked or any(received.values()) or self._fences.transferring()
+            talking = (
+                asked
+                or any(received.values())
+                or self._fences.transferring()
+                or not all(self._settled(link) for link in links.values())
+            )
             self._rest(cfg, STREAM_CHECK_S if talking else next_beat - self._clock())
+
+    def _settled(self, link: AutopilotLink) -> bool:
+        """Whether this link's stream keeper expects nothing soon: nobody to ask (not
+        heard yet, the link lost) or its streams arrive as requested. Until then (just
+        heard, rebooted, a stream missing) rounds come every :data:`STREAM_CHECK_S`; an
+        autopilot heard again changes its health, which starts a round at once
+        (:meth:`_note_health_changes`). Firmware questions keep their own clock
+        (:data:`roost_agent.firmware.REQUEST_EVERY_S`), which the heartbeat's pace
+        serves."""
+        keeper = self._keepers.get(link.name)
+        return keeper is not None and keeper[0] is link and keeper[1].settled
 
     def _rest(self, cfg: Running, period_s: float) -> None:
         """Wait ``period_s`` between heartbeat rounds, or until a round is wanted now;

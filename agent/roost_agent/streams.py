@@ -137,6 +137,12 @@ class StreamKeeper:
             self.wanted = dict(WANTED[self.stack])
 
     @property
+    def settled(self) -> bool:
+        """Whether stepping would ask nothing until something changes: the streams arrive
+        as requested, or there is nobody to ask (not heard yet, or the link lost)."""
+        return self.verified or self._lost or self.epoch is None
+
+    @property
     def total_rate(self) -> float:
         """Messages per second of all wanted streams."""
         return sum(self.wanted.values())

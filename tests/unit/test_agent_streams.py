@@ -157,6 +157,36 @@ def test_reboot_and_link_regained_start_a_new_epoch() -> None:
     assert keeper.epoch is Why.RELINK and keeper.attempts == 0
 
 
+def test_settled_while_there_is_nobody_to_ask_or_the_streams_arrive() -> None:
+    """Decision table for ``settled`` (the agent's keepers then rest until the next
+    heartbeat): not heard yet, verified, or the link lost, settled; just heard, streams
+    missing, rebooted or heard again, not."""
+    keeper, feed = StreamKeeper(Stack.ARDUPILOT), Feed()
+    full = {**WANTED[Stack.ARDUPILOT], "HEARTBEAT": 1.0}
+    keeper.step(feed.facts(), 1.0)
+    rows = [(keeper.settled, True)]  # not heard yet
+    feed.run(0.1, HEARTBEAT_ONLY)
+    keeper.step(feed.facts(), feed.t)
+    rows.append((keeper.settled, False))  # just heard: measuring its first window
+    feed.run(CHECK_S, HEARTBEAT_ONLY)
+    keeper.step(feed.facts(), feed.t)
+    rows.append((keeper.settled, False))  # streams missing: requested
+    feed.run(CHECK_S, full)
+    keeper.step(feed.facts(), feed.t)
+    rows.append((keeper.settled, True))  # they arrive
+    feed.reboots = 1
+    feed.run(0.1, HEARTBEAT_ONLY)
+    keeper.step(feed.facts(), feed.t)
+    rows.append((keeper.settled, False))  # rebooted: asked again
+    feed.t += LINK_LOST_S + 1
+    keeper.step(feed.facts(), feed.t)
+    rows.append((keeper.settled, True))  # the link lost: nobody to ask
+    feed.run(0.1, HEARTBEAT_ONLY)
+    keeper.step(feed.facts(), feed.t)
+    rows.append((keeper.settled, False))  # heard again
+    assert [got for got, _ in rows] == [want for _, want in rows]
+
+
 def test_repeated_failures_back_off() -> None:
     keeper, feed = StreamKeeper(Stack.ARDUPILOT), Feed()
     feed.run(0.1, HEARTBEAT_ONLY)
