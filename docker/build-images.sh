@@ -367,17 +367,10 @@ mission_image() {
   echo "$out"
 }
 
-# One build at a time per cache: checkouts share its storage, contexts and archives, and
-# two builds at once would remove each other's contexts. The lock is the cache's own
-# file; the kernel drops it when this script and its children end.
-lock_cache() {
-  mkdir -p "$out"
-  exec 9>"$out/.lock"
-  if ! flock -n 9; then
-    echo "images: waiting for another build into $out to finish ..." >&2
-    flock 9
-  fi
-}
+# One build at a time per cache: checkouts share its storage, contexts and archives.
+# shellcheck source=cache-lock.sh
+. "$here/cache-lock.sh"
+lock_cache() { lock_cache_dir "$out" images; }
 
 case "${1:-}" in
   --print) echo "$out"; exit 0 ;;

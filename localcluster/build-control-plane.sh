@@ -27,14 +27,9 @@ kine_version=$(awk '$1=="github.com/k3s-io/kine"{print $2}' "$kine_mod/go.mod")
 cache_root=${ROOST_CACHE_DIR:-${XDG_CACHE_HOME:-$HOME/.cache}/roost}
 bin_dir="$cache_root/control-plane/k8s-$k8s_version-etcd-$etcd_version-kwok-$kwok_version/bin"
 
-# One build at a time per cache (test workers that start together each ask for the
-# binaries, and two builds would move each other's partial files); released at exit.
-mkdir -p "$bin_dir"
-exec 9>"$bin_dir/.lock"
-if ! flock -n 9; then
-  echo "control plane: waiting for another build into $bin_dir to finish ..." >&2
-  flock 9
-fi
+# shellcheck source=../docker/cache-lock.sh
+. "$here/../docker/cache-lock.sh"
+lock_cache_dir "$bin_dir" "control plane"
 
 if [[ "${1:-}" == "--print" ]]; then
   echo "$bin_dir"

@@ -53,15 +53,9 @@ cache_root=${ROOST_CACHE_DIR:-${XDG_CACHE_HOME:-$HOME/.cache}/roost}
 node_dir="$cache_root/node/k8s-$k8s_version-containerd-$containerd_version-cni-$cni_version"
 [[ "$arch" == "$host_arch" ]] || node_dir="$node_dir-$arch"
 
-# One build at a time per node directory: test workers that start together each ask for
-# the node, and two `go build -o` into one partial file move it from under each other
-# (the one that waited finds the binaries built). The kernel drops the lock at exit.
-mkdir -p "$node_dir"
-exec 9>"$node_dir/.lock"
-if ! flock -n 9; then
-  echo "node: waiting for another build into $node_dir to finish ..." >&2
-  flock 9
-fi
+# shellcheck source=../docker/cache-lock.sh
+. "$here/../docker/cache-lock.sh"
+lock_cache_dir "$node_dir" node
 
 if [[ "${1:-}" == "--print" ]]; then
   echo "$node_dir"
