@@ -368,7 +368,7 @@ mission_image() {
 }
 
 # One build at a time per cache: checkouts share its storage, contexts and archives.
-# shellcheck source=cache-lock.sh
+# shellcheck source-path=SCRIPTDIR source=cache-lock.sh
 . "$here/cache-lock.sh"
 lock_cache() { lock_cache_dir "$out" images; }
 

@@ -1,3 +1,4 @@
+# shellcheck shell=bash
 # Sourced by the scripts that build into ~/.cache/roost: one build at a time per cache
 # directory. Test workers and checkouts that start together each ask for the same
 # outputs, and two builds would move or remove each other's partial files; the one that

@@ -27,7 +27,7 @@ kine_version=$(awk '$1=="github.com/k3s-io/kine"{print $2}' "$kine_mod/go.mod")
 cache_root=${ROOST_CACHE_DIR:-${XDG_CACHE_HOME:-$HOME/.cache}/roost}
 bin_dir="$cache_root/control-plane/k8s-$k8s_version-etcd-$etcd_version-kwok-$kwok_version/bin"
 
-# shellcheck source=../docker/cache-lock.sh
+# shellcheck source-path=SCRIPTDIR source=../docker/cache-lock.sh
 . "$here/../docker/cache-lock.sh"
 lock_cache_dir "$bin_dir" "control plane"
 

@@ -53,7 +53,7 @@ cache_root=${ROOST_CACHE_DIR:-${XDG_CACHE_HOME:-$HOME/.cache}/roost}
 node_dir="$cache_root/node/k8s-$k8s_version-containerd-$containerd_version-cni-$cni_version"
 [[ "$arch" == "$host_arch" ]] || node_dir="$node_dir-$arch"
 
-# shellcheck source=../docker/cache-lock.sh
+# shellcheck source-path=SCRIPTDIR source=../docker/cache-lock.sh
 . "$here/../docker/cache-lock.sh"
 lock_cache_dir "$node_dir" node
 

@@ -28,14 +28,23 @@ def test_hadolint_reports_nothing() -> None:
     assert result.returncode == 0 and not result.stdout.strip(), result.stdout + result.stderr
 
 
+SCRIPT_DIRS = ("docker", "localcluster", "tests/e2e/kind")
+
+
 def test_shell_scripts_pass_shellcheck() -> None:
+    """Every script the builds and CI run, checked from a directory that is not their own
+    (a directive that only resolves from one working directory is a finding)."""
     shellcheck = Path(sys.executable).parent / "shellcheck"
-    scripts = sorted(str(path) for path in (REPO_ROOT / "docker").glob("*.sh"))
+    scripts = sorted(
+        str(path) for folder in SCRIPT_DIRS for path in (REPO_ROOT / folder).rglob("*.sh")
+    )
+    scripts.append(str(REPO_ROOT / ".ci" / "run"))
     result = subprocess.run(
         [str(shellcheck), "--external-sources", *scripts],
         capture_output=True,
         text=True,
         check=False,
         timeout=60,
+        cwd="/",
     )
     assert result.returncode == 0, result.stdout + result.stderr
