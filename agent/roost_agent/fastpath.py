@@ -105,18 +105,14 @@ def message_table() -> dict[int, tuple[int, int, int, int]]:
 
 
 def routine_bitmap(read: frozenset[str]) -> bytes:
-    """Which message ids are routine, a bit per id: known, addressed to nobody (no
-    ``target_system`` or ``target_component``) and not of the kinds in ``read`` (those
-    whose content the agent reads). Of a routed datagram of routine frames only, C hands
-    Python a summary (:data:`Routed`): the agent does no more with such a frame than
-    count it and judge its arrival, sequence number and ``time_boot_ms``."""
-    ids = [
-        msg_id
-        for msg_id, known in _known_layouts().items()
-        if known.name not in read
-        and "target_component" not in known.scalars
-        and "target_system" not in known.scalars
-    ]
+    """Which message ids are routine, a bit per id: known and not of the kinds in
+    ``read`` (those whose content the agent reads). Of a routed datagram of routine
+    frames only, C hands Python a summary (:data:`Routed`): the agent does no more with
+    such a frame than count it and judge its arrival, sequence number and
+    ``time_boot_ms``. A kind with a target (PING, OPEN_DRONE_ID_*) is routine too: the
+    one thing the agent reads in it, whether it is addressed to the agent, C has read
+    already, and it routes (and so summarises) no frame that is."""
+    ids = [msg_id for msg_id, known in _known_layouts().items() if known.name not in read]
     bits = bytearray((max(ids, default=0) >> 3) + 1)
     for msg_id in ids:
         bits[msg_id >> 3] |= 1 << (msg_id & 7)

@@ -689,7 +689,7 @@ class Hub:
 
     def _routed_routine(self, name: str, frames: int) -> bool:
         """What :meth:`_from_autopilot` does with ``frames`` routine frames (none of
-        :data:`READ_KINDS`, addressed to nobody) routed in C, when that is only counting
+        :data:`READ_KINDS`, none addressed to the agent) routed in C, when that is only counting
         them: they are the active autopilot's and the route's clients are still all the
         clients. False otherwise, having done nothing (they come to the tap whole)."""
         route = self._route

@@ -43,6 +43,7 @@ from tests.support.waiting import wait_until
 ATTITUDE = mavlink.MAVLINK_MSG_ID_ATTITUDE
 LOCAL_POSITION = mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED
 COMMAND_ACK = mavlink.MAVLINK_MSG_ID_COMMAND_ACK
+PING = mavlink.MAVLINK_MSG_ID_PING
 AGENT_COMPONENT = 191
 POLL_S = 0.01
 
@@ -406,6 +407,61 @@ def test_routine_frames_are_routed_and_judged_without_being_read_whole(rig: Rig)
     hub = rig.agent.hub
     assert hub is not None
     assert len(whole) == (0 if hub.fast else 200)
+
+
+def test_frames_with_a_target_are_routine_unless_addressed_to_the_agent(rig: Rig) -> None:
+    """PING, which PX4 streams at 1 Hz, has a target. Addressed to everyone or to a
+    ground station it is routed byte for byte and counted by the tracker, and in C the
+    hub's tap never gets it whole (C read the target before routing it). Addressed to
+    the agent it reaches no client and stays with the agent, either way. (The two kinds
+    are sent one after the other: after a frame C does not forward, Python forwards
+    what that read took after it, and reads it whole.)"""
+    link = rig.agent.links["fc1"]
+    tap = link.tap
+    assert tap is not None
+    whole: list[tuple[int, int]] = []
+
+    def watching(msg: Any, now: float) -> None:
+        if msg.get_type() == "PING":
+            whole.append((msg.target_system, msg.target_component))
+        tap(msg, now)
+
+    link.tap = watching
+    hub = rig.agent.hub
+    assert hub is not None
+    fc1 = rig.fc1
+    kept_before = hub.counters.kept_for_agent
+    to_agent = (1, AGENT_COMPONENT)  # the autopilot's system, the agent's component
+
+    def send(targets: list[tuple[int, int]]) -> list[bytes]:
+        before = link.tracker.stream_facts().counts.get("PING", 0)
+        frames = []
+        for i, target in enumerate(targets):
+            frame = fc1.frame(mavlink.MAVLink_ping_message(1_000_000 + i, i, *target))
+            fc1.send(frame)
+            frames.append(frame)
+            time.sleep(0.002)
+        wait_until(
+            "the tracker counted them",
+            lambda: link.tracker.stream_facts().counts.get("PING", 0) == before + len(targets),
+            10,
+            POLL_S,
+        )
+        return frames
+
+    expected = send([(0, 0) if i % 2 else (255, 190) for i in range(100)])
+    wait_until(
+        "the frames reach the client",
+        lambda: len(rig.client.frames(PING)) >= len(expected),
+        10,
+        POLL_S,
+    )
+    assert whole == ([] if hub.fast else [(255, 190), (0, 0)] * 50)
+    send([to_agent] * 20)
+    time.sleep(0.3)  # not a wait for a condition: anything that should not come would by now
+    assert rig.client.frames(PING) == expected
+    assert hub.counters.kept_for_agent - kept_before == 20
+    assert whole[-20:] == [to_agent] * 20
 
 
 def test_runs_keep_what_the_health_model_and_the_hub_read(rig: Rig) -> None:
