@@ -30,6 +30,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from roost_agent import Agent
 from roost_agent.bridge import SimulatedBridge
 from roost_agent.fastpath import PUMP
+from roost_agent.link import AutopilotLink
 from roost_api.autopilot import (
     AutopilotCommand,
     CommandAction,
@@ -366,21 +367,28 @@ def test_a_fault_in_the_fast_path_leaves_the_hub_routing_in_python(
     assert rig.agent.active == "fc2"
 
 
+def _read_whole(link: AutopilotLink, kind: str) -> list[Any]:
+    """The messages of ``kind`` the link's tap (the hub) gets whole from now on, as a
+    list that grows; the tap still gets every message."""
+    tap = link.tap
+    assert tap is not None
+    whole: list[Any] = []
+
+    def watching(msg: Any, now: float) -> None:
+        if msg.get_type() == kind:
+            whole.append(msg)
+        tap(msg, now)
+
+    link.tap = watching
+    return whole
+
+
 def test_routine_frames_are_routed_and_judged_without_being_read_whole(rig: Rig) -> None:
     """LOCAL_POSITION_NED, whose content the agent never reads: routed byte for byte and
     counted by the tracker either way; in C the hub's tap never gets one whole (C hands
     Python each datagram's summary: id, sequence number, time_boot_ms)."""
     link = rig.agent.links["fc1"]
-    tap = link.tap
-    assert tap is not None
-    whole: list[str] = []
-
-    def watching(msg: Any, now: float) -> None:
-        if msg.get_type() == "LOCAL_POSITION_NED":
-            whole.append(msg.get_type())
-        tap(msg, now)
-
-    link.tap = watching
+    whole = _read_whole(link, "LOCAL_POSITION_NED")
     fc1 = rig.fc1
     before = link.tracker.stream_facts().counts.get("LOCAL_POSITION_NED", 0)
     expected = []
@@ -417,16 +425,7 @@ def test_frames_with_a_target_are_routine_unless_addressed_to_the_agent(rig: Rig
     are sent one after the other: after a frame C does not forward, Python forwards
     what that read took after it, and reads it whole.)"""
     link = rig.agent.links["fc1"]
-    tap = link.tap
-    assert tap is not None
-    whole: list[tuple[int, int]] = []
-
-    def watching(msg: Any, now: float) -> None:
-        if msg.get_type() == "PING":
-            whole.append((msg.target_system, msg.target_component))
-        tap(msg, now)
-
-    link.tap = watching
+    pings = _read_whole(link, "PING")
     hub = rig.agent.hub
     assert hub is not None
     fc1 = rig.fc1
@@ -456,11 +455,13 @@ def test_frames_with_a_target_are_routine_unless_addressed_to_the_agent(rig: Rig
         10,
         POLL_S,
     )
+    whole = [(msg.target_system, msg.target_component) for msg in pings]
     assert whole == ([] if hub.fast else [(255, 190), (0, 0)] * 50)
     send([to_agent] * 20)
     time.sleep(0.3)  # not a wait for a condition: anything that should not come would by now
     assert rig.client.frames(PING) == expected
     assert hub.counters.kept_for_agent - kept_before == 20
+    whole = [(msg.target_system, msg.target_component) for msg in pings]
     assert whole[-20:] == [to_agent] * 20
 
 
