@@ -15,9 +15,13 @@ export PATH := $(CURDIR)/$(BIN):$(PATH)
 help: ## list the targets
 	@grep -hE '^[a-zA-Z0-9_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-16s %s\n", $$1, $$2}'
 
-$(STAMP): pyproject.toml
+# setup.py and the C extension too: the editable install builds the extension in place
+# (agent/roost_agent/_udpbatch.c), so an edit to it is built again before the next run
+$(STAMP): pyproject.toml setup.py agent/roost_agent/_udpbatch.c
 	@echo "setup: creating $(VENV) with Roost and its dev tools (pip's log: $(VENV)/pip.log)"
 	@$(PYTHON) -m venv $(VENV)
+	@docker/debian-packages.sh cc=gcc >/dev/null \
+	  || echo "setup: no C compiler; the agent reads and routes in Python (setup.py: the C extension is skipped)"
 	@{ $(PY) -m pip install --upgrade pip && $(PY) -m pip install -e '.[dev]'; } > $(VENV)/pip.log 2>&1 \
 	  || { tail -n 40 $(VENV)/pip.log; echo "setup: pip failed; the whole log is $(VENV)/pip.log"; exit 1; }
 	$(PY) -m roost_localcluster.clients install

@@ -8,9 +8,11 @@ the hub that routes it to clients (``roost_agent.hub``).
 They are mypy-strict, so mypyc can compile them to C extension modules that run the same
 code cheaper (``agent.cpu_ms_per_10k_msgs`` against ``agent.cpu_ms_per_10k_msgs_interpreted``
 in the README's benchmark table). The image build sets ``ROOST_COMPILE=1``
-(docker/build-images.sh); an editable install for development stays pure Python, and the
-test suite runs the agent's suites against the compiled build as well
-(tests/integration/test_compiled_agent.py).
+(docker/build-images.sh); an editable install for development keeps those modules
+interpreted, and the test suite runs the agent's suites against the compiled build as
+well (tests/integration/test_compiled_agent.py). The hand-written C extension
+(``agent/roost_agent/_udpbatch.c``: batch reads and the hub's fast path) is built in
+every install on Linux, the editable one included.
 
 Compiling needs mypy (the ``dev`` extra) and a C compiler with Python's headers, so the
 wheel is built without build isolation: ``ROOST_COMPILE=1 pip wheel --no-build-isolation .``
@@ -37,22 +39,31 @@ COMPILED_MODULES = (
 
 
 def _ext_modules() -> list[Any]:
-    if os.environ.get("ROOST_COMPILE") != "1":
-        return []
+    compiling = os.environ.get("ROOST_COMPILE") == "1"
+    native = c_extensions(required=compiling) if sys.platform == "linux" else []
+    if not compiling:
+        return native
     # Only here: mypy is a build tool, not a dependency.
     from mypyc.build import mypycify  # noqa: PLC0415
 
-    native = C_EXTENSIONS if sys.platform == "linux" else ()
     return [*mypycify(list(COMPILED_MODULES), opt_level="3"), *native]
 
 
-C_EXTENSIONS = (
-    # recvmmsg with kernel arrival stamps for the UDP links (roost_agent.transport falls
-    # back to Python reads without it), and the hub's fast path: the active autopilot's
-    # frames routed to plain UDP clients in C (roost_agent.fastpath; without it, in Python)
-    Extension("roost_agent._udpbatch", ["agent/roost_agent/_udpbatch.c"]),
-)
-"""Hand-written C extension modules, built with the compiled modules (Linux only)."""
+def c_extensions(*, required: bool) -> list[Extension]:
+    """The hand-written C extension modules (Linux only), built in every install, an
+    editable one included: the agent a developer starts from the checkout routes and
+    reads as the images' does. ``required``: a failed build fails the install (the
+    compiled wheel); otherwise it is skipped with a warning and the agent reads and
+    routes in Python."""
+    return [
+        # recvmmsg with kernel arrival stamps for the UDP links (roost_agent.transport
+        # falls back to Python reads without it), and the hub's fast path: the active
+        # autopilot's frames routed to plain UDP clients in C (roost_agent.fastpath;
+        # without it, in Python)
+        Extension(
+            "roost_agent._udpbatch", ["agent/roost_agent/_udpbatch.c"], optional=not required
+        ),
+    ]
 
 
 setup(ext_modules=_ext_modules())

@@ -16,7 +16,8 @@ bench's interpreter), as they were measured.
 
 The agent is the build the image ships: its per-message path compiled by mypyc
 (``tests.support.compiled``); ``agent.cpu_ms_per_10k_msgs_interpreted`` measures the same
-agent from the checkout's Python modules, for comparison. The agent prints every failover
+agent from the checkout's Python modules (with the hand-written C extension, which every
+install builds), for comparison. The agent prints every failover
 as a JSON line that carries CLOCK_MONOTONIC timestamps (``time.monotonic()`` is that
 clock in every process on one host), so a fault onset taken here when the fault is
 injected and the bridge switch taken there are compared directly. Commands (ClearLatch,
@@ -567,7 +568,8 @@ def cpu_figures() -> list[Figure]:
             "",
             COMMAND,
             "as agent.cpu_ms_per_10k_msgs, measured right after it, with the agent running from "
-            f"the checkout's Python modules (nothing compiled): {interpreted_rate:.0f} msg/s; "
+            "the checkout's Python modules (nothing compiled by mypyc; the C extension, which "
+            f"every install builds, as in the image): {interpreted_rate:.0f} msg/s; "
             f"1-min load {load_interpreted}",
         ),
         Figure(

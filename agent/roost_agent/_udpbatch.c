@@ -6,7 +6,8 @@
  * BlockingIOError (an exception object and its message built, then caught). Here one
  * system call takes every queued datagram (up to BATCH at a time) and an empty queue is
  * an empty list. roost_agent.transport falls back to the Python reads where this module
- * is not built (an editable install); both give the same (data, sender, stamp) triples.
+ * is not built (no C compiler at install); both give the same (data, sender, stamp)
+ * triples.
  *
  * receive(fd, limit) -> list of (bytes, (host, port) | None, float | None): up to
  * ``limit`` datagrams in arrival order; the stamp is the kernel's CLOCK_REALTIME arrival

@@ -298,7 +298,7 @@ def _receive_stamped(sock: socket.socket) -> Received:
 
 def _batch_receiver() -> Callable[[int, int], list[Received]] | None:
     """The C extension's ``receive`` (``_udpbatch.c``: one recvmmsg for the queue, no
-    failing read at its end), or None where it is not built (an editable install)."""
+    failing read at its end), or None where it is not built (no C compiler at install)."""
     try:
         module = importlib.import_module("roost_agent._udpbatch")
     except ImportError:
