@@ -24,6 +24,8 @@ $(STAMP): pyproject.toml setup.py agent/roost_agent/_udpbatch.c
 	  || echo "setup: no C compiler; the agent reads and routes in Python (setup.py: the C extension is skipped)"
 	@{ $(PY) -m pip install --upgrade pip && $(PY) -m pip install -e '.[dev]'; } > $(VENV)/pip.log 2>&1 \
 	  || { tail -n 40 $(VENV)/pip.log; echo "setup: pip failed; the whole log is $(VENV)/pip.log"; exit 1; }
+	@$(PY) -c 'import roost_agent._udpbatch' 2>/dev/null \
+	  || echo "setup: the C extension was not built (why: $(VENV)/pip.log); the agent reads and routes in Python"
 	$(PY) -m roost_localcluster.clients install
 	touch $@
 

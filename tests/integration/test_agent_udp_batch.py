@@ -2,8 +2,9 @@
 for the queue) and its Python fallback give the same datagrams, senders and arrival
 stamps, over real UDP sockets on loopback.
 
-The interpreted checkout has no C extension: there its half skips, and the compiled
-build's run (tests/integration/test_compiled_agent.py) runs it.
+The C half skips where the extension is not built (an install on a machine without a C
+compiler); in `make test` this file runs in the compiled build's run
+(tests/integration/test_compiled_agent.py), which always has it.
 """
 
 from __future__ import annotations

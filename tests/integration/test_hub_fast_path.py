@@ -4,10 +4,11 @@ exactly what the Python path routes, over real UDP on loopback.
 An agent (in this process, a simulated bridge: the only stand-in) hubs two autopilots
 played by test sockets that send real MAVLink 2 frames; a raw UDP client greets the
 hub and keeps every datagram it gets. Each case runs twice: routed in Python (the fast
-path off) and routed in C (skipped where the extension is not built, as in the
-interpreted checkout; the compiled build's run, tests/integration/test_compiled_agent.py,
-runs it). Either way the client must get the active autopilot's frames byte for byte, in
-the order sent, one frame per datagram, and nothing else: not a forged copy from another
+path off) and routed in C (skipped where the extension is not built, an install on a
+machine without a C compiler; in `make test` the compiled build's run,
+tests/integration/test_compiled_agent.py, which always has it, runs this file). Either
+way the client must get the active autopilot's frames byte for byte, in the order sent,
+one frame per datagram, and nothing else: not a forged copy from another
 address (the source lock), not a frame of another system id, not an answer addressed to
 the agent, not a frame of a corrupted datagram; and after a switch nothing more of the
 old active autopilot, the new one's frames (its system id rewritten to the vehicle's)
