@@ -73,8 +73,6 @@
 #define BATCH 16
 #define SLOT 65536
 #define CONTROL 64
-#define MAX_CLIENTS 32
-#define MAX_WAKE 16
 #define MAX_FRAMES 64 /* frames of one datagram forwarded here; more: Python's */
 #define OUTBOX MAX_FRAMES /* frames sent with one sendmmsg per client (Outbox) */
 #define V2_MAGIC 0xFD
@@ -828,58 +826,10 @@ static PyObject *pump(PyObject *module, PyObject *args) {
     if (ensure_slots() < 0) {
         return NULL;
     }
-    struct pollfd fds[2 + MAX_WAKE];
-    int nfds = 0, n_wake = 0;
-    fds[nfds++] = (struct pollfd){.fd = bulk_fd, .events = POLLIN};
-    if (urgent_fd >= 0) {
-        fds[nfds++] = (struct pollfd){.fd = urgent_fd, .events = POLLIN};
-    }
-    int wake_at = nfds;
-    Py_ssize_t wakes = PySequence_Size(wake_list);
-    if (wakes < 0) {
-        return NULL;
-    }
-    for (Py_ssize_t i = 0; i < wakes && n_wake < MAX_WAKE; i++) {
-        PyObject *item = PySequence_GetItem(wake_list, i);
-        if (item == NULL) {
-            return NULL;
-        }
-        int fd = (int)PyLong_AsLong(item);
-        Py_DECREF(item);
-        if (fd == -1 && PyErr_Occurred()) {
-            return NULL;
-        }
-        fds[nfds++] = (struct pollfd){.fd = fd, .events = POLLIN};
-        n_wake++;
-    }
-    Client clients[MAX_CLIENTS];
-    int n_clients = 0;
-    Py_ssize_t given = PySequence_Size(client_list);
-    if (given < 0) {
-        return NULL;
-    }
-    for (Py_ssize_t i = 0; i < given && n_clients < MAX_CLIENTS; i++) {
-        PyObject *item = PySequence_GetItem(client_list, i);
-        if (item == NULL) {
-            return NULL;
-        }
-        PyObject *where;
-        int ok = PyArg_ParseTuple(item, "iO", &clients[n_clients].fd, &where) &&
-                 address_of(where, &clients[n_clients].address) == 0;
-        Py_DECREF(item);
-        if (!ok) {
-            return NULL;
-        }
-        n_clients++;
-    }
-    struct sockaddr_in locked;
-    memset(&locked, 0, sizeof locked);
-    if (locked_obj != Py_None && address_of(locked_obj, &locked) < 0) {
-        return NULL;
-    }
-    Rules rules = {sysid, compid, agent_comp, log_busy, (const unsigned char *)routine,
-                   routine_bytes};
-
+    /* as many wake descriptors and clients as the caller gives (the hub sets its own
+     * limit on clients): none is left out */
+    struct pollfd *fds = NULL;
+    Client *clients = NULL;
     Entries held = {0}, fresh = {0}, out = {0}, spent = {0};
     Outbox box;
     box.count = 0;
@@ -887,10 +837,62 @@ static PyObject *pump(PyObject *module, PyObject *args) {
     Py_ssize_t routed_size = 0;
     Run *run = NULL;
     PyObject *result = NULL;
+    Py_ssize_t wakes = PySequence_Size(wake_list);
+    Py_ssize_t given = wakes < 0 ? -1 : PySequence_Size(client_list);
+    if (given < 0) {
+        return NULL;
+    }
+    fds = PyMem_Malloc(sizeof(struct pollfd) * (size_t)(2 + wakes));
+    clients = PyMem_Malloc(sizeof(Client) * (size_t)(given > 0 ? given : 1));
+    if (fds == NULL || clients == NULL) {
+        PyErr_NoMemory();
+        goto fail;
+    }
+    int nfds = 0;
+    fds[nfds++] = (struct pollfd){.fd = bulk_fd, .events = POLLIN};
+    if (urgent_fd >= 0) {
+        fds[nfds++] = (struct pollfd){.fd = urgent_fd, .events = POLLIN};
+    }
+    int wake_at = nfds;
+    for (Py_ssize_t i = 0; i < wakes; i++) {
+        PyObject *item = PySequence_GetItem(wake_list, i);
+        if (item == NULL) {
+            goto fail;
+        }
+        int fd = (int)PyLong_AsLong(item);
+        Py_DECREF(item);
+        if (fd == -1 && PyErr_Occurred()) {
+            goto fail;
+        }
+        fds[nfds++] = (struct pollfd){.fd = fd, .events = POLLIN};
+    }
+    int n_clients = 0;
+    for (Py_ssize_t i = 0; i < given; i++) {
+        PyObject *item = PySequence_GetItem(client_list, i);
+        if (item == NULL) {
+            goto fail;
+        }
+        PyObject *where;
+        int ok = PyArg_ParseTuple(item, "iO", &clients[n_clients].fd, &where) &&
+                 address_of(where, &clients[n_clients].address) == 0;
+        Py_DECREF(item);
+        if (!ok) {
+            goto fail;
+        }
+        n_clients++;
+    }
+    struct sockaddr_in locked;
+    memset(&locked, 0, sizeof locked);
+    if (locked_obj != Py_None && address_of(locked_obj, &locked) < 0) {
+        goto fail;
+    }
+    Rules rules = {sysid, compid, agent_comp, log_busy, (const unsigned char *)routine,
+                   routine_bytes};
+
     /* what the caller held from before */
     Py_ssize_t n_held = PySequence_Size(held_in);
     if (n_held < 0) {
-        return NULL;
+        goto fail;
     }
     for (Py_ssize_t i = 0; i < n_held; i++) {
         PyObject *item = PySequence_GetItem(held_in, i);
@@ -1188,6 +1190,8 @@ fail:
     clear(&spent);
     PyMem_Free(routed);
     PyMem_Free(run);
+    PyMem_Free(clients);
+    PyMem_Free(fds);
     return result;
 }
 

@@ -121,6 +121,8 @@ SIGNED_FLAG = 0x01
 
 CLIENT_TIMEOUT_S = 30.0  # a UDP client not heard this long gets nothing more
 MAX_CLIENTS = 32
+"""The most clients the hub serves at once (one more pushes one out: :meth:`Hub._add`).
+The one limit: the fast path (``_udpbatch.c``) serves every client it is given."""
 HUB_LINK_ID = 0xF0  # the MAVLink signing link id of the hub's frames to clients
 READ_KINDS: Final = frozenset({"HEARTBEAT", "GLOBAL_POSITION_INT", "COMMAND_ACK"}) | LOG_REPLIES
 """The message types whose content the hub reads (:meth:`Hub._from_autopilot`: a

@@ -20,7 +20,7 @@ from __future__ import annotations
 import socket
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any
@@ -29,6 +29,7 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from roost_agent import Agent
+from roost_agent import hub as hub_module
 from roost_agent.bridge import SimulatedBridge
 from roost_agent.fastpath import PUMP
 from roost_agent.link import AutopilotLink
@@ -334,6 +335,47 @@ def test_a_client_that_comes_while_the_stream_flows_gets_it_from_then_on(rig: Ri
         assert late.frames(ATTITUDE)[-len(expected) :] == expected
     finally:
         late.close()
+
+
+def _has(client: Client, count: int) -> Callable[[], bool]:
+    """Whether ``client`` has ``count`` ATTITUDE frames (a condition to wait for)."""
+    return lambda: len(client.frames(ATTITUDE)) >= count
+
+
+def test_every_client_the_hub_admits_gets_every_frame(
+    rig: Rig, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The hub alone limits its clients (``hub.MAX_CLIENTS``): routed in C, every client
+    it admits gets every frame, however many there are. Raised past its default here, so
+    a second limit of the C loop's own (it once had one, equal to the default, that
+    silently left the clients past it out) would show."""
+    monkeypatch.setattr(hub_module, "MAX_CLIENTS", hub_module.MAX_CLIENTS + 8)
+    fc1 = rig.fc1
+    hub = rig.agent.hub
+    assert hub is not None
+    more = [Client(hub.udp_address) for _ in range(hub_module.MAX_CLIENTS - 1)]
+    clients = [rig.client, *more]
+    try:
+        wait_until(
+            "the hub takes every client",
+            lambda: len(hub.clients()) == len(clients),
+            10,
+            POLL_S,
+        )
+        boot_ms = 7000
+        expected = []
+        for _ in range(50):
+            boot_ms += 2
+            frame = fc1.attitude(boot_ms)
+            fc1.send(frame)
+            expected.append(frame)
+            time.sleep(0.002)
+        for n, client in enumerate(clients):
+            wait_until(f"the frames reach client {n}", _has(client, len(expected)), 10, POLL_S)
+            assert client.frames(ATTITUDE)[-len(expected) :] == expected
+    finally:
+        for client in more:
+            client.close()
 
 
 def test_a_fault_in_the_fast_path_leaves_the_hub_routing_in_python(
