@@ -84,6 +84,17 @@ class Autopilot:
     def send(self, *frames: bytes) -> None:
         self.sock.sendto(b"".join(frames), self.to)
 
+    def stream(self, boot_ms: int, count: int) -> list[bytes]:
+        """``count`` ATTITUDE frames, ``time_boot_ms`` from ``boot_ms`` up by 2 ms each,
+        one datagram every 2 ms; the frames sent."""
+        sent = []
+        for n in range(1, count + 1):
+            frame = self.attitude(boot_ms + 2 * n)
+            self.send(frame)
+            sent.append(frame)
+            time.sleep(0.002)
+        return sent
+
     def _beat(self) -> None:
         while not self.stopping.wait(0.1):
             # PX4, quadrotor, on the ground and disarmed, MAV_STATE STANDBY
@@ -310,22 +321,12 @@ def test_a_client_that_comes_while_the_stream_flows_gets_it_from_then_on(rig: Ri
     fc1 = rig.fc1
     hub = rig.agent.hub
     assert hub is not None
-    boot_ms = 5000
-    for _ in range(100):  # the stream flows (in runs, in C)
-        boot_ms += 2
-        fc1.send(fc1.attitude(boot_ms))
-        time.sleep(0.002)
+    fc1.stream(5000, 100)  # the stream flows (in runs, in C)
     late = Client(hub.udp_address)
     try:
         address = late.sock.getsockname()
         wait_until("the hub takes the client", lambda: address in hub.clients(), 10, POLL_S)
-        expected = []
-        for _ in range(100):
-            boot_ms += 2
-            frame = fc1.attitude(boot_ms)
-            fc1.send(frame)
-            expected.append(frame)
-            time.sleep(0.002)
+        expected = fc1.stream(5200, 100)
         wait_until(
             "the frames reach the new client",
             lambda: len(late.frames(ATTITUDE)) >= len(expected),
@@ -362,14 +363,7 @@ def test_every_client_the_hub_admits_gets_every_frame(
             10,
             POLL_S,
         )
-        boot_ms = 7000
-        expected = []
-        for _ in range(50):
-            boot_ms += 2
-            frame = fc1.attitude(boot_ms)
-            fc1.send(frame)
-            expected.append(frame)
-            time.sleep(0.002)
+        expected = fc1.stream(7000, 50)
         for n, client in enumerate(clients):
             wait_until(f"the frames reach client {n}", _has(client, len(expected)), 10, POLL_S)
             assert client.frames(ATTITUDE)[-len(expected) :] == expected
