@@ -39,13 +39,16 @@
  * offset, time_boot_ms offset)} (offset -1: the message has no such field), the known
  * message ids.
  *
- * pump(bulk_fd, urgent_fd, wake_fds, (timeout_s, due_s, age_s, offset), clients, locked, sysid,
- *      compid, agent_comp, log_busy, urgent_returns, held, limit, routine, runs)
+ * pump(bulk_fd, urgent_fd, wake_fds, (timeout_s, due_s, age_s, offset, boot_due_s,
+ *      boot_age_s), clients, locked, sysid, compid, agent_comp, log_busy, urgent_returns,
+ *      held, limit, routine, runs)
  *   -> (items, held, woke): waits up to timeout_s, and up to due_s unless the autopilot's
  *   frames keep coming: with age_s >= 0, each datagram routed postpones that deadline to
  *   its arrival (kernel stamp minus offset: the agent's monotonic clock) plus age_s (the
  *   health tracker's thresholds on the last message's age: a silence is seen when it
- *   falls due, and a stream that flows wakes nobody). items are (data, sender, stamp, routed,
+ *   falls due, and a stream that flows wakes nobody); likewise, while runs are taken and
+ *   with boot_age_s >= 0, up to boot_due_s unless frames whose time_boot_ms advances keep
+ *   coming (frozen telemetry), each postponing it to its arrival plus boot_age_s. items are (data, sender, stamp, routed,
  *   frames) in arrival order (routed: sent to every client here; frames: for a routed
  *   datagram of routine frames only, their summary (id, sequence number, time_boot_ms or
  *   -1, ...), else None: ``routine`` is a bitmap of the message ids Python reads no further
@@ -550,22 +553,42 @@ static PyObject *summarise(const long long *summary, int count) {
  * datagram it does not take (a kind outside the rules, from another address, not routed
  * here), before a gap of ``gap_limit`` (the tracker's silence threshold: Python sees the
  * silence end), with the datagram that reaches ``window_end`` (the tracker's rate window
- * closes at that message and may learn another silence threshold: runs stop for the rest
- * of the call, as they do once a wake-up descriptor woke the call), and when its table
- * of message ids is full. A datagram whose time_boot_ms steps back by ``backstep`` or
- * more (a reboot claim), or which holds a HEARTBEAT (a claim may follow), goes to Python
- * whole and stops runs for the rest of the call, as does an ATTITUDE whose tilt class
- * (0: level, 1: past warn_deg, 2: past max_deg) differs from the last one's (Python sees
- * each change; the class it knew comes in as tilt_class, -1: none yet).
+ * closes at that message and may learn another silence threshold: runs stop, as they do
+ * once a wake-up descriptor woke the call), and when its table of message ids is full. A
+ * datagram whose time_boot_ms steps back by ``backstep`` or more (a reboot claim), or
+ * which holds a HEARTBEAT (a claim may follow), goes to Python whole and stops runs, as
+ * does an ATTITUDE whose tilt class (0: level, 1: past warn_deg, 2: past max_deg)
+ * differs from the last one's (Python sees each change; the class it knew comes in as
+ * tilt_class, -1: none yet).
+ *
+ * A datagram of a state kind (SYS_STATUS, EXTENDED_SYS_STATE, ESTIMATOR_STATUS,
+ * EKF_STATUS_REPORT: what the tracker reads of them is a state, of which only a change
+ * matters) joins a run while the fields the tracker reads hold what it holds (``states``:
+ * per kind its id and each field's payload offset, size and the value held, -1: none
+ * yet); one that says something else goes whole and stops runs, and one that would close
+ * the tracker's rate window goes whole (read whole, Python compares its judgement before
+ * and after it, and the window's close may change whether the stream counts as fast).
+ *
+ * Whatever stops runs also ends the call: Python reads it at once, so no fact waits for
+ * the read interval, and the next call takes runs again from the tracker's new state.
  *
  * rules: (kinds bitmap, (kept ids...), heartbeat id, (attitude id, roll at, pitch at,
  *         warn_deg, max_deg, tilt_class), gap_limit_s, window_end, boot_max,
- *         backstep_ms)
+ *         backstep_ms, ((id, ((offset, size, held), ...)), ...))
  * run tuple: (first_at, last_at, max_gap, frames, datagrams, bytes, last_seq, boot_max,
  *             boot_max_at, (id, count, ...), (frame, at, ...)) */
 #define RUN_KINDS 64
 #define MAX_KEPT 4
 #define FRAME_MAX 280
+#define MAX_STATES 4
+#define MAX_STATE_FIELDS 2
+
+typedef struct {
+    unsigned int id;
+    int n_fields;
+    int at[MAX_STATE_FIELDS], size[MAX_STATE_FIELDS];
+    long long held[MAX_STATE_FIELDS]; /* -1: the tracker holds none yet */
+} StateKind;
 
 typedef struct {
     int on;
@@ -577,6 +600,8 @@ typedef struct {
     int roll_at, pitch_at, tilt_class;
     double warn_deg, max_deg, gap_limit, window_end;
     long long boot_max, backstep;
+    StateKind states[MAX_STATES];
+    int n_states;
 } RunRules;
 
 typedef struct {
@@ -592,17 +617,63 @@ typedef struct {
     double kept_at[MAX_KEPT];
 } Run;
 
+/* ((id, ((offset, size, held), ...)), ...) into r->states; -1: a bad table. */
+static int parse_states(PyObject *in, RunRules *r) {
+    Py_ssize_t n = PySequence_Size(in);
+    if (n < 0) {
+        return -1;
+    }
+    if (n > MAX_STATES) {
+        PyErr_SetString(PyExc_ValueError, "pump: too many state kinds");
+        return -1;
+    }
+    for (Py_ssize_t i = 0; i < n; i++) {
+        StateKind *k = &r->states[i];
+        PyObject *item = PySequence_GetItem(in, i), *fields;
+        int ok = item != NULL && PyArg_ParseTuple(item, "IO", &k->id, &fields);
+        Py_XDECREF(item);
+        if (!ok) {
+            return -1;
+        }
+        Py_ssize_t m = PySequence_Size(fields);
+        if (m < 0) {
+            return -1;
+        }
+        if (m > MAX_STATE_FIELDS) {
+            PyErr_SetString(PyExc_ValueError, "pump: too many fields of a state kind");
+            return -1;
+        }
+        for (Py_ssize_t j = 0; j < m; j++) {
+            PyObject *field = PySequence_GetItem(fields, j);
+            ok = field != NULL &&
+                 PyArg_ParseTuple(field, "iiL", &k->at[j], &k->size[j], &k->held[j]);
+            Py_XDECREF(field);
+            if (!ok) {
+                return -1;
+            }
+            if (k->size[j] != 1 && k->size[j] != 2 && k->size[j] != 4) {
+                PyErr_SetString(PyExc_ValueError, "pump: a state field of 1, 2 or 4 bytes");
+                return -1;
+            }
+        }
+        k->n_fields = (int)m;
+        r->n_states = (int)i + 1;
+    }
+    return 0;
+}
+
 static int parse_run_rules(PyObject *in, RunRules *r) {
     memset(r, 0, sizeof *r);
     if (in == Py_None) {
         return 0;
     }
-    PyObject *kept, *tilt;
+    PyObject *kept, *tilt, *states;
     Py_ssize_t kinds_bytes;
     const char *kinds;
-    if (!PyArg_ParseTuple(in, "y#OIOddLL", &kinds, &kinds_bytes, &kept, &r->heartbeat_id,
-                          &tilt, &r->gap_limit, &r->window_end, &r->boot_max,
-                          &r->backstep) ||
+    if (!PyArg_ParseTuple(in, "y#OIOddLLO", &kinds, &kinds_bytes, &kept, &r->heartbeat_id,
+                          &tilt, &r->gap_limit, &r->window_end, &r->boot_max, &r->backstep,
+                          &states) ||
+        parse_states(states, r) < 0 ||
         !PyArg_ParseTuple(tilt, "Iiiddi", &r->attitude_id, &r->roll_at, &r->pitch_at,
                           &r->warn_deg, &r->max_deg, &r->tilt_class)) {
         return -1;
@@ -652,6 +723,28 @@ static int tilt_class_of(const unsigned char *frame, const RunRules *r) {
     double tilt = acos(c < -1.0 ? -1.0 : c > 1.0 ? 1.0 : c) * 180.0 / M_PI;
     double warn = r->warn_deg < r->max_deg ? r->warn_deg : r->max_deg;
     return tilt > r->max_deg ? 2 : tilt > warn ? 1 : 0;
+}
+
+/* An unsigned little-endian field of ``size`` bytes at ``at`` (MAVLink 2 drops a
+ * payload's trailing zeros: bytes past ``mlen`` read as zero). */
+static long long field_at(const unsigned char *payload, unsigned int mlen, int at, int size) {
+    long long value = 0;
+    for (int i = size - 1; i >= 0; i--) {
+        unsigned int where = (unsigned int)at + (unsigned int)i;
+        value = (value << 8) | (where < mlen ? payload[where] : 0);
+    }
+    return value;
+}
+
+/* Whether a frame of a state kind says what the tracker holds (every field read). */
+static int state_holds(const StateKind *k, const unsigned char *frame) {
+    for (int j = 0; j < k->n_fields; j++) {
+        if (k->held[j] < 0 ||
+            field_at(frame + V2_HEADER, frame[1], k->at[j], k->size[j]) != k->held[j]) {
+            return 0;
+        }
+    }
+    return 1;
 }
 
 /* The run as its tuple (NULL: no memory). */
@@ -711,7 +804,8 @@ static int run_close(Run *run, Entries *out, unsigned char *routed) {
 /* Whether a routed datagram of ``count`` frames may join a run (else it goes whole; *stop:
  * and no more runs this call); the tilt class moves on with each ATTITUDE either way. */
 static int joins_run(RunRules *r, const unsigned char *d, int count, const Py_ssize_t *starts,
-                     const long long *summary, long long *boot_high, int *stop) {
+                     const long long *summary, double arrived, long long *boot_high,
+                     int *stop) {
     int joins = 1;
     for (int i = 0; i < count; i++) {
         unsigned int id = (unsigned int)summary[i * 3];
@@ -732,8 +826,20 @@ static int joins_run(RunRules *r, const unsigned char *d, int count, const Py_ss
         if (id == r->attitude_id) {
             int tilt = tilt_class_of(d + starts[i], r);
             if (tilt != r->tilt_class) {
+                *stop = 1; /* Python sees the change at once */
                 joins = 0;
                 r->tilt_class = tilt;
+            }
+        }
+        for (int k = 0; k < r->n_states; k++) {
+            if (r->states[k].id != id) {
+                continue;
+            }
+            if (!state_holds(&r->states[k], d + starts[i])) {
+                *stop = 1; /* a new state: Python reads it, and at once */
+                joins = 0;
+            } else if (arrived >= r->window_end) {
+                joins = 0; /* read whole, it would see the rate window close */
             }
         }
         if (!in_bitmap(r->kinds, r->kinds_bytes, id)) {
@@ -809,12 +915,13 @@ static int run_full(const Run *run, int count, const long long *summary) {
 static PyObject *pump(PyObject *module, PyObject *args) {
     (void)module;
     int bulk_fd, urgent_fd, sysid, compid, agent_comp, log_busy, urgent_returns;
-    double timeout_s, due_s, age_s, offset;
+    double timeout_s, due_s, age_s, offset, boot_due_s, boot_age_s;
     PyObject *wake_list, *client_list, *locked_obj, *held_in, *runs_in;
     Py_ssize_t limit, routine_bytes;
     const char *routine;
-    if (!PyArg_ParseTuple(args, "iiO(dddd)OOiiippOny#O:pump", &bulk_fd, &urgent_fd, &wake_list,
-                          &timeout_s, &due_s, &age_s, &offset, &client_list, &locked_obj,
+    if (!PyArg_ParseTuple(args, "iiO(dddddd)OOiiippOny#O:pump", &bulk_fd, &urgent_fd,
+                          &wake_list, &timeout_s, &due_s, &age_s, &offset, &boot_due_s,
+                          &boot_age_s, &client_list, &locked_obj,
                           &sysid, &compid, &agent_comp, &log_busy, &urgent_returns, &held_in,
                           &limit, &routine, &routine_bytes, &runs_in)) {
         return NULL;
@@ -927,7 +1034,12 @@ static PyObject *pump(PyObject *module, PyObject *args) {
     double started = monotonic();
     double hard = started + (timeout_s > 0 ? timeout_s : 0);
     double due = started + (due_s > 0 ? due_s : 0); /* moves with arrivals (age_s >= 0) */
-    double deadline = due < hard ? due : hard;
+    /* frozen telemetry's deadline: moves with each frame whose time_boot_ms advances
+     * (boot_age_s >= 0, while runs are taken: the tracker's highest is known) */
+    int boot_moves = boot_age_s >= 0 && runs.on;
+    double boot_due = boot_moves ? started + (boot_due_s > 0 ? boot_due_s : 0) : INFINITY;
+    long long boot_seen = runs.boot_max;
+    double deadline = fmin(fmin(due, boot_due), hard);
     while (!done) {
         int ready_data = 0;
         /* which sockets to read: both after a hold, else those poll found readable (a
@@ -1063,9 +1175,12 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                         sent = 1;
                         if (running) {
                             int stop = 0;
-                            int joins = joins_run(&runs, d, count, starts, summary, &boot_high,
-                                                  &stop);
+                            int joins = joins_run(&runs, d, count, starts, summary, arrived,
+                                                  &boot_high, &stop);
                             running = !stop;
+                            if (stop) {
+                                done = 1; /* Python reads what stopped them at once */
+                            }
                             if (joins && !(e->urgent && urgent_returns)) {
                                 if (run->open && (arrived - run->last_at >= runs.gap_limit ||
                                                   run_full(run, count, summary))) {
@@ -1084,18 +1199,25 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                                 PyErr_Clear();
                             }
                         }
-                        if (age_s >= 0) { /* the autopilot's last message is this one now */
-                            if (arrived + age_s > due) {
-                                due = arrived + age_s;
-                                deadline = due < hard ? due : hard;
+                        if (age_s >= 0 && arrived + age_s > due) {
+                            due = arrived + age_s; /* its last message is this one now */
+                        }
+                        for (int f = 0; boot_moves && f < count; f++) {
+                            if (summary[f * 3 + 2] > boot_seen) {
+                                boot_seen = summary[f * 3 + 2];
+                                boot_due = fmax(boot_due, arrived + boot_age_s);
                             }
                         }
+                        deadline = fmin(fmin(due, boot_due), hard);
                     } else {
                         /* Python must see it now, and forwards it and what follows */
                         forwarding = 0;
                         running = 0;
                         done = 1;
                     }
+                }
+                if (!in_run && sent && runs.on) {
+                    done = 1; /* while runs are taken, what Python reads whole is read now */
                 }
                 if (!in_run) {
                     /* what Python reads whole comes after the run before it */
@@ -1111,8 +1233,9 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                 }
                 if (running && from_locked && arrived >= runs.window_end) {
                     /* the tracker's rate window closes at this message, and may learn
-                     * another silence threshold: no more runs this call */
+                     * another silence threshold: Python takes it now */
                     running = 0;
+                    done = 1;
                     if (in_run && run_close(run, &out, routed) < 0) {
                         goto fail;
                     }
@@ -1202,8 +1325,8 @@ static PyMethodDef methods[] = {
     {"set_messages", set_messages, METH_O,
      "set_messages({msg_id: (crc_extra, target_system_at, target_component_at)})"},
     {"pump", pump, METH_VARARGS,
-     "pump(bulk_fd, urgent_fd, wake_fds, (timeout_s, due_s, age_s, offset), clients, locked, "
-     "sysid, compid, "
+     "pump(bulk_fd, urgent_fd, wake_fds, (timeout_s, due_s, age_s, offset, boot_due_s, "
+     "boot_age_s), clients, locked, sysid, compid, "
      "agent_comp, log_busy, urgent_returns, held, limit, routine, runs) -> (items, held, woke)"},
     {NULL, NULL, 0, NULL},
 };

@@ -111,6 +111,13 @@ STEERED_TICK_S = 0.1
 kernel wakes the reader at once for a heartbeat or a command's answer, so only the bulk
 of the stream waits this long, and it is judged by its arrival stamps. While a claim
 waits for the message that settles it, the loop reads again after ``DEFAULT_TICK_S``."""
+ROUTED_TICK_S = 0.5
+"""The read interval while the hub's fast path takes the active autopilot's stream in
+runs (:mod:`roost_agent.fastpath`) and every link is steered: the C loop returns at once
+with anything Python reads whole (a state that changed, a tilt class that changed, a
+heartbeat, an answer, the rate window's close) and at every health deadline, so the
+interval bounds nothing but how often the bulk is taken; each return costs the agent
+more than a hundred routed frames (docs/performance.md)."""
 JUDGE_LATE_S = 1e-4
 """A tick meant for a health threshold comes this much after it: the judgement there
 compares a difference of float times with the threshold and must see it crossed."""
@@ -256,7 +263,7 @@ class Agent(Actions, SpecChanges):
         self._worker = SafetyWorker()
         self._threads: list[threading.Thread] = []
         self._reader = LinkReader()
-        self._reader.drive(self._tick_while_running, tick_s, steered_tick_s)
+        self._reader.drive(self._tick_while_running, tick_s, steered_tick_s, ROUTED_TICK_S)
         self._cfg = Running(
             spec=spec,
             generation=generation,
@@ -566,13 +573,15 @@ class Agent(Actions, SpecChanges):
             self._postpone_before = soon
         return due
 
-    def postponable(self) -> tuple[AutopilotLink, float, float] | None:
+    def postponable(self) -> tuple[AutopilotLink, float, float, float, float] | None:
         """After a tick that returned a due from health thresholds: the active
         autopilot's link, the first of those thresholds a new message of it would not
-        postpone, and the age of its last message at which the first one it would falls
-        (the late or silent stream). The reader's fast path waits for that age past the
-        active autopilot's latest frame instead of waking at the due while frames come
-        (roost_agent.fastpath). None: the due is the arbiter's, not a threshold's.
+        postpone, the age of its last message at which the first one it would falls
+        (the late or silent stream), and frozen telemetry's threshold with the age of
+        its last ``time_boot_ms`` advance at which it falls. The reader's fast path
+        waits for those ages past the active autopilot's latest frames instead of waking
+        at the due while frames come (roost_agent.fastpath). None: the due is the
+        arbiter's, not a threshold's.
         Worked out when asked (on the reader thread, before it waits), not at every tick:
         only the fast path asks."""
         judged = self._due_from
@@ -582,19 +591,19 @@ class Agent(Actions, SpecChanges):
         active = cfg.links.get(self._state.active)
         if active is None:
             return None
-        fixed, age = self._postpone_before, math.inf
+        fixed, age, frozen, frozen_age = self._postpone_before, math.inf, math.inf, math.inf
         for name, link in cfg.links.items():
             last = assessments.get(name)
             if last is None:
                 return None
             tracker = link.tracker
             if link is active:
-                own, age = tracker.postponed_by_messages(last)
+                own, age, frozen, frozen_age = tracker.postponed_by_messages(last)
                 fixed = min(fixed, own + JUDGE_LATE_S)
             else:
                 later = tracker.holds_until(last) if holding else tracker.next_threshold(last)
                 fixed = min(fixed, later + JUDGE_LATE_S)
-        return active, fixed, age + JUDGE_LATE_S
+        return active, fixed, age + JUDGE_LATE_S, frozen + JUDGE_LATE_S, frozen_age + JUDGE_LATE_S
 
     def tick(self) -> float | None:
         """One decision: assess, step the arbiter, switch first, then everything else.

@@ -31,7 +31,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Final, cast
 
-from roost_agent.health import RunState
+from roost_agent.health import STATE_FIELDS, RunState, StateHeld, held_fields
 from roost_agent.transport import recent_realtime_offset
 from roost_mavlink import AGENT_COMPONENT_ID
 from roost_mavlink.checked_messages import CHECKED_MESSAGES
@@ -131,10 +131,14 @@ PUMP: Final = _pump()
 class Due:
     """When the reader must wake unless the fast link's messages keep coming: ``in_s``
     from now, postponed by each routed datagram to its arrival plus ``age_s`` (negative:
-    never postponed)."""
+    never postponed); and, while runs are taken, ``frozen_in_s`` from now, postponed by
+    each routed frame whose ``time_boot_ms`` advances to its arrival plus
+    ``frozen_age_s`` (negative: none; frozen telemetry)."""
 
     in_s: float
     age_s: float
+    frozen_in_s: float = math.inf
+    frozen_age_s: float = -1.0
 
 
 NOT_POSTPONED: Final = Due(math.inf, -1.0)
@@ -182,7 +186,14 @@ def pump(
         route.bulk_fd,
         route.urgent_fd,
         wake_fds,
-        (timeout_s, due.in_s, due.age_s, recent_realtime_offset()),
+        (
+            timeout_s,
+            due.in_s,
+            due.age_s,
+            recent_realtime_offset(),
+            due.frozen_in_s,
+            due.frozen_age_s,
+        ),
         route.clients,
         route.locked,
         route.sysid,
@@ -210,8 +221,35 @@ HEARTBEAT_ID: Final = message("HEARTBEAT").id
 _ATTITUDE: Final = _attitude_offsets()
 
 
+def _state_layouts() -> dict[str, tuple[int, tuple[tuple[int, int], ...]]]:
+    """Per state kind (:data:`roost_agent.health.STATE_FIELDS`): its id and the payload
+    offset and size of each field the tracker reads (C compares them)."""
+    out = {}
+    for name, fields in STATE_FIELDS.items():
+        found = layout(message(name).id)
+        assert found is not None
+        where = tuple((found.scalars[f][0], found.scalars[f][1].size) for f in fields)
+        out[name] = (found.msg_id, where)
+    return out
+
+
+_STATE_LAYOUTS: Final = _state_layouts()
+
+
+def _states(held: StateHeld) -> tuple[tuple[int, tuple[tuple[int, int, int], ...]], ...]:
+    """The state kinds as C takes them: (id, ((offset, size, value held), ...)), ..."""
+    values = held_fields(held)
+    return tuple(
+        (
+            msg_id,
+            tuple((at, size, value) for (at, size), value in zip(where, values[name], strict=True)),
+        )
+        for name, (msg_id, where) in _STATE_LAYOUTS.items()
+    )
+
+
 def _run_rules(route: FastRoute, runs: RunState) -> tuple[object, ...]:
-    warn_deg, max_deg, tilt_class, gap_s, window_end, boot_max, backstep = runs
+    warn_deg, max_deg, tilt_class, gap_s, window_end, boot_max, backstep, held = runs
     attitude_id, roll_at, pitch_at = _ATTITUDE
     return (
         route.run_kinds,
@@ -222,4 +260,5 @@ def _run_rules(route: FastRoute, runs: RunState) -> tuple[object, ...]:
         window_end,
         boot_max,
         backstep,
+        _states(held),
     )

@@ -243,12 +243,47 @@ def tilt_degrees(roll: float, pitch: float) -> float:
     return math.degrees(math.acos(max(-1.0, min(1.0, cos_tilt))))
 
 
-RunState = tuple[float, float, int, float, float, int, int]
+StateHeld = tuple[int, int, int, str, int]
+"""What the tracker holds of the kinds it reads a state from (:data:`STATE_KINDS`): the
+sensors enabled and healthy (SYS_STATUS), the landed state (EXTENDED_SYS_STATE), and the
+estimator's kind and flags (ESTIMATOR_STATUS or EKF_STATUS_REPORT); -1 and "": none yet."""
+
+RunState = tuple[float, float, int, float, float, int, int, StateHeld]
 """:meth:`HealthTracker.run_state`: the tilt warn and envelope angles and the class of
 the last tilt (-1: none yet; 0 level, 1 past warn, 2 past the envelope), the silence
 threshold, when the rate window ends (its closing may learn another silence threshold:
 runs stop there until the state is asked again), the highest ``time_boot_ms`` (-1:
-none) and the step back in it that claims a reboot (ms)."""
+none), the step back in it that claims a reboot (ms), and the states held
+(:data:`StateHeld`: a frame of a state kind that repeats them may join a run)."""
+
+Postponable = tuple[float, float, float, float]
+""":meth:`HealthTracker.postponed_by_messages`: the first threshold no new message
+postpones, the age of the last message at which the first one a new message postpones
+falls, frozen telemetry's first threshold, and the age of the last advance of
+``time_boot_ms`` at which it falls."""
+
+STATE_FIELDS: Final[dict[str, tuple[str, ...]]] = {
+    "SYS_STATUS": ("onboard_control_sensors_enabled", "onboard_control_sensors_health"),
+    "EXTENDED_SYS_STATE": ("landed_state",),
+    "ESTIMATOR_STATUS": ("flags",),
+    "EKF_STATUS_REPORT": ("flags",),
+}
+"""The kinds the tracker reads a state from (:data:`StateHeld`), with the fields it
+reads. Only a change matters: a frame whose fields repeat the state held changes nothing
+when read, so it may join a run (:meth:`HealthTracker.observe_run`) as a routine frame
+does."""
+
+
+def held_fields(held: StateHeld) -> dict[str, tuple[int, ...]]:
+    """Per kind of :data:`STATE_FIELDS`, the values held of its fields, in order (-1:
+    none yet; the estimator's flags only for the kind they came from)."""
+    enabled, health, landed, estimator, flags = held
+    return {
+        "SYS_STATUS": (enabled, health),
+        "EXTENDED_SYS_STATE": (landed,),
+        "ESTIMATOR_STATUS": (flags if estimator == "ESTIMATOR_STATUS" else -1,),
+        "EKF_STATUS_REPORT": (flags if estimator == "EKF_STATUS_REPORT" else -1,),
+    }
 
 
 @dataclass(frozen=True)
@@ -449,6 +484,7 @@ class HealthTracker:
                 o.window_start + RATE_WINDOW_S,
                 -1 if o.boot_ms_max is None else o.boot_ms_max,
                 REBOOT_BACKSTEP_MS,
+                _state_held(o),
             )
 
     def observe_run(self, run: ObservedRun) -> bool:
@@ -556,7 +592,9 @@ class HealthTracker:
         read = _READERS.get(kind)
         if read is not None:
             changed = read(self, msg, now) or changed
-        if judged and _judged(o, th) != before:
+        if judged and not silence_ended and _judged(o, th) != before:
+            # (a silence that ended has moved the version already: once is enough, and
+            # a run, which compares nothing, moves it by that alone)
             o.version += 1
         return changed or silence_ended
 
@@ -766,19 +804,22 @@ class HealthTracker:
         with self._lock:
             return _next_threshold(self._o, self.thresholds, judged.at)
 
-    def postponed_by_messages(self, judged: Assessment) -> tuple[float, float]:
+    def postponed_by_messages(self, judged: Assessment) -> Postponable:
         """:meth:`next_threshold` split for a reader that watches arrivals itself (the
-        hub's fast path, :mod:`roost_agent.fastpath`): (the first threshold no new
-        message postpones, the age of the last message at which the first one a new
-        message postpones falls; infinity where there is none). Each message postpones
-        the second one to its own arrival plus that age."""
+        hub's fast path, :mod:`roost_agent.fastpath`), infinity where there is none:
+        :data:`Postponable`. Each message postpones the first threshold on the last
+        message's age to its own arrival plus that age; each message whose
+        ``time_boot_ms`` advances postpones frozen telemetry's likewise."""
         with self._lock:
             o = self._o
-            ages, fixed = _threshold_times(o, self.thresholds)
+            ages, frozen, fixed = _threshold_times(o, self.thresholds)
             first_age = _first_after(ages, judged.at)
             last_at = o.last_at
             age = math.inf if last_at is None else first_age - last_at
-            return _first_after(fixed, judged.at), age
+            first_frozen = _first_after(frozen, judged.at)
+            advanced_at = o.boot_advanced_at
+            frozen_age = math.inf if advanced_at is None else first_frozen - advanced_at
+            return _first_after(fixed, judged.at), age, first_frozen, frozen_age
 
     @property
     def claim_pending(self) -> bool:
@@ -980,8 +1021,8 @@ def _next_threshold(o: _Observed, th: Thresholds, after: float) -> float:
     appear, go or change level with nothing new observed (see
     :meth:`HealthTracker.holds`): every threshold of :func:`_findings`. Thresholds passed
     by then were part of that judgement; one within float rounding of it still counts."""
-    ages, fixed = _threshold_times(o, th)
-    return _first_after([*ages, *fixed], after)
+    ages, frozen, fixed = _threshold_times(o, th)
+    return _first_after([*ages, *frozen, *fixed], after)
 
 
 def _first_after(times: list[float], after: float) -> float:
@@ -989,11 +1030,12 @@ def _first_after(times: list[float], after: float) -> float:
     return min(upcoming) - _RECHECK_EARLY_S if upcoming else math.inf
 
 
-def _threshold_times(o: _Observed, th: Thresholds) -> tuple[list[float], list[float]]:
+def _threshold_times(o: _Observed, th: Thresholds) -> tuple[list[float], list[float], list[float]]:
     """The thresholds of :func:`_next_threshold`: those a new message postpones (the
-    last message's age: late, silent) and the others."""
+    last message's age: late, silent), frozen telemetry's (a message whose
+    ``time_boot_ms`` advances postpones it) and the others."""
     if o.last_at is None or o.first_at is None:
-        return [], []  # "no data" lasts until a message comes (a new version)
+        return [], [], []  # "no data" lasts until a message comes (a new version)
     fast = _fast_stream(o, th)
     silence_s = _silence_s(o, th)
     if fast:
@@ -1001,13 +1043,14 @@ def _threshold_times(o: _Observed, th: Thresholds) -> tuple[list[float], list[fl
     else:
         ages = [o.last_at + th.heartbeat_error_ms / 1000]
     times: list[float] = []
+    frozen: list[float] = []
     if o.heartbeat_at is not None:
         times.append(o.heartbeat_at + th.heartbeat_warn_ms / 1000)
     else:
         times.append(o.first_at + th.heartbeat_error_ms / 1000)
     if o.boot_advanced_at is not None:
         limit_ms = th.message_error_ms if fast else th.heartbeat_error_ms
-        times.append(o.boot_advanced_at + limit_ms / 1000)
+        frozen.append(o.boot_advanced_at + limit_ms / 1000)
     if o.reboot_at is not None:
         times.append(o.reboot_at + REBOOT_REMEMBERED_S)
     persist_s = th.sensor_persist_ms / 1000
@@ -1016,7 +1059,32 @@ def _threshold_times(o: _Observed, th: Thresholds) -> tuple[list[float], list[fl
         times.append(o.estimator_bad_since + persist_s)
     if o.tilt_over_since is not None:
         times.append(o.tilt_over_since + TILT_PERSIST_S)
-    return ages, times
+    return ages, frozen, times
+
+
+def _state_held(o: _Observed) -> StateHeld:
+    """What a frame of a state kind must say to change nothing when read (-1: any frame
+    may change something: nothing held yet, or something read from it was forgotten
+    since, as a reboot forgets that the estimator ever worked)."""
+    landed = o.landed_state
+    if landed is None or (landed == MavLandedState.ON_GROUND and o.disarmed_in_air_at is not None):
+        landed = -1
+    flags = o.estimator_flags
+    if flags is not None:
+        bad = _estimator_attitude_bad(o.estimator_kind, flags)
+        if (
+            (o.estimator_bad_since is None) == bad
+            or (not bad and not o.estimator_ever_ok)
+            or (flags & ESTIMATOR_POS_HORIZ_ABS and not o.position_ever_ok)
+        ):
+            flags = None
+    return (
+        -1 if o.sensors_enabled is None else o.sensors_enabled,
+        -1 if o.sensors_health is None else o.sensors_health,
+        landed,
+        o.estimator_kind,
+        -1 if flags is None else flags,
+    )
 
 
 def _newly_fatal(status: int, previous: int | None) -> bool:

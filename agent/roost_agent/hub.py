@@ -62,6 +62,7 @@ from typing import Any, Final, Protocol
 from roost_agent.fastpath import PUMP, FastRoute, routine_bitmap
 from roost_agent.health import LATEST_ONLY_KINDS as HEALTH_LATEST_ONLY_KINDS
 from roost_agent.health import READ_KINDS as HEALTH_READ_KINDS
+from roost_agent.health import STATE_FIELDS as HEALTH_STATE_FIELDS
 from roost_agent.hub_policy import (
     ACCEPT,
     COMMAND_INT_ID,
@@ -136,9 +137,14 @@ ROUTINE: Final = routine_bitmap(READ_KINDS | LINK_READ_KINDS | HEALTH_READ_KINDS
 LATEST_ONLY_KINDS: Final = frozenset({"GLOBAL_POSITION_INT"})
 """Of :data:`READ_KINDS`, those of which the hub keeps only the latest (a snapshot)."""
 _KEPT_KINDS: Final = LATEST_ONLY_KINDS | HEALTH_LATEST_ONLY_KINDS
-RUN_KINDS: Final = routine_bitmap((READ_KINDS | LINK_READ_KINDS | HEALTH_READ_KINDS) - _KEPT_KINDS)
+RUN_KINDS: Final = routine_bitmap(
+    (READ_KINDS | LINK_READ_KINDS | HEALTH_READ_KINDS)
+    - _KEPT_KINDS
+    - frozenset(HEALTH_STATE_FIELDS)
+)
 """The message ids whose routed frames may be taken as a run (:mod:`roost_agent.fastpath`):
-the routine ones, and those of which the hub and the tracker read only the latest."""
+the routine ones, those of which the hub and the tracker read only the latest, and the
+tracker's state kinds (a frame joins while it repeats the state held)."""
 KEPT_IDS: Final = tuple(sorted(message(name).id for name in _KEPT_KINDS))
 """The message ids whose last frame in a run Python reads whole."""
 SELECT_WAIT_S = 1.0  # the hub thread's longest sleep: clients expire after 30 s; stop wakes it

@@ -116,7 +116,13 @@ def _no_route() -> FastRoute | None:
     return None
 
 
-def _no_split() -> tuple[object, float, float] | None:
+Split = tuple[object, float, float, float, float]
+"""After a tick (``Agent.postponable``): the link whose message age the tick's due is (or
+may be), the first due no message postpones, that age, frozen telemetry's due and the
+age of the last ``time_boot_ms`` advance at which it falls."""
+
+
+def _no_split() -> Split | None:
     return None
 
 
@@ -148,11 +154,10 @@ class LinkReader:
         self.hurry = hurry
         # While hurried, the hub's route for the fast path (roost_agent.fastpath), if any.
         self.fast_route: Callable[[], FastRoute | None] = _no_route
-        # After a tick: the link whose message age the tick's due is (or may be), the
-        # first due no message postpones, and that age (Agent.postponable).
-        self.postponable: Callable[[], tuple[object, float, float] | None] = _no_split
+        self.postponable: Callable[[], Split | None] = _no_split
         self._postponed_due = math.nan  # the next tick when it is the tick's own due
         self._periodic_tick = math.nan  # the next tick the read interval alone sets
+        self._tick_due = math.inf  # when the last tick said it is next due (inf: never)
         self.batch_s = batch_s
         self._name = name
         self._selector = Poller()
@@ -177,24 +182,32 @@ class LinkReader:
         self._stopping = False
         self._serving_thread: threading.Thread | None = None
         self._tick: Callable[[], float | None] | None = None
-        self._tick_s = self._short_tick_s = self._steered_tick_s = 0.0
+        self._tick_s = self._short_tick_s = self._steered_tick_s = self._routed_tick_s = 0.0
+        self._steered = False
         self._urgent = False
         # When (time.monotonic) the last read of every link began: what had arrived by
         # then has been read (the ticking loop only).
         self._read_at = -math.inf
 
     def drive(
-        self, tick: Callable[[], float | None], tick_s: float, steered_tick_s: float | None = None
+        self,
+        tick: Callable[[], float | None],
+        tick_s: float,
+        steered_tick_s: float | None = None,
+        routed_tick_s: float | None = None,
     ) -> None:
         """Run ``tick`` on the reader thread every ``tick_s`` (and at once when :meth:`poke`
         d), right after reading: the agent's decision loop. Every datagram that arrived by
         then is read first, so one wake-up per tick serves reading and deciding. ``tick``
         returns when (``time.monotonic``) it is next due sooner than that, if it is.
         While every link read is steered (an urgent socket wakes the reader for what must
-        be read at once: :mod:`roost_agent.steering`), the interval is ``steered_tick_s``.
+        be read at once: :mod:`roost_agent.steering`), the interval is ``steered_tick_s``;
+        while, besides, the hub's fast path takes the active autopilot's stream in runs
+        (and so returns at once with whatever Python must read whole), ``routed_tick_s``.
         Call before :meth:`start`."""
         self._tick, self._short_tick_s = tick, tick_s
         self._steered_tick_s = tick_s if steered_tick_s is None else steered_tick_s
+        self._routed_tick_s = self._steered_tick_s if routed_tick_s is None else routed_tick_s
         self._tick_s = tick_s
 
     @property
@@ -285,6 +298,7 @@ class LinkReader:
     def _choose_interval(self) -> None:
         sessions = self._sessions.values()
         steered = bool(sessions) and all(s.urgent_fd is not None for s in sessions)
+        self._steered = steered
         self._tick_s = self._steered_tick_s if steered else self._short_tick_s
 
     def _wake(self) -> None:
@@ -404,18 +418,36 @@ class LinkReader:
         When the tick is due for the fast link's message age (a late or silent stream),
         C keeps postponing it while that link's frames come, so a stream that flows wakes
         the reader at the read interval only, and a silence at the moment it falls due;
-        every other deadline (timers, the read interval, thresholds no message
-        postpones) stays as it was."""
+        while C takes runs, frozen telemetry's due likewise with each frame whose
+        ``time_boot_ms`` advances. Every other deadline (timers, the read interval,
+        thresholds no message postpones) stays as it was. While C takes runs and every
+        link is steered, the read interval is the routed one: C returns at once with
+        whatever Python must read whole."""
         session = route.session
         now = time.monotonic()
+        link = session.link
+        runs = link.run_state() if link is not None else None
+        periodic = self._periodic_tick
+        timers = self._timers
+        timer_at = timers[0][0] if timers else math.inf
+        if (
+            runs is not None
+            and self._steered
+            and timeout > 0
+            and next_tick in (periodic, self._postponed_due)
+        ):
+            periodic += self._routed_tick_s - self._tick_s
+            next_tick = min(periodic, self._tick_due)
+            timeout = max(0.0, min(timer_at, now + READ_WAIT_S, next_tick) - now)
         due = NOT_POSTPONED
-        split = self.postponable() if next_tick == self._postponed_due and timeout > 0 else None
+        split = self.postponable() if next_tick == self._tick_due and timeout > 0 else None
         if split is not None and split[0] is session.link and math.isfinite(split[2]):
-            _, fixed, age = split
-            timers = self._timers
-            timer_at = timers[0][0] if timers else math.inf
-            hard = min(timer_at, now + READ_WAIT_S, self._periodic_tick, fixed)
-            due = Due(next_tick - now, age)
+            _, fixed, age, frozen, frozen_age = split
+            if runs is None or not math.isfinite(frozen_age):
+                # C moves frozen telemetry's due only while it takes runs
+                fixed, frozen, frozen_age = min(fixed, frozen), math.inf, -1.0
+            hard = min(timer_at, now + READ_WAIT_S, periodic, fixed)
+            due = Due(next_tick - now, age, frozen - now, frozen_age)
             timeout = max(0.0, hard - now)
         urgent_ok = now >= self._urgent_quiet_until
         wake = [self._wake_r.fileno()]
@@ -425,8 +457,6 @@ class LinkReader:
                 for s in self._sessions.values()
                 if s is not session and s.urgent_fd is not None
             )
-        link = session.link
-        runs = link.run_state() if link is not None else None
         try:
             items, _ = pump(
                 route,
@@ -489,6 +519,7 @@ class LinkReader:
                 now = time.monotonic()
                 next_tick = self._periodic_tick = now + self._tick_s
                 self._postponed_due = math.nan
+                self._tick_due = math.inf if due is None else due
                 if due is not None and now < due < next_tick:
                     next_tick = self._postponed_due = due
                 elif due is not None and due <= now:

@@ -17,13 +17,15 @@ and, switched back, the first one's again.
 
 from __future__ import annotations
 
+import math
 import socket
 import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime
-from typing import Any
+from types import SimpleNamespace
+from typing import Any, cast
 
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
@@ -31,8 +33,10 @@ from pymavlink.dialects.v20 import common as mavlink
 from roost_agent import Agent
 from roost_agent import hub as hub_module
 from roost_agent.bridge import SimulatedBridge
-from roost_agent.fastpath import PUMP
+from roost_agent.fastpath import PUMP, RUN_FIELDS, FastRoute, _run_rules
+from roost_agent.health import REBOOT_BACKSTEP_MS, TILT_WARN_DEG
 from roost_agent.link import AutopilotLink
+from roost_agent.transport import SO_TIMESTAMPNS, recent_realtime_offset
 from roost_api.autopilot import (
     AutopilotCommand,
     CommandAction,
@@ -567,3 +571,149 @@ def test_runs_keep_what_the_health_model_and_the_hub_read(rig: Rig) -> None:
     )
     assert len(rig.client.frames(LOCAL_POSITION)) == sent["LOCAL_POSITION_NED"]
     assert (hub.counters.routed_in_c > 0) == hub.fast
+
+
+# -- the C call itself: what ends it at once while runs are taken ---------------------
+
+HELD_SENSORS = 0x2F  # enabled and healthy, as the tracker holds them in these rows
+LANDED_IN_AIR = mavlink.MAV_LANDED_STATE_IN_AIR
+GOOD_ESTIMATOR = mavlink.ESTIMATOR_ATTITUDE
+CALL_TIMEOUT_S = 3.0
+
+
+def _state_frames(mav: mavlink.MAVLink, health: int, landed: int, flags: int) -> list[bytes]:
+    return [
+        bytes(
+            mavlink.MAVLink_sys_status_message(
+                HELD_SENSORS, HELD_SENSORS, health, 500, 12000, 1000, 80, 0, 0, 0, 0, 0, 0
+            ).pack(mav)
+        ),
+        bytes(mavlink.MAVLink_extended_sys_state_message(0, landed).pack(mav)),
+        bytes(
+            mavlink.MAVLink_estimator_status_message(5_000_000, flags, 0, 0, 0, 0, 0, 0, 0, 0).pack(
+                mav
+            )
+        ),
+    ]
+
+
+NEWS: list[tuple[str, Callable[[mavlink.MAVLink, int], bytes] | None]] = [
+    ("nothing new: the states repeated", None),
+    (
+        "a sensor unhealthy",
+        lambda mav, _: _state_frames(mav, HELD_SENSORS & ~1, LANDED_IN_AIR, GOOD_ESTIMATOR)[0],
+    ),
+    (
+        "the landed state",
+        lambda mav, _: _state_frames(
+            mav, HELD_SENSORS, mavlink.MAV_LANDED_STATE_ON_GROUND, GOOD_ESTIMATOR
+        )[1],
+    ),
+    (
+        "the estimator's flags",
+        lambda mav, _: _state_frames(mav, HELD_SENSORS, LANDED_IN_AIR, 0)[2],
+    ),
+    (
+        "a tilt past the envelope",
+        lambda mav, boot: bytes(
+            mavlink.MAVLink_attitude_message(boot, 1.22, 0, 0, 0, 0, 0).pack(mav)
+        ),
+    ),
+    (
+        "a kind read whole (PARAM_VALUE)",
+        lambda mav, _: bytes(
+            mavlink.MAVLink_param_value_message(b"MPC_XY_VEL_MAX", 12.0, 9, 900, 3).pack(mav)
+        ),
+    ),
+    (
+        "a HEARTBEAT",
+        lambda mav, _: bytes(mavlink.MAVLink_heartbeat_message(2, 12, 0x81, 0, 4, 3).pack(mav)),
+    ),
+]
+
+
+@pytest.mark.skipif(PUMP is None, reason="the C extension is not built")
+@pytest.mark.parametrize(("what", "news"), NEWS, ids=[row[0] for row in NEWS])
+def test_while_runs_are_taken_news_ends_the_c_call_at_once(
+    what: str, news: Callable[[mavlink.MAVLink, int], bytes] | None
+) -> None:
+    """Decision table, one C call per row over real UDP: while runs are taken the read
+    interval is long (``agent.ROUTED_TICK_S``), so whatever Python reads whole must end
+    the call when it arrives. Attitude and the state kinds repeating the states held
+    join one run and wait for the call's timeout; a state that changed, a tilt class
+    that changed, a kind read whole or a HEARTBEAT ends the call at once, read whole
+    after the run before it."""
+    assert PUMP is not None
+    autopilot = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)  # also the hub's client
+    link = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sockets = (autopilot, link)
+    for s in sockets:
+        s.bind(("127.0.0.1", 0))
+    link.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    held = (HELD_SENSORS, HELD_SENSORS, LANDED_IN_AIR, "ESTIMATOR_STATUS", GOOD_ESTIMATOR)
+    state = (
+        TILT_WARN_DEG,
+        60.0,
+        0,
+        0.5,
+        time.monotonic() + 100,
+        1000,
+        REBOOT_BACKSTEP_MS,
+        held,
+    )
+    route = cast(
+        FastRoute, SimpleNamespace(run_kinds=hub_module.RUN_KINDS, kept_ids=hub_module.KEPT_IDS)
+    )
+    result: list[Any] = []
+
+    def call() -> None:
+        started = time.monotonic()
+        items, _, _ = PUMP(
+            link.fileno(),
+            -1,
+            [],
+            (CALL_TIMEOUT_S, math.inf, -1.0, recent_realtime_offset(), math.inf, -1.0),
+            [(link.fileno(), autopilot.getsockname())],
+            autopilot.getsockname(),
+            1,
+            1,
+            AGENT_COMPONENT,
+            False,
+            True,
+            [],
+            256,
+            hub_module.ROUTINE,
+            _run_rules(route, state),
+        )
+        result.append((time.monotonic() - started, items))
+
+    thread = threading.Thread(target=call)
+    thread.start()
+    try:
+        boot = 2000
+        for _ in range(3):
+            for frame in [
+                bytes(mavlink.MAVLink_attitude_message(boot, 0.01, 0, 0, 0, 0, 0).pack(mav)),
+                *_state_frames(mav, HELD_SENSORS, LANDED_IN_AIR, GOOD_ESTIMATOR),
+            ]:
+                autopilot.sendto(frame, link.getsockname())
+                boot += 4
+                time.sleep(0.002)
+        sent = None if news is None else news(mav, boot)
+        if sent is not None:
+            autopilot.sendto(sent, link.getsockname())
+        thread.join(CALL_TIMEOUT_S + 5)
+        [(took, items)] = result
+    finally:
+        for s in sockets:
+            s.close()
+    assert len(items[0]) == RUN_FIELDS, what  # the twelve frames before, one run
+    assert items[0][3] == 12, what
+    if sent is None:
+        assert len(items) == 1, what
+        assert took >= CALL_TIMEOUT_S * 0.9, what  # nothing ended it: the timeout did
+    else:
+        data, _, _, routed, summary = items[1]
+        assert (data, routed, summary) == (sent, True, None), what  # read whole, routed
+        assert took < CALL_TIMEOUT_S / 2, what  # it ended when the news came

@@ -18,10 +18,12 @@ from pymavlink.dialects.v20 import ardupilotmega as mav
 from roost_agent.health import (
     LATEST_ONLY_KINDS,
     READ_KINDS,
+    STATE_FIELDS,
     TILT_WARN_DEG,
     Assessment,
     HealthTracker,
     ObservedRun,
+    held_fields,
     tilt_degrees,
 )
 from roost_api.autopilot import (
@@ -171,7 +173,8 @@ def two_px4_spec(first_port: int, thresholds: Thresholds | None = None) -> Redun
     )
 
 
-_RUN_KINDS_READ = READ_KINDS - LATEST_ONLY_KINDS  # what never joins a run (read whole)
+# what never joins a run (read whole); a state kind joins while it repeats the state held
+_RUN_KINDS_READ = READ_KINDS - LATEST_ONLY_KINDS - frozenset(STATE_FIELDS)
 
 
 class RunModel:
@@ -180,9 +183,10 @@ class RunModel:
     :meth:`flush` calls (two returns of the C call) frames join a run while
     :meth:`HealthTracker.run_state` allowed runs at the first of them, and go whole
     (:meth:`HealthTracker.observe`) otherwise, ending the run before them; a run also
-    ends before a gap of the silence threshold; the frame that closes the rate window,
-    a HEARTBEAT or a step back in ``time_boot_ms`` ends runs until the flush;
-    an ATTITUDE whose tilt class changes goes whole."""
+    ends before a gap of the silence threshold. A HEARTBEAT, a step back in
+    ``time_boot_ms``, an ATTITUDE whose tilt class changes and a frame of a state kind
+    that does not repeat the state held go whole; whatever goes whole while runs are
+    taken, and the frame that closes the rate window, end the C call (a flush)."""
 
     def __init__(self, tracker: HealthTracker) -> None:
         self.tracker = tracker
@@ -192,16 +196,17 @@ class RunModel:
 
     def _tilt_class(self, msg: Any) -> int:
         assert self.state is not None
-        _, max_deg, _, _, _, _, _ = self.state
+        max_deg = self.state[1]
         tilt = tilt_degrees(float(msg.roll), float(msg.pitch))
         return 2 if tilt > max_deg else 1 if tilt > min(TILT_WARN_DEG, max_deg) else 0
 
     def take(self, msg: Any, at: float) -> bool:
         if self.state is None:
             return self.tracker.observe(msg, at)
-        warn, max_deg, tilt_class, gap, window_end, boot_high, backstep = self.state
+        warn, max_deg, tilt_class, gap, window_end, boot_high, backstep, held = self.state
         kind, boot = msg.get_type(), msg.boot_time()
-        joins = self.running
+        running = self.running
+        joins = running
         if self.running:
             if kind == "HEARTBEAT":
                 self.running = joins = False
@@ -211,8 +216,16 @@ class RunModel:
                 boot_high = max(boot_high, boot)
             if kind == "ATTITUDE":
                 now_class = self._tilt_class(msg)
-                joins = joins and now_class == tilt_class
+                if now_class != tilt_class:
+                    self.running = joins = False
                 tilt_class = now_class
+            fields = STATE_FIELDS.get(kind)
+            if fields is not None:
+                said = tuple(int(getattr(msg, f)) for f in fields)
+                if said != held_fields(held)[kind]:
+                    self.running = joins = False
+                elif at >= window_end:
+                    joins = False  # whole: the window's close is judged before and after
             joins = joins and kind not in _RUN_KINDS_READ
         changed = False
         if joins:
@@ -222,13 +235,11 @@ class RunModel:
         else:
             changed = self._close()
             changed = self.tracker.observe(msg, at) or changed
-        if self.running and at >= window_end:
-            # the rate window closes at this frame and may learn another silence
-            # threshold: runs stop until the flush
-            self.running = False
-            if joins:
-                changed = self._close() or changed
-        self.state = (warn, max_deg, tilt_class, gap, window_end, boot_high, backstep)
+        self.state = (warn, max_deg, tilt_class, gap, window_end, boot_high, backstep, held)
+        if running and (not joins or at >= window_end):
+            # what goes whole is read at once, and the rate window closes at this frame
+            # and may learn another silence threshold: the C call returns
+            changed = self.flush() or changed
         return changed
 
     def flush(self) -> bool:

@@ -806,6 +806,12 @@ RUN_STEP = st.tuples(
             "boot-state",
             "critical",
             "gyro",
+            "sensors",
+            "landed",
+            "airborne",
+            "estimator-bad",
+            "estimator-good",
+            "state-burst",
             "nothing",
         ]
     ),
@@ -846,6 +852,21 @@ def _run_action(v: Vehicle, action: str) -> None:
             _burst(v, [routine] * 8 + [level] * 4, 0.03) or _burst(v, [routine, level], 0.08)
         ),
         "position": lambda: _moving(v),
+        # the state kinds repeated among the bulk (each joins a run while it repeats
+        # what the tracker holds)
+        "state-burst": lambda: _burst(
+            v,
+            [
+                level,
+                v.sys_status,
+                routine,
+                v.landed,
+                lambda: _estimator(v, GOOD_ESTIMATOR),
+                level,
+            ]
+            * 5,
+            0.004,
+        ),
     }
     burst = bursts.get(action)
     if burst is not None:
@@ -866,11 +887,12 @@ def test_runs_taken_together_are_judged_as_their_frames_one_by_one(
     thresholds: Thresholds, steps: list[tuple[float, str]]
 ) -> None:
     """The hub's fast path hands the tracker the bulk of the stream as runs
-    (``observe_run``: routine kinds, and ATTITUDE and GLOBAL_POSITION_INT of which the
-    last counts), ended by the C rules (tests/support/feed.py ``RunModel``: before a
-    gap of the silence threshold, at the frame that closes a rate window, before a frame
-    read whole; a tilt class change, a step back in ``time_boot_ms`` and a HEARTBEAT go
-    whole). The same flight, silences, rate windows, tilts, reboots and their claims
+    (``observe_run``: routine kinds, ATTITUDE and GLOBAL_POSITION_INT of which the last
+    counts, and the state kinds while they repeat the state held), ended by the C rules
+    (tests/support/feed.py ``RunModel``: before a gap of the silence threshold, at the
+    frame that closes a rate window, before a frame read whole; a tilt class change, a
+    state that changes, a step back in ``time_boot_ms`` and a HEARTBEAT go whole and end
+    the C call). The same flight, silences, rate windows, tilts, reboots and their claims
     included, leaves the same observations and judgements as every frame observed
     whole."""
     whole = Vehicle(thresholds=thresholds, codec=True)
@@ -1036,7 +1058,8 @@ def test_the_first_message_after_a_silence_tells_the_decision_loop() -> None:
 
 
 # What the hub's fast path postpones (roost_agent.fastpath): the thresholds on the last
-# message's age move with each message; no other threshold does.
+# message's age move with each message, frozen telemetry's with each message whose
+# time_boot_ms advances; no other threshold does.
 def _frozen_for(v: Vehicle, seconds: float) -> float:
     """Messages keep coming for ``seconds``, their time_boot_ms stuck; the last one's time."""
     for _ in range(round(seconds * 50)):
@@ -1046,32 +1069,37 @@ def _frozen_for(v: Vehicle, seconds: float) -> float:
 
 
 POSTPONE_TABLE: list[tuple[str, Callable[[Vehicle], float | None], float]] = [
-    # (what, then, the first threshold no message postpones, after the last time_boot_ms
-    #  advance: frozen telemetry at 500 ms)
+    # (what, then, frozen telemetry's threshold after the last time_boot_ms advance)
     ("a healthy fast stream", lambda _: None, 0.5),
-    ("frozen for 200 ms: messages do not postpone it", lambda v: _frozen_for(v, 0.2), 0.5),
+    (
+        "frozen for 200 ms: messages that do not advance do not postpone it",
+        lambda v: _frozen_for(v, 0.2),
+        0.5,
+    ),
 ]
 
 
 @pytest.mark.parametrize(
-    ("what", "then", "fixed_after"), POSTPONE_TABLE, ids=[r[0] for r in POSTPONE_TABLE]
+    ("what", "then", "frozen_after"), POSTPONE_TABLE, ids=[r[0] for r in POSTPONE_TABLE]
 )
 def test_only_the_thresholds_on_the_last_messages_age_are_postponed_by_messages(
-    what: str, then: Callable[[Vehicle], float | None], fixed_after: float
+    what: str, then: Callable[[Vehicle], float | None], frozen_after: float
 ) -> None:
     v = Vehicle()
     v.fly(2.0)
     advanced = v.t - 1 / 50  # the last ATTITUDE of the flight, its time_boot_ms advancing
     last = then(v) or advanced
     judged = v.tracker.assess(v.t)
-    fixed, age = v.tracker.postponed_by_messages(judged)
+    fixed, age, frozen, frozen_age = v.tracker.postponed_by_messages(judged)
     assert age == pytest.approx(0.2, abs=1e-5), what  # late: 200 ms after the last message
-    assert fixed - advanced == pytest.approx(fixed_after, abs=1e-5), what
+    assert frozen - advanced == pytest.approx(frozen_after, abs=1e-5), what
+    assert frozen_age == pytest.approx(frozen_after, abs=1e-5), what
+    assert fixed > frozen, what  # the heartbeat's thresholds, later here
     # together they are the next threshold
-    assert v.tracker.next_threshold(judged) == pytest.approx(min(fixed, last + age)), what
+    assert v.tracker.next_threshold(judged) == pytest.approx(min(fixed, last + age, frozen)), what
 
 
 def test_a_tracker_without_messages_postpones_nothing() -> None:
     v = Vehicle()
     judged = v.tracker.assess(1.0)
-    assert v.tracker.postponed_by_messages(judged) == (math.inf, math.inf)
+    assert v.tracker.postponed_by_messages(judged) == (math.inf,) * 4
