@@ -570,7 +570,9 @@ static PyObject *summarise(const long long *summary, int count) {
  * and after it, and the window's close may change whether the stream counts as fast).
  *
  * Whatever stops runs also ends the call: Python reads it at once, so no fact waits for
- * the read interval, and the next call takes runs again from the tracker's new state.
+ * the read interval, and the next call takes runs again from the tracker's new state
+ * (but an urgent datagram while ``urgent_returns`` is false waits, as it always did:
+ * the caller then waits no longer than the steered read interval).
  *
  * rules: (kinds bitmap, (kept ids...), heartbeat id, (attitude id, roll at, pitch at,
  *         warn_deg, max_deg, tilt_class), gap_limit_s, window_end, boot_max,
@@ -1156,6 +1158,10 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                     continue;
                 }
                 int sent = 0, in_run = 0;
+                /* an urgent datagram while urgent ones may not end the call (the short
+                 * interval after an early return: a flood of them wakes no one more
+                 * often than the unhurried reader wakes) */
+                int held_back = e->urgent && !urgent_returns;
                 PyObject *summarised = NULL;
                 int from_locked = e->sender == locked_obj && locked_obj != Py_None;
                 double arrived = isnan(e->stamp) ? monotonic() : e->stamp - offset;
@@ -1178,7 +1184,7 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                             int joins = joins_run(&runs, d, count, starts, summary, arrived,
                                                   &boot_high, &stop);
                             running = !stop;
-                            if (stop) {
+                            if (stop && !held_back) {
                                 done = 1; /* Python reads what stopped them at once */
                             }
                             if (joins && !(e->urgent && urgent_returns)) {
@@ -1216,7 +1222,7 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                         done = 1;
                     }
                 }
-                if (!in_run && sent && runs.on) {
+                if (!in_run && sent && runs.on && !held_back) {
                     done = 1; /* while runs are taken, what Python reads whole is read now */
                 }
                 if (!in_run) {

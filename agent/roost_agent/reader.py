@@ -422,7 +422,8 @@ class LinkReader:
         ``time_boot_ms`` advances. Every other deadline (timers, the read interval,
         thresholds no message postpones) stays as it was. While C takes runs and every
         link is steered, the read interval is the routed one: C returns at once with
-        whatever Python must read whole."""
+        whatever Python must read whole (but for the short interval after an early
+        return, when urgent datagrams wait, as does the read, for the steered one)."""
         session = route.session
         now = time.monotonic()
         link = session.link
@@ -430,9 +431,11 @@ class LinkReader:
         periodic = self._periodic_tick
         timers = self._timers
         timer_at = timers[0][0] if timers else math.inf
+        urgent_ok = now >= self._urgent_quiet_until
         if (
             runs is not None
             and self._steered
+            and urgent_ok
             and timeout > 0
             and next_tick in (periodic, self._postponed_due)
         ):
@@ -449,7 +452,6 @@ class LinkReader:
             hard = min(timer_at, now + READ_WAIT_S, periodic, fixed)
             due = Due(next_tick - now, age, frozen - now, frozen_age)
             timeout = max(0.0, hard - now)
-        urgent_ok = now >= self._urgent_quiet_until
         wake = [self._wake_r.fileno()]
         if urgent_ok:
             wake.extend(
