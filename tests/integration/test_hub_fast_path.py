@@ -632,17 +632,15 @@ NEWS: list[tuple[str, Callable[[mavlink.MAVLink, int], bytes] | None]] = [
 ]
 
 
-@pytest.mark.skipif(PUMP is None, reason="the C extension is not built")
-@pytest.mark.parametrize(("what", "news"), NEWS, ids=[row[0] for row in NEWS])
-def test_while_runs_are_taken_news_ends_the_c_call_at_once(
-    what: str, news: Callable[[mavlink.MAVLink, int], bytes] | None
-) -> None:
-    """Decision table, one C call per row over real UDP: while runs are taken the read
-    interval is long (``agent.ROUTED_TICK_S``), so whatever Python reads whole must end
-    the call when it arrives. Attitude and the state kinds repeating the states held
-    join one run and wait for the call's timeout; a state that changed, a tilt class
-    that changed, a kind read whole or a HEARTBEAT ends the call at once, read whole
-    after the run before it."""
+Sender = Callable[[Callable[[bytes], None], mavlink.MAVLink, Callable[[], bool]], None]
+
+
+def _call_c(send: Sender, frozen: tuple[float, float] = (math.inf, -1.0)) -> tuple[float, Any]:
+    """One C call (``CALL_TIMEOUT_S``) on a link socket over real UDP, taking runs with
+    the states above held, while ``send`` sends from the locked autopilot (given a way to
+    send a frame, the autopilot's encoder, and whether the call still runs); frozen
+    telemetry's deadline and age as the reader hands them over. How long the call took,
+    and what it returned."""
     assert PUMP is not None
     autopilot = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)  # also the hub's client
     link = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -650,22 +648,12 @@ def test_while_runs_are_taken_news_ends_the_c_call_at_once(
     for s in sockets:
         s.bind(("127.0.0.1", 0))
     link.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
-    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
     held = (HELD_SENSORS, HELD_SENSORS, LANDED_IN_AIR, "ESTIMATOR_STATUS", GOOD_ESTIMATOR)
-    state = (
-        TILT_WARN_DEG,
-        60.0,
-        0,
-        0.5,
-        time.monotonic() + 100,
-        1000,
-        REBOOT_BACKSTEP_MS,
-        held,
-    )
+    state = (TILT_WARN_DEG, 60.0, 0, 0.5, time.monotonic() + 100, 1000, REBOOT_BACKSTEP_MS, held)
     route = cast(
         FastRoute, SimpleNamespace(run_kinds=hub_module.RUN_KINDS, kept_ids=hub_module.KEPT_IDS)
     )
-    result: list[Any] = []
+    result: list[tuple[float, Any]] = []
 
     def call() -> None:
         started = time.monotonic()
@@ -673,7 +661,7 @@ def test_while_runs_are_taken_news_ends_the_c_call_at_once(
             link.fileno(),
             -1,
             [],
-            (CALL_TIMEOUT_S, math.inf, -1.0, recent_realtime_offset(), math.inf, -1.0),
+            (CALL_TIMEOUT_S, math.inf, -1.0, recent_realtime_offset(), *frozen),
             [(link.fileno(), autopilot.getsockname())],
             autopilot.getsockname(),
             1,
@@ -691,29 +679,81 @@ def test_while_runs_are_taken_news_ends_the_c_call_at_once(
     thread = threading.Thread(target=call)
     thread.start()
     try:
+        mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+        send(lambda frame: autopilot.sendto(frame, link.getsockname()), mav, thread.is_alive)
+        thread.join(CALL_TIMEOUT_S + 5)
+    finally:
+        for s in sockets:
+            s.close()
+    [outcome] = result
+    return outcome
+
+
+@pytest.mark.skipif(PUMP is None, reason="the C extension is not built")
+@pytest.mark.parametrize(("what", "news"), NEWS, ids=[row[0] for row in NEWS])
+def test_while_runs_are_taken_news_ends_the_c_call_at_once(
+    what: str, news: Callable[[mavlink.MAVLink, int], bytes] | None
+) -> None:
+    """Decision table, one C call per row over real UDP: while runs are taken the read
+    interval is long (``agent.ROUTED_TICK_S``), so whatever Python reads whole must end
+    the call when it arrives. Attitude and the state kinds repeating the states held
+    join one run and wait for the call's timeout; a state that changed, a tilt class
+    that changed, a kind read whole or a HEARTBEAT ends the call at once, read whole
+    after the run before it."""
+    sent: list[bytes] = []
+
+    def send(out: Callable[[bytes], None], mav: mavlink.MAVLink, _: Callable[[], bool]) -> None:
         boot = 2000
         for _ in range(3):
             for frame in [
                 bytes(mavlink.MAVLink_attitude_message(boot, 0.01, 0, 0, 0, 0, 0).pack(mav)),
                 *_state_frames(mav, HELD_SENSORS, LANDED_IN_AIR, GOOD_ESTIMATOR),
             ]:
-                autopilot.sendto(frame, link.getsockname())
+                out(frame)
                 boot += 4
                 time.sleep(0.002)
-        sent = None if news is None else news(mav, boot)
-        if sent is not None:
-            autopilot.sendto(sent, link.getsockname())
-        thread.join(CALL_TIMEOUT_S + 5)
-        [(took, items)] = result
-    finally:
-        for s in sockets:
-            s.close()
+        if news is not None:
+            sent.append(news(mav, boot))
+            out(sent[0])
+
+    took, items = _call_c(send)
     assert len(items[0]) == RUN_FIELDS, what  # the twelve frames before, one run
     assert items[0][3] == 12, what
-    if sent is None:
+    if not sent:
         assert len(items) == 1, what
         assert took >= CALL_TIMEOUT_S * 0.9, what  # nothing ended it: the timeout did
     else:
         data, _, _, routed, summary = items[1]
-        assert (data, routed, summary) == (sent, True, None), what  # read whole, routed
+        assert (data, routed, summary) == (sent[0], True, None), what  # read whole, routed
         assert took < CALL_TIMEOUT_S / 2, what  # it ended when the news came
+
+
+FROZEN_S = 0.3
+FROZEN = [("time_boot_ms advancing: moved past the call", 4, False), ("stuck: it falls", 0, True)]
+
+
+@pytest.mark.skipif(PUMP is None, reason="the C extension is not built")
+@pytest.mark.parametrize(("what", "step_ms", "falls"), FROZEN, ids=[row[0] for row in FROZEN])
+def test_while_runs_are_taken_c_moves_frozen_telemetrys_deadline(
+    what: str, step_ms: int, falls: bool
+) -> None:
+    """Decision table over real UDP: handed frozen telemetry's deadline (300 ms after the
+    last ``time_boot_ms`` advance), C moves it with each frame whose ``time_boot_ms``
+    advances, so a stream that advances keeps the call to its timeout; frames stuck at
+    one ``time_boot_ms`` keep coming but do not move it, and the call ends when it falls."""
+
+    def send(
+        out: Callable[[bytes], None], mav: mavlink.MAVLink, running: Callable[[], bool]
+    ) -> None:
+        boot = 2000
+        deadline = time.monotonic() + CALL_TIMEOUT_S + 1
+        while running() and time.monotonic() < deadline:  # ATTITUDE at 100 Hz
+            boot += step_ms
+            out(bytes(mavlink.MAVLink_attitude_message(boot, 0.01, 0, 0, 0, 0, 0).pack(mav)))
+            time.sleep(0.01)
+
+    took, _ = _call_c(send, (FROZEN_S, FROZEN_S))
+    if falls:
+        assert FROZEN_S * 0.9 <= took < CALL_TIMEOUT_S / 2, what
+    else:
+        assert took >= CALL_TIMEOUT_S * 0.9, what
