@@ -728,7 +728,7 @@ def test_while_runs_are_taken_news_ends_the_c_call_at_once(
         assert took < CALL_TIMEOUT_S / 2, what  # it ended when the news came
 
 
-FROZEN_S = 0.3
+FROZEN_S = 0.6  # longer than any stall of the sending thread under load
 FROZEN = [("time_boot_ms advancing: moved past the call", 4, False), ("stuck: it falls", 0, True)]
 
 
@@ -737,7 +737,7 @@ FROZEN = [("time_boot_ms advancing: moved past the call", 4, False), ("stuck: it
 def test_while_runs_are_taken_c_moves_frozen_telemetrys_deadline(
     what: str, step_ms: int, falls: bool
 ) -> None:
-    """Decision table over real UDP: handed frozen telemetry's deadline (300 ms after the
+    """Decision table over real UDP: handed frozen telemetry's deadline (600 ms after the
     last ``time_boot_ms`` advance), C moves it with each frame whose ``time_boot_ms``
     advances, so a stream that advances keeps the call to its timeout; frames stuck at
     one ``time_boot_ms`` keep coming but do not move it, and the call ends when it falls."""
@@ -754,6 +754,6 @@ def test_while_runs_are_taken_c_moves_frozen_telemetrys_deadline(
 
     took, _ = _call_c(send, (FROZEN_S, FROZEN_S))
     if falls:
-        assert FROZEN_S * 0.9 <= took < CALL_TIMEOUT_S / 2, what
+        assert FROZEN_S * 0.9 <= took < CALL_TIMEOUT_S * 0.8, what
     else:
         assert took >= CALL_TIMEOUT_S * 0.9, what
