@@ -1040,7 +1040,6 @@ static PyObject *pump(PyObject *module, PyObject *args) {
      * (boot_age_s >= 0, while runs are taken: the tracker's highest is known) */
     int boot_moves = boot_age_s >= 0 && runs.on;
     double boot_due = boot_moves ? started + (boot_due_s > 0 ? boot_due_s : 0) : INFINITY;
-    long long boot_seen = runs.boot_max;
     double deadline = fmin(fmin(due, boot_due), hard);
     while (!done) {
         int ready_data = 0;
@@ -1179,6 +1178,7 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                     if (count > 0) {
                         forward(&box, d, count, starts, ends, clients, n_clients);
                         sent = 1;
+                        long long boot_before = boot_high;
                         if (running) {
                             int stop = 0;
                             int joins = joins_run(&runs, d, count, starts, summary, arrived,
@@ -1208,11 +1208,9 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                         if (age_s >= 0 && arrived + age_s > due) {
                             due = arrived + age_s; /* its last message is this one now */
                         }
-                        for (int f = 0; boot_moves && f < count; f++) {
-                            if (summary[f * 3 + 2] > boot_seen) {
-                                boot_seen = summary[f * 3 + 2];
-                                boot_due = fmax(boot_due, arrived + boot_age_s);
-                            }
+                        if (boot_moves && boot_high > boot_before) {
+                            /* time_boot_ms advanced (joins_run keeps the highest) */
+                            boot_due = fmax(boot_due, arrived + boot_age_s);
                         }
                         deadline = fmin(fmin(due, boot_due), hard);
                     } else {

@@ -31,7 +31,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Final, cast
 
-from roost_agent.health import STATE_FIELDS, RunState, StateHeld, held_fields
+from roost_agent.health import STATE_FIELDS, RunState, StateHeld
 from roost_agent.transport import recent_realtime_offset
 from roost_mavlink import AGENT_COMPONENT_ID
 from roost_mavlink.checked_messages import CHECKED_MESSAGES
@@ -238,11 +238,10 @@ _STATE_LAYOUTS: Final = _state_layouts()
 
 def _states(held: StateHeld) -> tuple[tuple[int, tuple[tuple[int, int, int], ...]], ...]:
     """The state kinds as C takes them: (id, ((offset, size, value held), ...)), ..."""
-    values = held_fields(held)
     return tuple(
         (
             msg_id,
-            tuple((at, size, value) for (at, size), value in zip(where, values[name], strict=True)),
+            tuple((at, size, value) for (at, size), value in zip(where, held[name], strict=True)),
         )
         for name, (msg_id, where) in _STATE_LAYOUTS.items()
     )

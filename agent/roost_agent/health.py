@@ -243,10 +243,10 @@ def tilt_degrees(roll: float, pitch: float) -> float:
     return math.degrees(math.acos(max(-1.0, min(1.0, cos_tilt))))
 
 
-StateHeld = tuple[int, int, int, str, int]
-"""What the tracker holds of the kinds it reads a state from (:data:`STATE_KINDS`): the
-sensors enabled and healthy (SYS_STATUS), the landed state (EXTENDED_SYS_STATE), and the
-estimator's kind and flags (ESTIMATOR_STATUS or EKF_STATUS_REPORT); -1 and "": none yet."""
+StateHeld = dict[str, tuple[int, ...]]
+"""Per kind of :data:`STATE_FIELDS`, what a frame of it must say in the fields the
+tracker reads, in order, to change nothing when read (-1: any value may change
+something)."""
 
 RunState = tuple[float, float, int, float, float, int, int, StateHeld]
 """:meth:`HealthTracker.run_state`: the tilt warn and envelope angles and the class of
@@ -272,18 +272,6 @@ STATE_FIELDS: Final[dict[str, tuple[str, ...]]] = {
 reads. Only a change matters: a frame whose fields repeat the state held changes nothing
 when read, so it may join a run (:meth:`HealthTracker.observe_run`) as a routine frame
 does."""
-
-
-def held_fields(held: StateHeld) -> dict[str, tuple[int, ...]]:
-    """Per kind of :data:`STATE_FIELDS`, the values held of its fields, in order (-1:
-    none yet; the estimator's flags only for the kind they came from)."""
-    enabled, health, landed, estimator, flags = held
-    return {
-        "SYS_STATUS": (enabled, health),
-        "EXTENDED_SYS_STATE": (landed,),
-        "ESTIMATOR_STATUS": (flags if estimator == "ESTIMATOR_STATUS" else -1,),
-        "EKF_STATUS_REPORT": (flags if estimator == "EKF_STATUS_REPORT" else -1,),
-    }
 
 
 @dataclass(frozen=True)
@@ -1063,9 +1051,9 @@ def _threshold_times(o: _Observed, th: Thresholds) -> tuple[list[float], list[fl
 
 
 def _state_held(o: _Observed) -> StateHeld:
-    """What a frame of a state kind must say to change nothing when read (-1: any frame
-    may change something: nothing held yet, or something read from it was forgotten
-    since, as a reboot forgets that the estimator ever worked)."""
+    """:data:`StateHeld` (-1: nothing held yet, or something read from such a frame was
+    forgotten since, as a reboot forgets that the estimator ever worked; the estimator's
+    flags only for the kind they came from)."""
     landed = o.landed_state
     if landed is None or (landed == MavLandedState.ON_GROUND and o.disarmed_in_air_at is not None):
         landed = -1
@@ -1078,13 +1066,16 @@ def _state_held(o: _Observed) -> StateHeld:
             or (flags & ESTIMATOR_POS_HORIZ_ABS and not o.position_ever_ok)
         ):
             flags = None
-    return (
-        -1 if o.sensors_enabled is None else o.sensors_enabled,
-        -1 if o.sensors_health is None else o.sensors_health,
-        landed,
-        o.estimator_kind,
-        -1 if flags is None else flags,
-    )
+    held_flags = -1 if flags is None else flags
+    return {
+        "SYS_STATUS": (
+            -1 if o.sensors_enabled is None else o.sensors_enabled,
+            -1 if o.sensors_health is None else o.sensors_health,
+        ),
+        "EXTENDED_SYS_STATE": (landed,),
+        "ESTIMATOR_STATUS": (held_flags if o.estimator_kind == "ESTIMATOR_STATUS" else -1,),
+        "EKF_STATUS_REPORT": (held_flags if o.estimator_kind == "EKF_STATUS_REPORT" else -1,),
+    }
 
 
 def _newly_fatal(status: int, previous: int | None) -> bool:

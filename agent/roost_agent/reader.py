@@ -155,7 +155,6 @@ class LinkReader:
         # While hurried, the hub's route for the fast path (roost_agent.fastpath), if any.
         self.fast_route: Callable[[], FastRoute | None] = _no_route
         self.postponable: Callable[[], Split | None] = _no_split
-        self._postponed_due = math.nan  # the next tick when it is the tick's own due
         self._periodic_tick = math.nan  # the next tick the read interval alone sets
         self._tick_due = math.inf  # when the last tick said it is next due (inf: never)
         self.batch_s = batch_s
@@ -437,7 +436,7 @@ class LinkReader:
             and self._steered
             and urgent_ok
             and timeout > 0
-            and next_tick in (periodic, self._postponed_due)
+            and next_tick in (periodic, self._tick_due)
         ):
             periodic += self._routed_tick_s - self._tick_s
             next_tick = min(periodic, self._tick_due)
@@ -520,10 +519,9 @@ class LinkReader:
                     log.exception("decision tick failed")
                 now = time.monotonic()
                 next_tick = self._periodic_tick = now + self._tick_s
-                self._postponed_due = math.nan
                 self._tick_due = math.inf if due is None else due
                 if due is not None and now < due < next_tick:
-                    next_tick = self._postponed_due = due
+                    next_tick = due
                 elif due is not None and due <= now:
                     # A decision the tick waits for is already due (the tick ran late,
                     # or the time it named passed while it ran): look again as soon as

@@ -648,7 +648,12 @@ def _call_c(send: Sender, frozen: tuple[float, float] = (math.inf, -1.0)) -> tup
     for s in sockets:
         s.bind(("127.0.0.1", 0))
     link.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
-    held = (HELD_SENSORS, HELD_SENSORS, LANDED_IN_AIR, "ESTIMATOR_STATUS", GOOD_ESTIMATOR)
+    held = {
+        "SYS_STATUS": (HELD_SENSORS, HELD_SENSORS),
+        "EXTENDED_SYS_STATE": (LANDED_IN_AIR,),
+        "ESTIMATOR_STATUS": (GOOD_ESTIMATOR,),
+        "EKF_STATUS_REPORT": (-1,),
+    }
     state = (TILT_WARN_DEG, 60.0, 0, 0.5, time.monotonic() + 100, 1000, REBOOT_BACKSTEP_MS, held)
     route = cast(
         FastRoute, SimpleNamespace(run_kinds=hub_module.RUN_KINDS, kept_ids=hub_module.KEPT_IDS)

@@ -23,7 +23,6 @@ from roost_agent.health import (
     Assessment,
     HealthTracker,
     ObservedRun,
-    held_fields,
     tilt_degrees,
 )
 from roost_api.autopilot import (
@@ -222,7 +221,7 @@ class RunModel:
             fields = STATE_FIELDS.get(kind)
             if fields is not None:
                 said = tuple(int(getattr(msg, f)) for f in fields)
-                if said != held_fields(held)[kind]:
+                if said != held[kind]:
                     self.running = joins = False
                 elif at >= window_end:
                     joins = False  # whole: the window's close is judged before and after
