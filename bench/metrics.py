@@ -16,7 +16,6 @@ Knobs (environment): ``ROOST_BENCH_METRICS_S`` (seconds per run, default 20),
 from __future__ import annotations
 
 import os
-import socket
 import statistics
 import threading
 import time
@@ -24,17 +23,12 @@ import urllib.request
 
 from bench.agent import cpu_and_memory, failover_cycles, percentile
 from bench.core import Figure
+from roost_api.ports import free_port
 
 SECONDS = float(os.environ.get("ROOST_BENCH_METRICS_S", "20"))
 FAILOVERS = int(os.environ.get("ROOST_BENCH_METRICS_FAILOVERS", "20"))
 STACKS = ("px4", "px4", "px4")
 COMMAND = "python -m bench metrics"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def run() -> list[Figure]:

@@ -19,10 +19,12 @@ kwok                   plays the kubelet of every Node annotated ``kwok.x-k8s.io
                        keeps it Ready with leases, marks its pods Running, completes Job pods.
 ====================== =====================================================================
 
-Everything listens on 127.0.0.1 on ports chosen free at start, so several control planes
-(other engineers' test runs) coexist. :class:`ControlPlane` is a context manager for tests;
-``roost-cluster up`` (:mod:`roost_localcluster.cli`) starts one detached and records the pids in
-``state.json`` so ``roost-cluster down`` stops exactly those.
+Everything listens on 127.0.0.1 on ports chosen free at start
+(:func:`roost_api.ports.free_port`: below the kernel's ephemeral range, from this process's
+own block), so several control planes (other engineers' test runs) coexist.
+:class:`ControlPlane` is a context manager for tests; ``roost-cluster up``
+(:mod:`roost_localcluster.cli`) starts one detached and records the pids in ``state.json``
+so ``roost-cluster down`` stops exactly those.
 """
 
 from __future__ import annotations
@@ -33,7 +35,6 @@ import http.client
 import json
 import os
 import shutil
-import socket
 import ssl
 import tempfile
 import time
@@ -45,6 +46,7 @@ from typing import Any, Self
 
 import yaml
 
+from roost_api.ports import free_port
 from roost_localcluster import binaries, kwoknodes, pki
 from roost_localcluster.audit import audit_args
 from roost_localcluster.processes import ManagedProcess
@@ -61,13 +63,6 @@ _PORT_RETRIES = 3
 
 class ControlPlaneError(RuntimeError):
     """A component did not start or become healthy; the message carries its log tail."""
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that nobody listens on right now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 @dataclass

@@ -1,9 +1,9 @@
 """Start the simulated autopilots of one vehicle on free ports, for tests and benchmarks.
 
 Each autopilot gets a unique sysid (two with one sysid behind one socket get merged by
-pymavlink) and its own agent port, picked by binding port 0. The agent listens on that
-port later, so another process could take it in between; on a test machine that window
-is a few milliseconds and the kernel hands out ephemeral ports round-robin.
+pymavlink) and its own agent port. The agent binds that port later, so it is picked by
+:func:`roost_api.ports.free_port`: below the kernel's ephemeral range, where no socket is
+given it meanwhile, and from this process's own block of ports.
 
 ``battery`` says how the vehicle is powered: ``shared`` (one flight battery; every
 autopilot measures the same pack, so a battery fault shows on all of them) or
@@ -19,6 +19,7 @@ from typing import Protocol
 
 from roost_api.autopilot import AutopilotSpec
 from roost_api.meta import Stack
+from roost_api.ports import LOOPBACK, free_port
 from roost_sim.autopilot import SimulatedAutopilot
 from roost_sim.battery import Battery
 from roost_sim.model import SimConfig
@@ -26,11 +27,9 @@ from roost_sim.model import SimConfig
 BATTERY_LAYOUTS = ("shared", "per-autopilot")
 
 
-def free_udp_port(host: str = "127.0.0.1") -> int:
-    """A UDP port on ``host`` that was free a moment ago."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind((host, 0))
-        return int(sock.getsockname()[1])
+def free_udp_port(host: str = LOOPBACK) -> int:
+    """A UDP port on ``host`` for a program to bind later (:func:`roost_api.ports.free_port`)."""
+    return free_port(socket.SOCK_DGRAM, host)
 
 
 def start_vehicle_sims(

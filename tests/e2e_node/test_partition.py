@@ -44,8 +44,8 @@ import pytest
 from websockets.exceptions import WebSocketException
 from websockets.sync.client import connect
 
+from roost_api.ports import free_port
 from roost_api.wellknown import ANNOTATION_TELEMETRY_POD, LABEL_VEHICLE
-from roost_localcluster.controlplane import free_port
 from roost_localcluster.nodenet import missing_prerequisites
 from tests.support import partition
 from tests.support.images import missing_tools

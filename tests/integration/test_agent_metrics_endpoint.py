@@ -21,18 +21,13 @@ from prometheus_client.parser import text_string_to_metric_families
 from prometheus_client.samples import Sample
 
 from roost_api.autopilot import FinalAction
+from roost_api.ports import free_port
 from roost_sim import FaultKind, start_vehicle_sims, stop_sims
 from tests.support.agent import AgentProcess
 from tests.support.flight import CLEAR_S, make_spec, take_off
 from tests.support.waiting import wait_until
 
 pytestmark = pytest.mark.slow
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def scrape(port: int) -> dict[str, list[Sample]]:

@@ -8,8 +8,6 @@ agent in ``tests/integration/test_agent_metrics_endpoint.py``.
 
 from __future__ import annotations
 
-import socket
-
 from roost_agent.agent import Agent
 from roost_agent.bridge import SimulatedBridge
 from roost_agent.hub_policy import NOT_ALLOWED
@@ -19,6 +17,7 @@ from roost_agent.metrics import (
 )
 from roost_agent.publisher import Publisher, PublisherSettings
 from roost_api.autopilot import HubEndpoint, HubSpec
+from roost_api.ports import free_port
 from roost_kube.client import Kube
 from roost_kube.transport import Credentials, DirectTransport
 from tests.support.feed import two_px4_spec
@@ -64,9 +63,7 @@ def test_collector_reads_health_active_and_link_counters() -> None:
 
 def test_publisher_queue_and_api_errors_while_the_api_is_unreachable() -> None:
     """A real Publisher whose API server refuses connections (a closed loopback port)."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]  # closed again when the block ends: connections refused
+    port = free_port()  # nobody listens on it: connections refused
     transport = DirectTransport(Credentials(host=f"http://127.0.0.1:{port}"), retries=0)
     kube = AgentKube(Kube(transport, "roost-agent", (1.0, 1.0)))
     agent = make_agent()

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import http.client
 import json
-import socket
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -20,6 +19,7 @@ from pymavlink import mavutil
 from roost_agent.records import read_manifests
 from roost_agent.records_recorder import SYNC_PERIOD_S, WRITE_PERIOD_S
 from roost_api.autopilot import RedundantAutopilotSpec
+from roost_api.ports import free_port
 from roost_api.records import FlightState
 from roost_sim.autopilot import SimulatedAutopilot
 from roost_sim.model import SimConfig
@@ -115,9 +115,7 @@ def test_a_killed_agent_loses_at_most_about_the_last_second(
 def test_the_agent_serves_its_records_on_the_records_port(
     tmp_path: Path, sims: list[SimulatedAutopilot]
 ) -> None:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
+    port = free_port()
     agent = _recording_agent(tmp_path, sims, "served", port)
     try:
         announced = agent.wait_for(lambda doc: "records" in doc, 15)

@@ -6,20 +6,18 @@ The decisions behind ``roost abort`` and ``roost estop`` are tables in
 
 from __future__ import annotations
 
-import socket
 from pathlib import Path
 
 import pytest
 import yaml
 
+from roost_api.ports import free_port
 from roost_cli.cluster import Fleet, Target
 from roost_cli.errors import CliError
 
 
 def test_an_unreachable_api_server_is_named_with_what_to_do(tmp_path: Path) -> None:
-    with socket.socket() as probe:  # a port nobody listens on
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
+    port = free_port()  # nobody listens on it
     kubeconfig = tmp_path / "kubeconfig"
     kubeconfig.write_text(
         yaml.safe_dump(

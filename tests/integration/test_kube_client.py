@@ -10,7 +10,6 @@ either transport (roost_kube.transport): the same answers.
 
 from __future__ import annotations
 
-import socket
 from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
@@ -19,6 +18,7 @@ from typing import Any
 import pytest
 import yaml
 
+from roost_api.ports import free_port
 from roost_cli.cluster import Fleet, Target
 from roost_cli.errors import CliError
 from roost_kube.client import Kube
@@ -128,9 +128,7 @@ def test_a_watch_starts_with_the_object_as_it_is(kube: Kube) -> None:
 
 
 def test_a_server_that_is_not_there_is_unavailable(roost_crds: Cluster) -> None:
-    with socket.socket() as probe:  # a port nobody listens on
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
+    port = free_port()  # nobody listens on it
     kube = roost_crds.kube("roost-tests")
     kube.api.configuration.host = f"https://127.0.0.1:{port}"
     kube.api.configuration.retries = 0
@@ -141,9 +139,7 @@ def test_a_server_that_is_not_there_is_unavailable(roost_crds: Cluster) -> None:
 
 
 def test_a_server_that_is_not_there_is_unavailable_through_the_direct_transport() -> None:
-    with socket.socket() as probe:  # a port nobody listens on
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
+    port = free_port()  # nobody listens on it
     nowhere = Credentials(f"https://127.0.0.1:{port}", verify=False)
     kube = Kube(DirectTransport(nowhere, retries=0), "roost-tests", timeout=(2.0, 2.0))
     with pytest.raises(ApiUnavailableError) as error:

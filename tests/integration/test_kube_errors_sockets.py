@@ -9,6 +9,7 @@ import socket
 import pytest
 import urllib3
 
+from roost_api.ports import free_port
 from roost_kube.errors import (
     ApiUnavailableError,
     from_client_exception,
@@ -16,16 +17,10 @@ from roost_kube.errors import (
 )
 
 
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
-
-
 def test_a_refused_connection_is_refused_not_a_timeout() -> None:
     pool = urllib3.PoolManager(retries=False)
     with pytest.raises(urllib3.exceptions.HTTPError) as caught:
-        pool.request("GET", f"http://127.0.0.1:{_free_port()}/")
+        pool.request("GET", f"http://127.0.0.1:{free_port()}/")
     assert transport_of(caught.value) == "refused"
     mapped = from_client_exception(caught.value, "GET", "/")
     assert isinstance(mapped, ApiUnavailableError) and mapped.status is None

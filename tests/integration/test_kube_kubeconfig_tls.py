@@ -9,7 +9,6 @@ from __future__ import annotations
 import http.server
 import json
 import os
-import socket
 import ssl
 import subprocess
 import sys
@@ -20,6 +19,7 @@ from typing import Any
 
 import pytest
 
+from roost_api.ports import free_port
 from roost_cli.cluster import Fleet, Target
 from roost_cli.errors import CliError
 from roost_localcluster import pki
@@ -72,9 +72,7 @@ def test_a_certificate_failure_is_told_apart_from_a_dead_server(
     assert "certificate verify failed" in message
     assert "Is the cluster running?" not in message and "\n" not in message
 
-    with socket.socket() as probe:  # a port nobody listens on
-        probe.bind(("127.0.0.1", 0))
-        dead = f"https://127.0.0.1:{probe.getsockname()[1]}"
+    dead = f"https://127.0.0.1:{free_port()}"  # nobody listens on it
     refused = pki.write_kubeconfig(tmp_path / "refused", server_pki, dead, pki.ADMIN)
     with pytest.raises(CliError, match="Is the cluster running"):
         Fleet(Target(refused, "--kubeconfig")).vehicles()

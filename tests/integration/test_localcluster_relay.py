@@ -15,14 +15,9 @@ from pathlib import Path
 
 import pytest
 
+from roost_api.ports import free_port
 from roost_localcluster.processes import ManagedProcess
 from tests.support.waiting import wait_until
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 @pytest.fixture
@@ -45,7 +40,7 @@ def echo_server() -> Iterator[int]:
 
 
 def test_relay_carries_bytes_both_ways(echo_server: int, tmp_path: Path) -> None:
-    listen = f"127.0.0.1:{_free_port()}"
+    listen = f"127.0.0.1:{free_port()}"
     process = ManagedProcess(
         "relay",
         [sys.executable, "-m", "roost_localcluster.relay", listen, f"127.0.0.1:{echo_server}"],

@@ -16,10 +16,10 @@ from typing import Any
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
+from roost_api.ports import free_port
 from roost_kube.client import Kube
 from roost_kube.resources import VEHICLES
 from roost_localcluster.cluster import Cluster
-from roost_localcluster.controlplane import free_port
 from tests.support.operator import OperatorProcess
 from tests.support.waiting import unique, wait_until
 

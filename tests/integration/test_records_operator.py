@@ -40,12 +40,12 @@ import pytest
 
 from roost_agent.records_server import RecordsServer
 from roost_api.mission import MissionPhase, MissionStatus, RecordsState
+from roost_api.ports import free_port
 from roost_api.records import FlightState
 from roost_api.wellknown import ANNOTATION_RECORDS
 from roost_kube.client import Kube
 from roost_kube.resources import VEHICLES
 from roost_localcluster.cluster import Cluster
-from roost_localcluster.controlplane import free_port
 from roost_operator.records.gather import VehicleTarget, gather_round
 from roost_operator.records.planning import gathering
 from roost_operator.records.settings import AgentRecords, RecordsSettings

@@ -15,9 +15,9 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
 
+from roost_api.ports import free_port
 from roost_localcluster.binaries import REPO_ROOT
 from roost_localcluster.cluster import Cluster
-from roost_localcluster.controlplane import free_port
 from roost_localcluster.processes import ManagedProcess
 from tests.support.waiting import wait_until
 

@@ -24,7 +24,7 @@ from typing import Any
 
 import boto3
 
-from roost_localcluster.controlplane import free_port
+from roost_api.ports import free_port
 from roost_operator.records.s3 import Credentials
 from tests.support.waiting import wait_until
 

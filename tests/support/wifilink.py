@@ -22,8 +22,8 @@ from datetime import datetime
 from pathlib import Path
 
 from roost_agent.records import FileEntry, Manifest, read_manifest, write_manifest
+from roost_api.ports import free_port
 from roost_api.records import FileKind, FileState, FlightState, sha256_of
-from roost_localcluster.controlplane import free_port
 
 KINDS = {".tlog": FileKind.TLOG, ".jsonl": FileKind.DECISIONS, ".json": FileKind.PARAMS}
 

@@ -55,7 +55,8 @@ MISSION_RUNTIME = "10m"
 HUB_HOST = "127.0.0.1"
 HUB_PORT_BASE = 24550
 """First port tried for the agents' hubs: 14550 (MAVLink's ground-station port) + 10000,
-clear of real SITLs and ground stations, and below Linux's ephemeral range (32768+)."""
+clear of real SITLs and ground stations, and below Linux's ephemeral range (32768+);
+:data:`roost_api.ports.RESERVED` keeps the ports tests pick for their programs off them."""
 STACK_SHORT_NAMES = {Stack.PX4: "px4", Stack.ARDUPILOT: "apm"}
 _STACK_ORDER = (Stack.PX4, Stack.ARDUPILOT)
 

@@ -42,6 +42,7 @@ import yaml
 from rich.console import Console, Group, RenderableType
 from rich.text import Text
 
+from roost_api.ports import ephemeral_range, port_free
 from roost_cli import view
 from roost_cli.cluster import Fleet, Target
 from roost_cli.errors import CliError
@@ -250,7 +251,7 @@ class Sandbox:
     def _apply(self, cluster: Cluster) -> None:
         documents: list[dict[str, Any]] = []
         try:
-            ports = plan.hub_ports(len(self.fleet_plan), udp_port_free, ephemeral_ports_start())
+            ports = plan.hub_ports(len(self.fleet_plan), udp_port_free, ephemeral_range()[0])
         except ValueError as error:
             raise CliError(str(error)) from None
         for vehicle, running, port in zip(self.fleet_plan, self.state.vehicles, ports, strict=True):
@@ -515,22 +516,7 @@ MISSION_PROGRAM_PREFIX = "sync-"
 
 def udp_port_free(port: int) -> bool:
     """Whether a UDP port of the hubs' host is free now (:func:`plan.hub_ports`)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        try:
-            probe.bind((plan.HUB_HOST, port))
-        except OSError:
-            return False
-    return True
-
-
-def ephemeral_ports_start(
-    path: Path = Path("/proc/sys/net/ipv4/ip_local_port_range"),
-) -> int:
-    """The first port the kernel hands out by itself (32768 when it does not say)."""
-    try:
-        return int(path.read_text().split()[0])
-    except (OSError, ValueError, IndexError):
-        return 32768
+    return port_free(port, socket.SOCK_DGRAM, plan.HUB_HOST)
 
 
 def agent_argv(vehicle: plan.VehiclePlan, state_dir: Path) -> list[str]:
@@ -550,16 +536,6 @@ def agent_argv(vehicle: plan.VehiclePlan, state_dir: Path) -> list[str]:
         "--telemetry-port",
         "auto",
     ]
-
-
-def port_free(port: int) -> bool:
-    """Whether 127.0.0.1:``port`` can be bound now (the dashboard binds it next)."""
-    with socket.socket() as probe:
-        try:
-            probe.bind(("127.0.0.1", port))
-        except OSError:
-            return False
-    return True
 
 
 def announced_telemetry(log: str) -> str | None:
