@@ -34,6 +34,7 @@ their programs bind them gets one twice. Without room below the ephemeral range
 from __future__ import annotations
 
 import errno
+import functools
 import os
 import socket
 import threading
@@ -102,16 +103,19 @@ def port_block(
     worker: str | None = None,
     workers: int | None = None,
     ephemeral_low: int = DEFAULT_EPHEMERAL[0],
-) -> range | None:
+) -> Sequence[int] | None:
     """The block of process ``pid``: xdist worker ``worker`` (``gwN``) of ``workers``, or
     no worker (None, or a name that is not ``gwN``). None without room below
     ``ephemeral_low``.
 
-    The space from :data:`PORT_FLOOR` to ``ephemeral_low`` is cut into blocks; a quarter
-    of them is the region of processes that are no worker, the rest is cut into one
-    region per worker (when there are more workers than blocks, workers share).
+    The ports from :data:`PORT_FLOOR` to ``ephemeral_low`` but the :data:`RESERVED` ones
+    are cut into blocks (so that no block is all reserved: ArduPilot SITL's 400 would
+    cover one whole); a quarter of them is the region of processes that are no worker,
+    the rest is cut into one region per worker (when there are more workers than
+    blocks, workers share).
     """
-    blocks = (ephemeral_low - PORT_FLOOR) // BLOCK_SIZE
+    space = _candidates(ephemeral_low)
+    blocks = len(space) // BLOCK_SIZE
     if blocks < MIN_BLOCKS:
         return None
     shared = blocks // 4
@@ -122,8 +126,13 @@ def port_block(
         per_worker = max(1, (blocks - shared) // (workers or ASSUMED_WORKERS))
         regions = (blocks - shared) // per_worker
         block = shared + (index % regions) * per_worker + pid % per_worker
-    start = PORT_FLOOR + block * BLOCK_SIZE
-    return range(start, start + BLOCK_SIZE)
+    return space[block * BLOCK_SIZE : (block + 1) * BLOCK_SIZE]
+
+
+@functools.cache
+def _candidates(ephemeral_low: int) -> tuple[int, ...]:
+    """The ports blocks are cut from: below ``ephemeral_low``, none reserved."""
+    return tuple(port for port in range(PORT_FLOOR, ephemeral_low) if not reserved(port))
 
 
 def _worker_index(worker: str | None) -> int | None:

@@ -41,7 +41,8 @@ def test_a_block_lies_between_the_well_known_ports_and_the_ephemeral_range(
         assert low < ports.PORT_FLOOR + ports.MIN_BLOCKS * ports.BLOCK_SIZE
         return
     assert len(block) == ports.BLOCK_SIZE
-    assert block.start >= ports.PORT_FLOOR and block.stop <= low
+    assert min(block) >= ports.PORT_FLOOR and max(block) < low
+    assert not any(ports.reserved(port) for port in block)
 
 
 def test_this_machines_blocks_lie_below_its_ephemeral_range() -> None:
@@ -49,7 +50,7 @@ def test_this_machines_blocks_lie_below_its_ephemeral_range() -> None:
     assert ports.PORT_FLOOR < low <= high
     for worker in (None, "gw0", "gw1"):
         block = ports.port_block(os.getpid(), worker, 2, low)
-        assert block is not None and block.start >= ports.PORT_FLOOR and block.stop <= low
+        assert block is not None and min(block) >= ports.PORT_FLOOR and max(block) < low
 
 
 @given(
@@ -70,6 +71,15 @@ def test_two_workers_of_a_run_never_share_a_port_whatever_their_pids(
     assert not set(first) & set(outsider)
     if one != other:
         assert not set(first) & set(second)
+
+
+def test_no_block_is_all_reserved_ports() -> None:
+    """ArduPilot SITL's reserved ports span more than a block: a process whose block fell
+    there once had no port to pick at all."""
+    low = ports.DEFAULT_EPHEMERAL[0]
+    for pid in range(0, 4096, 7):
+        block = ports.port_block(pid, None, None, low)
+        assert block is not None and not any(ports.reserved(port) for port in block)
 
 
 def test_a_worker_and_the_programs_it_starts_get_blocks_by_pid() -> None:
