@@ -19,10 +19,12 @@
  * the active autopilot's frames routed to plain UDP clients in C. Why: with a hub client connected the link reader woke for every datagram so routed
  * frames were not held back, and each wake-up (poll, read, parse, the source lock and
  * health bookkeeping, the send) cost the agent more in Python than a C router spends on
- * a whole message. Here the reader waits in C (the GIL released), and each datagram of
- * the active autopilot is read (recvmmsg, kernel arrival stamps), checked and sent on to
- * the clients (sendmmsg: one per client for the frames of every datagram one read took)
- * in C at once; Python gets what was read in one batch, when the
+ * a whole message. Here the reader waits in C, and each datagram of the active autopilot
+ * is read (recvmmsg, kernel arrival stamps), checked and sent on to the clients (sendmmsg:
+ * one per client for the frames of every datagram one read took) in C at once, without
+ * the GIL: it is taken again only to make what Python is to see (a run of them is made
+ * once, when it closes), so the interpreter's lock is not passed back and forth at every
+ * wake-up (about a tenth of the reader's time); Python gets what was read in one batch, when the
  * decision loop is due, when something must be seen at once, or when the batch is full,
  * and judges it exactly as before (source lock, health, the hub's own bookkeeping).
  *
@@ -93,14 +95,27 @@ static Known *known;
 static Py_ssize_t known_count;
 static char *slots;
 
+/* A datagram read, or a run of them. Read here, its bytes and sender stay C's (the call's
+ * Arena, ``from``) until Python is to see it (made): a datagram routed in a run never
+ * becomes a Python object, so the route needs no GIL (pump). */
 typedef struct {
-    PyObject *data;
-    PyObject *sender;
-    double stamp; /* NAN: none */
+    PyObject *data;   /* NULL: not made yet (the arena's ``size`` bytes at ``at``) */
+    PyObject *sender; /* NULL: not made yet (``from``, or the locked address) */
+    double stamp;     /* NAN: none */
     int urgent;
     PyObject *frames; /* routed, every frame routine: (id, seq, time_boot_ms | -1, ...) */
     PyObject *run;    /* not a datagram: a run of them, taken together (Run) */
+    Py_ssize_t at, size;
+    struct sockaddr_in from;
+    socklen_t from_length;
+    int locked; /* sent from the locked address */
 } Entry;
+
+/* The bytes of the datagrams one read took, until they are routed or made objects. */
+typedef struct {
+    unsigned char *bytes;
+    Py_ssize_t used, size;
+} Arena;
 
 static const Known *lookup(unsigned int id) {
     Py_ssize_t lo = 0, hi = known_count;
@@ -308,16 +323,17 @@ static double stamp_of(struct msghdr *header) {
     return NAN;
 }
 
-/* The sender as a (host, port) tuple: ``locked`` itself when it is that address. */
-static PyObject *sender_of(const struct sockaddr_in *a, socklen_t length,
-                           const struct sockaddr_in *locked, PyObject *locked_obj) {
+/* Whether the sender is the locked address (``locked`` NULL: none is). */
+static int is_locked(const struct sockaddr_in *a, socklen_t length,
+                     const struct sockaddr_in *locked) {
+    return locked != NULL && length >= sizeof(struct sockaddr_in) && a->sin_family == AF_INET &&
+           a->sin_port == locked->sin_port && a->sin_addr.s_addr == locked->sin_addr.s_addr;
+}
+
+/* The sender as a (host, port) tuple (None: not an IPv4 address); with the GIL. */
+static PyObject *sender_tuple(const struct sockaddr_in *a, socklen_t length) {
     if (length < sizeof(struct sockaddr_in) || a->sin_family != AF_INET) {
         Py_RETURN_NONE;
-    }
-    if (locked_obj != Py_None && a->sin_port == locked->sin_port &&
-        a->sin_addr.s_addr == locked->sin_addr.s_addr) {
-        Py_INCREF(locked_obj);
-        return locked_obj;
     }
     char host[INET_ADDRSTRLEN];
     if (inet_ntop(AF_INET, &a->sin_addr, host, sizeof host) == NULL) {
@@ -340,10 +356,9 @@ static int reserve(Entries *list, Py_ssize_t more) {
     while (size < list->count + more) {
         size *= 2;
     }
-    Entry *grown = PyMem_Realloc(list->items, sizeof(Entry) * (size_t)size);
+    Entry *grown = PyMem_RawRealloc(list->items, sizeof(Entry) * (size_t)size);
     if (grown == NULL) {
-        PyErr_NoMemory();
-        return -1;
+        return -1; /* no memory (the caller says so with the GIL) */
     }
     list->items = grown;
     list->size = size;
@@ -365,15 +380,43 @@ static void clear(Entries *list) {
         Py_XDECREF(list->items[i].frames);
         Py_XDECREF(list->items[i].run);
     }
-    PyMem_Free(list->items);
+    PyMem_RawFree(list->items);
     list->items = NULL;
     list->count = list->size = 0;
 }
 
-/* Up to ``limit`` queued datagrams of ``fd`` appended to ``out`` (senders equal to
- * ``locked`` as that very object); -1 on error. */
+/* The entry's bytes and their length, wherever they are. */
+static const unsigned char *bytes_of(const Entry *e, const Arena *arena, Py_ssize_t *size) {
+    if (e->data != NULL) {
+        *size = PyBytes_GET_SIZE(e->data);
+        return (const unsigned char *)PyBytes_AS_STRING(e->data);
+    }
+    *size = e->size;
+    return arena->bytes + e->at;
+}
+
+/* The entry's bytes and sender as the objects Python reads (with the GIL); -1: failed. */
+static int make(Entry *e, const Arena *arena, PyObject *locked_obj) {
+    if (e->data == NULL && e->run == NULL) {
+        e->data = PyBytes_FromStringAndSize((const char *)arena->bytes + e->at, e->size);
+        if (e->data == NULL) {
+            return -1;
+        }
+    }
+    if (e->sender == NULL && e->run == NULL) {
+        e->sender = e->locked ? Py_NewRef(locked_obj) : sender_tuple(&e->from, e->from_length);
+        if (e->sender == NULL) {
+            return -1;
+        }
+    }
+    return 0;
+}
+
+/* Up to ``limit`` queued datagrams of ``fd`` appended to ``out``, their bytes to ``arena``
+ * (``locked``: the address whose datagrams are marked locked, NULL: none). Needs no GIL.
+ * -1: a failed read (errno), -2: no memory. */
 static int read_socket(int fd, Py_ssize_t limit, int urgent, const struct sockaddr_in *locked,
-                       PyObject *locked_obj, Entries *out) {
+                       Entries *out, Arena *arena) {
     struct mmsghdr messages[BATCH];
     struct iovec vectors[BATCH];
     struct sockaddr_in addresses[BATCH];
@@ -401,28 +444,42 @@ static int read_socket(int fd, Py_ssize_t limit, int urgent, const struct sockad
             if (errno == EAGAIN || errno == EWOULDBLOCK || errno == ECONNREFUSED) {
                 break;
             }
-            PyErr_SetFromErrno(PyExc_OSError);
             return -1;
         }
         for (int i = 0; i < got; i++) {
             struct msghdr *h = &messages[i].msg_hdr;
-            if (messages[i].msg_len == 0) {
+            Py_ssize_t size = (Py_ssize_t)messages[i].msg_len;
+            if (size == 0) {
                 continue;
             }
-            Entry e;
-            e.urgent = urgent;
-            e.frames = NULL;
-            e.run = NULL;
-            e.stamp = stamp_of(h);
-            e.data = PyBytes_FromStringAndSize(slots + (size_t)i * SLOT,
-                                               (Py_ssize_t)messages[i].msg_len);
-            e.sender = e.data == NULL ? NULL
-                                      : sender_of(&addresses[i], h->msg_namelen, locked, locked_obj);
-            if (e.sender == NULL || push(out, e) < 0) {
-                Py_XDECREF(e.data);
-                Py_XDECREF(e.sender);
-                return -1;
+            if (arena->used + size > arena->size) {
+                Py_ssize_t grown_size = arena->size ? arena->size : 4096;
+                while (grown_size < arena->used + size) {
+                    grown_size *= 2;
+                }
+                unsigned char *grown = PyMem_RawRealloc(arena->bytes, (size_t)grown_size);
+                if (grown == NULL) {
+                    return -2;
+                }
+                arena->bytes = grown;
+                arena->size = grown_size;
             }
+            memcpy(arena->bytes + arena->used, slots + (size_t)i * SLOT, (size_t)size);
+            Entry e = {.data = NULL,
+                       .sender = NULL,
+                       .stamp = stamp_of(h),
+                       .urgent = urgent,
+                       .frames = NULL,
+                       .run = NULL,
+                       .at = arena->used,
+                       .size = size,
+                       .from = addresses[i],
+                       .from_length = h->msg_namelen,
+                       .locked = is_locked(&addresses[i], h->msg_namelen, locked)};
+            if (push(out, e) < 0) {
+                return -2;
+            }
+            arena->used += size;
             total++;
         }
         limit -= got;
@@ -502,16 +559,26 @@ static PyObject *receive(PyObject *module, PyObject *args) {
     if (!PyArg_ParseTuple(args, "in:receive", &fd, &limit)) {
         return NULL;
     }
-    struct sockaddr_in nobody;
-    memset(&nobody, 0, sizeof nobody);
     Entries read = {0};
+    Arena arena = {0};
     PyObject *out = NULL;
-    if (ensure_slots() < 0 || read_socket(fd, limit, 0, &nobody, Py_None, &read) < 0) {
+    if (ensure_slots() < 0) {
+        goto done;
+    }
+    int got = read_socket(fd, limit, 0, NULL, &read, &arena);
+    if (got < 0) {
+        if (got == -1) {
+            PyErr_SetFromErrno(PyExc_OSError);
+        } else {
+            PyErr_NoMemory();
+        }
         goto done;
     }
     out = PyList_New(read.count);
     for (Py_ssize_t i = 0; out != NULL && i < read.count; i++) {
-        PyObject *item = entry_tuple(&read.items[i], -1);
+        PyObject *item = make(&read.items[i], &arena, Py_None) < 0
+                             ? NULL
+                             : entry_tuple(&read.items[i], -1);
         if (item == NULL) {
             Py_CLEAR(out);
             break;
@@ -520,6 +587,7 @@ static PyObject *receive(PyObject *module, PyObject *args) {
     }
 done:
     clear(&read);
+    PyMem_RawFree(arena.bytes);
     return out;
 }
 
@@ -797,7 +865,7 @@ static int run_close(Run *run, Entries *out, unsigned char *routed) {
     if (tuple == NULL) {
         return -1;
     }
-    Entry e = {NULL, NULL, NAN, 0, NULL, tuple};
+    Entry e = {.data = NULL, .sender = NULL, .stamp = NAN, .run = tuple};
     routed[out->count] = 1;
     out->items[out->count++] = e;
     return 0;
@@ -945,6 +1013,20 @@ static PyObject *pump(PyObject *module, PyObject *args) {
     unsigned char *routed = NULL;
     Py_ssize_t routed_size = 0;
     Run *run = NULL;
+    Arena arena = {0};
+    /* Routing needs no GIL: it is released for the wait, and taken again only when Python
+     * objects are made (an entry Python is to see, a run closed) or at the return. So
+     * while the stream flows in runs the reader takes no lock at each datagram, and the
+     * agent's other threads get the interpreter without asking this one. */
+    PyThreadState *released = NULL;
+#define HOLD_GIL()                               \
+    do {                                         \
+        if (released != NULL) {                  \
+            PyEval_RestoreThread(released);      \
+            released = NULL;                     \
+        }                                        \
+    } while (0)
+    int failed_errno = 0; /* a failed system call, said with the GIL at the end */
     PyObject *result = NULL;
     Py_ssize_t wakes = PySequence_Size(wake_list);
     Py_ssize_t given = wakes < 0 ? -1 : PySequence_Size(client_list);
@@ -1013,8 +1095,15 @@ static PyObject *pump(PyObject *module, PyObject *args) {
             Py_DECREF(item);
             goto fail;
         }
-        Entry e = {Py_NewRef(data), Py_NewRef(from), when == Py_None ? NAN : PyFloat_AsDouble(when),
-                   0, NULL, NULL};
+        if (!PyBytes_Check(data)) {
+            Py_DECREF(item);
+            PyErr_SetString(PyExc_TypeError, "a held datagram is bytes");
+            goto fail;
+        }
+        Entry e = {.data = Py_NewRef(data),
+                   .sender = Py_NewRef(from),
+                   .stamp = when == Py_None ? NAN : PyFloat_AsDouble(when),
+                   .locked = from == locked_obj && locked_obj != Py_None};
         Py_DECREF(item);
         if (push(&held, e) < 0) {
             Py_DECREF(e.data);
@@ -1024,7 +1113,7 @@ static PyObject *pump(PyObject *module, PyObject *args) {
     }
 
     int forwarding = n_clients > 0 && locked_obj != Py_None;
-    run = runs.on ? PyMem_Calloc(1, sizeof(Run)) : NULL;
+    run = runs.on ? PyMem_RawCalloc(1, sizeof(Run)) : NULL;
     if (runs.on && run == NULL) {
         PyErr_NoMemory();
         goto fail;
@@ -1032,7 +1121,7 @@ static PyObject *pump(PyObject *module, PyObject *args) {
     int running = runs.on; /* runs may still be taken this call */
     long long boot_high = runs.boot_max;
     double last_arrived = -INFINITY;
-    int woke = 0, done = 0, looks_after_hold = 0;
+    int woke = 0, done = 0, looks_after_hold = 0, looked_once = 0;
     double started = monotonic();
     double hard = started + (timeout_s > 0 ? timeout_s : 0);
     double due = started + (due_s > 0 ? due_s : 0); /* moves with arrivals (age_s >= 0) */
@@ -1051,20 +1140,26 @@ static PyObject *pump(PyObject *module, PyObject *args) {
             ready_data = 1; /* one more look at once, as the Python reader takes */
             looks_after_hold++;
         } else {
-            double left = deadline - monotonic();
+            double now = monotonic();
+            if (looked_once && held.count == 0 && now >= deadline) {
+                break; /* past the deadline after a look: the decision loop is due */
+            }
+            double left = deadline - now;
             int wait_ms = left > 0 ? (int)ceil(left * 1000) : 0;
             int polled;
-            Py_BEGIN_ALLOW_THREADS;
+            if (released == NULL) {
+                released = PyEval_SaveThread();
+            }
             polled = poll(fds, (nfds_t)nfds, wait_ms);
-            Py_END_ALLOW_THREADS;
             if (polled < 0) {
                 if (errno == EINTR) {
+                    HOLD_GIL();
                     if (PyErr_CheckSignals() < 0) {
                         goto fail;
                     }
                     continue;
                 }
-                PyErr_SetFromErrno(PyExc_OSError);
+                failed_errno = errno;
                 goto fail;
             }
             if (polled == 0) {
@@ -1098,11 +1193,16 @@ static PyObject *pump(PyObject *module, PyObject *args) {
         if (ready_data) {
             /* What arrived after poll looked may be newer than something then queued on
              * a socket not read now: it is held for the next look (as below). */
-            double cutoff = fmin(realtime(), polled_at);
+            looked_once = 1;
+            double cutoff = isfinite(polled_at) ? polled_at : realtime();
             int got_urgent = 0, got_bulk = 0;
+            /* every entry is routed or made by now: the arena's bytes are free again */
+            arena.used = 0;
+            const struct sockaddr_in *lock = locked_obj != Py_None ? &locked : NULL;
             if (read_urgent) {
-                got_urgent = read_socket(urgent_fd, BATCH * 4, 1, &locked, locked_obj, &fresh);
+                got_urgent = read_socket(urgent_fd, BATCH * 4, 1, lock, &fresh, &arena);
                 if (got_urgent < 0) {
+                    failed_errno = got_urgent == -1 ? errno : 0;
                     goto fail;
                 }
                 if (got_urgent >= BATCH * 4) {
@@ -1110,8 +1210,9 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                 }
             }
             if (read_bulk) {
-                got_bulk = read_socket(bulk_fd, BATCH * 4, 0, &locked, locked_obj, &fresh);
+                got_bulk = read_socket(bulk_fd, BATCH * 4, 0, lock, &fresh, &arena);
                 if (got_bulk < 0) {
+                    failed_errno = got_bulk == -1 ? errno : 0;
                     goto fail;
                 }
             }
@@ -1137,15 +1238,16 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                 while (size < out.count + fresh.count + 1) {
                     size *= 2;
                 }
-                unsigned char *grown = PyMem_Realloc(routed, (size_t)size);
+                unsigned char *grown = PyMem_RawRealloc(routed, (size_t)size);
                 if (grown == NULL) {
-                    PyErr_NoMemory();
                     goto fail;
                 }
                 routed = grown;
                 routed_size = size;
             }
-            qsort(fresh.items, (size_t)fresh.count, sizeof(Entry), compare_entries);
+            if (fresh.count > 1) {
+                qsort(fresh.items, (size_t)fresh.count, sizeof(Entry), compare_entries);
+            }
             Py_ssize_t moved = fresh.count;
             fresh.count = 0; /* every entry goes to held or out below */
             for (Py_ssize_t i = 0; i < moved; i++) {
@@ -1153,6 +1255,12 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                 int later = urgent_fd >= 0 && !isnan(e->stamp) && cutoff < e->stamp &&
                             e->stamp <= looked;
                 if (later) {
+                    /* made now: the arena's bytes are reused by the next read */
+                    HOLD_GIL();
+                    if (make(e, &arena, locked_obj) < 0) {
+                        fresh.items[fresh.count++] = *e; /* cleared at the end */
+                        goto fail;
+                    }
                     held.items[held.count++] = *e;
                     continue;
                 }
@@ -1162,7 +1270,7 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                  * often than the unhurried reader wakes) */
                 int held_back = e->urgent && !urgent_returns;
                 PyObject *summarised = NULL;
-                int from_locked = e->sender == locked_obj && locked_obj != Py_None;
+                int from_locked = e->locked;
                 double arrived = isnan(e->stamp) ? monotonic() : e->stamp - offset;
                 if (arrived < last_arrived) {
                     arrived = last_arrived; /* as Python's: never before an earlier one */
@@ -1172,8 +1280,8 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                     Py_ssize_t starts[MAX_FRAMES], ends[MAX_FRAMES];
                     long long summary[MAX_FRAMES * 3];
                     int routine = 0;
-                    const unsigned char *d = (const unsigned char *)PyBytes_AS_STRING(e->data);
-                    Py_ssize_t size = PyBytes_GET_SIZE(e->data);
+                    Py_ssize_t size;
+                    const unsigned char *d = bytes_of(e, &arena, &size);
                     int count = frames_of(d, size, &rules, starts, ends, &routine, summary);
                     if (count > 0) {
                         forward(&box, d, count, starts, ends, clients, n_clients);
@@ -1190,6 +1298,7 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                             if (joins && !(e->urgent && urgent_returns)) {
                                 if (run->open && (arrived - run->last_at >= runs.gap_limit ||
                                                   run_full(run, count, summary))) {
+                                    HOLD_GIL();
                                     if (run_close(run, &out, routed) < 0) {
                                         goto fail;
                                     }
@@ -1200,6 +1309,7 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                         }
                         if (!in_run && routine) {
                             /* without it (no memory), Python reads the frames themselves */
+                            HOLD_GIL();
                             summarised = summarise(summary, count);
                             if (summarised == NULL) {
                                 PyErr_Clear();
@@ -1225,8 +1335,11 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                 }
                 if (!in_run) {
                     /* what Python reads whole comes after the run before it */
-                    if (runs.on && run_close(run, &out, routed) < 0) {
+                    HOLD_GIL();
+                    if ((runs.on && run_close(run, &out, routed) < 0) ||
+                        make(e, &arena, locked_obj) < 0) {
                         Py_XDECREF(summarised);
+                        fresh.items[fresh.count++] = *e; /* cleared at the end */
                         goto fail;
                     }
                     e->frames = summarised;
@@ -1240,8 +1353,11 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                      * another silence threshold: Python takes it now */
                     running = 0;
                     done = 1;
-                    if (in_run && run_close(run, &out, routed) < 0) {
-                        goto fail;
+                    if (in_run) {
+                        HOLD_GIL();
+                        if (run_close(run, &out, routed) < 0) {
+                            goto fail;
+                        }
                     }
                 }
                 if (e->urgent && urgent_returns) {
@@ -1250,8 +1366,11 @@ static PyObject *pump(PyObject *module, PyObject *args) {
             }
             flush(&box, clients, n_clients); /* the data stays alive in out until the return */
             for (Py_ssize_t i = 0; i < spent.count; i++) { /* in a run: sent, and done with */
-                Py_CLEAR(spent.items[i].data);
-                Py_CLEAR(spent.items[i].sender);
+                if (spent.items[i].data != NULL || spent.items[i].sender != NULL) {
+                    HOLD_GIL(); /* one held from before: made */
+                    Py_CLEAR(spent.items[i].data);
+                    Py_CLEAR(spent.items[i].sender);
+                }
             }
             spent.count = 0;
             if (held.count == 0) {
@@ -1261,19 +1380,16 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                 done = 1;
             }
         }
-        if (!done && held.count == 0 && monotonic() >= deadline) {
-            break;
-        }
     }
 
+    HOLD_GIL();
     if (runs.on && run->open) {
         if (reserve(&out, 1) < 0) {
             goto fail;
         }
         if (out.count + 1 > routed_size) {
-            unsigned char *grown = PyMem_Realloc(routed, (size_t)(out.count + 1));
+            unsigned char *grown = PyMem_RawRealloc(routed, (size_t)(out.count + 1));
             if (grown == NULL) {
-                PyErr_NoMemory();
                 goto fail;
             }
             routed = grown;
@@ -1311,12 +1427,23 @@ static PyObject *pump(PyObject *module, PyObject *args) {
         result = Py_BuildValue("(NNO)", items, held_out, woke ? Py_True : Py_False);
     }
 fail:
+    HOLD_GIL();
+#undef HOLD_GIL
+    if (result == NULL && !PyErr_Occurred()) {
+        if (failed_errno != 0) {
+            errno = failed_errno;
+            PyErr_SetFromErrno(PyExc_OSError);
+        } else {
+            PyErr_NoMemory(); /* what else fails without saying */
+        }
+    }
     clear(&held);
     clear(&out);
     clear(&fresh);
     clear(&spent);
-    PyMem_Free(routed);
-    PyMem_Free(run);
+    PyMem_RawFree(arena.bytes);
+    PyMem_RawFree(routed);
+    PyMem_RawFree(run);
     PyMem_Free(clients);
     PyMem_Free(fds);
     return result;

@@ -1,18 +1,19 @@
 """The hub's fast path: the active autopilot's frames to plain UDP clients without Python.
 
 Why: routed frames must not wait for the decision loop's next read, so while a hub
-client was connected the link reader woke for every datagram, and in Python each
-wake-up (poll, read, parse, source lock, health bookkeeping, send) cost more than a C
-router spends per message. With the C extension ``_udpbatch.c`` built, the reader waits
-in C instead: each datagram of the active autopilot is read, checked and sent to the
-clients there at once (GIL released while it waits), and Python reads what C read in
-one batch when the decision loop is due (or something must be seen at once: a wake-up
-call, a heartbeat or command answer on a steered link's urgent socket, a datagram C does
-not forward). The health tracker, the source lock and the hub's bookkeeping see every
-datagram as before, with its kernel arrival stamp, in arrival order; a datagram C routed
-whose frames are all routine (:func:`routine_bitmap`: no one reads their content) comes
-with their summary instead of being parsed again (id, sequence number, ``time_boot_ms``),
-which is all the link, the hub and the tracker read of them.
+client was connected the link reader woke for every datagram, and in Python each wake-up
+(poll, read, parse, source lock, health bookkeeping, send) cost more than a C router
+spends per message. With the C extension ``_udpbatch.c`` built, the reader waits in C
+instead: each datagram of the active autopilot is read, checked and sent to the clients
+there at once (without the GIL, which C takes again only to make what Python is to
+read), and Python reads what C read in one batch when the decision loop is due (or
+something must be seen at once: a wake-up call, a heartbeat or command answer on a
+steered link's urgent socket, a datagram C does not forward). The health tracker, the
+source lock and the hub's bookkeeping see every datagram as before, with its kernel
+arrival stamp, in arrival order; a datagram C routed whose frames are all routine
+(:func:`routine_bitmap`: no one reads their content) comes with their summary instead of
+being parsed again (id, sequence number, ``time_boot_ms``), which is all the link, the
+hub and the tracker read of them.
 
 C forwards only what the Python path would forward unchanged to a plain client
 (``_udpbatch.c`` lists the checks); the hub offers a route (:class:`FastRoute`) only when

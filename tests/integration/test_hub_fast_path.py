@@ -17,7 +17,9 @@ and, switched back, the first one's again.
 
 from __future__ import annotations
 
+import errno
 import math
+import resource
 import socket
 import threading
 import time
@@ -762,3 +764,38 @@ def test_while_runs_are_taken_c_moves_frozen_telemetrys_deadline(
         assert FROZEN_S * 0.9 <= took < CALL_TIMEOUT_S * 0.8, what
     else:
         assert took >= CALL_TIMEOUT_S * 0.9, what
+
+
+def _plain_call(
+    bulk_fd: int, wake: list[int], timeout_s: float
+) -> tuple[list[Any], list[Any], bool]:
+    """One C call without clients, source lock or runs: a link that only waits."""
+    assert PUMP is not None
+    return PUMP(
+        bulk_fd,
+        -1,
+        wake,
+        (timeout_s, math.inf, -1.0, recent_realtime_offset(), math.inf, -1.0),
+        [],
+        None,
+        1,
+        1,
+        AGENT_COMPONENT,
+        False,
+        True,
+        [],
+        256,
+        hub_module.ROUTINE,
+        None,
+    )
+
+
+@pytest.mark.skipif(PUMP is None, reason="the C extension is not built")
+def test_a_descriptor_that_is_not_open_is_an_os_error_from_c() -> None:
+    """A link socket closed under the call is not waited on: the read that follows
+    reports it (EBADF), raised with the interpreter's lock held again; the reader then
+    lets the link's own read report the failure (ReadLink.failed)."""
+    not_open = resource.getrlimit(resource.RLIMIT_NOFILE)[0] - 1
+    with pytest.raises(OSError) as raised:
+        _plain_call(not_open, [], CALL_TIMEOUT_S)
+    assert raised.value.errno == errno.EBADF
