@@ -57,10 +57,7 @@
  *   than that, roost_agent.fastpath.routine_bitmap; why: parsing them and running them
  *   through the link, the hub and the tracker was most of Python's time per message);
  *   with ``runs`` (None: none), datagrams of the stream's bulk come as runs instead (see
- *   "Runs" below); with runs and no clients, the locked address's datagrams are taken
- *   the same way but sent nowhere (routed false): a link read only, a standby autopilot's
- *   or the active one's while no client listens (roost_agent.hub.Hub.read_route), whose
- *   stream then costs Python what a routed one does;
+ *   "Runs" below);
  *   held: read but possibly
  *   newer than something still queued on the other socket of a steered pair (the
  *   Python reader's rule, roost_agent.transport._Udp.receive_batch), to be passed back;
@@ -1115,10 +1112,7 @@ static PyObject *pump(PyObject *module, PyObject *args) {
         }
     }
 
-    /* the locked address's datagrams are taken here: routed to the clients, and while
-     * runs are taken gathered in runs; with no clients (a link read, not routed: a
-     * standby autopilot, or the active one while no client listens) only gathered */
-    int taking = locked_obj != Py_None && (n_clients > 0 || runs.on);
+    int forwarding = n_clients > 0 && locked_obj != Py_None;
     run = runs.on ? PyMem_RawCalloc(1, sizeof(Run)) : NULL;
     if (runs.on && run == NULL) {
         PyErr_NoMemory();
@@ -1270,7 +1264,7 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                     held.items[held.count++] = *e;
                     continue;
                 }
-                int taken = 0, sent = 0, in_run = 0;
+                int sent = 0, in_run = 0;
                 /* an urgent datagram while urgent ones may not end the call (the short
                  * interval after an early return: a flood of them wakes no one more
                  * often than the unhurried reader wakes) */
@@ -1282,7 +1276,7 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                     arrived = last_arrived; /* as Python's: never before an earlier one */
                 }
                 last_arrived = arrived;
-                if (taking && from_locked) {
+                if (forwarding && from_locked) {
                     Py_ssize_t starts[MAX_FRAMES], ends[MAX_FRAMES];
                     long long summary[MAX_FRAMES * 3];
                     int routine = 0;
@@ -1290,11 +1284,8 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                     const unsigned char *d = bytes_of(e, &arena, &size);
                     int count = frames_of(d, size, &rules, starts, ends, &routine, summary);
                     if (count > 0) {
-                        taken = 1;
-                        if (n_clients > 0) {
-                            forward(&box, d, count, starts, ends, clients, n_clients);
-                            sent = 1;
-                        }
+                        forward(&box, d, count, starts, ends, clients, n_clients);
+                        sent = 1;
                         long long boot_before = boot_high;
                         if (running) {
                             int stop = 0;
@@ -1316,7 +1307,7 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                                 in_run = 1;
                             }
                         }
-                        if (!in_run && routine && sent) {
+                        if (!in_run && routine) {
                             /* without it (no memory), Python reads the frames themselves */
                             HOLD_GIL();
                             summarised = summarise(summary, count);
@@ -1334,12 +1325,12 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                         deadline = fmin(fmin(due, boot_due), hard);
                     } else {
                         /* Python must see it now, and forwards it and what follows */
-                        taking = 0;
+                        forwarding = 0;
                         running = 0;
                         done = 1;
                     }
                 }
-                if (!in_run && taken && runs.on && !held_back) {
+                if (!in_run && sent && runs.on && !held_back) {
                     done = 1; /* while runs are taken, what Python reads whole is read now */
                 }
                 if (!in_run) {

@@ -279,7 +279,6 @@ class Agent(Actions, SpecChanges):
         if self._hub is not None:  # routed frames are not held back while clients wait
             self._reader.hurry = self._hub.has_clients
             self._reader.fast_route = self._hub.fast_route
-            self._reader.read_route = self._hub.read_route
             self._hub.on_sinks_changed = self._reader.look_again
             self._reader.postponable = self.postponable
         self._in_step: dict[str, InStep] = {}

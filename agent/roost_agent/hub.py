@@ -256,39 +256,6 @@ def _nothing() -> None:
     pass
 
 
-def _still(route: FastRoute, link: HubLink, session: Session, locked: Address) -> bool:
-    """Whether ``route`` still reads ``link`` as it is now (its session, lock and log)."""
-    return (
-        route.session is session
-        and route.locked == locked
-        and route.log_busy == (link.log_sink is not None)
-    )
-
-
-def _route_for(
-    link: HubLink, session: Session, locked: Address, sinks: tuple[_Client, ...]
-) -> FastRoute:
-    """What C needs to read ``link``'s session and send its frames to ``sinks`` (none:
-    read only)."""
-    fds = session.transport.fast_fds()
-    assert fds is not None  # HubLink.fast_source checked it
-    return FastRoute(
-        session=session,
-        clients=tuple((c.out.fileno(), c.address) for c in sinks),
-        keys=frozenset(c.key for c in sinks),
-        sinks=sinks,
-        locked=locked,
-        sysid=link.spec.sysid,
-        compid=link.spec.component_id,
-        log_busy=link.log_sink is not None,
-        bulk_fd=fds[0],
-        urgent_fd=fds[1],
-        routine=ROUTINE,
-        run_kinds=RUN_KINDS,
-        kept_ids=KEPT_IDS,
-    )
-
-
 class HubLink(Protocol):
     """What the hub needs from an autopilot link (:class:`roost_agent.link.AutopilotLink`)."""
 
@@ -415,7 +382,6 @@ class Hub:
         self._clients: OrderedDict[ClientKey, _Client] = OrderedDict()
         self._sinks: tuple[_Client, ...] = ()  # clients that get the vehicle's messages
         self._route: FastRoute | None = None  # the last fast route made (fast_route)
-        self._read_routes: dict[str, FastRoute] = {}  # per link, the last made (read_route)
         # Told when the clients change: the reader waiting in C on a route made for the
         # clients before looks again (a run routed meanwhile would miss a new client).
         self.on_sinks_changed: Callable[[], None] = _nothing
@@ -724,8 +690,6 @@ class Hub:
             counters = self.counters
             counters.routed_in_c += frames
             counters.to_clients += frames * len(route.clients)
-        elif name != self._active:  # a standby's, read in C (read_route)
-            self.counters.dropped_standby += frames
         seen = self._seen[name]
         for kind, msg, now in latest:
             if kind == "GLOBAL_POSITION_INT":
@@ -774,39 +738,33 @@ class Hub:
             self._route = None
             return None
         session, locked = source
+        log_busy = link.log_sink is not None
         route = self._route
-        if route is not None and route.sinks is sinks and _still(route, link, session, locked):
+        if (
+            route is not None
+            and route.sinks is sinks
+            and route.session is session
+            and route.locked == locked
+            and route.log_busy == log_busy
+        ):
             return route
-        route = self._route = _route_for(link, session, locked, sinks)
-        return route
-
-    def read_route(self, session: Session) -> FastRoute | None:
-        """Where C may read a link's stream in runs without routing it (no clients: the
-        reader then takes it as it takes what the fast path routed, a run at a time), or
-        None: the extension is not built, ``session`` is no link of this hub's (or no
-        longer its link's), the link cannot be read in C (:meth:`HubLink.fast_source`),
-        or the hub sends its frames to clients (the active autopilot while somebody
-        listens: routed by :meth:`fast_route`, or forwarded in Python). So a standby
-        autopilot's stream, read only to judge it, costs what the active one's does.
-        Called by the reader before it reads the link (on the reader thread)."""
-        if not self.fast:
-            return None
-        if session.link is None:
-            return None
-        name = session.link.name
-        link = self._links.get(name)
-        if link is None or (name == self._active and self._sinks):
-            return None
-        if name == self._active:
-            self._route = None  # nobody listens: what C reads now is routed nowhere
-        source = link.fast_source()  # its session is this one: the link's own
-        if source is None or source[0] is not session:
-            return None
-        locked = source[1]
-        route = self._read_routes.get(name)
-        if route is not None and _still(route, link, session, locked):
-            return route
-        route = self._read_routes[name] = _route_for(link, session, locked, ())
+        fds = session.transport.fast_fds()
+        assert fds is not None  # fast_source checked it
+        route = self._route = FastRoute(
+            session=session,
+            clients=tuple((c.out.fileno(), c.address) for c in sinks),
+            keys=frozenset(c.key for c in sinks),
+            sinks=sinks,
+            locked=locked,
+            sysid=link.spec.sysid,
+            compid=link.spec.component_id,
+            log_busy=log_busy,
+            bulk_fd=fds[0],
+            urgent_fd=fds[1],
+            routine=ROUTINE,
+            run_kinds=RUN_KINDS,
+            kept_ids=KEPT_IDS,
+        )
         return route
 
     def _sign(self, frame: bytes, key: bytes | None) -> bytes:

@@ -84,7 +84,6 @@ class LinkCounters:
     unsigned: int = 0  # dropped while signing is required: no signature
     bad_signature: int = 0  # dropped while signing is required: wrong or replayed
     errors: int = 0  # exceptions from the parser or the transport
-    in_runs: int = 0  # frames C read and handed over in runs (roost_agent.fastpath.Run)
     reopened: int = 0
     relocked: int = 0
 
@@ -590,7 +589,6 @@ class AutopilotLink:
                         latest.append((frame.get_type(), frame, at))
             self._accepted(session.lock, last_at)
             self.counters.accepted += frames - 1
-            self.counters.in_runs += frames
             tap_run = self.tap_run
             if tap_run is not None:
                 tap_run(frames, latest)

@@ -84,7 +84,7 @@ FRAME_RESULTS = (
 )
 LINK_EVENTS = ("reopened", "relocked")
 # Every LinkCounters field is exported: the frame results, the link events and these.
-LINK_TOTALS = ("bytes", "errors", "in_runs")
+LINK_TOTALS = ("bytes", "errors")
 
 
 class MetricsAgent(Protocol):
@@ -239,8 +239,7 @@ def hub_family(hub: Hub) -> CounterMetricFamily:
 
 
 def link_families(counters: Mapping[str, LinkCounters]) -> list[CounterMetricFamily]:
-    """The per-link counters as metric families (frames by result, bytes, errors, frames
-    read in runs, events)."""
+    """The per-link counters as metric families (frames by result, bytes, errors, events)."""
     frames = CounterMetricFamily(
         f"{PREFIX}_link_frames",
         "Datagrams and frames a link received, by what became of them "
@@ -257,12 +256,6 @@ def link_families(counters: Mapping[str, LinkCounters]) -> list[CounterMetricFam
         "Transport and parser failures of each link.",
         labels=["autopilot"],
     )
-    in_runs = CounterMetricFamily(
-        f"{PREFIX}_link_frames_in_runs",
-        "Accepted frames of each link that C read and handed over in runs (the hub's fast "
-        "path): the share of the stream the agent did not parse one by one.",
-        labels=["autopilot"],
-    )
     events = CounterMetricFamily(
         f"{PREFIX}_link_events",
         "Link reopens (after a failure) and relocks (the autopilot moved address).",
@@ -273,10 +266,9 @@ def link_families(counters: Mapping[str, LinkCounters]) -> list[CounterMetricFam
             frames.add_metric([name, result], getattr(c, result))
         data.add_metric([name], c.bytes)
         errors.add_metric([name], c.errors)
-        in_runs.add_metric([name], c.in_runs)
         for event in LINK_EVENTS:
             events.add_metric([name, event], getattr(c, event))
-    return [frames, data, errors, in_runs, events]
+    return [frames, data, errors, events]
 
 
 class EventMetrics:

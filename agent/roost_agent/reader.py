@@ -49,8 +49,6 @@ class ReadLink(Protocol):
     """What the reader calls back on the link a session belongs to
     (:class:`roost_agent.link.AutopilotLink`)."""
 
-    name: str
-
     def drain(self, session: Session) -> None:
         """Read what the session's transport has; failures propagate."""
 
@@ -118,10 +116,6 @@ def _no_route() -> FastRoute | None:
     return None
 
 
-def _no_read_route(session: Session) -> FastRoute | None:
-    return None
-
-
 Split = tuple[object, float, float, float, float]
 """After a tick (``Agent.postponable``): the link whose message age the tick's due is (or
 may be), the first due no message postpones, that age, frozen telemetry's due and the
@@ -160,9 +154,6 @@ class LinkReader:
         self.hurry = hurry
         # While hurried, the hub's route for the fast path (roost_agent.fastpath), if any.
         self.fast_route: Callable[[], FastRoute | None] = _no_route
-        # The hub's route for reading a link's stream in C in runs without routing it (a
-        # standby autopilot, or the active one while no client listens), if any.
-        self.read_route: Callable[[Session], FastRoute | None] = _no_read_route
         self.postponable: Callable[[], Split | None] = _no_split
         self._periodic_tick = math.nan  # the next tick the read interval alone sets
         self._tick_due = math.inf  # when the last tick said it is next due (inf: never)
@@ -372,8 +363,6 @@ class LinkReader:
             return  # detached since the select (a link stopped by a call): not ours to read
         link = session.link
         assert link is not None
-        if session.pushed is None:
-            self._take_runs(session, link)
         try:
             link.drain(session)
             if session.transport.fileno() != session.fd:  # a TCP listener took a client
@@ -382,34 +371,6 @@ class LinkReader:
         except Exception as exc:  # every failure: the link reports and reopens
             self.detach(session)
             link.failed(exc, session)
-
-    def _take_runs(self, session: Session, link: ReadLink) -> None:
-        """Read what ``session`` has in C, in runs, when the hub routes none of it (a
-        standby autopilot, or the active one while no client listens): the link then
-        takes it as it takes what the fast path routed, a run at a time, instead of
-        parsing and judging datagram by datagram (:meth:`_pump` without clients, without
-        waiting). Left to the link's own read when runs are off for it (the recorder,
-        signatures, a claim pending), C cannot read it, or the read fails (the link's own
-        read meets the failure again and reports it)."""
-        route = self.read_route(session)
-        if route is None or route.session is not session:
-            return
-        runs = link.run_state()
-        if runs is None:
-            return
-        try:
-            items, _ = pump(
-                route, [], 0.0, NOT_POSTPONED, urgent_returns=True, limit=_PUMP_LIMIT, runs=runs
-            )
-        except OSError:
-            return
-        except Exception:
-            # as in _pump: a fault of the fast path itself must not stop the reader
-            log.exception("reading a link in C failed; its links are read in Python from now on")
-            self.read_route = _no_read_route
-            return
-        if items:
-            session.pushed = items
 
     def _drain_ready(self) -> None:
         """Read the links that have data: one poll that does not wait asks which, cheaper

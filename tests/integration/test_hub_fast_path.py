@@ -508,14 +508,15 @@ def test_frames_with_a_target_are_routine_unless_addressed_to_the_agent(rig: Rig
     assert whole[-20:] == [to_agent] * 20
 
 
-def _judged_as_frame_by_frame(rig: Rig, name: str) -> dict[str, int]:
-    """Autopilot ``name`` sends level flight, a tilt beyond the envelope and back, then
-    a reboot's new timeline: its tracker counts every frame, the hub's snapshot holds the
-    last position, the time the attitude left its envelope is that of the first frame
-    beyond it, and the step back in ``time_boot_ms`` is judged a reboot, whether C read
-    the stream (in runs) or Python did. What was sent, per kind."""
-    autopilot = rig.fc1 if name == "fc1" else rig.fc2
-    tracker = rig.agent.links[name].tracker
+def test_runs_keep_what_the_health_model_and_the_hub_read(rig: Rig) -> None:
+    """Routed in C, the bulk of the stream reaches Python as runs (``_udpbatch.c``):
+    either way every frame reaches the client and is counted by the tracker, the hub's
+    snapshot holds the last position, the time the attitude left its envelope is that
+    of the first frame beyond it, and a step back in ``time_boot_ms`` is judged a
+    reboot."""
+    fc1 = rig.fc1
+    link = rig.agent.links["fc1"]
+    tracker = link.tracker
     hub = rig.agent.hub
     assert hub is not None
     before = dict(tracker.stream_facts().counts)
@@ -525,7 +526,7 @@ def _judged_as_frame_by_frame(rig: Rig, name: str) -> dict[str, int]:
 
     def send(msg: mavlink.MAVLink_message) -> None:
         sent_at.append(time.monotonic())
-        autopilot.send(autopilot.frame(msg))
+        fc1.send(fc1.frame(msg))
         sent[msg.get_type()] = sent.get(msg.get_type(), 0) + 1
         time.sleep(0.002)
 
@@ -544,7 +545,7 @@ def _judged_as_frame_by_frame(rig: Rig, name: str) -> dict[str, int]:
         return all(counts.get(kind, 0) - before.get(kind, 0) == n for kind, n in sent.items())
 
     wait_until("the tracker counted every frame", counted, 10, POLL_S)
-    snapshot = hub.snapshot(name)
+    snapshot = hub.snapshot("fc1")
     assert snapshot is not None
     assert snapshot.lat_deg == pytest.approx((470_000_000 + 59) / 1e7)
     first = len(sent_at)
@@ -570,37 +571,8 @@ def _judged_as_frame_by_frame(rig: Rig, name: str) -> dict[str, int]:
     wait_until(
         "the reboot is judged", lambda: tracker.stream_facts().reboots == reboots + 1, 10, POLL_S
     )
-    return sent
-
-
-def test_runs_keep_what_the_health_model_and_the_hub_read(rig: Rig) -> None:
-    """Routed in C, the bulk of the active autopilot's stream reaches Python as runs
-    (``_udpbatch.c``): either way every frame reaches the client and is judged as frame
-    by frame."""
-    hub = rig.agent.hub
-    assert hub is not None
-    sent = _judged_as_frame_by_frame(rig, "fc1")
     assert len(rig.client.frames(LOCAL_POSITION)) == sent["LOCAL_POSITION_NED"]
     assert (hub.counters.routed_in_c > 0) == hub.fast
-
-
-def test_a_standby_stream_is_read_in_runs_and_judged_as_frame_by_frame(rig: Rig) -> None:
-    """The standby autopilot's stream, which the hub sends nowhere, is read in C too
-    (``Hub.read_route``): it reaches Python as runs, routed to no client, and is judged
-    as frame by frame; the hub counts its frames as the standby's, kept from clients."""
-    hub = rig.agent.hub
-    assert hub is not None
-    link = rig.agent.links["fc2"]
-    dropped, in_runs = hub.counters.dropped_standby, link.counters.in_runs
-    total = sum(_judged_as_frame_by_frame(rig, "fc2").values())
-    wait_until(
-        "the hub counted every frame as the standby's",
-        lambda: hub.counters.dropped_standby - dropped >= total,
-        10,
-        POLL_S,
-    )
-    assert rig.client.frames(LOCAL_POSITION) == []
-    assert (link.counters.in_runs > in_runs) == hub.fast
 
 
 # -- the C call itself: what ends it at once while runs are taken ---------------------
