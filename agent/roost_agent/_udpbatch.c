@@ -24,8 +24,8 @@
  * one per client for the frames of every datagram one read took) in C at once, without
  * the GIL: it is taken again only to make what Python is to see (a run of them is made
  * once, when it closes), so the interpreter's lock is not passed back and forth at every
- * wake-up (about a tenth of the reader's time); Python gets what was read in one batch, when the
- * decision loop is due, when something must be seen at once, or when the batch is full,
+ * wake-up (about a tenth of the reader's time); Python gets what was read in one batch,
+ * when the decision loop is due, when something must be seen at once, or when the batch is full,
  * and judges it exactly as before (source lock, health, the hub's own bookkeeping).
  *
  * What is forwarded here is exactly what the Python path would forward to a plain
@@ -347,21 +347,34 @@ typedef struct {
     Py_ssize_t count, size;
 } Entries;
 
-/* Room for ``more`` entries, so that moving entries between lists cannot fail. */
-static int reserve(Entries *list, Py_ssize_t more) {
-    if (list->count + more <= list->size) {
+/* Room for ``needed`` items of ``item`` bytes in ``*buffer`` (``*size`` of them now),
+ * doubling from ``first``; the raw allocator, so it needs no GIL. -1: no memory (the
+ * caller says so with the GIL). */
+static int grow(void **buffer, Py_ssize_t *size, Py_ssize_t needed, size_t item,
+                Py_ssize_t first) {
+    if (needed <= *size) {
         return 0;
     }
-    Py_ssize_t size = list->size ? list->size : 64;
-    while (size < list->count + more) {
-        size *= 2;
+    Py_ssize_t larger = *size ? *size : first;
+    while (larger < needed) {
+        larger *= 2;
     }
-    Entry *grown = PyMem_RawRealloc(list->items, sizeof(Entry) * (size_t)size);
+    void *grown = PyMem_RawRealloc(*buffer, item * (size_t)larger);
     if (grown == NULL) {
-        return -1; /* no memory (the caller says so with the GIL) */
+        return -1;
     }
-    list->items = grown;
-    list->size = size;
+    *buffer = grown;
+    *size = larger;
+    return 0;
+}
+
+/* Room for ``more`` entries, so that moving entries between lists cannot fail. */
+static int reserve(Entries *list, Py_ssize_t more) {
+    void *items = list->items;
+    if (grow(&items, &list->size, list->count + more, sizeof(Entry), 64) < 0) {
+        return -1;
+    }
+    list->items = items;
     return 0;
 }
 
@@ -397,13 +410,16 @@ static const unsigned char *bytes_of(const Entry *e, const Arena *arena, Py_ssiz
 
 /* The entry's bytes and sender as the objects Python reads (with the GIL); -1: failed. */
 static int make(Entry *e, const Arena *arena, PyObject *locked_obj) {
-    if (e->data == NULL && e->run == NULL) {
+    if (e->run != NULL) {
+        return 0; /* a run is made when it closes */
+    }
+    if (e->data == NULL) {
         e->data = PyBytes_FromStringAndSize((const char *)arena->bytes + e->at, e->size);
         if (e->data == NULL) {
             return -1;
         }
     }
-    if (e->sender == NULL && e->run == NULL) {
+    if (e->sender == NULL) {
         e->sender = e->locked ? Py_NewRef(locked_obj) : sender_tuple(&e->from, e->from_length);
         if (e->sender == NULL) {
             return -1;
@@ -452,18 +468,11 @@ static int read_socket(int fd, Py_ssize_t limit, int urgent, const struct sockad
             if (size == 0) {
                 continue;
             }
-            if (arena->used + size > arena->size) {
-                Py_ssize_t grown_size = arena->size ? arena->size : 4096;
-                while (grown_size < arena->used + size) {
-                    grown_size *= 2;
-                }
-                unsigned char *grown = PyMem_RawRealloc(arena->bytes, (size_t)grown_size);
-                if (grown == NULL) {
-                    return -2;
-                }
-                arena->bytes = grown;
-                arena->size = grown_size;
+            void *bytes = arena->bytes;
+            if (grow(&bytes, &arena->size, arena->used + size, 1, 4096) < 0) {
+                return -2;
             }
+            arena->bytes = bytes;
             memcpy(arena->bytes + arena->used, slots + (size_t)i * SLOT, (size_t)size);
             Entry e = {.data = NULL,
                        .sender = NULL,
@@ -1233,18 +1242,11 @@ static PyObject *pump(PyObject *module, PyObject *args) {
                 reserve(&spent, fresh.count) < 0) {
                 goto fail;
             }
-            if (out.count + fresh.count + 1 > routed_size) {
-                Py_ssize_t size = routed_size ? routed_size : 64;
-                while (size < out.count + fresh.count + 1) {
-                    size *= 2;
-                }
-                unsigned char *grown = PyMem_RawRealloc(routed, (size_t)size);
-                if (grown == NULL) {
-                    goto fail;
-                }
-                routed = grown;
-                routed_size = size;
+            void *routed_room = routed;
+            if (grow(&routed_room, &routed_size, out.count + fresh.count + 1, 1, 64) < 0) {
+                goto fail;
             }
+            routed = routed_room;
             if (fresh.count > 1) {
                 qsort(fresh.items, (size_t)fresh.count, sizeof(Entry), compare_entries);
             }
@@ -1387,14 +1389,11 @@ static PyObject *pump(PyObject *module, PyObject *args) {
         if (reserve(&out, 1) < 0) {
             goto fail;
         }
-        if (out.count + 1 > routed_size) {
-            unsigned char *grown = PyMem_RawRealloc(routed, (size_t)(out.count + 1));
-            if (grown == NULL) {
-                goto fail;
-            }
-            routed = grown;
-            routed_size = out.count + 1;
+        void *routed_room = routed;
+        if (grow(&routed_room, &routed_size, out.count + 1, 1, 64) < 0) {
+            goto fail;
         }
+        routed = routed_room;
         if (run_close(run, &out, routed) < 0) {
             goto fail;
         }
