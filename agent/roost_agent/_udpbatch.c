@@ -600,6 +600,33 @@ done:
     return out;
 }
 
+/* One datagram to ``address`` without letting go of the GIL (Python's sendto releases
+ * it, and under contention a thread that released it waits a switch interval to get it
+ * back: a hub client's command would wait for whatever Python runs elsewhere). A UDP
+ * send does not block for long: the kernel queues the datagram or refuses it at once
+ * (MSG_DONTWAIT: BlockingIOError, as on a non-blocking socket). */
+static PyObject *send_datagram(PyObject *module, PyObject *args) {
+    (void)module;
+    int fd;
+    Py_buffer data;
+    PyObject *where;
+    if (!PyArg_ParseTuple(args, "iy*O:send", &fd, &data, &where)) {
+        return NULL;
+    }
+    struct sockaddr_in address;
+    if (address_of(where, &address) < 0) {
+        PyBuffer_Release(&data);
+        return NULL;
+    }
+    ssize_t sent = sendto(fd, data.buf, (size_t)data.len, MSG_DONTWAIT,
+                          (const struct sockaddr *)&address, sizeof address);
+    PyBuffer_Release(&data);
+    if (sent < 0) {
+        return PyErr_SetFromErrno(PyExc_OSError);
+    }
+    Py_RETURN_NONE;
+}
+
 /* (id, seq, time_boot_ms | -1, ...) of ``count`` routine frames, for Python. */
 static PyObject *summarise(const long long *summary, int count) {
     PyObject *out = PyTuple_New(count * 3);
@@ -1452,6 +1479,8 @@ static PyMethodDef methods[] = {
     {"receive", receive, METH_VARARGS,
      "receive(fd, limit) -> [(data, (host, port) | None, stamp | None)]: up to limit "
      "queued datagrams, one recvmmsg per 16."},
+    {"send", send_datagram, METH_VARARGS,
+     "send(fd, data, (host, port)): one datagram, the GIL held (MSG_DONTWAIT)."},
     {"set_messages", set_messages, METH_O,
      "set_messages({msg_id: (crc_extra, target_system_at, target_component_at)})"},
     {"pump", pump, METH_VARARGS,

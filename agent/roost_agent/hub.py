@@ -88,6 +88,7 @@ from roost_agent.link import LOG_REPLIES
 from roost_agent.link import READ_KINDS as LINK_READ_KINDS
 from roost_agent.reader import Session
 from roost_agent.signing import LinkSigning
+from roost_agent.transport import receive_all
 from roost_api.autopilot_enums import HubTransport, StandbyInStepReason
 from roost_api.core import Stack
 from roost_api.plain import AutopilotSpec, HubEndpointStatus, HubSpec, RedundantAutopilotSpec
@@ -805,12 +806,10 @@ class Hub:
     def _read_udp(self, endpoint: _Endpoint, now: float) -> None:
         sock = endpoint.sock
         name = endpoint.name
-        for _ in range(256):
-            try:
-                data, address = sock.recvfrom(UDP_MAX)
-            except (BlockingIOError, ConnectionRefusedError):
-                return
-            peer = (str(address[0]), int(address[1]))
+        for data, address, _ in receive_all(sock, 256):
+            if address is None:
+                continue
+            peer = address
             client = self._clients.get((name, peer))
             items, _ = scan(data)  # a frame never continues in the next datagram
             if endpoint.gate.open:

@@ -296,17 +296,24 @@ def _receive_stamped(sock: socket.socket) -> Received:
     return data, address, None
 
 
-def _batch_receiver() -> Callable[[int, int], list[Received]] | None:
-    """The C extension's ``receive`` (``_udpbatch.c``: one recvmmsg for the queue, no
-    failing read at its end), or None where it is not built (no C compiler at install)."""
+def _from_extension(name: str) -> Callable[..., object] | None:
+    """A function of the C extension ``_udpbatch.c``, or None where it is not built (no C
+    compiler at install)."""
     try:
         module = importlib.import_module("roost_agent._udpbatch")
     except ImportError:
         return None
-    return cast("Callable[[int, int], list[Received]]", module.receive)
+    return cast("Callable[..., object]", getattr(module, name))
 
 
-BATCH_RECEIVE: Final = _batch_receiver()
+BATCH_RECEIVE: Final = cast(
+    "Callable[[int, int], list[Received]] | None", _from_extension("receive")
+)
+"""The C extension's ``receive``: one recvmmsg for the queue, no failing read at its end."""
+
+DATAGRAM_SEND: Final = cast("Callable[[int, bytes, Address], None] | None", _from_extension("send"))
+"""The C extension's ``send``: one datagram, the GIL held (Python's ``sendto`` lets it go,
+and under contention the sending thread waits a switch interval to take it back)."""
 
 
 def receive_all(sock: socket.socket, limit: int) -> list[Received]:
@@ -317,6 +324,17 @@ def receive_all(sock: socket.socket, limit: int) -> list[Received]:
     if receive is not None:
         return receive(sock.fileno(), limit)
     return receive_each(sock, limit)
+
+
+def send_to(sock: socket.socket, data: bytes, address: Address) -> None:
+    """One datagram to ``address``: without releasing the GIL where the C extension is
+    built (a hub client's command then waits for no other Python thread), else
+    ``sendto``. Raises OSError as ``sendto`` does (BlockingIOError: the queue is full)."""
+    send = DATAGRAM_SEND
+    if send is not None:
+        send(sock.fileno(), data, address)
+    else:
+        sock.sendto(data, address)
 
 
 def receive_each(sock: socket.socket, limit: int) -> list[Received]:
@@ -352,7 +370,7 @@ class UdpListen(_Udp):
 
     def send(self, data: bytes) -> None:
         if self._peer is not None:  # no autopilot proved itself yet: nowhere to send
-            self._sock.sendto(data, self._peer)
+            send_to(self._sock, data, self._peer)
 
 
 class UdpOut(_Udp):
@@ -367,7 +385,7 @@ class UdpOut(_Udp):
 
     def send(self, data: bytes) -> None:
         assert self.fixed_peer is not None
-        self._sock.sendto(data, self.fixed_peer)
+        send_to(self._sock, data, self.fixed_peer)
 
 
 def _local_address_to(peer: Address) -> str:

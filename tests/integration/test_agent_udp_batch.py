@@ -9,6 +9,7 @@ compiler); in `make test` this file runs in the compiled build's run
 
 from __future__ import annotations
 
+import errno
 import os
 import select
 import socket
@@ -18,6 +19,7 @@ import pytest
 
 from roost_agent.transport import (
     BATCH_RECEIVE,
+    DATAGRAM_SEND,
     SO_TIMESTAMPNS,
     Received,
     UdpListen,
@@ -33,14 +35,32 @@ def _compiled(sock: socket.socket, limit: int) -> list[Received]:
     return BATCH_RECEIVE(sock.fileno(), limit)
 
 
-WAYS = [
-    pytest.param(receive_each, id="python"),
-    pytest.param(
-        _compiled,
-        id="recvmmsg",
-        marks=pytest.mark.skipif(BATCH_RECEIVE is None, reason="the C extension is not built"),
-    ),
-]
+def _python_and_c(python: object, c: object, c_id: str, built: bool) -> list[object]:
+    """Both ways as test parameters, the C one skipped where the extension is not built."""
+    return [
+        pytest.param(python, id="python"),
+        pytest.param(
+            c, id=c_id, marks=pytest.mark.skipif(not built, reason="the C extension is not built")
+        ),
+    ]
+
+
+WAYS = _python_and_c(receive_each, _compiled, "recvmmsg", BATCH_RECEIVE is not None)
+
+
+Send = Callable[[socket.socket, bytes, tuple[str, int]], None]
+
+
+def _send_python(sock: socket.socket, data: bytes, address: tuple[str, int]) -> None:
+    sock.sendto(data, address)
+
+
+def _send_compiled(sock: socket.socket, data: bytes, address: tuple[str, int]) -> None:
+    assert DATAGRAM_SEND is not None
+    DATAGRAM_SEND(sock.fileno(), data, address)
+
+
+SENDS = _python_and_c(_send_python, _send_compiled, "c", DATAGRAM_SEND is not None)
 
 
 @pytest.fixture
@@ -132,3 +152,34 @@ def test_a_link_reads_its_queue_the_same_either_way() -> None:
         assert {sender for _, sender, _ in got} == {source}
     finally:
         link.close()
+
+
+@pytest.mark.parametrize("send", SENDS)
+def test_a_datagram_sent_either_way_arrives_whole_from_the_senders_port(
+    pair: tuple[socket.socket, socket.socket], send: Send
+) -> None:
+    rx, tx = pair
+    sizes = [1, 280, 1500, 9000]
+    for size in sizes:
+        send(tx, bytes(range(256)) * (size // 256) + bytes(size % 256), rx.getsockname())
+    assert select.select([rx], [], [], 2.0)[0]
+    got = receive_each(rx, 10)
+    assert [len(data) for data, _, _ in got] == sizes
+    assert {sender for _, sender, _ in got} == {tx.getsockname()}
+
+
+@pytest.mark.skipif(DATAGRAM_SEND is None, reason="the C extension is not built")
+def test_the_c_send_refuses_what_it_cannot_send_with_an_error_a_link_catches(
+    pair: tuple[socket.socket, socket.socket],
+) -> None:
+    """A link's write catches OSError and ValueError (``AutopilotLink._send``)."""
+    rx, tx = pair
+    closed = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    closed.close()
+    with pytest.raises(OSError):
+        _send_compiled(closed, b"x", rx.getsockname())
+    with pytest.raises(ValueError, match="not an IPv4 address"):
+        _send_compiled(tx, b"x", ("::1", rx.getsockname()[1]))
+    with pytest.raises(OSError) as too_long:  # past the largest UDP datagram, as sendto
+        _send_compiled(tx, bytes(70_000), rx.getsockname())
+    assert too_long.value.errno == errno.EMSGSIZE
