@@ -298,12 +298,12 @@ def _receive_stamped(sock: socket.socket) -> Received:
 
 def _from_extension(name: str) -> Callable[..., object] | None:
     """A function of the C extension ``_udpbatch.c``, or None where it is not built (no C
-    compiler at install)."""
+    compiler at install) or is a build from before the function existed."""
     try:
         module = importlib.import_module("roost_agent._udpbatch")
     except ImportError:
         return None
-    return cast("Callable[..., object]", getattr(module, name))
+    return cast("Callable[..., object] | None", getattr(module, name, None))
 
 
 BATCH_RECEIVE: Final = cast(
