@@ -578,7 +578,11 @@ class Agent(Actions, SpecChanges):
         autopilot's link, the first of those thresholds a new message of it would not
         postpone, the age of its last message at which the first one it would falls
         (the late or silent stream), and frozen telemetry's threshold with the age of
-        its last ``time_boot_ms`` advance at which it falls. The reader's fast path
+        its last ``time_boot_ms`` advance at which it falls; of a standby, every
+        threshold but its late stream's warning (``HealthTracker.next_threshold``: the
+        arbiter acts on a standby's failures, and judges it afresh when it is to become
+        the target), which would otherwise bring the reader back every few tens of
+        milliseconds while two autopilots stream. The reader's fast path
         waits for those ages past the active autopilot's latest frames instead of waking
         at the due while frames come (roost_agent.fastpath). None: the due is the
         arbiter's, not a threshold's.
@@ -601,7 +605,14 @@ class Agent(Actions, SpecChanges):
                 own, age, frozen, frozen_age = tracker.postponed_by_messages(last)
                 fixed = min(fixed, own + JUDGE_LATE_S)
             else:
-                later = tracker.holds_until(last) if holding else tracker.next_threshold(last)
+                # a standby's late warning brings the reader back for nothing: with two
+                # streaming autopilots it would every few tens of milliseconds
+                # (HealthTracker.next_threshold says why it may be left out)
+                later = (
+                    tracker.holds_until(last, late_warning=False)
+                    if holding
+                    else tracker.next_threshold(last, late_warning=False)
+                )
                 fixed = min(fixed, later + JUDGE_LATE_S)
         return active, fixed, age + JUDGE_LATE_S, frozen + JUDGE_LATE_S, frozen_age + JUDGE_LATE_S
 

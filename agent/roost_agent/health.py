@@ -775,22 +775,32 @@ class HealthTracker:
         """
         return now < self.holds_until(judged)
 
-    def holds_until(self, judged: Assessment) -> float:
+    def holds_until(self, judged: Assessment, *, late_warning: bool = True) -> float:
         """The time until which :meth:`holds` is true for ``judged`` with nothing new
         observed (minus infinity when something it read changed already): when the
-        decision loop next has to judge this autopilot although no message came."""
+        decision loop next has to judge this autopilot although no message came.
+        ``late_warning=False``: leaving out the late stream's warning (see
+        :meth:`next_threshold`)."""
         with self._lock:
             o = self._o
             if judged.version != o.version:
                 return -math.inf
-            return _next_threshold(o, self.thresholds, judged.at)
+            return _next_threshold(o, self.thresholds, judged.at, late_warning=late_warning)
 
-    def next_threshold(self, judged: Assessment) -> float:
+    def next_threshold(self, judged: Assessment, *, late_warning: bool = True) -> float:
         """The first time after ``judged`` a finding could appear, go or change level with
         nothing new observed — also for a judgement that never holds because a finding's
-        text reads the clock: when to judge again at the latest."""
+        text reads the clock: when to judge again at the latest.
+
+        ``late_warning=False`` leaves out the threshold at which a fast stream turns late
+        (a warning: the next message is overdue, the stream not yet silent), for a
+        standby whose judgement is wanted only where the arbiter acts on it: a warning is
+        not a failure (its time free of failures runs on through it), and whether a
+        standby is OK when it is to become the target is judged afresh at that tick, from
+        every message read by then. Its silence still counts: a failure restarts that
+        time, and the arbiter must see it begin."""
         with self._lock:
-            return _next_threshold(self._o, self.thresholds, judged.at)
+            return _next_threshold(self._o, self.thresholds, judged.at, late_warning=late_warning)
 
     def postponed_by_messages(self, judged: Assessment) -> Postponable:
         """:meth:`next_threshold` split for a reader that watches arrivals itself (the
@@ -1004,12 +1014,14 @@ def _tilt_warned(o: _Observed, th: Thresholds) -> bool:
     return o.tilt_deg is not None and o.tilt_deg > min(TILT_WARN_DEG, th.max_tilt_deg)
 
 
-def _next_threshold(o: _Observed, th: Thresholds, after: float) -> float:
+def _next_threshold(o: _Observed, th: Thresholds, after: float, *, late_warning: bool) -> float:
     """The first time after ``after`` (when the last judgement was made) a finding could
     appear, go or change level with nothing new observed (see
-    :meth:`HealthTracker.holds`): every threshold of :func:`_findings`. Thresholds passed
-    by then were part of that judgement; one within float rounding of it still counts."""
-    ages, frozen, fixed = _threshold_times(o, th)
+    :meth:`HealthTracker.holds`): every threshold of :func:`_findings` (but the late
+    stream's warning without ``late_warning``: :meth:`HealthTracker.next_threshold`).
+    Thresholds passed by then were part of that judgement; one within float rounding of
+    it still counts."""
+    ages, frozen, fixed = _threshold_times(o, th, late_warning=late_warning)
     return _first_after([*ages, *frozen, *fixed], after)
 
 
@@ -1018,16 +1030,20 @@ def _first_after(times: list[float], after: float) -> float:
     return min(upcoming) - _RECHECK_EARLY_S if upcoming else math.inf
 
 
-def _threshold_times(o: _Observed, th: Thresholds) -> tuple[list[float], list[float], list[float]]:
+def _threshold_times(
+    o: _Observed, th: Thresholds, *, late_warning: bool = True
+) -> tuple[list[float], list[float], list[float]]:
     """The thresholds of :func:`_next_threshold`: those a new message postpones (the
-    last message's age: late, silent), frozen telemetry's (a message whose
-    ``time_boot_ms`` advances postpones it) and the others."""
+    last message's age: late, unless ``late_warning`` is False, and silent), frozen
+    telemetry's (a message whose ``time_boot_ms`` advances postpones it) and the others."""
     if o.last_at is None or o.first_at is None:
         return [], [], []  # "no data" lasts until a message comes (a new version)
     fast = _fast_stream(o, th)
     silence_s = _silence_s(o, th)
     if fast:
-        ages = [o.last_at + _late_s(silence_s, th), o.last_at + silence_s]
+        ages = [o.last_at + silence_s]
+        if late_warning:
+            ages.insert(0, o.last_at + _late_s(silence_s, th))
     else:
         ages = [o.last_at + th.heartbeat_error_ms / 1000]
     times: list[float] = []

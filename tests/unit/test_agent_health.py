@@ -1099,6 +1099,41 @@ def test_only_the_thresholds_on_the_last_messages_age_are_postponed_by_messages(
     assert v.tracker.next_threshold(judged) == pytest.approx(min(fixed, last + age, frozen)), what
 
 
+@pytest.mark.parametrize("learnt", [False, True], ids=["the ceiling", "learnt"])
+def test_left_out_the_late_warning_the_next_threshold_is_the_silence(learnt: bool) -> None:
+    """What a standby's judgement waits for in the fast path (Agent.postponable): every
+    threshold but the late stream's warning. Its silence, a failure, still counts."""
+    th = TH.model_copy(update={"message_error_min_ms": 40})  # a floor the stream can learn
+    v = Vehicle(thresholds=th)
+    v.fly(2.5 if learnt else 1.5)  # a rate window closed: a fast stream, learnt or not
+    last = v.t - 1 / 50  # the flight's last message
+    judged = v.tracker.assess(last + 0.001)
+    silence = v.tracker.silence_threshold_s()
+    assert (silence < th.message_error_ms / 1000) == learnt
+    late = silence * th.message_warn_ms / th.message_error_ms
+    assert v.tracker.next_threshold(judged) == pytest.approx(last + late, abs=1e-5)
+    for without_late in (
+        v.tracker.next_threshold(judged, late_warning=False),
+        v.tracker.holds_until(judged, late_warning=False),
+    ):
+        assert without_late == pytest.approx(last + silence, abs=1e-5)
+    # past the late threshold the judgement is a warning, which does not fail
+    late_judged = v.tracker.assess(last + late + 0.001)
+    assert late_judged.level == HealthLevel.WARN and not late_judged.failing
+    assert v.tracker.assess(last + silence + 0.001).failing
+
+
+def test_left_out_the_late_warning_a_slow_stream_waits_as_before() -> None:
+    """A stream too slow for the any-message age (heartbeats only) has no late warning:
+    both ways the next threshold is the same."""
+    v = Vehicle()
+    for _ in range(5):
+        v.t += 1.0
+        v.heartbeat()
+    judged = v.tracker.assess(v.t)
+    assert v.tracker.next_threshold(judged, late_warning=False) == v.tracker.next_threshold(judged)
+
+
 def test_a_tracker_without_messages_postpones_nothing() -> None:
     v = Vehicle()
     judged = v.tracker.assess(1.0)
