@@ -7,7 +7,10 @@ sets) and ticks every 10 ms, twice: as the agent does, and with every tick a ful
 The failovers (at which tick, from and to, why), the health events and the arbiter's
 final state must be the same, and the skipping agent must have skipped most ticks.
 In particular an autopilot that goes silent is judged at the first tick past its
-threshold although no message arrives to wake anything.
+threshold although no message arrives to wake anything. The last tables tick as the
+loop does while the hub's fast path routes the active autopilot's frames in C: it wakes
+for a standby's silence (the arbiter must see a failure begin) but not for its
+lateness, a warning.
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ from datetime import UTC, datetime
 
 import pytest
 
-from roost_agent.agent import Agent
+from roost_agent.agent import ROUTED_TICK_S, Agent
 from roost_agent.bridge import SimulatedBridge
 from roost_agent.events import AgentEvent
 from roost_api.autopilot import (
@@ -172,6 +175,18 @@ def test_a_silent_active_autopilot_is_judged_at_its_threshold_without_any_messag
     assert failover.onset_at == pytest.approx(last)
 
 
+def _stream(feed: Feed, t: float, step: int) -> None:
+    """Step ``step`` of a 50 Hz flight at ``t``: ATTITUDE, and every 10th step
+    SYS_STATUS, every 50th a heartbeat and the landed state (in the air)."""
+    feed.t = t
+    feed.attitude()
+    if step % 50 == 0:
+        feed.heartbeat()
+        feed.landed(MavLandedState.IN_AIR)
+    if step % 10 == 0:
+        feed.sys_status()
+
+
 def test_a_loop_ticking_only_when_due_judges_a_silence_at_its_threshold() -> None:
     """With nothing arriving from the active autopilot, nothing pokes the loop: it ticks
     when the last tick said it is next due, and no sooner. A silent active autopilot must
@@ -183,14 +198,7 @@ def test_a_loop_ticking_only_when_due_judges_a_silence_at_its_threshold() -> Non
     feeds = {name: Feed(link.tracker) for name, link in agent.links.items()}
 
     def stream(name: str, t: float, step: int) -> None:
-        feed = feeds[name]
-        feed.t = t
-        feed.attitude()
-        if step % 50 == 0:
-            feed.heartbeat()
-            feed.landed(MavLandedState.IN_AIR)
-        if step % 10 == 0:
-            feed.sys_status()
+        _stream(feeds[name], t, step)
 
     step = 0
     while step * 0.02 < 3.0:  # both stream at 50 Hz; the loop ticks with every message
@@ -225,3 +233,92 @@ def _events(agent: Agent) -> list[AgentEvent]:
         if event is not None:
             events.append(event)
     return events
+
+
+def _fly_as_the_fast_path(
+    standby_gaps: list[tuple[float, float]], seconds: float
+) -> tuple[Agent, list[float], list[AgentEvent]]:
+    """Both autopilots stream at 50 Hz and the loop ticks with every message for 2 s;
+    then it ticks as the reader does while the hub's fast path routes the active
+    autopilot's frames in C: that stream keeps pushing its own deadlines ahead, so the
+    loop wakes at ``Agent.postponable``'s other deadlines (the standby's among them), at
+    an arbiter's due, or after the routed read interval. The standby sends nothing
+    during each (start, end) of ``standby_gaps``. The wake-up times and events."""
+    clock = Clock()
+    agent = Agent(
+        two_px4_spec(15100, TH), SimulatedBridge([0, 1]), clock=clock, wall_clock=lambda: WALL
+    )
+    feeds = {name: Feed(link.tracker) for name, link in agent.links.items()}
+
+    def stream(name: str, t: float, step: int) -> None:
+        if name != "fc2" or not any(start <= t < end for start, end in standby_gaps):
+            _stream(feeds[name], t, step)
+
+    step = 0
+    due = None
+    while step * 0.02 < 2.0:
+        clock.now = step * 0.02
+        for name in feeds:
+            stream(name, clock.now, step)
+        due = agent.tick()
+        step += 1
+    wakes: list[float] = []
+    while clock.now < seconds:
+        split = agent.postponable()
+        routed_read = clock.now + ROUTED_TICK_S
+        if split is None:
+            wake = routed_read if due is None else min(due, routed_read)
+        else:
+            wake = min(split[1], routed_read)
+        while step * 0.02 <= wake:
+            for name in feeds:
+                stream(name, step * 0.02, step)
+            step += 1
+        clock.now = wake
+        wakes.append(wake)
+        due = agent.tick()
+    return agent, wakes, _events(agent)
+
+
+def _standby_errors(events: list[AgentEvent]) -> list[AgentEvent]:
+    return [e for e in events if e.autopilot == "fc2" and "ERROR" in e.message]
+
+
+def test_with_the_fast_path_a_standby_wakes_the_loop_at_its_silence_not_its_lateness() -> None:
+    """A standby's late stream is a warning the arbiter does not act on (its time free of
+    failures runs on; whether it is OK is judged afresh when it is to become the
+    target), so the fast path's loop does not wake for it: at most once per silence
+    threshold (200 ms, less a 20 ms message period) while the standby streams, not once
+    per late threshold (100 ms)."""
+    agent, wakes, events = _fly_as_the_fast_path([], 5.0)
+    span = wakes[-1] - wakes[0]
+    silence_wakes = span / ((TH.message_error_ms - 20) / 1000)
+    assert len(wakes) <= silence_wakes + 2
+    assert not _standby_errors(events)
+    assert agent.active == "fc1"
+
+
+STANDBY_GAP_ROWS = [
+    # (what, standby gap seconds, the arbiter sees a failure)
+    ("late only: 150 ms, past the 100 ms warning, short of the 200 ms silence", 0.15, False),
+    ("silent for 240 ms, then back", 0.24, True),
+    ("silent for 1 s, then back", 1.0, True),
+]
+
+
+@pytest.mark.parametrize(
+    ("what", "gap", "failed"), STANDBY_GAP_ROWS, ids=[r[0] for r in STANDBY_GAP_ROWS]
+)
+def test_with_the_fast_path_a_standbys_silence_restarts_its_time_free_of_failures(
+    what: str, gap: float, failed: bool
+) -> None:
+    """The standby's silence is still a deadline the loop wakes for: the arbiter sees it
+    fail and restarts its time free of failures when it is back; a lateness alone
+    restarts nothing."""
+    start = 3.0
+    agent, _, events = _fly_as_the_fast_path([(start, start + gap)], 5.0)
+    since = agent._state.ok_since.get("fc2")
+    assert since is not None, what  # back and free of failures again by 5 s
+    assert (since >= start) == failed, what
+    assert bool(_standby_errors(events)) == failed, what
+    assert agent.active == "fc1", what
