@@ -15,6 +15,9 @@
  * datagrams carry nothing and are skipped. OSError for a failure other than an empty
  * queue or a refused earlier send (ECONNREFUSED, which the Python reads also ignore).
  *
+ * send(fd, data, (host, port)): one datagram, sent without letting go of the GIL
+ * (roost_agent.transport.send_to; why at send_datagram below).
+ *
  * The hub's fast path (roost_agent.fastpath), in the same module as its reads are these:
  * the active autopilot's frames routed to plain UDP clients in C. Why: with a hub client connected the link reader woke for every datagram so routed
  * frames were not held back, and each wake-up (poll, read, parse, the source lock and
@@ -1492,8 +1495,9 @@ static PyMethodDef methods[] = {
 
 static struct PyModuleDef module = {
     PyModuleDef_HEAD_INIT, "roost_agent._udpbatch",
-    "Batch UDP reception (recvmmsg, kernel arrival stamps) for the agent's links, and the "
-    "hub's fast path: the active autopilot's frames to plain UDP clients in C.",
+    "Batch UDP reception (recvmmsg, kernel arrival stamps) and a send that keeps the GIL "
+    "for the agent's links, and the hub's fast path: the active autopilot's frames to "
+    "plain UDP clients in C.",
     -1,
     methods, NULL, NULL, NULL, NULL,
 };

@@ -605,10 +605,7 @@ class Agent(Actions, SpecChanges):
                 own, age, frozen, frozen_age = tracker.postponed_by_messages(last)
                 fixed = min(fixed, own + JUDGE_LATE_S)
             else:
-                # a standby's late warning brings the reader back for nothing: with two
-                # streaming autopilots it would every few tens of milliseconds
-                # (HealthTracker.next_threshold says why it may be left out)
-                later = (
+                later = (  # not its late warning (the docstring says why)
                     tracker.holds_until(last, late_warning=False)
                     if holding
                     else tracker.next_threshold(last, late_warning=False)

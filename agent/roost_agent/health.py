@@ -810,7 +810,7 @@ class HealthTracker:
         ``time_boot_ms`` advances postpones frozen telemetry's likewise."""
         with self._lock:
             o = self._o
-            ages, frozen, fixed = _threshold_times(o, self.thresholds)
+            ages, frozen, fixed = _threshold_times(o, self.thresholds, late_warning=True)
             first_age = _first_after(ages, judged.at)
             last_at = o.last_at
             age = math.inf if last_at is None else first_age - last_at
@@ -1031,7 +1031,7 @@ def _first_after(times: list[float], after: float) -> float:
 
 
 def _threshold_times(
-    o: _Observed, th: Thresholds, *, late_warning: bool = True
+    o: _Observed, th: Thresholds, *, late_warning: bool
 ) -> tuple[list[float], list[float], list[float]]:
     """The thresholds of :func:`_next_threshold`: those a new message postpones (the
     last message's age: late, unless ``late_warning`` is False, and silent), frozen
@@ -1041,9 +1041,8 @@ def _threshold_times(
     fast = _fast_stream(o, th)
     silence_s = _silence_s(o, th)
     if fast:
-        ages = [o.last_at + silence_s]
-        if late_warning:
-            ages.insert(0, o.last_at + _late_s(silence_s, th))
+        silent = o.last_at + silence_s
+        ages = [o.last_at + _late_s(silence_s, th), silent] if late_warning else [silent]
     else:
         ages = [o.last_at + th.heartbeat_error_ms / 1000]
     times: list[float] = []
